@@ -1,0 +1,82 @@
+"""Laser-stripe extractors: image in, stripe pixels (u, v) per laser out.
+
+Every extractor is a function ``extract(image_bgr, calibration, **options) -> Detections``. They are looked up
+by name in :data:`METHODS` (imported lazily so that importing the package stays cheap).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import ExtractionError
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Stripe measurements of one image.
+
+    Attributes:
+        uv: (N, 2) sub-pixel image coordinates of stripe centres.
+        laser: (N,) index of the laser (into ``Calibration.lasers``) each measurement belongs to.
+        quality: (N,) confidence in [0, 1].
+    """
+
+    uv: FloatArray
+    laser: NDArray[np.int_]
+    quality: FloatArray
+
+    @classmethod
+    def empty(cls) -> Detections:
+        """No measurements."""
+        return cls(np.zeros((0, 2)), np.zeros(0, dtype=int), np.zeros(0))
+
+
+Extractor = Callable[..., Detections]
+
+#: Extractor name -> "module:function" (relative to this package).
+METHODS: dict[str, str] = {
+    "subpixel": ".subpixel:extract",
+    "paper": ".paper:extract",
+}
+DEFAULT_METHOD = "subpixel"
+
+
+def get_extractor(method: str) -> Extractor:
+    """The extractor function registered under ``method``; raises :class:`ExtractionError` if unknown."""
+    try:
+        target = METHODS[method]
+    except KeyError:
+        msg = f"unknown extraction method {method!r}; choose one of {sorted(METHODS)}"
+        raise ExtractionError(msg) from None
+    module_name, func = target.split(":")
+    module = importlib.import_module(module_name, __name__)
+    fn: Extractor = getattr(module, func)
+    return fn
+
+
+def check_image(image: Any, calibration: Calibration) -> NDArray[np.uint8]:
+    """Validate an image for processing: (H, W, 3) uint8 BGR of the calibration's size."""
+    if not isinstance(image, np.ndarray):
+        msg = f"image must be a numpy array (H, W, 3) uint8 BGR, got {type(image).__name__}"
+        raise ExtractionError(msg)
+    if image.ndim != 3 or image.shape[2] != 3:
+        msg = f"image must have shape (H, W, 3) BGR, got {image.shape}"
+        raise ExtractionError(msg)
+    if image.dtype != np.uint8:
+        msg = f"image must be uint8, got {image.dtype}"
+        raise ExtractionError(msg)
+    h, w = image.shape[:2]
+    cam = calibration.camera
+    if (w, h) != (cam.width, cam.height):
+        msg = f"image is {w}x{h} but the calibration's camera is {cam.width}x{cam.height}"
+        raise ExtractionError(msg)
+    return image
