@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "base": ("services.cli_base", "run the base station (Zenoh router, fleet subscriber, map)"),
     "rov": ("services.cli_rov", "run one ROV: camera + IMU -> pose-tagged point clouds over Zenoh"),
     "demo": ("services.cli_demo", "run an in-process demo fleet of simulated ROVs and a base station"),
+    "certs": ("services.cli_certs", "generate the secure profile: CA, base-station and per-robot TLS certificates"),
 }
 
 
