@@ -13,5 +13,14 @@ from .frames import Pose
 from .scan import Scan
 from .sensor import Sensor
 
-__all__ = ["Calibration", "Camera", "LaserPlane", "LrsensorError", "Pose", "Scan", "Sensor", "load_calibration"]
+__all__ = [
+    "Calibration",
+    "Camera",
+    "LaserPlane",
+    "LrsensorError",
+    "Pose",
+    "Scan",
+    "Sensor",
+    "load_calibration",
+]
 __version__ = "0.1.0"

@@ -90,8 +90,8 @@ class Calibration:
 
     camera: Camera
     lasers: tuple[LaserPlane, ...]
-    R_cam_from_body: tuple[tuple[float, float, float], ...] = tuple(
-        tuple(float(x) for x in row) for row in R_CAM_FROM_BODY_DEFAULT  # type: ignore[misc]
+    R_cam_from_body: tuple[tuple[float, float, float], ...] = field(
+        default_factory=lambda: _rows3(R_CAM_FROM_BODY_DEFAULT)
     )
     t_cam_from_body: tuple[float, float, float] = (0.0, 0.0, 0.0)
     metadata: Mapping[str, Any] = field(default_factory=dict, compare=False)
@@ -140,7 +140,9 @@ class Calibration:
             ),
         )
 
-    def with_lasers(self, lasers: Sequence[LaserPlane], metadata: Mapping[str, Any] | None = None) -> Calibration:
+    def with_lasers(
+        self, lasers: Sequence[LaserPlane], metadata: Mapping[str, Any] | None = None
+    ) -> Calibration:
         """A copy with other laser planes (and optionally other metadata)."""
         return replace(
             self, lasers=tuple(lasers), metadata=dict(self.metadata if metadata is None else metadata)
@@ -164,7 +166,9 @@ class Calibration:
             },
             "R_cam_from_body": [list(r) for r in self.R_cam_from_body],
             "t_cam_from_body": list(self.t_cam_from_body),
-            "lasers": [{"name": l.name, "point": list(l.point), "normal": list(l.normal)} for l in self.lasers],
+            "lasers": [
+                {"name": l.name, "point": list(l.point), "normal": list(l.normal)} for l in self.lasers
+            ],
         }
         if self.metadata:
             out["metadata"] = dict(self.metadata)
@@ -202,12 +206,16 @@ class Calibration:
         fy = _num(cam_d, "fy", f"{source}: camera.fy", positive=True)
         cx = _num(cam_d, "cx", f"{source}: camera.cx")
         cy = _num(cam_d, "cy", f"{source}: camera.cy")
-        dist = _vector(cam_d, "distortion", f"{source}: camera.distortion", 5) if "distortion" in cam_d else (
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
+        dist = (
+            _vector(cam_d, "distortion", f"{source}: camera.distortion", 5)
+            if "distortion" in cam_d
+            else (
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
         )
         camera = Camera(width, height, fx, fy, cx, cy, (dist[0], dist[1], dist[2], dist[3], dist[4]))
 
@@ -247,7 +255,7 @@ class Calibration:
         return cls(
             camera=camera,
             lasers=tuple(lasers),
-            R_cam_from_body=tuple(tuple(float(x) for x in row) for row in R),  # type: ignore[arg-type]
+            R_cam_from_body=_rows3(R),
             t_cam_from_body=(t[0], t[1], t[2]),
             metadata=dict(meta) if isinstance(meta, Mapping) else {},
         )
@@ -280,6 +288,11 @@ class Calibration:
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read and validate a calibration file (same as :meth:`Calibration.load`)."""
     return Calibration.load(path)
+
+
+def _rows3(R: FloatArray) -> tuple[tuple[float, float, float], ...]:
+    """A (3, 3) array as nested tuples of floats."""
+    return tuple((float(r[0]), float(r[1]), float(r[2])) for r in np.asarray(R, dtype=float))
 
 
 def _reject_constant(name: str) -> float:

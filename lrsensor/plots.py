@@ -26,7 +26,11 @@ def pyplot() -> Any:
 
 
 def plot_range_theory(
-    path: Path, baselines_m: Sequence[float], cam: RangeCamera, step_m: float = 0.1, max_distance_m: float = 8.0
+    path: Path,
+    baselines_m: Sequence[float],
+    cam: RangeCamera,
+    step_m: float = 0.1,
+    max_distance_m: float = 8.0,
 ) -> None:
     """The paper's Fig. 9 and Fig. 10: pixel value and pixel change per step against distance."""
     plt = pyplot()

@@ -48,7 +48,9 @@ def pixel_from_range(x_m: ArrayLike, baseline_m: float, cam: RangeCamera = Range
     return baseline_m * cam.focal_px / np.asarray(x_m, dtype=float)
 
 
-def pixel_change(x_m: ArrayLike, baseline_m: float, step_m: float = 0.1, cam: RangeCamera = RangeCamera()) -> FloatArray:
+def pixel_change(
+    x_m: ArrayLike, baseline_m: float, step_m: float = 0.1, cam: RangeCamera = RangeCamera()
+) -> FloatArray:
     """Pixel change when the range grows from ``x`` to ``x + step_m`` (the paper's Fig. 9, bottom)."""
     x = np.asarray(x_m, dtype=float)
     return pixel_from_range(x, baseline_m, cam) - pixel_from_range(x + step_m, baseline_m, cam)
@@ -60,7 +62,9 @@ def depth_resolution(x_m: ArrayLike, baseline_m: float, cam: RangeCamera = Range
     return x * x / (baseline_m * cam.focal_px)
 
 
-def max_range(baseline_m: float, min_change_px: float = 1.0, step_m: float = 0.1, cam: RangeCamera = RangeCamera()) -> float:
+def max_range(
+    baseline_m: float, min_change_px: float = 1.0, step_m: float = 0.1, cam: RangeCamera = RangeCamera()
+) -> float:
     """Largest range at which a ``step_m`` range change still moves the stripe by ``min_change_px`` pixels.
 
     Solves ``b f_px (1/x - 1/(x + s)) = p``, i.e. ``x^2 + s x - b f_px s / p = 0``.

@@ -33,8 +33,11 @@ class Scan:
 
     def __post_init__(self) -> None:
         n = self.points.shape[0]
-        if self.points.shape != (n, 3) or self.laser.shape != (n,) or self.uv.shape != (n, 2) or (
-            self.quality.shape != (n,)
+        if (
+            self.points.shape != (n, 3)
+            or self.laser.shape != (n,)
+            or self.uv.shape != (n, 2)
+            or (self.quality.shape != (n,))
         ):
             msg = (
                 f"inconsistent scan arrays: points {self.points.shape}, laser {self.laser.shape}, "
@@ -53,8 +56,12 @@ class Scan:
     def finite(self) -> Scan:
         """The scan without rows whose point is not finite."""
         keep = np.all(np.isfinite(self.points), axis=1)
-        return Scan(self.points[keep], self.laser[keep], self.uv[keep], self.quality[keep], self.method, self.info)
+        return Scan(
+            self.points[keep], self.laser[keep], self.uv[keep], self.quality[keep], self.method, self.info
+        )
 
     def select(self, mask: NDArray[np.bool_]) -> Scan:
         """The rows of the scan where ``mask`` (N,) is true."""
-        return Scan(self.points[mask], self.laser[mask], self.uv[mask], self.quality[mask], self.method, self.info)
+        return Scan(
+            self.points[mask], self.laser[mask], self.uv[mask], self.quality[mask], self.method, self.info
+        )

@@ -16,7 +16,10 @@ from ..errors import LrsensorError
 
 #: name -> (module, one-line help). Order is the order ``--help`` lists them in.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "process": ("lrsensor.cli.process", "extract and triangulate laser stripes of images into PLY point clouds"),
+    "process": (
+        "lrsensor.cli.process",
+        "extract and triangulate laser stripes of images into PLY point clouds",
+    ),
     "calibrate": ("lrsensor.cli.calibrate", "calibrate the laser planes (wall images) or the camera (board)"),
     "simulate": ("lrsensor.cli.simulate", "render a simulated scene: image, calibration and ground truth"),
     "range": ("lrsensor.cli.range", "range theory of the paper (eq. 33-34): table and Fig. 9/10 plot"),
@@ -24,7 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "base": ("services.cli_base", "run the base station (Zenoh router, fleet subscriber, map)"),
     "rov": ("services.cli_rov", "run one ROV: camera + IMU -> pose-tagged point clouds over Zenoh"),
     "demo": ("services.cli_demo", "run an in-process demo fleet of simulated ROVs and a base station"),
-    "certs": ("services.cli_certs", "generate the secure profile: CA, base-station and per-robot TLS certificates"),
+    "certs": (
+        "services.cli_certs",
+        "generate the secure profile: CA, base-station and per-robot TLS certificates",
+    ),
 }
 
 
