@@ -1,0 +1,737 @@
+"""Rendering: trace each laser fan into the scene, draw the stripes exactly, add water and sensor effects.
+
+The stripe of a laser is sampled densely along its fan (adaptive, so that consecutive visible samples are at
+most ``LaserModel.max_gap_px`` apart in the image and occlusion edges are located to ~1e-6 rad). The image of
+the stripe is drawn per image column (or per row where the stripe is steeper than 45 degrees) as a Gaussian
+ridge profile evaluated at the exact sub-pixel centre, so the intensity centroid of each column is the true
+projected centre (before noise and 8-bit rounding). The ground truth (:class:`Truth`) keeps the dense
+samples: body-frame hit points, their distorted pixel coordinates (as ``cv2.projectPoints`` gives) and the
+surface hit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from ..errors import SimulationError
+from ..frames import Pose, body_to_ned
+from .scene import Rectangle, Scene
+from .water import (
+    WaterModel,
+    add_blobs,
+    add_sensor_noise,
+    add_snow,
+    apply_speckle,
+    background,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class LaserModel:
+    """The line lasers' optics and power (the geometry comes from the calibration's laser planes).
+
+    Attributes:
+        fan_angle_rad: full fan angle, radians (the paper: 120 degrees), centred on the body +x direction
+            projected into the laser plane.
+        peak_dn_at_1m: stripe peak in the green channel, DN, for a white-ish (albedo 0.6) wall hit head-on at
+            1 m in clear water; closer walls saturate (flat-topped peaks, clipped at 255).
+        range_exponent: the peak falls as ``(1 m / r)^range_exponent`` with r the mean of the laser and
+            camera path lengths (1 for an ideal line laser, 2 for a point source).
+        sheet_sigma_m: Gaussian sigma of the light sheet's thickness, metres.
+        blur_sigma_px: optical blur (Gaussian sigma) of the camera, pixels.
+        colour_bgr: relative response of the (B, G, R) channels to the green laser.
+        max_gap_px: largest image spacing between consecutive fan samples, pixels.
+        max_range_m: rays that hit nothing within this range are lost in the water.
+    """
+
+    fan_angle_rad: float = math.radians(120.0)
+    peak_dn_at_1m: float = 190.0
+    range_exponent: float = 1.0
+    sheet_sigma_m: float = 0.0008
+    blur_sigma_px: float = 1.0
+    colour_bgr: tuple[float, float, float] = (0.3, 1.0, 0.08)
+    max_gap_px: float = 0.25
+    max_range_m: float = 30.0
+
+
+@dataclass(frozen=True)
+class LaserTruth:
+    """Ground truth of one laser's stripe: the dense visible samples, ordered along the fan.
+
+    Attributes:
+        index, name: the laser's index in the calibration and its name.
+        theta_rad: (N,) fan angle of each sample (positive toward body +y for an untilted laser).
+        points_body: (N, 3) true hit points in the body frame, metres.
+        uv: (N, 2) their exact projected pixels (distorted, as ``cv2.projectPoints`` gives).
+        surface_id: (N,) id of the surface hit (index into the scene's surfaces).
+        segment: (N,) index of the continuous stripe piece each sample belongs to (pieces end at occlusion
+            edges, shadows, surface changes and the image border).
+        peak_dn: (N,) peak of the stripe profile (green channel, before clipping), DN.
+        sigma_px: (N,) Gaussian sigma of the stripe profile across the stripe, pixels.
+        range_m: (N,) distance from the camera centre to the point, metres.
+    """
+
+    index: int
+    name: str
+    theta_rad: FloatArray
+    points_body: FloatArray
+    uv: FloatArray
+    surface_id: IntArray
+    segment: IntArray
+    peak_dn: FloatArray
+    sigma_px: FloatArray
+    range_m: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.points_body.shape[0])
+
+    def _pieces(self) -> list[NDArray[np.intp]]:
+        """Index arrays of the u-monotonic pieces of each segment."""
+        out: list[NDArray[np.intp]] = []
+        for s in np.unique(self.segment):
+            idx = np.flatnonzero(self.segment == s)
+            if idx.size < 2:
+                continue
+            du = np.diff(self.uv[idx, 0])
+            sign = np.sign(du)
+            breaks = np.flatnonzero((sign[1:] != sign[:-1]) | (sign[1:] == 0)) + 1
+            start = 0
+            for b in [*breaks.tolist(), du.size]:
+                piece = idx[start : b + 1]
+                if piece.size >= 2 and piece.size > 1 and self.uv[piece[-1], 0] != self.uv[piece[0], 0]:
+                    out.append(piece if self.uv[piece[-1], 0] > self.uv[piece[0], 0] else piece[::-1])
+                start = b
+        return out
+
+    def at_columns(self, u: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Truth at image columns ``u`` (M,): stripe centre ``v`` (M,), body points (M, 3), peak DN (M,).
+
+        Interpolated linearly along the dense samples (spacing <= ``max_gap_px``); NaN where the laser is not
+        visible in that column. Where two stripe pieces cover a column the brighter one is given.
+        """
+        uq = np.asarray(u, dtype=float).reshape(-1)
+        v = np.full(uq.shape, np.nan)
+        pts = np.full((uq.size, 3), np.nan)
+        peak = np.full(uq.shape, -np.inf)
+        for piece in self._pieces():
+            pu = self.uv[piece, 0]
+            inside = (uq >= pu[0]) & (uq <= pu[-1])
+            if not np.any(inside):
+                continue
+            q = uq[inside]
+            pk = np.interp(q, pu, self.peak_dn[piece])
+            better = pk > peak[inside]
+            sel = np.flatnonzero(inside)[better]
+            q = q[better]
+            v[sel] = np.interp(q, pu, self.uv[piece, 1])
+            for k in range(3):
+                pts[sel, k] = np.interp(q, pu, self.points_body[piece, k])
+            peak[sel] = pk[better]
+        peak[~np.isfinite(v)] = np.nan
+        return v, pts, peak
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Ground truth of a render.
+
+    Attributes:
+        lasers: per-laser stripe truth (index = laser index of the calibration).
+        scene: the scene as given (body or NED frame).
+        scene_body: the scene in the body frame at the render's pose (surface ids are the same).
+        pose: the vehicle pose in NED (None for body-frame scenes).
+        width, height: image size, pixels.
+    """
+
+    lasers: tuple[LaserTruth, ...]
+    scene: Scene
+    scene_body: Scene
+    pose: Pose | None
+    width: int
+    height: int
+
+    def v_at_columns(self, laser: int, u: Sequence[float] | FloatArray | None = None) -> FloatArray:
+        """True stripe centre row ``v`` (M,) of ``laser`` at columns ``u`` (default: every column); NaN = unseen."""
+        cols = np.arange(self.width, dtype=float) if u is None else np.asarray(u, dtype=float)
+        return self.lasers[laser].at_columns(cols)[0]
+
+    def points_at_columns(self, laser: int, u: Sequence[float] | FloatArray | None = None) -> FloatArray:
+        """True body-frame points (M, 3) of ``laser`` seen at columns ``u`` (default: every column); NaN = unseen."""
+        cols = np.arange(self.width, dtype=float) if u is None else np.asarray(u, dtype=float)
+        return self.lasers[laser].at_columns(cols)[1]
+
+    def visible_columns(self, laser: int, min_peak_dn: float = 0.0) -> IntArray:
+        """Integer image columns where ``laser``'s stripe is visible (peak above ``min_peak_dn``), sorted."""
+        cols = np.arange(self.width, dtype=float)
+        v, _, peak = self.lasers[laser].at_columns(cols)
+        ok = np.isfinite(v) & (np.nan_to_num(peak, nan=-1.0) > min_peak_dn)
+        return np.flatnonzero(ok).astype(np.int64)
+
+    def all_points(self) -> tuple[FloatArray, IntArray]:
+        """All visible dense samples: body points (N, 3) and their laser index (N,)."""
+        if not self.lasers:
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        pts = np.concatenate([lt.points_body for lt in self.lasers])
+        idx = np.concatenate([np.full(len(lt), lt.index, dtype=np.int64) for lt in self.lasers])
+        return pts, idx
+
+    def boards(self) -> list[dict[str, Any]]:
+        """Checkerboards of the scene: body-frame inner corners (rows*cols, 3), the wall plane, board size."""
+        out = []
+        for sid, s in enumerate(self.scene_body.surfaces):
+            if isinstance(s, Rectangle) and s.board is not None:
+                n = s.normal
+                out.append(
+                    {
+                        "surface_id": sid,
+                        "cols": s.board.cols,
+                        "rows": s.board.rows,
+                        "square_m": s.board.square_m,
+                        "corners_body": s.board_corners(),
+                        "plane_normal_body": n,
+                        "plane_d_body": float(-n @ np.asarray(s.center)),
+                    }
+                )
+        return out
+
+    def to_dict(self, max_points: int | None = None) -> dict[str, Any]:
+        """JSON-ready truth: surfaces (body frame, and NED when a pose is set), boards, per-laser points."""
+        lasers = []
+        for lt in self.lasers:
+            step = 1 if max_points is None or len(lt) <= max_points else math.ceil(len(lt) / max_points)
+            cols = self.visible_columns(lt.index)
+            lasers.append(
+                {
+                    "index": lt.index,
+                    "name": lt.name,
+                    "n_samples": len(lt),
+                    "visible_columns": int(cols.size),
+                    "points_body": np.round(lt.points_body[::step], 7).tolist(),
+                    "uv": np.round(lt.uv[::step], 5).tolist(),
+                    "surface_id": lt.surface_id[::step].tolist(),
+                }
+            )
+        out: dict[str, Any] = {
+            "width": self.width,
+            "height": self.height,
+            "frame_of_points": "body",
+            "surfaces_body": self.scene_body.to_dicts(),
+            "boards": [
+                {
+                    "surface_id": b["surface_id"],
+                    "cols": b["cols"],
+                    "rows": b["rows"],
+                    "square_m": b["square_m"],
+                    "corners_body": np.asarray(b["corners_body"]).tolist(),
+                    "plane_normal_body": np.asarray(b["plane_normal_body"]).tolist(),
+                    "plane_d_body": b["plane_d_body"],
+                }
+                for b in self.boards()
+            ],
+            "lasers": lasers,
+        }
+        if self.pose is not None:
+            p = self.pose
+            out["pose_ned"] = {
+                "north_m": p.north_m,
+                "east_m": p.east_m,
+                "down_m": p.down_m,
+                "roll_rad": p.roll_rad,
+                "pitch_rad": p.pitch_rad,
+                "yaw_rad": p.yaw_rad,
+            }
+            out["surfaces_ned"] = self.scene.to_dicts()
+        return out
+
+    def to_json(self, max_points: int | None = 4000) -> str:
+        """:meth:`to_dict` as JSON text."""
+        return json.dumps(self.to_dict(max_points))
+
+    def points_ned(self) -> FloatArray:
+        """All visible truth points in NED (N, 3) (needs a pose)."""
+        if self.pose is None:
+            msg = "this render has no vehicle pose: its truth is in the body frame only"
+            raise SimulationError(msg)
+        return body_to_ned(self.all_points()[0], self.pose)
+
+
+@dataclass(frozen=True)
+class Render:
+    """The result of :func:`render`.
+
+    Attributes:
+        image: (H, W, 3) uint8 BGR, as ``cv2.imread`` gives.
+        calibration: the TRUE calibration used to render (tilted lasers, distortion and all).
+        truth: the ground truth.
+        layers: float32 layers when requested (``"laser"``: the stripe map in DN before noise, (H, W)).
+    """
+
+    image: NDArray[np.uint8]
+    calibration: Calibration
+    truth: Truth
+    layers: dict[str, F32] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- fan tracing
+@dataclass
+class _Samples:
+    theta: FloatArray
+    t: FloatArray
+    sid: IntArray
+    points: FloatArray
+    uv: FloatArray
+    ok: NDArray[np.bool_]
+    cos_inc: FloatArray
+    r_cam: FloatArray
+    depth: FloatArray
+
+
+def fan_basis(calibration: Calibration, laser: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Laser origin (3,), fan centre direction ``a`` (3,) and in-plane side direction ``b`` (3,), body frame.
+
+    ``a`` is the body +x axis projected into the laser plane, ``b = n x a`` (body +y for an untilted laser):
+    the fan ray at angle theta is ``cos(theta) a + sin(theta) b``.
+    """
+    lp = calibration.lasers[laser]
+    n = lp.normal_body
+    x = np.array([1.0, 0.0, 0.0])
+    a = x - (x @ n) * n
+    na = float(np.linalg.norm(a))
+    if na < 1e-6:
+        msg = f"laser {lp.name!r}: its plane is perpendicular to the body x axis; no forward fan"
+        raise SimulationError(msg)
+    a /= na
+    b = np.cross(n, a)
+    return lp.point_body, a, b / np.linalg.norm(b)
+
+
+def _trace_samples(
+    scene: Scene,
+    calib: Calibration,
+    origin: FloatArray,
+    a: FloatArray,
+    b: FloatArray,
+    theta: FloatArray,
+    max_range_m: float,
+    margin_px: float,
+) -> _Samples:
+    d = np.cos(theta)[:, None] * a + np.sin(theta)[:, None] * b
+    t, sid, nrm = scene.raycast(origin, d)
+    hit = np.isfinite(t) & (t <= max_range_m)
+    p = origin + np.where(hit, t, 0.0)[:, None] * d
+    C = calib.camera_center_body
+    dc = p - C
+    tc, _, _ = scene.raycast(C, dc)
+    seen = hit & (tc >= 1.0 - 1e-7)
+    pc = calib.body_to_cam(p)
+    uv = calib.camera.project(pc)
+    cam = calib.camera
+    with np.errstate(invalid="ignore"):
+        inside = (
+            (uv[:, 0] >= -margin_px)
+            & (uv[:, 0] <= cam.width - 1 + margin_px)
+            & (uv[:, 1] >= -margin_px)
+            & (uv[:, 1] <= cam.height - 1 + margin_px)
+        )
+    ok = seen & (pc[:, 2] > 1e-6) & np.isfinite(uv).all(axis=1) & inside
+    sid = np.where(hit, sid, -1)
+    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d))
+    return _Samples(theta, t, sid, p, uv, ok, cos_inc, np.linalg.norm(dc, axis=1), pc[:, 2])
+
+
+def _merge(s: _Samples, n: _Samples) -> _Samples:
+    order = np.argsort(np.concatenate([s.theta, n.theta]), kind="stable")
+    return _Samples(*(np.concatenate([getattr(s, f), getattr(n, f)])[order] for f in _Samples.__dataclass_fields__))
+
+
+def trace_fan(
+    scene_body: Scene,
+    calibration: Calibration,
+    laser: int,
+    model: LaserModel | None = None,
+    *,
+    margin_px: float = 12.0,
+    theta_tol_rad: float = 2e-7,
+    max_iterations: int = 24,
+) -> tuple[_Samples, IntArray]:
+    """Trace one laser fan densely into a body-frame scene.
+
+    Returns the samples (sorted by fan angle) and a segment index per sample (-1 where not drawable:
+    no hit, hidden from the camera, behind it or outside the image plus ``margin_px``).
+    """
+    model = model or LaserModel()
+    origin, a, b = fan_basis(calibration, laser)
+    half = model.fan_angle_rad / 2.0
+    f = max(calibration.camera.fx, calibration.camera.fy)
+    span = 2.0 * math.tan(min(half, math.radians(85.0)))
+    n0 = int(min(max(64, math.ceil(f * span / (2.0 * model.max_gap_px))), 200_000))
+    theta = np.arctan(np.linspace(-span / 2.0, span / 2.0, n0))
+    theta = np.clip(theta, -half, half)
+    s = _trace_samples(scene_body, calibration, origin, a, b, theta, model.max_range_m, margin_px)
+    for _ in range(max_iterations):
+        ok0, ok1 = s.ok[:-1], s.ok[1:]
+        cont = ok0 & ok1 & (s.sid[:-1] == s.sid[1:])
+        gap = np.linalg.norm(np.diff(s.uv, axis=0), axis=1)
+        dth = np.diff(s.theta)
+        with np.errstate(invalid="ignore"):
+            need = (cont & (gap > model.max_gap_px) & (dth > 1e-12)) | (
+                ~cont & (ok0 | ok1 | (s.sid[:-1] != s.sid[1:])) & (dth > theta_tol_rad)
+            )
+        # discontinuities between two not-drawable samples need no refinement unless the surface changes
+        need &= ok0 | ok1
+        if not np.any(need):
+            break
+        i = np.flatnonzero(need)
+        new_theta = 0.5 * (s.theta[i] + s.theta[i + 1])
+        s = _merge(s, _trace_samples(scene_body, calibration, origin, a, b, new_theta, model.max_range_m, margin_px))
+    # segments: runs of continuous drawable samples
+    cont = s.ok[:-1] & s.ok[1:] & (s.sid[:-1] == s.sid[1:])
+    gap = np.linalg.norm(np.diff(s.uv, axis=0), axis=1)
+    with np.errstate(invalid="ignore"):
+        cont &= gap <= 8.0 * model.max_gap_px
+    starts = np.concatenate([[True], ~cont])
+    seg = np.cumsum(starts) - 1
+    seg = np.where(s.ok, seg, -1)
+    # renumber consecutively and drop singletons
+    out = np.full(seg.shape, -1, dtype=np.int64)
+    k = 0
+    for sg in np.unique(seg[seg >= 0]):
+        idx = np.flatnonzero(seg == sg)
+        if idx.size >= 2:
+            out[idx] = k
+            k += 1
+    return s, out
+
+
+def _stripe_photometry(
+    s: _Samples, scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel
+) -> tuple[FloatArray, FloatArray]:
+    """Peak DN (N,) and profile sigma in pixels (N,) of each sample."""
+    albedo = np.array([sf.albedo for sf in scene.surfaces] + [0.0])[s.sid]
+    r_l = np.where(np.isfinite(s.t), s.t, 0.0)
+    r_mean = np.maximum(0.5 * (r_l + s.r_cam), 1e-3)
+    atten = np.exp(-water.attenuation_per_m * (r_l + s.r_cam))
+    cos_term = 0.15 + 0.85 * s.cos_inc
+    peak = model.peak_dn_at_1m * (albedo / 0.6) * cos_term * atten * r_mean ** (-model.range_exponent)
+    f = 0.5 * (calib.camera.fx + calib.camera.fy)
+    sheet_px = model.sheet_sigma_m * f / np.maximum(s.depth, 1e-6)
+    sigma = np.sqrt(model.blur_sigma_px**2 + sheet_px**2)
+    return peak, sigma
+
+
+# --------------------------------------------------------------------------- stripe drawing
+def _draw_run(
+    prim: FloatArray, sec: FloatArray, amp: FloatArray, sig: FloatArray, n_prim: int, n_sec: int
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """Profiles across one monotonic (increasing ``prim``) stripe run: (prim index, sec index, value) triples."""
+    p0, p1 = float(prim[0]), float(prim[-1])
+    c = np.arange(math.floor(p0 + 0.5), math.floor(p1 + 0.5) + 1, dtype=np.float64)
+    c = c[(c >= 0) & (c < n_prim)]
+    if c.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    cov = np.clip(np.minimum(c + 0.5, p1) - np.maximum(c - 0.5, p0), 0.0, 1.0)
+    cc = np.clip(c, p0, p1)
+    sc = np.interp(cc, prim, sec)
+    a = np.interp(cc, prim, amp)
+    sg = np.interp(cc, prim, sig)
+    dp = np.diff(prim)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope_iv = np.where(dp > 0, np.diff(sec) / dp, 0.0)
+    mid = 0.5 * (prim[:-1] + prim[1:])
+    slope = np.interp(cc, mid, slope_iv) if mid.size > 1 else np.full(cc.shape, slope_iv[0])
+    sgc = sg * np.sqrt(1.0 + slope * slope)
+    half = int(min(math.ceil(4.5 * float(sgc.max())) + 1, 80))
+    k = np.arange(-half, half + 1, dtype=np.float64)
+    rows = np.floor(sc)[:, None] + k[None, :]
+    val = (a * cov)[:, None] * np.exp(-0.5 * ((rows - sc[:, None]) / sgc[:, None]) ** 2)
+    cols = np.broadcast_to(c[:, None], rows.shape)
+    ok = (rows >= 0) & (rows < n_sec) & (val > 1e-4)
+    return cols[ok].astype(np.int64), rows[ok].astype(np.int64), val[ok]
+
+
+def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: IntArray, width: int, height: int) -> F32:
+    """The stripe intensity map (H, W) float32 of dense samples ``uv`` (N, 2) with peak ``amp`` (N,) and
+    cross-stripe ``sigma`` (N,) pixels, drawn per continuous ``segment`` (N,) (-1 = skip)."""
+    flat_idx: list[IntArray] = []
+    flat_val: list[FloatArray] = []
+    for sg in np.unique(segment[segment >= 0]):
+        idx = np.flatnonzero(segment == sg)
+        u, v = uv[idx, 0], uv[idx, 1]
+        du, dv = np.diff(u), np.diff(v)
+        steep = np.abs(dv) > np.abs(du)
+        direction = np.where(steep, np.sign(dv), np.sign(du))
+        key = steep.astype(np.int64) * 4 + direction.astype(np.int64)
+        bounds = np.flatnonzero(key[1:] != key[:-1]) + 1
+        start = 0
+        for end in [*bounds.tolist(), du.size]:
+            sl = slice(start, end + 1)
+            start = end
+            if direction[sl.start] == 0:
+                continue
+            ru, rv, ra, rs = u[sl], v[sl], amp[idx][sl], sigma[idx][sl]
+            if direction[sl.start] < 0:
+                ru, rv, ra, rs = ru[::-1], rv[::-1], ra[::-1], rs[::-1]
+            if steep[sl.start]:
+                r_i, c_i, val = _draw_run(rv, ru, ra, rs, height, width)
+            else:
+                c_i, r_i, val = _draw_run(ru, rv, ra, rs, width, height)
+            flat_idx.append(r_i * width + c_i)
+            flat_val.append(val)
+    if not flat_idx:
+        return np.zeros((height, width), np.float32)
+    acc = np.bincount(np.concatenate(flat_idx), weights=np.concatenate(flat_val), minlength=width * height)
+    return acc.reshape(height, width).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- glow and ambient light
+def _glow(
+    scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel, shape: tuple[int, int]
+) -> F32:
+    """Backscatter glow of one laser sheet: light scattered toward the camera along the sheet, (H, W) DN."""
+    h, w = shape
+    origin, a, b = fan_basis(calib, laser)
+    half = model.fan_angle_rad / 2.0
+    n_rays, n_steps = 720, 160
+    theta = np.linspace(-half, half, n_rays)
+    d = np.cos(theta)[:, None] * a + np.sin(theta)[:, None] * b
+    t, _, _ = scene.raycast(origin, d)
+    c = water.attenuation_per_m
+    t_end = np.minimum(np.where(np.isfinite(t), t, np.inf), min(model.max_range_m, 8.0 / max(c, 0.2)))
+    u01 = (np.arange(n_steps) + 0.5) / n_steps
+    s_min = 0.01
+    # log-spaced steps along each ray from s_min to its end
+    s = s_min * (t_end[:, None] / s_min) ** u01[None, :]
+    ds = s * np.log(t_end[:, None] / s_min) / n_steps
+    pts = origin + s[..., None] * d[:, None, :]
+    pts = pts.reshape(-1, 3)
+    pc = calib.body_to_cam(pts)
+    uv = calib.camera.project(pc)
+    r_c = np.linalg.norm(pc, axis=1)
+    dtheta = model.fan_angle_rad / n_rays
+    f = 0.5 * (calib.camera.fx + calib.camera.fy)
+    weight = (dtheta * ds.reshape(-1) * np.exp(-c * (s.reshape(-1) + r_c)) / np.maximum(r_c, 0.05) ** 2) * f * f
+    factor = 4
+    hl, wl = (h + factor - 1) // factor, (w + factor - 1) // factor
+    with np.errstate(invalid="ignore"):
+        ul = np.floor((uv[:, 0] + 0.5) / factor)
+        vl = np.floor((uv[:, 1] + 0.5) / factor)
+        ok = (pc[:, 2] > 0) & (ul >= 0) & (ul < wl) & (vl >= 0) & (vl < hl)
+    acc = np.bincount((vl[ok] * wl + ul[ok]).astype(np.int64), weights=weight[ok], minlength=hl * wl).reshape(hl, wl)
+    acc = acc.astype(np.float32) / float(factor * factor)
+    sig = max(water.glow_sigma_px * w / 1920.0 / factor, 0.5)
+    acc = cv2.GaussianBlur(acc, (0, 0), sig)
+    full = cv2.resize(acc, (wl * factor, hl * factor), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    # 1e-3: a gain of 1 gives a faint band of a few DN with the default laser power
+    return (full * np.float32(1e-3 * water.backscatter * model.peak_dn_at_1m / 190.0)).astype(np.float32)
+
+
+def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32, rng: np.random.Generator) -> None:
+    """Surfaces lit by ambient light (and printed checkerboards), blended over the water background in place."""
+    cam = calib.camera
+    h, w = cam.height, cam.width
+    boards = [i for i, s in enumerate(scene.surfaces) if isinstance(s, Rectangle) and s.board is not None]
+    if water.ambient_dn <= 0 and not boards:
+        return
+    level = water.ambient_dn if water.ambient_dn > 0 else 170.0
+    C = calib.camera_center_body
+    colour = np.array([0.95, 1.0, 0.9], np.float32)
+    bg_mean = np.asarray(water.background_bgr, np.float32)
+
+    def shade(uv: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        rays = calib.rays_body(uv)
+        t, sid, _ = scene.raycast(C, rays)
+        hit = np.isfinite(t)
+        p = C + np.where(hit, t, 0.0)[:, None] * rays
+        refl = np.array([s.albedo for s in scene.surfaces] + [0.0])[sid] * 0.5
+        for bi in boards:
+            rect = scene.surfaces[bi]
+            assert isinstance(rect, Rectangle)
+            assert rect.board is not None
+            on = sid == bi
+            if np.any(on):
+                aa, bb, _ = rect.local(p[on])
+                r, on_board = rect.board.reflectance(aa, bb)
+                cur = refl[on]
+                refl[on] = np.where(on_board, r, cur)
+        dist = np.linalg.norm(p - C, axis=1)
+        trans = np.exp(-water.attenuation_per_m * dist)
+        if water.ambient_dn <= 0:
+            # only the boards are lit (a diver's lamp on the target)
+            lit = np.zeros(sid.shape, bool)
+            for bi in boards:
+                lit |= sid == bi
+            hit &= lit
+        return np.where(hit, level * refl * trans, 0.0), hit
+
+    if water.ambient_dn > 0:
+        # every surface, at quarter resolution (smooth shading)
+        f = 4
+        ys, xs = np.mgrid[0:h:f, 0:w:f]
+        uv = np.stack([xs.ravel() + (f - 1) / 2.0, ys.ravel() + (f - 1) / 2.0], axis=1).astype(float)
+        val, hit = shade(uv)
+        hl, wl = ys.shape
+        vimg = cv2.resize(val.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        himg = cv2.resize(hit.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        img *= (1.0 - 0.85 * himg)[:, :, None]
+        img += (vimg[:, :, None] * colour) * 1.0
+    # checkerboards at full resolution with 3x3 supersampling (sharp, anti-aliased corners)
+    for bi in boards:
+        rect = scene.surfaces[bi]
+        assert isinstance(rect, Rectangle)
+        assert rect.board is not None
+        hu, hv = rect.board.half_extent_m()
+        cu, cv_ = rect.board.offset_u_m, rect.board.offset_v_m
+        corners = np.array(
+            [
+                np.asarray(rect.center)
+                + (cu + i * hu) * np.asarray(rect.axis_u)
+                + (cv_ + j * hv) * np.asarray(rect.axis_v)
+                for i, j in [(-1, -1), (1, -1), (1, 1), (-1, 1)]
+            ]
+        )
+        uvc = calib.project_body(corners)
+        if not np.all(np.isfinite(uvc)):
+            continue
+        x0 = int(max(0, math.floor(uvc[:, 0].min()) - 2))
+        x1 = int(min(w, math.ceil(uvc[:, 0].max()) + 3))
+        y0 = int(max(0, math.floor(uvc[:, 1].min()) - 2))
+        y1 = int(min(h, math.ceil(uvc[:, 1].max()) + 3))
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ss = 3
+        offs = (np.arange(ss) + 0.5) / ss - 0.5
+        ys, xs = np.mgrid[y0:y1, x0:x1]
+        acc = np.zeros(ys.shape, np.float64)
+        cnt = np.zeros(ys.shape, np.float64)
+        for oy in offs:
+            for ox in offs:
+                uv = np.stack([xs.ravel() + ox, ys.ravel() + oy], axis=1).astype(float)
+                val, hit = shade(uv)
+                on = np.zeros(hit.shape, bool)
+                rays = calib.rays_body(uv)
+                _, sid, _ = scene.raycast(C, rays)
+                on = sid == bi
+                acc += np.where(on, val, 0.0).reshape(ys.shape)
+                cnt += on.reshape(ys.shape)
+        frac = (cnt / (ss * ss)).astype(np.float32)
+        val_img = (acc / np.maximum(cnt, 1)).astype(np.float32)
+        patch = img[y0:y1, x0:x1]
+        patch *= (1.0 - frac)[:, :, None]
+        patch += (frac * val_img)[:, :, None] * colour + (frac * 0.05)[:, :, None] * bg_mean
+    _ = rng
+
+
+# --------------------------------------------------------------------------- the renderer
+def trace_truth(
+    scene: Scene,
+    calibration: Calibration,
+    pose: Pose | None = None,
+    laser_model: LaserModel | None = None,
+    water: WaterModel | None = None,
+) -> tuple[Truth, list[tuple[_Samples, IntArray]]]:
+    """Trace every laser into the scene without drawing: the ground truth and the raw samples."""
+    model = laser_model or LaserModel()
+    water = water or WaterModel.clean()
+    scene_body = scene.in_body(pose)
+    cam = calibration.camera
+    lts = []
+    raw = []
+    for i, lp in enumerate(calibration.lasers):
+        s, seg = trace_fan(scene_body, calibration, i, model)
+        peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)
+        raw.append((s, seg))
+        with np.errstate(invalid="ignore"):
+            vis = (
+                (seg >= 0)
+                & (s.uv[:, 0] >= -0.5)
+                & (s.uv[:, 0] <= cam.width - 0.5)
+                & (s.uv[:, 1] >= -0.5)
+                & (s.uv[:, 1] <= cam.height - 0.5)
+            )
+        lts.append(
+            LaserTruth(
+                index=i,
+                name=lp.name,
+                theta_rad=s.theta[vis],
+                points_body=s.points[vis],
+                uv=s.uv[vis],
+                surface_id=s.sid[vis],
+                segment=seg[vis],
+                peak_dn=peak[vis],
+                sigma_px=sigma[vis],
+                range_m=s.r_cam[vis],
+            )
+        )
+    truth = Truth(tuple(lts), scene, scene_body, pose, cam.width, cam.height)
+    return truth, raw
+
+
+def render(
+    scene: Scene,
+    calibration: Calibration,
+    *,
+    pose: Pose | None = None,
+    water: WaterModel | None = None,
+    laser_model: LaserModel | None = None,
+    seed: int | np.random.Generator | None = 0,
+    keep_layers: bool = False,
+) -> Render:
+    """Render what the camera sees, with ground truth.
+
+    Args:
+        scene: the surfaces, in the body frame, or in NED together with ``pose``.
+        calibration: the TRUE calibration (camera with distortion, mounting, laser planes).
+        pose: vehicle pose in NED (needed for NED scenes).
+        water: water and sensor model (default :meth:`WaterModel.default`).
+        laser_model: laser optics and power (default :class:`LaserModel`).
+        seed: seed or generator of every random effect (background, noise, distractors).
+        keep_layers: keep the float32 stripe map in ``Render.layers["laser"]`` (tests).
+
+    Returns:
+        :class:`Render` with the (H, W, 3) uint8 BGR image, the calibration and the :class:`Truth`.
+    """
+    water = WaterModel.default() if water is None else water
+    model = laser_model or LaserModel()
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    truth, raw = trace_truth(scene, calibration, pose, model, water)
+    scene_body = truth.scene_body
+    cam = calibration.camera
+    h, w = cam.height, cam.width
+    img = background(h, w, water, rng)
+    _ambient(scene_body, calibration, water, img, rng)
+    if water.backscatter > 0:
+        glow = np.zeros((h, w), np.float32)
+        for i in range(len(calibration.lasers)):
+            glow += _glow(scene_body, calibration, i, model, water, (h, w))
+        img += glow[:, :, None] * np.asarray(model.colour_bgr, np.float32)
+    laser_map = np.zeros((h, w), np.float32)
+    for i, (s, seg) in enumerate(raw):
+        peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)
+        laser_map += draw_stripe(s.uv, peak, sigma, seg, w, h)
+    layers: dict[str, F32] = {}
+    if keep_layers:
+        layers["laser"] = laser_map.copy()
+    apply_speckle(laser_map, water, rng)
+    cb, cg, cr = model.colour_bgr
+    img[:, :, 1] += laser_map if cg == 1.0 else laser_map * np.float32(cg)
+    img[:, :, 0] += laser_map * np.float32(cb)
+    img[:, :, 2] += laser_map * np.float32(cr)
+    add_blobs(img, water, rng)
+    add_snow(img, water, rng)
+    add_sensor_noise(img, water, rng)
+    np.clip(img, 0.0, 255.0, out=img)
+    image = (img + 0.5).astype(np.uint8)
+    return Render(image=image, calibration=calibration, truth=truth, layers=layers)

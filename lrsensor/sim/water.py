@@ -1,0 +1,204 @@
+"""The water and sensor model of the simulator: background, noise, turbidity, haze, glow, distractors.
+
+Everything here works on float32 images in digital numbers (DN, 0..255 before the final clip) and is seeded
+through a :class:`numpy.random.Generator`, so a render with the same seed gives the same image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class WaterModel:
+    """Water, ambient light and camera sensor (SI units; image levels in DN of an 8-bit channel).
+
+    Attributes:
+        background_bgr: mean colour of the water background, DN per channel (B, G, R).
+        texture: relative amplitude (0..1) of the low-frequency murk texture of the background.
+        texture_cells: number of texture cells across the image width (size of the murk blotches).
+        vignetting: relative darkening of the image corners (0 = none).
+        attenuation_per_m: beam attenuation coefficient c, 1/m; light over a path L is scaled by exp(-c L).
+        backscatter: gain of the glow that the laser sheet scatters toward the camera (0 = none; 1 = a
+            faint band of a few DN; 5-10 = turbid harbour water).
+        glow_sigma_px: blur of the glow band, pixels (at 1920 px width; scaled with the image).
+        haze_dn: veiling light added everywhere, DN (water-coloured).
+        ambient_dn: brightness of a white (albedo 1) surface under the ambient light, DN (0 = dark water, the
+            scene is seen only where the lasers hit it). A checkerboard needs about 150-200.
+        read_noise_dn: sensor read noise, standard deviation in DN.
+        shot_noise_gain: electrons per DN for the shot noise (variance = signal / gain); 0 = no shot noise.
+        blobs: number of green distractor blobs (fish, algae, reflections), some elongated like a stripe.
+        snow: number of marine-snow particles (small bright dots).
+        speckle: contrast (0..1) of the laser speckle, a multiplicative granular noise on the stripe.
+    """
+
+    background_bgr: tuple[float, float, float] = (38.0, 34.0, 12.0)
+    texture: float = 0.25
+    texture_cells: float = 7.0
+    vignetting: float = 0.25
+    attenuation_per_m: float = 0.10
+    backscatter: float = 0.0
+    glow_sigma_px: float = 8.0
+    haze_dn: float = 0.0
+    ambient_dn: float = 0.0
+    read_noise_dn: float = 1.5
+    shot_noise_gain: float = 4.0
+    blobs: int = 0
+    snow: int = 0
+    speckle: float = 0.0
+
+    @classmethod
+    def clean(cls) -> WaterModel:
+        """Clear water, flat dark background, no noise: for exact geometric tests."""
+        return cls(
+            background_bgr=(8.0, 8.0, 8.0),
+            texture=0.0,
+            vignetting=0.0,
+            attenuation_per_m=0.0,
+            read_noise_dn=0.0,
+            shot_noise_gain=0.0,
+        )
+
+    @classmethod
+    def default(cls) -> WaterModel:
+        """Fairly clear water with a murky background and sensor noise."""
+        return cls()
+
+    @classmethod
+    def turbid(cls) -> WaterModel:
+        """Turbid water: strong attenuation, a visible glow of the laser sheet, veiling haze, some snow."""
+        return cls(
+            background_bgr=(52.0, 50.0, 22.0),
+            texture=0.3,
+            attenuation_per_m=0.55,
+            backscatter=6.0,
+            haze_dn=14.0,
+            read_noise_dn=2.5,
+            shot_noise_gain=3.0,
+            snow=120,
+            speckle=0.15,
+        )
+
+    @classmethod
+    def cluttered(cls) -> WaterModel:
+        """Clear-ish water full of distractors: green blobs, marine snow and laser speckle."""
+        return cls(attenuation_per_m=0.15, backscatter=1.0, blobs=14, snow=250, speckle=0.25, read_noise_dn=2.0)
+
+    def with_(self, **changes: object) -> WaterModel:
+        """A copy with some fields changed."""
+        return replace(self, **changes)  # type: ignore[arg-type]
+
+
+def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F32:
+    """The water background, (H, W, 3) float32 BGR in DN: a low-frequency bluish-green murk with vignetting."""
+    base = np.asarray(water.background_bgr, dtype=np.float32)
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = base
+    if water.texture > 0:
+        gw = max(2, round(water.texture_cells) + 2)
+        gh = max(2, round(gw * h / w) + 2)
+        grid = rng.standard_normal((gh, gw)).astype(np.float32)
+        grid = cv2.GaussianBlur(grid, (0, 0), 0.8)
+        grid /= max(float(grid.std()), 1e-6)
+        tex = cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
+        img *= (1.0 + water.texture * 0.5 * tex)[:, :, None]
+    if water.vignetting > 0:
+        ys = (np.arange(h, dtype=np.float32) - (h - 1) / 2.0) / (h / 2.0)
+        xs = (np.arange(w, dtype=np.float32) - (w - 1) / 2.0) / (w / 2.0)
+        r2 = (xs[None, :] ** 2 * (w / h) + ys[:, None] ** 2 * (h / w)) / (w / h + h / w)
+        img *= (1.0 - water.vignetting * r2)[:, :, None]
+    if water.haze_dn > 0:
+        colour = base / max(float(base.max()), 1e-6)
+        img += water.haze_dn * colour
+    return img
+
+
+def add_blobs(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
+    """Draw green distractor blobs (some elongated, stripe-like) in place on a float32 BGR image."""
+    h, w = img.shape[:2]
+    scale = w / 1920.0
+    for _ in range(water.blobs):
+        cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+        elongated = rng.uniform() < 0.35
+        s1 = rng.uniform(3.0, 30.0) * scale
+        s2 = s1 * (rng.uniform(3.0, 8.0) if elongated else rng.uniform(1.0, 2.0))
+        ang = rng.uniform(-0.4, 0.4) if elongated else rng.uniform(0, np.pi)
+        amp = rng.uniform(25.0, 160.0)
+        r = int(np.ceil(3.0 * max(s1, s2)))
+        x0, x1 = max(0, int(cx) - r), min(w, int(cx) + r + 1)
+        y0, y1 = max(0, int(cy) - r), min(h, int(cy) + r + 1)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float32)
+        dx, dy = xx - cx, yy - cy
+        c, s = np.cos(ang), np.sin(ang)
+        a = (c * dx + s * dy) / s2
+        b = (-s * dx + c * dy) / s1
+        g = amp * np.exp(-0.5 * (a * a + b * b))
+        img[y0:y1, x0:x1, 1] += g
+        img[y0:y1, x0:x1, 0] += g * rng.uniform(0.2, 0.6)
+        img[y0:y1, x0:x1, 2] += g * rng.uniform(0.0, 0.3)
+
+
+def add_snow(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
+    """Draw marine snow (small bright whitish dots, 0.6-2 px sigma) in place."""
+    h, w = img.shape[:2]
+    n = water.snow
+    if n <= 0:
+        return
+    cx = rng.uniform(0, w, n)
+    cy = rng.uniform(0, h, n)
+    sig = rng.uniform(0.6, 2.0, n)
+    amp = rng.uniform(20.0, 170.0, n)
+    k = np.arange(-6, 7)
+    flat = np.zeros(h * w, np.float64)
+    xs = np.floor(cx)[:, None, None] + k[None, None, :]
+    ys = np.floor(cy)[:, None, None] + k[None, :, None]
+    val = amp[:, None, None] * np.exp(
+        -0.5 * (((xs - cx[:, None, None]) ** 2 + (ys - cy[:, None, None]) ** 2) / sig[:, None, None] ** 2)
+    )
+    xs, ys = np.broadcast_arrays(xs, ys)
+    ok = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    idx = (ys[ok] * w + xs[ok]).astype(np.int64)
+    flat += np.bincount(idx, weights=val[ok], minlength=h * w)
+    snow = flat.reshape(h, w).astype(np.float32)
+    img[:, :, 0] += 0.9 * snow
+    img[:, :, 1] += snow
+    img[:, :, 2] += 0.7 * snow
+
+
+def apply_speckle(laser_map: F32, water: WaterModel, rng: np.random.Generator) -> None:
+    """Multiply the stripe intensity map by a granular speckle pattern (mean 1), in place."""
+    if water.speckle <= 0:
+        return
+    ys, xs = np.nonzero(laser_map > 1e-3)
+    if ys.size == 0:
+        return
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    noise = rng.standard_normal((y1 - y0, x1 - x0)).astype(np.float32)
+    noise = cv2.GaussianBlur(noise, (0, 0), 0.8)
+    noise /= max(float(noise.std()), 1e-6)
+    laser_map[y0:y1, x0:x1] *= np.clip(1.0 + water.speckle * noise, 0.0, None)
+
+
+def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
+    """Add Gaussian read noise and signal-dependent shot noise, in place (float32 BGR, DN)."""
+    if water.read_noise_dn <= 0 and water.shot_noise_gain <= 0:
+        return
+    noise = np.empty_like(img)
+    cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+    cv2.randn(noise, 0.0, 1.0)
+    if water.shot_noise_gain > 0:
+        var = np.maximum(img, 0.0) * np.float32(1.0 / water.shot_noise_gain)
+        var += np.float32(water.read_noise_dn**2)
+        cv2.sqrt(var, var)
+        noise *= var
+    else:
+        noise *= np.float32(water.read_noise_dn)
+    img += noise
