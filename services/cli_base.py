@@ -1,17 +1,67 @@
-"""CLI wiring: not built yet."""
+"""``lrsensor base``: run the base station (a Zenoh router in-process by default)."""
 
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
+import time
+
+from .zconfig import add_network_args
+
+log = logging.getLogger(__name__)
+
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """Add the flags of this sub-command."""
-    parser.add_argument("args", nargs="*")
+    """Add the flags of ``lrsensor base``."""
+    parser.add_argument("--fleet", required=True, help="fleet name (the <fleet> chunk of every key)")
+    parser.add_argument("--prefix", default="lrs", help="key prefix (default: lrs)")
+    parser.add_argument(
+        "--state", metavar="DIR", default=None, help="persist counters, calibrations and the map here (atomic files)"
+    )
+    parser.add_argument(
+        "--map", choices=("auto", "on", "off"), default="auto", help="build the shared map (needs Open3D; default auto)"
+    )
+    parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
+    parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
+    parser.add_argument(
+        "--status-every-s", type=float, default=10.0, help="log a status line this often (0: never; default 10)"
+    )
+    add_network_args(parser, default_mode="router")
+    parser.epilog = f"Without --listen/--connect/--config the router listens on {DEFAULT_LISTEN}."
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the sub-command."""
-    print("lrsensor: this sub-command is not implemented yet", file=sys.stderr)
-    return 4
+    """Run until SIGINT/SIGTERM; returns 0 after a clean shutdown."""
+    from .base import BaseStation
+    from .keys import FleetKeys
+    from .signals import stop_on_signals
+    from .zconfig import open_session, options_from_args
+
+    keys = FleetKeys(args.fleet, args.prefix)
+    options = options_from_args(args)
+    mode = args.mode or "router"
+    if mode == "router" and not (options.listen or options.connect or options.config_file):
+        options = options_from_args(args)
+        options = type(options)(mode=options.mode, listen=(DEFAULT_LISTEN,))
+    robots = [r.strip() for r in args.robots.split(",") if r.strip()] if args.robots else None
+    with stop_on_signals() as stop, open_session(options, default_mode="router") as session:
+        station = BaseStation(session, keys, args.state, map_mode=args.map, robots=robots, workers=args.workers)
+        with station:
+            print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
+            last = time.monotonic()
+            while not stop.wait(0.2):
+                if args.status_every_s > 0 and time.monotonic() - last >= args.status_every_s:
+                    last = time.monotonic()
+                    st = station.status()
+                    parts = [
+                        f"{r}: {v['received']} rx, {v['missed']} missed, {v['rejected']} rej"
+                        + ("" if v["alive"] else " (gone)")
+                        for r, v in st["robots"].items()
+                    ]
+                    log.warning("status: %s; map planes %d", "; ".join(parts) or "no robot yet", st["map"]["planes"])
+        st = station.status()
+    total = sum(v["received"] for v in st["robots"].values())
+    print(f"base station stopped: {total} clouds received from {len(st['robots'])} robots", flush=True)
+    return 0

@@ -1,0 +1,575 @@
+"""The base station: ingests every robot's clouds, follows the fleet, serves calibrations, status and map.
+
+Data path: the Zenoh subscriber callback only enqueues ``(key, payload, receive time)`` into a bounded queue
+(blocking when full, which pushes back on the BLOCK publishers instead of dropping); worker threads decode
+and validate each :class:`~services.wire.CloudMsg`, de-duplicate it by sequence number, count it, transform
+its points to NED and hand them to ``mapping.MapBuilder``. Map changes are published on
+``<root>/map/updates``.
+
+Served (queryables):
+
+* ``<root>/base/status``: JSON ``{"robots": {r: {"received", "rejected", "missed", "duplicates", "alive",
+  "last_seq", ...}}, "map": {"planes": n}}`` (``?robot=R`` narrows it to one robot);
+* ``<root>/base/calib/<robot>``: the fleet calibration stored in ``<state>/calib/<robot>.json`` (CalibMsg,
+  or the JSON file with ``?format=json``);
+* ``<root>/base/acks/<robot>``: JSON ``{"robot", "ranges": [[lo, hi], ...]}`` of the sequence numbers held;
+* ``<root>/map``: the whole map as JSON.
+
+State (``--state DIR``, written atomically): ``fleet.json`` (sequence ranges and counters per robot, so that
+``received`` survives restarts), ``calib/<robot>.json`` (fleet calibrations), ``map/`` (the map's own files).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import queue
+import tempfile
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lrsensor.calibration import Calibration
+from lrsensor.errors import LrsensorError
+from lrsensor.frames import body_to_ned
+
+from .errors import MappingUnavailableError, ServiceError, WireError
+from .keys import FleetKeys
+from .seqset import SeqSet
+from .wire import ENCODING, CalibMsg, CloudMsg, StatusMsg
+
+log = logging.getLogger(__name__)
+
+STATE_FORMAT = "lrsensor-base-state"
+STATE_VERSION = 1
+#: Robot name under which payloads on keys that name no valid robot are counted.
+UNKNOWN_SENDER = "?"
+#: Poses kept per robot for the track plot.
+MAX_TRACK_POINTS = 20_000
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file in the same folder, fsync, rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        Path(tmp).replace(path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclass
+class RobotRecord:
+    """What the base station knows of one robot."""
+
+    seqs: SeqSet = field(default_factory=SeqSet)
+    rejected: int = 0
+    duplicates: int = 0
+    points: int = 0
+    alive: bool = False
+    joined_ns: int = 0
+    left_ns: int = 0
+    last_t_ns: int = 0
+    reported: StatusMsg | None = None
+    rejected_reasons: collections.Counter[str] = field(default_factory=collections.Counter)
+    track: list[tuple[int, float, float, float]] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        """The robot's entry in the status JSON."""
+        out: dict[str, Any] = {
+            "received": len(self.seqs),
+            "rejected": self.rejected,
+            "missed": self.seqs.missed(),
+            "duplicates": self.duplicates,
+            "alive": self.alive,
+            "last_seq": self.seqs.highest,
+            "last_t_ns": self.last_t_ns,
+            "points": self.points,
+        }
+        if self.rejected_reasons:
+            out["rejected_reasons"] = dict(self.rejected_reasons.most_common(8))
+        if self.reported is not None:
+            out["reported"] = self.reported.to_json_dict()
+        return out
+
+
+class LatencyStats:
+    """End-to-end latencies (base processing time minus capture time), ns, of the most recent clouds."""
+
+    def __init__(self, maxlen: int = 200_000) -> None:
+        self.values: collections.deque[int] = collections.deque(maxlen=maxlen)
+        self.transit: collections.deque[int] = collections.deque(maxlen=maxlen)
+
+    def add(self, latency_ns: int, transit_ns: int | None) -> None:
+        """Record one cloud."""
+        self.values.append(latency_ns)
+        if transit_ns is not None:
+            self.transit.append(transit_ns)
+
+    def percentiles_ms(self, qs: Iterable[float] = (50, 99)) -> dict[str, float]:
+        """Percentiles of the recorded latencies in ms (NaN when empty)."""
+        arr = np.asarray(self.values, dtype=float)
+        return {f"p{q:g}": float(np.percentile(arr, q) / 1e6) if arr.size else float("nan") for q in qs}
+
+
+def load_map_builder(map_dir: Path, mode: str) -> Any | None:
+    """``mapping.MapBuilder`` for ``map_dir`` (reloading its map), or None when the map is off.
+
+    ``mode``: ``"on"`` (missing mapping is an error), ``"auto"`` (missing mapping is a warning), ``"off"``.
+    """
+    if mode == "off":
+        return None
+    try:
+        from mapping import MapBuilder, MapConfig  # Open3D lives behind this import
+    except (ImportError, OSError) as err:
+        text = (
+            f"the shared map needs the 'mapping' package with Open3D (pip install 'lrsensor[base]'; the open3d "
+            f"wheel also needs the system library libusb-1.0-0): {err}"
+        )
+        if mode == "on":
+            raise MappingUnavailableError(text) from err
+        log.warning("map disabled: %s", text)
+        return None
+    map_dir.mkdir(parents=True, exist_ok=True)
+    return MapBuilder(MapConfig(), map_dir)
+
+
+class BaseStation:
+    """The base station's services on an open Zenoh session (the caller owns and closes the session).
+
+    Args:
+        session: an open Zenoh session (a router in the default deployment).
+        keys: the fleet's key expressions.
+        state_dir: where counters, calibrations and the map persist (None: in memory only).
+        map_mode: ``"auto"``, ``"on"`` or ``"off"`` (see :func:`load_map_builder`).
+        robots: if given, the only robots accepted; clouds of others are rejected and counted.
+        workers: decode/map worker threads.
+        queue_size: ingest queue capacity (clouds); a full queue blocks the Zenoh callback (back-pressure).
+        save_period_s: how often changed counters are written to ``state_dir``.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        keys: FleetKeys,
+        state_dir: str | Path | None = None,
+        *,
+        map_mode: str = "auto",
+        robots: Iterable[str] | None = None,
+        workers: int = 2,
+        queue_size: int = 1024,
+        save_period_s: float = 1.0,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.state_dir = Path(state_dir) if state_dir is not None else None
+        self.allowed = frozenset(robots) if robots is not None else None
+        self.n_workers = max(1, workers)
+        self.save_period_s = save_period_s
+        self.records: dict[str, RobotRecord] = {}
+        self.latency = LatencyStats()
+        self.processed = 0
+        self.map_errors = 0
+        self._lock = threading.RLock()
+        self._map_lock = threading.Lock()
+        self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
+        self._closing = threading.Event()
+        self._dirty = False
+        self._threads: list[threading.Thread] = []
+        self._entities: list[Any] = []
+        self._map_planes = 0
+        self._map_dirty = True
+        self.membership_events: list[tuple[str, str, int]] = []
+        self._load_state()
+        map_dir = (self.state_dir / "map") if self.state_dir is not None else Path(tempfile.mkdtemp(prefix="lrs-map-"))
+        self.map = load_map_builder(map_dir, map_mode)
+        self._map_pub: Any = None
+
+    # ------------------------------------------------------------------ state
+    @property
+    def _state_file(self) -> Path | None:
+        return self.state_dir / "fleet.json" if self.state_dir is not None else None
+
+    def _load_state(self) -> None:
+        path = self._state_file
+        if path is None or not path.exists():
+            return
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+            if data.get("format") != STATE_FORMAT or data.get("version") != STATE_VERSION:
+                msg = f"{path}: not a base-station state file of version {STATE_VERSION}"
+                raise ServiceError(msg)
+            for robot, rec in data["robots"].items():
+                self.records[robot] = RobotRecord(
+                    seqs=SeqSet(rec.get("ranges", [])),
+                    rejected=int(rec.get("rejected", 0)),
+                    duplicates=int(rec.get("duplicates", 0)),
+                    points=int(rec.get("points", 0)),
+                    last_t_ns=int(rec.get("last_t_ns", 0)),
+                )
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+            msg = f"{path}: cannot read the base station's state: {err}"
+            raise ServiceError(msg) from err
+        log.info("state reloaded from %s: %d robots", path, len(self.records))
+
+    def save_state(self) -> None:
+        """Write the counters to ``<state>/fleet.json`` atomically (no-op without a state folder)."""
+        path = self._state_file
+        if path is None:
+            return
+        with self._lock:
+            data = {
+                "format": STATE_FORMAT,
+                "version": STATE_VERSION,
+                "saved_ns": time.time_ns(),
+                "robots": {
+                    r: {
+                        "ranges": rec.seqs.ranges(),
+                        "rejected": rec.rejected,
+                        "duplicates": rec.duplicates,
+                        "points": rec.points,
+                        "last_t_ns": rec.last_t_ns,
+                    }
+                    for r, rec in self.records.items()
+                },
+            }
+            self._dirty = False
+        write_atomic(path, json.dumps(data))
+
+    def calibration_path(self, robot: str) -> Path | None:
+        """Where the fleet calibration of ``robot`` is stored."""
+        return self.state_dir / "calib" / f"{robot}.json" if self.state_dir is not None else None
+
+    def store_calibration(self, robot: str, calibration: Calibration) -> None:
+        """Store a robot's fleet calibration (served on ``<root>/base/calib/<robot>``)."""
+        path = self.calibration_path(robot)
+        if path is None:
+            msg = "the base station has no --state folder to store calibrations in"
+            raise ServiceError(msg)
+        calibration.save(path)
+
+    def _record(self, robot: str) -> RobotRecord:
+        rec = self.records.get(robot)
+        if rec is None:
+            rec = self.records[robot] = RobotRecord()
+        return rec
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> BaseStation:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Declare the subscribers and queryables and start the worker threads."""
+        import zenoh
+
+        s = self.session
+        for i in range(self.n_workers):
+            t = threading.Thread(target=self._worker, name=f"base-ingest-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        saver = threading.Thread(target=self._saver, name="base-saver", daemon=True)
+        saver.start()
+        self._threads.append(saver)
+        self._map_pub = s.declare_publisher(
+            self.keys.map_updates,
+            encoding=zenoh.Encoding("application/json"),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        self._entities += [
+            self._map_pub,
+            s.declare_subscriber(self.keys.all_clouds, self._on_cloud),
+            s.declare_subscriber(self.keys.all_rov_status, self._on_rov_status),
+            s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
+            s.declare_queryable(self.keys.base_status, self._on_status_query),
+            s.declare_queryable(self.keys.base_calib_all, self._on_calib_query),
+            s.declare_queryable(self.keys.base_acks_all, self._on_acks_query),
+            s.declare_queryable(self.keys.map, self._on_map_query),
+        ]
+        log.info("base station of fleet %r up: subscribed to %s", self.keys.fleet, self.keys.all_clouds)
+
+    def drain(self, timeout_s: float = 10.0) -> bool:
+        """Wait until every queued cloud has been processed; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._queue.unfinished_tasks == 0:
+                return True
+            time.sleep(0.01)
+        return False
+
+    def close(self) -> None:
+        """Undeclare everything, finish the queued clouds, flush and save map and counters."""
+        for e in reversed(self._entities):
+            try:
+                e.undeclare()
+            except Exception as err:
+                log.debug("undeclare failed: %s", err)
+        self._entities.clear()
+        self.drain(timeout_s=10.0)
+        self._closing.set()
+        for _ in range(self.n_workers):
+            self._queue.put(None)
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads.clear()
+        if self.map is not None:
+            with self._map_lock:
+                try:
+                    self.map.flush()
+                    self.map.save()
+                except Exception as err:
+                    log.error("map flush/save failed: %s", err)
+        self.save_state()
+
+    # ------------------------------------------------------------------ callbacks (cheap, never block long)
+    def _on_cloud(self, sample: Any) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        while not self._closing.is_set():
+            try:
+                self._queue.put(item, timeout=0.5)
+                return
+            except queue.Full:
+                continue
+
+    def _on_rov_status(self, sample: Any) -> None:
+        robot = self.keys.robot_of(str(sample.key_expr))
+        try:
+            msg = StatusMsg.from_bytes(sample.payload.to_bytes())
+        except WireError as err:
+            self._reject(robot or UNKNOWN_SENDER, f"status: {err}")
+            return
+        if robot is None or msg.robot != robot:
+            self._reject(robot or UNKNOWN_SENDER, f"status of {msg.robot!r} published under {sample.key_expr}")
+            return
+        with self._lock:
+            self._record(robot).reported = msg
+
+    def _on_alive(self, sample: Any) -> None:
+        import zenoh
+
+        robot = self.keys.robot_of(str(sample.key_expr))
+        if robot is None:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        now = time.time_ns()
+        with self._lock:
+            rec = self._record(robot)
+            rec.alive = alive
+            if alive:
+                rec.joined_ns = now
+            else:
+                rec.left_ns = now
+            self.membership_events.append((robot, "joined" if alive else "left", now))
+        log.info("robot %s %s", robot, "joined" if alive else "left")
+
+    def _on_status_query(self, query: Any) -> None:
+        try:
+            only = query.parameters.get("robot") if query.parameters is not None else None
+            status = self.status(only)
+            query.reply(query.key_expr, json.dumps(status), encoding="application/json")
+        except Exception as err:
+            log.warning("status query failed: %s", err)
+
+    def _on_acks_query(self, query: Any) -> None:
+        robot = self.keys.robot_of_base_key(str(query.key_expr), "acks")
+        try:
+            if robot is None:
+                query.reply_err(f"no such robot key: {query.key_expr}")
+                return
+            with self._lock:
+                rec = self.records.get(robot)
+                body = {
+                    "robot": robot,
+                    "ranges": rec.seqs.ranges() if rec else [],
+                    "received": len(rec.seqs) if rec else 0,
+                }
+            query.reply(query.key_expr, json.dumps(body), encoding="application/json")
+        except Exception as err:
+            log.warning("acks query failed: %s", err)
+
+    def _on_calib_query(self, query: Any) -> None:
+        key = str(query.key_expr)
+        robot = self.keys.robot_of_base_key(key, "calib")
+        try:
+            if robot is None:
+                query.reply_err(f"not a robot's calibration key: {key}")
+                return
+            path = self.calibration_path(robot)
+            if path is None or not path.is_file():
+                query.reply_err(f"no calibration stored for robot {robot!r}")
+                return
+            try:
+                calib = Calibration.load(path)
+            except LrsensorError as err:
+                query.reply_err(f"stored calibration of {robot!r} is invalid: {err}")
+                return
+            fmt = query.parameters.get("format") if query.parameters is not None else None
+            if fmt == "json":
+                query.reply(key, calib.to_json(), encoding="application/json")
+            else:
+                query.reply(key, CalibMsg(robot, calib).to_bytes(), encoding=ENCODING)
+        except Exception as err:
+            log.warning("calibration query %s failed: %s", key, err)
+
+    def _on_map_query(self, query: Any) -> None:
+        try:
+            query.reply(query.key_expr, json.dumps(self.map_json()), encoding="application/json")
+        except Exception as err:
+            log.warning("map query failed: %s", err)
+
+    # ------------------------------------------------------------------ workers
+    def _reject(self, robot: str, reason: str) -> None:
+        with self._lock:
+            rec = self._record(robot)
+            rec.rejected += 1
+            short = reason.split(":")[0] if len(reason) > 60 else reason
+            rec.rejected_reasons[short[:60]] += 1
+            n = rec.rejected
+            self._dirty = True
+        if n <= 5 or n % 100 == 0:
+            log.warning("payload from %s rejected (%d so far): %s", robot, n, reason)
+
+    def _worker(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                self._ingest(*item)
+            except Exception as err:
+                log.exception("ingest failed: %s", err)
+            finally:
+                self._queue.task_done()
+
+    def _ingest(self, key: str, payload: bytes, recv_ns: int) -> None:
+        robot = self.keys.robot_of(key)
+        if robot is None:
+            self._reject(UNKNOWN_SENDER, f"cloud on a key that names no robot: {key}")
+            return
+        try:
+            msg = CloudMsg.from_bytes(payload)
+        except WireError as err:
+            self._reject(robot, str(err))
+            return
+        if msg.robot != robot:
+            self._reject(robot, f"cloud of robot {msg.robot!r} published under {key}")
+            return
+        if self.allowed is not None and robot not in self.allowed:
+            self._reject(robot, f"robot {robot!r} is not a member of fleet {self.keys.fleet!r}")
+            return
+        with self._lock:
+            rec = self._record(robot)
+            if not rec.seqs.add(msg.seq):
+                rec.duplicates += 1
+                return
+            rec.points += len(msg)
+            rec.last_t_ns = max(rec.last_t_ns, msg.t_ns)
+            p = msg.pose
+            if len(rec.track) < MAX_TRACK_POINTS:
+                rec.track.append((msg.t_ns, p.north_m, p.east_m, p.down_m))
+            self._dirty = True
+        if self.map is not None and len(msg):
+            points_ned = body_to_ned(msg.points_body.astype(np.float64), msg.pose)
+            try:
+                with self._map_lock:
+                    changes = self.map.add_cloud(robot, msg.t_ns, points_ned, msg.pose)
+                    if changes:
+                        self._map_dirty = True
+            except Exception as err:
+                self.map_errors += 1
+                log.error("map update with cloud %s#%d failed: %s", robot, msg.seq, err)
+                changes = []
+            if changes and self._map_pub is not None:
+                update = {"t_ns": msg.t_ns, "robot": robot, "seq": msg.seq, "planes": changes}
+                try:
+                    self._map_pub.put(json.dumps(update, default=_json_default))
+                except Exception as err:
+                    log.debug("map update not published: %s", err)
+        done = time.time_ns()
+        with self._lock:
+            self.processed += 1
+            self.latency.add(done - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
+
+    def _saver(self) -> None:
+        last_map_save = time.monotonic()
+        while not self._closing.wait(self.save_period_s):
+            if self._dirty:
+                try:
+                    self.save_state()
+                except OSError as err:
+                    log.error("cannot save state: %s", err)
+            if self.map is not None and self.state_dir is not None and time.monotonic() - last_map_save > 10:
+                last_map_save = time.monotonic()
+                try:
+                    with self._map_lock:
+                        self.map.save()
+                except Exception as err:
+                    log.error("cannot save the map: %s", err)
+
+    # ------------------------------------------------------------------ views
+    def map_json(self) -> dict[str, Any]:
+        """The whole map as JSON-ready data (``{"planes": []}`` when the map is off)."""
+        if self.map is None:
+            return {"planes": [], "enabled": False}
+        with self._map_lock:
+            data: dict[str, Any] = self.map.map_json()
+        self._map_planes = len(data.get("planes", []))
+        self._map_dirty = False
+        return json.loads(json.dumps(data, default=_json_default))
+
+    def flush_map(self) -> None:
+        """Let the map process everything it holds (e.g. at the end of a dive)."""
+        if self.map is not None:
+            with self._map_lock:
+                self.map.flush()
+                self._map_dirty = True
+
+    def status(self, robot: str | None = None) -> dict[str, Any]:
+        """The status JSON (one robot only when ``robot`` is given)."""
+        if self.map is not None and self._map_dirty:
+            self.map_json()
+        with self._lock:
+            robots = {r: rec.to_json() for r, rec in sorted(self.records.items()) if robot in (None, r)}
+            lat = self.latency.percentiles_ms()
+            return {
+                "fleet": self.keys.fleet,
+                "t_ns": time.time_ns(),
+                "robots": robots,
+                "map": {"planes": self._map_planes, "enabled": self.map is not None, "errors": self.map_errors},
+                "ingest": {
+                    "processed": self.processed,
+                    "queued": self._queue.qsize(),
+                    "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
+                },
+            }
+
+    def tracks(self) -> dict[str, np.ndarray]:
+        """Per robot, the poses of its accepted clouds: (M, 4) ``t_ns, north_m, east_m, down_m``."""
+        with self._lock:
+            return {r: np.asarray(rec.track, dtype=float).reshape(-1, 4) for r, rec in self.records.items()}
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    msg = f"not JSON serialisable: {type(obj).__name__}"
+    raise TypeError(msg)

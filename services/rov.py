@@ -1,0 +1,319 @@
+"""The ROV service: frames + IMU -> pose-tagged clouds published over Zenoh.
+
+Per frame: the pose at the frame's capture time is interpolated from the IMU track (frames outside the
+track's span are skipped and counted), the image goes through :meth:`lrsensor.Sensor.process`, and the scan
+is published as a :class:`~services.wire.CloudMsg` with BLOCK congestion control (never dropped silently).
+While running the ROV holds its liveliness token ``<root>/<robot>/alive``, serves its calibration on
+``<root>/<robot>/calib`` and publishes :class:`~services.wire.StatusMsg` counters on ``<root>/<robot>/status``.
+
+This module does not import Open3D (the ROV install does not have it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from lrsensor.calibration import Calibration
+from lrsensor.errors import LrsensorError
+from lrsensor.sensor import Sensor
+
+from .errors import CalibrationUnavailableError, WireError
+from .imu import ImuSource
+from .keys import FleetKeys, check_robot_name
+from .sources import FrameSource
+from .wire import ENCODING, CalibMsg, CloudMsg, StatusMsg
+
+log = logging.getLogger(__name__)
+
+#: How long a live frame waits for the IMU to catch up with its capture time, seconds.
+LIVE_IMU_WAIT_S = 0.25
+
+
+@dataclass
+class RovCounters:
+    """Counters of one ROV run (also its final summary)."""
+
+    frames: int = 0
+    published: int = 0
+    skipped: int = 0
+    failed: int = 0
+    first_seq: int = -1
+    last_seq: int = -1
+    delivered: bool | None = None
+    points: int = 0
+    started_ns: int = field(default_factory=time.time_ns)
+
+    def summary(self, robot: str) -> str:
+        """The final one-line summary."""
+        d = {None: "unknown", True: "confirmed", False: "NOT confirmed"}[self.delivered]
+        return (
+            f"rov {robot}: frames {self.frames}, published {self.published}, skipped (no pose) {self.skipped}, "
+            f"failed {self.failed}, points {self.points}, delivery {d}"
+        )
+
+
+class CloudSink(Protocol):
+    """Where the ROV puts its clouds (a Zenoh publisher; issue 7 puts an outbox in front of it)."""
+
+    def send(self, msg: CloudMsg) -> None: ...
+
+
+class ZenohCloudSink:
+    """Publishes clouds on ``<root>/<robot>/cloud``: reliable, BLOCK congestion control, msgpack."""
+
+    def __init__(self, session: Any, key: str) -> None:
+        import zenoh
+
+        self.publisher = session.declare_publisher(
+            key,
+            encoding=zenoh.Encoding(ENCODING),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+
+    def send(self, msg: CloudMsg) -> None:
+        """Publish one cloud (stamped with its publication time)."""
+        self.publisher.put(msg.with_sent_ns(time.time_ns()).to_bytes())
+
+
+def fetch_calibration(
+    session: Any, keys: FleetKeys, robot: str, timeout_s: float = 10.0, stop: threading.Event | None = None
+) -> Calibration:
+    """Ask the base station's fleet calibration queryable for ``robot``'s calibration, with retries.
+
+    Raises :class:`CalibrationUnavailableError` when the base station answers that it has none, or when no
+    answer came within ``timeout_s``.
+    """
+    key = keys.base_calib(robot)
+    deadline = time.monotonic() + timeout_s
+    attempt = 0
+    last_problem = "no base station answered"
+    while True:
+        attempt += 1
+        remaining = deadline - time.monotonic()
+        for reply in session.get(key, timeout=max(0.5, min(2.0, remaining))):
+            if reply.ok is not None:
+                try:
+                    msg = CalibMsg.from_bytes(reply.ok.payload.to_bytes())
+                except WireError as err:
+                    last_problem = f"invalid answer: {err}"
+                    continue
+                if msg.robot != robot:
+                    last_problem = f"answer is the calibration of {msg.robot!r}"
+                    continue
+                log.info("calibration of %s fetched from %s (attempt %d)", robot, key, attempt)
+                return msg.calibration
+            err_text = reply.err.payload.to_string() if reply.err is not None else "error"
+            msg_ = f"the base station has no calibration for robot {robot!r} ({key}): {err_text}"
+            raise CalibrationUnavailableError(msg_)
+        if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+            break
+        if stop is not None:
+            stop.wait(0.25)
+        else:
+            time.sleep(0.25)
+    msg_ = (
+        f"no calibration for robot {robot!r}: none given with --calib and none fetched from {key} within "
+        f"{timeout_s:.0f} s ({last_problem}); give --calib FILE or store it at the base station "
+        f"(--state DIR/calib/{robot}.json)"
+    )
+    raise CalibrationUnavailableError(msg_)
+
+
+def wait_delivered(
+    session: Any,
+    keys: FleetKeys,
+    robot: str,
+    first_seq: int,
+    last_seq: int,
+    timeout_s: float,
+    stop: threading.Event | None = None,
+) -> bool:
+    """Poll the base station's acknowledgements until it holds every seq in ``[first_seq, last_seq]``."""
+    key = keys.base_acks(robot)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for reply in session.get(key, timeout=1.0):
+            if reply.ok is None:
+                continue
+            try:
+                ranges = json.loads(reply.ok.payload.to_bytes())["ranges"]
+                if any(int(lo) <= first_seq and last_seq <= int(hi) for lo, hi in ranges):
+                    return True
+            except (ValueError, KeyError, TypeError):
+                continue
+        if stop is not None and stop.is_set():
+            return False
+        time.sleep(0.05)
+    return False
+
+
+class RovService:
+    """One ROV: a frame source, an IMU, a calibration, a Zenoh session.
+
+    Args:
+        session: an open Zenoh session (the caller owns and closes it).
+        keys: the fleet's key expressions.
+        robot: this robot's name.
+        source: frames (context manager and iterator).
+        imu: the pose track source (context manager).
+        calibration: the sensor's calibration (served on ``<root>/<robot>/calib``).
+        rate_hz: process at most this many frames per second (None: as fast as they come).
+        method: stripe extractor name for :meth:`Sensor.process`.
+        ack_timeout_s: at the end of a finite source, wait this long for the base station to acknowledge
+            every published cloud (0: do not wait).
+        seq_start: the first sequence number (a restarted robot continues its numbering).
+        sink: where clouds go (default: a Zenoh publisher on ``<root>/<robot>/cloud``).
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        keys: FleetKeys,
+        robot: str,
+        source: FrameSource,
+        imu: ImuSource,
+        calibration: Calibration,
+        *,
+        rate_hz: float | None = None,
+        method: str | None = None,
+        ack_timeout_s: float = 10.0,
+        status_period_s: float = 1.0,
+        seq_start: int = 0,
+        sink: CloudSink | None = None,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.robot = check_robot_name(robot)
+        self.source = source
+        self.imu = imu
+        self.calibration = calibration
+        self.sensor = Sensor(calibration)
+        self.rate_hz = rate_hz
+        self.method = method
+        self.ack_timeout_s = ack_timeout_s
+        self.status_period_s = status_period_s
+        self.seq = seq_start
+        self.sink = sink
+        self.counters = RovCounters()
+        self.state = "starting"
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ queryable / status
+    def _on_calib_query(self, query: Any) -> None:
+        try:
+            fmt = query.parameters.get("format") if query.parameters is not None else None
+            if fmt == "json":
+                query.reply(query.key_expr, self.calibration.to_json(), encoding="application/json")
+            else:
+                query.reply(query.key_expr, CalibMsg(self.robot, self.calibration).to_bytes(), encoding=ENCODING)
+        except Exception as err:
+            log.warning("calibration query %s failed: %s", query.selector, err)
+
+    def status(self) -> StatusMsg:
+        """The current counters as a status message."""
+        c = self.counters
+        with self._lock:
+            return StatusMsg(
+                self.robot, time.time_ns(), self.state, c.frames, c.published, c.skipped, c.failed, c.last_seq
+            )
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, stop: threading.Event | None = None) -> RovCounters:
+        """Process the source until it ends or ``stop`` is set; returns the counters."""
+        import zenoh
+
+        stop = stop or threading.Event()
+        c = self.counters
+        token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
+        queryable = self.session.declare_queryable(self.keys.calib(self.robot), self._on_calib_query)
+        status_pub = self.session.declare_publisher(
+            self.keys.rov_status(self.robot),
+            encoding=zenoh.Encoding(ENCODING),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        sink = self.sink or ZenohCloudSink(self.session, self.keys.cloud(self.robot))
+        log.info("rov %s: publishing on %s from %s", self.robot, self.keys.cloud(self.robot), self.source.name)
+        period_ns = int(1e9 / self.rate_hz) if self.rate_hz else 0
+        next_ns = time.monotonic_ns()
+        last_status = 0.0
+        ended = False
+        try:
+            with self.imu, self.source:
+                self.state = "running"
+                for frame in self.source:
+                    if stop.is_set():
+                        break
+                    if period_ns:
+                        wait_s = (next_ns - time.monotonic_ns()) / 1e9
+                        if wait_s > 0 and stop.wait(wait_s):
+                            break
+                        next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)
+                    with self._lock:
+                        c.frames += 1
+                    self._process(frame.t_ns, frame.image, sink)
+                    now = time.monotonic()
+                    if now - last_status >= self.status_period_s:
+                        last_status = now
+                        status_pub.put(self.status().to_bytes())
+                else:
+                    ended = True
+            if ended and self.ack_timeout_s > 0 and c.published > 0:
+                c.delivered = wait_delivered(
+                    self.session, self.keys, self.robot, c.first_seq, c.last_seq, self.ack_timeout_s, stop
+                )
+                if not c.delivered:
+                    log.warning(
+                        "rov %s: the base station did not acknowledge seq %d..%d within %.0f s",
+                        self.robot,
+                        c.first_seq,
+                        c.last_seq,
+                        self.ack_timeout_s,
+                    )
+            self.state = "done" if ended else "stopped"
+        except BaseException:
+            self.state = "failed"
+            raise
+        finally:
+            try:
+                status_pub.put(self.status().to_bytes())
+            except Exception as err:
+                log.debug("final status not published: %s", err)
+            queryable.undeclare()
+            token.undeclare()
+            status_pub.undeclare()
+        log.info(c.summary(self.robot))
+        return c
+
+    def _process(self, t_ns: int, image: Any, sink: CloudSink) -> None:
+        c = self.counters
+        pose = self.imu.track.pose_at(t_ns)
+        if pose is None and self.imu.live and self.imu.track.wait_covering(t_ns, LIVE_IMU_WAIT_S):
+            pose = self.imu.track.pose_at(t_ns)
+        if pose is None:
+            with self._lock:
+                c.skipped += 1
+            span = self.imu.track.span
+            log.debug("rov %s: frame at %d outside the IMU span %s: skipped", self.robot, t_ns, span)
+            return
+        try:
+            scan = self.sensor.process(image, method=self.method) if self.method else self.sensor.process(image)
+            msg = CloudMsg.from_scan(self.robot, self.seq, t_ns, pose, scan)
+        except LrsensorError as err:
+            with self._lock:
+                c.failed += 1
+            log.warning("rov %s: frame at %d not processed: %s", self.robot, t_ns, err)
+            return
+        sink.send(msg)
+        with self._lock:
+            if c.first_seq < 0:
+                c.first_seq = self.seq
+            c.last_seq = self.seq
+            c.published += 1
+            c.points += len(msg)
+        self.seq += 1
