@@ -1,0 +1,51 @@
+"""PNG plot of the laser calibration residuals (matplotlib with the Agg backend, imported lazily)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .lasers import LaserCalibrationReport
+
+
+def plot_laser_residuals(report: LaserCalibrationReport, path: str | os.PathLike[str]) -> Path:
+    """Residuals per laser per image: one panel per laser, residual (mm) against image column u (px).
+
+    Inliers are dots coloured by image, outliers grey crosses; the dashed lines are the RMS threshold.
+    Writes ``path`` (PNG) and returns it.
+    """
+    from ..plots import pyplot
+
+    plt = pyplot()
+    names = list(report.residuals) or ["(none)"]
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 3.2 * len(names)), sharex=True, squeeze=False)
+    max_rms = report.thresholds.get("max_rms_mm", float("nan"))
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        per_image = report.residuals.get(name, [])
+        fit = next((l for l in report.lasers if l.name == name), None)
+        for gi, (u, r, inl) in enumerate(per_image):
+            label = report.images[gi].name if gi < len(report.images) else f"image {gi}"
+            label = Path(label).name
+            ax.plot(u[inl], r[inl] * 1000, ".", ms=2, label=f"{label} ({int(inl.sum())} pts)")
+            if (~inl).any():
+                ax.plot(u[~inl], np.clip(r[~inl] * 1000, -10 * max_rms, 10 * max_rms), "x", ms=3, color="0.6")
+        if np.isfinite(max_rms):
+            for s in (-1, 1):
+                ax.axhline(s * max_rms, ls="--", lw=1, color="red")
+        title = f"laser {name}"
+        if fit is not None:
+            title += f": RMS {fit.rms_mm:.3f} mm, max {fit.max_mm:.3f} mm, tilt {fit.tilt_deg:.3f} deg"
+        ax.set_title(title)
+        ax.set_ylabel("residual [mm]")
+        ax.grid(True, alpha=0.3)
+        if per_image:
+            ax.legend(fontsize=7, markerscale=4, loc="upper right")
+    axes[-1, 0].set_xlabel("image column u [px]")
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
