@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -231,7 +232,7 @@ class Rectangle(Surface):
             board,
         )
 
-    @property
+    @cached_property
     def normal(self) -> FloatArray:
         """Unit normal ``axis_u x axis_v``, shape (3,)."""
         return np.cross(np.asarray(self.axis_u), np.asarray(self.axis_v))

@@ -96,27 +96,41 @@ class WaterModel:
 
 
 def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F32:
-    """The water background, (H, W, 3) float32 BGR in DN: a low-frequency bluish-green murk with vignetting."""
+    """The water background, (H, W, 3) float32 BGR in DN: a low-frequency bluish-green murk with vignetting.
+
+    Built at 1/8 resolution (everything in it is smooth) and resized, so it costs a few milliseconds.
+    """
     base = np.asarray(water.background_bgr, dtype=np.float32)
-    img = np.empty((h, w, 3), np.float32)
-    img[:] = base
+    f = 8
+    hl, wl = max(2, (h + f - 1) // f), max(2, (w + f - 1) // f)
+    low = np.empty((hl, wl, 3), np.float32)
+    low[:] = base
     if water.texture > 0:
         gw = max(2, round(water.texture_cells) + 2)
         gh = max(2, round(gw * h / w) + 2)
         grid = rng.standard_normal((gh, gw)).astype(np.float32)
         grid = cv2.GaussianBlur(grid, (0, 0), 0.8)
         grid /= max(float(grid.std()), 1e-6)
-        tex = cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
-        img *= (1.0 + water.texture * 0.5 * tex)[:, :, None]
+        tex = cv2.resize(grid, (wl, hl), interpolation=cv2.INTER_CUBIC)
+        low *= (1.0 + water.texture * 0.5 * tex)[:, :, None]
+        # the murk is not uniformly coloured: a second texture shifts blue against green
+        grid2 = rng.standard_normal((gh, gw)).astype(np.float32)
+        tex2 = cv2.resize(grid2, (wl, hl), interpolation=cv2.INTER_CUBIC)
+        low[:, :, 0] *= 1.0 + water.texture * 0.3 * tex2
     if water.vignetting > 0:
-        ys = (np.arange(h, dtype=np.float32) - (h - 1) / 2.0) / (h / 2.0)
-        xs = (np.arange(w, dtype=np.float32) - (w - 1) / 2.0) / (w / 2.0)
+        ys = (np.arange(hl, dtype=np.float32) + 0.5 - hl / 2.0) / (hl / 2.0)
+        xs = (np.arange(wl, dtype=np.float32) + 0.5 - wl / 2.0) / (wl / 2.0)
         r2 = (xs[None, :] ** 2 * (w / h) + ys[:, None] ** 2 * (h / w)) / (w / h + h / w)
-        img *= (1.0 - water.vignetting * r2)[:, :, None]
+        low *= (1.0 - water.vignetting * r2)[:, :, None]
     if water.haze_dn > 0:
         colour = base / max(float(base.max()), 1e-6)
-        img += water.haze_dn * colour
-    return img
+        low += water.haze_dn * colour
+    if water.texture == 0 and water.vignetting == 0:
+        img = np.empty((h, w, 3), np.float32)
+        img[:] = low[0, 0]
+        return img
+    out: F32 = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
+    return out
 
 
 def add_blobs(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
@@ -187,18 +201,45 @@ def apply_speckle(laser_map: F32, water: WaterModel, rng: np.random.Generator) -
     laser_map[y0:y1, x0:x1] *= np.clip(1.0 + water.speckle * noise, 0.0, None)
 
 
+_NOISE_BANK: dict[tuple[int, int], F32] = {}
+_BANK_PAD = 61
+
+
+def _noise_bank(h: int, w: int) -> F32:
+    """A fixed bank of unit Gaussian noise, (H + pad, W + pad, 3) float32, generated once per image size."""
+    key = (h, w)
+    bank = _NOISE_BANK.get(key)
+    if bank is None:
+        bank = np.random.default_rng(20240601).standard_normal((h + _BANK_PAD, w + _BANK_PAD, 3), np.float32)
+        if len(_NOISE_BANK) > 4:
+            _NOISE_BANK.clear()
+        _NOISE_BANK[key] = bank
+    return bank
+
+
 def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
-    """Add Gaussian read noise and signal-dependent shot noise, in place (float32 BGR, DN)."""
+    """Add Gaussian read noise and signal-dependent shot noise, in place (float32 BGR, DN).
+
+    The unit noise is a randomly offset, channel-permuted, sign-flipped window of a fixed noise bank (fresh
+    Gaussian noise for 6 M values costs more than the rest of a render); the window is drawn from ``rng``, so a
+    render is deterministic for its seed and renders with different seeds get different noise.
+    """
     if water.read_noise_dn <= 0 and water.shot_noise_gain <= 0:
         return
-    noise = np.empty_like(img)
-    cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
-    cv2.randn(noise, 0.0, 1.0)
+    h, w = img.shape[:2]
+    bank = _noise_bank(h, w)
+    oy, ox = (int(x) for x in rng.integers(0, _BANK_PAD, 2))
+    sign = np.float32(1.0 if rng.uniform() < 0.5 else -1.0)
+    noise = bank[oy : oy + h, ox : ox + w]
     if water.shot_noise_gain > 0:
-        var = np.maximum(img, 0.0) * np.float32(1.0 / water.shot_noise_gain)
-        var += np.float32(water.read_noise_dn**2)
-        cv2.sqrt(var, var)
-        noise *= var
+        sd = np.maximum(img, 0.0)
+        sd *= np.float32(1.0 / water.shot_noise_gain)
+        sd += np.float32(water.read_noise_dn**2)
+        cv2.sqrt(sd, sd)
+        sd *= noise
+        if sign < 0:
+            img -= sd
+        else:
+            img += sd
     else:
-        noise *= np.float32(water.read_noise_dn)
-    img += noise
+        img += noise * (sign * np.float32(water.read_noise_dn))
