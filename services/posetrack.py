@@ -88,6 +88,14 @@ class PoseTrack:
                 p = (1.0 - a) * self._p[i - 1] + a * self._p[i]
         return Pose.from_R_p(R_from_quat(q), p)
 
+    def samples(self) -> tuple[list[int], list[Pose]]:
+        """Copies of the sample times (ns) and poses."""
+        with self._cond:
+            t = list(self._t)
+            qs = list(self._q)
+            ps = list(self._p)
+        return t, [Pose.from_R_p(R_from_quat(q), p) for q, p in zip(qs, ps, strict=True)]
+
     def wait_covering(self, t_ns: int, timeout_s: float) -> bool:
         """Block until a sample at or after ``t_ns`` exists (live IMU behind the camera), or the timeout."""
         with self._cond:
