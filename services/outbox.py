@@ -1,0 +1,404 @@
+"""A bounded, disk-backed store-and-forward outbox: the ROV keeps every encoded cloud until the base acks it.
+
+Layout of the outbox directory::
+
+    DIR/<seq:020d>.msg      one message per file, written atomically (temporary file, fsync, rename)
+    DIR/state.json          counters that must survive a restart (written atomically): highest sequence
+                            number ever appended, acked and dropped counts, the dropped sequence ranges
+
+A message file is ``MAGIC (8 bytes) | seq (u64 LE) | length (u64 LE) | crc32 (u32 LE) | payload``. On reload
+every ``*.msg`` file is checked (magic, name, length, CRC); a damaged one (a crash can only leave a
+``.tmp`` file, but a disk can do worse) is moved to ``DIR/corrupt/`` and counted, never silently skipped.
+
+Policy when full: the outbox holds at most ``max_messages`` messages and ``max_bytes`` payload bytes. An
+append that would exceed either bound first drops the **oldest** pending messages (lowest sequence numbers)
+until the new one fits; every dropped sequence number is counted (``dropped``) and kept as ranges
+(``dropped_ranges``) in ``state.json``, logged at WARNING, and returned to the caller so it can report them.
+The newest data wins because a ROV that lost its link for long still wants its latest view of the world, and
+the base station sees the dropped numbers as open gaps (``missed``) in its counters: loss is never silent.
+
+Durability: with ``fsync=True`` (default) each message is on disk before :meth:`Outbox.append` returns, so
+it survives a power cut; with ``fsync=False`` it survives a crash of the process but not of the machine.
+
+Sequence numbers are strictly increasing and never reused, also across restarts: :attr:`Outbox.next_seq`
+is one past the highest number ever appended (kept in ``state.json`` before any file is removed).
+The class is thread-safe (one lock).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import logging
+import os
+import struct
+import tempfile
+import threading
+import zlib
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import ServiceError
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"LRSOBX1\n"
+_HEADER = struct.Struct("<8sQQI")
+STATE_FILE = "state.json"
+SUFFIX = ".msg"
+#: Default bounds: 20k messages or 1 GiB, whichever comes first (about 11 min of 30 Hz clouds).
+DEFAULT_MAX_MESSAGES = 20_000
+DEFAULT_MAX_BYTES = 1 << 30
+#: How many dropped ranges ``state.json`` keeps (older ones are merged into the count only).
+MAX_DROPPED_RANGES = 1000
+
+
+class OutboxError(ServiceError):
+    """The outbox directory cannot be used, or an append breaks its rules (sequence order, size)."""
+
+
+@dataclass(frozen=True)
+class OutboxStats:
+    """Counters of an outbox.
+
+    Attributes:
+        pending: messages held, not yet acknowledged.
+        pending_bytes: their payload bytes.
+        appended: messages appended since the outbox was created (kept across restarts).
+        acked: messages acknowledged and removed (kept across restarts).
+        dropped: messages dropped because the outbox was full (kept across restarts).
+        corrupt: damaged message files found on reload (moved to ``corrupt/``).
+        next_seq: the next sequence number to use.
+        dropped_ranges: the dropped sequence numbers as ``[[lo, hi], ...]`` (most recent
+            :data:`MAX_DROPPED_RANGES`).
+    """
+
+    pending: int
+    pending_bytes: int
+    appended: int
+    acked: int
+    dropped: int
+    corrupt: int
+    next_seq: int
+    dropped_ranges: tuple[tuple[int, int], ...]
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping."""
+        return {
+            "pending": self.pending,
+            "pending_bytes": self.pending_bytes,
+            "appended": self.appended,
+            "acked": self.acked,
+            "dropped": self.dropped,
+            "corrupt": self.corrupt,
+            "next_seq": self.next_seq,
+            "dropped_ranges": [list(r) for r in self.dropped_ranges],
+        }
+
+
+def atomic_write(path: Path, data: bytes, *, fsync: bool = True) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same folder and a rename.
+
+    With ``fsync`` the data and the rename are flushed to disk (file and folder fsync) before returning.
+    """
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            if fsync:
+                f.flush()
+                os.fsync(f.fileno())
+        Path(tmp).replace(path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    if fsync:
+        _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        dfd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - platforms without directory fds
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(dfd)
+
+
+def _merge_range(ranges: list[list[int]], lo: int, hi: int) -> None:
+    """Append ``[lo, hi]`` to increasing, disjoint ``ranges`` (``lo`` above every range held), merging."""
+    if ranges and lo <= ranges[-1][1] + 1:
+        ranges[-1][1] = max(ranges[-1][1], hi)
+    else:
+        ranges.append([lo, hi])
+
+
+class Outbox:
+    """A bounded, crash-safe queue of encoded messages keyed by sequence number.
+
+    Args:
+        directory: the outbox folder (created; one outbox per robot).
+        max_messages: at most this many messages pending (>= 1).
+        max_bytes: at most this many payload bytes pending (>= 1).
+        fsync: flush every message to disk before :meth:`append` returns.
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike[str],
+        *,
+        max_messages: int = DEFAULT_MAX_MESSAGES,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        fsync: bool = True,
+    ) -> None:
+        if max_messages < 1 or max_bytes < 1:
+            msg = f"outbox bounds must be positive, got max_messages={max_messages}, max_bytes={max_bytes}"
+            raise OutboxError(msg)
+        self.directory = Path(directory)
+        self.max_messages = int(max_messages)
+        self.max_bytes = int(max_bytes)
+        self.fsync = bool(fsync)
+        self._lock = threading.RLock()
+        self._seqs: list[int] = []  # sorted pending sequence numbers
+        self._sizes: dict[int, int] = {}
+        self._bytes = 0
+        self._next_seq = 0
+        self._appended = 0
+        self._acked = 0
+        self._dropped = 0
+        self._corrupt = 0
+        self._dropped_ranges: list[list[int]] = []
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            msg = f"cannot create the outbox folder {self.directory}: {err}"
+            raise OutboxError(msg) from err
+        self._reload()
+
+    # ----------------------------------------------------------------------------------------- persistence
+    def _path(self, seq: int) -> Path:
+        return self.directory / f"{seq:020d}{SUFFIX}"
+
+    def _reload(self) -> None:
+        state_path = self.directory / STATE_FILE
+        if state_path.exists():
+            try:
+                state = json.loads(state_path.read_text())
+                self._next_seq = int(state["next_seq"])
+                self._appended = int(state["appended"])
+                self._acked = int(state["acked"])
+                self._dropped = int(state["dropped"])
+                self._corrupt = int(state.get("corrupt", 0))
+                self._dropped_ranges = [[int(a), int(b)] for a, b in state.get("dropped_ranges", [])]
+            except (OSError, ValueError, KeyError, TypeError) as err:
+                msg = f"outbox state {state_path} is unreadable ({err}); move it aside to start afresh"
+                raise OutboxError(msg) from err
+        for tmp in self.directory.glob(".*.tmp"):  # an interrupted atomic write: never renamed, not a message
+            tmp.unlink(missing_ok=True)
+        found: list[tuple[int, int]] = []
+        for path in self.directory.glob(f"*{SUFFIX}"):
+            seq, size = self._check_file(path)
+            if seq < 0:
+                self._quarantine(path)
+                continue
+            found.append((seq, size))
+        found.sort()
+        self._seqs = [s for s, _ in found]
+        self._sizes = dict(found)
+        self._bytes = sum(self._sizes.values())
+        if self._seqs:
+            self._next_seq = max(self._next_seq, self._seqs[-1] + 1)
+        # Every message ever appended is now acked, dropped, pending or corrupt (the count is not saved on
+        # each append, only on acks and drops).
+        self._appended = max(self._appended, self._acked + self._dropped + self._corrupt + len(self._seqs))
+        if found:
+            log.info("outbox %s: reloaded %d pending messages (%d bytes)", self.directory, len(found), self._bytes)
+
+    def _check_file(self, path: Path) -> tuple[int, int]:
+        """(seq, payload size) of a valid message file, (-1, 0) for a damaged one."""
+        try:
+            name_seq = int(path.name[: -len(SUFFIX)])
+            with path.open("rb") as f:
+                header = f.read(_HEADER.size)
+                magic, seq, length, crc = _HEADER.unpack(header)
+                payload = f.read(length + 1)
+        except (OSError, ValueError, struct.error) as err:
+            log.warning("outbox %s: damaged message file %s (%s)", self.directory, path.name, err)
+            return -1, 0
+        if magic != MAGIC or seq != name_seq or len(payload) != length or zlib.crc32(payload) != crc:
+            log.warning("outbox %s: damaged message file %s (header or checksum mismatch)", self.directory, path.name)
+            return -1, 0
+        return seq, length
+
+    def _quarantine(self, path: Path) -> None:
+        bad = self.directory / "corrupt"
+        bad.mkdir(exist_ok=True)
+        path.replace(bad / path.name)
+        self._corrupt += 1
+
+    def _save_state(self) -> None:
+        state = {
+            "format": "lrsensor-outbox",
+            "version": 1,
+            "next_seq": self._next_seq,
+            "appended": self._appended,
+            "acked": self._acked,
+            "dropped": self._dropped,
+            "corrupt": self._corrupt,
+            "dropped_ranges": self._dropped_ranges[-MAX_DROPPED_RANGES:],
+        }
+        atomic_write(self.directory / STATE_FILE, json.dumps(state).encode(), fsync=self.fsync)
+
+    def _remove(self, seqs: Sequence[int]) -> None:
+        """Forget ``seqs`` (already in the state) and delete their files."""
+        for seq in seqs:
+            i = bisect.bisect_left(self._seqs, seq)
+            if i < len(self._seqs) and self._seqs[i] == seq:
+                del self._seqs[i]
+                self._bytes -= self._sizes.pop(seq)
+            self._path(seq).unlink(missing_ok=True)
+
+    # ----------------------------------------------------------------------------------------- public API
+    @property
+    def next_seq(self) -> int:
+        """One past the highest sequence number ever appended (0 for a new outbox)."""
+        with self._lock:
+            return self._next_seq
+
+    def append(self, seq: int, payload: bytes) -> list[int]:
+        """Store ``payload`` under ``seq``; returns the sequence numbers dropped to make room (oldest first).
+
+        Raises:
+            OutboxError: ``seq`` is not above every number appended before, the payload alone is larger
+                than ``max_bytes``, or the disk write failed.
+        """
+        if not isinstance(payload, bytes | bytearray | memoryview):
+            msg = f"outbox payload must be bytes, got {type(payload).__name__}"
+            raise OutboxError(msg)
+        data = bytes(payload)
+        with self._lock:
+            if seq < self._next_seq:
+                msg = f"outbox {self.directory}: sequence number {seq} is not above {self._next_seq - 1}"
+                raise OutboxError(msg)
+            if len(data) > self.max_bytes:
+                msg = f"outbox {self.directory}: message #{seq} of {len(data)} bytes exceeds max_bytes={self.max_bytes}"
+                raise OutboxError(msg)
+            dropped: list[int] = []
+            while self._seqs and (len(self._seqs) + 1 > self.max_messages or self._bytes + len(data) > self.max_bytes):
+                dropped.append(self._seqs.pop(0))
+                self._bytes -= self._sizes.pop(dropped[-1])
+            header = _HEADER.pack(MAGIC, seq, len(data), zlib.crc32(data))
+            self._next_seq = seq + 1
+            if dropped:
+                self._dropped += len(dropped)
+                for d in dropped:
+                    _merge_range(self._dropped_ranges, d, d)
+                del self._dropped_ranges[:-MAX_DROPPED_RANGES]
+                log.warning(
+                    "outbox %s full (%d messages, %d bytes max): dropped %d oldest (#%d..#%d)",
+                    self.directory,
+                    self.max_messages,
+                    self.max_bytes,
+                    len(dropped),
+                    dropped[0],
+                    dropped[-1],
+                )
+                self._save_state()  # next_seq and the drop are durable before any file goes
+                for d in dropped:
+                    self._path(d).unlink(missing_ok=True)
+            try:
+                atomic_write(self._path(seq), header + data, fsync=self.fsync)
+            except OSError as err:
+                msg = f"outbox {self.directory}: cannot write message #{seq}: {err}"
+                raise OutboxError(msg) from err
+            self._seqs.append(seq)
+            self._sizes[seq] = len(data)
+            self._bytes += len(data)
+            self._appended += 1
+            return dropped
+
+    def pending(self) -> list[int]:
+        """The pending sequence numbers, increasing."""
+        with self._lock:
+            return list(self._seqs)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._seqs)
+
+    def __contains__(self, seq: object) -> bool:
+        with self._lock:
+            return isinstance(seq, int) and seq in self._sizes
+
+    def get(self, seq: int) -> bytes | None:
+        """The payload of a pending message, or None if it is not pending (acked, dropped, never appended)."""
+        with self._lock:
+            if seq not in self._sizes:
+                return None
+            try:
+                raw = self._path(seq).read_bytes()
+            except OSError as err:
+                msg = f"outbox {self.directory}: cannot read message #{seq}: {err}"
+                raise OutboxError(msg) from err
+        return raw[_HEADER.size :]
+
+    def iter_pending(self, after: int = -1, limit: int | None = None) -> Iterator[tuple[int, bytes]]:
+        """(seq, payload) of pending messages with ``seq > after``, increasing; skips ones acked meanwhile."""
+        with self._lock:
+            i = bisect.bisect_right(self._seqs, after)
+            seqs = self._seqs[i : i + limit] if limit is not None else self._seqs[i:]
+        for seq in seqs:
+            payload = self.get(seq)
+            if payload is not None:
+                yield seq, payload
+
+    def ack(self, seq: int) -> bool:
+        """Remove one message; True if it was pending."""
+        return self.ack_many([seq]) == 1
+
+    def ack_upto(self, seq: int) -> int:
+        """Remove every pending message with a number <= ``seq``; returns how many."""
+        with self._lock:
+            i = bisect.bisect_right(self._seqs, seq)
+            return self.ack_many(self._seqs[:i])
+
+    def ack_ranges(self, ranges: Iterable[Sequence[int]]) -> int:
+        """Remove every pending message inside any closed range ``[lo, hi]``; returns how many."""
+        with self._lock:
+            hit: list[int] = []
+            for lo, hi in ranges:
+                i = bisect.bisect_left(self._seqs, int(lo))
+                j = bisect.bisect_right(self._seqs, int(hi))
+                hit.extend(self._seqs[i:j])
+            return self.ack_many(sorted(set(hit)))
+
+    def ack_many(self, seqs: Iterable[int]) -> int:
+        """Remove the given messages (those pending); returns how many were removed."""
+        with self._lock:
+            hit = [s for s in seqs if s in self._sizes]
+            if not hit:
+                return 0
+            self._acked += len(hit)
+            self._save_state()
+            self._remove(hit)
+            return len(hit)
+
+    def stats(self) -> OutboxStats:
+        """A snapshot of the counters."""
+        with self._lock:
+            return OutboxStats(
+                pending=len(self._seqs),
+                pending_bytes=self._bytes,
+                appended=self._appended,
+                acked=self._acked,
+                dropped=self._dropped,
+                corrupt=self._corrupt,
+                next_seq=self._next_seq,
+                dropped_ranges=tuple((a, b) for a, b in self._dropped_ranges),
+            )
