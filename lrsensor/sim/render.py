@@ -506,46 +506,62 @@ def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: Int
 def _glow(
     scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel, shape: tuple[int, int]
 ) -> F32:
-    """Backscatter glow of one laser sheet: light scattered toward the camera along the sheet, (H, W) DN."""
+    """Backscatter glow of one laser sheet, (H, W) float32 DN (green-channel units).
+
+    Single-scattering radiance of the sheet seen along each camera ray: the ray crosses the laser plane at a
+    point at distance ``s`` from the laser; if that point lies inside the fan and before the laser's first hit,
+    it glows with ``exp(-c (s + r_cam)) / (s |cos a|)`` (sheet irradiance ~ 1/s, path through the sheet
+    ~ 1/|cos a| for a ray at angle a to the sheet normal) times a phase factor ``1 / (1 + s / 0.5 m)`` that
+    makes it brighter near the camera. Computed at quarter resolution, blurred by ``water.glow_sigma_px``
+    (sheet thickness and multiple scattering) and resized; occlusion of the glow by objects between the
+    camera and the sheet is ignored.
+    """
     h, w = shape
     origin, a, b = fan_basis(calib, laser)
+    n = calib.lasers[laser].normal_body
     half = model.fan_angle_rad / 2.0
-    n_rays, n_steps = 720, 160
-    theta = np.linspace(-half, half, n_rays)
-    d = np.cos(theta)[:, None] * a + np.sin(theta)[:, None] * b
-    t, _, _ = scene.raycast(origin, d)
+    # fan table: distance to the first hit per fan angle
+    n_rays = 721
+    theta_tab = np.linspace(-half, half, n_rays)
+    d = np.cos(theta_tab)[:, None] * a + np.sin(theta_tab)[:, None] * b
+    t_tab, _, _ = scene.raycast(origin, d)
     c = water.attenuation_per_m
-    t_end = np.minimum(np.where(np.isfinite(t), t, np.inf), min(model.max_range_m, 8.0 / max(c, 0.2)))
-    u01 = (np.arange(n_steps) + 0.5) / n_steps
-    s_min = 0.01
-    # log-spaced steps along each ray from s_min to its end
-    s = s_min * (t_end[:, None] / s_min) ** u01[None, :]
-    ds = s * np.log(t_end[:, None] / s_min) / n_steps
-    pts = origin + s[..., None] * d[:, None, :]
-    pts = pts.reshape(-1, 3)
-    pc = calib.body_to_cam(pts)
-    uv = calib.camera.project(pc)
-    r_c = np.linalg.norm(pc, axis=1)
-    dtheta = model.fan_angle_rad / n_rays
-    f = 0.5 * (calib.camera.fx + calib.camera.fy)
-    weight = (dtheta * ds.reshape(-1) * np.exp(-c * (s.reshape(-1) + r_c)) / np.maximum(r_c, 0.05) ** 2) * f * f
-    factor = 4
-    hl, wl = (h + factor - 1) // factor, (w + factor - 1) // factor
-    with np.errstate(invalid="ignore"):
-        ul = np.floor((uv[:, 0] + 0.5) / factor)
-        vl = np.floor((uv[:, 1] + 0.5) / factor)
-        ok = (pc[:, 2] > 0) & (ul >= 0) & (ul < wl) & (vl >= 0) & (vl < hl)
-    acc = np.bincount((vl[ok] * wl + ul[ok]).astype(np.int64), weights=weight[ok], minlength=hl * wl).reshape(hl, wl)
-    acc = acc.astype(np.float32) / float(factor * factor)
-    sig = max(water.glow_sigma_px * w / 1920.0 / factor, 0.5)
-    acc = cv2.GaussianBlur(acc, (0, 0), sig)
-    full = cv2.resize(acc, (wl * factor, hl * factor), interpolation=cv2.INTER_LINEAR)[:h, :w]
-    # 1e-3: a gain of 1 gives a faint band of a few DN with the default laser power
-    return (full * np.float32(1e-3 * water.backscatter * model.peak_dn_at_1m / 190.0)).astype(np.float32)
+    t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(c, 0.2)))
+    f = 4
+    hl, wl = (h + f - 1) // f, (w + f - 1) // f
+    ys, xs = np.mgrid[0:hl, 0:wl]
+    uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
+    rays = calib.rays_body(uv)
+    C = calib.camera_center_body
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.linalg.norm(rays, axis=1)
+        denom = rays @ n
+        tp = ((origin - C) @ n) / denom
+        p = C + tp[:, None] * rays
+        q = p - origin
+        s = np.linalg.norm(q, axis=1)
+        th = np.arctan2(q @ b, q @ a)
+        ok = np.isfinite(tp) & (tp > 0) & (np.abs(th) <= half)
+        ok &= s < np.interp(th, theta_tab, t_tab)
+        r_c = tp * norm
+        cos_a = np.abs(denom) / norm
+        val = np.exp(-c * (s + r_c)) / (np.maximum(s, 0.02) * np.maximum(cos_a, 0.02)) / (1.0 + s / 0.5)
+    val = np.where(ok, val, 0.0).reshape(hl, wl).astype(np.float32)
+    sig = max(water.glow_sigma_px * w / 1920.0 / f, 0.5)
+    val = cv2.GaussianBlur(val, (0, 0), sig)
+    full = cv2.resize(val, (wl * f, hl * f), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    # 0.2: a gain of 1 gives a faint band of a few DN with the default laser power
+    return (full * np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)).astype(np.float32)
 
 
-def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32, rng: np.random.Generator) -> None:
-    """Surfaces lit by ambient light (and printed checkerboards), blended over the water background in place."""
+def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> None:
+    """Surfaces lit by ambient light, and printed checkerboards, blended over the water background in place.
+
+    With ``water.ambient_dn > 0`` every surface is shaded (at quarter resolution: it is smooth). Checkerboards
+    are drawn at full resolution with an analytic box filter over each pixel's footprint on the board (exact
+    anti-aliasing, so corner detectors find the true corners to a few hundredths of a pixel); when the water
+    has no ambient light the board is lit by a lamp of 170 DN.
+    """
     cam = calib.camera
     h, w = cam.height, cam.width
     boards = [i for i, s in enumerate(scene.surfaces) if isinstance(s, Rectangle) and s.board is not None]
@@ -554,90 +570,67 @@ def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32, rng:
     level = water.ambient_dn if water.ambient_dn > 0 else 170.0
     C = calib.camera_center_body
     colour = np.array([0.95, 1.0, 0.9], np.float32)
-    bg_mean = np.asarray(water.background_bgr, np.float32)
-
-    def shade(uv: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-        rays = calib.rays_body(uv)
-        t, sid, _ = scene.raycast(C, rays)
-        hit = np.isfinite(t)
-        p = C + np.where(hit, t, 0.0)[:, None] * rays
-        refl = np.array([s.albedo for s in scene.surfaces] + [0.0])[sid] * 0.5
-        for bi in boards:
-            rect = scene.surfaces[bi]
-            assert isinstance(rect, Rectangle)
-            assert rect.board is not None
-            on = sid == bi
-            if np.any(on):
-                aa, bb, _ = rect.local(p[on])
-                r, on_board = rect.board.reflectance(aa, bb)
-                cur = refl[on]
-                refl[on] = np.where(on_board, r, cur)
-        dist = np.linalg.norm(p - C, axis=1)
-        trans = np.exp(-water.attenuation_per_m * dist)
-        if water.ambient_dn <= 0:
-            # only the boards are lit (a diver's lamp on the target)
-            lit = np.zeros(sid.shape, bool)
-            for bi in boards:
-                lit |= sid == bi
-            hit &= lit
-        return np.where(hit, level * refl * trans, 0.0), hit
+    albedo = np.array([sf.albedo for sf in scene.surfaces] + [0.0])
+    c_att = water.attenuation_per_m
 
     if water.ambient_dn > 0:
-        # every surface, at quarter resolution (smooth shading)
         f = 4
         ys, xs = np.mgrid[0:h:f, 0:w:f]
         uv = np.stack([xs.ravel() + (f - 1) / 2.0, ys.ravel() + (f - 1) / 2.0], axis=1).astype(float)
-        val, hit = shade(uv)
+        rays = calib.rays_body(uv)
+        t, sid, _ = scene.raycast(C, rays)
+        hit = np.isfinite(t)
+        dist = np.where(hit, t * np.linalg.norm(rays, axis=1), 0.0)
+        val = np.where(hit, level * albedo[sid] * np.exp(-c_att * dist), 0.0)
         hl, wl = ys.shape
         vimg = cv2.resize(val.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
         himg = cv2.resize(hit.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-        img *= (1.0 - 0.85 * himg)[:, :, None]
-        img += (vimg[:, :, None] * colour) * 1.0
-    # checkerboards at full resolution with 3x3 supersampling (sharp, anti-aliased corners)
+        trans = np.float32(1.0)
+        img *= (1.0 - trans * himg)[:, :, None] + trans * himg[:, :, None] * 0.15
+        img += vimg[:, :, None] * colour
     for bi in boards:
         rect = scene.surfaces[bi]
         assert isinstance(rect, Rectangle)
         assert rect.board is not None
-        hu, hv = rect.board.half_extent_m()
-        cu, cv_ = rect.board.offset_u_m, rect.board.offset_v_m
+        board = rect.board
+        hu, hv = board.half_extent_m()
+        cu, cv_ = board.offset_u_m, board.offset_v_m
+        eu, ev, c0 = np.asarray(rect.axis_u), np.asarray(rect.axis_v), np.asarray(rect.center)
         corners = np.array(
-            [
-                np.asarray(rect.center)
-                + (cu + i * hu) * np.asarray(rect.axis_u)
-                + (cv_ + j * hv) * np.asarray(rect.axis_v)
-                for i, j in [(-1, -1), (1, -1), (1, 1), (-1, 1)]
-            ]
+            [c0 + (cu + i * hu) * eu + (cv_ + j * hv) * ev for i, j in [(-1, -1), (1, -1), (1, 1), (-1, 1)]]
         )
         uvc = calib.project_body(corners)
         if not np.all(np.isfinite(uvc)):
             continue
-        x0 = int(max(0, math.floor(uvc[:, 0].min()) - 2))
-        x1 = int(min(w, math.ceil(uvc[:, 0].max()) + 3))
-        y0 = int(max(0, math.floor(uvc[:, 1].min()) - 2))
-        y1 = int(min(h, math.ceil(uvc[:, 1].max()) + 3))
+        x0 = int(max(0, math.floor(uvc[:, 0].min()) - 3))
+        x1 = int(min(w, math.ceil(uvc[:, 0].max()) + 4))
+        y0 = int(max(0, math.floor(uvc[:, 1].min()) - 3))
+        y1 = int(min(h, math.ceil(uvc[:, 1].max()) + 4))
         if x0 >= x1 or y0 >= y1:
             continue
-        ss = 3
-        offs = (np.arange(ss) + 0.5) / ss - 0.5
         ys, xs = np.mgrid[y0:y1, x0:x1]
-        acc = np.zeros(ys.shape, np.float64)
-        cnt = np.zeros(ys.shape, np.float64)
-        for oy in offs:
-            for ox in offs:
-                uv = np.stack([xs.ravel() + ox, ys.ravel() + oy], axis=1).astype(float)
-                val, hit = shade(uv)
-                on = np.zeros(hit.shape, bool)
-                rays = calib.rays_body(uv)
-                _, sid, _ = scene.raycast(C, rays)
-                on = sid == bi
-                acc += np.where(on, val, 0.0).reshape(ys.shape)
-                cnt += on.reshape(ys.shape)
-        frac = (cnt / (ss * ss)).astype(np.float32)
-        val_img = (acc / np.maximum(cnt, 1)).astype(np.float32)
+        uv = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(float)
+        rays = calib.rays_body(uv)
+        t, sid, _ = scene.raycast(C, rays)
+        # board coordinates of each pixel centre on the board's plane (occluders checked with sid)
+        n = rect.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tp = ((c0 - C) @ n) / (rays @ n)
+        p = C + tp[:, None] * rays
+        ca, cb, _ = rect.local(p)
+        ca = ca.reshape(ys.shape)
+        cb = cb.reshape(ys.shape)
+        # pixel footprint on the board (metres), from the local Jacobian
+        wa = np.abs(np.gradient(ca, axis=1)) + np.abs(np.gradient(ca, axis=0))
+        wb = np.abs(np.gradient(cb, axis=1)) + np.abs(np.gradient(cb, axis=0))
+        refl, cover = board.filtered_reflectance(ca, cb, wa, wb)
+        on = (sid == bi).reshape(ys.shape) & np.isfinite(ca) & (tp.reshape(ys.shape) > 0)
+        dist = np.linalg.norm(p - C, axis=1).reshape(ys.shape)
+        val = level * refl * np.exp(-c_att * np.where(on, dist, 0.0))
+        frac = np.where(on, cover, 0.0).astype(np.float32)
         patch = img[y0:y1, x0:x1]
         patch *= (1.0 - frac)[:, :, None]
-        patch += (frac * val_img)[:, :, None] * colour + (frac * 0.05)[:, :, None] * bg_mean
-    _ = rng
+        patch += (frac * val.astype(np.float32))[:, :, None] * colour
 
 
 # --------------------------------------------------------------------------- the renderer
@@ -717,12 +710,15 @@ def render(
     cam = calibration.camera
     h, w = cam.height, cam.width
     img = background(h, w, water, rng)
-    _ambient(scene_body, calibration, water, img, rng)
+    _ambient(scene_body, calibration, water, img)
     if water.backscatter > 0:
         glow = np.zeros((h, w), np.float32)
         for i in range(len(calibration.lasers)):
             glow += _glow(scene_body, calibration, i, model, water, (h, w))
-        img += glow[:, :, None] * np.asarray(model.colour_bgr, np.float32)
+        rows = np.flatnonzero(glow.max(axis=1) > 0.05)
+        if rows.size:
+            r0, r1 = int(rows[0]), int(rows[-1]) + 1
+            img[r0:r1] += glow[r0:r1, :, None] * np.asarray(model.colour_bgr, np.float32)
     laser_map = np.zeros((h, w), np.float32)
     for i, (s, seg) in enumerate(raw):
         peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)

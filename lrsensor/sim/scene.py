@@ -50,8 +50,12 @@ def _vec3(v: ArrayLike, what: str) -> FloatArray:
 def _rays(origins: ArrayLike, dirs: ArrayLike) -> tuple[FloatArray, FloatArray]:
     d = check_points(dirs, "dirs")
     o = np.asarray(origins, dtype=float)
-    if o.shape == (3,):
-        o = np.broadcast_to(o, d.shape)
+    if o.shape in ((3,), (1, 3)):
+        o = o.reshape(1, 3)
+        if not np.all(np.isfinite(o)):
+            msg = f"origin must be finite, got {o.tolist()}"
+            raise SimulationError(msg)
+        return o, d  # one origin for every ray: surfaces broadcast it
     o = check_points(o, "origins")
     if o.shape != d.shape:
         msg = f"origins {o.shape} and dirs {d.shape} must have the same shape (or origins (3,))"
@@ -118,6 +122,44 @@ class Checkerboard:
         refl = np.where(dark, self.black, self.white)
         return refl, on_board
 
+    def filtered_reflectance(
+        self, su: FloatArray, sv: FloatArray, wu: FloatArray, wv: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Box-filtered reflectance of the board (margin included) over footprints ``wu x wv`` (metres).
+
+        Args:
+            su, sv: rectangle coordinates of pixel centres (any shape), metres.
+            wu, wv: the pixels' footprint widths along u and v on the board, metres.
+
+        Returns:
+            the mean reflectance over the board part of each footprint, and the covered fraction (0..1) of
+            the footprint that lies on the board (squares plus margin).
+        """
+        s = self.square_m
+        qu = (self.cols + 1) * s / 2.0
+        qv = (self.rows + 1) * s / 2.0
+        hu, hv = self.half_extent_m()
+        x = su - self.offset_u_m + qu
+        y = sv - self.offset_v_m + qv
+        wu = np.maximum(wu, 1e-9)
+        wv = np.maximum(wv, 1e-9)
+
+        def tri(z: FloatArray) -> FloatArray:
+            # integral of the +-1 square wave (+1 on [0, s), -1 on [s, 2s)), a triangle wave
+            m = np.mod(z, 2.0 * s)
+            return np.where(m < s, m, 2.0 * s - m)
+
+        def box(z: FloatArray, width: FloatArray, lo: float, hi: float) -> FloatArray:
+            return np.clip((np.minimum(z + width / 2, hi) - np.maximum(z - width / 2, lo)) / width, 0.0, 1.0)
+
+        sq_u = (tri(x + wu / 2) - tri(x - wu / 2)) / wu
+        sq_v = (tri(y + wv / 2) - tri(y - wv / 2)) / wv
+        in_sq = box(x, wu, 0.0, 2 * qu) * box(y, wv, 0.0, 2 * qv)
+        cover = box(x - qu, wu, -hu, hu) * box(y - qv, wv, -hv, hv)
+        dark = in_sq * (1.0 + np.clip(sq_u * sq_v, -1.0, 1.0)) / 2.0
+        refl = self.white + (self.black - self.white) * dark / np.maximum(cover, 1e-9)
+        return np.clip(refl, min(self.black, self.white), max(self.black, self.white)), cover
+
 
 @dataclass(frozen=True)
 class Surface:
@@ -127,7 +169,11 @@ class Surface:
     albedo: float = 0.6
 
     def intersect(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Nearest hit ``t`` (N,) (inf for none) and the outward normal (N, 3) for rays (N, 3)."""
+        """Nearest hit ``t`` (N,) (inf for none) and the outward normal for rays ``dirs`` (N, 3).
+
+        ``origins`` is (N, 3) or (1, 3) (one origin for every ray). The normal is (N, 3), or (3,) for flat
+        surfaces (the same for every ray).
+        """
         raise NotImplementedError
 
     def distance(self, points: FloatArray) -> FloatArray:
@@ -164,7 +210,7 @@ class Plane(Surface):
         with np.errstate(divide="ignore", invalid="ignore"):
             t = ((np.asarray(self.point) - origins) @ n) / denom
         t = np.where(np.isfinite(t) & (t > T_MIN), t, np.inf)
-        return t, np.broadcast_to(n, dirs.shape).copy()
+        return t, n
 
     def distance(self, points: FloatArray) -> FloatArray:
         """See :meth:`Surface.distance`."""
@@ -245,16 +291,15 @@ class Rectangle(Surface):
     def intersect(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, FloatArray]:
         """See :meth:`Surface.intersect`."""
         n = self.normal
+        eu, ev = np.asarray(self.axis_u), np.asarray(self.axis_v)
+        w = origins - np.asarray(self.center)
         denom = dirs @ n
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((np.asarray(self.center) - origins) @ n) / denom
-        ok = np.isfinite(t) & (t > T_MIN)
-        t = np.where(ok, t, np.inf)
-        with np.errstate(invalid="ignore"):
-            p = origins + np.where(ok, t, 0.0)[:, None] * dirs
-        a, b, _ = self.local(p)
-        inside = ok & (np.abs(a) <= self.half_u) & (np.abs(b) <= self.half_v)
-        return np.where(inside, t, np.inf), np.broadcast_to(n, dirs.shape).copy()
+            t = -(w @ n) / denom
+            a = w @ eu + t * (dirs @ eu)
+            b = w @ ev + t * (dirs @ ev)
+            inside = np.isfinite(t) & (t > T_MIN) & (np.abs(a) <= self.half_u) & (np.abs(b) <= self.half_v)
+        return np.where(inside, t, np.inf), n
 
     def distance(self, points: FloatArray) -> FloatArray:
         """See :meth:`Surface.distance`."""
@@ -355,11 +400,11 @@ class Cylinder(Surface):
         """See :meth:`Surface.intersect` (the nearer root whose axial position lies on the pipe)."""
         c, a, r = np.asarray(self.center), np.asarray(self.axis), self.radius_m
         w = origins - c
-        dp = dirs - np.outer(dirs @ a, a)
-        wp = w - np.outer(w @ a, a)
-        qa = np.einsum("ij,ij->i", dp, dp)
-        qb = 2.0 * np.einsum("ij,ij->i", dp, wp)
-        qc = np.einsum("ij,ij->i", wp, wp) - r * r
+        dp = dirs - (dirs @ a)[:, None] * a
+        wp = w - (w @ a)[:, None] * a
+        qa = (dp * dp).sum(axis=1)
+        qb = 2.0 * (dp * wp).sum(axis=1)
+        qc = (wp * wp).sum(axis=1) - r * r
         disc = qb * qb - 4.0 * qa * qc
         ok = (disc >= 0.0) & (qa > 1e-18)
         sq = np.sqrt(np.where(ok, disc, 0.0))
@@ -372,7 +417,7 @@ class Cylinder(Surface):
         t2 = np.where(ok, np.maximum(r1, r2), np.inf)
         t1 = np.where(np.isfinite(t1), t1, np.inf)
         t2 = np.where(np.isfinite(t2), t2, np.inf)
-        best = np.full(origins.shape[0], np.inf)
+        best = np.full(dirs.shape[0], np.inf)
         for tc in (t2, t1):  # t1 last so that it wins when valid
             good = np.isfinite(tc) & (tc > T_MIN)
             with np.errstate(invalid="ignore"):
@@ -380,7 +425,7 @@ class Cylinder(Surface):
             good &= np.abs(axial) <= self.half_length_m
             best = np.where(good, tc, best)
         p = w + np.where(np.isfinite(best), best, 0.0)[:, None] * dirs
-        radial = p - np.outer(p @ a, a)
+        radial = p - (p @ a)[:, None] * a
         nrm = np.linalg.norm(radial, axis=1, keepdims=True)
         with np.errstate(divide="ignore", invalid="ignore"):
             normal = np.where(nrm > 0, radial / nrm, 0.0)
@@ -505,7 +550,7 @@ class Scene:
             if np.any(closer):
                 best_t = np.where(closer, t, best_t)
                 best_id[closer] = k
-                best_n[closer] = nrm[closer]
+                best_n[closer] = nrm if nrm.ndim == 1 else nrm[closer]
         return best_t, best_id, best_n
 
     def distance_to_surface(self, points: ArrayLike) -> FloatArray:

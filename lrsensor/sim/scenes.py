@@ -195,7 +195,7 @@ def checkerboard_wall_scene(
 ) -> SimSetup:
     """A wall carrying a checkerboard (9x6 inner corners, 5 cm squares, above the top stripe by default)."""
     board = board or Checkerboard(cols=9, rows=6, square_m=0.05, offset_u_m=0.1, offset_v_m=-0.36)
-    water = water if water is not None else WaterModel.default().with_(ambient_dn=60.0)
+    water = water if water is not None else WaterModel.default().with_(ambient_dn=120.0)
     s = wall_scene(distance_m, normal, calibration=calibration, water=water, board=board, width=width, height=height)
     return replace(s, name="checkerboard_wall", description=f"wall at {distance_m:g} m with a checkerboard")
 

@@ -76,7 +76,7 @@ class WaterModel:
         return cls(
             background_bgr=(52.0, 50.0, 22.0),
             texture=0.3,
-            attenuation_per_m=0.55,
+            attenuation_per_m=0.35,
             backscatter=6.0,
             haze_dn=14.0,
             read_noise_dn=2.5,
