@@ -328,6 +328,7 @@ class SerialImu:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.read_errors = 0
+        self._last_t_ns = 0
 
     @property
     def rejected(self) -> int:
@@ -363,6 +364,9 @@ class SerialImu:
                 continue
             t_ns = time.time_ns()
             for reading in self.parser.feed(data):
+                # readings completed by the same chunk share a receive time: keep the stamps increasing
+                t_ns = max(t_ns, self._last_t_ns + 1)
+                self._last_t_ns = t_ns
                 self.track.append(t_ns, reading.pose())
 
     def __exit__(
