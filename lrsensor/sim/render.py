@@ -640,8 +640,13 @@ def trace_truth(
     pose: Pose | None = None,
     laser_model: LaserModel | None = None,
     water: WaterModel | None = None,
+    *,
+    edge_tol_rad: float = 2e-7,
 ) -> tuple[Truth, list[tuple[_Samples, IntArray]]]:
-    """Trace every laser into the scene without drawing: the ground truth and the raw samples."""
+    """Trace every laser into the scene without drawing: the ground truth and the raw samples.
+
+    ``edge_tol_rad`` is how precisely (fan angle) occlusion and shadow edges are located.
+    """
     model = laser_model or LaserModel()
     water = water or WaterModel.clean()
     scene_body = scene.in_body(pose)
@@ -649,7 +654,7 @@ def trace_truth(
     lts = []
     raw = []
     for i, lp in enumerate(calibration.lasers):
-        s, seg = trace_fan(scene_body, calibration, i, model)
+        s, seg = trace_fan(scene_body, calibration, i, model, theta_tol_rad=edge_tol_rad)
         peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)
         raw.append((s, seg))
         with np.errstate(invalid="ignore"):

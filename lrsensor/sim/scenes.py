@@ -220,7 +220,7 @@ TANK_SIZE_M = (12.0, 8.0, 4.0)
 #: Square pillars: (north, east) centre and side, metres.
 TANK_PILLARS = (((4.0, 3.0), 0.6), ((8.0, 5.5), 0.6))
 #: A vertical pipe: (north, east) centre, radius, metres.
-TANK_PIPE = ((9.5, 2.0), 0.2)
+TANK_PIPE = ((6.0, 4.3), 0.2)
 
 
 def tank_scene() -> Scene:
