@@ -422,7 +422,7 @@ class DiveCloud:
 def frame_times_ns(duration_s: float, rate_hz: float, t0_ns: int = DEFAULT_T0_NS) -> IntArray:
     """Frame capture times: ``t0_ns + k / rate_hz`` for ``0 <= k < duration_s * rate_hz``, int64 ns."""
     n = max(1, math.floor(duration_s * rate_hz + 1e-9))
-    return (t0_ns + np.round(np.arange(n) * 1e9 / rate_hz)).astype(np.int64)
+    return np.int64(t0_ns) + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
 
 
 def trace_dive_clouds(
