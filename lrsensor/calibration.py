@@ -220,7 +220,9 @@ class Calibration:
         camera = Camera(width, height, fx, fy, cx, cy, (dist[0], dist[1], dist[2], dist[3], dist[4]))
 
         R = np.asarray(_matrix3(data, "R_cam_from_body", source))
-        if abs(np.linalg.det(R) - 1.0) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+        with np.errstate(over="ignore", invalid="ignore"):  # huge finite entries: inf/nan, refused below
+            not_rotation = not (abs(np.linalg.det(R) - 1.0) <= 1e-3 and np.abs(R @ R.T - np.eye(3)).max() <= 1e-3)
+        if not_rotation:
             msg = f"{source}: R_cam_from_body is not a rotation matrix (orthonormal, det +1): {R.tolist()}"
             raise CalibrationFileError(msg)
         u, _, vt = np.linalg.svd(R)
