@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import SimulationError
 from ..frames import Pose
-from .render import LaserModel, render, trace_truth
+from .render import LaserModel, _trace_samples, fan_basis, render, trace_truth
 from .scene import Scene
 from .scenes import TANK_PILLARS, TANK_SIZE_M, paper_calibration, tank_scene
 from .water import WaterModel
@@ -407,9 +407,10 @@ class DiveCloud:
     Attributes:
         t_ns: capture time, ns since the epoch.
         pose: the true vehicle pose in NED.
-        points_body: (N, 3) true hit points in the body frame, metres (one per image column per laser).
+        points_body: (N, 3) true hit points in the body frame, metres (about one per image column per laser,
+            exactly on the surfaces).
         laser: (N,) laser index of each point.
-        uv: (N, 2) their pixels.
+        uv: (N, 2) their pixels (u within a small fraction of a pixel of the integer columns).
     """
 
     t_ns: int
@@ -447,11 +448,14 @@ def trace_dive_clouds(
         truth, _ = trace_truth(scene, calib, pose, model, edge_tol_rad=2e-5)
         pts, lasers, uvs = [], [], []
         for lt in truth.lasers:
-            v, p, _ = lt.at_columns(cols)
-            ok = np.isfinite(v)
-            pts.append(p[ok])
-            lasers.append(np.full(int(ok.sum()), lt.index, dtype=np.int64))
-            uvs.append(np.stack([cols[ok], v[ok]], axis=1))
+            # the fan angle seen at each column, traced again exactly: points lie on the surfaces
+            th = lt.theta_at_columns(cols)
+            th = th[np.isfinite(th)]
+            origin, a, b = fan_basis(calib, lt.index)
+            s = _trace_samples(truth.scene_body, calib, origin, a, b, th, model.max_range_m, 0.0)
+            pts.append(s.points[s.ok])
+            lasers.append(np.full(int(s.ok.sum()), lt.index, dtype=np.int64))
+            uvs.append(s.uv[s.ok])
         yield DiveCloud(int(t), pose, np.concatenate(pts), np.concatenate(lasers), np.concatenate(uvs))
 
 

@@ -122,8 +122,17 @@ class LaserTruth:
         Interpolated linearly along the dense samples (spacing <= ``max_gap_px``); NaN where the laser is not
         visible in that column. Where two stripe pieces cover a column the brighter one is given.
         """
+        v, pts, peak, _ = self._interp_columns(u)
+        return v, pts, peak
+
+    def theta_at_columns(self, u: Sequence[float] | FloatArray) -> FloatArray:
+        """Fan angle (M,) of the laser ray seen at columns ``u``, radians; NaN where not visible."""
+        return self._interp_columns(u)[3]
+
+    def _interp_columns(self, u: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         uq = np.asarray(u, dtype=float).reshape(-1)
         v = np.full(uq.shape, np.nan)
+        th = np.full(uq.shape, np.nan)
         pts = np.full((uq.size, 3), np.nan)
         peak = np.full(uq.shape, -np.inf)
         for piece in self._pieces():
@@ -137,11 +146,12 @@ class LaserTruth:
             sel = np.flatnonzero(inside)[better]
             q = q[better]
             v[sel] = np.interp(q, pu, self.uv[piece, 1])
+            th[sel] = np.interp(q, pu, self.theta_rad[piece])
             for k in range(3):
                 pts[sel, k] = np.interp(q, pu, self.points_body[piece, k])
             peak[sel] = pk[better]
         peak[~np.isfinite(v)] = np.nan
-        return v, pts, peak
+        return v, pts, peak, th
 
 
 @dataclass(frozen=True)
