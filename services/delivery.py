@@ -1,0 +1,270 @@
+"""Store-and-forward delivery of a ROV's clouds: outbox first, publish, re-send until the base acknowledges.
+
+Protocol (chosen over zenoh-ext's advanced publisher/subscriber, whose history cache lives in the
+publisher's memory: it is lost when the ROV restarts and knows nothing of what the base station has
+persisted):
+
+1. :meth:`OutboxSink.send` encodes the cloud, appends it to the robot's disk-backed
+   :class:`~services.outbox.Outbox` (durable before anything goes on the wire), then publishes it on
+   ``<root>/<robot>/cloud`` with BLOCK congestion control.
+2. The base station de-duplicates by sequence number and, once a cloud is persisted in its ``--state``,
+   lists it in the JSON answered on ``<root>/base/acks/<robot>`` (``{"ranges": [[lo, hi], ...]}``).
+3. A background thread of the ROV asks that queryable every ``ack_period_s`` and removes the acknowledged
+   messages from the outbox. While the base station's cloud subscriber is present (the publisher's
+   ``matching_status``), every pending message not sent for ``resend_after_s`` is sent again, oldest first,
+   at most ``max_resend_per_cycle`` per cycle; when the base station reappears (router restart, tether
+   reconnected, base restarted) the re-sending starts at once.
+
+Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
+:mod:`services.outbox`), and the base station shows them as ``missed``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from .keys import FleetKeys, check_robot_name
+from .outbox import Outbox, OutboxError
+from .wire import ENCODING, CloudMsg
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DeliveryCounters:
+    """Counters of an :class:`OutboxSink`.
+
+    Attributes:
+        sent: clouds published the first time.
+        resent: re-publications of pending clouds.
+        acked: clouds acknowledged by the base station (removed from the outbox).
+        dropped: clouds dropped because the outbox was full.
+        ack_polls: acknowledgement queries answered.
+        base_seen: times the base station's subscriber (re)appeared.
+    """
+
+    sent: int = 0
+    resent: int = 0
+    acked: int = 0
+    dropped: int = 0
+    ack_polls: int = 0
+    base_seen: int = 0
+
+
+def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
+    """The ``ranges`` of a base station's ack answer; raises ValueError for anything malformed."""
+    body = json.loads(payload)
+    if not isinstance(body, dict) or body.get("robot") != robot:
+        msg = f"ack answer is not for robot {robot!r}"
+        raise ValueError(msg)
+    ranges = body.get("ranges")
+    if not isinstance(ranges, list):
+        msg = "ack answer has no 'ranges' list"
+        raise ValueError(msg)
+    out: list[list[int]] = []
+    for r in ranges:
+        if (
+            not isinstance(r, list)
+            or len(r) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in r)
+            or not 0 <= r[0] <= r[1]
+        ):
+            msg = f"ack answer holds a bad range {r!r}"
+            raise ValueError(msg)
+        out.append([r[0], r[1]])
+    return out
+
+
+class OutboxSink:
+    """A :class:`services.rov.CloudSink` that keeps every cloud until the base station acknowledges it.
+
+    Args:
+        session: an open Zenoh session (the caller owns it).
+        keys: the fleet's key expressions.
+        robot: this robot's name.
+        outbox: the robot's outbox (its ``next_seq`` is where the robot's numbering continues).
+        ack_period_s: how often the acknowledgements are fetched and overdue clouds re-sent, seconds.
+        resend_after_s: a pending cloud is sent again when it was last sent this long ago, seconds.
+        max_resend_per_cycle: at most this many re-sends per cycle (spreads a long backlog).
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        keys: FleetKeys,
+        robot: str,
+        outbox: Outbox,
+        *,
+        ack_period_s: float = 0.5,
+        resend_after_s: float = 3.0,
+        max_resend_per_cycle: int = 300,
+    ) -> None:
+        import zenoh
+
+        self.session = session
+        self.keys = keys
+        self.robot = check_robot_name(robot)
+        self.outbox = outbox
+        self.ack_period_s = ack_period_s
+        self.resend_after_s = resend_after_s
+        self.max_resend_per_cycle = max_resend_per_cycle
+        self.counters = DeliveryCounters()
+        self.publisher = session.declare_publisher(
+            keys.cloud(self.robot),
+            encoding=zenoh.Encoding(ENCODING),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._lock = threading.Lock()
+        self._pub_lock = threading.Lock()  # one put at a time: live sends and re-sends interleave cleanly
+        self._last_sent: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._base_present = False
+        self._thread = threading.Thread(target=self._loop, name=f"delivery-{robot}", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------------------------------- sink
+    def send(self, msg: CloudMsg) -> None:
+        """Store ``msg`` in the outbox (durably), then publish it."""
+        payload = msg.with_sent_ns(time.time_ns()).to_bytes()
+        dropped = self.outbox.append(msg.seq, payload)
+        with self._lock:
+            self.counters.dropped += len(dropped)
+            for d in dropped:
+                self._last_sent.pop(d, None)
+            self._last_sent[msg.seq] = time.monotonic()
+            self.counters.sent += 1
+        self._put(payload)
+
+    def _put(self, payload: bytes) -> None:
+        try:
+            with self._pub_lock:
+                self.publisher.put(payload)
+        except Exception as err:  # the outbox keeps it; the next cycle re-sends
+            log.warning("rov %s: publish failed (kept in the outbox): %s", self.robot, err)
+
+    # ------------------------------------------------------------------------------------------- loop
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.cycle()
+            except Exception as err:  # never let the delivery thread die
+                log.exception("rov %s: delivery cycle failed: %s", self.robot, err)
+            self._wake.wait(self.ack_period_s)
+            self._wake.clear()
+
+    def base_present(self) -> bool:
+        """True while a subscriber of this robot's clouds (the base station) is reachable."""
+        try:
+            return bool(self.publisher.matching_status.matching)
+        except Exception:
+            return False
+
+    def poll_acks(self, timeout_s: float = 1.0) -> int:
+        """Ask the base station what it holds and forget those clouds; returns how many were removed."""
+        removed = 0
+        for reply in self.session.get(self.keys.base_acks(self.robot), timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            try:
+                ranges = parse_ack_reply(reply.ok.payload.to_bytes(), self.robot)
+            except ValueError as err:
+                log.warning("rov %s: ignored an ack answer: %s", self.robot, err)
+                continue
+            pending = self.outbox.pending()
+            if not pending:
+                break
+            lo, hi = pending[0], pending[-1]
+            relevant = [r for r in ranges if r[1] >= lo and r[0] <= hi]
+            n = self.outbox.ack_ranges(relevant)
+            removed += n
+            with self._lock:
+                self.counters.ack_polls += 1
+                self.counters.acked += n
+                if n:
+                    held = set(self.outbox.pending())
+                    for s in [s for s in self._last_sent if s not in held]:
+                        del self._last_sent[s]
+        return removed
+
+    def cycle(self) -> None:
+        """One round: fetch acks, re-send overdue clouds when the base station is present."""
+        present = self.base_present()
+        came_back = present and not self._base_present
+        self._base_present = present
+        if came_back:
+            with self._lock:
+                self.counters.base_seen += 1
+            log.info("rov %s: base station present; %d clouds pending", self.robot, len(self.outbox))
+        if not len(self.outbox):
+            return
+        if present:
+            self.poll_acks()
+        if not present or not len(self.outbox):
+            return
+        now = time.monotonic()
+        budget = self.max_resend_per_cycle
+        for seq, payload in self.outbox.iter_pending():
+            if budget <= 0 or self._stop.is_set():
+                break
+            with self._lock:
+                last = self._last_sent.get(seq, 0.0)
+            if not came_back and now - last < self.resend_after_s:
+                continue
+            self._put(payload)
+            budget -= 1
+            with self._lock:
+                self._last_sent[seq] = time.monotonic()
+                self.counters.resent += 1
+
+    def wait_empty(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Wait until every cloud is acknowledged (the outbox is empty); False on timeout or ``stop``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not len(self.outbox):
+                return True
+            if stop is not None and stop.is_set():
+                return False
+            self._wake.set()
+            time.sleep(min(0.1, self.ack_period_s))
+        return not len(self.outbox)
+
+    def stats(self) -> dict[str, Any]:
+        """Delivery counters and the outbox's, JSON-ready."""
+        with self._lock:
+            c = self.counters
+            out: dict[str, Any] = {
+                "sent": c.sent,
+                "resent": c.resent,
+                "acked": c.acked,
+                "dropped": c.dropped,
+                "ack_polls": c.ack_polls,
+                "base_seen": c.base_seen,
+            }
+        out["outbox"] = self.outbox.stats().to_json_dict()
+        return out
+
+    def close(self) -> None:
+        """Stop the delivery thread and undeclare the publisher (pending clouds stay in the outbox)."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=5.0)
+        try:
+            self.publisher.undeclare()
+        except Exception as err:
+            log.debug("publisher undeclare failed: %s", err)
+
+    def __enter__(self) -> OutboxSink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["DeliveryCounters", "OutboxError", "OutboxSink", "parse_ack_reply"]

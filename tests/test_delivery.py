@@ -1,0 +1,186 @@
+"""Store-and-forward delivery (OutboxSink) against a stand-in base station on a real loopback zenoh network."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from lrsensor.frames import Pose  # noqa: E402
+from services.delivery import OutboxSink, parse_ack_reply  # noqa: E402
+from services.keys import FleetKeys  # noqa: E402
+from services.outbox import Outbox  # noqa: E402
+from services.seqset import SeqSet  # noqa: E402
+from services.wire import CloudMsg  # noqa: E402
+
+KEYS = FleetKeys("t1")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _conf(mode: str, port: int) -> Any:
+    c: dict[str, Any] = {"mode": mode, "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
+    if mode == "router":
+        c["listen"] = {"endpoints": [f"tcp/127.0.0.1:{port}"]}
+    else:
+        c["connect"] = {"endpoints": [f"tcp/127.0.0.1:{port}"]}
+    return zenoh.Config.from_json5(json.dumps(c))
+
+
+def _cloud(seq: int, n: int = 5) -> CloudMsg:
+    rng = np.random.default_rng(seq)
+    return CloudMsg(
+        "rov1",
+        seq,
+        1_700_000_000_000_000_000 + seq,
+        Pose(0.0, 0.0, 1.0, 0.0, 0.0, 0.0),
+        rng.normal(size=(n, 3)).astype(np.float32),
+        np.zeros(n, np.uint8),
+        np.ones(n, np.float32),
+    )
+
+
+def _wait_until(pred: Callable[[], bool], timeout_s: float = 15.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return pred()
+
+
+class FakeBase:
+    """Subscribes to clouds and answers acks with what it holds; can ignore chosen deliveries."""
+
+    def __init__(self, session: Any, lose: Callable[[int, int], bool] = lambda seq, n: False) -> None:
+        self.session = session
+        self.seqs = SeqSet()
+        self.arrivals: dict[int, int] = {}
+        self.lose = lose
+        self.lock = threading.Lock()
+        self.sub = session.declare_subscriber(KEYS.all_clouds, self._on_cloud)
+        self.q = session.declare_queryable(KEYS.base_acks_all, self._on_acks)
+
+    def _on_cloud(self, sample: Any) -> None:
+        msg = CloudMsg.from_bytes(sample.payload.to_bytes())
+        with self.lock:
+            n = self.arrivals.get(msg.seq, 0)
+            self.arrivals[msg.seq] = n + 1
+            if not self.lose(msg.seq, n):
+                self.seqs.add(msg.seq)
+
+    def _on_acks(self, query: Any) -> None:
+        with self.lock:
+            body = {"robot": "rov1", "ranges": self.seqs.ranges()}
+        query.reply(query.key_expr, json.dumps(body))
+
+    def close(self) -> None:
+        self.q.undeclare()
+        self.sub.undeclare()
+
+
+@pytest.fixture
+def net() -> Iterator[tuple[Any, Any]]:
+    port = _free_port()
+    with zenoh.open(_conf("router", port)) as router, zenoh.open(_conf("client", port)) as rov:
+        yield router, rov
+
+
+def test_delivered_and_acked(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router)
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1) as sink:
+        assert _wait_until(sink.base_present)
+        for seq in range(50):
+            sink.send(_cloud(seq))
+        assert sink.wait_empty(15.0)
+        stats = sink.stats()
+    assert len(base.seqs) == 50
+    assert stats["sent"] == 50
+    assert stats["acked"] == 50
+    assert stats["outbox"]["pending"] == 0
+    base.close()
+
+
+def test_base_absent_then_present(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=60.0) as sink:
+        for seq in range(30):
+            sink.send(_cloud(seq))  # nobody listens: nothing on the wire reaches anyone
+        time.sleep(0.3)
+        assert box.pending() == list(range(30))
+        base = FakeBase(router)  # the base station appears: everything is re-sent at once
+        assert sink.wait_empty(15.0)
+        assert sink.stats()["base_seen"] >= 1
+    assert len(base.seqs) == 30
+    base.close()
+
+
+def test_lost_deliveries_are_resent(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router, lose=lambda seq, n: seq % 3 == 0 and n == 0)  # first copy of every third is lost
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.5) as sink:
+        assert _wait_until(sink.base_present)
+        for seq in range(30):
+            sink.send(_cloud(seq))
+        assert sink.wait_empty(15.0)
+        assert sink.stats()["resent"] >= 10
+    assert len(base.seqs) == 30
+    assert base.seqs.missed() == 0
+    base.close()
+
+
+def test_pending_clouds_survive_a_rov_restart(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1) as sink:
+        for seq in range(10):
+            sink.send(_cloud(seq))
+    # "restart": a new outbox object on the same folder, then the base station shows up
+    box2 = Outbox(tmp_path / "outbox")
+    assert box2.pending() == list(range(10))
+    assert box2.next_seq == 10
+    base = FakeBase(router)
+    with OutboxSink(rov, KEYS, "rov1", box2, ack_period_s=0.1) as sink2:
+        sink2.send(_cloud(box2.next_seq))
+        assert sink2.wait_empty(15.0)
+    assert base.seqs.ranges() == [[0, 10]]
+    base.close()
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"",
+        b"[]",
+        b"{}",
+        b'{"robot": "rov2", "ranges": []}',
+        b'{"robot": "rov1", "ranges": [[2, 1]]}',
+        b'{"robot": "rov1", "ranges": [[0, true]]}',
+        b'{"robot": "rov1", "ranges": "x"}',
+        b"\xff",
+    ],
+)
+def test_bad_ack_answers_are_refused(payload: bytes) -> None:
+    with pytest.raises(ValueError):
+        parse_ack_reply(payload, "rov1")
+
+
+def test_good_ack_answer() -> None:
+    assert parse_ack_reply(b'{"robot": "rov1", "ranges": [[0, 4], [6, 6]]}', "rov1") == [[0, 4], [6, 6]]
