@@ -1,32 +1,444 @@
-"""Sub-pixel stripe extractor (interim version: per-column peak with a Gaussian three-point fit)."""
+"""The default extractor: one sub-pixel stripe centre per image column per laser.
+
+Pipeline (per laser, only inside the image band the laser can reach for the configured depth limits, see
+:mod:`lrsensor.extract.bands`; that band is what makes it fast):
+
+1. **Response**: the green channel with a vertical morphological top-hat (``G - opening(G)`` with a structuring
+   element longer than any stripe): it removes the background, murk gradients, the backscatter glow and haze
+   (all wider than a stripe) and keeps thin bright ridges.
+2. **Candidates**: vertical local maxima of the response above a threshold set from the measured noise; all of
+   them, several per column (up to ``max_candidates``), each checked for colour (green must dominate).
+3. **Continuity**: candidates of neighbouring columns are linked when they are mutually nearest and closer than
+   ``max_jump_px``; linked chains are stripe pieces. Per column the candidate on the strongest chain wins;
+   chains shorter than ``min_run_cols`` (speckle, marine snow, small blobs) are dropped.
+4. **Sub-pixel centre** of the chosen candidate on the raw green profile of its column
+   (:func:`lrsensor.extract.centre.fit_profiles`): half-level width check (too narrow = speckle/hot pixel,
+   too wide = glow/haze/blob), local linear background, Gaussian-weighted centroid (saturated: symmetric
+   window centroid). Unbiased for any symmetric profile.
+5. **Along-stripe smoothing** (optional, default on): per continuous run, a local quadratic fit over
+   ``2 smooth_half_cols + 1`` columns, choosing the centred, left or right window with the smallest residual
+   so that corners and edges are not rounded. It averages the independent per-column noise.
+6. **Quality** in [0, 1] from the signal-to-noise ratio, the width and the chain length.
+
+Triangulation (eq. 29 with the calibration's distortion) is done by :class:`lrsensor.sensor.Sensor`.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, fields, replace
+from functools import lru_cache
 from typing import Any
 
+import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..errors import ExtractionError
 from . import Detections
+from .bands import LaserBands, laser_bands
+from .centre import FWHM_PER_SIGMA, fit_profiles
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
-def extract(image: np.ndarray, calibration: Calibration, **_: Any) -> Detections:
-    """Per column and per image half, the brightest green pixel refined by a Gaussian 3-point fit."""
-    g = image[:, :, 1].astype(np.float64) - 0.5 * (image[:, :, 0].astype(np.float64) + image[:, :, 2])
-    h, w = g.shape
-    cy = int(round(calibration.camera.cy))
-    uvs, lasers, quals = [], [], []
-    cols = np.arange(w)
-    for idx, (lo, hi) in enumerate(((1, cy), (cy + 1, h - 1))):
-        band = g[lo:hi]
-        r = np.argmax(band, axis=0)
-        peak = band[r, cols]
-        ok = (peak > 30) & (r > 0) & (r < band.shape[0] - 1)
-        rr, cc = r[ok], cols[ok]
-        ym, y0, yp = (np.log(np.maximum(band[rr + k, cc], 1.0)) for k in (-1, 0, 1))
-        den = ym - 2 * y0 + yp
-        off = np.where(den < 0, 0.5 * (ym - yp) / np.where(den < 0, den, -1), 0.0)
-        uvs.append(np.stack([cc.astype(float), lo + rr + np.clip(off, -1, 1)], axis=1))
-        lasers.append(np.full(cc.size, idx))
-        quals.append(np.clip(peak[ok] / 255.0, 0, 1))
-    return Detections(np.concatenate(uvs), np.concatenate(lasers), np.concatenate(quals))
+@dataclass(frozen=True)
+class SubpixelConfig:
+    """Options of the sub-pixel extractor (units in the names; defaults suit the paper's camera).
+
+    Attributes:
+        min_range_m, max_range_m: depth limits along the optical axis, metres; only the image band where a
+            laser can light a surface between them is searched.
+        max_sigma_px: widest stripe profile accepted (Gaussian sigma across the stripe, pixels).
+        min_fwhm_px: narrowest accepted stripe (full width at half maximum); narrower peaks are speckle.
+        saturation_dn: green level from which a sample counts as clipped.
+        min_contrast_dn: smallest accepted stripe peak above the local background, DN.
+        snr_threshold: detection threshold in units of the measured background noise.
+        max_candidates: candidates kept per column (strongest first).
+        max_jump_px: largest row change between neighbouring columns of one stripe piece.
+        min_run_cols: shortest accepted stripe piece, columns.
+        smooth_half_cols: half-width of the along-stripe quadratic smoothing, columns (0 = off).
+        min_green_ratio: a candidate's green rise must exceed this fraction of its red and blue rises.
+        smooth_detect_cols: horizontal box smoothing of the detection response, columns (1 = off).
+    """
+
+    min_range_m: float = 0.2
+    max_range_m: float = 5.0
+    max_sigma_px: float = 4.0
+    min_fwhm_px: float = 1.2
+    saturation_dn: float = 250.0
+    min_contrast_dn: float = 5.0
+    snr_threshold: float = 4.0
+    max_candidates: int = 4
+    max_jump_px: float = 3.0
+    min_run_cols: int = 8
+    smooth_half_cols: int = 24
+    min_green_ratio: float = 1.2
+    smooth_detect_cols: int = 3
+
+    def __post_init__(self) -> None:
+        if not (0 < self.min_range_m < self.max_range_m):
+            msg = f"need 0 < min_range_m < max_range_m, got {self.min_range_m} and {self.max_range_m}"
+            raise ExtractionError(msg)
+        if not self.max_sigma_px > 0 or not self.min_fwhm_px >= 0:
+            msg = f"stripe width limits must be positive, got max_sigma_px={self.max_sigma_px}"
+            raise ExtractionError(msg)
+        if self.max_candidates < 1 or self.min_run_cols < 1 or self.smooth_half_cols < 0:
+            msg = "max_candidates and min_run_cols must be >= 1 and smooth_half_cols >= 0"
+            raise ExtractionError(msg)
+
+    @classmethod
+    def from_options(cls, config: SubpixelConfig | None = None, **options: Any) -> SubpixelConfig:
+        """``config`` (or the defaults) with keyword overrides; unknown names raise :class:`ExtractionError`."""
+        base = config or cls()
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - names)
+        if unknown:
+            msg = f"unknown subpixel extractor option(s) {unknown}; known: {sorted(names)}"
+            raise ExtractionError(msg)
+        return replace(base, **options) if options else base
+
+    @property
+    def contrast_px(self) -> int:
+        """Row offset of the two-sided contrast: beyond the half-width of the widest (saturated) stripe."""
+        return math.ceil(3.0 * self.max_sigma_px + 4.0)
+
+    @property
+    def window_half_px(self) -> int:
+        """Half-length of the profile cut out around each stripe for the centre fit."""
+        return math.ceil(2.6 * 0.5 * FWHM_PER_SIGMA * self.max_sigma_px + 5.0)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Per (calibration, config) precomputed data: bands, row ranges and in-band masks."""
+
+    bands: LaserBands
+    rows: tuple[tuple[int, int], ...]
+    masks: tuple[NDArray[np.uint8] | None, ...]
+
+
+@lru_cache(maxsize=16)
+def _plan(calibration: Calibration, min_range_m: float, max_range_m: float, margin_px: int) -> _Plan:
+    bands = laser_bands(calibration, min_range_m, max_range_m, margin_px)
+    rows = []
+    masks: list[NDArray[np.uint8] | None] = []
+    for i in range(bands.n_lasers):
+        r0, r1 = bands.row_range(i)
+        rows.append((r0, r1))
+        if r1 <= r0:
+            masks.append(None)
+            continue
+        rr = np.arange(r0, r1)[:, None]
+        m = (rr >= bands.v_lo[i][None, :]) & (rr <= bands.v_hi[i][None, :])
+        masks.append(None if bool(m.all()) else (m.astype(np.uint8) * 255))
+    return _Plan(bands, tuple(rows), tuple(masks))
+
+
+def _noise_dn(g: NDArray[np.uint8]) -> float:
+    """Robust pixel noise (DN) of a band of the green channel: MAD of vertical differences of a subsample."""
+    sub = g[: (g.shape[0] // 2) * 2 : 2, ::5].astype(np.float32)
+    if sub.shape[0] < 2:
+        return 1.0
+    d = np.abs(sub[1:] - sub[:-1]).ravel()
+    return max(1.4826 * float(np.median(d)) / math.sqrt(2.0), 0.5)
+
+
+def _candidates(
+    image: NDArray[np.uint8], r0: int, r1: int, mask: NDArray[np.uint8] | None, cfg: SubpixelConfig
+) -> tuple[IntArray, IntArray, FloatArray, float]:
+    """Stripe candidates in rows [r0, r1): columns (N,), rows (N,), contrast (N,) and the pixel noise (DN).
+
+    The response is a two-sided contrast of the (horizontally lightly smoothed) green channel,
+    ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe: positive only on ridges narrower
+    than ``2 d`` (not on glow ramps, haze or wide blobs). Candidates are its vertical local maxima above the
+    noise-scaled threshold.
+    """
+    h = image.shape[0]
+    d = cfg.contrast_px
+    a0, a1 = max(r0 - d, 0), min(r1 + d, h)
+    g: Any = cv2.extractChannel(image[a0:a1], 1)
+    noise = _noise_dn(g)
+    if cfg.smooth_detect_cols > 1:
+        g = cv2.blur(g, (cfg.smooth_detect_cols, 1))
+    # pad to full shift range (replicate border rows)
+    top, bot = d - (r0 - a0), d - (a1 - r1)
+    if top > 0 or bot > 0:
+        g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0), 0, 0, cv2.BORDER_REPLICATE)
+    resp: Any = cv2.subtract(g[d:-d], cv2.max(g[: -2 * d], g[2 * d :]))
+    thr = max(cfg.min_contrast_dn, cfg.snr_threshold * noise / math.sqrt(max(cfg.smooth_detect_cols, 1)))
+    loc = cv2.dilate(resp, _KERNEL_5)
+    pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
+    pk &= cv2.compare(resp, thr, cv2.CMP_GT)  # type: ignore[call-overload]
+    if mask is not None:
+        pk &= mask
+    nz = cv2.findNonZero(pk)
+    if nz is None:
+        z = np.zeros(0, np.int64)
+        return z, z, np.zeros(0), noise
+    xy = nz.reshape(-1, 2).astype(np.int64)
+    u, v = xy[:, 0], xy[:, 1]
+    return u, v + r0, resp[v, u].astype(np.float64), noise
+
+
+_KERNEL_5 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 5))
+
+
+def _merge_plateaus(u: IntArray, v: IntArray, a: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Sort by column then row and merge maxima of one column closer than 3 rows (plateaus) into their mean."""
+    order = np.argsort(u, kind="stable")  # rows stay ascending within a column (findNonZero is row-major)
+    u, v, a = u[order], v[order], a[order]
+    new = np.ones(u.size, bool)
+    new[1:] = (u[1:] != u[:-1]) | (v[1:] - v[:-1] > 3)
+    if bool(new.all()):
+        return u, v.astype(np.float64), a
+    gid = np.cumsum(new) - 1
+    cnt = np.bincount(gid)
+    vm = np.bincount(gid, weights=v.astype(np.float64)) / cnt
+    am = np.zeros(cnt.size)
+    np.maximum.at(am, gid, a)
+    return u[new], vm, am
+
+
+def _top_k(u: IntArray, v: FloatArray, a: FloatArray, n_cols: int, k: int) -> tuple[FloatArray, FloatArray]:
+    """(n_cols, k) rows and strengths of the k strongest candidates per column (NaN / 0 where fewer)."""
+    if k > 1:
+        order = np.lexsort((-a, u))
+        u, v, a = u[order], v[order], a[order]
+    first = np.searchsorted(u, u, side="left")
+    rank = np.arange(u.size) - first
+    keep = rank < k
+    V = np.full((n_cols, k), np.nan)
+    A = np.zeros((n_cols, k))
+    V[u[keep], rank[keep]] = v[keep]
+    A[u[keep], rank[keep]] = a[keep]
+    return V, A
+
+
+def _chains(V: FloatArray, A: FloatArray, max_jump: float, block: int) -> tuple[IntArray, IntArray, FloatArray]:
+    """Link candidates of neighbouring columns (mutual nearest, |dv| <= max_jump) into chains.
+
+    Columns ``c`` and ``c + 1`` are never linked across a multiple of ``block`` (one block per laser).
+    Returns per node (n_cols * k,): chain id, chain length (columns) and chain strength (sum of strengths).
+    """
+    n_cols, k = V.shape
+    n = n_cols * k
+    if n_cols < 2:
+        ids = np.arange(n)
+        return ids, np.ones(n, np.int64), A.ravel().copy()
+    cut = (np.arange(1, n_cols) % block) == 0  # (n_cols - 1,) no link between c and c + 1
+    if k == 1:
+        v = V[:, 0]
+        with np.errstate(invalid="ignore"):
+            link = (np.abs(np.diff(v)) <= max_jump) & ~cut
+        start = np.concatenate([[True], ~link])
+        root = np.cumsum(start) - 1
+    else:
+        D = np.abs(V[:-1, :, None] - V[1:, None, :])
+        D = np.where(np.isfinite(D), D, np.inf)
+        j_best = np.argmin(D, axis=2)  # (n_cols - 1, k): for node (c, i) the nearest in c + 1
+        i_best = np.argmin(D, axis=1)  # (n_cols - 1, k): for node (c + 1, j) the nearest in c
+        ii = np.arange(k)[None, :]
+        dmin = np.take_along_axis(D, j_best[:, :, None], axis=2)[:, :, 0]
+        mutual = np.take_along_axis(i_best, j_best, axis=1) == ii
+        link = mutual & (dmin <= max_jump) & ~cut[:, None]
+        cc = np.arange(n_cols - 1)[:, None]
+        prev = np.arange(n)
+        prev[((cc + 1) * k + j_best)[link]] = (cc * k + ii)[link]
+        root = prev
+        for _ in range(math.ceil(math.log2(n_cols)) + 1):
+            nxt = root[root]
+            if np.array_equal(nxt, root):
+                break
+            root = nxt
+    length = np.bincount(root, minlength=n)[root]
+    strength = np.bincount(root, weights=A.ravel(), minlength=n)[root]
+    return root, length, strength
+
+
+def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
+    """Edge-preserving local linear smoothing of ``y`` (N,) within runs of consecutive columns.
+
+    For each column and each half-width k of ``scales`` (largest first) the straight-line fits over the centred,
+    the left and the right window of ``2 k + 1`` columns (all inside the column's run) are compared and the one
+    with the smallest residual is kept, so corners and depth steps are not rounded. A column takes the largest
+    scale whose residual variance is consistent with the measurement noise (estimated from second
+    differences), otherwise its own value.
+    """
+    n = y.size
+    out = y.copy()
+    have = run >= 0
+    if not np.any(have):
+        return out
+    # noise of y from second differences inside runs
+    same = have[1:-1] & (run[:-2] == run[1:-1]) & (run[2:] == run[1:-1])
+    d2 = (y[:-2] - 2.0 * y[1:-1] + y[2:])[same]
+    if d2.size < 8:
+        return out
+    var = float(np.median(d2 * d2)) / (6.0 * 0.4549) + 1e-8
+    # reduce magnitudes: subtract the first value of each run
+    idx = np.arange(n)
+    first = np.where(have & np.concatenate([[True], run[1:] != run[:-1]]), idx, 0)
+    base = y[np.maximum.accumulate(first)]
+    z = np.where(have, y - base, 0.0)
+    cs0 = np.concatenate([[0.0], np.cumsum(z)])
+    cs1 = np.concatenate([[0.0], np.cumsum(z * idx)])
+    cs2 = np.concatenate([[0.0], np.cumsum(z * z)])
+    done = ~have
+    for k in scales:
+        if k < 1 or 2 * k + 1 > n or bool(done.all()):
+            continue
+        m = 2 * k + 1
+        s2 = k * (k + 1) * m / 3.0
+        c = np.arange(k, n - k)  # centres with full windows
+        t0 = cs0[c + k + 1] - cs0[c - k]
+        t1 = cs1[c + k + 1] - cs1[c - k] - c * t0
+        yy = cs2[c + k + 1] - cs2[c - k]
+        a = t0 / m
+        b = t1 / s2
+        rss = np.maximum(yy - a * t0 - b * t1, 0.0)
+        valid = (run[c - k] == run[c + k]) & (run[c - k] >= 0)
+        limit = var * (m - 2) * (1.0 + 3.0 * math.sqrt(2.0 / (m - 2)))
+        best = np.full(n, np.inf)
+        val = np.full(n, np.nan)
+        for shift in (0, -k, k):  # window centre at u + shift; evaluate at offset -shift
+            u = c - shift
+            inside = (u >= 0) & (u < n)
+            u, cc = u[inside], np.flatnonzero(inside)
+            ok = valid[cc] & (run[c[cc]] == run[u]) & (rss[cc] <= limit) & (rss[cc] < best[u])
+            uu = u[ok]
+            best[uu] = rss[cc][ok]
+            val[uu] = a[cc][ok] + b[cc][ok] * float(-shift) + base[uu]
+        take = ~done & np.isfinite(val)
+        out[take] = val[take]
+        done |= take
+    return out
+
+
+def _gather(image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int, channel: int) -> NDArray[np.uint8]:
+    """(2 half + 1, N) samples of ``channel`` in columns ``cols`` around ``rows`` (clamped at the border)."""
+    h, w = image.shape[:2]
+    rr = np.clip(rows[None, :] + np.arange(-half, half + 1)[:, None], 0, h - 1)
+    return image.reshape(-1)[(rr * w + cols[None, :]) * 3 + channel]
+
+
+def extract(
+    image: NDArray[np.uint8], calibration: Calibration, config: SubpixelConfig | None = None, **options: Any
+) -> Detections:
+    """Sub-pixel stripe centres of every laser: one per column per laser (see the module documentation).
+
+    Args:
+        image: (H, W, 3) uint8 BGR of the calibration's size.
+        calibration: the sensor's calibration (the search bands are derived from it).
+        config: extractor options (default :class:`SubpixelConfig`).
+        **options: overrides of single :class:`SubpixelConfig` fields (e.g. ``min_range_m=0.3``).
+
+    Returns:
+        :class:`Detections` with pixel coordinates (N, 2), laser index (N,) and quality (N,).
+    """
+    cfg = SubpixelConfig.from_options(config, **options)
+    plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
+    h, w = image.shape[:2]
+    n_l = plan.bands.n_lasers
+    # 1-2. candidates of every laser in its band; laser l's columns are numbered l * w + u ("virtual columns")
+    parts = []
+    noise = np.ones(n_l)
+    for i in range(n_l):
+        r0, r1 = plan.rows[i]
+        if r1 <= r0:
+            continue
+        u, v, a, noise[i] = _candidates(image, r0, r1, plan.masks[i], cfg)
+        parts.append((u + i * w, v, a))
+    if not parts or sum(p[0].size for p in parts) == 0:
+        return Detections.empty()
+    U = np.concatenate([p[0] for p in parts])
+    Vr = np.concatenate([p[1] for p in parts])
+    Ar = np.concatenate([p[2] for p in parts])
+    U, Vf, Ar = _merge_plateaus(U, Vr, Ar)
+    n_cols = n_l * w
+    k = int(min(cfg.max_candidates, np.bincount(U).max()))
+    V, A = _top_k(U, Vf, Ar, n_cols, k)
+    # 3. continuity: chains; per column the candidate on the strongest long-enough chain
+    root, length, strength = _chains(V, A, cfg.max_jump_px, w)
+    score = np.where(np.isfinite(V.ravel()) & (length >= cfg.min_run_cols), strength, -np.inf).reshape(n_cols, k)
+    pick = np.argmax(score, axis=1) if k > 1 else np.zeros(n_cols, np.int64)
+    col_v = np.flatnonzero(np.isfinite(score[np.arange(n_cols), pick]))
+    if col_v.size == 0:
+        return Detections.empty()
+    node = col_v * k + pick[col_v]
+    rows = np.rint(V.ravel()[node]).astype(np.int64)
+    chain, chain_len = root[node], length[node]
+    laser = col_v // w
+    cols = col_v - laser * w
+    # 4. sub-pixel centre on the green profile; window and spacing from the typical width of this frame
+    sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
+    half0 = cfg.window_half_px
+    P0 = _gather(image, cols[sub], rows[sub], half0, 1)
+    probe = fit_profiles(P0, transposed=True, saturation_dn=cfg.saturation_dn, max_sigma_px=1.5 * cfg.max_sigma_px)
+    good = probe.ok & ~probe.saturated
+    sig_med = float(np.median(probe.sigma[good])) if np.any(good) else 1.0
+    sig_med = float(np.clip(sig_med, 0.6, cfg.max_sigma_px))
+    plateau = float(np.percentile((cfg.saturation_dn <= P0).sum(axis=0), 90))
+    half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 6)))
+    # re-centre each window on its integer peak (the middle of a saturated run)
+    e = 3
+    Pb = _gather(image, cols, rows, half + e, 1)
+    core = Pb[half : half + 2 * e + 1]
+    shift = np.argmax(core, axis=0) - e
+    satc = core >= cfg.saturation_dn
+    has_sat = satc.any(axis=0)
+    if bool(has_sat.any()):
+        first = np.argmax(satc, axis=0)
+        last = 2 * e - np.argmax(satc[::-1], axis=0)
+        shift = np.where(has_sat, (first + last) // 2 - e, shift)
+    rows = rows + shift
+    P = np.take_along_axis(Pb, (e + shift)[None, :] + np.arange(2 * half + 1)[:, None], axis=0)
+    fit = fit_profiles(
+        P,
+        transposed=True,
+        sigma_hint=sig_med,
+        saturation_dn=cfg.saturation_dn,
+        min_sigma_px=cfg.min_fwhm_px / FWHM_PER_SIGMA,
+        max_sigma_px=cfg.max_sigma_px,
+    )
+    ok = fit.ok & (fit.amplitude >= cfg.min_contrast_dn)
+    # colour: at the peak, green must rise above the local background more than red and blue do
+    flat = image.reshape(-1)
+    pix = (rows * w + cols) * 3
+    lo = (np.clip(rows - half, 0, h - 1) * w + cols) * 3
+    hi = (np.clip(rows + half, 0, h - 1) * w + cols) * 3
+    rise = [
+        flat[pix + ch].astype(np.float64) - 0.5 * (flat[lo + ch].astype(np.float64) + flat[hi + ch]) for ch in (0, 1, 2)
+    ]
+    ok &= (rise[1] >= cfg.min_green_ratio * np.maximum(rise[0], rise[2])) | fit.saturated
+    col_v, chain, chain_len = col_v[ok], chain[ok], chain_len[ok]
+    vv = rows[ok] - half + fit.centre[ok]
+    amp, sig = fit.amplitude[ok], fit.sigma[ok]
+    if col_v.size == 0:
+        return Detections.empty()
+    # runs: consecutive (virtual) columns on one chain
+    new = np.ones(col_v.size, bool)
+    new[1:] = (np.diff(col_v) != 1) | (chain[1:] != chain[:-1])
+    run_id = np.cumsum(new) - 1
+    keep = np.bincount(run_id)[run_id] >= max(2, cfg.min_run_cols // 2)
+    col_v, vv, amp, sig, chain_len, run_id = col_v[keep], vv[keep], amp[keep], sig[keep], chain_len[keep], run_id[keep]
+    # 5. along-stripe smoothing
+    if cfg.smooth_half_cols >= 1 and col_v.size:
+        y = np.full(n_cols, np.nan)
+        run = np.full(n_cols, -1, np.int64)
+        y[col_v] = vv
+        run[col_v] = run_id
+        scales = tuple(sorted({cfg.smooth_half_cols, max(1, cfg.smooth_half_cols // 4)}, reverse=True))
+        vv = _smooth(y, run, scales)[col_v]
+    # 6. quality
+    laser = col_v // w
+    snr = amp / np.maximum(noise[laser], 0.5)
+    q_snr = 1.0 - np.exp(-snr / 8.0)
+    sig = np.where(np.isfinite(sig), sig, cfg.max_sigma_px)
+    q_w = np.clip(np.minimum(sig / 0.6, 1.5 * cfg.max_sigma_px / np.maximum(sig, 1e-6) - 0.5), 0.2, 1.0)
+    q_run = np.clip(chain_len / (4.0 * cfg.min_run_cols), 0.0, 1.0)
+    quality = np.clip(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0, 1.0)
+    uv = np.stack([(col_v - laser * w).astype(np.float64), vv], axis=1)
+    return Detections(uv, laser.astype(np.int64), quality)
