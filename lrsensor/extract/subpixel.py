@@ -217,100 +217,143 @@ def _top_k(u: IntArray, v: FloatArray, a: FloatArray, n_cols: int, k: int) -> tu
     return V, A
 
 
-def _chains(V: FloatArray, A: FloatArray, max_jump: float, block: int) -> tuple[IntArray, IntArray, FloatArray]:
-    """Link candidates of neighbouring columns (mutual nearest, |dv| <= max_jump) into chains.
+def _chains(
+    V: FloatArray, A: FloatArray, max_jump: float, block: int, max_gap: int = 3
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """Link candidates of nearby columns into chains (stripe pieces).
 
-    Columns ``c`` and ``c + 1`` are never linked across a multiple of ``block`` (one block per laser).
-    Returns per node (n_cols * k,): chain id, chain length (columns) and chain strength (sum of strengths).
+    A node (column c, candidate i) is linked to the mutually nearest candidate of column c + 1 when their rows
+    differ by at most ``max_jump``; nodes left without a partner are then tried across gaps of up to
+    ``max_gap - 1`` empty columns (dim or occluded columns do not cut a stripe). Columns in different blocks
+    of ``block`` columns (one block per laser) are never linked.
+
+    Returns per node (n_cols * k,): chain id, chain length (nodes) and chain strength (sum of strengths).
     """
     n_cols, k = V.shape
     n = n_cols * k
-    if n_cols < 2:
-        ids = np.arange(n)
-        return ids, np.ones(n, np.int64), A.ravel().copy()
-    cut = (np.arange(1, n_cols) % block) == 0  # (n_cols - 1,) no link between c and c + 1
-    if k == 1:
-        v = V[:, 0]
-        with np.errstate(invalid="ignore"):
-            link = (np.abs(np.diff(v)) <= max_jump) & ~cut
-        start = np.concatenate([[True], ~link])
-        root = np.cumsum(start) - 1
-    else:
-        D = np.abs(V[:-1, :, None] - V[1:, None, :])
-        D = np.where(np.isfinite(D), D, np.inf)
-        j_best = np.argmin(D, axis=2)  # (n_cols - 1, k): for node (c, i) the nearest in c + 1
-        i_best = np.argmin(D, axis=1)  # (n_cols - 1, k): for node (c + 1, j) the nearest in c
-        ii = np.arange(k)[None, :]
+    prev = np.arange(n)
+    has_next = np.zeros((n_cols, k), bool)
+    has_prev = np.zeros((n_cols, k), bool)
+    ii = np.arange(k)[None, :]
+    for lag in range(1, max_gap + 1):
+        if n_cols <= lag:
+            break
+        a_ok = ~has_next[:-lag] & np.isfinite(V[:-lag])
+        b_ok = ~has_prev[lag:] & np.isfinite(V[lag:])
+        D = np.abs(V[:-lag, :, None] - V[lag:, None, :])
+        D = np.where(a_ok[:, :, None] & b_ok[:, None, :], D, np.inf)
+        j_best = np.argmin(D, axis=2)  # for node (c, i) the nearest in c + lag
+        i_best = np.argmin(D, axis=1)  # for node (c + lag, j) the nearest in c
         dmin = np.take_along_axis(D, j_best[:, :, None], axis=2)[:, :, 0]
         mutual = np.take_along_axis(i_best, j_best, axis=1) == ii
-        link = mutual & (dmin <= max_jump) & ~cut[:, None]
-        cc = np.arange(n_cols - 1)[:, None]
-        prev = np.arange(n)
-        prev[((cc + 1) * k + j_best)[link]] = (cc * k + ii)[link]
-        root = prev
-        for _ in range(math.ceil(math.log2(n_cols)) + 1):
-            nxt = root[root]
-            if np.array_equal(nxt, root):
-                break
-            root = nxt
+        c = np.arange(n_cols - lag)
+        same_block = (c // block) == ((c + lag) // block)
+        link = mutual & (dmin <= max_jump) & same_block[:, None]
+        if not np.any(link):
+            continue
+        cc = c[:, None]
+        src = (cc * k + ii)[link]
+        dst = ((cc + lag) * k + j_best)[link]
+        prev[dst] = src
+        has_next.reshape(-1)[src] = True
+        has_prev.reshape(-1)[dst] = True
+    root = prev
+    for _ in range(math.ceil(math.log2(max(n_cols, 2))) + 1):
+        nxt = root[root]
+        if np.array_equal(nxt, root):
+            break
+        root = nxt
     length = np.bincount(root, minlength=n)[root]
     strength = np.bincount(root, weights=A.ravel(), minlength=n)[root]
     return root, length, strength
 
 
 def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
-    """Edge-preserving local linear smoothing of ``y`` (N,) within runs of consecutive columns.
+    """Edge-preserving local linear smoothing of ``y`` (N,) (NaN = no measurement) within runs.
 
-    For each column and each half-width k of ``scales`` (largest first) the straight-line fits over the centred,
-    the left and the right window of ``2 k + 1`` columns (all inside the column's run) are compared and the one
-    with the smallest residual is kept, so corners and depth steps are not rounded. A column takes the largest
-    scale whose residual variance is consistent with the measurement noise (estimated from second
-    differences), otherwise its own value.
+    ``run`` (N,) labels each measured column with its run (a stripe piece: one chain, small gaps allowed;
+    -1 = none); runs are intervals of columns. For each column and each half-width k of ``scales`` (largest
+    first) the straight-line fits over the centred, the left and the right window of ``2 k + 1`` columns (inside
+    the column's run) are compared and the one with the smallest residual is kept, so corners and depth steps
+    are not rounded. A column takes the largest scale whose residual variance is consistent with the local
+    measurement noise (estimated from lag-4 second differences), otherwise its own value.
     """
     n = y.size
     out = y.copy()
     have = run >= 0
-    if not np.any(have):
+    lag = 4
+    if not np.any(have) or n <= 2 * lag + 2:
         return out
-    # noise of y from second differences inside runs
-    same = have[1:-1] & (run[:-2] == run[1:-1]) & (run[2:] == run[1:-1])
-    d2 = (y[:-2] - 2.0 * y[1:-1] + y[2:])[same]
-    if d2.size < 8:
+    idx = np.arange(n, dtype=np.float64)
+    # run extent of every column
+    cols = np.flatnonzero(have)
+    r = run[cols]
+    starts = np.flatnonzero(np.concatenate([[True], r[1:] != r[:-1]]))
+    ends = np.concatenate([starts[1:], [r.size]]) - 1
+    run_lo = np.full(n, n, np.int64)
+    run_hi = np.full(n, -1, np.int64)
+    seg = np.cumsum(np.concatenate([[True], r[1:] != r[:-1]])) - 1
+    run_lo[cols] = cols[starts][seg]
+    run_hi[cols] = cols[ends][seg]
+    # local noise: lag-4 second differences inside runs
+    same = have[lag:-lag] & have[: -2 * lag] & have[2 * lag :]
+    same &= (run[: -2 * lag] == run[lag:-lag]) & (run[2 * lag :] == run[lag:-lag])
+    if int(same.sum()) < 8:
         return out
-    var = float(np.median(d2 * d2)) / (6.0 * 0.4549) + 1e-8
-    # reduce magnitudes: subtract the first value of each run
-    idx = np.arange(n)
-    first = np.where(have & np.concatenate([[True], run[1:] != run[:-1]]), idx, 0)
-    base = y[np.maximum.accumulate(first)]
+    yz = np.where(have, y, 0.0)
+    d2 = np.zeros(n)
+    d2[lag:-lag] = np.where(same, (yz[: -2 * lag] - 2.0 * yz[lag:-lag] + yz[2 * lag :]) ** 2, 0.0)
+    var_all = float(np.median(d2[lag:-lag][same])) / (6.0 * 0.4549) + 1e-8
+    cnt2 = np.zeros(n)
+    cnt2[lag:-lag] = same
+    # window sums by cumulative sums (values relative to the first value of each run)
+    base = np.zeros(n)
+    base[cols] = y[cols][starts][seg]
     z = np.where(have, y - base, 0.0)
-    cs0 = np.concatenate([[0.0], np.cumsum(z)])
-    cs1 = np.concatenate([[0.0], np.cumsum(z * idx)])
-    cs2 = np.concatenate([[0.0], np.cumsum(z * z)])
+    m = have.astype(np.float64)
+
+    def cs(a: FloatArray) -> FloatArray:
+        return np.concatenate([[0.0], np.cumsum(a)])
+
+    c_m, c_mx, c_mxx = cs(m), cs(m * idx), cs(m * idx * idx)
+    c_z, c_zx, c_zz = cs(z), cs(z * idx), cs(z * z)
+    c_d2, c_n2 = cs(d2), cs(cnt2)
     done = ~have
     for k in scales:
         if k < 1 or 2 * k + 1 > n or bool(done.all()):
             continue
-        m = 2 * k + 1
-        s2 = k * (k + 1) * m / 3.0
-        c = np.arange(k, n - k)  # centres with full windows
-        t0 = cs0[c + k + 1] - cs0[c - k]
-        t1 = cs1[c + k + 1] - cs1[c - k] - c * t0
-        yy = cs2[c + k + 1] - cs2[c - k]
-        a = t0 / m
-        b = t1 / s2
+        c = np.arange(k, n - k)
+        lo, hi = c - k, c + k + 1
+        s0 = c_m[hi] - c_m[lo]
+        sx = c_mx[hi] - c_mx[lo]
+        sxx = c_mxx[hi] - c_mxx[lo]
+        t0 = c_z[hi] - c_z[lo]
+        tx = c_zx[hi] - c_zx[lo]
+        yy = c_zz[hi] - c_zz[lo]
+        cf = c.astype(np.float64)
+        s1 = sx - cf * s0
+        s2 = sxx - 2.0 * cf * sx + cf * cf * s0
+        t1 = tx - cf * t0
+        det = s0 * s2 - s1 * s1
+        full = (s0 >= 0.6 * (2 * k + 1)) & (det > 1e-9)
+        det = np.where(full, det, 1.0)
+        b = (s0 * t1 - s1 * t0) / det
+        a = (t0 - b * s1) / np.maximum(s0, 1.0)
         rss = np.maximum(yy - a * t0 - b * t1, 0.0)
-        valid = (run[c - k] == run[c + k]) & (run[c - k] >= 0)
-        limit = var * (m - 2) * (1.0 + 3.0 * math.sqrt(2.0 / (m - 2)))
+        nv = c_n2[hi] - c_n2[lo]
+        var = np.where(nv >= 5, (c_d2[hi] - c_d2[lo]) / (6.0 * np.maximum(nv, 1.0)), var_all)
+        dof = np.maximum(s0 - 2.0, 1.0)
+        accept = full & (rss <= np.maximum(var, 1e-8) * dof * (1.0 + 3.0 * np.sqrt(2.0 / dof)))
         best = np.full(n, np.inf)
         val = np.full(n, np.nan)
-        for shift in (0, -k, k):  # window centre at u + shift; evaluate at offset -shift
+        for shift in (0, -k, k):  # window centre at u + shift
             u = c - shift
             inside = (u >= 0) & (u < n)
-            u, cc = u[inside], np.flatnonzero(inside)
-            ok = valid[cc] & (run[c[cc]] == run[u]) & (rss[cc] <= limit) & (rss[cc] < best[u])
-            uu = u[ok]
-            best[uu] = rss[cc][ok]
-            val[uu] = a[cc][ok] + b[cc][ok] * float(-shift) + base[uu]
+            u, ci = u[inside], np.flatnonzero(inside)
+            ok = have[u] & accept[ci] & (c[ci] - k >= run_lo[u]) & (c[ci] + k <= run_hi[u]) & (rss[ci] < best[u])
+            uu, cc = u[ok], ci[ok]
+            best[uu] = rss[cc]
+            val[uu] = a[cc] + b[cc] * float(-shift) + base[uu]
         take = ~done & np.isfinite(val)
         out[take] = val[take]
         done |= take
@@ -420,7 +463,7 @@ def extract(
         return Detections.empty()
     # runs: consecutive (virtual) columns on one chain
     new = np.ones(col_v.size, bool)
-    new[1:] = (np.diff(col_v) != 1) | (chain[1:] != chain[:-1])
+    new[1:] = (np.diff(col_v) > 3) | (chain[1:] != chain[:-1])
     run_id = np.cumsum(new) - 1
     keep = np.bincount(run_id)[run_id] >= max(2, cfg.min_run_cols // 2)
     col_v, vv, amp, sig, chain_len, run_id = col_v[keep], vv[keep], amp[keep], sig[keep], chain_len[keep], run_id[keep]
@@ -430,7 +473,8 @@ def extract(
         run = np.full(n_cols, -1, np.int64)
         y[col_v] = vv
         run[col_v] = run_id
-        scales = tuple(sorted({cfg.smooth_half_cols, max(1, cfg.smooth_half_cols // 4)}, reverse=True))
+        k0 = cfg.smooth_half_cols
+        scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True))
         vv = _smooth(y, run, scales)[col_v]
     # 6. quality
     laser = col_v // w
