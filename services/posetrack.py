@@ -1,74 +1,129 @@
 """Pose interpolation at a frame's capture time: slerp for attitude, linear for position, no extrapolation.
 
-A :class:`PoseTrack` holds IMU/navigation samples (time, NED position, attitude) in time order. It answers the
-pose at any time inside its span; outside the span it answers ``None`` (the frame is skipped and counted by
-the caller, never guessed). It is thread-safe: a reader thread (serial IMU) appends while the frame loop
-queries, and it can wait for a sample at or after a time (live sources).
+A :class:`PoseTrack` holds IMU/navigation samples (time, NED position, attitude) in time order, in numpy
+buffers. It answers the pose at any time inside its span; outside the span it answers ``None`` (the frame is
+skipped and counted by the caller, never guessed). It is thread-safe: a reader thread (serial IMU) appends
+while the frame loop queries, and a caller can wait for a sample at or after a time (live sources).
 """
 
 from __future__ import annotations
 
-import bisect
 import threading
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from lrsensor.frames import Pose, R_from_quat, R_ned_from_body, quat_from_R, slerp
+from lrsensor.frames import Pose, R_from_quat, slerp
 
-from .errors import ImuError
+FloatArray = NDArray[np.float64]
+
+
+def quat_from_euler(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> FloatArray:
+    """Unit quaternions ``(w, x, y, z)`` (N, 4) of ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, vectorized."""
+    r = np.asarray(roll_rad, dtype=float) / 2
+    p = np.asarray(pitch_rad, dtype=float) / 2
+    y = np.asarray(yaw_rad, dtype=float) / 2
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    q = np.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
+        axis=-1,
+    )
+    return np.atleast_2d(q)
 
 
 class PoseTrack:
     """Time-ordered pose samples with interpolation.
 
     Args:
-        max_samples: keep at most this many samples (oldest are dropped); ``None`` keeps all (recorded logs).
+        max_samples: keep at most about this many samples (oldest dropped); ``None`` keeps all (recorded logs).
     """
 
     def __init__(self, max_samples: int | None = None) -> None:
-        self._t: list[int] = []
-        self._q: list[NDArray[np.float64]] = []
-        self._p: list[NDArray[np.float64]] = []
+        self._t = np.empty(0, np.int64)
+        self._q = np.empty((0, 4))
+        self._p = np.empty((0, 3))
+        self._n = 0
         self._max = max_samples
         self._cond = threading.Condition()
         self.rejected = 0
 
     def __len__(self) -> int:
         with self._cond:
-            return len(self._t)
+            return self._n
 
     @classmethod
     def from_arrays(cls, t_ns: Sequence[int] | NDArray[np.int64], poses: Sequence[Pose]) -> PoseTrack:
-        """A track from sample times (M,) ns and poses (M,); times must be strictly increasing."""
+        """A track from sample times (M,) ns and poses (M,); samples not after their predecessor are rejected."""
         track = cls()
-        for t, pose in zip(t_ns, poses, strict=True):
-            track.append(int(t), pose)
+        a = np.array([[p.north_m, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad] for p in poses])
+        track.extend(np.asarray(t_ns, dtype=np.int64), a.reshape(-1, 6))
         return track
 
-    def append(self, t_ns: int, pose: Pose) -> bool:
-        """Add a sample; returns False (and counts it in :attr:`rejected`) if it is not after the last one
-        or not finite."""
-        vals = np.array([pose.north_m, pose.east_m, pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad])
+    def _reserve(self, extra: int) -> None:
+        need = self._n + extra
+        if need <= self._t.size:
+            return
+        cap = max(need, 2 * self._t.size, 64)
+        for name, shape in (("_t", (cap,)), ("_q", (cap, 4)), ("_p", (cap, 3))):
+            old = getattr(self, name)
+            new = np.empty(shape, old.dtype)
+            new[: self._n] = old[: self._n]
+            setattr(self, name, new)
+
+    def _trim(self) -> None:
+        if self._max is not None and self._n > 2 * self._max:
+            drop = self._n - self._max
+            for name in ("_t", "_q", "_p"):
+                arr = getattr(self, name)
+                arr[: self._max] = arr[drop : self._n].copy()
+            self._n = self._max
+
+    def extend(self, t_ns: NDArray[np.int64], ned_rpy: FloatArray) -> int:
+        """Add samples: times (M,) ns and rows ``north, east, down, roll, pitch, yaw`` (M, 6) in m and rad.
+
+        Rows that are not finite or not after the previous accepted sample are rejected (counted in
+        :attr:`rejected`). Returns the number accepted.
+        """
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        v = np.asarray(ned_rpy, dtype=float).reshape(-1, 6)
+        if t.size != v.shape[0]:
+            msg = f"{t.size} sample times for {v.shape[0]} poses"
+            raise ValueError(msg)
         with self._cond:
-            if not np.all(np.isfinite(vals)) or (self._t and t_ns <= self._t[-1]):
-                self.rejected += 1
-                return False
-            self._t.append(int(t_ns))
-            self._q.append(quat_from_R(R_ned_from_body(pose.roll_rad, pose.pitch_rad, pose.yaw_rad)))
-            self._p.append(vals[:3])
-            if self._max is not None and len(self._t) > self._max:
-                drop = len(self._t) - self._max
-                del self._t[:drop], self._q[:drop], self._p[:drop]
-            self._cond.notify_all()
-        return True
+            last = self._t[self._n - 1] if self._n else np.iinfo(np.int64).min
+            ok = np.all(np.isfinite(v), axis=1)
+            # keep a row only if it is after the running maximum of the accepted times before it
+            prev_max = np.maximum.accumulate(np.concatenate([[last], np.where(ok, t, np.iinfo(np.int64).min)]))[:-1]
+            keep = ok & (t > prev_max)
+            k = int(keep.sum())
+            self.rejected += int(t.size - k)
+            if k:
+                self._reserve(k)
+                sl = slice(self._n, self._n + k)
+                self._t[sl] = t[keep]
+                self._p[sl] = v[keep, :3]
+                self._q[sl] = quat_from_euler(v[keep, 3], v[keep, 4], v[keep, 5])
+                self._n += k
+                self._trim()
+                self._cond.notify_all()
+        return k
+
+    def append(self, t_ns: int, pose: Pose) -> bool:
+        """Add one sample; False (and counted in :attr:`rejected`) if not finite or not after the last one."""
+        row = np.array([[pose.north_m, pose.east_m, pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad]])
+        return self.extend(np.array([int(t_ns)], np.int64), row) == 1
 
     @property
     def span(self) -> tuple[int, int] | None:
         """``(first, last)`` sample time in ns, or None when empty."""
         with self._cond:
-            return (self._t[0], self._t[-1]) if self._t else None
+            return (int(self._t[0]), int(self._t[self._n - 1])) if self._n else None
 
     def pose_at(self, t_ns: int) -> Pose | None:
         """The pose at ``t_ns``: slerp between the neighbouring attitudes, linear between positions.
@@ -76,13 +131,14 @@ class PoseTrack:
         Returns None when ``t_ns`` lies outside ``[first, last]`` sample time (no extrapolation).
         """
         with self._cond:
-            if not self._t or t_ns < self._t[0] or t_ns > self._t[-1]:
+            n = self._n
+            if not n or t_ns < self._t[0] or t_ns > self._t[n - 1]:
                 return None
-            i = bisect.bisect_left(self._t, t_ns)
+            i = int(np.searchsorted(self._t[:n], t_ns, side="left"))
             if self._t[i] == t_ns:
-                q, p = self._q[i], self._p[i]
+                q, p = self._q[i].copy(), self._p[i].copy()
             else:
-                t0, t1 = self._t[i - 1], self._t[i]
+                t0, t1 = int(self._t[i - 1]), int(self._t[i])
                 a = (t_ns - t0) / (t1 - t0)
                 q = slerp(self._q[i - 1], self._q[i], a)
                 p = (1.0 - a) * self._p[i - 1] + a * self._p[i]
@@ -91,20 +147,12 @@ class PoseTrack:
     def samples(self) -> tuple[list[int], list[Pose]]:
         """Copies of the sample times (ns) and poses."""
         with self._cond:
-            t = list(self._t)
-            qs = list(self._q)
-            ps = list(self._p)
-        return t, [Pose.from_R_p(R_from_quat(q), p) for q, p in zip(qs, ps, strict=True)]
+            t = self._t[: self._n].copy()
+            q = self._q[: self._n].copy()
+            p = self._p[: self._n].copy()
+        return [int(x) for x in t], [Pose.from_R_p(R_from_quat(qq), pp) for qq, pp in zip(q, p, strict=True)]
 
     def wait_covering(self, t_ns: int, timeout_s: float) -> bool:
         """Block until a sample at or after ``t_ns`` exists (live IMU behind the camera), or the timeout."""
         with self._cond:
-            return self._cond.wait_for(lambda: bool(self._t) and self._t[-1] >= t_ns, timeout=timeout_s)
-
-
-def check_monotonic(t_ns: NDArray[np.int64], where: str) -> None:
-    """Raise :class:`ImuError` unless ``t_ns`` (M,) is strictly increasing."""
-    if t_ns.size > 1 and np.any(np.diff(t_ns) <= 0):
-        i = int(np.argmax(np.diff(t_ns) <= 0)) + 1
-        msg = f"{where}: sample times must increase strictly; sample {i} ({t_ns[i]}) is not after {t_ns[i - 1]}"
-        raise ImuError(msg)
+            return self._cond.wait_for(lambda: self._n > 0 and self._t[self._n - 1] >= t_ns, timeout=timeout_s)

@@ -230,7 +230,6 @@ class RovService:
 
         stop = stop or threading.Event()
         c = self.counters
-        token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
         queryable = self.session.declare_queryable(self.keys.calib(self.robot), self._on_calib_query)
         status_pub = self.session.declare_publisher(
             self.keys.rov_status(self.robot),
@@ -238,6 +237,8 @@ class RovService:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         sink = self.sink or ZenohCloudSink(self.session, self.keys.cloud(self.robot))
+        # the token goes last: a robot seen alive already answers its calibration queryable
+        token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
         log.info("rov %s: publishing on %s from %s", self.robot, self.keys.cloud(self.robot), self.source.name)
         period_ns = int(1e9 / self.rate_hz) if self.rate_hz else 0
         next_ns = time.monotonic_ns()
@@ -308,6 +309,11 @@ class RovService:
             with self._lock:
                 c.failed += 1
             log.warning("rov %s: frame at %d not processed: %s", self.robot, t_ns, err)
+            return
+        except Exception as err:  # an extractor bug must not stop the robot: count, log with traceback
+            with self._lock:
+                c.failed += 1
+            log.exception("rov %s: frame at %d failed unexpectedly: %s", self.robot, t_ns, err)
             return
         sink.send(msg)
         with self._lock:

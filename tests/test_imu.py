@@ -77,8 +77,11 @@ def test_live_track_is_bounded_and_can_be_waited_on() -> None:
     track = PoseTrack(max_samples=5)
     for i in range(10):
         track.append(i, Pose.identity())
+    assert len(track) == 10  # trimmed in batches: at most twice the bound
+    track.append(10, Pose.identity())
     assert len(track) == 5
-    assert track.span == (5, 9)
+    assert track.span == (6, 10)
+    assert track.pose_at(5) is None
     assert not track.wait_covering(20, timeout_s=0.01)
     threading.Timer(0.05, lambda: track.append(25, Pose.identity())).start()
     assert track.wait_covering(20, timeout_s=5.0)
