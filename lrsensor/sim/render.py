@@ -63,13 +63,16 @@ class LaserModel:
     sheet_sigma_m: float = 0.0008
     blur_sigma_px: float = 1.0
     colour_bgr: tuple[float, float, float] = (0.3, 1.0, 0.08)
-    max_gap_px: float = 0.25
+    max_gap_px: float = 1.0
     max_range_m: float = 30.0
 
 
 @dataclass(frozen=True)
 class LaserTruth:
     """Ground truth of one laser's stripe: the dense visible samples, ordered along the fan.
+
+    The samples are those the camera sees inside the image, plus one sample beyond the image border at
+    each end of a stripe piece (so that interpolation covers every column up to the border).
 
     Attributes:
         index, name: the laser's index in the calibration and its name.
@@ -478,11 +481,18 @@ def _draw_run(
     return cols[ok].astype(np.int64), rows[ok].astype(np.int64), val[ok]
 
 
-def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: IntArray, width: int, height: int) -> F32:
-    """The stripe intensity map (H, W) float32 of dense samples ``uv`` (N, 2) with peak ``amp`` (N,) and
-    cross-stripe ``sigma`` (N,) pixels, drawn per continuous ``segment`` (N,) (-1 = skip)."""
-    flat_idx: list[IntArray] = []
-    flat_val: list[FloatArray] = []
+def stripe_splats(
+    uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: IntArray, width: int, height: int
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """Pixel contributions of a stripe: rows (K,), columns (K,) and values (K,) in DN.
+
+    The dense samples ``uv`` (N, 2) with peak ``amp`` (N,) and cross-stripe ``sigma`` (N,) pixels are drawn per
+    continuous ``segment`` (N,) (-1 = skip): per image column where the stripe is flatter than 45 degrees, per
+    row where it is steeper, each profile a Gaussian evaluated at the exact sub-pixel centre.
+    """
+    rows: list[IntArray] = []
+    cols: list[IntArray] = []
+    vals: list[FloatArray] = []
     for sg in np.unique(segment[segment >= 0]):
         idx = np.flatnonzero(segment == sg)
         u, v = uv[idx, 0], uv[idx, 1]
@@ -504,12 +514,29 @@ def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: Int
                 r_i, c_i, val = _draw_run(rv, ru, ra, rs, height, width)
             else:
                 c_i, r_i, val = _draw_run(ru, rv, ra, rs, width, height)
-            flat_idx.append(r_i * width + c_i)
-            flat_val.append(val)
-    if not flat_idx:
-        return np.zeros((height, width), np.float32)
-    acc = np.bincount(np.concatenate(flat_idx), weights=np.concatenate(flat_val), minlength=width * height)
-    return acc.reshape(height, width).astype(np.float32)
+            rows.append(r_i)
+            cols.append(c_i)
+            vals.append(val)
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+
+def accumulate_band(rows: IntArray, cols: IntArray, vals: FloatArray, width: int) -> tuple[int, F32]:
+    """Sum pixel contributions into the smallest band of full-width rows: ``(first_row, band (R, W))``."""
+    if rows.size == 0:
+        return 0, np.zeros((0, width), np.float32)
+    r0, r1 = int(rows.min()), int(rows.max()) + 1
+    acc = np.bincount((rows - r0) * width + cols, weights=vals, minlength=(r1 - r0) * width)
+    return r0, acc.reshape(r1 - r0, width).astype(np.float32)
+
+
+def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: IntArray, width: int, height: int) -> F32:
+    """The stripe intensity map (H, W) float32 of :func:`stripe_splats`."""
+    out = np.zeros((height, width), np.float32)
+    r0, band = accumulate_band(*stripe_splats(uv, amp, sigma, segment, width, height), width)
+    out[r0 : r0 + band.shape[0]] = band
+    return out
 
 
 # --------------------------------------------------------------------------- glow and ambient light
@@ -675,6 +702,10 @@ def trace_truth(
                 & (s.uv[:, 1] >= -0.5)
                 & (s.uv[:, 1] <= cam.height - 0.5)
             )
+        # keep the neighbour beyond the image border at each end, so that interpolation covers every column
+        same = (seg[1:] == seg[:-1]) & (seg[1:] >= 0)
+        vis[:-1] |= vis[1:] & same
+        vis[1:] |= vis[:-1].copy() & same
         lts.append(
             LaserTruth(
                 index=i,
@@ -734,22 +765,28 @@ def render(
         if rows.size:
             r0, r1 = int(rows[0]), int(rows[-1]) + 1
             img[r0:r1] += glow[r0:r1, :, None] * np.asarray(model.colour_bgr, np.float32)
-    laser_map = np.zeros((h, w), np.float32)
-    for i, (s, seg) in enumerate(raw):
-        peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)
-        laser_map += draw_stripe(s.uv, peak, sigma, seg, w, h)
+    splats = [
+        stripe_splats(s.uv, *_stripe_photometry(s, scene_body, calibration, i, model, water), seg, w, h)
+        for i, (s, seg) in enumerate(raw)
+    ]
+    r0, band = accumulate_band(
+        np.concatenate([sp[0] for sp in splats]),
+        np.concatenate([sp[1] for sp in splats]),
+        np.concatenate([sp[2] for sp in splats]),
+        w,
+    )
     layers: dict[str, F32] = {}
     if keep_layers:
-        layers["laser"] = laser_map.copy()
-    apply_speckle(laser_map, water, rng)
-    rows = np.flatnonzero(laser_map.max(axis=1) > 0)
-    if rows.size:
-        r0, r1 = int(rows[0]), int(rows[-1]) + 1
-        band = laser_map[r0:r1, :, None] * np.asarray(model.colour_bgr, np.float32)
-        img[r0:r1] += band
+        laser_full = np.zeros((h, w), np.float32)
+        laser_full[r0 : r0 + band.shape[0]] = band
+        layers["laser"] = laser_full
+    if band.shape[0]:
+        speckle_band = band
+        apply_speckle(speckle_band, water, rng)
+        img[r0 : r0 + band.shape[0]] += speckle_band[:, :, None] * np.asarray(model.colour_bgr, np.float32)
     add_blobs(img, water, rng)
     add_snow(img, water, rng)
     add_sensor_noise(img, water, rng)
-    cv2.max(img, 0.0, dst=img)
-    image = cv2.convertScaleAbs(img)  # rounds and saturates at 255
+    np.maximum(img, 0.0, out=img)  # cheap; convertScaleAbs would fold negative values up
+    image = np.asarray(cv2.convertScaleAbs(img), np.uint8)  # rounds and saturates at 255
     return Render(image=image, calibration=calibration, truth=truth, layers=layers)

@@ -110,7 +110,7 @@ def tilted_calibration(
         R = rot_y(math.radians(ty)) @ rot_x(math.radians(tx))
         n = R @ lp.normal_body
         off = np.asarray(offsets_m[i % len(offsets_m)])
-        lasers.append(LaserPlane.make(lp.name, lp.point_body + off, n))
+        lasers.append(LaserPlane.make(lp.name, (lp.point_body + off).tolist(), n.tolist()))
     return base.with_lasers(lasers, {"simulated": "tilted lasers (true calibration)"})
 
 

@@ -42,7 +42,7 @@ class WaterModel:
     texture: float = 0.25
     texture_cells: float = 7.0
     vignetting: float = 0.25
-    attenuation_per_m: float = 0.10
+    attenuation_per_m: float = 0.08
     backscatter: float = 0.0
     glow_sigma_px: float = 8.0
     haze_dn: float = 0.0
@@ -109,7 +109,7 @@ def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F
         gw = max(2, round(water.texture_cells) + 2)
         gh = max(2, round(gw * h / w) + 2)
         grid = rng.standard_normal((gh, gw)).astype(np.float32)
-        grid = cv2.GaussianBlur(grid, (0, 0), 0.8)
+        grid = np.asarray(cv2.GaussianBlur(grid, (0, 0), 0.8), np.float32)
         grid /= max(float(grid.std()), 1e-6)
         tex = cv2.resize(grid, (wl, hl), interpolation=cv2.INTER_CUBIC)
         low *= (1.0 + water.texture * 0.5 * tex)[:, :, None]
@@ -129,7 +129,7 @@ def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F
         img = np.empty((h, w, 3), np.float32)
         img[:] = low[0, 0]
         return img
-    out: F32 = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
+    out: F32 = np.asarray(cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
     return out
 
 
@@ -196,7 +196,7 @@ def apply_speckle(laser_map: F32, water: WaterModel, rng: np.random.Generator) -
         return
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
     noise = rng.standard_normal((y1 - y0, x1 - x0)).astype(np.float32)
-    noise = cv2.GaussianBlur(noise, (0, 0), 0.8)
+    noise = np.asarray(cv2.GaussianBlur(noise, (0, 0), 0.8), np.float32)
     noise /= max(float(noise.std()), 1e-6)
     laser_map[y0:y1, x0:x1] *= np.clip(1.0 + water.speckle * noise, 0.0, None)
 
@@ -232,14 +232,14 @@ def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> N
     sign = np.float32(1.0 if rng.uniform() < 0.5 else -1.0)
     noise = bank[oy : oy + h, ox : ox + w]
     if water.shot_noise_gain > 0:
-        sd = np.maximum(img, 0.0)
-        sd *= np.float32(1.0 / water.shot_noise_gain)
+        # img >= 0 here (every layer adds light): sd = sqrt(read^2 + img / gain), all in OpenCV (one pass each)
+        sd = img * np.float32(1.0 / water.shot_noise_gain)
         sd += np.float32(water.read_noise_dn**2)
         cv2.sqrt(sd, sd)
-        sd *= noise
+        cv2.multiply(sd, noise, sd)
         if sign < 0:
-            img -= sd
+            cv2.subtract(img, sd, img)
         else:
-            img += sd
+            cv2.add(img, sd, img)
     else:
-        img += noise * (sign * np.float32(water.read_noise_dn))
+        cv2.scaleAdd(noise, float(sign * water.read_noise_dn), img, img)
