@@ -36,13 +36,36 @@ Water (:class:`WaterModel`, SI units, image levels in DN): ``clean()`` (no noise
 tests), ``default()``, ``turbid()``, ``cluttered()``; fields for attenuation, backscatter glow, haze, ambient
 light, read/shot noise, distractor blobs, marine snow and speckle. Every random effect is seeded.
 
-Dives (:mod:`lrsensor.sim.dive`): ``Trajectory``, ``tank_trajectories(n, ...)``, ``simulate_imu``,
-``record_dive(out_dir, ...)`` and ``trace_dive_clouds(...)``.
+Dives (:mod:`lrsensor.sim.dive`, NED tank of :func:`tank_scene`)::
+
+    from lrsensor.sim.dive import tank_trajectories, simulate_imu, record_dive, trace_dive_clouds, frame_times_ns
+    trajs = tank_trajectories(3)                    # Trajectory per robot k (independent of n): pose_at(t_ns)
+    imu = simulate_imu(trajs[0], t_start_ns, t_end_ns, rate_hz=100, seed=0)   # ImuLog, write_csv / read_csv
+    record_dive("out/rov1", robot="rov1", robot_index=0, duration_s=10, rate_hz=5, width=960, height=540)
+    for cloud in trace_dive_clouds(trajs[0], frame_times_ns(10, 5, trajs[0].t0_ns)):
+        cloud.t_ns, cloud.pose, cloud.points_body, cloud.laser       # TRUE points, no rendering
+
+Performance (one thread, 1920x1080, wall scene): about 100 ms a render, 20-60 ms a truth-only trace
+(``trace_truth``); ``benchmarks/bench_sim.py`` prints the table for every scene.
+
+Conventions: body frame x forward, y starboard, z down; pixels (u, v) with the OpenCV origin; the laser ``k``
+is ``calibration.lasers[k]`` (0 = top at z_b = -0.05 m, 1 = bottom at +0.05 m for the paper's sensor).
+The fan of a laser is centred on body +x projected into its plane; fan angle theta > 0 toward body +y.
 """
 
 from __future__ import annotations
 
-from .render import LaserModel, LaserTruth, Render, Truth, draw_stripe, render, trace_fan, trace_truth
+from .render import (
+    LaserModel,
+    LaserTruth,
+    Render,
+    Truth,
+    draw_stripe,
+    render,
+    stripe_splats,
+    trace_fan,
+    trace_truth,
+)
 from .scene import Checkerboard, Cylinder, Plane, Rectangle, Scene, Surface, box
 from .scenes import (
     SCENES,
@@ -85,6 +108,7 @@ __all__ = [
     "paper_calibration",
     "render",
     "scale_calibration",
+    "stripe_splats",
     "tank_scene",
     "tilted_calibration",
     "trace_fan",

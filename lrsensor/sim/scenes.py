@@ -224,18 +224,26 @@ TANK_PIPE = ((6.0, 4.3), 0.2)
 
 
 def tank_scene() -> Scene:
-    """The simulated tank in NED: 4 walls, a floor, 2 square pillars and a vertical pipe."""
+    """The simulated tank in NED: 4 walls, a floor, 2 square pillars and a vertical pipe.
+
+    North 0..12 m, east 0..8 m, floor at 4 m depth; pillars 0.6 m square at (4, 3) and (8, 5.5), the pipe
+    (r = 0.2 m) at (6, 4.3). Every planar face's normal (``axis_u x axis_v``) points into the water, so its
+    plane ``normal . p + d = 0`` (``Scene.to_dicts``) is the truth a map of the tank is scored against.
+    """
     ln, le, depth = TANK_SIZE_M
     dz = depth / 2.0
+    # every face's normal (axis_u x axis_v) points into the water
     surfaces: list[Surface] = [
-        Rectangle.make((ln, le / 2, dz), (0, 1, 0), (0, 0, 1), le, depth, "wall_north"),
-        Rectangle.make((0.0, le / 2, dz), (0, -1, 0), (0, 0, 1), le, depth, "wall_south"),
-        Rectangle.make((ln / 2, le, dz), (-1, 0, 0), (0, 0, 1), ln, depth, "wall_east"),
-        Rectangle.make((ln / 2, 0.0, dz), (1, 0, 0), (0, 0, 1), ln, depth, "wall_west"),
-        Rectangle.make((ln / 2, le / 2, depth), (1, 0, 0), (0, 1, 0), ln, le, "floor"),
+        Rectangle.make((ln, le / 2, dz), (0, -1, 0), (0, 0, 1), le, depth, "wall_north"),
+        Rectangle.make((0.0, le / 2, dz), (0, 1, 0), (0, 0, 1), le, depth, "wall_south"),
+        Rectangle.make((ln / 2, le, dz), (1, 0, 0), (0, 0, 1), ln, depth, "wall_east"),
+        Rectangle.make((ln / 2, 0.0, dz), (-1, 0, 0), (0, 0, 1), ln, depth, "wall_west"),
+        Rectangle.make((ln / 2, le / 2, depth), (1, 0, 0), (0, -1, 0), ln, le, "floor"),
     ]
     for k, ((n, e), side) in enumerate(TANK_PILLARS):
-        surfaces.extend(box((n, e, dz), (side, side, depth), name=f"pillar{k + 1}"))
+        # floor-to-surface pillars: their top and bottom faces would coincide with the surface and the floor
+        faces = box((n, e, dz), (side, side, depth), name=f"pillar{k + 1}")
+        surfaces.extend(f for f in faces if not f.name.endswith("z"))
     (pn, pe), pr = TANK_PIPE
     surfaces.append(Cylinder.make((pn, pe, dz), (0, 0, 1), pr, depth, "pipe"))
     return Scene(tuple(surfaces), "ned")
