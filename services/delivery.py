@@ -4,9 +4,9 @@ Protocol (chosen over zenoh-ext's advanced publisher/subscriber, whose history c
 publisher's memory: it is lost when the ROV restarts and knows nothing of what the base station has
 persisted):
 
-1. :meth:`OutboxSink.send` encodes the cloud, appends it to the robot's disk-backed
-   :class:`~services.outbox.Outbox` (durable before anything goes on the wire), then publishes it on
-   ``<root>/<robot>/cloud`` with BLOCK congestion control.
+1. :meth:`OutboxSink.send` encodes the cloud, publishes it on ``<root>/<robot>/cloud`` with BLOCK
+   congestion control and appends it to the robot's disk-backed :class:`~services.outbox.Outbox`
+   (fsync'ed by default) where it stays until acknowledged.
 2. The base station de-duplicates by sequence number and, once a cloud is persisted in its ``--state``,
    lists it in the JSON answered on ``<root>/base/acks/<robot>`` (``{"ranges": [[lo, hi], ...]}``).
 3. A background thread of the ROV asks that queryable every ``ack_period_s`` and removes the acknowledged
@@ -46,6 +46,7 @@ class DeliveryCounters:
         dropped: clouds dropped because the outbox was full.
         ack_polls: acknowledgement queries answered.
         base_seen: times the base station's subscriber (re)appeared.
+        unstored: clouds published live but not kept in the outbox (disk write failed).
     """
 
     sent: int = 0
@@ -54,6 +55,7 @@ class DeliveryCounters:
     dropped: int = 0
     ack_polls: int = 0
     base_seen: int = 0
+    unstored: int = 0
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -123,6 +125,7 @@ class OutboxSink:
         self._lock = threading.Lock()
         self._pub_lock = threading.Lock()  # one put at a time: live sends and re-sends interleave cleanly
         self._last_sent: dict[int, float] = {}
+        self._unheard: set[int] = set()  # published while no subscriber matched
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._base_present = False
@@ -131,16 +134,36 @@ class OutboxSink:
 
     # ------------------------------------------------------------------------------------------- sink
     def send(self, msg: CloudMsg) -> None:
-        """Store ``msg`` in the outbox (durably), then publish it."""
+        """Publish ``msg`` and store it in the outbox (durably) until the base station acknowledges it.
+
+        The live copy goes first so that the disk write (fsync) adds nothing to the live latency; an
+        acknowledgement that arrives before the append finishes is applied at the next poll (the base
+        station's answer always lists everything it holds). A failed disk write is logged and counted
+        (``unstored``), never raised: the robot keeps running and the live copy is on its way.
+        """
         payload = msg.with_sent_ns(time.time_ns()).to_bytes()
-        dropped = self.outbox.append(msg.seq, payload)
+        heard = self.base_present()  # no matching subscriber: zenoh sends nothing, re-send on reappearance
         with self._lock:
-            self.counters.dropped += len(dropped)
-            for d in dropped:
-                self._last_sent.pop(d, None)
             self._last_sent[msg.seq] = time.monotonic()
+            if not heard:
+                self._unheard.add(msg.seq)
             self.counters.sent += 1
         self._put(payload)
+        try:
+            dropped = self.outbox.append(msg.seq, payload)
+        except OutboxError as err:
+            with self._lock:
+                self.counters.unstored += 1
+                self._last_sent.pop(msg.seq, None)
+                self._unheard.discard(msg.seq)
+            log.error("rov %s: cloud #%d not kept for re-sending: %s", self.robot, msg.seq, err)
+            return
+        if dropped:
+            with self._lock:
+                self.counters.dropped += len(dropped)
+                for d in dropped:
+                    self._last_sent.pop(d, None)
+                    self._unheard.discard(d)
 
     def _put(self, payload: bytes) -> None:
         try:
@@ -188,9 +211,12 @@ class OutboxSink:
                 self.counters.ack_polls += 1
                 self.counters.acked += n
                 if n:
+                    # forget what was acknowledged; numbers above ``hi`` may be published but not yet
+                    # appended (send publishes first), so they are kept
                     held = set(self.outbox.pending())
-                    for s in [s for s in self._last_sent if s not in held]:
+                    for s in [s for s in self._last_sent if s <= hi and s not in held]:
                         del self._last_sent[s]
+                        self._unheard.discard(s)
         return removed
 
     def cycle(self) -> None:
@@ -210,17 +236,23 @@ class OutboxSink:
             return
         now = time.monotonic()
         budget = self.max_resend_per_cycle
-        for seq, payload in self.outbox.iter_pending():
+        for seq in self.outbox.pending():
             if budget <= 0 or self._stop.is_set():
                 break
             with self._lock:
                 last = self._last_sent.get(seq, 0.0)
-            if not came_back and now - last < self.resend_after_s:
+                unheard = seq in self._unheard
+            # sent while nobody listened, or unacknowledged for too long (lost on a dropped link)
+            if not unheard and now - last < self.resend_after_s:
+                continue
+            payload = self.outbox.get(seq)  # read from disk only what goes out
+            if payload is None:  # acknowledged meanwhile
                 continue
             self._put(payload)
             budget -= 1
             with self._lock:
                 self._last_sent[seq] = time.monotonic()
+                self._unheard.discard(seq)
                 self.counters.resent += 1
 
     def wait_empty(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
@@ -246,6 +278,7 @@ class OutboxSink:
                 "dropped": c.dropped,
                 "ack_polls": c.ack_polls,
                 "base_seen": c.base_seen,
+                "unstored": c.unstored,
             }
         out["outbox"] = self.outbox.stats().to_json_dict()
         return out
