@@ -182,9 +182,10 @@ class BaseStation:
         self.latency = LatencyStats()
         self.processed = 0
         self.map_errors = 0
+        self.map_clouds = 0
         self._lock = threading.RLock()
-        self._map_lock = threading.Lock()
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
+        self._map_queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
         self._closing = threading.Event()
         self._dirty = False
         self._threads: list[threading.Thread] = []
@@ -196,6 +197,7 @@ class BaseStation:
         map_dir = (self.state_dir / "map") if self.state_dir is not None else Path(tempfile.mkdtemp(prefix="lrs-map-"))
         self.map = load_map_builder(map_dir, map_mode)
         self._map_pub: Any = None
+        self._map_thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ state
     @property
@@ -283,6 +285,9 @@ class BaseStation:
             t = threading.Thread(target=self._worker, name=f"base-ingest-{i}", daemon=True)
             t.start()
             self._threads.append(t)
+        if self.map is not None:
+            self._map_thread = threading.Thread(target=self._map_worker, name="base-map", daemon=True)
+            self._map_thread.start()
         saver = threading.Thread(target=self._saver, name="base-saver", daemon=True)
         saver.start()
         self._threads.append(saver)
@@ -307,7 +312,7 @@ class BaseStation:
         """Wait until every queued cloud has been processed; False on timeout."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if self._queue.unfinished_tasks == 0:
+            if self._queue.unfinished_tasks == 0 and self._map_queue.unfinished_tasks == 0:
                 return True
             time.sleep(0.01)
         return False
@@ -327,13 +332,17 @@ class BaseStation:
         for t in self._threads:
             t.join(timeout=5.0)
         self._threads.clear()
+        if self._map_thread is not None:
+            self._map_queue.put(None)
+            self._map_thread.join(timeout=60.0)
+            self._map_thread = None
         if self.map is not None:
-            with self._map_lock:
-                try:
-                    self.map.flush()
+            try:
+                self.map.flush()
+                if self.state_dir is not None:
                     self.map.save()
-                except Exception as err:
-                    log.error("map flush/save failed: %s", err)
+            except Exception as err:
+                log.error("map flush/save failed: %s", err)
         self.save_state()
 
     # ------------------------------------------------------------------ callbacks (cheap, never block long)
@@ -484,65 +493,86 @@ class BaseStation:
                 rec.track.append((msg.t_ns, p.north_m, p.east_m, p.down_m))
             self._dirty = True
         if self.map is not None and len(msg):
-            points_ned = body_to_ned(msg.points_body.astype(np.float64), msg.pose)
-            try:
-                with self._map_lock:
-                    changes = self.map.add_cloud(robot, msg.t_ns, points_ned, msg.pose)
-                    if changes:
-                        self._map_dirty = True
-            except Exception as err:
-                self.map_errors += 1
-                log.error("map update with cloud %s#%d failed: %s", robot, msg.seq, err)
-                changes = []
-            if changes and self._map_pub is not None:
-                update = {"t_ns": msg.t_ns, "robot": robot, "seq": msg.seq, "planes": changes}
-                try:
-                    self._map_pub.put(json.dumps(update, default=_json_default))
-                except Exception as err:
-                    log.debug("map update not published: %s", err)
+            self._map_queue.put(msg)
         done = time.time_ns()
         with self._lock:
             self.processed += 1
             self.latency.add(done - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
 
+    def _map_worker(self) -> None:
+        """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
+        while True:
+            msg = self._map_queue.get()
+            try:
+                if msg is None:
+                    return
+                if msg is _FLUSH:
+                    self._publish_changes(None, self.map.flush() if self.map is not None else [])
+                    continue
+                self._map_one(msg)
+            except Exception as err:  # the map must never stop the ingest
+                self.map_errors += 1
+                log.exception("map update failed: %s", err)
+            finally:
+                self._map_queue.task_done()
+
+    def _map_one(self, msg: CloudMsg) -> None:
+        assert self.map is not None
+        points_ned = body_to_ned(msg.points_body.astype(np.float64), msg.pose)
+        changes = self.map.add_cloud(msg.robot, msg.t_ns, points_ned, msg.pose)
+        self.map_clouds += 1
+        self._publish_changes(msg, changes)
+
+    def _publish_changes(self, msg: CloudMsg | None, changes: list[dict[str, Any]]) -> None:
+        if not changes:
+            return
+        self._map_dirty = True
+        if self._map_pub is None:
+            return
+        update: dict[str, Any] = {"t_ns": time.time_ns(), "planes": changes}
+        if msg is not None:
+            update.update(t_ns=msg.t_ns, robot=msg.robot, seq=msg.seq)
+        try:
+            self._map_pub.put(json.dumps(update, default=_json_default))
+        except Exception as err:
+            log.debug("map update not published: %s", err)
+
     def _saver(self) -> None:
-        last_map_save = time.monotonic()
+        """Write changed counters every ``save_period_s`` (the map saves itself: ``MapBuilder`` autosaves)."""
         while not self._closing.wait(self.save_period_s):
             if self._dirty:
                 try:
                     self.save_state()
                 except OSError as err:
                     log.error("cannot save state: %s", err)
-            if self.map is not None and self.state_dir is not None and time.monotonic() - last_map_save > 10:
-                last_map_save = time.monotonic()
-                try:
-                    with self._map_lock:
-                        self.map.save()
-                except Exception as err:
-                    log.error("cannot save the map: %s", err)
 
     # ------------------------------------------------------------------ views
     def map_json(self) -> dict[str, Any]:
         """The whole map as JSON-ready data (``{"planes": []}`` when the map is off)."""
         if self.map is None:
             return {"planes": [], "enabled": False}
-        with self._map_lock:
-            data: dict[str, Any] = self.map.map_json()
+        data: dict[str, Any] = self.map.map_json()
         self._map_planes = len(data.get("planes", []))
         self._map_dirty = False
         return json.loads(json.dumps(data, default=_json_default))
 
-    def flush_map(self) -> None:
-        """Let the map process everything it holds (e.g. at the end of a dive)."""
-        if self.map is not None:
-            with self._map_lock:
-                self.map.flush()
-                self._map_dirty = True
+    def flush_map(self, timeout_s: float = 60.0) -> None:
+        """Process every queued cloud and let the map extract what it still holds (end of a dive)."""
+        if self.map is None:
+            return
+        self.drain(timeout_s)
+        self._map_queue.put(_FLUSH)  # type: ignore[arg-type]
+        self._map_queue.join()
 
     def status(self, robot: str | None = None) -> dict[str, Any]:
         """The status JSON (one robot only when ``robot`` is given)."""
         if self.map is not None and self._map_dirty:
-            self.map_json()
+            n = getattr(self.map, "n_planes", None)
+            if isinstance(n, int):
+                self._map_planes = n
+                self._map_dirty = False
+            else:
+                self.map_json()
         with self._lock:
             robots = {r: rec.to_json() for r, rec in sorted(self.records.items()) if robot in (None, r)}
             lat = self.latency.percentiles_ms()
@@ -550,7 +580,13 @@ class BaseStation:
                 "fleet": self.keys.fleet,
                 "t_ns": time.time_ns(),
                 "robots": robots,
-                "map": {"planes": self._map_planes, "enabled": self.map is not None, "errors": self.map_errors},
+                "map": {
+                    "planes": self._map_planes,
+                    "enabled": self.map is not None,
+                    "clouds": self.map_clouds,
+                    "queued": self._map_queue.qsize(),
+                    "errors": self.map_errors,
+                },
                 "ingest": {
                     "processed": self.processed,
                     "queued": self._queue.qsize(),
@@ -562,6 +598,10 @@ class BaseStation:
         """Per robot, the poses of its accepted clouds: (M, 4) ``t_ns, north_m, east_m, down_m``."""
         with self._lock:
             return {r: np.asarray(rec.track, dtype=float).reshape(-1, 4) for r, rec in self.records.items()}
+
+
+#: Marker in the map queue: flush the map.
+_FLUSH: Any = object()
 
 
 def _json_default(obj: Any) -> Any:
