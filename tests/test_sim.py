@@ -309,7 +309,7 @@ def test_checkerboard_is_found_at_the_true_corners() -> None:
 
 def test_tilted_board_on_a_tilted_wall_is_found() -> None:
     a = math.radians(25)
-    b = Checkerboard(cols=7, rows=5, square_m=0.04, offset_u_m=0.0, offset_v_m=-0.25)
+    b = Checkerboard(cols=7, rows=5, square_m=0.04, offset_u_m=0.0, offset_v_m=-0.25, rotation_rad=0.4)
     setup = checkerboard_wall_scene(0.7, (math.cos(a), math.sin(a), 0.0), b, width=960, height=540)
     gray = cv2.cvtColor(setup.render(seed=0).image, cv2.COLOR_BGR2GRAY)
     ok, _ = cv2.findChessboardCorners(gray, (7, 5))

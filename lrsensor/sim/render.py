@@ -630,12 +630,9 @@ def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> N
         assert isinstance(rect, Rectangle)
         assert rect.board is not None
         board = rect.board
-        hu, hv = board.half_extent_m()
-        cu, cv_ = board.offset_u_m, board.offset_v_m
         eu, ev, c0 = np.asarray(rect.axis_u), np.asarray(rect.axis_v), np.asarray(rect.center)
-        corners = np.array(
-            [c0 + (cu + i * hu) * eu + (cv_ + j * hv) * ev for i, j in [(-1, -1), (1, -1), (1, 1), (-1, 1)]]
-        )
+        outline = board.outline_uv()
+        corners = c0 + outline[:, :1] * eu + outline[:, 1:] * ev
         uvc = calib.project_body(corners)
         if not np.all(np.isfinite(uvc)):
             continue
@@ -655,13 +652,12 @@ def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> N
             tp = ((c0 - C) @ n) / (rays @ n)
         p = C + tp[:, None] * rays
         ca, cb, _ = rect.local(p)
-        ca = ca.reshape(ys.shape)
-        cb = cb.reshape(ys.shape)
-        # pixel footprint on the board (metres), from the local Jacobian
-        wa = np.abs(np.gradient(ca, axis=1)) + np.abs(np.gradient(ca, axis=0))
-        wb = np.abs(np.gradient(cb, axis=1)) + np.abs(np.gradient(cb, axis=0))
-        refl, cover = board.filtered_reflectance(ca, cb, wa, wb)
-        on = (sid == bi).reshape(ys.shape) & np.isfinite(ca) & (tp.reshape(ys.shape) > 0)
+        bx, by = board.to_board(ca.reshape(ys.shape), cb.reshape(ys.shape))
+        # pixel footprint on the board (metres, along the board's axes), from the local Jacobian
+        wa = np.abs(np.gradient(bx, axis=1)) + np.abs(np.gradient(bx, axis=0))
+        wb = np.abs(np.gradient(by, axis=1)) + np.abs(np.gradient(by, axis=0))
+        refl, cover = board.filtered_reflectance(bx, by, wa, wb)
+        on = (sid == bi).reshape(ys.shape) & np.isfinite(bx) & (tp.reshape(ys.shape) > 0)
         dist = np.linalg.norm(p - C, axis=1).reshape(ys.shape)
         val = level * refl * np.exp(-c_att * np.where(on, dist, 0.0))
         frac = np.where(on, cover, 0.0).astype(np.float32)

@@ -10,6 +10,7 @@ zero normal.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -69,14 +70,16 @@ class Checkerboard:
 
     The board has ``cols x rows`` INNER corners, i.e. ``(cols + 1) x (rows + 1)`` squares of ``square_m``
     metres, plus a white margin of ``margin_m`` around it. Its centre sits at ``(offset_u_m, offset_v_m)`` in
-    the rectangle's (u, v) coordinates (metres from the rectangle centre along ``axis_u``/``axis_v``).
+    the rectangle's (u, v) coordinates (metres from the rectangle centre along ``axis_u``/``axis_v``), and
+    its own axes are turned by ``rotation_rad`` from the rectangle's (positive from u toward v).
 
     Attributes:
-        cols, rows: inner corners along the rectangle's u and v axes.
+        cols, rows: inner corners along the board's x and y axes.
         square_m: side of a square, metres.
         offset_u_m, offset_v_m: board centre in rectangle coordinates, metres.
         margin_m: white border around the squares, metres.
         white, black: reflectance (0..1) of the white and black squares.
+        rotation_rad: in-plane rotation of the board on the rectangle, radians.
     """
 
     cols: int = 9
@@ -87,62 +90,80 @@ class Checkerboard:
     margin_m: float = 0.04
     white: float = 0.85
     black: float = 0.08
+    rotation_rad: float = 0.0
+
+    def to_board(self, su: FloatArray, sv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Rectangle coordinates (metres) to board coordinates (metres from the board centre, board axes)."""
+        c, s = math.cos(self.rotation_rad), math.sin(self.rotation_rad)
+        du, dv = su - self.offset_u_m, sv - self.offset_v_m
+        return c * du + s * dv, -s * du + c * dv
+
+    def from_board(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Board coordinates to rectangle coordinates (metres)."""
+        c, s = math.cos(self.rotation_rad), math.sin(self.rotation_rad)
+        return self.offset_u_m + c * x - s * y, self.offset_v_m + s * x + c * y
 
     def corners_uv(self) -> FloatArray:
         """Inner corners in rectangle coordinates (u, v), metres, shape (rows*cols, 2).
 
-        Ordered row by row (v outer, u inner), the first corner at the most negative (u, v): with the
-        scenes' walls (u to the right in the image, v down) this is OpenCV's order for an unrotated board.
+        Ordered row by row (board y outer, x inner), the first corner at the most negative board (x, y): with
+        the scenes' walls (u to the right in the image, v down) this is OpenCV's order for an unrotated board.
         """
         s = self.square_m
-        iu = (np.arange(self.cols) - (self.cols - 1) / 2.0) * s + self.offset_u_m
-        iv = (np.arange(self.rows) - (self.rows - 1) / 2.0) * s + self.offset_v_m
-        uu, vv = np.meshgrid(iu, iv)
-        return np.stack([uu.ravel(), vv.ravel()], axis=1)
+        ix = (np.arange(self.cols) - (self.cols - 1) / 2.0) * s
+        iy = (np.arange(self.rows) - (self.rows - 1) / 2.0) * s
+        xx, yy = np.meshgrid(ix, iy)
+        u, v = self.from_board(xx.ravel(), yy.ravel())
+        return np.stack([u, v], axis=1)
 
     def half_extent_m(self) -> tuple[float, float]:
-        """Half size of the board including its margin along u and v, metres."""
+        """Half size of the board including its margin along its x and y axes, metres."""
         return (
             (self.cols + 1) * self.square_m / 2.0 + self.margin_m,
             (self.rows + 1) * self.square_m / 2.0 + self.margin_m,
         )
 
+    def outline_uv(self) -> FloatArray:
+        """The board's outer corners (margin included) in rectangle coordinates, shape (4, 2)."""
+        hx, hy = self.half_extent_m()
+        x = np.array([-hx, hx, hx, -hx])
+        y = np.array([-hy, -hy, hy, hy])
+        u, v = self.from_board(x, y)
+        return np.stack([u, v], axis=1)
+
     def reflectance(self, su: FloatArray, sv: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """Reflectance at rectangle coordinates (N,), and the mask (N,) of points on the board."""
-        hu, hv = self.half_extent_m()
-        du = su - self.offset_u_m
-        dv = sv - self.offset_v_m
-        on_board = (np.abs(du) <= hu) & (np.abs(dv) <= hv)
-        qu = (self.cols + 1) * self.square_m / 2.0
-        qv = (self.rows + 1) * self.square_m / 2.0
-        in_squares = (np.abs(du) < qu) & (np.abs(dv) < qv)
-        iu = np.floor((du + qu) / self.square_m).astype(np.int64)
-        iv = np.floor((dv + qv) / self.square_m).astype(np.int64)
-        dark = ((iu + iv) % 2 == 0) & in_squares
+        """Reflectance at rectangle coordinates (N,) (point samples), and the mask (N,) of points on the board."""
+        x, y = self.to_board(su, sv)
+        hx, hy = self.half_extent_m()
+        on_board = (np.abs(x) <= hx) & (np.abs(y) <= hy)
+        qx = (self.cols + 1) * self.square_m / 2.0
+        qy = (self.rows + 1) * self.square_m / 2.0
+        in_squares = (np.abs(x) < qx) & (np.abs(y) < qy)
+        ix = np.floor((x + qx) / self.square_m).astype(np.int64)
+        iy = np.floor((y + qy) / self.square_m).astype(np.int64)
+        dark = ((ix + iy) % 2 == 0) & in_squares
         refl = np.where(dark, self.black, self.white)
         return refl, on_board
 
     def filtered_reflectance(
-        self, su: FloatArray, sv: FloatArray, wu: FloatArray, wv: FloatArray
+        self, x: FloatArray, y: FloatArray, wx: FloatArray, wy: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        """Box-filtered reflectance of the board (margin included) over footprints ``wu x wv`` (metres).
+        """Box-filtered reflectance of the board (margin included) over pixel footprints ``wx x wy``.
 
         Args:
-            su, sv: rectangle coordinates of pixel centres (any shape), metres.
-            wu, wv: the pixels' footprint widths along u and v on the board, metres.
+            x, y: BOARD coordinates (:meth:`to_board`) of pixel centres (any shape), metres.
+            wx, wy: the pixels' footprint widths along the board's x and y axes, metres.
 
         Returns:
             the mean reflectance over the board part of each footprint, and the covered fraction (0..1) of
             the footprint that lies on the board (squares plus margin).
         """
         s = self.square_m
-        qu = (self.cols + 1) * s / 2.0
-        qv = (self.rows + 1) * s / 2.0
-        hu, hv = self.half_extent_m()
-        x = su - self.offset_u_m + qu
-        y = sv - self.offset_v_m + qv
-        wu = np.maximum(wu, 1e-9)
-        wv = np.maximum(wv, 1e-9)
+        qx = (self.cols + 1) * s / 2.0
+        qy = (self.rows + 1) * s / 2.0
+        hx, hy = self.half_extent_m()
+        wx = np.maximum(wx, 1e-9)
+        wy = np.maximum(wy, 1e-9)
 
         def tri(z: FloatArray) -> FloatArray:
             # integral of the +-1 square wave (+1 on [0, s), -1 on [s, 2s)), a triangle wave
@@ -152,11 +173,12 @@ class Checkerboard:
         def box(z: FloatArray, width: FloatArray, lo: float, hi: float) -> FloatArray:
             return np.clip((np.minimum(z + width / 2, hi) - np.maximum(z - width / 2, lo)) / width, 0.0, 1.0)
 
-        sq_u = (tri(x + wu / 2) - tri(x - wu / 2)) / wu
-        sq_v = (tri(y + wv / 2) - tri(y - wv / 2)) / wv
-        in_sq = box(x, wu, 0.0, 2 * qu) * box(y, wv, 0.0, 2 * qv)
-        cover = box(x - qu, wu, -hu, hu) * box(y - qv, wv, -hv, hv)
-        dark = in_sq * (1.0 + np.clip(sq_u * sq_v, -1.0, 1.0)) / 2.0
+        px, py = x + qx, y + qy  # from the first square's outer corner
+        sq_x = (tri(px + wx / 2) - tri(px - wx / 2)) / wx
+        sq_y = (tri(py + wy / 2) - tri(py - wy / 2)) / wy
+        in_sq = box(x, wx, -qx, qx) * box(y, wy, -qy, qy)
+        cover = box(x, wx, -hx, hx) * box(y, wy, -hy, hy)
+        dark = in_sq * (1.0 + np.clip(sq_x * sq_y, -1.0, 1.0)) / 2.0
         refl = self.white + (self.black - self.white) * dark / np.maximum(cover, 1e-9)
         return np.clip(refl, min(self.black, self.white), max(self.black, self.white)), cover
 
@@ -357,6 +379,7 @@ class Rectangle(Surface):
                 "square_m": b.square_m,
                 "offset_u_m": b.offset_u_m,
                 "offset_v_m": b.offset_v_m,
+                "rotation_rad": b.rotation_rad,
                 "corners": self.board_corners().tolist(),
             }
         return out
