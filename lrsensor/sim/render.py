@@ -440,6 +440,11 @@ def _stripe_photometry(
 ) -> tuple[FloatArray, FloatArray]:
     """Peak DN (N,) and profile sigma in pixels (N,) of each sample."""
     albedo = np.array([sf.albedo for sf in scene.surfaces] + [0.0])[s.sid]
+    for k, sf in enumerate(scene.surfaces):
+        if sf.stain > 0:
+            on = s.sid == k
+            if np.any(on):
+                albedo[on] = sf.albedo_at(s.points[on])
     r_l = np.where(np.isfinite(s.t), s.t, 0.0)
     r_mean = np.maximum(0.5 * (r_l + s.r_cam), 1e-3)
     atten = np.exp(-water.attenuation_per_m * (r_l + s.r_cam))

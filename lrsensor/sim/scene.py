@@ -11,6 +11,7 @@ zero normal.
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -185,10 +186,37 @@ class Checkerboard:
 
 @dataclass(frozen=True)
 class Surface:
-    """Base class of scene surfaces. ``name`` is free text; ``albedo`` is the diffuse reflectance (0..1)."""
+    """Base class of scene surfaces.
+
+    Attributes:
+        name: free text (used in truth files).
+        albedo: diffuse reflectance (0..1).
+        stain: relative variation (0..1) of the albedo over the surface (dirt, growth, concrete), a smooth
+            procedural pattern fixed to the surface (it moves with it; rectangles only); 0 = uniform.
+    """
 
     name: str = ""
     albedo: float = 0.6
+    stain: float = 0.0
+
+    def surface_coords(self, points: FloatArray) -> FloatArray | None:
+        """2-D coordinates (N, 2), metres, fixed to the surface (for its stain pattern); None if it has none."""
+        return None
+
+    def albedo_at(self, points: FloatArray) -> FloatArray:
+        """Albedo (N,) at points (N, 3) on the surface (the stain pattern included)."""
+        base = np.full(points.shape[0], self.albedo)
+        uv = self.surface_coords(points) if self.stain > 0 else None
+        if uv is None:
+            return base
+        rng = np.random.default_rng(zlib.crc32(self.name.encode()))
+        pattern = np.zeros(points.shape[0])
+        for _ in range(5):
+            ang = rng.uniform(0, 2 * np.pi)
+            wavelength = rng.uniform(0.04, 0.4)
+            phase = rng.uniform(0, 2 * np.pi)
+            pattern += np.sin((uv[:, 0] * np.cos(ang) + uv[:, 1] * np.sin(ang)) * (2 * np.pi / wavelength) + phase)
+        return base * np.clip(1.0 + self.stain * pattern / np.sqrt(2.5), 0.05, None)
 
     def intersect(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Nearest hit ``t`` (N,) (inf for none) and the outward normal for rays ``dirs`` (N, 3).
@@ -223,7 +251,7 @@ class Plane(Surface):
         """Build a plane, normalising ``normal``."""
         p = _vec3(point, "plane point")
         n = _unit(normal, "plane normal")
-        return cls(name, albedo, (p[0], p[1], p[2]), (n[0], n[1], n[2]))
+        return cls(name=name, albedo=albedo, point=(p[0], p[1], p[2]), normal=(n[0], n[1], n[2]))
 
     def intersect(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, FloatArray]:
         """See :meth:`Surface.intersect`."""
@@ -240,7 +268,9 @@ class Plane(Surface):
 
     def transformed(self, R: FloatArray, t: FloatArray) -> Plane:
         """See :meth:`Surface.transformed`."""
-        return Plane.make(R @ np.asarray(self.point) + t, R @ np.asarray(self.normal), self.name, self.albedo)
+        p = R @ np.asarray(self.point) + t
+        n = R @ np.asarray(self.normal)
+        return replace(self, point=(p[0], p[1], p[2]), normal=(n[0], n[1], n[2]))
 
     def to_dict(self) -> dict[str, Any]:
         """See :meth:`Surface.to_dict`."""
@@ -290,14 +320,14 @@ class Rectangle(Surface):
             msg = f"rectangle {name!r}: sizes must be positive, got {size_u_m} x {size_v_m}"
             raise SimulationError(msg)
         return cls(
-            name,
-            albedo,
-            (c[0], c[1], c[2]),
-            (eu[0], eu[1], eu[2]),
-            (ev[0], ev[1], ev[2]),
-            size_u_m / 2.0,
-            size_v_m / 2.0,
-            board,
+            name=name,
+            albedo=albedo,
+            center=(c[0], c[1], c[2]),
+            axis_u=(eu[0], eu[1], eu[2]),
+            axis_v=(ev[0], ev[1], ev[2]),
+            half_u=size_u_m / 2.0,
+            half_v=size_v_m / 2.0,
+            board=board,
         )
 
     @cached_property
@@ -329,6 +359,11 @@ class Rectangle(Surface):
         da = np.maximum(np.abs(a) - self.half_u, 0.0)
         db = np.maximum(np.abs(b) - self.half_v, 0.0)
         return np.sqrt(da * da + db * db + h * h)
+
+    def surface_coords(self, points: FloatArray) -> FloatArray | None:
+        """See :meth:`Surface.surface_coords`: the rectangle coordinates (a, b)."""
+        a, b, _ = self.local(points)
+        return np.stack([a, b], axis=1)
 
     def corners(self) -> FloatArray:
         """The four corners, shape (4, 3), in order (-u,-v), (+u,-v), (+u,+v), (-u,+v)."""
@@ -417,7 +452,14 @@ class Cylinder(Surface):
         if not (radius_m > 0 and length_m > 0):
             msg = f"cylinder {name!r}: radius and length must be positive, got {radius_m}, {length_m}"
             raise SimulationError(msg)
-        return cls(name, albedo, (c[0], c[1], c[2]), (a[0], a[1], a[2]), float(radius_m), length_m / 2.0)
+        return cls(
+            name=name,
+            albedo=albedo,
+            center=(c[0], c[1], c[2]),
+            axis=(a[0], a[1], a[2]),
+            radius_m=float(radius_m),
+            half_length_m=length_m / 2.0,
+        )
 
     def intersect(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, FloatArray]:
         """See :meth:`Surface.intersect` (the nearer root whose axial position lies on the pipe)."""
@@ -619,6 +661,11 @@ class Scene:
             d["albedo"] = s.albedo
             out.append(d)
         return out
+
+
+def stained(surfaces: Iterable[Surface], amount: float) -> list[Surface]:
+    """Copies of ``surfaces`` with an albedo stain pattern of relative amplitude ``amount`` (0..1)."""
+    return [replace(s, stain=float(amount)) for s in surfaces]
 
 
 def surfaces_named(scene: Scene, names: Sequence[str]) -> list[int]:

@@ -20,7 +20,7 @@ from ..camera import Camera
 from ..errors import SimulationError
 from ..frames import Pose, rot_x, rot_y
 from .render import LaserModel, Render, render
-from .scene import Checkerboard, Cylinder, Rectangle, Scene, Surface, box
+from .scene import Checkerboard, Cylinder, Rectangle, Scene, Surface, box, stained
 from .water import WaterModel
 
 FloatArray = NDArray[np.float64]
@@ -244,6 +244,7 @@ def tank_scene() -> Scene:
         # floor-to-surface pillars: their top and bottom faces would coincide with the surface and the floor
         faces = box((n, e, dz), (side, side, depth), name=f"pillar{k + 1}")
         surfaces.extend(f for f in faces if not f.name.endswith("z"))
+    surfaces = stained(surfaces, 0.25)
     (pn, pe), pr = TANK_PIPE
     surfaces.append(Cylinder.make((pn, pe, dz), (0, 0, 1), pr, depth, "pipe"))
     return Scene(tuple(surfaces), "ned")
@@ -299,13 +300,13 @@ def _turbid(w: int, h: int) -> SimSetup:
 
 
 def _cluttered(w: int, h: int) -> SimSetup:
-    surfaces: list[Surface] = [wall_rectangle(1.3, name="wall"), *box((0.9, -0.6, 0.3), (0.3, 0.3, 0.8), name="crate")]
+    surfaces = stained([wall_rectangle(1.3, name="wall"), *box((0.9, -0.6, 0.3), (0.3, 0.3, 0.8), name="crate")], 0.35)
     return SimSetup(
         "cluttered",
         Scene(tuple(surfaces)),
         paper_calibration(w, h),
         water=WaterModel.cluttered(),
-        description="wall at 1.3 m with a crate, green distractor blobs, marine snow and speckle",
+        description="stained wall at 1.3 m with a crate, green distractor blobs, marine snow and speckle",
     )
 
 
