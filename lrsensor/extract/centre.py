@@ -109,9 +109,12 @@ def fit_profiles(
     half_sat = 0.5 * n_sat + 2.5 * sigma_hint + 0.5
     sigma = np.where(saturated, np.maximum(0.5 * n_sat / 1.1774, sigma_hint), sigma)
     ok = saturated | (curved & (sigma >= min_sigma_px) & (sigma <= max_sigma_px))
-    sig_w = np.clip(np.where(np.isfinite(sigma), sigma, sigma_hint), min_sigma_px, max_sigma_px).astype(np.float32)
+    sig_p = np.clip(np.where(np.isfinite(sigma), sigma, sigma_hint), min_sigma_px, max_sigma_px).astype(np.float32)
+    # weights at least 1.1 px wide: narrower Gaussian weights alias on the pixel grid (biased first moment)
+    sig_w = np.maximum(sig_p, np.float32(1.1))
     inv2 = 0.5 / (sig_w * sig_w)
-    gain = np.where(saturated, 1.0, 2.0).astype(np.float32)
+    # Newton gain of a Gaussian profile (sigma_p) under Gaussian weights (sigma_w): 1 + sigma_p^2 / sigma_w^2
+    gain = np.where(saturated, np.float32(1.0), 1.0 + (sig_p * sig_p) * (2.0 * inv2)).astype(np.float32)
     hs = (half_sat + 0.5).astype(np.float32)
     any_sat = bool(saturated.any())
     # 3. centroid iterations

@@ -1,0 +1,259 @@
+"""Stripe extraction: the centre estimator, the laser bands, both extractors on synthetic and simulated images."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from lrsensor import Sensor
+from lrsensor.calibration import Calibration
+from lrsensor.errors import ExtractionError
+from lrsensor.extract.bands import laser_bands
+from lrsensor.extract.centre import fit_profiles
+from lrsensor.extract.subpixel import SubpixelConfig, _smooth
+from lrsensor.extract.subpixel import extract as subpixel_extract
+
+# ----------------------------------------------------------------------------- synthetic profiles
+
+
+def _profiles(
+    centres: np.ndarray,
+    sigma: float,
+    amp: float,
+    m: int,
+    *,
+    bg: float = 30.0,
+    slope: float = 0.0,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """(N, m) 8-bit profiles: Gaussian ridge on a linear background, optional noise, clipped and rounded."""
+    x = np.arange(m)
+    p = bg + slope * (x - m // 2) + amp * np.exp(-0.5 * ((x[None, :] - centres[:, None]) / sigma) ** 2)
+    if noise:
+        p = p + noise * np.random.default_rng(seed).standard_normal(p.shape)
+    return np.clip(np.round(p), 0, 255)
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.0, 1.5, 2.5, 4.0])
+def test_centre_unbiased_over_subpixel_phase(sigma: float) -> None:
+    m = 2 * math.ceil(3 * sigma + 7) + 1
+    phases = np.linspace(-0.5, 0.5, 41)
+    c = m // 2 + phases
+    fit = fit_profiles(_profiles(c, sigma, 150.0, m, slope=0.4), sigma_hint=sigma)
+    assert fit.ok.all()
+    err = fit.centre - c
+    # only 8-bit rounding is left: a few thousandths of a pixel
+    assert np.max(np.abs(err)) < 0.012, np.max(np.abs(err))
+    assert np.allclose(fit.sigma, sigma, rtol=0.05)
+
+
+def test_centre_noise_close_to_cramer_rao_and_unbiased() -> None:
+    rng = np.random.default_rng(3)
+    sigma, amp, noise = 1.0, 100.0, 3.0
+    c = 13 + rng.uniform(-0.5, 0.5, 4000)
+    fit = fit_profiles(_profiles(c, sigma, amp, 27, noise=noise, seed=4), sigma_hint=sigma)
+    err = (fit.centre - c)[fit.ok]
+    crlb = math.sqrt(2 * sigma * noise**2 / (math.sqrt(math.pi) * amp**2))
+    assert abs(err.mean()) < 0.003
+    assert err.std() < 1.3 * crlb
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.2, 2.5])
+@pytest.mark.parametrize("overexposure", [2.0, 6.0])
+def test_centre_of_saturated_flat_top(sigma: float, overexposure: float) -> None:
+    m = 2 * math.ceil(3 * sigma + 12) + 1
+    phases = np.linspace(-0.5, 0.5, 21)
+    c = m // 2 + phases
+    P = _profiles(c, sigma, 255.0 * overexposure, m)
+    # the window handed to the fit is centred on the middle of the clipped run, as the extractor does
+    sat = P >= 250
+    first = np.argmax(sat, axis=1)
+    last = m - 1 - np.argmax(sat[:, ::-1], axis=1)
+    shift = (first + last) // 2 - m // 2
+    idx = np.clip(np.arange(m)[None, :] + shift[:, None], 0, m - 1)
+    Pc = np.take_along_axis(P, idx, axis=1)
+    fit = fit_profiles(Pc, sigma_hint=sigma)
+    assert fit.saturated.all()
+    assert fit.ok.all()
+    err = fit.centre + shift - c
+    assert np.max(np.abs(err)) < 0.08
+    assert abs(err.mean()) < 0.02
+
+
+def test_centre_rejects_too_wide_and_too_narrow() -> None:
+    c = np.full(4, 20.0)
+    wide = fit_profiles(_profiles(c, 9.0, 120.0, 61), sigma_hint=4.0, max_sigma_px=4.0)
+    assert not wide.ok.any()  # a haze / glow ridge is not a stripe
+    hot = np.full((1, 41), 30.0)
+    hot[0, 20] = 200.0  # a single hot pixel / speckle grain
+    narrow = fit_profiles(hot, sigma_hint=1.0, min_sigma_px=0.45)
+    assert not narrow.ok.any()
+
+
+# ----------------------------------------------------------------------------- smoothing
+
+
+def test_smoothing_keeps_corners_and_reduces_noise() -> None:
+    rng = np.random.default_rng(5)
+    n = 600
+    u = np.arange(n, dtype=float)
+    truth = np.where(u < 300, 100 + 0.05 * u, 115 - 0.08 * (u - 300))  # a corner (kink) at u = 300
+    y = truth + 0.1 * rng.standard_normal(n)
+    run = np.zeros(n, np.int64)
+    out = _smooth(y, run, (48, 12, 3))
+    err_raw = np.abs(y - truth)
+    err = np.abs(out - truth)
+    assert np.median(err) < 0.4 * np.median(err_raw)
+    # near the corner the one-sided windows keep the error small
+    near = np.abs(u - 300) <= 6
+    assert np.max(err[near]) < 0.3
+    assert np.median(err[near]) < 0.06
+
+
+# ----------------------------------------------------------------------------- bands
+
+
+def test_bands_of_the_paper_sensor_match_eq_33() -> None:
+    cal = Calibration.paper(0.1)
+    b = laser_bands(cal, 0.25, 4.0, 0)
+    f, cy = cal.camera.fy, cal.camera.cy
+    # top laser: v from cy - f c / z_min to cy - f c / z_max (eq. 33 with y_c = f c / x_b)
+    assert b.v_min[0, 960] == pytest.approx(cy - f * 0.05 / 0.25, abs=0.05)
+    assert b.v_max[0, 960] == pytest.approx(cy - f * 0.05 / 4.0, abs=0.05)
+    assert b.v_min[1, 960] == pytest.approx(cy + f * 0.05 / 4.0, abs=0.05)
+    assert b.v_max[1, 960] == pytest.approx(cy + f * 0.05 / 0.25, abs=0.05)
+    assert b.valid(0).all()
+    assert b.valid(1).all()
+
+
+def test_bands_of_tilted_lasers_contain_their_stripes() -> None:
+    from lrsensor.sim import tilted_calibration, wall_scene
+
+    cal = tilted_calibration(Calibration.paper(0.1))
+    b = laser_bands(cal, 0.3, 3.0, 0)
+    nominal = laser_bands(Calibration.paper(0.1), 0.3, 3.0, 0)
+    assert not np.allclose(b.v_min, nominal.v_min, atol=2.0)  # the tilt moves the band
+    for d in (0.3, 1.0, 3.0):
+        truth = wall_scene(d, calibration=cal).render(seed=0).truth
+        for lt in truth.lasers:
+            assert b.contains(lt.index, lt.uv, slack_px=0.05).all()
+            other = 1 - lt.index
+            assert not b.contains(other, lt.uv).any()
+    with pytest.raises(ExtractionError, match="range limits"):
+        laser_bands(cal, 2.0, 1.0, 0)
+
+
+# ----------------------------------------------------------------------------- synthetic images
+
+
+def _small_calibration() -> Calibration:
+    cal = Calibration.paper(0.1)
+    cam = replace(cal.camera, width=640, height=360, fx=184.76, fy=184.76, cx=319.5, cy=179.5)
+    return replace(cal, camera=cam)
+
+
+def _stripe_image(
+    cal: Calibration, depth_m: float, sigma: float, amp: float, seed: int = 0
+) -> tuple[np.ndarray, float]:
+    """A flat wall at ``depth_m``: both stripes as Gaussian ridges (green), on a noisy murky background."""
+    cam = cal.camera
+    rng = np.random.default_rng(seed)
+    img = np.empty((cam.height, cam.width, 3), np.float64)
+    img[:] = (38.0, 34.0, 12.0)
+    rows = np.arange(cam.height)[:, None]
+    v_top = cam.cy - cam.fy * 0.05 / depth_m
+    for v0 in (v_top, 2 * cam.cy - v_top):
+        ridge = amp * np.exp(-0.5 * ((rows - v0) / sigma) ** 2)
+        img[:, :, 1] += ridge
+        img[:, :, 0] += 0.3 * ridge
+    img += rng.normal(0.0, 2.0, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), float(v_top)
+
+
+def test_subpixel_on_synthetic_walls() -> None:
+    cal = _small_calibration()
+    for depth, sigma in ((0.4, 1.0), (1.0, 2.0), (2.0, 0.9)):
+        img, v_top = _stripe_image(cal, depth, sigma, 120.0)
+        det = subpixel_extract(img, cal)
+        top = det.laser == 0
+        assert top.sum() >= 0.98 * cal.camera.width
+        assert (~top).sum() >= 0.98 * cal.camera.width
+        assert np.median(np.abs(det.uv[top, 1] - v_top)) < 0.02
+        assert np.all((det.quality >= 0) & (det.quality <= 1))
+        scan = Sensor(cal).process(img)
+        x = scan.points[:, 0]
+        assert np.median(np.abs(x - depth) / depth) < 0.002
+
+
+def test_subpixel_prefers_the_continuous_stripe_over_a_brighter_distractor() -> None:
+    cal = _small_calibration()
+    img, v_top = _stripe_image(cal, 1.0, 1.2, 80.0, seed=1)
+    f = img.astype(np.float64)
+    # a bright, stripe-like green streak 14 px above the stripe over 40 columns, and a round green blob
+    rows = np.arange(cal.camera.height)[:, None]
+    cols = np.arange(cal.camera.width)[None, :]
+    streak = 170.0 * np.exp(-0.5 * ((rows - (v_top - 14)) / 1.2) ** 2) * ((cols > 300) & (cols < 340))
+    blob = 150.0 * np.exp(-0.5 * (((rows - v_top) / 9.0) ** 2 + ((cols - 500) / 9.0) ** 2))
+    f[:, :, 1] += streak + blob
+    f[:, :, 0] += 0.4 * (streak + blob)
+    img = np.clip(np.round(f), 0, 255).astype(np.uint8)
+    det = subpixel_extract(img, cal)
+    top = det.laser == 0
+    dv = np.abs(det.uv[top, 1] - v_top)
+    u = det.uv[top, 0]
+    in_streak = (u > 300) & (u < 340)
+    assert in_streak.sum() >= 35  # the stripe is still found under the streak
+    assert np.max(dv[in_streak]) < 0.3
+    assert np.percentile(dv, 99) < 0.3  # nothing follows the blob or the streak
+
+
+def test_subpixel_ignores_a_glow_ramp_and_white_objects() -> None:
+    cal = _small_calibration()
+    img, v_top = _stripe_image(cal, 1.0, 1.0, 60.0, seed=2)
+    f = img.astype(np.float64)
+    rows = np.arange(cal.camera.height)[:, None]
+    # backscatter glow: a broad ramp beside the stripe, toward the near range
+    glow = 50.0 * np.exp(-0.5 * ((rows - (v_top - 30)) / 18.0) ** 2)
+    f[:, :, 1] += glow
+    f[:, :, 0] += 0.3 * glow
+    # a bright white (not green) thin object across the bottom laser's band
+    f[cal.camera.height - 120 : cal.camera.height - 117, :, :] += 120.0
+    img = np.clip(np.round(f), 0, 255).astype(np.uint8)
+    det = subpixel_extract(img, cal)
+    top = det.laser == 0
+    assert top.sum() > 0.95 * cal.camera.width
+    assert np.median(np.abs(det.uv[top, 1] - v_top)) < 0.05
+    bottom_v = det.uv[~top, 1]
+    assert not np.any(np.abs(bottom_v - (cal.camera.height - 119)) < 3)
+
+
+def test_options_are_validated() -> None:
+    cal = _small_calibration()
+    img, _ = _stripe_image(cal, 1.0, 1.0, 100.0)
+    with pytest.raises(ExtractionError, match="unknown subpixel extractor option"):
+        Sensor(cal).process(img, min_range=0.3)
+    with pytest.raises(ExtractionError, match="min_range_m"):
+        SubpixelConfig(min_range_m=1.0, max_range_m=0.5)
+    with pytest.raises(ExtractionError, match="unknown extraction method"):
+        Sensor(cal).process(img, method="nope")
+    # a narrower search band still finds the stripe at 1 m
+    scan = Sensor(cal).process(img, min_range_m=0.5, max_range_m=2.0)
+    assert len(scan) > 0.98 * 2 * cal.camera.width
+
+
+def test_paper_method_one_point_per_roi_and_laser() -> None:
+    cal = _small_calibration()
+    img, _v_top = _stripe_image(cal, 0.8, 1.5, 150.0)
+    sensor = Sensor(cal)
+    scan = sensor.process(img, method="paper", n_rois=16)
+    assert scan.method == "paper"
+    assert 24 <= len(scan) <= 32
+    assert set(np.unique(scan.laser)) == {0, 1}
+    # ROI centres are the midpoints of 40-px strips
+    assert np.allclose(np.sort(np.unique(scan.uv[:, 0])), 40 * np.arange(16) + 19.5)
+    err = np.abs(scan.points[:, 0] - 0.8) / 0.8
+    assert np.median(err) < 0.03
