@@ -63,41 +63,69 @@ class BoardSpec:
 
 
 def _gray_candidates(image: NDArray[np.uint8]) -> list[NDArray[np.uint8]]:
-    """Grey images to search: without the green channel first (the green laser stripe vanishes), then all."""
-    if image.ndim == 2:
-        return [image]
+    """Grey images to search: with the green laser stripe painted out first (it shifts corners), then as is.
+
+    Stripe pixels are those much greener than their blue and red (``G - max(B, R) > 25`` DN), dilated by
+    2 px, filled with ``cv2.inpaint`` (Telea) from their surroundings.
+    """
     import cv2
 
-    b = image[:, :, 0].astype(np.uint16)
-    r = image[:, :, 2].astype(np.uint16)
-    no_green = np.asarray((b + r) // 2, dtype=np.uint8)
+    if image.ndim == 2:
+        return [image]
     gray = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
-    return [no_green, gray]
+    b = image[:, :, 0].astype(np.int16)
+    g = image[:, :, 1].astype(np.int16)
+    r = image[:, :, 2].astype(np.int16)
+    stripe = np.asarray((g - np.maximum(b, r)) > 25, dtype=np.uint8)
+    if not stripe.any():
+        return [gray]
+    mask = cv2.dilate(stripe, np.ones((5, 5), np.uint8))
+    painted = np.asarray(cv2.inpaint(gray, mask, 3, cv2.INPAINT_TELEA), dtype=np.uint8)
+    return [painted, gray]
+
+
+def _refine(gray: NDArray[np.uint8], corners: FloatArray, spec: BoardSpec) -> FloatArray:
+    """``cv2.cornerSubPix`` with a half-window below half the corner spacing (never reaching a neighbour)."""
+    import cv2
+
+    c = corners.reshape(-1, 2).astype(np.float32)
+    grid = c.reshape(spec.rows, spec.cols, 2)
+    spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
+    half = int(np.clip(spacing * 0.35, 2, 11))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    refined = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit)
+    return np.asarray(refined, dtype=float).reshape(-1, 2)
 
 
 def find_board_corners(image: NDArray[np.uint8], spec: BoardSpec) -> FloatArray | None:
     """Sub-pixel inner corners (cols*rows, 2) of the board in ``image`` (BGR or grey), or ``None``.
 
-    The corners are ordered as :meth:`BoardSpec.object_points`.
+    The corners are ordered as :meth:`BoardSpec.object_points`. Search order, cheapest first (a failed
+    ``findChessboardCorners`` on a large cluttered image can take minutes, a downscaled one milliseconds):
+    the stripe-free grey image at half size, the plain grey at half size, the stripe-free one at full size,
+    then ``findChessboardCornersSB`` at half size; corners found on a half-size image are refined at full size.
     """
     import cv2
 
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    for gray in _gray_candidates(image):
-        found, corners = cv2.findChessboardCorners(gray, spec.pattern_size, flags=flags)
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    grays = _gray_candidates(image)
+    big = max(grays[0].shape) > 1000
+    halves = [cv2.resize(g, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) for g in grays] if big else grays
+    attempts = [(h, g, 2.0 if big else 1.0) for h, g in zip(halves, grays, strict=True)]
+    if big:
+        attempts.append((grays[0], grays[0], 1.0))
+    for small, full, scale in attempts:
+        found, corners = cv2.findChessboardCorners(small, spec.pattern_size, flags=flags)
         if found and corners is not None:
-            c = corners.reshape(-1, 2).astype(np.float32)
-            # Half-window below half the corner spacing, so that a window never reaches a neighbour corner.
-            grid = c.reshape(spec.rows, spec.cols, 2)
-            spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
-            half = int(np.clip(spacing * 0.35, 2, 11))
-            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
-            refined = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit)
-            return np.asarray(refined, dtype=float).reshape(-1, 2)
-        if hasattr(cv2, "findChessboardCornersSB"):
-            found, corners = cv2.findChessboardCornersSB(gray, spec.pattern_size, flags=cv2.CALIB_CB_ACCURACY)
-            if found and corners is not None:
-                return np.asarray(corners, dtype=float).reshape(-1, 2)
+            c = np.asarray(corners, dtype=float).reshape(-1, 2)
+            c = (c + 0.5) * scale - 0.5  # pixel-centre convention
+            return _refine(full, c, spec)
+    if hasattr(cv2, "findChessboardCornersSB"):
+        found, corners = cv2.findChessboardCornersSB(halves[0], spec.pattern_size, flags=cv2.CALIB_CB_ACCURACY)
+        if found and corners is not None:
+            c = np.asarray(corners, dtype=float).reshape(-1, 2)
+            scale = 2.0 if big else 1.0
+            return _refine(grays[0], (c + 0.5) * scale - 0.5, spec)
     return None
 
 
@@ -111,6 +139,7 @@ class BoardPose:
         corners_uv: the detected corners, pixels, shape (N, 2).
         reprojection_rms_px: RMS distance between detected and reprojected corners, pixels.
         reprojection_max_px: largest such distance, pixels.
+        corners_used: corners kept for the pose (stray corners, e.g. under a stripe, are dropped).
     """
 
     R_cam_from_board: FloatArray
@@ -118,6 +147,7 @@ class BoardPose:
     corners_uv: FloatArray
     reprojection_rms_px: float
     reprojection_max_px: float
+    corners_used: int = 0
 
     def plane_cam(self) -> Plane:
         """The board's plane in the camera frame, normal pointing away from the camera."""
@@ -149,16 +179,28 @@ def estimate_board_pose(image: NDArray[np.uint8], camera: Camera, spec: BoardSpe
             f"(inner corners COLSxROWS, e.g. 9x6 for a board of 10x7 squares), lighting and focus"
         )
         raise CalibrationFitError(msg)
-    obj = spec.object_points()
-    ok, rvec, tvec = cv2.solvePnP(obj, corners.astype(np.float32), camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        ok, rvec, tvec = cv2.solvePnP(obj, corners.astype(np.float32), camera.K, camera.dist)
-    if not ok:
-        msg = f"{name}: solvePnP failed for the checkerboard"
-        raise CalibrationFitError(msg)
-    rvec, tvec = cv2.solvePnPRefineLM(obj, corners.astype(np.float32), camera.K, camera.dist, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
-    err = np.linalg.norm(proj.reshape(-1, 2) - corners, axis=1)
+    obj_all = spec.object_points()
+    img_all = corners.astype(np.float32)
+    keep = np.ones(obj_all.shape[0], dtype=bool)
+    err = np.zeros(0)
+    used = keep
+    for it in range(4):
+        used = keep
+        obj, img = obj_all[used], img_all[used]
+        ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist)
+        if not ok:
+            msg = f"{name}: solvePnP failed for the checkerboard"
+            raise CalibrationFitError(msg)
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec)
+        proj, _ = cv2.projectPoints(obj_all, rvec, tvec, camera.K, camera.dist)
+        err_all = np.linalg.norm(proj.reshape(-1, 2) - corners, axis=1)
+        err = err_all[used]
+        # Drop corners far off the others (a stripe or a reflection across them), keeping >= 70 % of them.
+        limit = max(4.0 * float(np.median(err)), 0.5)
+        new_keep = err_all <= limit
+        if it == 3 or new_keep.sum() < 0.7 * keep.size or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
     R, _ = cv2.Rodrigues(rvec)
     return BoardPose(
         np.asarray(R, dtype=float),
@@ -166,4 +208,5 @@ def estimate_board_pose(image: NDArray[np.uint8], camera: Camera, spec: BoardSpe
         corners,
         float(np.sqrt(np.mean(err * err))),
         float(np.max(err)),
+        int(used.sum()),
     )

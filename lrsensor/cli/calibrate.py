@@ -92,7 +92,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default="1,0,0",
         metavar="NX,NY,NZ",
         help="wall normal in the body frame, from the camera towards the wall (default 1,0,0: a wall "
-        "square to the body x axis, ahead)",
+        "square to the body x axis, ahead; write a leading minus as --wall-normal=-1,0,0)",
     )
     las.add_argument(
         "--distance-from",
