@@ -330,3 +330,15 @@ def test_laser_plane_perpendicular_to_x_is_refused() -> None:
     calib = named_scene("wall_1.0").calibration.with_lasers([LaserPlane.make("bad", (0, 0, 0), (1, 0, 0))])
     with pytest.raises(SimulationError, match="perpendicular"):
         render(Scene((wall_rectangle(1.0),)), calib)
+
+
+def test_true_points_on_rays_scores_any_measurement() -> None:
+    r = named_scene("occluder", *SMALL).with_(water=WaterModel.clean()).render(seed=0)
+    C = r.calibration.camera_center_body
+    truth_pts = r.truth.lasers[0].points_body[::50]
+    np.testing.assert_allclose(r.truth.true_points_on_rays(truth_pts, C), truth_pts, atol=1e-9)
+    # a measurement 1 % too far along its ray has a +1 % range error
+    far = C + 1.01 * (truth_pts - C)
+    back = r.truth.true_points_on_rays(far, C)
+    rel = (np.linalg.norm(far - C, axis=1) - np.linalg.norm(back - C, axis=1)) / np.linalg.norm(back - C, axis=1)
+    np.testing.assert_allclose(rel, 0.01, atol=1e-9)

@@ -193,6 +193,20 @@ class Truth:
         ok = np.isfinite(v) & (np.nan_to_num(peak, nan=-1.0) > min_peak_dn)
         return np.flatnonzero(ok).astype(np.int64)
 
+    def true_points_on_rays(self, points_body: FloatArray, camera_center_body: FloatArray) -> FloatArray:
+        """The first scene point (N, 3) on the camera ray through each measured point (N, 3), body frame.
+
+        With it the relative range error of any measurement is ``(|p - C| - |p_true - C|) / |p_true - C|``,
+        whatever column it came from. NaN rows where the ray hits nothing.
+        """
+        p = np.asarray(points_body, dtype=float).reshape(-1, 3)
+        C = np.asarray(camera_center_body, dtype=float).reshape(3)
+        d = p - C
+        t, _, _ = self.scene_body.raycast(C, d)
+        out = C + t[:, None] * d
+        out[~np.isfinite(t)] = np.nan
+        return out
+
     def all_points(self) -> tuple[FloatArray, IntArray]:
         """All visible dense samples: body points (N, 3) and their laser index (N,)."""
         if not self.lasers:
