@@ -12,7 +12,8 @@ Served (queryables):
   "last_seq", ...}}, "map": {"planes": n}}`` (``?robot=R`` narrows it to one robot);
 * ``<root>/base/calib/<robot>``: the fleet calibration stored in ``<state>/calib/<robot>.json`` (CalibMsg,
   or the JSON file with ``?format=json``);
-* ``<root>/base/acks/<robot>``: JSON ``{"robot", "ranges": [[lo, hi], ...]}`` of the sequence numbers held;
+* ``<root>/base/acks/<robot>``: JSON ``{"robot", "ranges": [[lo, hi], ...]}`` of the sequence numbers held
+  durably (counters and map saved: see :meth:`BaseStation.checkpoint`);
 * ``<root>/map``: the whole map as JSON.
 
 State (``--state DIR``, written atomically): ``fleet.json`` (sequence ranges and counters per robot, so that
@@ -75,6 +76,10 @@ class RobotRecord:
     """What the base station knows of one robot."""
 
     seqs: SeqSet = field(default_factory=SeqSet)
+    #: clouds the map has taken in (or that had nothing for it); with the map saved after, they are durable
+    mapped: SeqSet = field(default_factory=SeqSet)
+    #: the sequence ranges persisted in ``--state`` (counters and map): what the base acknowledges
+    acked: list[list[int]] = field(default_factory=list)
     rejected: int = 0
     duplicates: int = 0
     points: int = 0
@@ -95,6 +100,7 @@ class RobotRecord:
             "duplicates": self.duplicates,
             "alive": self.alive,
             "last_seq": self.seqs.highest,
+            "acked": sum(hi - lo + 1 for lo, hi in self.acked),
             "last_t_ns": self.last_t_ns,
             "points": self.points,
         }
@@ -158,6 +164,9 @@ class BaseStation:
         workers: decode/map worker threads.
         queue_size: ingest queue capacity (clouds); a full queue blocks the Zenoh callback (back-pressure).
         save_period_s: how often changed counters are written to ``state_dir``.
+        map_wait_s: how long an ingest worker waits for room in the map queue (back-pressure) before the
+            cloud is counted as received but left out of the map (``map.skipped`` in the status).
+        ack_period_s: how often a checkpoint (map and counters saved) acknowledges what arrived.
     """
 
     def __init__(
@@ -171,6 +180,7 @@ class BaseStation:
         workers: int = 2,
         queue_size: int = 1024,
         save_period_s: float = 1.0,
+        ack_period_s: float = 2.0,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -178,11 +188,14 @@ class BaseStation:
         self.allowed = frozenset(robots) if robots is not None else None
         self.n_workers = max(1, workers)
         self.save_period_s = save_period_s
+        self.ack_period_s = ack_period_s
         self.records: dict[str, RobotRecord] = {}
         self.latency = LatencyStats()
         self.processed = 0
         self.map_errors = 0
         self.map_clouds = 0
+        self.map_skipped = 0
+        self.map_wait_s = map_wait_s
         self._lock = threading.RLock()
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
         self._map_queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
@@ -214,8 +227,13 @@ class BaseStation:
                 msg = f"{path}: not a base-station state file of version {STATE_VERSION}"
                 raise ServiceError(msg)
             for robot, rec in data["robots"].items():
+                # Only what was acknowledged is known to be in the saved map too: the rest is taken again
+                # from the robots' outboxes (they keep every cloud until it is acknowledged).
+                acked = rec.get("acked", rec.get("ranges", []))
                 self.records[robot] = RobotRecord(
-                    seqs=SeqSet(rec.get("ranges", [])),
+                    seqs=SeqSet(acked),
+                    mapped=SeqSet(acked),
+                    acked=SeqSet(acked).ranges(),
                     rejected=int(rec.get("rejected", 0)),
                     duplicates=int(rec.get("duplicates", 0)),
                     points=int(rec.get("points", 0)),
@@ -226,12 +244,39 @@ class BaseStation:
             raise ServiceError(msg) from err
         log.info("state reloaded from %s: %d robots", path, len(self.records))
 
-    def save_state(self) -> None:
-        """Write the counters to ``<state>/fleet.json`` atomically (no-op without a state folder)."""
+    def checkpoint(self, save_map: bool = True) -> None:
+        """Make what was received durable and acknowledge it (issue 7: nothing acknowledged is ever lost).
+
+        The clouds the map has taken in are noted first, then the map is saved, then the counters with
+        those ranges as ``acked``; only after that are they served on ``<root>/base/acks/<robot>``, so a
+        robot forgets a cloud only once both the counters and the map hold it on disk. Without the map
+        the received ranges are acknowledged as soon as the counters are written.
+        """
+        with self._lock:
+            if self.map is not None:
+                acked = {r: rec.mapped.ranges() for r, rec in self.records.items()}
+            else:
+                acked = {r: rec.seqs.ranges() for r, rec in self.records.items()}
+        if self.state_dir is None:
+            with self._lock:
+                for r, ranges in acked.items():
+                    self.records[r].acked = ranges
+            return
+        if self.map is not None and save_map:
+            self.map.save()
+        self.save_state(acked)
+
+    def save_state(self, acked: dict[str, list[list[int]]] | None = None) -> None:
+        """Write the counters to ``<state>/fleet.json`` atomically (no-op without a state folder).
+
+        ``acked``: per robot, ranges now durable (see :meth:`checkpoint`); they are acknowledged once the
+        file is written. Robots not in it keep their previous acknowledgement.
+        """
         path = self._state_file
         if path is None:
             return
         with self._lock:
+            acked_now = {r: (acked[r] if acked and r in acked else rec.acked) for r, rec in self.records.items()}
             data = {
                 "format": STATE_FORMAT,
                 "version": STATE_VERSION,
@@ -239,6 +284,7 @@ class BaseStation:
                 "robots": {
                     r: {
                         "ranges": rec.seqs.ranges(),
+                        "acked": acked_now[r],
                         "rejected": rec.rejected,
                         "duplicates": rec.duplicates,
                         "points": rec.points,
@@ -249,6 +295,10 @@ class BaseStation:
             }
             self._dirty = False
         write_atomic(path, json.dumps(data))
+        with self._lock:
+            for r, ranges in acked_now.items():
+                if r in self.records:
+                    self.records[r].acked = ranges
 
     def calibration_path(self, robot: str) -> Path | None:
         """Where the fleet calibration of ``robot`` is stored."""
@@ -343,7 +393,7 @@ class BaseStation:
                     self.map.save()
             except Exception as err:
                 log.error("map flush/save failed: %s", err)
-        self.save_state()
+        self.checkpoint(save_map=False)
 
     # ------------------------------------------------------------------ callbacks (cheap, never block long)
     def _on_cloud(self, sample: Any) -> None:
@@ -404,7 +454,9 @@ class BaseStation:
                 rec = self.records.get(robot)
                 body = {
                     "robot": robot,
-                    "ranges": rec.seqs.ranges() if rec else [],
+                    # with --state: only what is durable (see checkpoint); without: nothing survives a
+                    # restart anyway, so what arrived is acknowledged at once
+                    "ranges": (rec.acked if self.state_dir is not None else rec.seqs.ranges()) if rec else [],
                     "received": len(rec.seqs) if rec else 0,
                 }
             query.reply(query.key_expr, json.dumps(body), encoding="application/json")
@@ -493,7 +545,22 @@ class BaseStation:
                 rec.track.append((msg.t_ns, p.north_m, p.east_m, p.down_m))
             self._dirty = True
         if self.map is not None and len(msg):
-            self._map_queue.put(msg)
+            try:
+                # back-pressure while the map keeps up; a map stalled for map_wait_s loses the cloud (counted)
+                self._map_queue.put(msg, timeout=self.map_wait_s)
+            except queue.Full:
+                self.map_skipped += 1
+                if self.map_skipped <= 5 or self.map_skipped % 100 == 0:
+                    log.warning(
+                        "map is %.0f s behind: cloud %s#%d not mapped (%d so far)",
+                        self.map_wait_s,
+                        robot,
+                        msg.seq,
+                        self.map_skipped,
+                    )
+        else:
+            with self._lock:
+                rec.mapped.add(msg.seq)
         done = time.time_ns()
         with self._lock:
             self.processed += 1
@@ -514,6 +581,9 @@ class BaseStation:
                 self.map_errors += 1
                 log.exception("map update failed: %s", err)
             finally:
+                if isinstance(msg, CloudMsg):  # taken in (or refused by the map): acknowledgeable
+                    with self._lock:
+                        self._record(msg.robot).mapped.add(msg.seq)
                 self._map_queue.task_done()
 
     def _map_one(self, msg: CloudMsg) -> None:
@@ -538,13 +608,24 @@ class BaseStation:
             log.debug("map update not published: %s", err)
 
     def _saver(self) -> None:
-        """Write changed counters every ``save_period_s`` (the map saves itself: ``MapBuilder`` autosaves)."""
+        """Write changed counters every ``save_period_s``; every ``ack_period_s`` a :meth:`checkpoint`
+        (map saved, then counters with the acknowledged ranges). ``MapBuilder`` also autosaves."""
+        last_checkpoint = time.monotonic()
         while not self._closing.wait(self.save_period_s):
-            if self._dirty:
-                try:
+            if not self._dirty and not self._unacked():
+                continue
+            try:
+                if time.monotonic() - last_checkpoint >= self.ack_period_s:
+                    last_checkpoint = time.monotonic()
+                    self.checkpoint()
+                elif self._dirty:
                     self.save_state()
-                except OSError as err:
-                    log.error("cannot save state: %s", err)
+            except Exception as err:  # a full disk must not stop the service; acks wait for the next try
+                log.error("cannot save state: %s", err)
+
+    def _unacked(self) -> bool:
+        with self._lock:
+            return any(len(rec.seqs) != sum(hi - lo + 1 for lo, hi in rec.acked) for rec in self.records.values())
 
     # ------------------------------------------------------------------ views
     def map_json(self) -> dict[str, Any]:
@@ -584,6 +665,7 @@ class BaseStation:
                     "planes": self._map_planes,
                     "enabled": self.map is not None,
                     "clouds": self.map_clouds,
+                    "skipped": self.map_skipped,
                     "queued": self._map_queue.qsize(),
                     "errors": self.map_errors,
                 },
