@@ -1,0 +1,407 @@
+"""The object the base station feeds: per-robot windows of NED clouds -> planes -> the shared map.
+
+Cost model: :meth:`MapBuilder.add_cloud` only quantizes the cloud and appends it to the robot's window (tens of
+microseconds); every ``extract_every_clouds`` clouds (or ``extract_every_points`` points, or
+``extract_every_s`` of capture time) the robot's window goes through :func:`mapping.planes.extract_planes`, and
+the planes found claim the points of the clouds that arrived since the last extraction. Every point enters the
+map's statistics exactly once, even when ``window_clouds > extract_every_clouds`` gives extraction more context.
+
+Threading: one thread calls :meth:`add_cloud` / :meth:`flush` (the base station's map worker); :meth:`map_json`,
+:attr:`tracks`, :meth:`save` may be called from any thread. A lock guards the map, the tracks and the windows;
+the expensive extraction runs outside it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import zlib
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose
+
+from .errors import MapInputError, MappingError, MapStoreError
+from .ned import check_cloud, quantize
+from .plane_map import MapPlane, PlaneMap, PlaneRecord
+from .planes import claim_points, extract_planes
+from .stats import Contribution, VoxelSet
+from .store import JSON_FILE, load_state, save_json, save_state
+from .types import MapConfig, PlaneStats
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class _Cloud:
+    t_ns: int
+    points_q: NDArray[np.int32]
+    vehicle_q: NDArray[np.int64]
+
+
+@dataclass
+class _Window:
+    clouds: deque[_Cloud] = field(default_factory=deque)
+    n_new: int = 0
+    new_points: int = 0
+
+
+@dataclass
+class _Counters:
+    clouds: int = 0
+    points: int = 0
+    extractions: int = 0
+    observations: int = 0
+    extract_s: float = 0.0
+
+
+class MapBuilder:
+    """Builds and serves the shared plane map (see the module docstring).
+
+    Args:
+        cfg: thresholds and rates (None: the saved configuration when ``state_dir`` holds a map, else defaults).
+        state_dir: where the map persists (``map_state.npz`` + ``map.json``); reloaded when present.
+    """
+
+    def __init__(self, cfg: MapConfig | None = None, state_dir: Path | str | None = None) -> None:
+        self.state_dir = Path(state_dir) if state_dir is not None else None
+        loaded = load_state(self.state_dir) if self.state_dir is not None else None
+        if cfg is None:
+            cfg = _saved_config(loaded[0]) if loaded is not None else MapConfig()
+        self.cfg = cfg
+        self._lock = threading.RLock()
+        self._save_lock = threading.Lock()
+        self._map = PlaneMap(self.cfg)
+        self._windows: dict[str, _Window] = {}
+        self._tracks: dict[str, list[tuple[int, float, float, float]]] = {}
+        self._counters = _Counters()
+        self._last_save = time.monotonic()
+        if loaded is not None:
+            self._load(*loaded)
+
+    # ------------------------------------------------------------------ input
+    def add_cloud(self, robot: str, t_ns: int, points_ned: Any, pose: Pose) -> list[dict[str, Any]]:
+        """Add one cloud of ``robot`` captured at ``t_ns`` (ns).
+
+        Args:
+            robot: robot name.
+            t_ns: capture time, integer nanoseconds since the epoch.
+            points_ned: (N, 3) points in NED, metres (non-finite rows are dropped).
+            pose: vehicle pose at capture time (its position orients normals and makes the track).
+
+        Returns:
+            Changed planes (dicts as in :meth:`map_json`) and removals (``{"id", "removed", "merged_into"}``);
+            empty unless this cloud triggered an extraction.
+        """
+        if not isinstance(robot, str) or not robot:
+            msg = f"robot must be a non-empty string, got {robot!r}"
+            raise MapInputError(msg)
+        if not isinstance(pose, Pose):
+            msg = f"{robot}: pose must be a lrsensor.frames.Pose, got {type(pose).__name__}"
+            raise MapInputError(msg)
+        t = int(t_ns)
+        p = check_cloud(points_ned, f"{robot} cloud at {t} ns")
+        veh = pose.p_ned
+        if not np.all(np.isfinite(veh)):
+            msg = f"{robot} cloud at {t} ns: pose position is not finite"
+            raise MapInputError(msg)
+        if p.shape[0]:
+            p = p[np.einsum("ij,ij->i", p - veh, p - veh) <= self.cfg.max_range_m**2]
+        cloud = _Cloud(t, quantize(p, self.cfg.quantum_m, robot), np.rint(veh / self.cfg.quantum_m).astype(np.int64))
+        with self._lock:
+            win = self._windows.setdefault(robot, _Window())
+            win.clouds.append(cloud)
+            win.n_new += 1
+            win.new_points += cloud.points_q.shape[0]
+            self._counters.clouds += 1
+            self._counters.points += cloud.points_q.shape[0]
+            track = self._tracks.setdefault(robot, [])
+            if not track or t - track[-1][0] >= self.cfg.track_interval_s * 1e9:
+                track.append((t, float(veh[0]), float(veh[1]), float(veh[2])))
+            due = self._due(win)
+        changes = self._extract(robot) if due else []
+        self._maybe_autosave()
+        return changes
+
+    def add_cloud_body(self, robot: str, t_ns: int, points_body: Any, pose: Pose) -> list[dict[str, Any]]:
+        """Like :meth:`add_cloud` for body-frame points (transformed with ``pose`` first)."""
+        from .ned import cloud_to_ned
+
+        return self.add_cloud(robot, t_ns, cloud_to_ned(points_body, pose), pose)
+
+    def _due(self, win: _Window) -> bool:
+        cfg = self.cfg
+        if win.n_new >= cfg.extract_every_clouds or win.new_points >= cfg.extract_every_points:
+            return True
+        if cfg.extract_every_s > 0 and win.n_new >= 2:
+            first_new = win.clouds[len(win.clouds) - win.n_new]
+            return win.clouds[-1].t_ns - first_new.t_ns >= cfg.extract_every_s * 1e9
+        return False
+
+    def flush(self) -> list[dict[str, Any]]:
+        """Run the pending extraction of every robot now (end of a dive, tests); returns the changes."""
+        changes: list[dict[str, Any]] = []
+        with self._lock:
+            robots = sorted(r for r, w in self._windows.items() if w.n_new > 0)
+        for robot in robots:
+            changes.extend(self._extract(robot))
+        return changes
+
+    # ------------------------------------------------------------- extraction
+    def _extract(self, robot: str) -> list[dict[str, Any]]:
+        cfg = self.cfg
+        q = cfg.quantum_m
+        with self._lock:
+            win = self._windows[robot]
+            clouds = list(win.clouds)
+            n_new = win.n_new
+            win.n_new = 0
+            win.new_points = 0
+            # Keep the newest window_clouds clouds (all committed now) within the age limit as context.
+            newest = clouds[-1].t_ns
+            while len(win.clouds) > cfg.window_clouds or (
+                win.clouds and newest - win.clouds[0].t_ns > cfg.window_max_age_s * 1e9
+            ):
+                win.clouds.popleft()
+        t0 = time.perf_counter()
+        new = clouds[len(clouds) - n_new :]
+        lens = np.array([c.points_q.shape[0] for c in clouds], dtype=np.int64)
+        n_total = int(lens.sum())
+        n_eligible = int(lens[len(clouds) - n_new :].sum())
+        if n_eligible == 0:
+            return []
+        pts_q = np.concatenate([c.points_q for c in clouds]) if n_total else np.zeros((0, 3), np.int32)
+        veh_q = np.repeat(np.stack([c.vehicle_q for c in clouds]), lens, axis=0)
+        origin_m = np.round(new[0].vehicle_q * q / 3.0) * 3.0
+        pts_m = pts_q * q - origin_m
+        veh_m = veh_q * q - origin_m
+        seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
+        ex = extract_planes(pts_m, veh_m, cfg, seed)
+        changes: list[dict[str, Any]] = []
+        n_obs = 0
+        if ex.candidates:
+            eligible = np.zeros(n_total, dtype=bool)
+            eligible[n_total - n_eligible :] = True
+            claims = claim_points(pts_m, ex.grid, ex.candidates, ex.cell_keys, cfg, eligible)
+            first_ns, last_ns = new[0].t_ns, new[-1].t_ns
+            records = [
+                PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg)
+                for cand, idx in zip(ex.candidates, claims, strict=False)
+                if idx.shape[0] >= cfg.min_commit_points
+            ]
+            with self._lock:
+                for rec in records:
+                    changes.extend(self._map.add(rec))
+            n_obs = len(records)
+        with self._lock:
+            self._counters.extractions += 1
+            self._counters.observations += n_obs
+            self._counters.extract_s += time.perf_counter() - t0
+        return _squash(changes)
+
+    # ----------------------------------------------------------------- output
+    def map_json(self, include_tracks: bool = False) -> dict[str, Any]:
+        """The whole map: ``{"planes": [...]}`` (+ ``"tracks"`` when asked), NED, ``normal . p + d = 0``.
+
+        Each plane: ``id``, ``normal`` [nx, ny, nz] (unit, toward the observing vehicles), ``d`` (m),
+        ``n_points``, ``robots`` (names), ``extent`` (centroid, in-plane axes ``u`` (horizontal) and ``v``,
+        their ranges, ``size_m``, 4 NED ``corners``, ``aabb_min``/``aabb_max``), ``rms_m``, ``updated_ns`` and
+        ``created_ns`` (capture times), ``n_obs`` (observations fused), ``contributions`` per robot.
+        """
+        with self._lock:
+            out: dict[str, Any] = {"frame": "NED", "planes": self._map.to_json()}
+            if include_tracks:
+                out["tracks"] = {r: [list(s) for s in tr] for r, tr in sorted(self._tracks.items())}
+            return out
+
+    @property
+    def tracks(self) -> dict[str, list[tuple[int, float, float, float]]]:
+        """Robot -> list of (t_ns, north_m, east_m, down_m), one sample per ``track_interval_s``."""
+        with self._lock:
+            return {r: list(tr) for r, tr in sorted(self._tracks.items())}
+
+    @property
+    def n_planes(self) -> int:
+        """Number of planes in the map."""
+        with self._lock:
+            return len(self._map)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: clouds, points, extractions, observations, mean extraction time (s), planes."""
+        with self._lock:
+            c = self._counters
+            return {
+                "clouds": c.clouds,
+                "points": c.points,
+                "extractions": c.extractions,
+                "observations": c.observations,
+                "extract_mean_s": c.extract_s / c.extractions if c.extractions else 0.0,
+                "planes": len(self._map),
+            }
+
+    def planes_records(self) -> dict[int, PlaneRecord]:
+        """Id -> exact record of every plane (for tests and tools)."""
+        with self._lock:
+            return {pid: mp.record for pid, mp in sorted(self._map.planes.items())}
+
+    # ------------------------------------------------------------ persistence
+    def _maybe_autosave(self) -> None:
+        if self.state_dir is None or self.cfg.autosave_every_s <= 0:
+            return
+        if time.monotonic() - self._last_save >= self.cfg.autosave_every_s:
+            self.save()
+
+    def save(self, state_dir: Path | str | None = None) -> Path:
+        """Write the state atomically to ``state_dir`` (default: the builder's); returns the state file."""
+        target = Path(state_dir) if state_dir is not None else self.state_dir
+        if target is None:
+            msg = "save() needs a state directory: none was given to MapBuilder or save()"
+            raise MapStoreError(msg)
+        with self._save_lock:
+            with self._lock:
+                header, arrays = self._snapshot()
+                serving = self.map_json(include_tracks=True)
+            path = save_state(target, header, arrays)
+            save_json(target / JSON_FILE, serving)
+            self._last_save = time.monotonic()
+        return path
+
+    def _snapshot(self) -> tuple[dict[str, Any], dict[str, NDArray[Any]]]:
+        planes = []
+        vox_plane, vox_keys, vox_counts, vox_sums = [], [], [], []
+        for pid, mp in sorted(self._map.planes.items()):
+            r = mp.record
+            planes.append(
+                {
+                    "id": pid,
+                    "stats": r.stats.to_list(),
+                    "orient": list(r.orient),
+                    "aabb_min": list(r.aabb_min),
+                    "aabb_max": list(r.aabb_max),
+                    "n_obs": r.n_obs,
+                    "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in r.contributions.items()},
+                }
+            )
+            vox_plane.append(np.full(r.voxels.keys.shape[0], pid, np.int64))
+            vox_keys.append(r.voxels.keys)
+            vox_counts.append(r.voxels.counts)
+            vox_sums.append(r.voxels.sums)
+        robots = sorted(set(self._tracks) | set(self._windows))
+        rindex = {r: i for i, r in enumerate(robots)}
+        tr_r, tr_t, tr_p = [], [], []
+        for r, tr in self._tracks.items():
+            for t, n, e, d in tr:
+                tr_r.append(rindex[r])
+                tr_t.append(t)
+                tr_p.append((n, e, d))
+        win_r, win_t, win_len, win_veh, win_pts = [], [], [], [], []
+        windows = {}
+        for r, w in sorted(self._windows.items()):
+            windows[r] = {"n_new": w.n_new, "new_points": w.new_points}
+            for c in w.clouds:
+                win_r.append(rindex[r])
+                win_t.append(c.t_ns)
+                win_len.append(c.points_q.shape[0])
+                win_veh.append(c.vehicle_q)
+                win_pts.append(c.points_q)
+        header = {
+            "config": self.cfg.to_dict(),
+            "next_id": self._map.next_id,
+            "planes": planes,
+            "robots": robots,
+            "windows": windows,
+        }
+
+        def cat(parts: list[NDArray[Any]], shape: tuple[int, ...], dtype: Any) -> NDArray[Any]:
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+
+        arrays: dict[str, NDArray[Any]] = {
+            "vox_plane": cat(vox_plane, (0,), np.int64),
+            "vox_keys": cat(vox_keys, (0,), np.int64),
+            "vox_counts": cat(vox_counts, (0,), np.int64),
+            "vox_sums": cat(vox_sums, (0, 3), np.int64),
+            "track_robot": np.array(tr_r, np.int64),
+            "track_t_ns": np.array(tr_t, np.int64),
+            "track_ned": np.array(tr_p, np.float64).reshape(-1, 3),
+            "win_robot": np.array(win_r, np.int64),
+            "win_t_ns": np.array(win_t, np.int64),
+            "win_len": np.array(win_len, np.int64),
+            "win_vehicle_q": np.array(win_veh, np.int64).reshape(-1, 3),
+            "win_points_q": cat(win_pts, (0, 3), np.int32),
+        }
+        return header, arrays
+
+    def _load(self, header: dict[str, Any], a: dict[str, NDArray[Any]]) -> None:
+        assert self.state_dir is not None
+        where = self.state_dir / "map_state.npz"
+        try:
+            if header.get("config") != self.cfg.to_dict():
+                log.warning("%s: saved with a different MapConfig; continuing the map with the new one", where)
+            pm = PlaneMap(self.cfg)
+            pm.next_id = int(header["next_id"])
+            vox_plane = a["vox_plane"]
+            for p in header["planes"]:
+                pid = int(p["id"])
+                sel = vox_plane == pid
+                rec = PlaneRecord(
+                    PlaneStats.from_list(p["stats"]),
+                    (int(p["orient"][0]), int(p["orient"][1]), int(p["orient"][2])),
+                    (int(p["aabb_min"][0]), int(p["aabb_min"][1]), int(p["aabb_min"][2])),
+                    (int(p["aabb_max"][0]), int(p["aabb_max"][1]), int(p["aabb_max"][2])),
+                    {k: Contribution(int(v[0]), int(v[1]), int(v[2])) for k, v in p["contributions"].items()},
+                    VoxelSet(a["vox_keys"][sel], a["vox_counts"][sel], a["vox_sums"][sel]),
+                    int(p["n_obs"]),
+                )
+                pm.planes[pid] = MapPlane(pid, rec, self.cfg)
+            robots: list[str] = list(header["robots"])
+            tracks: dict[str, list[tuple[int, float, float, float]]] = {}
+            for ri, t, pos in zip(a["track_robot"], a["track_t_ns"], a["track_ned"], strict=False):
+                tracks.setdefault(robots[int(ri)], []).append((int(t), float(pos[0]), float(pos[1]), float(pos[2])))
+            windows: dict[str, _Window] = {}
+            offsets = np.concatenate([[0], np.cumsum(a["win_len"])]).astype(np.int64)
+            for i, (ri, t) in enumerate(zip(a["win_robot"], a["win_t_ns"], strict=False)):
+                w = windows.setdefault(robots[int(ri)], _Window())
+                pts = a["win_points_q"][offsets[i] : offsets[i + 1]].astype(np.int32)
+                w.clouds.append(_Cloud(int(t), pts, a["win_vehicle_q"][i].astype(np.int64)))
+            for r, wmeta in header["windows"].items():
+                w = windows.setdefault(r, _Window())
+                w.n_new = int(wmeta["n_new"])
+                w.new_points = int(wmeta["new_points"])
+        except (KeyError, IndexError, TypeError, ValueError) as err:
+            msg = f"{where}: inconsistent map state: {err!r}"
+            raise MapStoreError(msg) from err
+        with self._lock:
+            self._map = pm
+            self._tracks = tracks
+            self._windows = windows
+        log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(robots))
+
+
+def _saved_config(header: dict[str, Any]) -> MapConfig:
+    """The configuration a state was saved with (keys this version does not know are ignored)."""
+    saved = header.get("config")
+    if not isinstance(saved, dict):
+        return MapConfig()
+    known = set(MapConfig().to_dict())
+    try:
+        return MapConfig.from_dict({k: v for k, v in saved.items() if k in known})
+    except MappingError as err:
+        log.warning("saved map configuration refused (%s); using defaults", err)
+        return MapConfig()
+
+
+def _squash(changes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Keep the last change per plane id (a plane updated twice in one extraction is reported once)."""
+    last: dict[int, dict[str, Any]] = {}
+    for ch in changes:
+        last.pop(int(ch["id"]), None)
+        last[int(ch["id"])] = ch
+    return list(last.values())

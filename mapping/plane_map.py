@@ -1,0 +1,288 @@
+"""The shared plane map: association of observed planes with map planes and exact fusion.
+
+An observation (the points one robot's window gave one plane) joins a map plane when
+
+* their normals agree within ``merge_angle_deg`` (normals are oriented toward the observing vehicle, so the two
+  faces of a thin wall point in opposite directions and never fuse),
+* the observation's centroid lies within ``merge_offset_m`` of the map plane,
+* their bounding boxes, inflated by ``merge_gap_m``, overlap or touch (coplanar faces that are apart stay apart),
+* and the fused plane is still thin (RMS <= ``merge_max_rms_m``).
+
+Fusion adds the exact integer statistics and refits. When an observation matches several map planes (it bridges
+them), all of them fuse into the one with the smallest id, and the result is checked against the remaining planes
+again. The integer statistics make fusion order-independent: merging A then B gives exactly what B then A gives.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .stats import Contribution, VoxelSet, merge_contributions
+from .types import MapConfig, PlaneFit, PlaneStats
+
+FloatArray = NDArray[np.float64]
+
+#: Scale of the integer orientation vector (normal components in millionths, weighted by point count).
+_ORIENT_SCALE = 1_000_000
+
+
+@dataclass(frozen=True)
+class PlaneRecord:
+    """One plane (an observation or a map plane) with everything needed to fuse it exactly.
+
+    Attributes:
+        stats: exact sufficient statistics of its points (quanta).
+        orient: integer orientation vector: sum over fused observations of round(1e6 * normal) * n_points; the
+            fitted normal is signed to agree with it (toward the observing vehicles).
+        aabb_min, aabb_max: exact bounding box of its points (quanta).
+        contributions: robot -> :class:`Contribution`.
+        voxels: down-sampled points for export and extents.
+        n_obs: number of observations fused.
+        hint_normal: (3,) normal of the window fit (only for associating a fresh observation; not persisted).
+    """
+
+    stats: PlaneStats
+    orient: tuple[int, int, int]
+    aabb_min: tuple[int, int, int]
+    aabb_max: tuple[int, int, int]
+    contributions: dict[str, Contribution]
+    voxels: VoxelSet
+    n_obs: int = 1
+    hint_normal: tuple[float, float, float] | None = field(default=None, compare=False)
+
+    def __add__(self, other: PlaneRecord) -> PlaneRecord:
+        return PlaneRecord(
+            self.stats + other.stats,
+            (self.orient[0] + other.orient[0], self.orient[1] + other.orient[1], self.orient[2] + other.orient[2]),
+            (
+                min(self.aabb_min[0], other.aabb_min[0]),
+                min(self.aabb_min[1], other.aabb_min[1]),
+                min(self.aabb_min[2], other.aabb_min[2]),
+            ),
+            (
+                max(self.aabb_max[0], other.aabb_max[0]),
+                max(self.aabb_max[1], other.aabb_max[1]),
+                max(self.aabb_max[2], other.aabb_max[2]),
+            ),
+            merge_contributions(self.contributions, other.contributions),
+            self.voxels + other.voxels,
+            self.n_obs + other.n_obs,
+        )
+
+    @classmethod
+    def from_points(
+        cls,
+        points_q: NDArray[np.integer],
+        normal: FloatArray,
+        robot: str,
+        first_ns: int,
+        last_ns: int,
+        cfg: MapConfig,
+    ) -> PlaneRecord:
+        """An observation from its quantized points (N, 3) and the oriented window normal (3,)."""
+        p = np.asarray(points_q, dtype=np.int64)
+        n = int(p.shape[0])
+        o = [round(float(x) * _ORIENT_SCALE) * n for x in normal]
+        lo = p.min(axis=0)
+        hi = p.max(axis=0)
+        vq = max(1, round(cfg.export_voxel_m / cfg.quantum_m))
+        return cls(
+            PlaneStats.from_quantized(p),
+            (o[0], o[1], o[2]),
+            (int(lo[0]), int(lo[1]), int(lo[2])),
+            (int(hi[0]), int(hi[1]), int(hi[2])),
+            {robot: Contribution(n, int(first_ns), int(last_ns))},
+            VoxelSet.from_quantized(p, vq),
+            1,
+            (float(normal[0]), float(normal[1]), float(normal[2])),
+        )
+
+    def fit(self, quantum_m: float) -> PlaneFit:
+        """Refit from the statistics, normal signed by the orientation vector."""
+        f = self.stats.fit(quantum_m)
+        o = np.array(self.orient, dtype=np.float64)
+        if f.normal @ o < 0:
+            return PlaneFit(f.centroid, -f.normal, -f.d, f.eigvals, f.axes)
+        return f
+
+
+def _angle_deg(a: FloatArray, b: FloatArray) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(a @ b)))))
+
+
+def in_plane_axes(normal: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """In-plane unit axes (u, v) of a plane, (3,) each: u horizontal for non-horizontal planes, v = n x u."""
+    down = np.array([0.0, 0.0, 1.0])
+    u = np.cross(down, normal)
+    if np.linalg.norm(u) < 0.2:  # nearly horizontal plane: u along north projected
+        u = np.cross(normal, np.array([0.0, 1.0, 0.0]))
+    u = u / np.linalg.norm(u)
+    v = np.cross(normal, u)
+    return u, v / np.linalg.norm(v)
+
+
+@dataclass
+class MapPlane:
+    """A plane of the map: its id, record, cached fit and cached JSON form."""
+
+    id: int
+    record: PlaneRecord
+    cfg: MapConfig
+    _fit: PlaneFit | None = None
+    _json: dict[str, Any] | None = None
+
+    @property
+    def fit(self) -> PlaneFit:
+        """The plane fitted to the record's statistics (cached)."""
+        if self._fit is None:
+            self._fit = self.record.fit(self.cfg.quantum_m)
+        return self._fit
+
+    def to_json(self) -> dict[str, Any]:
+        """The serving form (see :meth:`PlaneMap.to_json`)."""
+        if self._json is None:
+            self._json = plane_json(self.id, self.record, self.cfg)
+        return self._json
+
+
+def plane_json(plane_id: int, rec: PlaneRecord, cfg: MapConfig) -> dict[str, Any]:
+    """JSON-ready dict of one plane in NED (``normal . p + d = 0``), metres and nanoseconds."""
+    q = cfg.quantum_m
+    f = rec.fit(q)
+    u, v = in_plane_axes(f.normal)
+    cen = rec.voxels.centroids_m(q)
+    if cen.shape[0]:
+        pu = (cen - f.centroid) @ u
+        pv = (cen - f.centroid) @ v
+        u0, u1, v0, v1 = float(pu.min()), float(pu.max()), float(pv.min()), float(pv.max())
+    else:
+        u0 = u1 = v0 = v1 = 0.0
+    corners = [f.centroid + a * u + b * v for a, b in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
+    contrib = rec.contributions
+    return {
+        "id": plane_id,
+        "normal": [float(x) for x in f.normal],
+        "d": float(f.d),
+        "n_points": rec.stats.n,
+        "robots": sorted(contrib),
+        "extent": {
+            "centroid": [float(x) for x in f.centroid],
+            "u": [float(x) for x in u],
+            "v": [float(x) for x in v],
+            "u_range_m": [u0, u1],
+            "v_range_m": [v0, v1],
+            "size_m": [u1 - u0, v1 - v0],
+            "corners": [[float(x) for x in c] for c in corners],
+            "aabb_min": [x * q for x in rec.aabb_min],
+            "aabb_max": [x * q for x in rec.aabb_max],
+        },
+        "rms_m": f.rms_m,
+        "updated_ns": max(c.last_ns for c in contrib.values()),
+        "created_ns": min(c.first_ns for c in contrib.values()),
+        "n_obs": rec.n_obs,
+        "contributions": {
+            r: {"n_points": c.n_points, "first_ns": c.first_ns, "last_ns": c.last_ns} for r, c in contrib.items()
+        },
+    }
+
+
+def rms_distance(fa: PlaneFit, fb: PlaneFit) -> float:
+    """RMS distance of the points behind fit ``fa`` to the plane of fit ``fb`` (metres), from moments only."""
+    off = float(fb.normal @ fa.centroid + fb.d)
+    proj = fa.axes.T @ fb.normal
+    return math.sqrt(off * off + float(np.sum(fa.eigvals * proj * proj)))
+
+
+class PlaneMap:
+    """Planes by id; :meth:`add` associates and fuses one observation. Not thread-safe (the builder locks)."""
+
+    def __init__(self, cfg: MapConfig) -> None:
+        self.cfg = cfg
+        self.planes: dict[int, MapPlane] = {}
+        self.next_id = 1
+
+    def __len__(self) -> int:
+        return len(self.planes)
+
+    def _touch(self, a: PlaneRecord, b: PlaneRecord) -> bool:
+        gap = self.cfg.merge_gap_m / self.cfg.quantum_m
+        return all(a.aabb_min[i] - gap <= b.aabb_max[i] and b.aabb_min[i] - gap <= a.aabb_max[i] for i in range(3))
+
+    def matches(
+        self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None
+    ) -> bool:
+        """Whether two planes (records and fits) may fuse (see the module docstring).
+
+        ``a_normal`` replaces ``fa.normal`` in the angle test (an observation's window normal, better
+        conditioned than the fit of its new points alone). The offset test passes when either plane's points lie
+        within ``merge_offset_m`` (RMS) of the other plane: a narrow observation whose own normal is poorly
+        determined still joins the plane its points lie on.
+        """
+        cfg = self.cfg
+        if not self._touch(a, b):
+            return False
+        na = fa.normal if a_normal is None else a_normal
+        if _angle_deg(na, fb.normal) > cfg.merge_angle_deg:
+            return False
+        if min(rms_distance(fa, fb), rms_distance(fb, fa)) > cfg.merge_offset_m:
+            return False
+        return (a.stats + b.stats).fit(cfg.quantum_m).rms_m <= cfg.merge_max_rms_m
+
+    def can_create(self, obs: PlaneRecord, f: PlaneFit) -> bool:
+        """Whether an observation is good enough to start a new plane on its own (not line-like, thin)."""
+        return f.width_m >= self.cfg.min_width_m and f.rms_m <= self.cfg.max_rms_m
+
+    def add(self, obs: PlaneRecord) -> list[dict[str, Any]]:
+        """Associate and fuse one observation; returns the changes (plane dicts, or removals).
+
+        A removal is ``{"id": i, "removed": True, "merged_into": j}``. An observation that matches nothing and
+        cannot start a plane of its own (line-like) is dropped and gives no change.
+        """
+        cfg = self.cfg
+        if obs.stats.n < 3:
+            return []
+        f_obs = obs.fit(cfg.quantum_m)
+        hint = np.array(obs.hint_normal) if obs.hint_normal is not None else None
+        hits = [
+            pid
+            for pid in sorted(self.planes)
+            if self.matches(obs, f_obs, self.planes[pid].record, self.planes[pid].fit, hint)
+        ]
+        if not hits:
+            if not self.can_create(obs, f_obs):
+                return []
+            pid = self.next_id
+            self.next_id += 1
+            self.planes[pid] = MapPlane(pid, replace(obs, hint_normal=None), cfg)
+            return [self.planes[pid].to_json()]
+        keep = hits[0]
+        rec = self.planes[keep].record + obs
+        removed = list(hits[1:])
+        for pid in hits[1:]:
+            rec = rec + self.planes.pop(pid).record
+        # Cascade: the grown plane may now meet others.
+        while True:
+            grown = MapPlane(keep, rec, cfg)
+            more = [
+                pid
+                for pid in sorted(self.planes)
+                if pid != keep and self.matches(rec, grown.fit, self.planes[pid].record, self.planes[pid].fit)
+            ]
+            if not more:
+                break
+            for pid in more:
+                rec = rec + self.planes.pop(pid).record
+                removed.append(pid)
+        self.planes[keep] = MapPlane(keep, rec, cfg)
+        changes: list[dict[str, Any]] = [self.planes[keep].to_json()]
+        changes.extend({"id": pid, "removed": True, "merged_into": keep} for pid in removed)
+        return changes
+
+    def to_json(self) -> list[dict[str, Any]]:
+        """All planes as dicts, by id."""
+        return [self.planes[pid].to_json() for pid in sorted(self.planes)]

@@ -1,0 +1,400 @@
+"""A small, fast ground-truth generator for the mapping tests and benchmarks (no rendering).
+
+It ray-traces the two horizontal laser fans of the sensor (body planes z = -c and z = +c, paper eq. 17 mounting)
+from a moving vehicle into a scene of rectangles and vertical cylinders in NED, and returns the true hit points
+per frame. The simulator of the sensor core (``lrsensor.sim``) renders images; this module only needs geometry,
+so mapping tests stay fast and independent of the image pipeline.
+
+Scene convention: every face is a rectangle with a unit ``normal`` pointing into the water; a laser ray hits it
+only from the front. The truth of a face is its plane ``normal . p + d = 0`` in NED.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose, body_to_ned, ned_to_body
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Face:
+    """A rectangle in NED: centre (3,), unit normal (3,) into the water, in-plane axis ``u`` (3,), half sizes."""
+
+    name: str
+    center: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    u: tuple[float, float, float]
+    half_u: float
+    half_v: float
+
+    @property
+    def d(self) -> float:
+        """Plane offset: ``normal . p + d = 0``."""
+        return -float(np.dot(self.normal, self.center))
+
+    @property
+    def v(self) -> FloatArray:
+        """Second in-plane axis, ``normal x u``."""
+        return np.cross(np.array(self.normal), np.array(self.u))
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """A vertical cylinder (a standing pipe): axis at (north, east), radius, from ``top_m`` to ``bottom_m`` down."""
+
+    name: str
+    north_m: float
+    east_m: float
+    radius_m: float
+    top_m: float
+    bottom_m: float
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Faces and cylinders in NED."""
+
+    faces: tuple[Face, ...]
+    cylinders: tuple[Cylinder, ...] = ()
+
+
+def box_pillar(
+    name: str, north_m: float, east_m: float, size_m: float, top_m: float, bottom_m: float, yaw_rad: float = 0.0
+) -> list[Face]:
+    """The four vertical faces of a square pillar (outward normals), centre (north, east), edge ``size_m``."""
+    faces = []
+    h = size_m / 2
+    zc, hz = (top_m + bottom_m) / 2, (bottom_m - top_m) / 2
+    for k, side in enumerate(("n", "e", "s", "w")):
+        a = yaw_rad + k * math.pi / 2
+        n = (math.cos(a), math.sin(a), 0.0)
+        u = (-math.sin(a), math.cos(a), 0.0)
+        c = (north_m + h * n[0], east_m + h * n[1], zc)
+        faces.append(Face(f"{name}.{side}", c, n, u, h, hz))
+    return faces
+
+
+def tank(
+    length_m: float = 8.0, width_m: float = 6.0, depth_m: float = 3.0, pillars: bool = True, pipe: bool = False
+) -> Scene:
+    """A box tank from (0, 0, 0) to (length, width, depth) NED, with walls facing inward, a floor, and by
+    default two square pillars (0.5 m and 0.4 m, one turned 30 degrees); optionally a standing pipe."""
+    L, W, D = length_m, width_m, depth_m
+    faces = [
+        Face("wall.south", (0.0, W / 2, D / 2), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), W / 2, D / 2),
+        Face("wall.north", (L, W / 2, D / 2), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0), W / 2, D / 2),
+        Face("wall.west", (L / 2, 0.0, D / 2), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), L / 2, D / 2),
+        Face("wall.east", (L / 2, W, D / 2), (0.0, -1.0, 0.0), (1.0, 0.0, 0.0), L / 2, D / 2),
+        Face("floor", (L / 2, W / 2, D), (0.0, 0.0, -1.0), (1.0, 0.0, 0.0), L / 2, W / 2),
+    ]
+    if pillars:
+        faces += box_pillar("pillar1", 0.4 * L, 0.35 * W, 0.5, 0.0, D)
+        faces += box_pillar("pillar2", 0.65 * L, 0.65 * W, 0.4, 0.0, D, yaw_rad=math.radians(30))
+    cyl = (Cylinder("pipe", 0.5 * L, 0.8 * W, 0.1, 0.0, D),) if pipe else ()
+    return Scene(tuple(faces), cyl)
+
+
+@dataclass(frozen=True)
+class Hits:
+    """True laser hits of one frame: points (N, 3) NED, laser index (N,) 0 top / 1 bottom, surface (N,) index
+    into ``scene.faces`` or ``-1 - k`` for cylinder k."""
+
+    points_ned: FloatArray
+    laser: NDArray[np.int64]
+    surface: NDArray[np.int64]
+
+
+def trace(
+    scene: Scene,
+    pose: Pose,
+    n_rays: int = 1900,
+    fan_deg: float = 120.0,
+    baseline_m: float = 0.1,
+    max_range_m: float = 6.0,
+) -> Hits:
+    """Intersect both laser fans (``n_rays`` each) with the scene from ``pose``; nearest front-facing hit."""
+    R = pose.R_ned_from_body
+    a = np.radians(np.linspace(-fan_deg / 2, fan_deg / 2, n_rays))
+    dirs_b = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+    pts, lasers, surfs = [], [], []
+    fn = np.array([f.normal for f in scene.faces], dtype=np.float64).reshape(-1, 3)
+    fc = np.array([f.center for f in scene.faces], dtype=np.float64).reshape(-1, 3)
+    fu = np.array([f.u for f in scene.faces], dtype=np.float64).reshape(-1, 3)
+    fv = np.cross(fn, fu)
+    fd = -np.einsum("ij,ij->i", fn, fc)
+    hu = np.array([f.half_u for f in scene.faces])
+    hv = np.array([f.half_v for f in scene.faces])
+    for li, zb in enumerate((-baseline_m / 2, baseline_m / 2)):
+        o = pose.p_ned + R @ np.array([0.0, 0.0, zb])
+        dirs = dirs_b @ R.T
+        best_t = np.full(n_rays, np.inf)
+        best_s = np.full(n_rays, -999, dtype=np.int64)
+        if fn.shape[0]:
+            den = dirs @ fn.T  # (R, F)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = -(fn @ o + fd)[None, :] / den
+            # in-plane coordinates of the hit: (o + t dir - c) . u = (o - c) . u + t (dir . u)
+            ou = np.einsum("fk,fk->f", o[None, :] - fc, fu)
+            ov = np.einsum("fk,fk->f", o[None, :] - fc, fv)
+            hu_ = ou[None, :] + t * (dirs @ fu.T)
+            hv_ = ov[None, :] + t * (dirs @ fv.T)
+            ok = (den < -1e-9) & (t > 1e-6) & (np.abs(hu_) <= hu[None, :]) & (np.abs(hv_) <= hv[None, :])
+            t = np.where(ok, t, np.inf)
+            k_best = np.argmin(t, axis=1)
+            t_best = t[np.arange(n_rays), k_best]
+            hit_f = np.isfinite(t_best)
+            best_t[hit_f] = t_best[hit_f]
+            best_s[hit_f] = k_best[hit_f]
+        for k, c in enumerate(scene.cylinders):
+            ox, oy = o[0] - c.north_m, o[1] - c.east_m
+            dx, dy = dirs[:, 0], dirs[:, 1]
+            qa = dx * dx + dy * dy
+            qb = 2 * (ox * dx + oy * dy)
+            qc = ox * ox + oy * oy - c.radius_m**2
+            disc = qb * qb - 4 * qa * qc
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = (-qb - np.sqrt(disc)) / (2 * qa)
+            z = o[2] + t * dirs[:, 2]
+            ok = (disc >= 0) & (t > 1e-6) & (z >= c.top_m) & (z <= c.bottom_m)
+            better = ok & (t < best_t)
+            best_t[better] = t[better]
+            best_s[better] = -1 - k
+        hit = best_t <= max_range_m
+        pts.append(o + best_t[hit, None] * dirs[hit])
+        lasers.append(np.full(int(hit.sum()), li, dtype=np.int64))
+        surfs.append(best_s[hit])
+    return Hits(np.concatenate(pts), np.concatenate(lasers), np.concatenate(surfs))
+
+
+@dataclass(frozen=True)
+class DiveFrame:
+    """One frame of a simulated dive: capture time, true and estimated (noisy IMU) pose, hits.
+
+    ``points_ned_est`` is what a base station computes: the true body-frame points placed with the estimated
+    pose, plus range noise.
+    """
+
+    robot: str
+    t_ns: int
+    pose_true: Pose
+    pose_est: Pose
+    hits: Hits
+    points_ned_est: FloatArray
+
+
+def _smooth_noise(rng: np.random.Generator, t: FloatArray, sigma: float, n_waves: int = 4) -> FloatArray:
+    """A slowly varying zero-mean signal with standard deviation ~``sigma`` (sum of random sinusoids)."""
+    out = np.zeros_like(t)
+    for _ in range(n_waves):
+        f = rng.uniform(0.02, 0.3)
+        out += np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+    return out * sigma * math.sqrt(2.0 / n_waves)
+
+
+@dataclass(frozen=True)
+class DivePlan:
+    """A loop around a rectangle at a depth, yaw sweeping around the direction of travel.
+
+    Attributes: waypoints (north, east) of the loop; depth_m; speed_mps; sweep amplitude/period of the yaw;
+    pitch/roll oscillation amplitude (deg); heave amplitude (m); phase offset (s).
+    """
+
+    robot: str
+    waypoints: tuple[tuple[float, float], ...]
+    depth_m: float
+    speed_mps: float = 0.3
+    sweep_deg: float = 50.0
+    sweep_period_s: float = 8.0
+    tilt_deg: float = 3.0
+    heave_m: float = 0.15
+    phase_s: float = 0.0
+
+
+def _path(plan: DivePlan, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    wp = np.array((*plan.waypoints, plan.waypoints[0]), dtype=np.float64)
+    seg = np.diff(wp, axis=0)
+    seglen = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seglen)])
+    s = (plan.speed_mps * (t + plan.phase_s)) % cum[-1]
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    frac = (s - cum[i]) / seglen[i]
+    pos = wp[i] + frac[:, None] * seg[i]
+    heading = np.arctan2(seg[i, 1], seg[i, 0])
+    return pos[:, 0], pos[:, 1], heading
+
+
+def simulate_dive(
+    scene: Scene,
+    plans: list[DivePlan],
+    duration_s: float,
+    rate_hz: float = 30.0,
+    n_rays: int = 1900,
+    attitude_noise_deg: float = 0.2,
+    position_noise_m: float = 0.015,
+    range_noise_m: float = 0.002,
+    seed: int = 0,
+    t0_ns: int = 1_700_000_000_000_000_000,
+) -> list[DiveFrame]:
+    """Frames of all robots in capture-time order (robots interleaved as a base station would receive them).
+
+    Attitude noise is white per frame (``attitude_noise_deg``); position noise is a slowly varying error with
+    standard deviation ``position_noise_m`` (navigation drift); range noise is white along each ray.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    frames: list[DiveFrame] = []
+    per_robot = []
+    for plan in plans:
+        n, e, heading = _path(plan, t)
+        w = 2 * np.pi / plan.sweep_period_s
+        yaw = heading + math.radians(plan.sweep_deg) * np.sin(w * (t + plan.phase_s))
+        pitch = math.radians(plan.tilt_deg) * np.sin(0.7 * w * t + 1.0)
+        roll = math.radians(plan.tilt_deg) * np.sin(1.3 * w * t + 2.0)
+        down = plan.depth_m + plan.heave_m * np.sin(0.5 * w * t)
+        pos_err = np.stack([_smooth_noise(rng, t, position_noise_m) for _ in range(3)], 1)
+        att_err = rng.normal(0.0, math.radians(attitude_noise_deg), size=(t.shape[0], 3))
+        per_robot.append((plan, n, e, down, roll, pitch, yaw, pos_err, att_err))
+    for k in range(t.shape[0]):
+        for plan, n, e, down, roll, pitch, yaw, pos_err, att_err in per_robot:
+            true = Pose(float(n[k]), float(e[k]), float(down[k]), float(roll[k]), float(pitch[k]), float(yaw[k]))
+            est = Pose(
+                true.north_m + pos_err[k, 0],
+                true.east_m + pos_err[k, 1],
+                true.down_m + pos_err[k, 2],
+                true.roll_rad + att_err[k, 0],
+                true.pitch_rad + att_err[k, 1],
+                true.yaw_rad + att_err[k, 2],
+            )
+            hits = trace(scene, true, n_rays=n_rays)
+            pb = ned_to_body(hits.points_ned, true)
+            rng_b = np.linalg.norm(pb, axis=1, keepdims=True)
+            pb = pb + pb / np.maximum(rng_b, 1e-9) * rng.normal(0.0, range_noise_m, size=(pb.shape[0], 1))
+            frames.append(DiveFrame(plan.robot, t0_ns + round(t[k] * 1e9), true, est, hits, body_to_ned(pb, est)))
+    return frames
+
+
+def two_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePlan]:
+    """Two robots looping the tank of :func:`tank` in opposite directions at different depths."""
+    L, W = length_m, width_m
+    loop = ((1.2, 1.2), (L - 1.2, 1.2), (L - 1.2, W - 1.2), (1.2, W - 1.2))
+    return [
+        DivePlan("rov1", loop, 1.0, phase_s=0.0),
+        DivePlan("rov2", tuple(reversed(loop)), 1.8, sweep_period_s=10.0, phase_s=7.0),
+    ]
+
+
+@dataclass
+class FaceTruth:
+    """Per-face hit bookkeeping over a dive: points, and frames in which both lasers hit the face."""
+
+    face: Face
+    n_points: int = 0
+    frames_both: int = 0
+    robots: set[str] = field(default_factory=set)
+
+
+def hit_faces(scene: Scene, frames: list[DiveFrame]) -> list[FaceTruth]:
+    """How often each face of ``scene`` was hit during a dive."""
+    out = [FaceTruth(f) for f in scene.faces]
+    for fr in frames:
+        s, las = fr.hits.surface, fr.hits.laser
+        for k in np.unique(s[s >= 0]):
+            sel = s == k
+            out[k].n_points += int(sel.sum())
+            out[k].robots.add(fr.robot)
+            if np.any(las[sel] == 0) and np.any(las[sel] == 1):
+                out[k].frames_both += 1
+    return out
+
+
+@dataclass
+class FaceScore:
+    """How the map represents one true face: matched plane ids, and the best match's errors."""
+
+    face: Face
+    hit: bool
+    plane_ids: list[int] = field(default_factory=list)
+    angle_deg: float = math.inf
+    offset_m: float = math.inf
+
+
+@dataclass
+class MapScore:
+    """Score of a map against the scene: per-face results and the planes that match no face."""
+
+    faces: list[FaceScore]
+    spurious: list[int]
+
+    def missing(self, angle_deg: float = 2.0, offset_m: float = 0.05) -> list[str]:
+        """Hit faces without a plane within the tolerances."""
+        return [f.face.name for f in self.faces if f.hit and not (f.angle_deg <= angle_deg and f.offset_m <= offset_m)]
+
+    def duplicates(self) -> list[str]:
+        """Faces represented by more than one plane."""
+        return [f.face.name for f in self.faces if len(f.plane_ids) > 1]
+
+    def table(self) -> str:
+        """A markdown table of the per-face results."""
+        rows = ["| face | hit | planes | angle (deg) | offset (m) |", "|---|---|---|---|---|"]
+        for f in self.faces:
+            rows.append(
+                f"| {f.face.name} | {'yes' if f.hit else 'no'} | {f.plane_ids} | {f.angle_deg:.2f} | {f.offset_m:.3f} |"
+            )
+        rows.append(f"\nspurious planes: {self.spurious}")
+        return "\n".join(rows)
+
+
+def score_map(
+    planes: list[dict[str, object]],
+    scene: Scene,
+    hits: list[FaceTruth],
+    min_points: int = 3000,
+    min_frames_both: int = 30,
+) -> MapScore:
+    """Match map planes (``map_json()["planes"]``) to the scene's faces.
+
+    A plane belongs to the face whose normal it matches within 15 degrees (same orientation: both point into the
+    water), whose rectangle (inflated by 0.3 m) contains the plane's centroid, and whose plane lies within
+    0.15 m of all the plane's extent corners; the closest such face wins. A face counts as *hit* when it got at
+    least ``min_points`` true hits and both lasers hit it in at least ``min_frames_both`` frames. The errors of a
+    face are those of its best plane: the angle between normals and the largest distance of the plane's extent
+    corners to the true plane.
+    """
+    scores = [FaceScore(h.face, h.n_points >= min_points and h.frames_both >= min_frames_both) for h in hits]
+    spurious: list[int] = []
+    for p in planes:
+        n = np.array(p["normal"], dtype=float)  # type: ignore[arg-type]
+        ext = p["extent"]
+        assert isinstance(ext, dict)
+        cen = np.array(ext["centroid"], dtype=float)
+        corners = np.array(ext["corners"], dtype=float)
+        best: tuple[float, int, float, float] | None = None
+        for k, fs in enumerate(scores):
+            f = fs.face
+            fn = np.array(f.normal)
+            ang = math.degrees(math.acos(max(-1.0, min(1.0, float(n @ fn)))))
+            if ang > 15.0:
+                continue
+            rel = cen - np.array(f.center)
+            if abs(rel @ np.array(f.u)) > f.half_u + 0.3 or abs(rel @ f.v) > f.half_v + 0.3:
+                continue
+            off = float(np.max(np.abs(corners @ fn + f.d)))
+            if off > 0.15:
+                continue
+            cost = off + ang / 100.0
+            if best is None or cost < best[0]:
+                best = (cost, k, ang, off)
+        if best is None:
+            spurious.append(int(p["id"]))  # type: ignore[call-overload]
+            continue
+        fs = scores[best[1]]
+        fs.plane_ids.append(int(p["id"]))  # type: ignore[call-overload]
+        if best[3] + best[2] / 100.0 < fs.offset_m + fs.angle_deg / 100.0:
+            fs.angle_deg, fs.offset_m = best[2], best[3]
+    return MapScore(scores, spurious)

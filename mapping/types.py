@@ -1,0 +1,269 @@
+"""Shared value types of the mapping package: the configuration and the exact plane statistics.
+
+Statistics are kept as *exact integers*: every point is quantized to ``quantum_m`` (0.1 mm by default, far below
+the sensor's noise) and the sums of points and of outer products are Python integers. Fusing two planes is then
+plain integer addition, which is associative and commutative: the map does not depend on the order in which
+observations were fused, and a persisted map reloads bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import MapConfigError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: int64 limit used to size exact-sum chunks.
+_INT64_SAFE = 2**62
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Configuration of the map builder. Lengths in metres, angles in degrees (``_deg``), times in seconds.
+
+    Windows and rate:
+        window_clouds: clouds per robot kept as context for extraction (>= ``extract_every_clouds``).
+        extract_every_clouds: run extraction for a robot after this many new clouds ...
+        extract_every_points: ... or this many new points ...
+        extract_every_s: ... or when the new clouds span this much capture time.
+        window_max_age_s: context clouds older than this (relative to the newest) are dropped.
+        max_range_m: points farther than this from the vehicle are dropped (attitude noise grows with range).
+
+    Extraction (per window, see :mod:`mapping.planes`):
+        voxel_m: voxel size of the down-sampled window that RANSAC sees.
+        cell_m: cell size of the local-normal grid; a cell's normal comes from its 3x3x3 block of cells, so the
+            block (3 * cell_m) must span both laser lines (0.1 m apart on a wall).
+        grow_angle_deg: neighbouring cells join one region when their normals agree within this angle.
+        cell_planarity: a cell normal is valid when sqrt(l0) <= cell_planarity * sqrt(l1) (l0 <= l1 <= l2).
+        distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
+        ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
+        max_planes_per_region: RANSAC peels at most this many planes off one region.
+        min_region_points, min_inliers: down-sampled point counts below which a region / plane is ignored.
+        min_width_m: the inliers' second principal standard deviation must reach this (rejects a single line).
+        min_extent_m: both in-plane extents (max - min) must reach this.
+        max_rms_m: inlier RMS distance to the fitted plane must stay below this.
+        max_sagitta_m: a quadratic fit of the residuals over the in-plane coordinates may not bend more than
+            this over the plane's extent (rejects pipes and other curved surfaces).
+        min_sensor_distance_m: a plane passing closer than this to the observing vehicle is the laser sheet
+            itself (all hits of one laser are coplanar), not a surface; rejected.
+        min_commit_points: full-resolution points an observation needs to enter the map.
+
+    Merging (see :mod:`mapping.plane_map`):
+        merge_angle_deg: oriented normals within this angle (opposite faces of a thin wall never fuse);
+        merge_offset_m: the points of one plane within this RMS distance of the other plane (either way round).
+        merge_gap_m: bounding boxes (inflated by this) must overlap or touch.
+        merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
+
+    Storage:
+        quantum_m: quantum of the exact integer statistics.
+        export_voxel_m: voxel size of the points kept per plane for export.
+        track_interval_s: one track sample per robot per this much capture time.
+        autosave_every_s: wall-clock seconds between automatic saves (0 disables; needs a state dir).
+    """
+
+    window_clouds: int = 15
+    extract_every_clouds: int = 15
+    extract_every_points: int = 60_000
+    extract_every_s: float = 0.5
+    window_max_age_s: float = 3.0
+    max_range_m: float = 5.0
+
+    voxel_m: float = 0.03
+    cell_m: float = 0.1
+    grow_angle_deg: float = 12.0
+    cell_planarity: float = 0.35
+    distance_threshold_m: float = 0.02
+    ransac_iterations: int = 400
+    seed: int = 1234
+    max_planes_per_region: int = 3
+    min_region_points: int = 25
+    min_inliers: int = 25
+    min_width_m: float = 0.02
+    min_extent_m: float = 0.1
+    max_rms_m: float = 0.008
+    max_sagitta_m: float = 0.01
+    min_sensor_distance_m: float = 0.2
+    min_commit_points: int = 100
+
+    merge_angle_deg: float = 20.0
+    merge_offset_m: float = 0.04
+    merge_gap_m: float = 0.3
+    merge_max_rms_m: float = 0.03
+
+    quantum_m: float = 1e-4
+    export_voxel_m: float = 0.05
+    track_interval_s: float = 0.1
+    autosave_every_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                msg = f"MapConfig.{f.name} must be a finite number, got {value!r}"
+                raise MapConfigError(msg)
+            if f.type == "int" and not isinstance(value, int):
+                msg = f"MapConfig.{f.name} must be an integer, got {value!r}"
+                raise MapConfigError(msg)
+            if f.name not in ("seed", "autosave_every_s", "extract_every_s") and value <= 0:
+                msg = f"MapConfig.{f.name} must be > 0, got {value!r}"
+                raise MapConfigError(msg)
+            if value < 0:
+                msg = f"MapConfig.{f.name} must be >= 0, got {value!r}"
+                raise MapConfigError(msg)
+        if self.window_clouds < self.extract_every_clouds:
+            msg = (
+                f"MapConfig.window_clouds ({self.window_clouds}) must be >= extract_every_clouds "
+                f"({self.extract_every_clouds})"
+            )
+            raise MapConfigError(msg)
+        if self.ransac_iterations < 1 or not 0 < self.cell_planarity < 1:
+            msg = "MapConfig: ransac_iterations must be >= 1 and cell_planarity in (0, 1)"
+            raise MapConfigError(msg)
+        if self.quantum_m > 0.001:
+            msg = f"MapConfig.quantum_m must be <= 1 mm, got {self.quantum_m}"
+            raise MapConfigError(msg)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The configuration as a JSON-ready dict."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MapConfig:
+        """Build from a dict; unknown keys are rejected with a :class:`MapConfigError` naming them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            msg = f"unknown MapConfig keys: {', '.join(unknown)}"
+            raise MapConfigError(msg)
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """A plane fitted to statistics, in NED metres.
+
+    Attributes:
+        centroid: (3,) mean of the points.
+        normal: (3,) unit normal (smallest principal axis), sign chosen by the caller's orientation.
+        d: offset so that ``normal . p + d = 0``.
+        eigvals: (3,) ascending eigenvalues of the covariance (m^2): rms = sqrt(eigvals[0]).
+        axes: (3, 3) eigenvectors as columns, ascending (axes[:, 0] is the unoriented normal).
+    """
+
+    centroid: FloatArray
+    normal: FloatArray
+    d: float
+    eigvals: FloatArray
+    axes: FloatArray
+
+    @property
+    def rms_m(self) -> float:
+        """RMS distance of the points to the plane, metres."""
+        return float(math.sqrt(max(float(self.eigvals[0]), 0.0)))
+
+    @property
+    def width_m(self) -> float:
+        """Second principal standard deviation (small for a line-like point set), metres."""
+        return float(math.sqrt(max(float(self.eigvals[1]), 0.0)))
+
+
+@dataclass(frozen=True)
+class PlaneStats:
+    """Exact sufficient statistics of a point set, in integer quanta (``q`` metres each).
+
+    Attributes:
+        n: number of points.
+        s: sum of the quantized points (3 ints).
+        ss: sum of the quantized outer products, upper triangle ``(xx, xy, xz, yy, yz, zz)``.
+    """
+
+    n: int
+    s: tuple[int, int, int]
+    ss: tuple[int, int, int, int, int, int]
+
+    @classmethod
+    def zero(cls) -> PlaneStats:
+        """The empty statistics."""
+        return cls(0, (0, 0, 0), (0, 0, 0, 0, 0, 0))
+
+    @classmethod
+    def from_quantized(cls, points_q: IntArray) -> PlaneStats:
+        """Statistics of quantized points ``points_q`` (N, 3) int64, exact (int64 chunks, Python-int totals)."""
+        p = np.asarray(points_q, dtype=np.int64)
+        n = int(p.shape[0])
+        if n == 0:
+            return cls.zero()
+        biggest = int(np.abs(p).max()) + 1
+        chunk = max(1, _INT64_SAFE // (biggest * biggest))
+        s = [0, 0, 0]
+        ss = [0, 0, 0, 0, 0, 0]
+        pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        for start in range(0, n, chunk):
+            part = p[start : start + chunk]
+            part_s = part.sum(axis=0)
+            for i in range(3):
+                s[i] += int(part_s[i])
+            for k, (i, j) in enumerate(pairs):
+                ss[k] += int(np.dot(part[:, i], part[:, j]))
+        return cls(n, (s[0], s[1], s[2]), (ss[0], ss[1], ss[2], ss[3], ss[4], ss[5]))
+
+    def __add__(self, other: PlaneStats) -> PlaneStats:
+        return PlaneStats(
+            self.n + other.n,
+            (self.s[0] + other.s[0], self.s[1] + other.s[1], self.s[2] + other.s[2]),
+            (
+                self.ss[0] + other.ss[0],
+                self.ss[1] + other.ss[1],
+                self.ss[2] + other.ss[2],
+                self.ss[3] + other.ss[3],
+                self.ss[4] + other.ss[4],
+                self.ss[5] + other.ss[5],
+            ),
+        )
+
+    def fit(self, quantum_m: float) -> PlaneFit:
+        """Least-squares plane of the points (eigen-decomposition of the exact scatter), NED metres.
+
+        The centred scatter ``n * SS - s s^T`` is formed in exact integers before conversion to float, so the
+        fit does not lose precision far from the NED origin. Raises ``ValueError`` for fewer than 3 points.
+        """
+        n = self.n
+        if n < 3:
+            msg = f"a plane needs at least 3 points, got {n}"
+            raise ValueError(msg)
+        s = self.s
+        xx, xy, xz, yy, yz, zz = self.ss
+        m = [
+            [n * xx - s[0] * s[0], n * xy - s[0] * s[1], n * xz - s[0] * s[2]],
+            [0, n * yy - s[1] * s[1], n * yz - s[1] * s[2]],
+            [0, 0, n * zz - s[2] * s[2]],
+        ]
+        scale = quantum_m * quantum_m / (float(n) * float(n))
+        cov = np.empty((3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                cov[i, j] = cov[j, i] = float(m[i][j]) * scale
+        eigvals, axes = np.linalg.eigh(cov)
+        centroid = np.array([float(s[0]) / n, float(s[1]) / n, float(s[2]) / n]) * quantum_m
+        normal = axes[:, 0].copy()
+        return PlaneFit(centroid, normal, float(-normal @ centroid), eigvals, axes)
+
+    def to_list(self) -> list[int]:
+        """``[n, s0, s1, s2, xx, xy, xz, yy, yz, zz]`` as exact (possibly big) integers."""
+        return [self.n, *self.s, *self.ss]
+
+    @classmethod
+    def from_list(cls, values: list[int]) -> PlaneStats:
+        """Inverse of :meth:`to_list`."""
+        if len(values) != 10 or not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+            msg = f"plane statistics must be 10 integers, got {values!r}"
+            raise ValueError(msg)
+        v = values
+        return cls(v[0], (v[1], v[2], v[3]), (v[4], v[5], v[6], v[7], v[8], v[9]))
