@@ -181,6 +181,7 @@ class BaseStation:
         queue_size: int = 1024,
         save_period_s: float = 1.0,
         ack_period_s: float = 2.0,
+        map_wait_s: float = 5.0,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -189,6 +190,8 @@ class BaseStation:
         self.n_workers = max(1, workers)
         self.save_period_s = save_period_s
         self.ack_period_s = ack_period_s
+        self._last_ack_save = 0.0
+        self._save_lock = threading.Lock()
         self.records: dict[str, RobotRecord] = {}
         self.latency = LatencyStats()
         self.processed = 0
@@ -275,6 +278,10 @@ class BaseStation:
         path = self._state_file
         if path is None:
             return
+        with self._save_lock:  # snapshot, write and acknowledge in one order: the file never lags the acks
+            self._save_state_locked(path, acked)
+
+    def _save_state_locked(self, path: Path, acked: dict[str, list[list[int]]] | None) -> None:
         with self._lock:
             acked_now = {r: (acked[r] if acked and r in acked else rec.acked) for r, rec in self.records.items()}
             data = {
@@ -450,6 +457,7 @@ class BaseStation:
             if robot is None:
                 query.reply_err(f"no such robot key: {query.key_expr}")
                 return
+            self._ack_now(robot)
             with self._lock:
                 rec = self.records.get(robot)
                 body = {
@@ -622,6 +630,24 @@ class BaseStation:
                     self.save_state()
             except Exception as err:  # a full disk must not stop the service; acks wait for the next try
                 log.error("cannot save state: %s", err)
+
+    def _ack_now(self, robot: str) -> None:
+        """Without the map a checkpoint is one small file: write it now (at most every 0.2 s) so that an
+        acknowledgement query sees everything received. With the map, the saver's checkpoints answer."""
+        if self.map is not None or self.state_dir is None:
+            return
+        with self._lock:
+            rec = self.records.get(robot)
+            if rec is None or len(rec.seqs) == sum(hi - lo + 1 for lo, hi in rec.acked):
+                return
+            if time.monotonic() - self._last_ack_save < 0.2:
+                return
+            self._last_ack_save = time.monotonic()
+            ranges = rec.seqs.ranges()
+        try:
+            self.save_state({robot: ranges})
+        except OSError as err:
+            log.error("cannot save state: %s", err)
 
     def _unacked(self) -> bool:
         with self._lock:
