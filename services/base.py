@@ -558,6 +558,8 @@ class BaseStation:
                 self._map_queue.put(msg, timeout=self.map_wait_s)
             except queue.Full:
                 self.map_skipped += 1
+                with self._lock:  # counted, not silent; acknowledge it or the robot would re-send it forever
+                    rec.mapped.add(msg.seq)
                 if self.map_skipped <= 5 or self.map_skipped % 100 == 0:
                     log.warning(
                         "map is %.0f s behind: cloud %s#%d not mapped (%d so far)",
