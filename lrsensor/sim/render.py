@@ -11,6 +11,7 @@ surface hit.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Sequence
@@ -26,12 +27,15 @@ from ..errors import SimulationError
 from ..frames import Pose, body_to_ned
 from .scene import Rectangle, Scene
 from .water import (
+    LOW_RES_FACTOR,
     WaterModel,
-    add_blobs,
     add_sensor_noise,
     add_snow,
     apply_speckle,
     background,
+    draw_blobs,
+    low_res_shape,
+    paint_blobs,
 )
 
 FloatArray = NDArray[np.float64]
@@ -559,20 +563,36 @@ def draw_stripe(uv: FloatArray, amp: FloatArray, sigma: FloatArray, segment: Int
 
 
 # --------------------------------------------------------------------------- glow and ambient light
+@functools.lru_cache(maxsize=8)
+def _low_res_rays(calib: Calibration, h: int, w: int) -> tuple[FloatArray, FloatArray]:
+    """Body-frame viewing rays (M, 3) and their lengths (M,) of the quarter-resolution pixel centres."""
+    hl, wl = low_res_shape(h, w)
+    f = LOW_RES_FACTOR
+    ys, xs = np.mgrid[0:hl, 0:wl]
+    uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
+    rays = calib.rays_body(uv)
+    rays.setflags(write=False)
+    norm = np.linalg.norm(rays, axis=1)
+    norm.setflags(write=False)
+    return rays, norm
+
+
 def _glow(
     scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel, shape: tuple[int, int]
 ) -> F32:
-    """Backscatter glow of one laser sheet, (H, W) float32 DN (green-channel units).
+    """Backscatter glow of one laser sheet at quarter resolution (:func:`low_res_shape`), float32 DN.
 
     Single-scattering radiance of the sheet seen along each camera ray: the ray crosses the laser plane at a
     point at distance ``s`` from the laser; if that point lies inside the fan and before the laser's first hit,
     it glows with ``exp(-c (s + r_cam)) / (s |cos a|)`` (sheet irradiance ~ 1/s, path through the sheet
     ~ 1/|cos a| for a ray at angle a to the sheet normal) times a phase factor ``1 / (1 + s / 0.5 m)`` that
-    makes it brighter near the camera. Computed at quarter resolution, blurred by ``water.glow_sigma_px``
-    (sheet thickness and multiple scattering) and resized; occlusion of the glow by objects between the
-    camera and the sheet is ignored.
+    makes it brighter near the camera. Computed at quarter resolution and blurred by ``water.glow_sigma_px``
+    (sheet thickness and multiple scattering); occlusion of the glow by objects between the camera and the
+    sheet is ignored.
     """
     h, w = shape
+    hl, wl = low_res_shape(h, w)
+    f = LOW_RES_FACTOR
     origin, a, b = fan_basis(calib, laser)
     n = calib.lasers[laser].normal_body
     half = model.fan_angle_rad / 2.0
@@ -583,14 +603,9 @@ def _glow(
     t_tab, _, _ = scene.raycast(origin, d)
     c = water.attenuation_per_m
     t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(c, 0.2)))
-    f = 4
-    hl, wl = (h + f - 1) // f, (w + f - 1) // f
-    ys, xs = np.mgrid[0:hl, 0:wl]
-    uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
-    rays = calib.rays_body(uv)
+    rays, norm = _low_res_rays(calib, h, w)
     C = calib.camera_center_body
     with np.errstate(divide="ignore", invalid="ignore"):
-        norm = np.linalg.norm(rays, axis=1)
         denom = rays @ n
         tp = ((origin - C) @ n) / denom
         p = C + tp[:, None] * rays
@@ -604,10 +619,9 @@ def _glow(
         val = np.exp(-c * (s + r_c)) / (np.maximum(s, 0.02) * np.maximum(cos_a, 0.02)) / (1.0 + s / 0.5)
     val = np.where(ok, val, 0.0).reshape(hl, wl).astype(np.float32)
     sig = max(water.glow_sigma_px * w / 1920.0 / f, 0.5)
-    val = cv2.GaussianBlur(val, (0, 0), sig)
-    full = cv2.resize(val, (wl * f, hl * f), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    val = np.asarray(cv2.GaussianBlur(val, (0, 0), sig), np.float32)
     # 0.2: a gain of 1 gives a faint band of a few DN with the default laser power
-    return (full * np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)).astype(np.float32)
+    return val * np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)
 
 
 def _ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> None:
@@ -770,16 +784,29 @@ def render(
     scene_body = truth.scene_body
     cam = calibration.camera
     h, w = cam.height, cam.width
-    img = background(h, w, water, rng)
-    _ambient(scene_body, calibration, water, img)
+    has_boards = any(isinstance(sf, Rectangle) and sf.board is not None for sf in scene_body.surfaces)
+    colour = np.asarray(model.colour_bgr, np.float32)
+    # smooth layers (glow, large blobs) are painted at quarter resolution
+    low_extra = np.zeros((*low_res_shape(h, w), 3), np.float32)
+    smooth = False
     if water.backscatter > 0:
-        glow = np.zeros((h, w), np.float32)
         for i in range(len(calibration.lasers)):
-            glow += _glow(scene_body, calibration, i, model, water, (h, w))
-        rows = np.flatnonzero(glow.max(axis=1) > 0.05)
-        if rows.size:
-            r0, r1 = int(rows[0]), int(rows[-1]) + 1
-            img[r0:r1] += glow[r0:r1, :, None] * np.asarray(model.colour_bgr, np.float32)
+            low_extra += _glow(scene_body, calibration, i, model, water, (h, w))[:, :, None] * colour
+        smooth = True
+    blobs = draw_blobs(h, w, water, rng)
+    big = [bl for bl in blobs if bl.s_across >= 2.0 * LOW_RES_FACTOR]
+    small = [bl for bl in blobs if bl.s_across < 2.0 * LOW_RES_FACTOR]
+    if big:
+        paint_blobs(low_extra, big, LOW_RES_FACTOR)
+        smooth = True
+    if smooth and water.ambient_dn <= 0 and not has_boards:
+        img = background(h, w, water, rng, extra_low=low_extra)
+    else:
+        img = background(h, w, water, rng)
+        _ambient(scene_body, calibration, water, img)
+        if smooth:
+            img += cv2.resize(low_extra, (w, h), interpolation=cv2.INTER_LINEAR)
+    paint_blobs(img, small)
     splats = [
         stripe_splats(s.uv, *_stripe_photometry(s, scene_body, calibration, i, model, water), seg, w, h)
         for i, (s, seg) in enumerate(raw)
@@ -799,7 +826,6 @@ def render(
         speckle_band = band
         apply_speckle(speckle_band, water, rng)
         img[r0 : r0 + band.shape[0]] += speckle_band[:, :, None] * np.asarray(model.colour_bgr, np.float32)
-    add_blobs(img, water, rng)
     add_snow(img, water, rng)
     add_sensor_noise(img, water, rng)
     np.maximum(img, 0.0, out=img)  # cheap; convertScaleAbs would fold negative values up

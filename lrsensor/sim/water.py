@@ -95,14 +95,24 @@ class WaterModel:
         return replace(self, **changes)  # type: ignore[arg-type]
 
 
-def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F32:
+#: Resolution factor of the smooth layers (background, glow): they are built at 1/4 resolution and resized.
+LOW_RES_FACTOR = 4
+
+
+def low_res_shape(h: int, w: int) -> tuple[int, int]:
+    """Shape (rows, cols) of the smooth layers for an H x W image."""
+    f = LOW_RES_FACTOR
+    return max(2, (h + f - 1) // f), max(2, (w + f - 1) // f)
+
+
+def background(h: int, w: int, water: WaterModel, rng: np.random.Generator, extra_low: F32 | None = None) -> F32:
     """The water background, (H, W, 3) float32 BGR in DN: a low-frequency bluish-green murk with vignetting.
 
-    Built at 1/8 resolution (everything in it is smooth) and resized, so it costs a few milliseconds.
+    Built at 1/4 resolution (everything in it is smooth) and resized, so it costs a few milliseconds.
+    ``extra_low`` (:func:`low_res_shape` + (3,)) is another smooth layer added before the resize (the glow).
     """
     base = np.asarray(water.background_bgr, dtype=np.float32)
-    f = 8
-    hl, wl = max(2, (h + f - 1) // f), max(2, (w + f - 1) // f)
+    hl, wl = low_res_shape(h, w)
     low = np.empty((hl, wl, 3), np.float32)
     low[:] = base
     if water.texture > 0:
@@ -125,7 +135,9 @@ def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F
     if water.haze_dn > 0:
         colour = base / max(float(base.max()), 1e-6)
         low += water.haze_dn * colour
-    if water.texture == 0 and water.vignetting == 0:
+    if extra_low is not None:
+        low += extra_low
+    elif water.texture == 0 and water.vignetting == 0:
         img = np.empty((h, w, 3), np.float32)
         img[:] = low[0, 0]
         return img
@@ -133,10 +145,24 @@ def background(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> F
     return out
 
 
-def add_blobs(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
-    """Draw green distractor blobs (some elongated, stripe-like) in place on a float32 BGR image."""
-    h, w = img.shape[:2]
+@dataclass(frozen=True)
+class Blob:
+    """A distractor blob: centre (px), sigmas across/along (px), angle (rad), peak (DN), B and R bleed."""
+
+    cx: float
+    cy: float
+    s_across: float
+    s_along: float
+    angle: float
+    amp: float
+    blue: float
+    red: float
+
+
+def draw_blobs(h: int, w: int, water: WaterModel, rng: np.random.Generator) -> list[Blob]:
+    """Random green distractor blobs (fish, algae, reflections), about a third elongated like a stripe."""
     scale = w / 1920.0
+    out = []
     for _ in range(water.blobs):
         cx, cy = rng.uniform(0, w), rng.uniform(0, h)
         elongated = rng.uniform() < 0.35
@@ -144,20 +170,36 @@ def add_blobs(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
         s2 = s1 * (rng.uniform(3.0, 8.0) if elongated else rng.uniform(1.0, 2.0))
         ang = rng.uniform(-0.4, 0.4) if elongated else rng.uniform(0, np.pi)
         amp = rng.uniform(25.0, 160.0)
+        out.append(Blob(cx, cy, s1, s2, ang, amp, rng.uniform(0.2, 0.6), rng.uniform(0.0, 0.3)))
+    return out
+
+
+def paint_blobs(img: F32, blobs: list[Blob], factor: float = 1.0) -> None:
+    """Add blobs to a float32 BGR image in place; ``factor`` > 1 paints on an image ``factor`` times smaller."""
+    h, w = img.shape[:2]
+    for bl in blobs:
+        cx = (bl.cx + 0.5) / factor - 0.5
+        cy = (bl.cy + 0.5) / factor - 0.5
+        s1, s2 = bl.s_across / factor, bl.s_along / factor
         r = int(np.ceil(3.0 * max(s1, s2)))
         x0, x1 = max(0, int(cx) - r), min(w, int(cx) + r + 1)
         y0, y1 = max(0, int(cy) - r), min(h, int(cy) + r + 1)
         if x0 >= x1 or y0 >= y1:
             continue
         yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float32)
-        dx, dy = xx - cx, yy - cy
-        c, s = np.cos(ang), np.sin(ang)
-        a = (c * dx + s * dy) / s2
-        b = (-s * dx + c * dy) / s1
-        g = amp * np.exp(-0.5 * (a * a + b * b))
+        dx, dy = xx - np.float32(cx), yy - np.float32(cy)
+        c, s = np.float32(np.cos(bl.angle)), np.float32(np.sin(bl.angle))
+        a = (c * dx + s * dy) / np.float32(s2)
+        b = (-s * dx + c * dy) / np.float32(s1)
+        g = np.float32(bl.amp) * np.exp(np.float32(-0.5) * (a * a + b * b))
         img[y0:y1, x0:x1, 1] += g
-        img[y0:y1, x0:x1, 0] += g * rng.uniform(0.2, 0.6)
-        img[y0:y1, x0:x1, 2] += g * rng.uniform(0.0, 0.3)
+        img[y0:y1, x0:x1, 0] += g * np.float32(bl.blue)
+        img[y0:y1, x0:x1, 2] += g * np.float32(bl.red)
+
+
+def add_blobs(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
+    """Draw green distractor blobs (some elongated, stripe-like) in place on a float32 BGR image."""
+    paint_blobs(img, draw_blobs(img.shape[0], img.shape[1], water, rng))
 
 
 def add_snow(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
@@ -171,20 +213,17 @@ def add_snow(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
     sig = rng.uniform(0.6, 2.0, n)
     amp = rng.uniform(20.0, 170.0, n)
     k = np.arange(-6, 7)
-    flat = np.zeros(h * w, np.float64)
     xs = np.floor(cx)[:, None, None] + k[None, None, :]
     ys = np.floor(cy)[:, None, None] + k[None, :, None]
     val = amp[:, None, None] * np.exp(
         -0.5 * (((xs - cx[:, None, None]) ** 2 + (ys - cy[:, None, None]) ** 2) / sig[:, None, None] ** 2)
     )
     xs, ys = np.broadcast_arrays(xs, ys)
-    ok = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
-    idx = (ys[ok] * w + xs[ok]).astype(np.int64)
-    flat += np.bincount(idx, weights=val[ok], minlength=h * w)
-    snow = flat.reshape(h, w).astype(np.float32)
-    img[:, :, 0] += 0.9 * snow
-    img[:, :, 1] += snow
-    img[:, :, 2] += 0.7 * snow
+    ok = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h) & (val > 0.05)
+    pix = (ys[ok] * w + xs[ok]).astype(np.int64)
+    flat = img.reshape(-1)
+    for ch, gain in ((0, 0.9), (1, 1.0), (2, 0.7)):
+        np.add.at(flat, pix * 3 + ch, (gain * val[ok]).astype(np.float32))
 
 
 def apply_speckle(laser_map: F32, water: WaterModel, rng: np.random.Generator) -> None:
