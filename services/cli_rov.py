@@ -3,7 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 from .zconfig import add_network_args
 
@@ -41,6 +47,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="at the end of a finite source, wait this long for the base station to acknowledge every cloud",
     )
     parser.add_argument("--seq-start", type=int, default=0, help="first sequence number (continue after a restart)")
+    g = parser.add_argument_group("store-and-forward outbox (every cloud is kept until the base acknowledges it)")
+    g.add_argument(
+        "--outbox",
+        metavar="DIR",
+        default=None,
+        help="persistent outbox folder: unacknowledged clouds survive a ROV restart and the numbering continues "
+        "(default: a temporary folder for this run, which covers base restarts and link outages)",
+    )
+    g.add_argument("--outbox-max-mb", type=float, default=1024.0, help="outbox bound, MiB (oldest dropped, counted)")
+    g.add_argument("--outbox-max-messages", type=int, default=20_000, help="outbox bound, clouds")
+    g.add_argument("--outbox-no-fsync", action="store_true", help="do not fsync each cloud (faster, not power-safe)")
+    g.add_argument("--no-outbox", action="store_true", help="publish only (clouds sent during an outage are lost)")
     parser.add_argument("--video-t0-ns", type=int, default=None, help="capture time of a video's first frame")
     parser.add_argument("--sim-frames", type=int, default=60, help="frames of the simulated dive (--source sim)")
     parser.add_argument("--sim-size", default="640x360", help="image size of the simulated camera (WxH)")
@@ -56,11 +74,11 @@ def run(args: argparse.Namespace) -> int:
     from lrsensor.calibration import Calibration
 
     from .errors import CalibrationUnavailableError
-    from .imu import open_imu
+    from .imu import ImuSource, open_imu
     from .keys import FleetKeys, check_robot_name
     from .rov import RovService, fetch_calibration
     from .signals import stop_on_signals
-    from .sources import FolderSource, open_source
+    from .sources import FolderSource, FrameSource, open_source
     from .zconfig import NetworkOptions, open_session, options_from_args
 
     keys = FleetKeys(args.fleet, args.prefix)
@@ -84,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         from .simsource import open_sim
 
         w, _, h = args.sim_size.partition("x")
+        source: FrameSource
+        imu: ImuSource
         source, sim_imu, sim_calib = open_sim(
             n_frames=args.sim_frames, width=int(w), height=int(h), seed=args.sim_seed, robot=robot
         )
@@ -100,7 +120,12 @@ def run(args: argparse.Namespace) -> int:
         imu = open_imu(imu_spec)
         if isinstance(source, FolderSource) and (source.folder / "calib.json").is_file():
             dive_calib = Path(source.folder / "calib.json")
-    with stop_on_signals() as stop, open_session(options, default_mode="client") as session:
+    with (
+        stop_on_signals() as stop,
+        open_session(options, default_mode="client") as session,
+        _open_delivery(args, session, keys, robot) as sink,
+    ):
+        seq_start = args.seq_start if sink is None else max(args.seq_start, sink.outbox.next_seq)
         if calibration is None:
             try:
                 calibration = fetch_calibration(session, keys, robot, args.calib_timeout_s, stop)
@@ -119,8 +144,53 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             method=args.method,
             ack_timeout_s=args.ack_timeout_s,
-            seq_start=args.seq_start,
+            seq_start=seq_start,
+            sink=sink,
         )
         counters = service.run(stop)
+        if sink is not None:
+            if counters.delivered and len(sink.outbox):  # older clouds of a persistent outbox
+                sink.wait_empty(args.ack_timeout_s, stop)
+            st = sink.stats()
+            o = st["outbox"]
+            print(
+                f"rov {robot}: outbox {o['pending']} pending, {st['acked']} acknowledged, {st['resent']} re-sent, "
+                f"{o['dropped']} dropped (full), {st['unstored']} not stored",
+                flush=True,
+            )
     print(counters.summary(robot), flush=True)
     return 0
+
+
+@contextlib.contextmanager
+def _open_delivery(args: argparse.Namespace, session: Any, keys: Any, robot: str) -> Iterator[Any]:
+    """The robot's :class:`~services.delivery.OutboxSink` (None with ``--no-outbox``), closed at the end.
+
+    A temporary outbox is removed at the end when empty; when clouds are still pending its folder is kept
+    and named, so that a later ``lrsensor rov --outbox DIR`` can deliver them.
+    """
+    if args.no_outbox:
+        yield None
+        return
+    from .delivery import OutboxSink
+    from .outbox import Outbox
+
+    temporary = args.outbox is None
+    folder = Path(tempfile.mkdtemp(prefix=f"lrs-outbox-{robot}-")) if temporary else Path(args.outbox)
+    outbox = Outbox(
+        folder,
+        max_messages=args.outbox_max_messages,
+        max_bytes=int(args.outbox_max_mb * 1024 * 1024),
+        fsync=not args.outbox_no_fsync,
+    )
+    if len(outbox):
+        log.warning("rov %s: %d clouds from an earlier run are pending in %s", robot, len(outbox), folder)
+    sink = OutboxSink(session, keys, robot, outbox)
+    try:
+        yield sink
+    finally:
+        sink.close()
+        if len(outbox):
+            log.warning("rov %s: %d clouds not acknowledged are kept in %s", robot, len(outbox), folder)
+        elif temporary:
+            shutil.rmtree(folder, ignore_errors=True)
