@@ -205,5 +205,27 @@ def test_cli_simulate_list_scene_wall_dive(tmp_path: Path, capsys: pytest.Captur
         == 0
     )
     assert len(list((tmp_path / "d").glob("*.png"))) == 2
+    pose = "6,1.5,2,0,0,90"
+    assert (
+        main(
+            [
+                "simulate",
+                "scene",
+                "tank",
+                "--out",
+                str(tmp_path / "t"),
+                "--width",
+                "320",
+                "--height",
+                "180",
+                "--pose",
+                pose,
+            ]
+        )
+        == 0
+    )
+    tank = json.loads((tmp_path / "t" / "truth.json").read_text())
+    assert tank["pose_ned"]["yaw_rad"] == pytest.approx(math.pi / 2)
+    assert main(["simulate", "scene", "tank", "--out", str(tmp_path / "t"), "--pose", "1,2"]) == 2
     assert main(["simulate", "scene", "nope", "--out", str(tmp_path / "x")]) == 2
     assert "unknown scene" in capsys.readouterr().err

@@ -3,7 +3,7 @@
 Sub-commands::
 
     lrsensor simulate list
-    lrsensor simulate scene NAME --out DIR [--seed N] [--width W --height H] [--water KIND]
+    lrsensor simulate scene NAME --out DIR [--seed N] [--width W --height H] [--water KIND] [--pose N,E,D,R,P,Y]
     lrsensor simulate wall --distance-m D [--normal NX,NY,NZ] [--calib TRUE.json] [--board] --out DIR
     lrsensor simulate dive --out DIR [--robot NAME] [--robot-index K --robots N] [--duration-s S]
                            [--rate-hz R] [--seed N] [--width W --height H]
@@ -39,6 +39,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="output directory")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--water", choices=WATER_KINDS, default="scene", help="water model (default: the scene's own)")
+    p.add_argument(
+        "--pose",
+        help="vehicle pose for NED scenes (tank): NORTH_M,EAST_M,DOWN_M,ROLL_DEG,PITCH_DEG,YAW_DEG",
+    )
     _size_flags(p, 1920, 1080)
 
     p = sub.add_parser(
@@ -140,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
     if args.sim_command == "scene":
         setup = named_scene(args.name, args.width, args.height)
         setup = setup.with_(water=_water(args.water, setup.water))
+        if args.pose:
+            setup = setup.with_(pose=_parse_pose(args.pose))
         r = setup.render(seed=args.seed)
         _write_render(args.out, r, setup)
         n = sum(len(lt) for lt in r.truth.lasers)
@@ -151,6 +157,22 @@ def run(args: argparse.Namespace) -> int:
         return _run_dive(args)
     print(f"lrsensor simulate: unknown command {args.sim_command!r}", file=sys.stderr)
     return 2
+
+
+def _parse_pose(text: str) -> Any:
+    import math
+
+    from ..errors import SimulationError
+    from ..frames import Pose
+
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 6:
+        msg = f"--pose must be NORTH_M,EAST_M,DOWN_M,ROLL_DEG,PITCH_DEG,YAW_DEG (6 numbers), got {text!r}"
+        raise SimulationError(msg)
+    return Pose(v[0], v[1], v[2], math.radians(v[3]), math.radians(v[4]), math.radians(v[5]))
 
 
 def _run_wall(args: argparse.Namespace) -> int:

@@ -88,7 +88,7 @@ def offset_loop(
     return np.concatenate(pts), np.concatenate(nrm)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Trajectory:
     """A vehicle flying a closed loop at constant speed, looking along the loop's normal.
 
