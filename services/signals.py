@@ -42,5 +42,5 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
     try:
         yield event
     finally:
-        for sig, h in previous.items():
-            signal.signal(sig, h)
+        for signum, h in previous.items():
+            signal.signal(signum, h)

@@ -46,9 +46,9 @@ class FrameSource(Protocol):
     live: bool
     name: str
 
-    def __enter__(self) -> FrameSource: ...
+    def __enter__(self) -> Any: ...
 
-    def __exit__(self, *exc: object) -> None: ...
+    def __exit__(self, *exc: Any) -> None: ...
 
     def __iter__(self) -> Iterator[Frame]: ...
 
@@ -104,7 +104,7 @@ class FolderSource:
                 self.unreadable += 1
                 log.warning("%s: unreadable image, skipped", path)
                 continue
-            yield Frame(t_ns, image, i)
+            yield Frame(t_ns, np.asarray(image, dtype=np.uint8), i)
 
 
 class VideoSource:

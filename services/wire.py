@@ -375,9 +375,9 @@ class StatusMsg:
         if state not in STATES:
             msg = f"{where}: unknown state {state!r}; one of {STATES}"
             raise WireError(msg)
-        counters = [_int_field(obj, name, where) for name in cls._COUNTERS]
+        frames, published, skipped, failed = (_int_field(obj, name, where) for name in cls._COUNTERS)
         last_seq = _int_field(obj, "last_seq", where, minimum=-1)
-        return cls(robot, t_ns, state, *counters, last_seq=last_seq)
+        return cls(robot, t_ns, state, frames, published, skipped, failed, last_seq)
 
     def to_json_dict(self) -> dict[str, Any]:
         """The counters as a JSON-ready mapping."""
