@@ -342,3 +342,23 @@ def test_true_points_on_rays_scores_any_measurement() -> None:
     back = r.truth.true_points_on_rays(far, C)
     rel = (np.linalg.norm(far - C, axis=1) - np.linalg.norm(back - C, axis=1)) / np.linalg.norm(back - C, axis=1)
     np.testing.assert_allclose(rel, 0.01, atol=1e-9)
+
+
+def test_steep_stripe_rows_are_centred() -> None:
+    # a laser rolled by 70 degrees draws a steep stripe: it is drawn per row, each row centred on the truth
+    from lrsensor.frames import rot_x
+
+    calib = named_scene("wall_1.0").calibration
+    n = rot_x(math.radians(70)) @ np.array([0.0, 0.0, 1.0])
+    calib = calib.with_lasers([LaserPlane.make("steep", (0, 0, -0.05), n)])
+    r = render(Scene((wall_rectangle(1.0),)), calib, water=WaterModel.clean(), keep_layers=True)
+    lt = r.truth.lasers[0]
+    order = np.argsort(lt.uv[:, 1])
+    layer = r.layers["laser"].astype(float)
+    errs = []
+    for row in range(100, 1000, 37):
+        u_t = np.interp(row, lt.uv[order, 1], lt.uv[order, 0])
+        lo = round(u_t) - 15
+        w = layer[row, lo : lo + 31]
+        errs.append((w * np.arange(lo, lo + 31)).sum() / w.sum() - u_t)
+    assert np.abs(errs).max() < 1e-3

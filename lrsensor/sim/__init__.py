@@ -18,15 +18,23 @@ Public API (stable; other parts of the project build on it)::
     r.truth.visible_columns(0)                      # integer columns where laser 0 is visible
     r.truth.scene_body.distance_to_surface(points)  # error metric for triangulated points (body frame)
     r.truth.boards()                                # checkerboards: corners_body (rows*cols,3), plane
+    r.truth.true_points_on_rays(points, C)          # true point on each measurement's camera ray (scoring)
 
     wall_scene(0.5, normal=(1, 0, 0), calibration=true_calib)   # wall n.p = 0.5 m (n: camera -> wall)
     checkerboard_wall_scene(1.0, board=Checkerboard(9, 6, 0.05, offset_u_m=.., offset_v_m=..))
     render(scene, calibration, pose=None, water=WaterModel.turbid(), laser_model=LaserModel(), seed=0)
 
 Scenes: :mod:`lrsensor.sim.scene` has :class:`Plane`, :class:`Rectangle` (optionally carrying a
-:class:`Checkerboard`), :class:`Cylinder`, :func:`box` (6 rectangles), and :class:`Scene` (surfaces in the
-body frame or in NED; ``Scene.raycast(origins, dirs) -> (t, surface_id, normal)``,
-``Scene.distance_to_surface(points)``, ``Scene.in_body(pose)``).
+:class:`Checkerboard`: inner corners, square size, offset and rotation on the wall), :class:`Cylinder`,
+:func:`box` (6 rectangles), ``stained(surfaces, amount)`` (albedo pattern), and :class:`Scene` (surfaces in
+the body frame or in NED; ``Scene.raycast(origins, dirs) -> (t, surface_id, normal)``,
+``Scene.distance_to_surface(points)``, ``Scene.in_body(pose)``, ``Scene.to_dicts()``).
+
+Rendering: every laser fan (from the TRUE calibration's plane and point, 120 deg centred on body +x) is traced
+densely into the scene (first hit, then the camera's view of it: occlusion and shadows), projected with
+``Camera.project`` (OpenCV distortion), and drawn per column (per row where steeper than 45 deg) as a Gaussian
+profile at the exact sub-pixel centre (sigma from blur and sheet thickness; peak from range, incidence,
+albedo and water attenuation; clipped at 255: flat-topped close up), green with a little blue/red bleed.
 
 Named scenes (:data:`SCENES`): ``paper_box``, ``wall_0.3`` .. ``wall_3.0``, ``tilted_wall``, ``corner``,
 ``pipe``, ``occluder``, ``turbid``, ``cluttered``, ``tilted_lasers``, ``distorted``, ``checkerboard_wall``,
