@@ -423,11 +423,11 @@ def trace_fan(
         if not (np.any(smooth) or np.any(edge)):
             break
         # continuous pairs: enough evenly spaced samples to close the gap (x1.5 for curvature);
-        # edges (occlusion, shadow, surface change, image border): 15 interior samples (4 bits per pass)
+        # edges (occlusion, shadow, surface change, image border): 63 interior samples (6 bits per pass)
         i_s = np.flatnonzero(smooth)
         k_s = np.minimum(np.ceil(1.5 * gap[i_s] / model.max_gap_px).astype(np.int64), 4096)
         i_e = np.flatnonzero(edge)
-        k_e = np.full(i_e.size, 16, dtype=np.int64)
+        k_e = np.full(i_e.size, 64, dtype=np.int64)
         i_all = np.concatenate([i_s, i_e])
         k_all = np.concatenate([k_s, k_e])
         rep = np.repeat(np.arange(i_all.size), k_all - 1)
@@ -708,8 +708,10 @@ def trace_truth(
     water: WaterModel | None = None,
     *,
     edge_tol_rad: float = 2e-7,
-) -> tuple[Truth, list[tuple[_Samples, IntArray]]]:
+) -> tuple[Truth, list[tuple[_Samples, IntArray, FloatArray, FloatArray]]]:
     """Trace every laser into the scene without drawing: the ground truth and the raw samples.
+
+    The raw samples per laser are ``(samples, segment, peak_dn, sigma_px)``.
 
     ``edge_tol_rad`` is how precisely (fan angle) occlusion and shadow edges are located.
     """
@@ -722,7 +724,7 @@ def trace_truth(
     for i, lp in enumerate(calibration.lasers):
         s, seg = trace_fan(scene_body, calibration, i, model, theta_tol_rad=edge_tol_rad)
         peak, sigma = _stripe_photometry(s, scene_body, calibration, i, model, water)
-        raw.append((s, seg))
+        raw.append((s, seg, peak, sigma))
         with np.errstate(invalid="ignore"):
             vis = (
                 (seg >= 0)
@@ -807,10 +809,7 @@ def render(
         if smooth:
             img += cv2.resize(low_extra, (w, h), interpolation=cv2.INTER_LINEAR)
     paint_blobs(img, small)
-    splats = [
-        stripe_splats(s.uv, *_stripe_photometry(s, scene_body, calibration, i, model, water), seg, w, h)
-        for i, (s, seg) in enumerate(raw)
-    ]
+    splats = [stripe_splats(s.uv, peak, sigma, seg, w, h) for s, seg, peak, sigma in raw]
     r0, band = accumulate_band(
         np.concatenate([sp[0] for sp in splats]),
         np.concatenate([sp[1] for sp in splats]),
