@@ -148,7 +148,7 @@ def test_no_stripe_is_refused(bench: dict[str, Any], tmp_path: Path, capsys: Any
 
 @pytest.mark.parametrize(
     ("wall", "extra"),
-    [("=-0.5", []), ("=0", []), ("=0.5", ["--wall-normal=-1,0,0"])],
+    [("=-0.5", []), ("=0", []), ("=0.5", ["--wall-normal", "-1,0,0"])],
     ids=["negative-distance", "zero-distance", "normal-facing-away"],
 )
 def test_wall_behind_the_camera_is_refused(

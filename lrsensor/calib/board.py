@@ -62,26 +62,61 @@ class BoardSpec:
         return pts.astype(np.float32)
 
 
+def stripe_mask(image: NDArray[np.uint8]) -> NDArray[np.bool_]:
+    """Pixels (H, W) of the green laser stripes: much greener than blue and red (``G - max(B, R) > 25`` DN),
+    dilated by 2 px. All false for a grey image."""
+    if image.ndim == 2:
+        return np.zeros(image.shape, dtype=bool)
+    import cv2
+
+    b = image[:, :, 0].astype(np.int16)
+    g = image[:, :, 1].astype(np.int16)
+    r = image[:, :, 2].astype(np.int16)
+    stripe = np.asarray((g - np.maximum(b, r)) > 25, dtype=np.uint8)
+    if not stripe.any():
+        return stripe.astype(bool)
+    return np.asarray(cv2.dilate(stripe, np.ones((5, 5), np.uint8)), dtype=bool)
+
+
 def _gray_candidates(image: NDArray[np.uint8]) -> list[NDArray[np.uint8]]:
     """Grey images to search: with the green laser stripe painted out first (it shifts corners), then as is.
 
-    Stripe pixels are those much greener than their blue and red (``G - max(B, R) > 25`` DN), dilated by
-    2 px, filled with ``cv2.inpaint`` (Telea) from their surroundings.
+    The stripe pixels (:func:`stripe_mask`) are filled with ``cv2.inpaint`` (Telea) from their surroundings.
     """
     import cv2
 
     if image.ndim == 2:
         return [image]
     gray = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
-    b = image[:, :, 0].astype(np.int16)
-    g = image[:, :, 1].astype(np.int16)
-    r = image[:, :, 2].astype(np.int16)
-    stripe = np.asarray((g - np.maximum(b, r)) > 25, dtype=np.uint8)
-    if not stripe.any():
+    mask = stripe_mask(image)
+    if not mask.any():
         return [gray]
-    mask = cv2.dilate(stripe, np.ones((5, 5), np.uint8))
-    painted = np.asarray(cv2.inpaint(gray, mask, 3, cv2.INPAINT_TELEA), dtype=np.uint8)
+    painted = np.asarray(cv2.inpaint(gray, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA), dtype=np.uint8)
     return [painted, gray]
+
+
+def corners_clear_of_stripes(
+    image: NDArray[np.uint8], corners: FloatArray, spec: BoardSpec, min_keep: int = 6
+) -> NDArray[np.bool_]:
+    """Mask (N,) of corners whose refinement window holds no laser-stripe pixel (a stripe shifts a corner).
+
+    When fewer than ``min_keep`` corners would remain, all are kept (the robust pose then trims outliers).
+    """
+    import cv2
+
+    mask = stripe_mask(image)
+    keep = np.ones(corners.shape[0], dtype=bool)
+    if not mask.any():
+        return keep
+    grid = corners.reshape(spec.rows, spec.cols, 2)
+    spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
+    radius = int(np.clip(spacing * 0.35, 2, 11)) + 2
+    dist = cv2.distanceTransform(np.asarray(~mask, dtype=np.uint8), cv2.DIST_L2, 3)
+    h, w = mask.shape
+    u = np.clip(np.rint(corners[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(corners[:, 1]).astype(int), 0, h - 1)
+    keep = dist[v, u] > radius
+    return keep if int(keep.sum()) >= min_keep else np.ones(corners.shape[0], dtype=bool)
 
 
 def _refine(gray: NDArray[np.uint8], corners: FloatArray, spec: BoardSpec) -> FloatArray:
@@ -181,7 +216,7 @@ def estimate_board_pose(image: NDArray[np.uint8], camera: Camera, spec: BoardSpe
         raise CalibrationFitError(msg)
     obj_all = spec.object_points()
     img_all = corners.astype(np.float32)
-    keep = np.ones(obj_all.shape[0], dtype=bool)
+    keep = corners_clear_of_stripes(image, corners, spec)
     err = np.zeros(0)
     used = keep
     for it in range(4):

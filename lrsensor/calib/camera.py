@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..camera import Camera
 from ..errors import CalibrationFitError
-from .board import BoardSpec, find_board_corners
+from .board import BoardSpec, corners_clear_of_stripes, find_board_corners
 
 ImageLike = str | os.PathLike[str] | NDArray[np.uint8]
 
@@ -84,7 +84,7 @@ def calibrate_camera(
     base: Calibration | None = None,
     min_images: int = 3,
     max_rms_px: float = 1.0,
-    fix_k3: bool = True,
+    fix_k3: bool = False,
     progress: bool = False,
 ) -> CameraCalibrationResult:
     """Estimate the camera intrinsics from images of a checkerboard.
@@ -95,7 +95,7 @@ def calibrate_camera(
         base: calibration whose mounting and lasers are kept (default: ``Calibration.paper()`` lasers).
         min_images: refuse with fewer boards found.
         max_rms_px: refuse when the RMS reprojection error exceeds this, pixels.
-        fix_k3: keep k3 = 0 (advisable unless the boards cover the image corners well).
+        fix_k3: keep k3 = 0 (for narrow lenses and few boards; wide lenses such as the paper's need k3).
         progress: tqdm progress bar over the images.
 
     Raises:
@@ -129,8 +129,9 @@ def calibrate_camera(
         if corners is None:
             not_found.append(name)
             continue
-        obj_pts.append(obj)
-        img_pts.append(corners.astype(np.float32).reshape(-1, 1, 2))
+        clear = corners_clear_of_stripes(img, corners, board)
+        obj_pts.append(obj[clear])
+        img_pts.append(corners[clear].astype(np.float32).reshape(-1, 1, 2))
         used.append(name)
     if len(used) < min_images or size is None:
         msg = (

@@ -108,7 +108,7 @@ class LaserCalibrationConfig:
     max_residual_m: float = 0.006
     outlier_m: float = 0.010
     ransac_threshold_m: float = 0.002
-    max_outlier_fraction: float = 0.3
+    max_outlier_fraction: float = 0.5
     min_points_per_image: int = 20
     min_points: int = 50
     min_spread_m: float = 0.01

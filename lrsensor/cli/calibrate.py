@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -84,6 +85,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
             "behind the camera, or only one wall distance is given without a mounting point."
         ),
     )
+    # Let vectors such as "-1,0,0" or "-0.05" be values, not options (--wall-normal -1,0,0).
+    if hasattr(las, "_negative_number_matcher"):
+        las._negative_number_matcher = re.compile(r"^-[\d.]+([eE][-+]?\d+)?(,[-+\d.eE]+)*$")
     las.add_argument("--calib", required=True, type=Path, help="input calibration (camera, mounting, nominal lasers)")
     las.add_argument("--wall", action="append", required=True, metavar="IMAGE=DIST_M", help=WALL_HELP)
     las.add_argument("--out", required=True, type=Path, help="output calibration file (JSON, written only on success)")
@@ -92,7 +96,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default="1,0,0",
         metavar="NX,NY,NZ",
         help="wall normal in the body frame, from the camera towards the wall (default 1,0,0: a wall "
-        "square to the body x axis, ahead; write a leading minus as --wall-normal=-1,0,0)",
+        "square to the body x axis, ahead)",
     )
     las.add_argument(
         "--distance-from",
@@ -121,8 +125,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     las.add_argument(
         "--max-outlier-fraction",
         type=float,
-        default=0.3,
-        help="refuse when more than this fraction of one image's points of a laser are outliers (default 0.3)",
+        default=0.5,
+        help="refuse when more than this fraction of one image's points of a laser are outliers (default 0.5)",
     )
     las.add_argument(
         "--min-points",
@@ -198,7 +202,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     cam.add_argument("--min-images", type=int, default=3, help="refuse with fewer boards found (default 3)")
     cam.add_argument("--max-rms-px", type=float, default=1.0, help="refuse above this RMS error (default 1.0 px)")
-    cam.add_argument("--k3", action="store_true", help="also estimate k3 (default: k3 fixed at 0)")
+    cam.add_argument("--fix-k3", action="store_true", help="keep k3 at 0 (default: estimate k1, k2, p1, p2, k3)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -307,7 +311,7 @@ def _run_camera(args: argparse.Namespace) -> int:
             base=base,
             min_images=args.min_images,
             max_rms_px=args.max_rms_px,
-            fix_k3=not args.k3,
+            fix_k3=args.fix_k3,
             progress=True,
         )
     except CameraCalibrationError as err:
