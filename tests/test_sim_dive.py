@@ -37,6 +37,10 @@ def test_tank_trajectories_are_distinct_safe_and_look_at_structure() -> None:
     for tr in trajs:
         assert clearance_m(tr, 240.0) > 0.4, tr.name
         assert in_range_fraction(tr, 240.0, step_s=2.0) > 0.8, tr.name
+    # trajectory k does not depend on how many were asked for; a big fleet does not collide either
+    big = tank_trajectories(20)
+    assert big[3].pose_at(big[3].t0_ns + 5_000_000_000) == trajs[3].pose_at(trajs[3].t0_ns + 5_000_000_000)
+    assert min_separation_m(big, 120.0, step_s=1.0) > 0.5
     p0 = trajs[0].pose_at(trajs[0].t0_ns)
     p1 = trajs[1].pose_at(trajs[1].t0_ns)
     assert np.linalg.norm(p0.p_ned - p1.p_ned) > 1.0

@@ -186,10 +186,12 @@ def tank_trajectories(
 ) -> list[Trajectory]:
     """``n`` distinct, non-colliding trajectories in the tank (:func:`~lrsensor.sim.scenes.tank_scene`).
 
-    Robot k flies one of three loops, at its own depth (robots on one depth are half a loop apart):
-    ``k % 3 == 0``: along the walls 1.3 m off them, looking at the walls; ``k % 3 == 1``: around both pillars
-    and the pipe 1.2 m off the pillars' centres, looking at them; ``k % 3 == 2``: along the walls 1.7 m off,
-    the other way round. Walls, pillars or the pipe stay 0.4-3 m in front of the camera most of the time.
+    Robot k flies on depth level ``k % 5`` (1.0, 1.7, 2.4, 3.1 or 0.4 m); the level fixes its loop:
+    level % 3 == 0: along the walls 1.3 m off them, looking at the walls; == 1: around both pillars and the
+    pipe 0.9 m off the pillars' centres, looking at them; == 2: along the walls 1.7 m off, the other way
+    round. Robots sharing a level fly the same loop at the same speed, spread along it (0, 1/2, 1/4, 3/4, ...
+    of a lap), so they never meet; loops on nearby levels stay apart in plan. Trajectory k does not depend
+    on ``n``. Walls, pillars or the pipe fill a quarter of the fan within 0.4-3 m about 90 % of the time.
     """
     if n < 1:
         msg = f"need at least one trajectory, got {n}"
@@ -197,9 +199,10 @@ def tank_trajectories(
     ln, le, depth = TANK_SIZE_M
     (p1, _), (p2, _) = TANK_PILLARS
     out = []
-    depths = [1.0, 1.7, 2.4, 3.1, 1.35]
+    depths = [1.0, 1.7, 2.4, 3.1, 0.4]
     for k in range(n):
-        kind = k % 3
+        level, j = k % len(depths), k // len(depths)
+        kind = level % 3
         if kind == 1:
             pts, nrm = offset_loop([p1, p2], 0.9)
             look = -nrm
@@ -212,19 +215,28 @@ def tank_trajectories(
             pts, nrm = offset_loop(core, r)
             look = nrm
             speed = speed_m_s if kind == 0 else -speed_m_s
-        round_ = k // len(depths)
         traj = Trajectory(
             name=(names[k] if names is not None else f"rov{k + 1}"),
             points_ne=pts,
             look_ne=look,
             speed_m_s=speed,
-            down_m=min(depths[k % len(depths)], depth - 0.6),
+            down_m=min(depths[level], depth - 0.6),
             t0_ns=t0_ns,
             phase=0.9 * k,
         )
-        start = ((0.37 * k + 0.5 * round_) % 1.0) * traj.length_m
+        start = ((0.37 * level + _van_der_corput(j)) % 1.0) * traj.length_m
         out.append(replace(traj, start_m=start))
     return out
+
+
+def _van_der_corput(j: int) -> float:
+    """The j-th term of the base-2 van der Corput sequence: 0, 1/2, 1/4, 3/4, 1/8, ..."""
+    x, denom = 0.0, 1.0
+    while j:
+        denom *= 2.0
+        x += (j & 1) / denom
+        j >>= 1
+    return x
 
 
 def min_separation_m(trajectories: Sequence[Trajectory], duration_s: float, step_s: float = 0.5) -> float:
