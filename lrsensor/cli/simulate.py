@@ -69,6 +69,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-hz", type=float, default=5.0, help="frame rate, Hz (default 5)")
     p.add_argument("--imu-rate-hz", type=float, default=100.0, help="IMU rate, Hz (default 100)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: from the robot index)")
+    p.add_argument("--water", choices=WATER_KINDS[1:], default="default", help="water model (default: default)")
+    p.add_argument("--t0-ns", type=int, default=None, help="time of the first frame, ns since the epoch")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _size_flags(p, 960, 540)
 
@@ -210,7 +212,7 @@ def _run_wall(args: argparse.Namespace) -> int:
 def _run_dive(args: argparse.Namespace) -> int:
     import re
 
-    from ..sim.dive import record_dive
+    from ..sim.dive import DEFAULT_T0_NS, record_dive
 
     index = args.robot_index
     if index is None:
@@ -229,6 +231,8 @@ def _run_dive(args: argparse.Namespace) -> int:
         width=args.width,
         height=args.height,
         seed=seed,
+        water=_water(args.water, None),
+        t0_ns=DEFAULT_T0_NS if args.t0_ns is None else args.t0_ns,
         progress=not args.no_progress,
     )
     print(f"dive {args.robot}: wrote {len(rec.frames)} frames, imu.csv, calib.json, truth.json to {rec.out_dir}")
