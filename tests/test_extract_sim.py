@@ -83,3 +83,22 @@ def test_paper_method_is_the_percent_level_baseline() -> None:
     assert 0.3 <= s["median"] <= 3.0, s  # the paper reports 1-2 %
     sub = _score("paper_box")
     assert sub["median"] < s["median"] / 10
+
+
+def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    from lrsensor.extract import _kernels, subpixel
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    r = sim.named_scene("cluttered").render(seed=2)
+    monkeypatch.setattr(subpixel, "USE_NUMBA", True)
+    fast = subpixel.extract(r.image, r.calibration)
+    monkeypatch.setattr(subpixel, "USE_NUMBA", False)
+    slow = subpixel.extract(r.image, r.calibration)
+    assert fast.uv.shape == slow.uv.shape
+    assert np.array_equal(fast.laser, slow.laser)
+    assert np.array_equal(fast.uv[:, 0], slow.uv[:, 0])
+    dv = np.abs(fast.uv[:, 1] - slow.uv[:, 1])  # float32 (numpy) vs float64 (kernel) arithmetic
+    assert np.percentile(dv, 99) < 1e-3
+    assert dv.max() < 0.05
+    assert np.allclose(fast.quality, slow.quality, atol=1e-6)

@@ -37,6 +37,7 @@ class ProfileFit:
         background: local background level at the centre, DN.
         saturated: the peak is clipped (flat-topped).
         ok: the profile passed the checks (a peak, width within limits, centre inside the window).
+        noise: local noise (DN): spread of the flank samples about the linear background.
     """
 
     centre: FloatArray
@@ -45,6 +46,7 @@ class ProfileFit:
     background: FloatArray
     saturated: NDArray[np.bool_]
     ok: NDArray[np.bool_]
+    noise: FloatArray
 
 
 def fit_profiles(
@@ -92,6 +94,11 @@ def fit_profiles(
     br /= flank_px
     xl = (R - off - 0.5 * (flank_px - 1)).astype(np.float32)
     slope = (br - bl) / (2.0 * off + flank_px - 1).astype(np.float32)
+    ss = np.zeros(n, np.float32)
+    for k in range(flank_px):
+        ss += (P[R - off - k, cols] - bl - slope * (R - off - k - xl)) ** 2
+        ss += (P[R + off + k, cols] - bl - slope * (R + off + k - xl)) ** 2
+    local_noise = np.sqrt(ss / max(2 * flank_px - 2, 1)).astype(np.float64)
     A = P - (bl + slope * (x - xl))
     # 2. start value and width: three-point log-parabola at spacing s
     s = max(1, round(0.8 * sigma_hint))
@@ -135,4 +142,4 @@ def fit_profiles(
     amp = np.where(saturated, P[R] - (bl + slope * (R - xl)), amp).astype(np.float64)
     ok &= np.isfinite(c64) & (np.abs(c64 - R) <= 2.0) & (amp > 0)
     background = (bl + slope * (c - xl)).astype(np.float64)
-    return ProfileFit(np.where(ok, c64, np.nan), amp, sigma.astype(np.float64), background, saturated, ok)
+    return ProfileFit(np.where(ok, c64, np.nan), amp, sigma.astype(np.float64), background, saturated, ok, local_noise)

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
-from . import Detections
+from . import Detections, _kernels
 from .bands import LaserBands, laser_bands
 from .centre import FWHM_PER_SIGMA, fit_profiles
 
@@ -62,6 +62,8 @@ class SubpixelConfig:
         smooth_half_cols: half-width of the along-stripe quadratic smoothing, columns (0 = off).
         min_green_ratio: a candidate's green rise must exceed this fraction of its red and blue rises.
         smooth_detect_cols: horizontal box smoothing of the detection response, columns (1 = off).
+        min_snr: smallest accepted peak-to-noise ratio of a point (noise: the larger of the band's and the
+            profile's flanks'); saturated peaks always pass.
     """
 
     min_range_m: float = 0.2
@@ -76,7 +78,8 @@ class SubpixelConfig:
     min_run_cols: int = 8
     smooth_half_cols: int = 24
     min_green_ratio: float = 1.2
-    smooth_detect_cols: int = 3
+    smooth_detect_cols: int = 7
+    min_snr: float = 2.5
 
     def __post_init__(self) -> None:
         if not (0 < self.min_range_m < self.max_range_m):
@@ -385,6 +388,64 @@ def _gather(image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int,
     return image.reshape(-1)[(rr * w + cols[None, :]) * 3 + channel]
 
 
+def _pick_numpy(
+    U: IntArray, Vr: IntArray, Ar: FloatArray, n_cols: int, cfg: SubpixelConfig, block: int
+) -> tuple[IntArray, FloatArray, IntArray, IntArray]:
+    """Numpy path of candidate selection: plateaus, k strongest, chains, pick (see ``select_candidates``)."""
+    U, Vf, Ar = _merge_plateaus(U, Vr, Ar)
+    k = int(min(cfg.max_candidates, np.bincount(U).max()))
+    V, A = _top_k(U, Vf, Ar, n_cols, k)
+    root, length, strength = _chains(V, A, cfg.max_jump_px, block)
+    score = np.where(np.isfinite(V.ravel()) & (length >= cfg.min_run_cols), strength, -np.inf).reshape(n_cols, k)
+    pick = np.argmax(score, axis=1) if k > 1 else np.zeros(n_cols, np.int64)
+    col_v = np.flatnonzero(np.isfinite(score[np.arange(n_cols), pick]))
+    node = col_v * k + pick[col_v]
+    return col_v, V.ravel()[node], root[node], length[node]
+
+
+def _fit_numpy(
+    image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int, sig: float, cfg: SubpixelConfig
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
+    """Numpy path of the profile fits (see ``fit_columns``): centre row, amplitude, sigma, saturated, ok, noise."""
+    h, w = image.shape[:2]
+    e = 3
+    Pb = _gather(image, cols, rows, half + e, 1)
+    core = Pb[half : half + 2 * e + 1]
+    shift = np.argmax(core, axis=0) - e
+    satc = core >= cfg.saturation_dn
+    has_sat = satc.any(axis=0)
+    if bool(has_sat.any()):
+        first = np.argmax(satc, axis=0)
+        last = 2 * e - np.argmax(satc[::-1], axis=0)
+        shift = np.where(has_sat, (first + last) // 2 - e, shift)
+    rows = rows + shift
+    P = np.take_along_axis(Pb, (e + shift)[None, :] + np.arange(2 * half + 1)[:, None], axis=0)
+    fit = fit_profiles(
+        P,
+        transposed=True,
+        sigma_hint=sig,
+        saturation_dn=cfg.saturation_dn,
+        min_sigma_px=cfg.min_fwhm_px / FWHM_PER_SIGMA,
+        max_sigma_px=cfg.max_sigma_px,
+    )
+    ok = fit.ok.copy()
+    flat = image.reshape(-1)
+    rp = np.clip(rows, 0, h - 1)
+    pix = (rp * w + cols) * 3
+    lo = (np.clip(rows - half, 0, h - 1) * w + cols) * 3
+    hi = (np.clip(rows + half, 0, h - 1) * w + cols) * 3
+    rise = [
+        flat[pix + ch].astype(np.float64) - 0.5 * (flat[lo + ch].astype(np.float64) + flat[hi + ch]) for ch in (0, 1, 2)
+    ]
+    ok &= (rise[1] >= cfg.min_green_ratio * np.maximum(rise[0], rise[2])) | fit.saturated
+    centre = np.where(ok, rows - half + fit.centre, np.nan)
+    return centre, fit.amplitude, fit.sigma, fit.saturated, ok, fit.noise
+
+
+#: Use the compiled kernels when numba is installed (tests switch this to compare both paths).
+USE_NUMBA = _kernels.HAVE_NUMBA
+
+
 def extract(
     image: NDArray[np.uint8], calibration: Calibration, config: SubpixelConfig | None = None, **options: Any
 ) -> Detections:
@@ -401,8 +462,9 @@ def extract(
     """
     cfg = SubpixelConfig.from_options(config, **options)
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
-    h, w = image.shape[:2]
+    w = image.shape[1]
     n_l = plan.bands.n_lasers
+    fast = USE_NUMBA
     # 1-2. candidates of every laser in its band; laser l's columns are numbered l * w + u ("virtual columns")
     parts = []
     noise = np.ones(n_l)
@@ -417,74 +479,80 @@ def extract(
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
-    U, Vf, Ar = _merge_plateaus(U, Vr, Ar)
+    order = np.argsort(U, kind="stable")  # by column; rows stay ascending (findNonZero is row-major)
+    U, Vr, Ar = U[order], Vr[order], Ar[order]
     n_cols = n_l * w
-    k = int(min(cfg.max_candidates, np.bincount(U).max()))
-    V, A = _top_k(U, Vf, Ar, n_cols, k)
     # 3. continuity: chains; per column the candidate on the strongest long-enough chain
-    root, length, strength = _chains(V, A, cfg.max_jump_px, w)
-    score = np.where(np.isfinite(V.ravel()) & (length >= cfg.min_run_cols), strength, -np.inf).reshape(n_cols, k)
-    pick = np.argmax(score, axis=1) if k > 1 else np.zeros(n_cols, np.int64)
-    col_v = np.flatnonzero(np.isfinite(score[np.arange(n_cols), pick]))
+    if fast:
+        k = int(min(cfg.max_candidates, np.bincount(U).max()))
+        col_v, rows_f, chain, chain_len = _kernels.select_candidates(
+            U, Vr, Ar, n_cols, k, float(cfg.max_jump_px), w, 3, cfg.min_run_cols
+        )
+    else:
+        col_v, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols, cfg, w)
     if col_v.size == 0:
         return Detections.empty()
-    node = col_v * k + pick[col_v]
-    rows = np.rint(V.ravel()[node]).astype(np.int64)
-    chain, chain_len = root[node], length[node]
+    rows = np.rint(rows_f).astype(np.int64)
     laser = col_v // w
     cols = col_v - laser * w
     # 4. sub-pixel centre on the green profile; window and spacing from the typical width of this frame
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
     P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-    probe = fit_profiles(P0, transposed=True, saturation_dn=cfg.saturation_dn, max_sigma_px=1.5 * cfg.max_sigma_px)
-    good = probe.ok & ~probe.saturated
-    sig_med = float(np.median(probe.sigma[good])) if np.any(good) else 1.0
+    if fast:
+        _, _, p_sig, p_sat, p_ok, _ = _kernels.fit_columns(
+            image,
+            cols[sub],
+            rows[sub],
+            half0 - 3,
+            3,
+            1.0,
+            float(cfg.saturation_dn),
+            0.3,
+            1.5 * float(cfg.max_sigma_px),
+            3,
+            1,
+            0.0,
+        )
+    else:
+        probe = fit_profiles(P0, transposed=True, saturation_dn=cfg.saturation_dn, max_sigma_px=1.5 * cfg.max_sigma_px)
+        p_sig, p_sat, p_ok = probe.sigma, probe.saturated, probe.ok
+    good = p_ok & ~p_sat
+    sig_med = float(np.median(p_sig[good])) if np.any(good) else 1.0
     sig_med = float(np.clip(sig_med, 0.6, cfg.max_sigma_px))
     plateau = float(np.percentile((cfg.saturation_dn <= P0).sum(axis=0), 90))
-    half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 6)))
-    # re-centre each window on its integer peak (the middle of a saturated run)
-    e = 3
-    Pb = _gather(image, cols, rows, half + e, 1)
-    core = Pb[half : half + 2 * e + 1]
-    shift = np.argmax(core, axis=0) - e
-    satc = core >= cfg.saturation_dn
-    has_sat = satc.any(axis=0)
-    if bool(has_sat.any()):
-        first = np.argmax(satc, axis=0)
-        last = 2 * e - np.argmax(satc[::-1], axis=0)
-        shift = np.where(has_sat, (first + last) // 2 - e, shift)
-    rows = rows + shift
-    P = np.take_along_axis(Pb, (e + shift)[None, :] + np.arange(2 * half + 1)[:, None], axis=0)
-    fit = fit_profiles(
-        P,
-        transposed=True,
-        sigma_hint=sig_med,
-        saturation_dn=cfg.saturation_dn,
-        min_sigma_px=cfg.min_fwhm_px / FWHM_PER_SIGMA,
-        max_sigma_px=cfg.max_sigma_px,
-    )
-    ok = fit.ok & (fit.amplitude >= cfg.min_contrast_dn)
-    # colour: at the peak, green must rise above the local background more than red and blue do
-    flat = image.reshape(-1)
-    pix = (rows * w + cols) * 3
-    lo = (np.clip(rows - half, 0, h - 1) * w + cols) * 3
-    hi = (np.clip(rows + half, 0, h - 1) * w + cols) * 3
-    rise = [
-        flat[pix + ch].astype(np.float64) - 0.5 * (flat[lo + ch].astype(np.float64) + flat[hi + ch]) for ch in (0, 1, 2)
-    ]
-    ok &= (rise[1] >= cfg.min_green_ratio * np.maximum(rise[0], rise[2])) | fit.saturated
+    half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
+    if fast:
+        vv, amp, sig, _sat, ok, lnoise = _kernels.fit_columns(
+            image,
+            cols,
+            rows,
+            half,
+            3,
+            sig_med,
+            float(cfg.saturation_dn),
+            cfg.min_fwhm_px / FWHM_PER_SIGMA,
+            float(cfg.max_sigma_px),
+            3,
+            2,
+            float(cfg.min_green_ratio),
+        )
+    else:
+        vv, amp, sig, _sat, ok, lnoise = _fit_numpy(image, cols, rows, half, sig_med, cfg)
+    # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
+    # backgrounds, speckle, haze)
+    snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
+    ok &= (amp >= cfg.min_contrast_dn) & ((snr >= cfg.min_snr) | _sat)
     col_v, chain, chain_len = col_v[ok], chain[ok], chain_len[ok]
-    vv = rows[ok] - half + fit.centre[ok]
-    amp, sig = fit.amplitude[ok], fit.sigma[ok]
+    vv, amp, sig, snr = vv[ok], amp[ok], sig[ok], snr[ok]
     if col_v.size == 0:
         return Detections.empty()
-    # runs: consecutive (virtual) columns on one chain
+    # runs: (virtual) columns on one chain with gaps of at most 3 columns
     new = np.ones(col_v.size, bool)
     new[1:] = (np.diff(col_v) > 3) | (chain[1:] != chain[:-1])
     run_id = np.cumsum(new) - 1
     keep = np.bincount(run_id)[run_id] >= max(2, cfg.min_run_cols // 2)
-    col_v, vv, amp, sig, chain_len, run_id = col_v[keep], vv[keep], amp[keep], sig[keep], chain_len[keep], run_id[keep]
+    col_v, vv, sig, chain_len, run_id, snr = col_v[keep], vv[keep], sig[keep], chain_len[keep], run_id[keep], snr[keep]
     # 5. along-stripe smoothing
     if cfg.smooth_half_cols >= 1 and col_v.size:
         y = np.full(n_cols, np.nan)
@@ -493,10 +561,12 @@ def extract(
         run[col_v] = run_id
         k0 = cfg.smooth_half_cols
         scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True))
-        vv = _smooth(y, run, scales)[col_v]
+        if fast:
+            vv = _kernels.smooth_runs(y, run, np.asarray(scales, np.int64))[col_v]
+        else:
+            vv = _smooth(y, run, scales)[col_v]
     # 6. quality
     laser = col_v // w
-    snr = amp / np.maximum(noise[laser], 0.5)
     q_snr = 1.0 - np.exp(-snr / 8.0)
     sig = np.where(np.isfinite(sig), sig, cfg.max_sigma_px)
     q_w = np.clip(np.minimum(sig / 0.6, 1.5 * cfg.max_sigma_px / np.maximum(sig, 1e-6) - 0.5), 0.2, 1.0)

@@ -1,0 +1,429 @@
+"""Compiled per-column kernels of the sub-pixel extractor (numba), with the same results as the numpy code.
+
+The image-wide steps (band response, local maxima) are OpenCV operations; what remains is a few thousand
+columns of small, branchy work (candidate chains, profile fits, along-stripe smoothing) where numpy spends its
+time in call overhead. These loops compile once (``cache=True``) and run in a fraction of a millisecond.
+Import :data:`HAVE_NUMBA` to know whether they are available; the extractor falls back to numpy otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+try:  # pragma: no cover - depends on the platform
+    import numba
+
+    HAVE_NUMBA = True
+    _njit: Any = numba.njit(cache=True, nogil=True, fastmath=False)
+except ImportError:  # pragma: no cover
+    HAVE_NUMBA = False
+
+    def _njit(f: Any) -> Any:
+        return f
+
+
+@_njit
+def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run):  # type: ignore[no-untyped-def]
+    """Merge plateaus, keep the k strongest candidates per column, link chains, pick per column.
+
+    Args:
+        u, v, a: (N,) int64 columns, int64 rows and float64 strengths of the candidates, sorted by column then row.
+        n_cols: number of (virtual) columns; k_max: candidates kept per column; max_jump: row step of a link;
+        block: columns per laser (no links across); max_gap: largest column step of a link; min_run: shortest
+        accepted chain (nodes).
+
+    Returns:
+        ``(cols, rows, chain, chain_len)`` of the picked candidate per column that has one: (M,) int64, float64,
+        int64, int64.
+    """
+    n = u.size
+    # 1. merge plateaus: maxima of one column closer than 3 rows
+    mu = np.empty(n, np.int64)
+    mv = np.empty(n, np.float64)
+    ma = np.empty(n, np.float64)
+    m = 0
+    i = 0
+    while i < n:
+        j = i
+        s = float(v[i])
+        best = a[i]
+        while j + 1 < n and u[j + 1] == u[i] and v[j + 1] - v[j] <= 3:
+            j += 1
+            s += v[j]
+            if a[j] > best:
+                best = a[j]
+        mu[m] = u[i]
+        mv[m] = s / (j - i + 1)
+        ma[m] = best
+        m += 1
+        i = j + 1
+    # 2. k strongest per column
+    K = k_max
+    V = np.full((n_cols, K), np.nan)
+    A = np.zeros((n_cols, K))
+    for t in range(m):
+        c = mu[t]
+        # insert by strength (descending)
+        pos = K
+        for q in range(K):
+            if not (A[c, q] >= ma[t]) or math.isnan(V[c, q]):
+                pos = q
+                break
+        if pos == K:
+            continue
+        for q in range(K - 1, pos, -1):
+            V[c, q] = V[c, q - 1]
+            A[c, q] = A[c, q - 1]
+        V[c, pos] = mv[t]
+        A[c, pos] = ma[t]
+    # 3. chains: mutual nearest links, first between neighbouring columns, then across small gaps
+    nn = n_cols * K
+    prev = np.arange(nn)
+    has_next = np.zeros(nn, np.bool_)
+    has_prev = np.zeros(nn, np.bool_)
+    for lag in range(1, max_gap + 1):
+        for c in range(n_cols - lag):
+            if c // block != (c + lag) // block:
+                continue
+            d = c + lag
+            for i0 in range(K):
+                va = V[c, i0]
+                if math.isnan(va) or has_next[c * K + i0]:
+                    continue
+                jb = -1
+                db = np.inf
+                for j0 in range(K):
+                    vb = V[d, j0]
+                    if math.isnan(vb) or has_prev[d * K + j0]:
+                        continue
+                    dd = abs(va - vb)
+                    if dd < db:
+                        db = dd
+                        jb = j0
+                if jb < 0 or db > max_jump:
+                    continue
+                # mutual: is i0 the nearest free node of column c for jb?
+                ib = -1
+                dbb = np.inf
+                vb = V[d, jb]
+                for q in range(K):
+                    vq = V[c, q]
+                    if math.isnan(vq) or has_next[c * K + q]:
+                        continue
+                    dd = abs(vq - vb)
+                    if dd < dbb:
+                        dbb = dd
+                        ib = q
+                if ib != i0:
+                    continue
+                prev[d * K + jb] = c * K + i0
+                has_next[c * K + i0] = True
+                has_prev[d * K + jb] = True
+    root = np.arange(nn)
+    for node in range(nn):  # links point to lower columns: one pass in column order
+        p = prev[node]
+        if p != node:
+            root[node] = root[p]
+    length = np.zeros(nn, np.int64)
+    strength = np.zeros(nn)
+    for node in range(nn):
+        if not math.isnan(V[node // K, node % K]):
+            length[root[node]] += 1
+            strength[root[node]] += A[node // K, node % K]
+    # 4. per column the candidate on the strongest long-enough chain
+    cols = np.empty(n_cols, np.int64)
+    rows = np.empty(n_cols, np.float64)
+    chain = np.empty(n_cols, np.int64)
+    clen = np.empty(n_cols, np.int64)
+    out = 0
+    for c in range(n_cols):
+        best_s = -1.0
+        best_q = -1
+        for q in range(K):
+            node = c * K + q
+            if math.isnan(V[c, q]):
+                continue
+            r = root[node]
+            if length[r] >= min_run and strength[r] > best_s:
+                best_s = strength[r]
+                best_q = q
+        if best_q >= 0:
+            node = c * K + best_q
+            cols[out] = c
+            rows[out] = V[c, best_q]
+            chain[out] = root[node]
+            clen[out] = length[root[node]]
+            out += 1
+    return cols[:out], rows[:out], chain[:out], clen[:out]
+
+
+@_njit
+def fit_columns(image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio):  # type: ignore[no-untyped-def]
+    """Sub-pixel centre per column, the loop twin of :func:`lrsensor.extract.centre.fit_profiles`.
+
+    For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
+    uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
+    flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
+    symmetric-window centroid). The colour check compares the rise of green with red and blue at the peak.
+
+    Returns:
+        ``(centre_row, amplitude, sigma, saturated, ok, local_noise)``, each (N,).
+    """
+    h = image.shape[0]
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    centre = np.full(n, np.nan)
+    amp_out = np.zeros(n)
+    sig_out = np.full(n, np.nan)
+    sat_out = np.zeros(n, np.bool_)
+    ok_out = np.zeros(n, np.bool_)
+    noise_out = np.zeros(n)
+    P = np.empty(m + 2 * e)
+    for t in range(n):
+        col = cols[t]
+        r0 = rows[t] - half - e
+        for q in range(m + 2 * e):
+            rr = min(max(r0 + q, 0), h - 1)
+            P[q] = image[rr, col, 1]
+        # re-centre on the integer peak within +-e
+        bq = e + R
+        bv = -1.0
+        nsat_core = 0
+        first = -1
+        last = -1
+        for q in range(R, R + 2 * e + 1):
+            if P[q] > bv:
+                bv = P[q]
+                bq = q
+            if P[q] >= sat_dn:
+                nsat_core += 1
+                if first < 0:
+                    first = q
+                last = q
+        if nsat_core > 0:
+            bq = (first + last) // 2
+        shift = bq - (e + R)
+        o = e + shift  # window start in P
+        pk_row = rows[t] + shift
+        # saturation
+        n_sat = 0
+        for q in range(m):
+            if P[o + q] >= sat_dn:
+                n_sat += 1
+        saturated = P[o + R] >= sat_dn and n_sat >= 2
+        # 1. linear background
+        off = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank + 1))
+        bl = 0.0
+        br = 0.0
+        for q in range(flank):
+            bl += P[o + R - off - q]
+            br += P[o + R + off + q]
+        bl /= flank
+        br /= flank
+        xl = R - off - 0.5 * (flank - 1)
+        slope = (br - bl) / (2.0 * off + flank - 1)
+        ss = 0.0
+        for q in range(flank):
+            r1 = P[o + R - off - q] - (bl + slope * (R - off - q - xl))
+            r2 = P[o + R + off + q] - (bl + slope * (R + off + q - xl))
+            ss += r1 * r1 + r2 * r2
+        noise_out[t] = math.sqrt(ss / max(2 * flank - 2, 1))
+        # 2. log-parabola start
+        s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+        am = P[o + R - s] - (bl + slope * (R - s - xl))
+        a0 = P[o + R] - (bl + slope * (R - xl))
+        ap = P[o + R + s] - (bl + slope * (R + s - xl))
+        ym = math.log(max(am, 0.5))
+        y0 = math.log(max(a0, 0.5))
+        yp = math.log(max(ap, 0.5))
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        if curved:
+            delta = min(max(0.5 * s * (ym - yp) / den, -1.0), 1.0)
+            sigma = s / math.sqrt(-den)
+        else:
+            delta = 0.0
+            sigma = np.inf
+        c = R + delta
+        if saturated:
+            sigma = max(0.5 * n_sat / 1.1774, sigma_hint)
+        ok = saturated or (curved and sigma >= min_sig and sigma <= max_sig)
+        sig_p = sigma if math.isfinite(sigma) else sigma_hint
+        sig_p = min(max(sig_p, min_sig), max_sig)
+        sig_w = max(sig_p, 1.1)
+        inv2 = 0.5 / (sig_w * sig_w)
+        gain = 1.0 if saturated else 1.0 + sig_p * sig_p * 2.0 * inv2
+        hs = 0.5 * n_sat + 2.5 * sigma_hint + 1.0
+        # 3. centroid iterations
+        g2 = math.exp(-2.0 * inv2)
+        for _ in range(iterations):
+            s0 = 0.0
+            s1 = 0.0
+            # Gaussian weights by recurrence: w(q+1) = w(q) r(q), r(q+1) = r(q) exp(-2 inv2) (two exp per column)
+            d0 = -c
+            w = math.exp(-(d0 * d0) * inv2)
+            ratio = math.exp(-(2.0 * d0 + 1.0) * inv2)
+            for q in range(m):
+                d = q - c
+                if saturated:
+                    wq = min(max(hs - abs(d), 0.0), 1.0)
+                else:
+                    wq = w
+                    w *= ratio
+                    ratio *= g2
+                wa = wq * (P[o + q] - (bl + slope * (q - xl)))
+                s0 += wa
+                s1 += wa * d
+            if s0 != 0.0:
+                step = gain * s1 / s0
+                if math.isfinite(step):
+                    c += min(max(step, -1.0), 1.0)
+        if saturated:
+            amp = P[o + R] - (bl + slope * (R - xl))
+        else:
+            amp = a0
+        ok = ok and math.isfinite(c) and abs(c - R) <= 2.0 and amp > 0
+        # colour: the rise of green at the peak must beat red and blue (saturated peaks pass)
+        if ok and not saturated:
+            rp = min(max(pk_row, 0), h - 1)
+            rl = min(max(pk_row - half, 0), h - 1)
+            rh = min(max(pk_row + half, 0), h - 1)
+            rise_b = image[rp, col, 0] - 0.5 * (float(image[rl, col, 0]) + image[rh, col, 0])
+            rise_g = image[rp, col, 1] - 0.5 * (float(image[rl, col, 1]) + image[rh, col, 1])
+            rise_r = image[rp, col, 2] - 0.5 * (float(image[rl, col, 2]) + image[rh, col, 2])
+            ok = rise_g >= green_ratio * max(rise_b, rise_r)
+        if ok:
+            centre[t] = pk_row - half + c
+        amp_out[t] = amp
+        sig_out[t] = sigma
+        sat_out[t] = saturated
+        ok_out[t] = ok
+    return centre, amp_out, sig_out, sat_out, ok_out, noise_out
+
+
+@_njit
+def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
+    """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing)."""
+    n = y.size
+    out = y.copy()
+    lag = 4
+    have = run >= 0
+    if n <= 2 * lag + 2:
+        return out
+    # run extents
+    run_lo = np.full(n, n, np.int64)
+    run_hi = np.full(n, -1, np.int64)
+    i = 0
+    while i < n:
+        if not have[i]:
+            i += 1
+            continue
+        j = i
+        last = i
+        while j + 1 < n and (not have[j + 1] or run[j + 1] == run[i]):
+            j += 1
+            if have[j]:
+                last = j
+        for q in range(i, last + 1):
+            if have[q]:
+                run_lo[q] = i
+                run_hi[q] = last
+        i = last + 1
+    # local noise: lag-4 second differences inside runs
+    d2 = np.zeros(n)
+    cnt2 = np.zeros(n)
+    vals = np.empty(n)
+    nv = 0
+    for q in range(lag, n - lag):
+        if have[q] and have[q - lag] and have[q + lag] and run[q - lag] == run[q] and run[q + lag] == run[q]:
+            dd = y[q - lag] - 2.0 * y[q] + y[q + lag]
+            d2[q] = dd * dd
+            cnt2[q] = 1.0
+            vals[nv] = dd * dd
+            nv += 1
+    if nv < 8:
+        return out
+    var_all = np.median(vals[:nv]) / (6.0 * 0.4549) + 1e-8
+    base = np.zeros(n)
+    for q in range(n):
+        if have[q]:
+            base[q] = y[run_lo[q]]
+    c_m = np.zeros(n + 1)
+    c_mx = np.zeros(n + 1)
+    c_mxx = np.zeros(n + 1)
+    c_z = np.zeros(n + 1)
+    c_zx = np.zeros(n + 1)
+    c_zz = np.zeros(n + 1)
+    c_d2 = np.zeros(n + 1)
+    c_n2 = np.zeros(n + 1)
+    for q in range(n):
+        mq = 1.0 if have[q] else 0.0
+        zq = y[q] - base[q] if have[q] else 0.0
+        c_m[q + 1] = c_m[q] + mq
+        c_mx[q + 1] = c_mx[q] + mq * q
+        c_mxx[q + 1] = c_mxx[q] + mq * q * q
+        c_z[q + 1] = c_z[q] + zq
+        c_zx[q + 1] = c_zx[q] + zq * q
+        c_zz[q + 1] = c_zz[q] + zq * zq
+        c_d2[q + 1] = c_d2[q] + d2[q]
+        c_n2[q + 1] = c_n2[q] + cnt2[q]
+    done = ~have
+    a_c = np.empty(n)
+    b_c = np.empty(n)
+    rss_c = np.empty(n)
+    acc_c = np.zeros(n, np.bool_)
+    best = np.empty(n)
+    val = np.empty(n)
+    for k in scales:
+        if k < 1 or 2 * k + 1 > n:
+            continue
+        for c in range(n):
+            acc_c[c] = False
+        for c in range(k, n - k):
+            lo = c - k
+            hi = c + k + 1
+            s0 = c_m[hi] - c_m[lo]
+            sx = c_mx[hi] - c_mx[lo]
+            sxx = c_mxx[hi] - c_mxx[lo]
+            t0 = c_z[hi] - c_z[lo]
+            tx = c_zx[hi] - c_zx[lo]
+            yy = c_zz[hi] - c_zz[lo]
+            s1 = sx - c * s0
+            s2 = sxx - 2.0 * c * sx + c * c * s0
+            t1 = tx - c * t0
+            det = s0 * s2 - s1 * s1
+            if s0 < 0.6 * (2 * k + 1) or det <= 1e-9:
+                continue
+            b = (s0 * t1 - s1 * t0) / det
+            a = (t0 - b * s1) / s0
+            rss = max(yy - a * t0 - b * t1, 0.0)
+            nvv = c_n2[hi] - c_n2[lo]
+            var = (c_d2[hi] - c_d2[lo]) / (6.0 * nvv) if nvv >= 5 else var_all
+            dof = max(s0 - 2.0, 1.0)
+            if rss <= max(var, 1e-8) * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)):
+                acc_c[c] = True
+                a_c[c] = a
+                b_c[c] = b
+                rss_c[c] = rss
+        for u in range(n):
+            if done[u]:
+                continue
+            best[u] = np.inf
+            val[u] = np.nan
+            for sh in (0, -k, k):
+                c = u + sh
+                if c < k or c >= n - k or not acc_c[c]:
+                    continue
+                if c - k < run_lo[u] or c + k > run_hi[u]:
+                    continue
+                if rss_c[c] < best[u]:
+                    best[u] = rss_c[c]
+                    val[u] = a_c[c] + b_c[c] * (-sh) + base[u]
+            if math.isfinite(val[u]):
+                out[u] = val[u]
+                done[u] = True
+    return out
