@@ -143,13 +143,19 @@ class VideoSource:
             raise SourceError(msg)
         fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
         i = 0
+        last_ms = -1.0
         while True:
-            pos_ms = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
             ok, image = self._cap.read()
             if not ok:
                 return
-            if pos_ms <= 0.0 and i > 0 and fps > 0:
+            # after read() the position is the timestamp of the frame just decoded (FFmpeg backend); fall back to
+            # index / fps when the container gives nothing usable
+            pos_ms = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
+            if pos_ms <= last_ms and fps > 0:
                 pos_ms = 1000.0 * i / fps
+            if pos_ms <= last_ms:
+                pos_ms = last_ms + 1e-3
+            last_ms = pos_ms
             yield Frame(self.t0_ns + round(pos_ms * 1e6), image, i)
             i += 1
 

@@ -336,3 +336,96 @@ def test_base_station_without_state_keeps_counters_in_memory() -> None:
         base: BaseStation = net.start_base(None, map_mode="off")
         assert base.state_dir is None
         assert base.status()["robots"] == {}
+
+
+# ----------------------------------------------------------------------------- ROV side without Open3D, video, map
+
+
+def test_rov_side_imports_without_open3d_or_mapping() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import services.rov, services.wire, services.imu, services.sources, services.cli_rov, services.simsource\n"
+        "bad = [m for m in ('open3d', 'mapping', 'matplotlib') if m in sys.modules]\n"
+        "assert not bad, bad\n"
+        "from lrsensor.cli import build_parser; build_parser()\n"
+        "assert 'open3d' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_video_source_stamps_frames_from_the_container(tmp_path: Path) -> None:
+    import cv2
+
+    from services.sources import VideoSource
+
+    path = tmp_path / "dive.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    assert w.isOpened()
+    for k in range(5):
+        w.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    w.release()
+    with VideoSource(path, t0_ns=1_000_000_000) as src:
+        frames = list(src)
+    assert len(frames) == 5
+    dt = np.diff([f.t_ns for f in frames])
+    assert np.allclose(dt, 100_000_000, atol=2_000_000)
+    assert frames[0].t_ns == 1_000_000_000
+    assert frames[0].image.shape == (48, 64, 3)
+
+
+def test_base_serves_the_map_and_publishes_its_updates(tmp_path: Path) -> None:
+    pytest.importorskip("open3d")
+    mapping = pytest.importorskip("mapping")
+    if not hasattr(mapping, "MapBuilder"):
+        pytest.skip("mapping.MapBuilder is not built yet")
+    updates: list[dict[str, Any]] = []
+    with TestNetwork("t9") as net:
+        base = net.start_base(tmp_path / "state", map_mode="on")
+        s = net.session()
+        sub = s.declare_subscriber(net.keys.map_updates, lambda smp: updates.append(json.loads(smp.payload.to_bytes())))
+        handles = []
+        for robot in ("rov1", "rov3"):
+            src, imu, calib = open_sim(n_frames=24, robot=robot, rate_hz=2, clean_water=True)
+            handles.append(net.start_rov(robot, src, imu, calib))
+        for h in handles:
+            assert h.join(120)
+            assert h.error is None
+        base.flush_map()
+        served = get_json(s, net.keys.map)
+        assert served["planes"], "the map has no plane"
+        for p in served["planes"]:
+            assert abs(np.linalg.norm(p["normal"]) - 1.0) < 1e-6
+            assert np.isfinite(p["d"])
+        assert base.status()["map"]["planes"] == len(served["planes"])
+        assert wait_for(lambda: len(updates) > 0)
+        assert all("planes" in u for u in updates)
+        sub.undeclare()
+    assert (tmp_path / "state" / "map").is_dir()
+
+
+def test_rov_cli_without_a_router_fails_clearly(capsys: pytest.CaptureFixture[str], dives: dict[str, Path]) -> None:
+    from lrsensor.cli import main
+    from services.testnet import free_port
+
+    folder = dives["rov1"]
+    code = main(
+        [
+            "rov",
+            "--fleet",
+            "x",
+            "--robot",
+            "rov1",
+            "--connect",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--source",
+            str(folder),
+            "--calib-timeout-s",
+            "1",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "cannot open a Zenoh session" in err
