@@ -376,6 +376,7 @@ def test_video_source_stamps_frames_from_the_container(tmp_path: Path) -> None:
     assert frames[0].image.shape == (48, 64, 3)
 
 
+@pytest.mark.slow
 def test_base_serves_the_map_and_publishes_its_updates(tmp_path: Path) -> None:
     pytest.importorskip("open3d")
     mapping = pytest.importorskip("mapping")
@@ -388,7 +389,7 @@ def test_base_serves_the_map_and_publishes_its_updates(tmp_path: Path) -> None:
         sub = s.declare_subscriber(net.keys.map_updates, lambda smp: updates.append(json.loads(smp.payload.to_bytes())))
         handles = []
         for robot in ("rov1", "rov3"):
-            src, imu, calib = open_sim(n_frames=24, robot=robot, rate_hz=2, clean_water=True)
+            src, imu, calib = open_sim(n_frames=16, robot=robot, rate_hz=2, clean_water=True)
             handles.append(net.start_rov(robot, src, imu, calib))
         for h in handles:
             assert h.join(120)

@@ -15,7 +15,7 @@ pytestmark = pytest.mark.slow
 
 
 def test_short_demo_delivers_every_cloud_and_writes_the_map(tmp_path: Path) -> None:
-    cfg = DemoConfig(n_robots=2, duration_s=6.0, width=320, height=180, out_dir=tmp_path / "out", progress=False)
+    cfg = DemoConfig(n_robots=2, duration_s=4.0, width=320, height=180, out_dir=tmp_path / "out", progress=False)
     res = run_demo(cfg)
     assert res.ok
     for row in res.rows:
