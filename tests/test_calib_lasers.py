@@ -220,3 +220,22 @@ def test_board_on_the_wall_gives_the_wall_pose(bench: dict[str, Any], tmp_path: 
         assert im["wall_source"] == "board"
         assert im["board_reprojection_px"] < 0.3
         assert im["wall_distance_m"] == pytest.approx(dist, abs=0.001)
+
+
+@pytest.mark.parametrize("distance_from", ["body", "camera"])
+def test_camera_off_the_body_origin(bench: dict[str, Any], distance_from: str) -> None:
+    """Camera 3 cm ahead of and 1 cm below the body origin; distances from the body origin or the camera."""
+    from dataclasses import replace
+
+    centre = np.array([0.03, 0.0, 0.01])
+    true = bench["true"]
+    t = tuple((-true.R_cam_body @ centre).tolist())
+    true = replace(true, t_cam_from_body=t)
+    nominal = replace(bench["nominal"], t_cam_from_body=t)
+    walls = []
+    for i, dist in enumerate(DISTANCES_M):
+        img = wall_scene(dist + 0.03, calibration=true).render(seed=50 + i).image
+        walls.append(WallImage(img, dist + 0.03 if distance_from == "body" else dist, name=f"w{dist}"))
+    result = calibrate_lasers(walls, nominal, LaserCalibrationConfig(distance_from=distance_from))
+    assert max(_normal_errors_deg(result.calibration, true)) < 0.05
+    assert result.calibration.t_cam_from_body == t

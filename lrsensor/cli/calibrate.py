@@ -281,7 +281,9 @@ def _run_lasers(args: argparse.Namespace) -> int:
                 print(f"residual plot written to {args.plot}")
         return _err(str(err))
     print(result.report.format_table())
-    result.calibration.save(args.out)
+    meta = dict(result.calibration.metadata)
+    meta["laser_calibration"] = {**meta["laser_calibration"], "input_calibration": str(args.calib)}
+    result.calibration.with_lasers(result.calibration.lasers, meta).save(args.out)
     print(f"calibration written to {args.out}")
     if args.plot is not None:
         from ..calib.report import plot_laser_residuals
