@@ -362,3 +362,24 @@ def test_steep_stripe_rows_are_centred() -> None:
         w = layer[row, lo : lo + 31]
         errs.append((w * np.arange(lo, lo + 31)).sum() / w.sum() - u_t)
     assert np.abs(errs).max() < 1e-3
+
+
+def test_halo_is_symmetric_and_camera_artifacts_render() -> None:
+    from lrsensor.sim import LaserModel
+
+    setup = named_scene("wall_1.0").with_(water=WaterModel.clean(), laser=LaserModel(halo_fraction=0.3))
+    r = setup.render(seed=0, keep_layers=True)
+    layer = r.layers["laser"].astype(float)
+    v = r.truth.v_at_columns(0, [960.0])[0]
+    lo = round(v) - 20
+    w = layer[lo : lo + 41, 960]
+    assert (w * np.arange(lo, lo + 41)).sum() / w.sum() == pytest.approx(v, abs=0.01)
+    assert w[10] > 0.5  # the halo reaches 10 px out
+    art = named_scene("camera_artifacts", *SMALL)
+    a = art.render(seed=1).image
+    b = art.with_(water=art.water.with_(jpeg_quality=0)).render(seed=1).image
+    c = art.with_(water=art.water.with_(jpeg_quality=0, bayer=False)).render(seed=1).image
+    assert a.shape == b.shape == c.shape == (270, 480, 3)
+    assert a.dtype == np.uint8
+    assert np.abs(a.astype(int) - b.astype(int)).max() > 0  # JPEG changed it
+    assert np.abs(b.astype(int) - c.astype(int)).max() > 0  # so did the Bayer mosaic

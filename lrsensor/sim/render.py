@@ -29,11 +29,11 @@ from .scene import Rectangle, Scene
 from .water import (
     LOW_RES_FACTOR,
     WaterModel,
-    add_sensor_noise,
     add_snow,
     apply_speckle,
     background,
     draw_blobs,
+    finish,
     low_res_shape,
     paint_blobs,
 )
@@ -59,6 +59,9 @@ class LaserModel:
         colour_bgr: relative response of the (B, G, R) channels to the green laser.
         max_gap_px: largest image spacing between consecutive fan samples, pixels.
         max_range_m: rays that hit nothing within this range are lost in the water.
+        halo_fraction: share (0..1) of the stripe's light in a wide symmetric halo (forward scattering in the
+            water, lens flare); 0 = a pure Gaussian profile.
+        halo_sigma_scale: sigma of the halo relative to the stripe's.
     """
 
     fan_angle_rad: float = math.radians(120.0)
@@ -69,6 +72,8 @@ class LaserModel:
     colour_bgr: tuple[float, float, float] = (0.3, 1.0, 0.08)
     max_gap_px: float = 1.0
     max_range_m: float = 30.0
+    halo_fraction: float = 0.0
+    halo_sigma_scale: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -826,7 +831,5 @@ def render(
         apply_speckle(speckle_band, water, rng)
         img[r0 : r0 + band.shape[0]] += speckle_band[:, :, None] * np.asarray(model.colour_bgr, np.float32)
     add_snow(img, water, rng)
-    add_sensor_noise(img, water, rng)
-    np.maximum(img, 0.0, out=img)  # cheap; convertScaleAbs would fold negative values up
-    image = np.asarray(cv2.convertScaleAbs(img), np.uint8)  # rounds and saturates at 255
+    image = finish(img, water, rng)
     return Render(image=image, calibration=calibration, truth=truth, layers=layers)

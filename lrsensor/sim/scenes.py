@@ -340,6 +340,16 @@ def _occluder(w: int, h: int) -> SimSetup:
     )
 
 
+def _camera_artifacts(w: int, h: int) -> SimSetup:
+    s = wall_scene(1.2, water=WaterModel.default().with_(bayer=True, jpeg_quality=90), width=w, height=h)
+    return replace(
+        s,
+        name="camera_artifacts",
+        laser=LaserModel(halo_fraction=0.15),
+        description="wall at 1.2 m seen by a real colour camera: Bayer demosaicing, JPEG (q 90), stripe halo",
+    )
+
+
 def _tank(w: int, h: int) -> SimSetup:
     return SimSetup(
         "tank",
@@ -372,6 +382,7 @@ _FACTORIES: dict[str, Callable[[int, int], SimSetup]] = {
     "tilted_lasers": _tilted_lasers,
     "distorted": _distorted,
     "checkerboard_wall": _checkerboard,
+    "camera_artifacts": _camera_artifacts,
     "tank": _tank,
 }
 

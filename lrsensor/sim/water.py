@@ -36,6 +36,9 @@ class WaterModel:
         blobs: number of green distractor blobs (fish, algae, reflections), some elongated like a stripe.
         snow: number of marine-snow particles (small bright dots).
         speckle: contrast (0..1) of the laser speckle, a multiplicative granular noise on the stripe.
+        bayer: simulate a colour sensor: the image is sampled on an RGGB Bayer mosaic (noise per photosite)
+            and demosaiced by OpenCV (bilinear), as a real colour camera delivers it.
+        jpeg_quality: compress the final image as JPEG at this quality (1-100; 0 = lossless, no JPEG).
     """
 
     background_bgr: tuple[float, float, float] = (38.0, 34.0, 12.0)
@@ -52,6 +55,8 @@ class WaterModel:
     blobs: int = 0
     snow: int = 0
     speckle: float = 0.0
+    bayer: bool = False
+    jpeg_quality: int = 0
 
     @classmethod
     def clean(cls) -> WaterModel:
@@ -259,9 +264,10 @@ def _noise_bank(h: int, w: int) -> F32:
 def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> None:
     """Add Gaussian read noise and signal-dependent shot noise, in place (float32 BGR, DN).
 
-    The unit noise is a randomly offset, channel-permuted, sign-flipped window of a fixed noise bank (fresh
-    Gaussian noise for 6 M values costs more than the rest of a render); the window is drawn from ``rng``, so a
-    render is deterministic for its seed and renders with different seeds get different noise.
+    The unit noise is a randomly offset, sign-flipped window of a fixed noise bank (fresh Gaussian noise for
+    6 M values costs more than the rest of a render); the window is drawn from ``rng``, so a render is
+    deterministic for its seed and renders with different seeds get different noise. ``img`` is (H, W, 3)
+    or a (H, W) Bayer mosaic.
     """
     if water.read_noise_dn <= 0 and water.shot_noise_gain <= 0:
         return
@@ -270,6 +276,8 @@ def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> N
     oy, ox = (int(x) for x in rng.integers(0, _BANK_PAD, 2))
     sign = np.float32(1.0 if rng.uniform() < 0.5 else -1.0)
     noise = bank[oy : oy + h, ox : ox + w]
+    if img.ndim == 2:
+        noise = np.ascontiguousarray(noise[:, :, 0])
     if water.shot_noise_gain > 0:
         # img >= 0 here (every layer adds light): sd = sqrt(read^2 + img / gain), all in OpenCV (one pass each)
         sd = img * np.float32(1.0 / water.shot_noise_gain)
@@ -282,3 +290,34 @@ def add_sensor_noise(img: F32, water: WaterModel, rng: np.random.Generator) -> N
             cv2.add(img, sd, img)
     else:
         cv2.scaleAdd(noise, float(sign * water.read_noise_dn), img, img)
+
+
+def finish(img: F32, water: WaterModel, rng: np.random.Generator) -> NDArray[np.uint8]:
+    """Sensor noise, 8-bit quantisation (saturating at 255), optional Bayer mosaic/demosaic and JPEG.
+
+    Args:
+        img: (H, W, 3) float32 BGR in DN, light only (>= 0); modified in place.
+
+    Returns:
+        (H, W, 3) uint8 BGR.
+    """
+    if water.bayer:
+        mosaic = np.empty(img.shape[:2], np.float32)
+        mosaic[0::2, 0::2] = img[0::2, 0::2, 2]  # R
+        mosaic[0::2, 1::2] = img[0::2, 1::2, 1]  # G
+        mosaic[1::2, 0::2] = img[1::2, 0::2, 1]  # G
+        mosaic[1::2, 1::2] = img[1::2, 1::2, 0]  # B
+        add_sensor_noise(mosaic, water, rng)
+        np.maximum(mosaic, 0.0, out=mosaic)
+        raw = np.asarray(cv2.convertScaleAbs(mosaic), np.uint8)
+        code = getattr(cv2, "COLOR_BayerRGGB2BGR", cv2.COLOR_BayerBG2BGR)
+        image = np.asarray(cv2.cvtColor(raw, code), np.uint8)
+    else:
+        add_sensor_noise(img, water, rng)
+        np.maximum(img, 0.0, out=img)  # cheap; convertScaleAbs would fold negative values up
+        image = np.asarray(cv2.convertScaleAbs(img), np.uint8)  # rounds and saturates at 255
+    if water.jpeg_quality > 0:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(min(water.jpeg_quality, 100))])
+        if ok:
+            image = np.asarray(cv2.imdecode(buf, cv2.IMREAD_COLOR), np.uint8)
+    return image
