@@ -815,6 +815,12 @@ def render(
             img += cv2.resize(low_extra, (w, h), interpolation=cv2.INTER_LINEAR)
     paint_blobs(img, small)
     splats = [stripe_splats(s.uv, peak, sigma, seg, w, h) for s, seg, peak, sigma in raw]
+    if model.halo_fraction > 0:
+        hf, k = model.halo_fraction, model.halo_sigma_scale
+        splats += [
+            stripe_splats(s.uv, peak * hf / max(1.0 - hf, 1e-6) / k, sigma * k, seg, w, h)
+            for s, seg, peak, sigma in raw
+        ]
     r0, band = accumulate_band(
         np.concatenate([sp[0] for sp in splats]),
         np.concatenate([sp[1] for sp in splats]),
