@@ -38,11 +38,13 @@ albedo and water attenuation; clipped at 255: flat-topped close up), green with 
 
 Named scenes (:data:`SCENES`): ``paper_box``, ``wall_0.3`` .. ``wall_3.0``, ``tilted_wall``, ``corner``,
 ``pipe``, ``occluder``, ``turbid``, ``cluttered``, ``tilted_lasers``, ``distorted``, ``checkerboard_wall``,
-``tank`` (NED).
+``camera_artifacts``
+(Bayer demosaicing, JPEG, stripe halo), ``tank`` (NED).
 
 Water (:class:`WaterModel`, SI units, image levels in DN): ``clean()`` (no noise, flat background: exact
 tests), ``default()``, ``turbid()``, ``cluttered()``; fields for attenuation, backscatter glow, haze, ambient
-light, read/shot noise, distractor blobs, marine snow and speckle. Every random effect is seeded.
+light, read/shot noise, distractor blobs, marine snow, speckle, Bayer mosaic and JPEG. Every random effect
+is seeded.
 
 Dives (:mod:`lrsensor.sim.dive`, NED tank of :func:`tank_scene`)::
 
