@@ -30,7 +30,7 @@ from lrsensor.frames import Pose
 from .errors import MapInputError, MappingError, MapStoreError
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
-from .planes import claim_points, extract_planes
+from .planes import claim_points, extract_planes, frame_sagitta
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapConfig, PlaneStats
@@ -60,6 +60,7 @@ class _Counters:
     points: int = 0
     extractions: int = 0
     observations: int = 0
+    curved: int = 0
     extract_s: float = 0.0
 
 
@@ -187,16 +188,22 @@ class MapBuilder:
         ex = extract_planes(pts_m, veh_m, cfg, seed)
         changes: list[dict[str, Any]] = []
         n_obs = 0
+        n_curved = 0
         if ex.candidates:
             eligible = np.zeros(n_total, dtype=bool)
             eligible[n_total - n_eligible :] = True
             claims = claim_points(pts_m, ex.grid, ex.candidates, ex.cell_keys, cfg, eligible)
             first_ns, last_ns = new[0].t_ns, new[-1].t_ns
-            records = [
-                PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg)
-                for cand, idx in zip(ex.candidates, claims, strict=False)
-                if idx.shape[0] >= cfg.min_commit_points
-            ]
+            frame_of = np.repeat(np.arange(len(clouds), dtype=np.int64), lens)
+            records = []
+            for cand, idx in zip(ex.candidates, claims, strict=True):
+                if idx.shape[0] < cfg.min_commit_points:
+                    continue
+                bulge = frame_sagitta(pts_m[idx], frame_of[idx], cand.normal)
+                if bulge > cfg.max_frame_sagitta_m:
+                    n_curved += 1
+                    continue
+                records.append(PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg))
             with self._lock:
                 for rec in records:
                     changes.extend(self._map.add(rec))
@@ -204,20 +211,22 @@ class MapBuilder:
         with self._lock:
             self._counters.extractions += 1
             self._counters.observations += n_obs
+            self._counters.curved += n_curved
             self._counters.extract_s += time.perf_counter() - t0
         return _squash(changes)
 
     # ----------------------------------------------------------------- output
-    def map_json(self, include_tracks: bool = False) -> dict[str, Any]:
+    def map_json(self, include_tracks: bool = False, include_tentative: bool = False) -> dict[str, Any]:
         """The whole map: ``{"planes": [...]}`` (+ ``"tracks"`` when asked), NED, ``normal . p + d = 0``.
 
         Each plane: ``id``, ``normal`` [nx, ny, nz] (unit, toward the observing vehicles), ``d`` (m),
         ``n_points``, ``robots`` (names), ``extent`` (centroid, in-plane axes ``u`` (horizontal) and ``v``,
         their ranges, ``size_m``, 4 NED ``corners``, ``aabb_min``/``aabb_max``), ``rms_m``, ``updated_ns`` and
         ``created_ns`` (capture times), ``n_obs`` (observations fused), ``contributions`` per robot.
+        Tentative planes (seen in fewer than ``min_obs_publish`` windows) are left out unless asked for.
         """
         with self._lock:
-            out: dict[str, Any] = {"frame": "NED", "planes": self._map.to_json()}
+            out: dict[str, Any] = {"frame": "NED", "planes": self._map.to_json(include_tentative)}
             if include_tracks:
                 out["tracks"] = {r: [list(s) for s in tr] for r, tr in sorted(self._tracks.items())}
             return out
@@ -230,9 +239,9 @@ class MapBuilder:
 
     @property
     def n_planes(self) -> int:
-        """Number of planes in the map."""
+        """Number of confirmed planes in the map (what :meth:`map_json` serves)."""
         with self._lock:
-            return len(self._map)
+            return sum(1 for p in self._map.planes.values() if p.record.n_obs >= self.cfg.min_obs_publish)
 
     def stats(self) -> dict[str, Any]:
         """Counters: clouds, points, extractions, observations, mean extraction time (s), planes."""
@@ -243,8 +252,10 @@ class MapBuilder:
                 "points": c.points,
                 "extractions": c.extractions,
                 "observations": c.observations,
+                "curved_rejected": c.curved,
                 "extract_mean_s": c.extract_s / c.extractions if c.extractions else 0.0,
-                "planes": len(self._map),
+                "planes": sum(1 for p in self._map.planes.values() if p.record.n_obs >= self.cfg.min_obs_publish),
+                "tentative": sum(1 for p in self._map.planes.values() if p.record.n_obs < self.cfg.min_obs_publish),
             }
 
     def planes_records(self) -> dict[int, PlaneRecord]:

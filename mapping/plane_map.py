@@ -5,7 +5,8 @@ An observation (the points one robot's window gave one plane) joins a map plane 
 * their normals agree within ``merge_angle_deg`` (normals are oriented toward the observing vehicle, so the two
   faces of a thin wall point in opposite directions and never fuse),
 * the observation's centroid lies within ``merge_offset_m`` of the map plane,
-* their bounding boxes, inflated by ``merge_gap_m``, overlap or touch (coplanar faces that are apart stay apart),
+* their bounding boxes, inflated by ``merge_gap_m`` (``merge_gap_down_m`` along down, since the horizontal laser
+  sheets scan faces in horizontal bands), overlap or touch (coplanar faces that are apart stay apart),
 * and the fused plane is still thin (RMS <= ``merge_max_rms_m``).
 
 Fusion adds the exact integer statistics and refits. When an observation matches several map planes (it bridges
@@ -210,8 +211,11 @@ class PlaneMap:
         return len(self.planes)
 
     def _touch(self, a: PlaneRecord, b: PlaneRecord) -> bool:
-        gap = self.cfg.merge_gap_m / self.cfg.quantum_m
-        return all(a.aabb_min[i] - gap <= b.aabb_max[i] and b.aabb_min[i] - gap <= a.aabb_max[i] for i in range(3))
+        q = self.cfg.quantum_m
+        gaps = (self.cfg.merge_gap_m / q, self.cfg.merge_gap_m / q, self.cfg.merge_gap_down_m / q)
+        return all(
+            a.aabb_min[i] - gaps[i] <= b.aabb_max[i] and b.aabb_min[i] - gaps[i] <= a.aabb_max[i] for i in range(3)
+        )
 
     def matches(
         self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None
@@ -237,11 +241,15 @@ class PlaneMap:
         """Whether an observation is good enough to start a new plane on its own (not line-like, thin)."""
         return f.width_m >= self.cfg.min_width_m and f.rms_m <= self.cfg.max_rms_m
 
+    def _published(self, rec: PlaneRecord) -> bool:
+        return rec.n_obs >= self.cfg.min_obs_publish
+
     def add(self, obs: PlaneRecord) -> list[dict[str, Any]]:
         """Associate and fuse one observation; returns the changes (plane dicts, or removals).
 
         A removal is ``{"id": i, "removed": True, "merged_into": j}``. An observation that matches nothing and
-        cannot start a plane of its own (line-like) is dropped and gives no change.
+        cannot start a plane of its own (line-like) is dropped and gives no change. Tentative planes (fewer than
+        ``min_obs_publish`` observations) are not reported.
         """
         cfg = self.cfg
         if obs.stats.n < 3:
@@ -259,12 +267,15 @@ class PlaneMap:
             pid = self.next_id
             self.next_id += 1
             self.planes[pid] = MapPlane(pid, replace(obs, hint_normal=None), cfg)
-            return [self.planes[pid].to_json()]
+            return [self.planes[pid].to_json()] if self._published(obs) else []
         keep = hits[0]
         rec = self.planes[keep].record + obs
-        removed = list(hits[1:])
+        removed: list[int] = []
         for pid in hits[1:]:
-            rec = rec + self.planes.pop(pid).record
+            gone = self.planes.pop(pid).record
+            rec = rec + gone
+            if self._published(gone):
+                removed.append(pid)
         # Cascade: the grown plane may now meet others.
         while True:
             grown = MapPlane(keep, rec, cfg)
@@ -276,13 +287,19 @@ class PlaneMap:
             if not more:
                 break
             for pid in more:
-                rec = rec + self.planes.pop(pid).record
-                removed.append(pid)
+                gone = self.planes.pop(pid).record
+                rec = rec + gone
+                if self._published(gone):
+                    removed.append(pid)
         self.planes[keep] = MapPlane(keep, rec, cfg)
-        changes: list[dict[str, Any]] = [self.planes[keep].to_json()]
+        changes: list[dict[str, Any]] = [self.planes[keep].to_json()] if self._published(rec) else []
         changes.extend({"id": pid, "removed": True, "merged_into": keep} for pid in removed)
         return changes
 
-    def to_json(self) -> list[dict[str, Any]]:
-        """All planes as dicts, by id."""
-        return [self.planes[pid].to_json() for pid in sorted(self.planes)]
+    def to_json(self, include_tentative: bool = False) -> list[dict[str, Any]]:
+        """The planes as dicts, by id; only confirmed ones (``n_obs >= min_obs_publish``) unless asked."""
+        return [
+            self.planes[pid].to_json()
+            for pid in sorted(self.planes)
+            if include_tentative or self.planes[pid].record.n_obs >= self.cfg.min_obs_publish
+        ]

@@ -70,6 +70,24 @@ def open3d() -> ModuleType:
     return _o3d
 
 
+def seeded_segment_plane(pcd: Any, cfg: MapConfig, seed: int) -> tuple[Any, list[int]]:
+    """Open3D ``segment_plane`` made reproducible: re-seeded, and on one thread.
+
+    Seeding alone is not enough: with several OpenMP threads the RANSAC iterations consume the random stream in
+    a scheduling-dependent order (measured: 2-4 different results in 30 identical calls). One thread gives the
+    same planes on every run; the previous thread limit is restored afterwards.
+    """
+    o3d = open3d()
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        o3d.utility.random.seed(int(seed))
+        model, inliers = pcd.segment_plane(cfg.distance_threshold_m, 3, cfg.ransac_iterations)
+    finally:
+        o3d.utility.set_max_threads(before)
+    return model, inliers
+
+
 def pack_keys(idx: IntArray) -> IntArray:
     """Pack integer grid indices (N, 3) into sortable int64 keys (N,); |index| must be below 2**20."""
     i = np.asarray(idx, dtype=np.int64) + _KEY_OFF
@@ -165,23 +183,20 @@ def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> Cel
     keys, of_point = np.unique(pack_keys(cells), return_inverse=True)
     of_point = of_point.reshape(-1).astype(np.int64)
     c = keys.shape[0]
-    n = np.bincount(of_point, minlength=c).astype(np.float64)
-    s = np.stack([np.bincount(of_point, weights=points[:, k], minlength=c) for k in range(3)], 1)
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    cols = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
+    st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 10)
+    n = st[:, 0]
+    s = st[:, 1:4]
     v = np.stack([np.bincount(of_point, weights=vehicle[:, k], minlength=c) for k in range(3)], 1)
-    outer = points[:, :, None] * points[:, None, :]
-    ss = np.stack(
-        [np.bincount(of_point, weights=outer[:, i, j], minlength=c) for i in range(3) for j in range(3)], 1
-    ).reshape(c, 3, 3)
-    bn = np.zeros(c)
-    bs = np.zeros((c, 3))
-    bss = np.zeros((c, 3, 3))
+    block = np.zeros_like(st)
     for off in _NEIGHBOURS_27:
         nb = neighbour_index(keys, off)
         ok = nb >= 0
-        idx = nb[ok]
-        bn[ok] += n[idx]
-        bs[ok] += s[idx]
-        bss[ok] += ss[idx]
+        block[ok] += st[nb[ok]]
+    bn = block[:, 0]
+    bs = block[:, 1:4]
+    bss = block[:, (4, 5, 6, 5, 7, 8, 6, 8, 9)].reshape(c, 3, 3)
     mu = bs / bn[:, None]
     cov = bss / bn[:, None, None] - mu[:, :, None] * mu[:, None, :]
     w, axes = np.linalg.eigh(cov)
@@ -266,7 +281,7 @@ def plane_quality(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
     design = np.stack([un * un, un * vn, vn * vn, un, vn, np.ones_like(un)], 1)
     gram = design.T @ design + 1e-9 * np.eye(6)
     coef = np.linalg.solve(gram, design.T @ r)
-    pred = design[:, :3] @ coef[:3]
+    pred = design @ coef  # the projection is unique even when the design is rank-deficient (two lines)
     sag = 0.5 * float(pred.max() - pred.min()) if pred.size else 0.0
     return c, np.maximum(w, 0.0), axes, sag
 
@@ -301,6 +316,29 @@ def _check_inliers(
             return None, Rejection(reason, k, value), normal, d
     cand = PlaneCandidate(normal, d, np.zeros(0, dtype=np.int64), rms, width, sag)
     return cand, None, normal, d
+
+
+def _refine(points: FloatArray, members: IntArray, inliers: IntArray, cfg: MapConfig, rounds: int = 3) -> IntArray:
+    """RANSAC's plane comes from 3 points; refit it to its inliers and re-select the inliers, a few rounds.
+
+    A laser band on a wall is a thin slab (10-30 cm tall): a plane tilted across it still collects many inliers,
+    and the least-squares refit over the re-selected inliers pulls it back into the slab. Returns indices into
+    ``points`` (a subset of ``members``).
+    """
+    chosen = members[inliers]
+    for _ in range(rounds):
+        if chosen.shape[0] < 3:
+            break
+        pts = points[chosen]
+        c = pts.mean(axis=0)
+        _w, axes = np.linalg.eigh((pts - c).T @ (pts - c))
+        n = axes[:, 0]
+        dist = np.abs((points[members] - c) @ n)
+        new = members[dist <= cfg.distance_threshold_m]
+        if np.array_equal(new, chosen):
+            break
+        chosen = new
+    return chosen
 
 
 @dataclass(frozen=True)
@@ -357,13 +395,12 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
             if members.shape[0] < cfg.min_inliers:
                 break
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(vpts[members]))
-            o3d.utility.random.seed(int((seed + call) % (2**31 - 1)))
+            _model, inl = seeded_segment_plane(pcd, cfg, (seed + call) % (2**31 - 1))
             call += 1
-            _model, inl = pcd.segment_plane(cfg.distance_threshold_m, 3, cfg.ransac_iterations)
             inl_idx = np.asarray(inl, dtype=np.int64)
             if inl_idx.shape[0] < cfg.min_inliers:
                 break
-            chosen = members[inl_idx]
+            chosen = _refine(vpts, members, inl_idx, cfg)
             cand, rej, _n, _d = _check_inliers(vpts[chosen], vveh[chosen], cfg)
             if cand is not None:
                 candidates.append(PlaneCandidate(cand.normal, cand.d, chosen, cand.rms_m, cand.width_m, cand.sagitta_m))
@@ -371,7 +408,7 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
                 rejections.append(rej)
             keep = np.ones(members.shape[0], dtype=bool)
             keep[inl_idx] = False
-            members = members[keep]
+            members = members[keep & ~np.isin(members, chosen)]
     return Extraction(grid, candidates, rejections, cell_keys)
 
 
@@ -412,6 +449,58 @@ def claim_points(
         taken[idx] = True
         out.append(idx)
     return out
+
+
+def frame_sagitta(
+    points: FloatArray, frame: IntArray, normal: FloatArray, min_points: int = 15, min_length_m: float = 0.05
+) -> float:
+    """Median over frames of the bulge of each frame's stripes across a plane (metres; 0 when unknown).
+
+    Within one frame there is no pose noise between the points (they share the frame's pose), so the bend of a
+    stripe is the surface's own: per frame, the residuals ``r`` to the plane are fitted with
+    ``r = a + b u + c u^2 + e v`` (``u`` along the stripes, i.e. the horizontal in-plane axis, ``v`` across them),
+    and the bulge of that frame is ``|c| (L / 2)^2`` over its stripe length ``L``. A pipe's arcs bulge by
+    ``L^2 / (8 r)``; a wall's stripes do not bulge, whatever the frame-to-frame pose noise.
+
+    Args:
+        points: (K, 3) points of one plane, metres.
+        frame: (K,) frame (cloud) index of each point.
+        normal: (3,) unit normal of the plane.
+        min_points, min_length_m: frames with fewer points or shorter stripes are ignored.
+    """
+    if points.shape[0] < min_points:
+        return 0.0
+    c = points.mean(axis=0)
+    x = points - c
+    down = np.array([0.0, 0.0, 1.0])
+    u_axis = np.cross(down, normal)
+    if np.linalg.norm(u_axis) < 0.2:
+        return 0.0  # a near-horizontal plane: the stripes do not run along a fixed in-plane axis
+    u_axis /= np.linalg.norm(u_axis)
+    v_axis = np.cross(normal, u_axis)
+    u, v, r = x @ u_axis, x @ v_axis, x @ normal
+    _, g = np.unique(frame, return_inverse=True)
+    g = g.reshape(-1)
+    ng = int(g.max()) + 1
+    cols = (np.ones_like(u), u, u * u, v)
+    gram = np.empty((ng, 4, 4))
+    rhs = np.empty((ng, 4))
+    for i in range(4):
+        rhs[:, i] = np.bincount(g, weights=cols[i] * r, minlength=ng)
+        for j in range(i, 4):
+            gram[:, i, j] = gram[:, j, i] = np.bincount(g, weights=cols[i] * cols[j], minlength=ng)
+    umin = np.full(ng, np.inf)
+    umax = np.full(ng, -np.inf)
+    np.minimum.at(umin, g, u)
+    np.maximum.at(umax, g, u)
+    length = umax - umin
+    ok = (gram[:, 0, 0] >= min_points) & (length >= min_length_m)
+    if not np.any(ok):
+        return 0.0
+    reg = 1e-9 * np.eye(4)[None, :, :]
+    coef = np.linalg.solve(gram[ok] + reg, rhs[ok][:, :, None])[:, :, 0]
+    bulge = np.abs(coef[:, 2]) * (length[ok] / 2.0) ** 2
+    return float(np.median(bulge))
 
 
 def describe(extraction: Extraction) -> dict[str, Any]:

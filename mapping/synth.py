@@ -202,7 +202,8 @@ class DivePlan:
     """A loop around a rectangle at a depth, yaw sweeping around the direction of travel.
 
     Attributes: waypoints (north, east) of the loop; depth_m; speed_mps; sweep amplitude/period of the yaw;
-    pitch/roll oscillation amplitude (deg); heave amplitude (m); phase offset (s).
+    pitch/roll oscillation amplitude (deg); heave amplitude (m); phase offset (s); ``look_deg``: a fixed yaw
+    (deg) to sweep around instead of the direction of travel.
     """
 
     robot: str
@@ -214,6 +215,7 @@ class DivePlan:
     tilt_deg: float = 3.0
     heave_m: float = 0.15
     phase_s: float = 0.0
+    look_deg: float | None = None
 
 
 def _path(plan: DivePlan, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -253,6 +255,8 @@ def simulate_dive(
     for plan in plans:
         n, e, heading = _path(plan, t)
         w = 2 * np.pi / plan.sweep_period_s
+        if plan.look_deg is not None:
+            heading = np.full_like(heading, math.radians(plan.look_deg))
         yaw = heading + math.radians(plan.sweep_deg) * np.sin(w * (t + plan.phase_s))
         pitch = math.radians(plan.tilt_deg) * np.sin(0.7 * w * t + 1.0)
         roll = math.radians(plan.tilt_deg) * np.sin(1.3 * w * t + 2.0)

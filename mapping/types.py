@@ -49,16 +49,22 @@ class MapConfig:
         min_width_m: the inliers' second principal standard deviation must reach this (rejects a single line).
         min_extent_m: both in-plane extents (max - min) must reach this.
         max_rms_m: inlier RMS distance to the fitted plane must stay below this.
-        max_sagitta_m: a quadratic fit of the residuals over the in-plane coordinates may not bend more than
-            this over the plane's extent (rejects pipes and other curved surfaces).
+        max_sagitta_m: a quadratic fit of the window's residuals over the in-plane coordinates may not bend
+            more than this over the plane's extent (a coarse curvature gate; frame-to-frame pose noise adds to it).
+        max_frame_sagitta_m: the median bulge of the stripes of one frame across the plane may not exceed this
+            (:func:`mapping.planes.frame_sagitta`; pose noise cannot fake it: this is what rejects pipes).
         min_sensor_distance_m: a plane passing closer than this to the observing vehicle is the laser sheet
             itself (all hits of one laser are coplanar), not a surface; rejected.
         min_commit_points: full-resolution points an observation needs to enter the map.
+        min_obs_publish: a plane is served (``map_json``, changes) once this many observations confirmed it; a
+            single window's plane stays tentative (one odd window must not put a plane on the map).
 
     Merging (see :mod:`mapping.plane_map`):
         merge_angle_deg: oriented normals within this angle (opposite faces of a thin wall never fuse);
         merge_offset_m: the points of one plane within this RMS distance of the other plane (either way round).
-        merge_gap_m: bounding boxes (inflated by this) must overlap or touch.
+        merge_gap_m: bounding boxes (inflated by this in north and east) must overlap or touch.
+        merge_gap_down_m: the same along down: the horizontal laser sheets scan a face in horizontal bands
+            (one per robot depth), so bands of one face seen at different depths are expected to leave gaps.
         merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
 
     Storage:
@@ -79,7 +85,7 @@ class MapConfig:
     cell_m: float = 0.1
     grow_angle_deg: float = 12.0
     cell_planarity: float = 0.35
-    distance_threshold_m: float = 0.02
+    distance_threshold_m: float = 0.03
     ransac_iterations: int = 400
     seed: int = 1234
     max_planes_per_region: int = 3
@@ -87,14 +93,17 @@ class MapConfig:
     min_inliers: int = 25
     min_width_m: float = 0.02
     min_extent_m: float = 0.1
-    max_rms_m: float = 0.008
-    max_sagitta_m: float = 0.01
+    max_rms_m: float = 0.015
+    max_sagitta_m: float = 0.015
+    max_frame_sagitta_m: float = 0.005
     min_sensor_distance_m: float = 0.2
     min_commit_points: int = 100
+    min_obs_publish: int = 2
 
     merge_angle_deg: float = 20.0
     merge_offset_m: float = 0.04
     merge_gap_m: float = 0.3
+    merge_gap_down_m: float = 1.0
     merge_max_rms_m: float = 0.03
 
     quantum_m: float = 1e-4
