@@ -109,7 +109,7 @@ class LaserCalibrationConfig:
     outlier_m: float = 0.010
     ransac_threshold_m: float = 0.002
     max_outlier_fraction: float = 0.5
-    min_points_per_image: int = 20
+    min_points_per_image: int = 100
     min_points: int = 50
     min_spread_m: float = 0.01
     mounting: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
@@ -452,6 +452,7 @@ def calibrate_lasers(
             raise LaserCalibrationError(msg) from err
         wall, rep, _ = resolve_wall(view, image, calibration, cfg)
         det = extract(image, calibration, **dict(cfg.extractor_options))
+        missing: list[str] = []
         for li, lname in enumerate(names):
             sel = np.asarray(det.laser) == li
             uv = np.asarray(det.uv, dtype=float)[sel]
@@ -459,15 +460,17 @@ def calibrate_lasers(
             pts, uv = pts[ok], uv[ok]
             rep.points[lname] = int(pts.shape[0])
             if pts.shape[0] < cfg.min_points_per_image:
-                msg = (
-                    f"{view.label}: no stripe of laser {lname!r} found ({pts.shape[0]} points on the wall, "
-                    f"need >= {cfg.min_points_per_image}); check that the laser is on, visible on the wall, and "
-                    f"inside the image band the calibration expects for it"
-                )
-                raise LaserCalibrationError(msg, _partial_report([*image_reports, rep], cfg))
+                missing.append(f"no stripe of laser {lname!r} found ({pts.shape[0]} points on the wall)")
             per_laser_pts[li].append(pts)
             per_laser_uv[li].append(uv)
             per_laser_grp[li].append(np.full(pts.shape[0], gi, dtype=int))
+        if missing:
+            msg = (
+                f"{view.label}: " + "; ".join(missing) + f"; need >= {cfg.min_points_per_image} points per "
+                f"laser. Check that the lasers are on and visible on the wall, and that the stripes lie in the "
+                f"image bands the input calibration expects for them"
+            )
+            raise LaserCalibrationError(msg, _partial_report([*image_reports, rep], cfg))
         walls_planes.append(wall)
         image_reports.append(rep)
 
