@@ -10,7 +10,7 @@ Messages:
 
 * :class:`CloudMsg` one processed frame: robot, sequence number, capture time, pose in NED at capture time,
   points in the body frame (N, 3) float32, laser index (N,) uint8, quality (N,) float32, optional uv (N, 2).
-* :class:`CalibMsg` a robot's calibration (the mapping of :meth:`lrsensor.Calibration.to_dict`).
+* :class:`CalibMsg` a robot's calibration (the mapping of :meth:`lrsensor.Calibration.to_dict`, at top level).
 * :class:`StatusMsg` a robot's counters (frames, published, skipped), published while it runs.
 """
 
@@ -297,7 +297,12 @@ class CloudMsg:
 # --------------------------------------------------------------------------- CalibMsg
 @dataclass(frozen=True)
 class CalibMsg:
-    """A robot's calibration (served by the robot and by the base station's fleet store)."""
+    """A robot's calibration (served by the robot and by the base station's fleet store).
+
+    On the wire the calibration file's own mapping (``Calibration.to_dict``: ``camera``, ``R_cam_from_body``,
+    ``t_cam_from_body``, ``lasers``, ...) is the top level of the msgpack map, next to ``v``, ``type`` and
+    ``robot``: any msgpack reader gets the calibration as the file format of CONVENTIONS describes it.
+    """
 
     robot: str
     calibration: Calibration
@@ -305,11 +310,11 @@ class CalibMsg:
     TYPE = "calib"
 
     def to_bytes(self) -> bytes:
-        """Encode as msgpack; the calibration travels as the mapping of ``Calibration.to_dict``."""
+        """Encode as msgpack: the calibration mapping plus ``v``, ``type`` and ``robot``."""
         check_robot_name(self.robot)
-        return _pack(
-            {"v": SCHEMA_VERSION, "type": self.TYPE, "robot": self.robot, "calibration": self.calibration.to_dict()}
-        )
+        obj = self.calibration.to_dict()
+        obj.update({"v": SCHEMA_VERSION, "type": self.TYPE, "robot": self.robot})
+        return _pack(obj)
 
     @classmethod
     def from_bytes(cls, data: bytes | bytearray | memoryview) -> CalibMsg:
@@ -317,7 +322,7 @@ class CalibMsg:
         obj = _unpack(data, cls.TYPE)
         robot = _robot_field(obj, "calib")
         try:
-            calib = Calibration.from_dict(_field(obj, "calibration", f"calib of {robot}"), f"calib of {robot}")
+            calib = Calibration.from_dict(obj, f"calib of {robot}")
         except CalibrationFileError as err:
             msg = f"calib of {robot}: invalid calibration: {err}"
             raise WireError(msg) from err

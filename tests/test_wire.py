@@ -85,6 +85,14 @@ def test_calib_round_trip() -> None:
     assert back.calibration == cal
 
 
+def test_calib_payload_is_the_calibration_file_mapping() -> None:
+    cal = Calibration.paper(0.1, 640, 360)
+    d = raw(CalibMsg("rov3", cal))
+    assert d["camera"]["fx"] == cal.camera.fx
+    assert len(d["lasers"]) == 2
+    assert Calibration.from_dict(d) == cal  # any msgpack reader gets the file format of CONVENTIONS
+
+
 @pytest.mark.parametrize("state", ["starting", "running", "done", "stopped", "failed"])
 def test_status_round_trip(state: str) -> None:
     m = StatusMsg("rov1", 123, state, frames=10, published=8, skipped=1, failed=1, last_seq=7)
@@ -185,7 +193,7 @@ def test_garbage_is_refused(payload: bytes) -> None:
 
 def test_invalid_calibration_is_refused_with_the_key() -> None:
     d = raw(CalibMsg("rov1", Calibration.paper()))
-    d["calibration"]["camera"]["fx"] = -5.0
+    d["camera"]["fx"] = -5.0
     with pytest.raises(WireError, match=r"camera\.fx"):
         CalibMsg.from_bytes(repack(d))
 
