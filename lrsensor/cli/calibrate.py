@@ -132,7 +132,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--min-points",
         type=int,
         default=100,
-        help="fewer stripe points of a laser in an image means no stripe found: refuse (default 100; a stripe across a wall gives about one point per image column)",
+        help="fewer stripe points of a laser in an image means no stripe found: refuse (default 100; a "
+        "stripe across a wall gives about one point per image column)",
     )
     las.add_argument(
         "--min-spread-mm",
