@@ -188,6 +188,7 @@ class Calibration:
                 fh.write(self.to_json() + "\n")
                 fh.flush()
                 os.fsync(fh.fileno())
+            Path(tmp).chmod(0o644)
             Path(tmp).replace(target)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
