@@ -239,3 +239,19 @@ def test_camera_off_the_body_origin(bench: dict[str, Any], distance_from: str) -
     result = calibrate_lasers(walls, nominal, LaserCalibrationConfig(distance_from=distance_from))
     assert max(_normal_errors_deg(result.calibration, true)) < 0.05
     assert result.calibration.t_cam_from_body == t
+
+
+def test_strongly_tilted_laser_outside_the_nominal_band(bench: dict[str, Any]) -> None:
+    """A top laser pitched up 6 degrees leaves its nominal band at 0.3 m: the second, wider look finds it."""
+    from lrsensor.extract import get_extractor
+
+    true = tilted_calibration(tilts_deg=((6.0, 0.0), (-1.0, 0.0)))
+    walls = []
+    for i, dist in enumerate((0.3, 0.4, 0.5)):
+        img = wall_scene(dist, calibration=true).render(seed=60 + i).image
+        walls.append(WallImage(img, dist, name=f"w{dist}"))
+    first = get_extractor("subpixel")(walls[0].image, bench["nominal"])
+    assert int(np.sum(first.laser == 0)) < 100  # the default band misses the top stripe at 0.3 m
+    result = calibrate_lasers(walls, bench["nominal"])
+    assert max(_normal_errors_deg(result.calibration, true)) < 0.05
+    assert result.report.images[0].points["top"] > 1000

@@ -40,6 +40,10 @@ FloatArray = NDArray[np.float64]
 ImageLike = str | os.PathLike[str] | NDArray[np.uint8]
 
 
+#: Extractor depth limits of the second look for a stripe that the default band missed, metres.
+WIDE_RANGE_OPTIONS: dict[str, float] = {"min_range_m": 0.1, "max_range_m": 20.0}
+
+
 class LaserCalibrationError(CalibrationFitError):
     """The laser calibration was refused; ``report`` holds what was measured before the refusal (or None)."""
 
@@ -451,13 +455,20 @@ def calibrate_lasers(
             msg = f"{view.label}: {err}"
             raise LaserCalibrationError(msg) from err
         wall, rep, _ = resolve_wall(view, image, calibration, cfg)
-        det = extract(image, calibration, **dict(cfg.extractor_options))
+        options = dict(cfg.extractor_options)
+        found = _stripes_on_wall(extract(image, calibration, **options), len(names), calibration, wall)
+        counts = [p.shape[0] for p, _ in found]
+        wide = cfg.method == "subpixel" and extractor is None and not ({"min_range_m", "max_range_m"} & set(options))
+        if min(counts) < cfg.min_points_per_image and wide:
+            # A strongly tilted laser can leave the band its nominal plane reaches for the default depth
+            # limits: look again with generous limits before calling the stripe missing.
+            retry = extract(image, calibration, **{**options, **WIDE_RANGE_OPTIONS})
+            found2 = _stripes_on_wall(retry, len(names), calibration, wall)
+            if min(p.shape[0] for p, _ in found2) > min(counts):
+                found = found2
         missing: list[str] = []
         for li, lname in enumerate(names):
-            sel = np.asarray(det.laser) == li
-            uv = np.asarray(det.uv, dtype=float)[sel]
-            pts, ok = wall_points(uv, calibration, wall) if uv.size else (np.zeros((0, 3)), np.zeros(0, bool))
-            pts, uv = pts[ok], uv[ok]
+            pts, uv = found[li]
             rep.points[lname] = int(pts.shape[0])
             if pts.shape[0] < cfg.min_points_per_image:
                 missing.append(f"no stripe of laser {lname!r} found ({pts.shape[0]} points on the wall)")
@@ -565,6 +576,23 @@ def calibrate_lasers(
         **report.to_dict(),
     }
     return LaserCalibrationResult(calibration.with_lasers(new_lasers, metadata), report)
+
+
+def _stripes_on_wall(
+    det: Any, n_lasers: int, calibration: Calibration, wall: Plane
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Per laser, the wall points (N, 3) of its detections and their pixels (N, 2) (rays that miss dropped)."""
+    out = []
+    lasers = np.asarray(det.laser)
+    uv_all = np.asarray(det.uv, dtype=float).reshape(-1, 2)
+    for li in range(n_lasers):
+        uv = uv_all[lasers == li]
+        if uv.shape[0] == 0:
+            out.append((np.zeros((0, 3)), np.zeros((0, 2))))
+            continue
+        pts, ok = wall_points(uv, calibration, wall)
+        out.append((pts[ok], uv[ok]))
+    return out
 
 
 def _partial_report(images: list[ImageReport], cfg: LaserCalibrationConfig) -> LaserCalibrationReport:
