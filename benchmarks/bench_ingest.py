@@ -204,6 +204,7 @@ def main() -> int:
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT)) if str(ROOT) not in sys.path else None
     clouds = synth_clouds()
+    load_before = os.getloadavg()[0]
     rows = []
     for n in (int(x) for x in args.robots.split(",")):
         r = run_step(n, args.duration_s, args.map, clouds)
@@ -220,7 +221,8 @@ def main() -> int:
         f"per cloud ({rows[0]['mb_s'] / max(rows[0]['clouds_s'], 1e-9) * 1e6 / 1e3:.0f} kB), {args.duration_s:.0f} s "
         f"per step, base station and load generator on the same {os.cpu_count()}-core machine "
         f"({platform.python_version()}, Zenoh loopback TCP, BLOCK congestion control). "
-        f"Latency = base processing time - capture time."
+        f"Latency = base processing time - capture time. 1-min load average before the sweep: {load_before:.1f} "
+        f"(other work on the machine inflates the tail)."
     )
     lines = [
         header,
