@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
         f"({cfg.width}x{cfg.height} camera, the paper's scaled), base station building the shared map ...",
         flush=True,
     )
-    res = run_demo(cfg)
+    from .signals import stop_on_signals
+
+    with stop_on_signals() as stop:  # SIGINT/SIGTERM end the dives early; sessions close, summary printed
+        res = run_demo(cfg, stop)
     print(format_summary(res, cfg), flush=True)
     return 0 if res.ok else 1

@@ -65,9 +65,10 @@ class DeadlineSource:
     finite = True
     live = False
 
-    def __init__(self, dive: SimDive, deadline: float) -> None:
+    def __init__(self, dive: SimDive, deadline: float, stop: threading.Event | None = None) -> None:
         self.dive = dive
         self.deadline = deadline
+        self.stop = stop or threading.Event()
         self.name = dive.name
 
     def __enter__(self) -> DeadlineSource:
@@ -78,7 +79,7 @@ class DeadlineSource:
 
     def __iter__(self) -> Iterator[Frame]:
         for frame in self.dive:
-            if time.monotonic() >= self.deadline:
+            if time.monotonic() >= self.deadline or self.stop.is_set():
                 return
             yield frame
 
@@ -164,8 +165,12 @@ def _progress_line(handles: dict[str, RovHandle], status: dict[str, Any], left_s
     return " | ".join(parts) + f" | map {status['map']['planes']} planes | {max(0.0, left_s):4.0f} s left"
 
 
-def run_demo(cfg: DemoConfig) -> DemoResult:
-    """Run the demo fleet; returns the summary (also printed by the CLI)."""
+def run_demo(cfg: DemoConfig, stop: threading.Event | None = None) -> DemoResult:
+    """Run the demo fleet; returns the summary (also printed by the CLI).
+
+    ``stop`` (set on SIGINT/SIGTERM by the CLI) ends the dives early; the summary is still produced.
+    """
+    stop = stop or threading.Event()
     t_start = time.monotonic()
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     state = cfg.state_dir or Path(tempfile.mkdtemp(prefix="lrsensor-demo-state-"))
@@ -182,7 +187,7 @@ def run_demo(cfg: DemoConfig) -> DemoResult:
         deadline = time.monotonic() + cfg.duration_s
         handles: dict[str, RovHandle] = {}
         for robot, (dive, imu, calib) in sims.items():
-            handles[robot] = net.start_rov(robot, DeadlineSource(dive, deadline), imu, calib, ack_timeout_s=60)
+            handles[robot] = net.start_rov(robot, DeadlineSource(dive, deadline, stop), imu, calib, ack_timeout_s=60)
         _watch(handles, base, deadline, cfg.progress)
         for h in handles.values():
             h.join(120)
@@ -311,8 +316,3 @@ def format_summary(res: DemoResult, cfg: DemoConfig) -> str:
     lines.append(f"files: {cfg.out_dir / 'map.json'}, {cfg.out_dir / 'status.json'}")
     lines.append("every cloud delivered: " + ("yes" if res.ok else "NO"))
     return "\n".join(lines)
-
-
-def demo_thread_safe_stop() -> threading.Event:
-    """An event the CLI sets on SIGINT/SIGTERM (the demo then ends its dives early)."""
-    return threading.Event()

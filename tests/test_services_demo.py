@@ -58,3 +58,50 @@ def test_score_map_matches_true_faces_and_flags_spurious_planes() -> None:
     assert s["spurious"] == 1
     assert all(abs(e["offset_m"] - 0.02) < 1e-9 for e in s["matched"].values())
     assert np.isfinite(next(iter(s["matched"].values()))["angle_deg"])
+
+
+def test_demo_process_ends_cleanly_on_sigterm(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    log = tmp_path / "demo.log"
+    with log.open("wb") as fh:
+        p = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "lrsensor",
+                "-v",
+                "demo",
+                "--robots",
+                "2",
+                "--duration-s",
+                "120",
+                "--size",
+                "320x180",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "out"),
+            ],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while "publishing on" not in log.read_text(errors="replace"):
+                assert time.monotonic() < deadline, log.read_text(errors="replace")
+                assert p.poll() is None, log.read_text(errors="replace")
+                time.sleep(0.1)
+            t0 = time.monotonic()
+            p.send_signal(signal.SIGTERM)
+            assert p.wait(30) == 0, log.read_text(errors="replace")
+            assert time.monotonic() - t0 < 30
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert "every cloud delivered: yes" in log.read_text(errors="replace")
