@@ -255,3 +255,11 @@ def test_strongly_tilted_laser_outside_the_nominal_band(bench: dict[str, Any]) -
     result = calibrate_lasers(walls, bench["nominal"])
     assert max(_normal_errors_deg(result.calibration, true)) < 0.05
     assert result.report.images[0].points["top"] > 1000
+
+
+def test_two_wall_positions_fit_but_warn(bench: dict[str, Any]) -> None:
+    walls = [WallImage(bench["walls"][d], d) for d in (0.4, 0.6)]
+    result = calibrate_lasers(walls, bench["nominal"])
+    assert max(_normal_errors_deg(result.calibration, bench["true"])) < 0.05
+    assert any("two wall positions" in n for n in result.report.notes)
+    assert "note: only two wall positions" in result.report.format_table()

@@ -184,6 +184,11 @@ class LaserFitReport:
     spread_mm: float
 
 
+def _json_float(value: float, digits: int) -> float | None:
+    """``value`` rounded, or None when not finite (calibration files must hold finite numbers only)."""
+    return round(float(value), digits) if np.isfinite(value) else None
+
+
 @dataclass(frozen=True)
 class LaserCalibrationReport:
     """The full report: per laser, per image, and the angle between the lasers."""
@@ -196,6 +201,8 @@ class LaserCalibrationReport:
         default_factory=dict, compare=False, repr=False
     )
     """Per laser name, per image: ``(u_px (N,), residual_m (N,), inlier mask (N,))`` for plots."""
+    notes: tuple[str, ...] = ()
+    """Warnings that do not refuse the calibration (e.g. too few wall positions for a self-check)."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no per-point arrays)."""
@@ -205,8 +212,8 @@ class LaserCalibrationReport:
                     "name": l.name,
                     "points": l.points,
                     "inliers": l.inliers,
-                    "rms_mm": round(l.rms_mm, 5),
-                    "max_mm": round(l.max_mm, 5),
+                    "rms_mm": _json_float(l.rms_mm, 5),
+                    "max_mm": _json_float(l.max_mm, 5),
                     "tilt_deg": round(l.tilt_deg, 6),
                     "constrained_by_mounting": l.constrained,
                     "mounting_offset_mm": round(l.mounting_offset_mm, 4),
@@ -227,12 +234,13 @@ class LaserCalibrationReport:
                     ),
                     "points": im.points,
                     "inliers": im.inliers,
-                    "rms_mm": {k: round(v, 5) for k, v in im.rms_mm.items()},
-                    "bias_mm": {k: round(v, 5) for k, v in im.bias_mm.items()},
+                    "rms_mm": {k: _json_float(v, 5) for k, v in im.rms_mm.items()},
+                    "bias_mm": {k: _json_float(v, 5) for k, v in im.bias_mm.items()},
                 }
                 for im in self.images
             ],
             "thresholds": self.thresholds,
+            "notes": list(self.notes),
         }
 
     def format_table(self) -> str:
@@ -265,6 +273,7 @@ class LaserCalibrationReport:
                         f" {im.bias_mm.get(n, float('nan')):>9.3f}"
                     )
                 lines.append(row)
+        lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
 
@@ -553,7 +562,15 @@ def calibrate_lasers(
     angle = None
     if len(new_lasers) >= 2:
         angle = normal_angle_deg(new_lasers[0].normal_body, new_lasers[1].normal_body)
-    report = LaserCalibrationReport(tuple(fits), tuple(image_reports), angle, _thresholds(cfg), residual_plots)
+    notes: list[str] = []
+    if distinct == 2 and not any(f.constrained for f in fits):
+        notes.append(
+            "only two wall positions: any two parallel stripe lines fit a plane exactly, so the residuals "
+            "cannot reveal a wrong wall distance; a third distance makes the fit check itself"
+        )
+    report = LaserCalibrationReport(
+        tuple(fits), tuple(image_reports), angle, _thresholds(cfg), residual_plots, tuple(notes)
+    )
     if problems:
         msg = "calibration refused, no output written:\n  " + "\n  ".join(problems)
         raise LaserCalibrationError(msg, report)
