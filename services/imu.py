@@ -16,6 +16,7 @@ raises :class:`~services.errors.ImuError`.
 from __future__ import annotations
 
 import csv
+import decimal
 import logging
 import math
 import re
@@ -135,7 +136,7 @@ class CsvImu(TrackImu):
     @staticmethod
     def _add_row(track: PoseTrack, row: list[str], col: dict[str, int]) -> str | None:
         try:
-            t_ns = int(row[col["t_ns"]].strip())
+            t_ns = _parse_t_ns(row[col["t_ns"]])
             v = {h: float(row[col[h]]) for h in CSV_HEADER[1:]}
         except (ValueError, IndexError) as err:
             return f"malformed row {row!r}: {err}"
@@ -154,6 +155,23 @@ class CsvImu(TrackImu):
         if not track.append(t_ns, pose):
             return f"t_ns {t_ns} is not after the previous sample"
         return None
+
+
+def _parse_t_ns(text: str) -> int:
+    """Integer ns since the epoch; a decimal like ``1700000000000000000.0`` is accepted when it is integral."""
+    t = text.strip()
+    try:
+        return int(t)
+    except ValueError:
+        try:
+            d = decimal.Decimal(t)
+        except decimal.InvalidOperation:
+            msg = f"t_ns {t!r} is not a number"
+            raise ValueError(msg) from None
+        if not d.is_finite() or d != d.to_integral_value():
+            msg = f"t_ns {t!r} is not an integer number of nanoseconds"
+            raise ValueError(msg) from None
+        return int(d)
 
 
 def write_csv(path: str | Path, t_ns: list[int], poses: list[Pose]) -> None:

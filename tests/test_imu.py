@@ -113,10 +113,12 @@ def test_csv_bad_rows_are_skipped_and_counted(tmp_path: Path) -> None:
         "1200,0,x,0,0,0,1\n"
         "1100,0,0,0,0,0,1\n"  # ok? 1100 > 1000 but after 1500 was accepted -> not after previous
         "3000,0,0,90,0,0,2\n"
+        "4000.0,0,0,90,0,0,2\n"  # an integral decimal is accepted
+        "4000.5,0,0,90,0,0,2\n"  # a fractional nanosecond is not
     )
     imu = CsvImu(f)
-    assert len(imu.track) == 3
-    assert imu.rejected == 4
+    assert len(imu.track) == 4
+    assert imu.rejected == 5
 
 
 @pytest.mark.parametrize(
