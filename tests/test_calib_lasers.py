@@ -200,7 +200,6 @@ def test_tilted_walls_with_a_known_normal(bench: dict[str, Any]) -> None:
     assert max(_normal_errors_deg(result.calibration, bench["true"])) < 0.05
 
 
-@pytest.mark.slow
 def test_board_on_the_wall_gives_the_wall_pose(bench: dict[str, Any], tmp_path: Path, capsys: Any) -> None:
     """The board crosses both stripes; the walls are not square to the body x axis and no distance is given."""
     board = Checkerboard(9, 6, 0.03, offset_u_m=-0.25, offset_v_m=0.0)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lrsensor.calib.planefit import (
     Plane,
@@ -109,3 +111,33 @@ def test_wall_plane_definition() -> None:
     tilted = wall_plane(0.5, [1.0, 1.0, 0.0])
     foot = tilted.project([0.0, 0.0, 0.0])
     assert np.linalg.norm(foot) == pytest.approx(0.5)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(
+    normal=st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 0.2),
+    offset=st.floats(-0.2, 0.2),
+    seed=st.integers(0, 2**16),
+)
+def test_robust_fit_any_orientation(normal: tuple[float, float, float], offset: float, seed: int) -> None:
+    """Any plane, sampled as three parallel lines (three wall positions) with noise and 10 % outliers."""
+    rng = np.random.default_rng(seed)
+    truth = Plane.from_point_normal(np.zeros(3), normal)
+    truth = Plane(truth.normal, offset)
+    # a line direction inside the plane, and a step direction inside the plane across it
+    a = np.cross(truth.normal, [1.0, 0.0, 0.0] if abs(truth.normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(truth.normal, a)
+    base = truth.normal * offset
+    pts, grp = [], []
+    for gi, step in enumerate((-0.1, 0.0, 0.1)):
+        t = rng.uniform(-0.5, 0.5, 300)
+        p = base + step * b + t[:, None] * a + rng.normal(0, 0.0002, (300, 1)) * truth.normal
+        pts.append(p)
+        grp.append(np.full(300, gi))
+    p_all, g_all = np.concatenate(pts), np.concatenate(grp)
+    idx = rng.choice(p_all.shape[0], 90, replace=False)
+    p_all[idx] += rng.uniform(0.02, 0.2, (90, 1)) * truth.normal
+    fit = robust_plane_fit(p_all, np.random.default_rng(seed), groups=g_all)
+    assert normal_angle_deg(fit.plane.normal, truth.normal) < 0.02
+    assert abs(fit.plane.oriented_like(truth.normal).offset - offset) < 1e-4
