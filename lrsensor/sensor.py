@@ -44,4 +44,4 @@ class Sensor:
         det = get_extractor(method)(img, self.calibration, **options)
         points = triangulate(self.calibration, det.uv, det.laser)
         scan = Scan(points, det.laser.astype(int), det.uv, det.quality, method)
-        return scan.finite()
+        return scan if bool(np.isfinite(points).all()) else scan.finite()

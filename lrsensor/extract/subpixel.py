@@ -61,7 +61,9 @@ class SubpixelConfig:
         min_run_cols: shortest accepted stripe piece, columns.
         smooth_half_cols: half-width of the along-stripe quadratic smoothing, columns (0 = off).
         min_green_ratio: a candidate's green rise must exceed this fraction of its red and blue rises.
-        smooth_detect_cols: horizontal box smoothing of the detection response, columns (1 = off).
+        smooth_detect_cols: horizontal box smoothing of the detection response at full scale, columns.
+        detect_scale: 2 = detect candidates on one Gaussian pyramid level (faster, averages noise), 1 = full
+            resolution; the centres are always fitted at full resolution.
         min_snr: smallest accepted peak-to-noise ratio of a point (noise: the larger of the band's and the
             profile's flanks'); saturated peaks always pass.
     """
@@ -79,6 +81,7 @@ class SubpixelConfig:
     smooth_half_cols: int = 24
     min_green_ratio: float = 1.2
     smooth_detect_cols: int = 7
+    detect_scale: int = 2
     min_snr: float = 2.5
 
     def __post_init__(self) -> None:
@@ -87,6 +90,9 @@ class SubpixelConfig:
             raise ExtractionError(msg)
         if not self.max_sigma_px > 0 or not self.min_fwhm_px >= 0:
             msg = f"stripe width limits must be positive, got max_sigma_px={self.max_sigma_px}"
+            raise ExtractionError(msg)
+        if self.detect_scale not in (1, 2):
+            msg = f"detect_scale must be 1 or 2, got {self.detect_scale}"
             raise ExtractionError(msg)
         if self.max_candidates < 1 or self.min_run_cols < 1 or self.smooth_half_cols < 0:
             msg = "max_candidates and min_run_cols must be >= 1 and smooth_half_cols >= 0"
@@ -106,7 +112,7 @@ class SubpixelConfig:
     @property
     def contrast_px(self) -> int:
         """Row offset of the two-sided contrast: beyond the half-width of the widest (saturated) stripe."""
-        return math.ceil(3.0 * self.max_sigma_px + 4.0)
+        return 2 * math.ceil(self.max_sigma_px + 2.0)
 
     @property
     def window_half_px(self) -> int:
@@ -141,57 +147,76 @@ def _plan(calibration: Calibration, min_range_m: float, max_range_m: float, marg
 
 
 def _noise_dn(g: NDArray[np.uint8]) -> float:
-    """Robust pixel noise (DN) of a band of the green channel.
+    """Robust pixel noise (DN) of a band of the green channel, insensitive to smooth gradients (glow, murk).
 
-    Median absolute difference of pixel pairs two rows apart, on every 4th row pair (a histogram median, cheap):
-    for Gaussian noise of std s the median of |a - b| is 0.954 s.
+    Second differences ``g[r] - 2 g[r + 2] + g[r + 4]`` (rows two apart, so independent; linear gradients cancel)
+    on every 6th row triple; for Gaussian noise of std s their median absolute value is 0.6745 sqrt(6) s.
     """
-    if g.shape[0] < 4:
+    if g.shape[0] < 5:
         return 1.0
-    d = cv2.absdiff(g[0:-2:4], g[2::4])
-    hist = cv2.calcHist([d], [0], None, [256], [0, 256]).ravel()
+    n = (g.shape[0] - 4 + 5) // 6
+    a = g[0 : 6 * n : 6][:n].astype(np.int16)
+    b = g[2 : 6 * n + 2 : 6][:n].astype(np.int16)
+    c = g[4 : 6 * n + 4 : 6][:n].astype(np.int16)
+    d = np.abs(a + c - 2 * b).ravel()
+    hist = np.bincount(np.minimum(d, 1023), minlength=1024)
     cum = np.cumsum(hist)
     med = float(np.searchsorted(cum, 0.5 * cum[-1]))
-    return max(med / 0.954, 0.5)
+    return max(med / (0.6745 * math.sqrt(6.0)), 0.5)
 
 
 def _candidates(
-    image: NDArray[np.uint8], r0: int, r1: int, mask: NDArray[np.uint8] | None, cfg: SubpixelConfig
+    image: NDArray[np.uint8], r0: int, r1: int, cfg: SubpixelConfig
 ) -> tuple[IntArray, IntArray, FloatArray, float]:
-    """Stripe candidates in rows [r0, r1): columns (N,), rows (N,), contrast (N,) and the pixel noise (DN).
+    """Stripe candidates in rows [r0, r1) of the green channel.
 
-    The response is a two-sided contrast of the (horizontally lightly smoothed) green channel,
-    ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe: positive only on ridges narrower
-    than ``2 d`` (not on glow ramps, haze or wide blobs). Candidates are its vertical local maxima above the
-    noise-scaled threshold.
+    The response is a two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe:
+    positive only on ridges narrower than ``2 d`` (not on glow ramps, haze or wide blobs). Candidates are its
+    vertical local maxima above the noise-scaled threshold. With ``detect_scale == 2`` this runs on one
+    Gaussian pyramid level (``cv2.pyrDown``: smoothed, half size), which both averages the noise along the
+    stripe and quarters the work; the sub-pixel fit later works on the full-resolution profiles.
+
+    Returns:
+        ``(cols, rows, strength, noise)``: detection-scale columns (N,), full-resolution rows (N,), contrast (N,)
+        and the full-resolution pixel noise (DN).
     """
     h = image.shape[0]
+    scale = cfg.detect_scale
     d = cfg.contrast_px
     a0, a1 = max(r0 - d, 0), min(r1 + d, h)
     g: Any = cv2.extractChannel(image[a0:a1], 1)
-    noise = _noise_dn(g)
-    if cfg.smooth_detect_cols > 1:
-        g = cv2.blur(g, (cfg.smooth_detect_cols, 1))
-    # pad to full shift range (replicate border rows)
     top, bot = d - (r0 - a0), d - (a1 - r1)
-    if top > 0 or bot > 0:
+    if top > 0 or bot > 0:  # pad to the full shift range (replicate border rows)
         g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0), 0, 0, cv2.BORDER_REPLICATE)
-    resp: Any = cv2.subtract(g[d:-d], cv2.max(g[: -2 * d], g[2 * d :]))
-    thr = max(cfg.min_contrast_dn, cfg.snr_threshold * noise / math.sqrt(max(cfg.smooth_detect_cols, 1)))
-    loc = cv2.dilate(resp, _KERNEL_5)
+    noise = _noise_dn(g)
+    if scale == 2:
+        g = cv2.pyrDown(g)  # row y <-> full row r0 - d + 2 y, column c <-> full column 2 c
+        noise_s = noise * _PYR_NOISE
+        ds = d // 2
+        thr = max(0.7 * cfg.min_contrast_dn, cfg.snr_threshold * noise_s)
+        kernel = _KERNEL_3
+    else:
+        ds = d
+        if cfg.smooth_detect_cols > 1:
+            g = cv2.blur(g, (cfg.smooth_detect_cols, 1))
+        thr = max(cfg.min_contrast_dn, cfg.snr_threshold * noise / math.sqrt(max(cfg.smooth_detect_cols, 1)))
+        kernel = _KERNEL_5
+    resp: Any = cv2.subtract(g[ds:-ds], cv2.max(g[: -2 * ds], g[2 * ds :]))
+    loc = cv2.dilate(resp, kernel)
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
     pk &= cv2.compare(resp, thr, cv2.CMP_GT)  # type: ignore[call-overload]
-    if mask is not None:
-        pk &= mask
     nz = cv2.findNonZero(pk)
     if nz is None:
         z = np.zeros(0, np.int64)
         return z, z, np.zeros(0), noise
     xy = nz.reshape(-1, 2).astype(np.int64)
     u, v = xy[:, 0], xy[:, 1]
-    return u, v + r0, resp[v, u].astype(np.float64), noise
+    return u, r0 + scale * v, resp[v, u].astype(np.float64), noise
 
 
+#: Noise reduction of one ``cv2.pyrDown`` level (binomial 5-tap kernel in both directions): sqrt(70/256)^2.
+_PYR_NOISE = 70.0 / 256.0
+_KERNEL_3 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 3))
 _KERNEL_5 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 5))
 
 
@@ -389,14 +414,21 @@ def _gather(image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int,
 
 
 def _pick_numpy(
-    U: IntArray, Vr: IntArray, Ar: FloatArray, n_cols: int, cfg: SubpixelConfig, block: int
+    U: IntArray,
+    Vr: IntArray,
+    Ar: FloatArray,
+    n_cols: int,
+    cfg: SubpixelConfig,
+    block: int,
+    jump: float,
+    min_run: int,
 ) -> tuple[IntArray, FloatArray, IntArray, IntArray]:
     """Numpy path of candidate selection: plateaus, k strongest, chains, pick (see ``select_candidates``)."""
     U, Vf, Ar = _merge_plateaus(U, Vr, Ar)
     k = int(min(cfg.max_candidates, np.bincount(U).max()))
     V, A = _top_k(U, Vf, Ar, n_cols, k)
-    root, length, strength = _chains(V, A, cfg.max_jump_px, block)
-    score = np.where(np.isfinite(V.ravel()) & (length >= cfg.min_run_cols), strength, -np.inf).reshape(n_cols, k)
+    root, length, strength = _chains(V, A, jump, block)
+    score = np.where(np.isfinite(V.ravel()) & (length >= min_run), strength, -np.inf).reshape(n_cols, k)
     pick = np.argmax(score, axis=1) if k > 1 else np.zeros(n_cols, np.int64)
     col_v = np.flatnonzero(np.isfinite(score[np.arange(n_cols), pick]))
     node = col_v * k + pick[col_v]
@@ -465,15 +497,20 @@ def extract(
     w = image.shape[1]
     n_l = plan.bands.n_lasers
     fast = USE_NUMBA
-    # 1-2. candidates of every laser in its band; laser l's columns are numbered l * w + u ("virtual columns")
+    # 1-2. candidates of every laser in its band; laser l's detection columns are numbered l * wd + c
+    scale = cfg.detect_scale
+    wd = (w + scale - 1) // scale
     parts = []
     noise = np.ones(n_l)
+    bands = plan.bands
     for i in range(n_l):
         r0, r1 = plan.rows[i]
         if r1 <= r0:
             continue
-        u, v, a, noise[i] = _candidates(image, r0, r1, plan.masks[i], cfg)
-        parts.append((u + i * w, v, a))
+        u, v, a, noise[i] = _candidates(image, r0, r1, cfg)
+        uf = np.minimum(u * scale, w - 1)
+        inside = (v >= bands.v_lo[i][uf]) & (v <= bands.v_hi[i][uf])  # the band need not be a rectangle
+        parts.append((u[inside] + i * wd, v[inside], a[inside]))
     if not parts or sum(p[0].size for p in parts) == 0:
         return Detections.empty()
     U = np.concatenate([p[0] for p in parts])
@@ -481,17 +518,35 @@ def extract(
     Ar = np.concatenate([p[2] for p in parts])
     order = np.argsort(U, kind="stable")  # by column; rows stay ascending (findNonZero is row-major)
     U, Vr, Ar = U[order], Vr[order], Ar[order]
+    n_cols_d = n_l * wd
     n_cols = n_l * w
     # 3. continuity: chains; per column the candidate on the strongest long-enough chain
+    jump = cfg.max_jump_px * (1.5 if scale == 2 else 1.0)
+    min_run = max(2, math.ceil(cfg.min_run_cols / scale))
     if fast:
         k = int(min(cfg.max_candidates, np.bincount(U).max()))
-        col_v, rows_f, chain, chain_len = _kernels.select_candidates(
-            U, Vr, Ar, n_cols, k, float(cfg.max_jump_px), w, 3, cfg.min_run_cols
-        )
+        col_d, rows_f, chain, chain_len = _kernels.select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
     else:
-        col_v, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols, cfg, w)
-    if col_v.size == 0:
+        col_d, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols_d, cfg, wd, jump, min_run)
+    if col_d.size == 0:
         return Detections.empty()
+    if scale == 2:
+        # every detection column c stands for the full columns 2c and 2c + 1 (between c and c + 1)
+        laser_d = col_d // wd
+        c = col_d - laser_d * wd
+        nxt = np.ones(col_d.size, bool)
+        nxt[:-1] = ~((col_d[1:] == col_d[:-1] + 1) & (chain[1:] == chain[:-1]))
+        rows_next = np.where(nxt, rows_f, np.concatenate([rows_f[1:], rows_f[-1:]]))
+        u_odd = 2 * c + 1
+        keep_odd = u_odd < w
+        col_v = np.concatenate([laser_d * w + 2 * c, (laser_d * w + u_odd)[keep_odd]])
+        rows_f = np.concatenate([rows_f, (0.5 * (rows_f + rows_next))[keep_odd]])
+        chain = np.concatenate([chain, chain[keep_odd]])
+        chain_len = np.concatenate([chain_len, chain_len[keep_odd]]) * 2
+        o2 = np.argsort(col_v, kind="stable")
+        col_v, rows_f, chain, chain_len = col_v[o2], rows_f[o2], chain[o2], chain_len[o2]
+    else:
+        col_v = col_d
     rows = np.rint(rows_f).astype(np.int64)
     laser = col_v // w
     cols = col_v - laser * w
@@ -520,7 +575,8 @@ def extract(
     good = p_ok & ~p_sat
     sig_med = float(np.median(p_sig[good])) if np.any(good) else 1.0
     sig_med = float(np.clip(sig_med, 0.6, cfg.max_sigma_px))
-    plateau = float(np.percentile((cfg.saturation_dn <= P0).sum(axis=0), 90))
+    n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
+    plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
     half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     if fast:
         vv, amp, sig, _sat, ok, lnoise = _kernels.fit_columns(
