@@ -142,8 +142,8 @@ class CsvImu(TrackImu):
             return f"malformed row {row!r}: {err}"
         if not all(math.isfinite(x) for x in v.values()):
             return f"non-finite value in {row!r}"
-        if t_ns <= 0:
-            return f"t_ns must be positive, got {t_ns}"
+        if t_ns < 0:
+            return f"t_ns must not be negative, got {t_ns}"
         pose = Pose(
             v["north_m"],
             v["east_m"],

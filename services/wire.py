@@ -272,7 +272,7 @@ class CloudMsg:
         robot = _robot_field(obj, "cloud")
         seq = _int_field(obj, "seq", f"cloud from {robot}")
         where = f"cloud {robot}#{seq}"
-        t_ns = _int_field(obj, "t_ns", where, minimum=1)
+        t_ns = _int_field(obj, "t_ns", where)
         sent_ns = _int_field(obj, "sent_ns", where) if "sent_ns" in obj else 0
         pose = pose_from_map(_field(obj, "pose", where), where)
         n = _int_field(obj, "n", where, maximum=MAX_POINTS)

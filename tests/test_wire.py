@@ -123,7 +123,7 @@ def test_trailing_bytes_are_refused() -> None:
         ({"uv": b"\x00" * 8}, "'uv'"),
         ({"seq": -1}, "'seq'"),
         ({"seq": "7"}, "'seq' must be an integer"),
-        ({"t_ns": 0}, "'t_ns'"),
+        ({"t_ns": -1}, "'t_ns'"),
         ({"robot": "a/b"}, "not a valid name"),
         ({"robot": "base"}, "reserved"),
         ({"robot": 3}, "'robot' must be a string"),
