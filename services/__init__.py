@@ -1,1 +1,17 @@
-"""services: the only package that knows Zenoh: wire messages, ROV and base-station loops, CLI wiring."""
+"""services: the only package that knows Zenoh: wire messages, ROV and base-station loops, CLI wiring.
+
+Modules:
+
+* :mod:`services.wire` msgpack wire messages (``CloudMsg``, ``CalibMsg``, ``StatusMsg``), strict decoding;
+* :mod:`services.keys` the fleet's key expressions (``FleetKeys``);
+* :mod:`services.zconfig` ``--mode/--connect/--listen/--config`` -> ``zenoh.Config`` (multicast scouting off);
+* :mod:`services.imu`, :mod:`services.posetrack` IMU sources (sim, CSV, OpenROV serial) and pose interpolation;
+* :mod:`services.sources`, :mod:`services.simsource` frame sources (recorded dive, video, camera, simulator);
+* :mod:`services.rov`, :mod:`services.base` the ROV and base-station services;
+* :mod:`services.testnet` the in-process test network; :mod:`services.demo` ``lrsensor demo``;
+* :mod:`services.signals` SIGINT/SIGTERM -> a stop event, so every session is closed;
+* issue 7 (faults, outbox, acknowledgements, secure profile): :mod:`services.outbox`, :mod:`services.seqtrack`,
+  :mod:`services.delivery`, :mod:`services.certs`.
+
+The ROV side (``rov``, ``wire``, ``imu``, ``sources``) imports neither Open3D nor ``mapping``.
+"""
