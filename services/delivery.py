@@ -11,9 +11,11 @@ persisted):
    lists it in the JSON answered on ``<root>/base/acks/<robot>`` (``{"ranges": [[lo, hi], ...]}``).
 3. A background thread of the ROV asks that queryable every ``ack_period_s`` and removes the acknowledged
    messages from the outbox. While the base station's cloud subscriber is present (the publisher's
-   ``matching_status``), every pending message not sent for ``resend_after_s`` is sent again, oldest first,
-   at most ``max_resend_per_cycle`` per cycle; when the base station reappears (router restart, tether
-   reconnected, base restarted) the re-sending starts at once.
+   ``matching_status``) it re-sends, oldest first and at most ``max_resend_per_cycle`` per cycle:
+   at once, every cloud published while no subscriber matched (router restart, tether cut, base
+   restarted: zenoh sent nothing); and every cloud unacknowledged for ``resend_after_s`` that is evidently
+   lost: a later cloud was acknowledged, or no acknowledgement moved on for ``stall_s``. A base station
+   that is only slow (saturated) keeps acknowledging in order and is not flooded with duplicates.
 
 Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
 :mod:`services.outbox`), and the base station shows them as ``missed``.
@@ -93,6 +95,8 @@ class OutboxSink:
         ack_period_s: how often the acknowledgements are fetched and overdue clouds re-sent, seconds.
         resend_after_s: a pending cloud is sent again when it was last sent this long ago, seconds.
         max_resend_per_cycle: at most this many re-sends per cycle (spreads a long backlog).
+        stall_s: when no acknowledgement moved on for this long while clouds are pending, overdue clouds are
+            re-sent even if no later cloud was acknowledged (the lost cloud was the last one), seconds.
     """
 
     def __init__(
@@ -105,6 +109,7 @@ class OutboxSink:
         ack_period_s: float = 0.5,
         resend_after_s: float = 3.0,
         max_resend_per_cycle: int = 300,
+        stall_s: float = 10.0,
     ) -> None:
         import zenoh
 
@@ -115,6 +120,7 @@ class OutboxSink:
         self.ack_period_s = ack_period_s
         self.resend_after_s = resend_after_s
         self.max_resend_per_cycle = max_resend_per_cycle
+        self.stall_s = stall_s
         self.counters = DeliveryCounters()
         self.publisher = session.declare_publisher(
             keys.cloud(self.robot),
@@ -129,6 +135,8 @@ class OutboxSink:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._base_present = False
+        self._acked_high = -1  # highest sequence number the base station has acknowledged
+        self._last_progress = time.monotonic()  # last time the acknowledgements moved on
         self._thread = threading.Thread(target=self._loop, name=f"delivery-{robot}", daemon=True)
         self._thread.start()
 
@@ -200,6 +208,11 @@ class OutboxSink:
             except ValueError as err:
                 log.warning("rov %s: ignored an ack answer: %s", self.robot, err)
                 continue
+            top = max((r[1] for r in ranges), default=-1)
+            with self._lock:
+                if top > self._acked_high:
+                    self._acked_high = top
+                    self._last_progress = time.monotonic()
             pending = self.outbox.pending()
             if not pending:
                 break
@@ -211,6 +224,7 @@ class OutboxSink:
                 self.counters.ack_polls += 1
                 self.counters.acked += n
                 if n:
+                    self._last_progress = time.monotonic()
                     # forget what was acknowledged; numbers above ``hi`` may be published but not yet
                     # appended (send publishes first), so they are kept
                     held = set(self.outbox.pending())
@@ -236,14 +250,20 @@ class OutboxSink:
             return
         now = time.monotonic()
         budget = self.max_resend_per_cycle
+        with self._lock:
+            acked_high = self._acked_high
+            stalled = now - self._last_progress >= self.stall_s
         for seq in self.outbox.pending():
             if budget <= 0 or self._stop.is_set():
                 break
             with self._lock:
                 last = self._last_sent.get(seq, 0.0)
                 unheard = seq in self._unheard
-            # sent while nobody listened, or unacknowledged for too long (lost on a dropped link)
-            if not unheard and now - last < self.resend_after_s:
+            # Re-send what was published while nobody listened, and what is overdue AND evidently lost: a
+            # later cloud was acknowledged, or acknowledgements stalled altogether. A base station that is
+            # merely slow keeps acknowledging in order, and gets no duplicates to make it slower still.
+            overdue = now - last >= self.resend_after_s
+            if not unheard and not (overdue and (seq < acked_high or stalled)):
                 continue
             payload = self.outbox.get(seq)  # read from disk only what goes out
             if payload is None:  # acknowledged meanwhile

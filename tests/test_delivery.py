@@ -184,3 +184,49 @@ def test_bad_ack_answers_are_refused(payload: bytes) -> None:
 
 def test_good_ack_answer() -> None:
     assert parse_ack_reply(b'{"robot": "rov1", "ranges": [[0, 4], [6, 6]]}', "rov1") == [[0, 4], [6, 6]]
+
+
+def test_a_slow_base_gets_no_duplicates(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """Acks lag 1.5 s behind (a saturated base) but keep coming in order: nothing is re-sent."""
+    router, rov = net
+    base = FakeBase(router)
+    held_at: dict[int, float] = {}
+
+    def lagging_acks(query: Any) -> None:
+        now = time.monotonic()
+        with base.lock:
+            for s in list(base.arrivals):
+                held_at.setdefault(s, now)
+            ripe = SeqSet()
+            for s, t in held_at.items():
+                if now - t >= 1.5:
+                    ripe.add(s)
+            ranges = ripe.ranges()
+        query.reply(query.key_expr, json.dumps({"robot": "rov1", "ranges": ranges}))
+
+    base.q.undeclare()
+    base.q = router.declare_queryable(KEYS.base_acks_all, lagging_acks)
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.5, stall_s=5.0) as sink:
+        assert _wait_until(sink.base_present)
+        for seq in range(40):
+            sink.send(_cloud(seq))
+            time.sleep(0.05)
+        assert sink.wait_empty(15.0)
+        assert sink.stats()["resent"] == 0
+    assert all(n == 1 for n in base.arrivals.values())
+    base.close()
+
+
+def test_a_lost_last_cloud_is_resent_after_a_stall(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router, lose=lambda seq, n: seq == 9 and n == 0)  # the last one's first copy is lost
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.3, stall_s=1.0) as sink:
+        assert _wait_until(sink.base_present)
+        for seq in range(10):
+            sink.send(_cloud(seq))
+        assert sink.wait_empty(15.0)
+        assert sink.stats()["resent"] == 1
+    assert base.seqs.ranges() == [[0, 9]]
+    base.close()
