@@ -162,7 +162,7 @@ def calibrate_camera(
     )
     if not float(rms) <= max_rms_px:
         msg = (
-            f"camera calibration refused, no output written: RMS reprojection error {float(rms):.4f} px exceeds "
+            f"calibration refused, no output written: RMS reprojection error {float(rms):.4f} px exceeds "
             f"{max_rms_px:.4f} px (--max-rms-px); worst images: "
             + ", ".join(f"{n} {e:.3f} px" for n, e in sorted(per_image.items(), key=lambda kv: -kv[1])[:3])
         )

@@ -218,6 +218,12 @@ def _err(msg: str) -> int:
     return 2
 
 
+def _refused(msg: str) -> int:
+    """Print a refusal (always worded as one) and return exit code 2."""
+    prefix = "calibration refused, no output written"
+    return _err(msg if msg.startswith(prefix) else f"{prefix}: {msg}")
+
+
 def _run_lasers(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -280,7 +286,7 @@ def _run_lasers(args: argparse.Namespace) -> int:
 
                 plot_laser_residuals(err.report, args.plot)
                 print(f"residual plot written to {args.plot}")
-        return _err(str(err))
+        return _refused(str(err))
     print(result.report.format_table())
     meta = dict(result.calibration.metadata)
     meta["laser_calibration"] = {**meta["laser_calibration"], "input_calibration": str(args.calib)}
@@ -320,7 +326,7 @@ def _run_camera(args: argparse.Namespace) -> int:
     except CameraCalibrationError as err:
         if err.not_found:
             print("board not found in: " + ", ".join(err.not_found))
-        return _err(str(err))
+        return _refused(str(err))
     if base is None:
         from dataclasses import replace
 
