@@ -10,7 +10,7 @@ Modules:
 * :mod:`services.rov`, :mod:`services.base` the ROV and base-station services;
 * :mod:`services.testnet` the in-process test network; :mod:`services.demo` ``lrsensor demo``;
 * :mod:`services.signals` SIGINT/SIGTERM -> a stop event, so every session is closed;
-* issue 7 (faults, outbox, acknowledgements, secure profile): :mod:`services.outbox`, :mod:`services.seqtrack`,
+* issue 7 (faults, outbox, acknowledgements, secure profile): :mod:`services.outbox`,
   :mod:`services.delivery`, :mod:`services.certs`.
 
 The ROV side (``rov``, ``wire``, ``imu``, ``sources``) imports neither Open3D nor ``mapping``.
