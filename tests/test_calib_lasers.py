@@ -262,3 +262,19 @@ def test_two_wall_positions_fit_but_warn(bench: dict[str, Any]) -> None:
     assert max(_normal_errors_deg(result.calibration, bench["true"])) < 0.05
     assert any("two wall positions" in n for n in result.report.notes)
     assert "note: only two wall positions" in result.report.format_table()
+
+
+def test_cli_per_image_wall_normals(bench: dict[str, Any], tmp_path: Path, capsys: Any) -> None:
+    """``IMAGE=DIST@NX,NY,NZ`` gives each image its own wall normal (negative components included)."""
+    normals = {0.4: (1.0, 0.2, 0.0), 0.5: (1.0, -0.15, 0.05), 0.6: (1.0, 0.0, -0.1)}
+    args = ["calibrate", "lasers", "--calib", str(bench["nominal_path"])]
+    for i, (dist, n) in enumerate(normals.items()):
+        p = tmp_path / f"w{dist}.png"
+        cv2.imwrite(str(p), wall_scene(dist, n, calibration=bench["true"]).render(seed=70 + i).image)
+        args += ["--wall", f"{p}={dist}@{','.join(map(str, n))}"]
+    out = tmp_path / "out.json"
+    assert main([*args, "--out", str(out)]) == 0
+    assert max(_normal_errors_deg(Calibration.load(out), bench["true"])) < 0.05
+    images = json.loads(out.read_text())["metadata"]["laser_calibration"]["images"]
+    got = np.array(images[1]["wall_normal"])
+    assert np.allclose(got, np.array(normals[0.5]) / np.linalg.norm(normals[0.5]), atol=1e-6)

@@ -19,7 +19,8 @@ WALL_HELP = (
     "a wall image and the wall's distance in metres, IMAGE=DIST_M (repeat; at least two distances, e.g. 0.4, "
     "0.5, 0.6 m). The wall is the plane n . (p - o) = DIST_M: n is --wall-normal (from the camera towards "
     "the wall) and o the body origin (or the camera centre with --distance-from camera), i.e. the wall's "
-    "point nearest to o lies DIST_M metres from o along n. With --board, IMAGE alone is enough"
+    "point nearest to o lies DIST_M metres from o along n. IMAGE=DIST_M@NX,NY,NZ gives this image its own "
+    "normal. With --board, IMAGE alone is enough"
 )
 
 
@@ -35,14 +36,17 @@ def _floats3(text: str, what: str) -> tuple[float, float, float]:
     return (vals[0], vals[1], vals[2])
 
 
-def _parse_wall(text: str) -> tuple[str, float | None]:
+def _parse_wall(text: str) -> tuple[str, float | None, tuple[float, float, float] | None]:
+    """``IMAGE[=DIST_M[@NX,NY,NZ]]`` -> (image, distance or None, per-image normal or None)."""
     if "=" in text:
-        image, _, dist = text.rpartition("=")
+        image, _, rest = text.rpartition("=")
+        dist_text, at, normal_text = rest.partition("@")
         try:
-            return image, float(dist)
+            dist = float(dist_text)
         except ValueError:
-            pass
-    return text, None
+            return text, None, None
+        return image, dist, _floats3(normal_text, f"--wall {text} normal") if at else None
+    return text, None, None
 
 
 def _parse_mounting(items: list[str]) -> dict[str, tuple[float, float, float]]:
@@ -246,10 +250,13 @@ def _run_lasers(args: argparse.Namespace) -> int:
         board = BoardSpec.parse(args.board, args.square_m)
     walls = []
     for text in args.wall:
-        image, dist = _parse_wall(text)
+        try:
+            image, dist, own_normal = _parse_wall(text)
+        except argparse.ArgumentTypeError as err:
+            return _err(str(err))
         if dist is None and board is None:
             return _err(f"--wall {text!r}: give IMAGE=DIST_M (metres), or use --board to measure the wall pose")
-        walls.append(WallImage(image, dist, normal, name=image))
+        walls.append(WallImage(image, dist, own_normal or normal, name=image))
     calibration = Calibration.load(args.calib)
     names = {l.name for l in calibration.lasers} | {str(i) for i in range(len(calibration.lasers))}
     unknown = sorted(set(mounting) - names)
