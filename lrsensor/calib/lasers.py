@@ -320,7 +320,10 @@ def resolve_wall(
     axis = _optical_axis_body(calibration)
     pose = None
     if config.board is not None:
-        pose = estimate_board_pose(image, calibration.camera, config.board, view.label)
+        try:
+            pose = estimate_board_pose(image, calibration.camera, config.board, view.label)
+        except CalibrationFitError as err:
+            raise LaserCalibrationError(str(err)) from err
         if pose.reprojection_rms_px > config.max_reprojection_px:
             msg = (
                 f"{view.label}: checkerboard reprojection RMS {pose.reprojection_rms_px:.3f} px exceeds "
@@ -505,7 +508,13 @@ def calibrate_lasers(
         uv = np.concatenate(per_laser_uv[li])
         grp = np.concatenate(per_laser_grp[li])
         mount = _mounting_point(laser, cfg, li)
-        fit, constrained, spread = _fit_one_laser(pts, grp, distinct, laser, mount, cfg, rng)
+        try:
+            fit, constrained, spread = _fit_one_laser(pts, grp, distinct, laser, mount, cfg, rng)
+        except LaserCalibrationError:
+            raise
+        except CalibrationFitError as err:
+            msg = f"laser {laser.name!r}: {err}"
+            raise LaserCalibrationError(msg) from err
         plane = fit.plane.oriented_like(laser.normal_body)
         anchor = mount if mount is not None else laser.point_body
         point = plane.project(anchor)
