@@ -65,7 +65,7 @@ def test_subpixel_turbid_water() -> None:
 def test_subpixel_cluttered_scene() -> None:
     s = _score("cluttered")
     assert s["median"] <= 0.2, s
-    assert s["outliers"] <= 1.0, s
+    assert s["outliers"] <= 2.0, s
 
 
 def test_subpixel_saturated_close_wall_and_distortion() -> None:

@@ -161,13 +161,17 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
 
 
 @_njit
-def fit_columns(image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio):  # type: ignore[no-untyped-def]
+def fit_columns(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, nb_v, nb_a, nb_s
+):
     """Sub-pixel centre per column, the loop twin of :func:`lrsensor.extract.centre.fit_profiles`.
 
     For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
     uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
     flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
     symmetric-window centroid). The colour check compares the rise of green with red and blue at the peak.
+    ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
+    (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
 
     Returns:
         ``(centre_row, amplitude, sigma, saturated, ok, local_noise)``, each (N,).
@@ -189,6 +193,11 @@ def fit_columns(image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig
         for q in range(m + 2 * e):
             rr = min(max(r0 + q, 0), h - 1)
             P[q] = image[rr, col, 1]
+        if math.isfinite(nb_v[t]):
+            inv = 0.5 / (nb_s[t] * nb_s[t])
+            for q in range(m + 2 * e):
+                dd = r0 + q - nb_v[t]
+                P[q] -= nb_a[t] * math.exp(-dd * dd * inv)
         # re-centre on the integer peak within +-e
         bq = e + R
         bv = -1.0

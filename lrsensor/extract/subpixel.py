@@ -3,24 +3,30 @@
 Pipeline (per laser, only inside the image band the laser can reach for the configured depth limits, see
 :mod:`lrsensor.extract.bands`; that band is what makes it fast):
 
-1. **Response**: the green channel with a vertical morphological top-hat (``G - opening(G)`` with a structuring
-   element longer than any stripe): it removes the background, murk gradients, the backscatter glow and haze
-   (all wider than a stripe) and keeps thin bright ridges.
-2. **Candidates**: vertical local maxima of the response above a threshold set from the measured noise; all of
-   them, several per column (up to ``max_candidates``), each checked for colour (green must dominate).
+1. **Response**: on one Gaussian pyramid level of the green channel (``cv2.pyrDown``: averages the noise along
+   the stripe, quarters the work), the two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` just
+   beyond the widest stripe: positive on thin ridges only, not on murk gradients, the backscatter glow of the
+   laser sheet, haze or wide blobs.
+2. **Candidates**: its vertical local maxima above a threshold from the measured noise (robust second
+   differences, blind to smooth gradients); several per column (up to ``max_candidates``).
 3. **Continuity**: candidates of neighbouring columns are linked when they are mutually nearest and closer than
-   ``max_jump_px``; linked chains are stripe pieces. Per column the candidate on the strongest chain wins;
-   chains shorter than ``min_run_cols`` (speckle, marine snow, small blobs) are dropped.
-4. **Sub-pixel centre** of the chosen candidate on the raw green profile of its column
-   (:func:`lrsensor.extract.centre.fit_profiles`): half-level width check (too narrow = speckle/hot pixel,
-   too wide = glow/haze/blob), local linear background, Gaussian-weighted centroid (saturated: symmetric
-   window centroid). Unbiased for any symmetric profile.
-5. **Along-stripe smoothing** (optional, default on): per continuous run, a local quadratic fit over
-   ``2 smooth_half_cols + 1`` columns, choosing the centred, left or right window with the smallest residual
-   so that corners and edges are not rounded. It averages the independent per-column noise.
+   a row step (small gaps bridged); linked chains are stripe pieces. Per column the candidate on the strongest
+   chain wins; chains shorter than ``min_run_cols`` (speckle, marine snow, small blobs) are dropped.
+4. **Sub-pixel centre** of the chosen candidate on the raw full-resolution green profile of its column
+   (:func:`lrsensor.extract.centre.fit_profiles`, or its compiled twin): re-centred on the integer peak (the
+   middle of a clipped run), local linear background from two flanks, width check (too narrow = speckle or a
+   hot pixel, too wide = glow/haze/blob), Gaussian-weighted centroid with a Newton step (saturated: symmetric
+   window centroid). Unbiased for any symmetric profile. Then a colour check (green must rise more than red
+   and blue) and a signal-to-noise gate with the local noise of the flanks.
+5. **Along-stripe smoothing** (default on): per run of a chain, local straight-line fits over up to
+   ``2 (4 smooth_half_cols) + 1`` columns; of the centred, left and right windows the one with the smallest
+   residual is kept (corners and steps are not rounded), and the largest window whose residual matches the
+   local noise wins. It averages the independent per-column noise (the dim ends of a stripe most).
 6. **Quality** in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
-Triangulation (eq. 29 with the calibration's distortion) is done by :class:`lrsensor.sensor.Sensor`.
+The per-column steps run as compiled loops (:mod:`lrsensor.extract._kernels`, numba) when numba is installed,
+otherwise as numpy code with the same algorithm. Triangulation (eq. 29 with the calibration's distortion) is
+done by :class:`lrsensor.sensor.Sensor`.
 """
 
 from __future__ import annotations
@@ -70,7 +76,7 @@ class SubpixelConfig:
 
     min_range_m: float = 0.2
     max_range_m: float = 5.0
-    max_sigma_px: float = 4.0
+    max_sigma_px: float = 5.0
     min_fwhm_px: float = 1.2
     saturation_dn: float = 250.0
     min_contrast_dn: float = 5.0
@@ -122,28 +128,16 @@ class SubpixelConfig:
 
 @dataclass(frozen=True)
 class _Plan:
-    """Per (calibration, config) precomputed data: bands, row ranges and in-band masks."""
+    """Per (calibration, depth limits) precomputed data: the bands and their bounding rows per laser."""
 
     bands: LaserBands
     rows: tuple[tuple[int, int], ...]
-    masks: tuple[NDArray[np.uint8] | None, ...]
 
 
 @lru_cache(maxsize=16)
 def _plan(calibration: Calibration, min_range_m: float, max_range_m: float, margin_px: int) -> _Plan:
     bands = laser_bands(calibration, min_range_m, max_range_m, margin_px)
-    rows = []
-    masks: list[NDArray[np.uint8] | None] = []
-    for i in range(bands.n_lasers):
-        r0, r1 = bands.row_range(i)
-        rows.append((r0, r1))
-        if r1 <= r0:
-            masks.append(None)
-            continue
-        rr = np.arange(r0, r1)[:, None]
-        m = (rr >= bands.v_lo[i][None, :]) & (rr <= bands.v_hi[i][None, :])
-        masks.append(None if bool(m.all()) else (m.astype(np.uint8) * 255))
-    return _Plan(bands, tuple(rows), tuple(masks))
+    return _Plan(bands, tuple(bands.row_range(i) for i in range(bands.n_lasers)))
 
 
 def _noise_dn(g: NDArray[np.uint8]) -> float:
@@ -406,6 +400,71 @@ def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray
     return out
 
 
+def _typical_sigma(P: NDArray[np.uint8], saturation_dn: float, max_sigma_px: float) -> float:
+    """Median Gaussian-equivalent sigma (px) of a few unsaturated profiles (M, N) from their half-level width.
+
+    The background is the lower of the mean of the outer quarter at both ends (beyond any stripe of up to
+    ``max_sigma_px``), so the width is right for narrow and wide stripes alike. 1.0 when nothing is measurable.
+    """
+    X = P.astype(np.float64)
+    m = X.shape[0]
+    R = m // 2
+    q = max(2, m // 4)
+    bg = np.minimum(X[:q].mean(axis=0), X[-q:].mean(axis=0))
+    core = X[R - 3 : R + 4]
+    pk = core.max(axis=0)
+    p = np.argmax(core, axis=0) + R - 3
+    half = 0.5 * (pk + bg)
+    idx = np.arange(m)[:, None]
+    below = half[None, :] > X
+    left = np.where(below & (idx < p[None, :]), idx, -1).max(axis=0)
+    right = np.where(below & (idx > p[None, :]), idx, m).min(axis=0)
+    ok = (left >= 0) & (right < m) & (pk < saturation_dn) & (pk - bg > 5.0)
+    if not np.any(ok):
+        return 1.0
+    cols = np.flatnonzero(ok)
+    lf, rt = left[cols], right[cols]
+    xl = lf + (half[cols] - X[lf, cols]) / np.maximum(X[lf + 1, cols] - X[lf, cols], 1e-9)
+    xr = rt - (half[cols] - X[rt, cols]) / np.maximum(X[rt - 1, cols] - X[rt, cols], 1e-9)
+    sigma = float(np.median(xr - xl)) / FWHM_PER_SIGMA
+    return float(np.clip(sigma, 0.6, max_sigma_px)) if math.isfinite(sigma) else 1.0
+
+
+def _neighbours(
+    laser: IntArray,
+    cols: IntArray,
+    v: FloatArray,
+    amp: FloatArray,
+    sig: FloatArray,
+    good: NDArray[np.bool_],
+    n_lasers: int,
+    width: int,
+    max_dist: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """For every fitted point (N,): the nearest stripe of another laser in the same column (row, amplitude,
+    sigma), NaN row when none is closer than ``max_dist`` rows."""
+    V = np.full((n_lasers, width), np.nan)
+    A = np.zeros((n_lasers, width))
+    S = np.ones((n_lasers, width))
+    V[laser[good], cols[good]] = v[good]
+    A[laser[good], cols[good]] = amp[good]
+    S[laser[good], cols[good]] = np.where(np.isfinite(sig[good]), sig[good], 1.0)
+    out_v = np.full(v.size, np.nan)
+    out_a = np.zeros(v.size)
+    out_s = np.ones(v.size)
+    best = np.full(v.size, np.inf)
+    for other in range(n_lasers):
+        ov = V[other, cols]
+        with np.errstate(invalid="ignore"):
+            dist = np.abs(ov - v)
+            take = (laser != other) & (dist < max_dist) & (dist < best)
+        out_v = np.where(take, ov, out_v)
+        out_a = np.where(take, A[other, cols], out_a)
+        out_s = np.where(take, S[other, cols], out_s)
+        best = np.where(take, dist, best)
+    return out_v, out_a, out_s
+
+
 def _gather(image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int, channel: int) -> NDArray[np.uint8]:
     """(2 half + 1, N) samples of ``channel`` in columns ``cols`` around ``rows`` (clamped at the border)."""
     h, w = image.shape[:2]
@@ -436,12 +495,24 @@ def _pick_numpy(
 
 
 def _fit_numpy(
-    image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int, sig: float, cfg: SubpixelConfig
+    image: NDArray[np.uint8],
+    cols: IntArray,
+    rows: IntArray,
+    half: int,
+    sig: float,
+    cfg: SubpixelConfig,
+    nb: tuple[FloatArray, FloatArray, FloatArray],
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
     """Numpy path of the profile fits (see ``fit_columns``): centre row, amplitude, sigma, saturated, ok, noise."""
     h, w = image.shape[:2]
     e = 3
-    Pb = _gather(image, cols, rows, half + e, 1)
+    Pb: Any = _gather(image, cols, rows, half + e, 1).astype(np.float64)
+    nb_v, nb_a, nb_s = nb
+    has_nb = np.isfinite(nb_v)
+    if bool(has_nb.any()):
+        rr = rows[None, :] + np.arange(-half - e, half + e + 1)[:, None]
+        model = nb_a * np.exp(-0.5 * ((rr - nb_v) / np.where(has_nb, nb_s, 1.0)) ** 2)
+        Pb = Pb - np.where(has_nb[None, :], model, 0.0)
     core = Pb[half : half + 2 * e + 1]
     shift = np.argmax(core, axis=0) - e
     satc = core >= cfg.saturation_dn
@@ -554,47 +625,49 @@ def extract(
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
     P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-    if fast:
-        _, _, p_sig, p_sat, p_ok, _ = _kernels.fit_columns(
-            image,
-            cols[sub],
-            rows[sub],
-            half0 - 3,
-            3,
-            1.0,
-            float(cfg.saturation_dn),
-            0.3,
-            1.5 * float(cfg.max_sigma_px),
-            3,
-            1,
-            0.0,
-        )
-    else:
-        probe = fit_profiles(P0, transposed=True, saturation_dn=cfg.saturation_dn, max_sigma_px=1.5 * cfg.max_sigma_px)
-        p_sig, p_sat, p_ok = probe.sigma, probe.saturated, probe.ok
-    good = p_ok & ~p_sat
-    sig_med = float(np.median(p_sig[good])) if np.any(good) else 1.0
-    sig_med = float(np.clip(sig_med, 0.6, cfg.max_sigma_px))
+    sig_med = _typical_sigma(P0, cfg.saturation_dn, cfg.max_sigma_px)
     n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
     plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
     half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
-    if fast:
-        vv, amp, sig, _sat, ok, lnoise = _kernels.fit_columns(
-            image,
-            cols,
-            rows,
-            half,
-            3,
-            sig_med,
-            float(cfg.saturation_dn),
-            cfg.min_fwhm_px / FWHM_PER_SIGMA,
-            float(cfg.max_sigma_px),
-            3,
-            2,
-            float(cfg.min_green_ratio),
-        )
-    else:
-        vv, amp, sig, _sat, ok, lnoise = _fit_numpy(image, cols, rows, half, sig_med, cfg)
+
+    def fit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> tuple[Any, ...]:
+        c, r = cols[idx], rows[idx]
+        if fast:
+            return tuple(
+                _kernels.fit_columns(
+                    image,
+                    c,
+                    r,
+                    half,
+                    3,
+                    sig_med,
+                    float(cfg.saturation_dn),
+                    cfg.min_fwhm_px / FWHM_PER_SIGMA,
+                    float(cfg.max_sigma_px),
+                    3,
+                    2,
+                    float(cfg.min_green_ratio),
+                    nb[0],
+                    nb[1],
+                    nb[2],
+                )
+            )
+        return _fit_numpy(image, c, r, half, sig_med, cfg, nb)
+
+    every = np.arange(cols.size)
+    no_nb = np.full(cols.size, np.nan)
+    vv, amp, sig, _sat, ok, lnoise = fit(every, (no_nb, no_nb, no_nb))
+    # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
+    # alternating a few times (both estimates start pulled toward each other)
+    if n_l > 1:
+        for _ in range(4):
+            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
+            idx = np.flatnonzero(np.isfinite(nb[0]))
+            if idx.size == 0:
+                break
+            res = fit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
+            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
+                arr[idx] = new
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
