@@ -30,7 +30,7 @@ from lrsensor.frames import Pose
 from .errors import MapInputError, MappingError, MapStoreError
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
-from .planes import claim_points, extract_planes, frame_sagitta
+from .planes import claim_points, extract_planes, frame_sagitta, pack_keys
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapConfig, PlaneStats
@@ -57,6 +57,7 @@ class _Window:
 @dataclass
 class _Counters:
     clouds: int = 0
+    skipped: int = 0
     points: int = 0
     extractions: int = 0
     observations: int = 0
@@ -85,6 +86,7 @@ class MapBuilder:
         self._tracks: dict[str, list[tuple[int, float, float, float]]] = {}
         self._counters = _Counters()
         self._last_save = time.monotonic()
+        self._last_taken: dict[str, int] = {}
         if loaded is not None:
             self._load(*loaded)
 
@@ -100,7 +102,8 @@ class MapBuilder:
 
         Returns:
             Changed planes (dicts as in :meth:`map_json`) and removals (``{"id", "removed", "merged_into"}``);
-            empty unless this cloud triggered an extraction.
+            empty unless this cloud triggered an extraction. Clouds closer in time than 1 / ``max_cloud_rate_hz``
+            to the robot's last one taken only extend its track.
         """
         if not isinstance(robot, str) or not robot:
             msg = f"robot must be a non-empty string, got {robot!r}"
@@ -114,23 +117,51 @@ class MapBuilder:
         if not np.all(np.isfinite(veh)):
             msg = f"{robot} cloud at {t} ns: pose position is not finite"
             raise MapInputError(msg)
-        if p.shape[0]:
-            p = p[np.einsum("ij,ij->i", p - veh, p - veh) <= self.cfg.max_range_m**2]
-        cloud = _Cloud(t, quantize(p, self.cfg.quantum_m, robot), np.rint(veh / self.cfg.quantum_m).astype(np.int64))
+        with self._lock:
+            self._counters.clouds += 1
+            track = self._tracks.setdefault(robot, [])
+            if not track or t - track[-1][0] >= self.cfg.track_interval_s * 1e9:
+                track.append((t, float(veh[0]), float(veh[1]), float(veh[2])))
+            last = self._last_taken.get(robot)
+            if (
+                self.cfg.max_cloud_rate_hz > 0
+                and last is not None
+                and 0 <= t - last < 0.999e9 / self.cfg.max_cloud_rate_hz
+            ):
+                self._counters.skipped += 1
+                return []
+            self._last_taken[robot] = t
+        cloud = _Cloud(t, self._thin(p, veh), np.rint(veh / self.cfg.quantum_m).astype(np.int64))
         with self._lock:
             win = self._windows.setdefault(robot, _Window())
             win.clouds.append(cloud)
             win.n_new += 1
             win.new_points += cloud.points_q.shape[0]
-            self._counters.clouds += 1
             self._counters.points += cloud.points_q.shape[0]
-            track = self._tracks.setdefault(robot, [])
-            if not track or t - track[-1][0] >= self.cfg.track_interval_s * 1e9:
-                track.append((t, float(veh[0]), float(veh[1]), float(veh[2])))
             due = self._due(win)
         changes = self._extract(robot) if due else []
         self._maybe_autosave()
         return changes
+
+    def _thin(self, p: FloatArray, veh: FloatArray) -> NDArray[np.int32]:
+        """Range-gate, quantize and thin one cloud: (K, 3) int32 quanta.
+
+        Thinning keeps a point when its ``cloud_voxel_m`` voxel differs from the previous point's: the stripes
+        arrive in column order, so this removes the near-duplicates of near ranges in O(N) without sorting.
+        """
+        cfg = self.cfg
+        if p.shape[0]:
+            d = p - veh
+            p = p[np.einsum("ij,ij->i", d, d) <= cfg.max_range_m**2]
+        pq = quantize(p, cfg.quantum_m, "cloud")
+        vq = max(1, round(cfg.cloud_voxel_m / cfg.quantum_m))
+        if pq.shape[0] > 1 and vq > 1:
+            keys = pack_keys(np.floor_divide(pq, vq).astype(np.int64))
+            keep = np.empty(keys.shape[0], dtype=bool)
+            keep[0] = True
+            np.not_equal(keys[1:], keys[:-1], out=keep[1:])
+            pq = pq[keep]
+        return pq
 
     def add_cloud_body(self, robot: str, t_ns: int, points_body: Any, pose: Pose) -> list[dict[str, Any]]:
         """Like :meth:`add_cloud` for body-frame points (transformed with ``pose`` first)."""
@@ -249,6 +280,7 @@ class MapBuilder:
             c = self._counters
             return {
                 "clouds": c.clouds,
+                "skipped_rate": c.skipped,
                 "points": c.points,
                 "extractions": c.extractions,
                 "observations": c.observations,
@@ -329,6 +361,7 @@ class MapBuilder:
             "planes": planes,
             "robots": robots,
             "windows": windows,
+            "last_taken_ns": dict(sorted(self._last_taken.items())),
         }
 
         def cat(parts: list[NDArray[Any]], shape: tuple[int, ...], dtype: Any) -> NDArray[Any]:
@@ -386,13 +419,15 @@ class MapBuilder:
                 w = windows.setdefault(r, _Window())
                 w.n_new = int(wmeta["n_new"])
                 w.new_points = int(wmeta["new_points"])
-        except (KeyError, IndexError, TypeError, ValueError) as err:
+            last_taken = {str(k): int(v) for k, v in header.get("last_taken_ns", {}).items()}
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as err:
             msg = f"{where}: inconsistent map state: {err!r}"
             raise MapStoreError(msg) from err
         with self._lock:
             self._map = pm
             self._tracks = tracks
             self._windows = windows
+            self._last_taken = last_taken
         log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(robots))
 
 

@@ -239,14 +239,16 @@ def simulate_dive(
     n_rays: int = 1900,
     attitude_noise_deg: float = 0.2,
     position_noise_m: float = 0.015,
+    position_walk_m_per_sqrt_s: float = 0.002,
     range_noise_m: float = 0.002,
     seed: int = 0,
     t0_ns: int = 1_700_000_000_000_000_000,
 ) -> list[DiveFrame]:
     """Frames of all robots in capture-time order (robots interleaved as a base station would receive them).
 
-    Attitude noise is white per frame (``attitude_noise_deg``); position noise is a slowly varying error with
-    standard deviation ``position_noise_m`` (navigation drift); range noise is white along each ray.
+    Attitude noise is white per frame (``attitude_noise_deg``); position noise is white per frame
+    (``position_noise_m``) plus a random walk (``position_walk_m_per_sqrt_s``, dead-reckoning drift), as in
+    ``lrsensor.sim.dive.ImuNoise``; range noise is white along each ray.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
@@ -261,7 +263,9 @@ def simulate_dive(
         pitch = math.radians(plan.tilt_deg) * np.sin(0.7 * w * t + 1.0)
         roll = math.radians(plan.tilt_deg) * np.sin(1.3 * w * t + 2.0)
         down = plan.depth_m + plan.heave_m * np.sin(0.5 * w * t)
-        pos_err = np.stack([_smooth_noise(rng, t, position_noise_m) for _ in range(3)], 1)
+        dt = 1.0 / rate_hz
+        walk = np.cumsum(rng.normal(0.0, position_walk_m_per_sqrt_s * math.sqrt(dt), size=(t.shape[0], 3)), axis=0)
+        pos_err = rng.normal(0.0, position_noise_m, size=(t.shape[0], 3)) + walk
         att_err = rng.normal(0.0, math.radians(attitude_noise_deg), size=(t.shape[0], 3))
         per_robot.append((plan, n, e, down, roll, pitch, yaw, pos_err, att_err))
     for k in range(t.shape[0]):

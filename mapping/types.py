@@ -29,12 +29,17 @@ class MapConfig:
     """Configuration of the map builder. Lengths in metres, angles in degrees (``_deg``), times in seconds.
 
     Windows and rate:
+        max_cloud_rate_hz: per robot, the map takes at most this many clouds per second of capture time (0: all);
+            the others still make the robot's track. At 30 Hz consecutive clouds overlap almost entirely, and
+            this is what lets one map thread keep up with a large fleet (see benchmarks/results/mapping.md).
         window_clouds: clouds per robot kept as context for extraction (>= ``extract_every_clouds``).
         extract_every_clouds: run extraction for a robot after this many new clouds ...
         extract_every_points: ... or this many new points ...
         extract_every_s: ... or when the new clouds span this much capture time.
         window_max_age_s: context clouds older than this (relative to the newest) are dropped.
         max_range_m: points farther than this from the vehicle are dropped (attitude noise grows with range).
+        cloud_voxel_m: each incoming cloud keeps one point per voxel of this size (the stripes are sampled every
+            ~1 mm per metre of range: near clouds are thinned several times, which bounds the map's cost per cloud).
 
     Extraction (per window, see :mod:`mapping.planes`):
         voxel_m: voxel size of the down-sampled window that RANSAC sees.
@@ -74,12 +79,14 @@ class MapConfig:
         autosave_every_s: wall-clock seconds between automatic saves (0 disables; needs a state dir).
     """
 
-    window_clouds: int = 15
-    extract_every_clouds: int = 15
-    extract_every_points: int = 60_000
-    extract_every_s: float = 0.5
+    max_cloud_rate_hz: float = 10.0
+    window_clouds: int = 10
+    extract_every_clouds: int = 10
+    extract_every_points: int = 40_000
+    extract_every_s: float = 1.0
     window_max_age_s: float = 3.0
     max_range_m: float = 5.0
+    cloud_voxel_m: float = 0.01
 
     voxel_m: float = 0.03
     cell_m: float = 0.1
@@ -100,7 +107,7 @@ class MapConfig:
     min_commit_points: int = 100
     min_obs_publish: int = 2
 
-    merge_angle_deg: float = 20.0
+    merge_angle_deg: float = 40.0
     merge_offset_m: float = 0.04
     merge_gap_m: float = 0.3
     merge_gap_down_m: float = 1.0
@@ -120,7 +127,7 @@ class MapConfig:
             if f.type == "int" and not isinstance(value, int):
                 msg = f"MapConfig.{f.name} must be an integer, got {value!r}"
                 raise MapConfigError(msg)
-            if f.name not in ("seed", "autosave_every_s", "extract_every_s") and value <= 0:
+            if f.name not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz") and value <= 0:
                 msg = f"MapConfig.{f.name} must be > 0, got {value!r}"
                 raise MapConfigError(msg)
             if value < 0:
