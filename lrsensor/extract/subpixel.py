@@ -167,8 +167,9 @@ def _candidates(
 ) -> tuple[IntArray, IntArray, FloatArray, float]:
     """Stripe candidates in rows [r0, r1) of the green channel.
 
-    The response is a two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe:
-    positive only on ridges narrower than ``2 d`` (not on glow ramps, haze or wide blobs). Candidates are its
+    The response is a two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe
+    (and the same at ``d / 2``, the larger of the two): positive only on ridges narrower than ``2 d`` (not on glow
+    ramps, haze or wide blobs). Candidates are its
     vertical local maxima above the noise-scaled threshold. With ``detect_scale == 2`` this runs on one
     Gaussian pyramid level (``cv2.pyrDown``: smoothed, half size), which both averages the noise along the
     stripe and quarters the work; the sub-pixel fit later works on the full-resolution profiles.
@@ -199,6 +200,11 @@ def _candidates(
         thr = max(cfg.min_contrast_dn, cfg.snr_threshold * noise / math.sqrt(max(cfg.smooth_detect_cols, 1)))
         kernel = _KERNEL_5
     resp: Any = cv2.subtract(g[ds:-ds], cv2.max(g[: -2 * ds], g[2 * ds :]))
+    # the same at half the offset (a thin stripe next to another ridge at exactly +-d keeps its response)
+    hd = ds // 2
+    if hd >= 2:
+        inner = g[ds - hd : g.shape[0] - ds + hd]
+        resp = cv2.max(resp, cv2.subtract(g[ds:-ds], cv2.max(inner[: -2 * hd], inner[2 * hd :])))
     loc = cv2.dilate(resp, kernel)
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
     pk &= cv2.compare(resp, thr, cv2.CMP_GT)  # type: ignore[call-overload]
