@@ -17,7 +17,7 @@ try:  # pragma: no cover - depends on the platform
     import numba
 
     HAVE_NUMBA = True
-    _njit: Any = numba.njit(cache=True, nogil=True, fastmath=False)
+    _njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy")
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
