@@ -330,6 +330,7 @@ class MapBuilder:
                     "aabb_min": list(r.aabb_min),
                     "aabb_max": list(r.aabb_max),
                     "n_obs": r.n_obs,
+                    "within": list(r.within),
                     "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in r.contributions.items()},
                 }
             )
@@ -403,6 +404,8 @@ class MapBuilder:
                     {k: Contribution(int(v[0]), int(v[1]), int(v[2])) for k, v in p["contributions"].items()},
                     VoxelSet(a["vox_keys"][sel], a["vox_counts"][sel], a["vox_sums"][sel]),
                     int(p["n_obs"]),
+                    None,
+                    _six_ints(p.get("within", [0] * 6)),
                 )
                 pm.planes[pid] = MapPlane(pid, rec, self.cfg)
             robots: list[str] = list(header["robots"])
@@ -429,6 +432,14 @@ class MapBuilder:
             self._windows = windows
             self._last_taken = last_taken
         log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(robots))
+
+
+def _six_ints(values: list[int]) -> tuple[int, int, int, int, int, int]:
+    v = [int(x) for x in values]
+    if len(v) != 6:
+        msg = f"expected 6 integers, got {values!r}"
+        raise ValueError(msg)
+    return (v[0], v[1], v[2], v[3], v[4], v[5])
 
 
 def _saved_config(header: dict[str, Any]) -> MapConfig:

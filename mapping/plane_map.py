@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .stats import Contribution, VoxelSet, merge_contributions
-from .types import MapConfig, PlaneFit, PlaneStats
+from .types import MapConfig, PlaneFit, PlaneStats, scatter_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -55,6 +55,7 @@ class PlaneRecord:
     voxels: VoxelSet
     n_obs: int = 1
     hint_normal: tuple[float, float, float] | None = field(default=None, compare=False)
+    within: tuple[int, int, int, int, int, int] = (0, 0, 0, 0, 0, 0)
 
     def __add__(self, other: PlaneRecord) -> PlaneRecord:
         return PlaneRecord(
@@ -73,6 +74,8 @@ class PlaneRecord:
             merge_contributions(self.contributions, other.contributions),
             self.voxels + other.voxels,
             self.n_obs + other.n_obs,
+            None,
+            tuple(a + b for a, b in zip(self.within, other.within, strict=True)),  # type: ignore[arg-type]
         )
 
     @classmethod
@@ -92,8 +95,9 @@ class PlaneRecord:
         lo = p.min(axis=0)
         hi = p.max(axis=0)
         vq = max(1, round(cfg.export_voxel_m / cfg.quantum_m))
+        stats = PlaneStats.from_quantized(p)
         return cls(
-            PlaneStats.from_quantized(p),
+            stats,
             (o[0], o[1], o[2]),
             (int(lo[0]), int(lo[1]), int(lo[2])),
             (int(hi[0]), int(hi[1]), int(hi[2])),
@@ -101,15 +105,38 @@ class PlaneRecord:
             VoxelSet.from_quantized(p, vq),
             1,
             (float(normal[0]), float(normal[1]), float(normal[2])),
+            tuple((2 * m + n) // (2 * n) for m in stats.centred_scatter()),  # type: ignore[arg-type]
         )
 
-    def fit(self, quantum_m: float) -> PlaneFit:
-        """Refit from the statistics, normal signed by the orientation vector."""
-        f = self.stats.fit(quantum_m)
-        o = np.array(self.orient, dtype=np.float64)
-        if f.normal @ o < 0:
-            return PlaneFit(f.centroid, -f.normal, -f.d, f.eigvals, f.axes)
-        return f
+    def fit(self, quantum_m: float, within: bool = True) -> PlaneFit:
+        """Refit from the statistics, normal signed by the orientation vector (see :func:`fit_parts`)."""
+        return fit_parts(self.stats, self.within, self.orient, quantum_m, within)
+
+
+def fit_parts(
+    stats: PlaneStats,
+    within: tuple[int, ...],
+    orient: tuple[int, int, int],
+    quantum_m: float,
+    use_within: bool = True,
+) -> PlaneFit:
+    """The plane of exact statistics: centroid and covariance of all points; normal from ``within``.
+
+    ``within`` is the sum over fused observations of each one's centred scatter (``n`` times its covariance,
+    rounded to whole quanta^2 once per observation, so sums stay exact): its smallest
+    axis is the normal once per-observation offsets (navigation drift) are removed. With ``use_within`` false,
+    or before any observation, the normal is the smallest axis of the plain covariance. The normal is signed to
+    agree with ``orient``; ``eigvals`` are the plain covariance's variances along the chosen axes.
+    """
+    f = stats.fit(quantum_m)
+    axes = f.axes
+    if use_within and any(within):
+        _w, axes = np.linalg.eigh(scatter_matrix(within, 1.0))
+    normal = axes[:, 0].copy()
+    if normal @ np.array(orient, dtype=np.float64) < 0:
+        normal = -normal
+    eig = np.einsum("ij,ik,kj->j", axes, f.cov, axes)
+    return PlaneFit(f.centroid, normal, float(-normal @ f.centroid), np.maximum(eig, 0.0), axes, f.cov)
 
 
 def _angle_deg(a: FloatArray, b: FloatArray) -> float:
@@ -141,7 +168,7 @@ class MapPlane:
     def fit(self) -> PlaneFit:
         """The plane fitted to the record's statistics (cached)."""
         if self._fit is None:
-            self._fit = self.record.fit(self.cfg.quantum_m)
+            self._fit = self.record.fit(self.cfg.quantum_m, bool(self.cfg.fit_within_windows))
         return self._fit
 
     def to_json(self) -> dict[str, Any]:
@@ -154,7 +181,7 @@ class MapPlane:
 def plane_json(plane_id: int, rec: PlaneRecord, cfg: MapConfig) -> dict[str, Any]:
     """JSON-ready dict of one plane in NED (``normal . p + d = 0``), metres and nanoseconds."""
     q = cfg.quantum_m
-    f = rec.fit(q)
+    f = rec.fit(q, bool(cfg.fit_within_windows))
     u, v = in_plane_axes(f.normal)
     cen = rec.voxels.centroids_m(q)
     if cen.shape[0]:
@@ -195,8 +222,7 @@ def plane_json(plane_id: int, rec: PlaneRecord, cfg: MapConfig) -> dict[str, Any
 def rms_distance(fa: PlaneFit, fb: PlaneFit) -> float:
     """RMS distance of the points behind fit ``fa`` to the plane of fit ``fb`` (metres), from moments only."""
     off = float(fb.normal @ fa.centroid + fb.d)
-    proj = fa.axes.T @ fb.normal
-    return math.sqrt(off * off + float(np.sum(fa.eigvals * proj * proj)))
+    return math.sqrt(off * off + max(float(fb.normal @ fa.cov @ fb.normal), 0.0))
 
 
 class PlaneMap:
@@ -235,7 +261,14 @@ class PlaneMap:
             return False
         if min(rms_distance(fa, fb), rms_distance(fb, fa)) > cfg.merge_offset_m:
             return False
-        return (a.stats + b.stats).fit(cfg.quantum_m).rms_m <= cfg.merge_max_rms_m
+        merged = fit_parts(
+            a.stats + b.stats,
+            tuple(x + y for x, y in zip(a.within, b.within, strict=True)),
+            (a.orient[0] + b.orient[0], a.orient[1] + b.orient[1], a.orient[2] + b.orient[2]),
+            cfg.quantum_m,
+            bool(cfg.fit_within_windows),
+        )
+        return merged.rms_m <= cfg.merge_max_rms_m
 
     def can_create(self, obs: PlaneRecord, f: PlaneFit) -> bool:
         """Whether an observation is good enough to start a new plane on its own (not line-like, thin)."""
@@ -254,7 +287,7 @@ class PlaneMap:
         cfg = self.cfg
         if obs.stats.n < 3:
             return []
-        f_obs = obs.fit(cfg.quantum_m)
+        f_obs = obs.fit(cfg.quantum_m, bool(cfg.fit_within_windows))
         hint = np.array(obs.hint_normal) if obs.hint_normal is not None else None
         hits = [
             pid

@@ -65,6 +65,10 @@ class MapConfig:
             single window's plane stays tentative (one odd window must not put a plane on the map).
 
     Merging (see :mod:`mapping.plane_map`):
+        fit_within_windows: 0 (default): a map plane's normal is the smallest axis of the scatter of all its
+            points. 1: of the pooled scatter of its observations each about its own centroid, so a robot's
+            slowly drifting position (an offset per window) cannot tilt it, at the price of losing the lever arm
+            between observations (measured: better on big walls, worse on small pillar faces; see the report).
         merge_angle_deg: oriented normals within this angle (opposite faces of a thin wall never fuse);
         merge_offset_m: the points of one plane within this RMS distance of the other plane (either way round).
         merge_gap_m: bounding boxes (inflated by this in north and east) must overlap or touch.
@@ -107,6 +111,7 @@ class MapConfig:
     min_commit_points: int = 100
     min_obs_publish: int = 2
 
+    fit_within_windows: int = 0
     merge_angle_deg: float = 40.0
     merge_offset_m: float = 0.04
     merge_gap_m: float = 0.3
@@ -127,7 +132,10 @@ class MapConfig:
             if f.type == "int" and not isinstance(value, int):
                 msg = f"MapConfig.{f.name} must be an integer, got {value!r}"
                 raise MapConfigError(msg)
-            if f.name not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz") and value <= 0:
+            if (
+                f.name not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz", "fit_within_windows")
+                and value <= 0
+            ):
                 msg = f"MapConfig.{f.name} must be > 0, got {value!r}"
                 raise MapConfigError(msg)
             if value < 0:
@@ -171,6 +179,7 @@ class PlaneFit:
         d: offset so that ``normal . p + d = 0``.
         eigvals: (3,) ascending eigenvalues of the covariance (m^2): rms = sqrt(eigvals[0]).
         axes: (3, 3) eigenvectors as columns, ascending (axes[:, 0] is the unoriented normal).
+        cov: (3, 3) covariance of the points (m^2).
     """
 
     centroid: FloatArray
@@ -178,6 +187,7 @@ class PlaneFit:
     d: float
     eigvals: FloatArray
     axes: FloatArray
+    cov: FloatArray
 
     @property
     def rms_m(self) -> float:
@@ -188,6 +198,12 @@ class PlaneFit:
     def width_m(self) -> float:
         """Second principal standard deviation (small for a line-like point set), metres."""
         return float(math.sqrt(max(float(self.eigvals[1]), 0.0)))
+
+
+def scatter_matrix(upper: tuple[int, ...], scale: float) -> FloatArray:
+    """(3, 3) symmetric float matrix from an exact upper triangle ``(xx, xy, xz, yy, yz, zz)`` times ``scale``."""
+    xx, xy, xz, yy, yz, zz = (float(v) * scale for v in upper)
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
 @dataclass(frozen=True)
@@ -255,21 +271,24 @@ class PlaneStats:
             msg = f"a plane needs at least 3 points, got {n}"
             raise ValueError(msg)
         s = self.s
-        xx, xy, xz, yy, yz, zz = self.ss
-        m = [
-            [n * xx - s[0] * s[0], n * xy - s[0] * s[1], n * xz - s[0] * s[2]],
-            [0, n * yy - s[1] * s[1], n * yz - s[1] * s[2]],
-            [0, 0, n * zz - s[2] * s[2]],
-        ]
-        scale = quantum_m * quantum_m / (float(n) * float(n))
-        cov = np.empty((3, 3))
-        for i in range(3):
-            for j in range(i, 3):
-                cov[i, j] = cov[j, i] = float(m[i][j]) * scale
+        cov = scatter_matrix(self.centred_scatter(), quantum_m * quantum_m / (float(n) * float(n)))
         eigvals, axes = np.linalg.eigh(cov)
         centroid = np.array([float(s[0]) / n, float(s[1]) / n, float(s[2]) / n]) * quantum_m
         normal = axes[:, 0].copy()
-        return PlaneFit(centroid, normal, float(-normal @ centroid), eigvals, axes)
+        return PlaneFit(centroid, normal, float(-normal @ centroid), eigvals, axes, cov)
+
+    def centred_scatter(self) -> tuple[int, int, int, int, int, int]:
+        """``n * SS - s s^T`` (upper triangle), exact: n^2 times the covariance, in quanta^2."""
+        n, s = self.n, self.s
+        xx, xy, xz, yy, yz, zz = self.ss
+        return (
+            n * xx - s[0] * s[0],
+            n * xy - s[0] * s[1],
+            n * xz - s[0] * s[2],
+            n * yy - s[1] * s[1],
+            n * yz - s[1] * s[2],
+            n * zz - s[2] * s[2],
+        )
 
     def to_list(self) -> list[int]:
         """``[n, s0, s1, s2, xx, xy, xz, yy, yz, zz]`` as exact (possibly big) integers."""

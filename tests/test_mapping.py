@@ -21,8 +21,14 @@ from mapping.synth import Cylinder, DivePlan, Face, Scene, box_pillar, simulate_
 Q = 1e-4
 
 
-def _wall_points(rng: np.random.Generator, n: int, north: float, east: tuple[float, float],
-                 down: tuple[float, float], noise: float = 0.003) -> np.ndarray:
+def _wall_points(
+    rng: np.random.Generator,
+    n: int,
+    north: float,
+    east: tuple[float, float],
+    down: tuple[float, float],
+    noise: float = 0.003,
+) -> np.ndarray:
     """Points on the plane north = const (metres, NED)."""
     return np.stack([north + rng.normal(0, noise, n), rng.uniform(*east, n), rng.uniform(*down, n)], 1)
 
@@ -82,8 +88,15 @@ def test_config_validation_names_the_field() -> None:
 
 
 # --------------------------------------------------------------------------- merging
-def _obs(rng: np.random.Generator, robot: str, north: float, east: tuple[float, float], down: tuple[float, float],
-         t_ns: int, normal: tuple[float, float, float] = (-1.0, 0.0, 0.0)) -> PlaneRecord:
+def _obs(
+    rng: np.random.Generator,
+    robot: str,
+    north: float,
+    east: tuple[float, float],
+    down: tuple[float, float],
+    t_ns: int,
+    normal: tuple[float, float, float] = (-1.0, 0.0, 0.0),
+) -> PlaneRecord:
     p = _wall_points(rng, 1500, north, east, down)
     return PlaneRecord.from_points(_quantize(p), np.array(normal), robot, t_ns, t_ns + 10, MapConfig())
 
@@ -165,8 +178,9 @@ def _scene_wall_and(*extra: Face, cylinders: tuple[Cylinder, ...] = ()) -> Scene
     return Scene((wall, *extra), cylinders)
 
 
-def _run(scene: Scene, plans: list[DivePlan], duration_s: float = 6.0, cfg: MapConfig | None = None,
-         **kw: float) -> MapBuilder:
+def _run(
+    scene: Scene, plans: list[DivePlan], duration_s: float = 6.0, cfg: MapConfig | None = None, **kw: float
+) -> MapBuilder:
     frames = simulate_dive(scene, plans, duration_s=duration_s, rate_hz=15.0, n_rays=500, seed=7, **kw)
     b = MapBuilder(cfg or MapConfig())
     _feed(b, frames)
@@ -175,8 +189,9 @@ def _run(scene: Scene, plans: list[DivePlan], duration_s: float = 6.0, cfg: MapC
 
 def test_wall_ahead_is_one_accurate_plane_and_laser_sheets_are_not_planes() -> None:
     # Constant depth, no tilt: all top-laser hits of a window lie in one horizontal sheet.
-    plan = DivePlan("r", ((1.0, 1.0), (1.0, 3.0)), 1.0, speed_mps=0.4, sweep_deg=30, tilt_deg=0.0, heave_m=0.0,
-                    look_deg=0.0)
+    plan = DivePlan(
+        "r", ((1.0, 1.0), (1.0, 3.0)), 1.0, speed_mps=0.4, sweep_deg=30, tilt_deg=0.0, heave_m=0.0, look_deg=0.0
+    )
     b = _run(_scene_wall_and(), [plan], position_noise_m=0.0, attitude_noise_deg=0.0)
     planes = b.map_json()["planes"]
     assert len(planes) == 1
@@ -187,8 +202,9 @@ def test_wall_ahead_is_one_accurate_plane_and_laser_sheets_are_not_planes() -> N
 
 
 def test_single_laser_line_makes_no_plane() -> None:
-    plan = DivePlan("r", ((1.0, 1.0), (1.0, 3.0)), 1.0, speed_mps=0.4, sweep_deg=30, tilt_deg=0.0, heave_m=0.0,
-                    look_deg=0.0)
+    plan = DivePlan(
+        "r", ((1.0, 1.0), (1.0, 3.0)), 1.0, speed_mps=0.4, sweep_deg=30, tilt_deg=0.0, heave_m=0.0, look_deg=0.0
+    )
     frames = simulate_dive(_scene_wall_and(), [plan], duration_s=6.0, rate_hz=15.0, n_rays=500, seed=7)
     b = MapBuilder(MapConfig())
     for f in frames:
@@ -247,8 +263,9 @@ def _small_dive(seed: int = 11, duration_s: float = 8.0) -> list:
         DivePlan("rov1", ((1.0, 0.8), (1.0, 3.2)), 1.0, speed_mps=0.4, sweep_deg=35, look_deg=0.0),
         DivePlan("rov2", ((1.2, 3.2), (1.2, 0.8)), 1.6, speed_mps=0.4, sweep_deg=35, look_deg=10.0, phase_s=2.0),
     ]
-    return simulate_dive(scene, plans, duration_s=duration_s, rate_hz=15.0, n_rays=500, seed=seed,
-                         position_noise_m=0.01)
+    return simulate_dive(
+        scene, plans, duration_s=duration_s, rate_hz=15.0, n_rays=500, seed=seed, position_noise_m=0.01
+    )
 
 
 def test_replay_is_deterministic_and_changes_describe_the_map() -> None:
@@ -355,8 +372,20 @@ def test_cli_export_and_view(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     _feed(b, _small_dive(seed=14, duration_s=6.0))
     b.save()
     out = tmp_path / "out"
-    code = main(["map", "export", "--state", str(state), "--out", str(out / "m.ply"), "--json", str(out / "m.json"),
-                 "--png", str(out / "top.png")])
+    code = main(
+        [
+            "map",
+            "export",
+            "--state",
+            str(state),
+            "--out",
+            str(out / "m.ply"),
+            "--json",
+            str(out / "m.json"),
+            "--png",
+            str(out / "top.png"),
+        ]
+    )
     assert code == 0
     assert "planes" in capsys.readouterr().out
     doc = json.loads((out / "m.json").read_text())
