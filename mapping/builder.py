@@ -321,37 +321,37 @@ class MapBuilder:
         planes = []
         vox_plane, vox_keys, vox_counts, vox_sums = [], [], [], []
         for pid, mp in sorted(self._map.planes.items()):
-            r = mp.record
+            rec = mp.record
             planes.append(
                 {
                     "id": pid,
-                    "stats": r.stats.to_list(),
-                    "orient": list(r.orient),
-                    "aabb_min": list(r.aabb_min),
-                    "aabb_max": list(r.aabb_max),
-                    "n_obs": r.n_obs,
-                    "within": list(r.within),
-                    "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in r.contributions.items()},
+                    "stats": rec.stats.to_list(),
+                    "orient": list(rec.orient),
+                    "aabb_min": list(rec.aabb_min),
+                    "aabb_max": list(rec.aabb_max),
+                    "n_obs": rec.n_obs,
+                    "within": list(rec.within),
+                    "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in rec.contributions.items()},
                 }
             )
-            vox_plane.append(np.full(r.voxels.keys.shape[0], pid, np.int64))
-            vox_keys.append(r.voxels.keys)
-            vox_counts.append(r.voxels.counts)
-            vox_sums.append(r.voxels.sums)
+            vox_plane.append(np.full(rec.voxels.keys.shape[0], pid, np.int64))
+            vox_keys.append(rec.voxels.keys)
+            vox_counts.append(rec.voxels.counts)
+            vox_sums.append(rec.voxels.sums)
         robots = sorted(set(self._tracks) | set(self._windows))
         rindex = {r: i for i, r in enumerate(robots)}
         tr_r, tr_t, tr_p = [], [], []
-        for r, tr in self._tracks.items():
+        for robot, tr in self._tracks.items():
             for t, n, e, d in tr:
-                tr_r.append(rindex[r])
+                tr_r.append(rindex[robot])
                 tr_t.append(t)
                 tr_p.append((n, e, d))
         win_r, win_t, win_len, win_veh, win_pts = [], [], [], [], []
         windows = {}
-        for r, w in sorted(self._windows.items()):
-            windows[r] = {"n_new": w.n_new, "new_points": w.new_points}
+        for robot, w in sorted(self._windows.items()):
+            windows[robot] = {"n_new": w.n_new, "new_points": w.new_points}
             for c in w.clouds:
-                win_r.append(rindex[r])
+                win_r.append(rindex[robot])
                 win_t.append(c.t_ns)
                 win_len.append(c.points_q.shape[0])
                 win_veh.append(c.vehicle_q)

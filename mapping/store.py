@@ -61,7 +61,7 @@ def save_state(state_dir: Path, header: dict[str, Any], arrays: dict[str, NDArra
     body["format"] = FORMAT
     body["version"] = VERSION
     buf = io.BytesIO()
-    np.savez(buf, header=np.array(json.dumps(body, sort_keys=True)), **arrays)
+    np.savez(buf, header=np.array(json.dumps(body, sort_keys=True)), **arrays)  # type: ignore[arg-type]
     path = state_dir / STATE_FILE
     atomic_write_bytes(path, buf.getvalue())
     return path

@@ -138,7 +138,8 @@ def test_bridging_observation_fuses_two_map_planes() -> None:
     changes = pm.add(_obs(rng, "c", 3.0, (0.8, 1.8), (1.0, 1.2), 5))
     assert len(pm) == 1
     assert {"id": 2, "removed": True, "merged_into": 1} in changes
-    assert changes[0]["id"] == 1 and changes[0]["n_obs"] == 5
+    assert changes[0]["id"] == 1
+    assert changes[0]["n_obs"] == 5
 
 
 def test_opposite_faces_of_a_thin_wall_never_merge() -> None:
@@ -233,13 +234,14 @@ def test_pipe_alone_gives_no_plane() -> None:
 
 
 def test_coplanar_pillar_fronts_stay_two_planes() -> None:
-    faces = [f for f in box_pillar("p1", 3.0, 1.0, 0.5, 0.0, 3.0) + box_pillar("p2", 3.0, 3.0, 0.5, 0.0, 3.0)]
+    faces = box_pillar("p1", 3.0, 1.0, 0.5, 0.0, 3.0) + box_pillar("p2", 3.0, 3.0, 0.5, 0.0, 3.0)
     plan = DivePlan("r", ((0.8, 0.5), (0.8, 3.5)), 1.2, speed_mps=0.4, sweep_deg=35, look_deg=0.0)
     b = _run(Scene(tuple(faces)), [plan], duration_s=15.0)
     fronts = [p for p in b.map_json()["planes"] if p["normal"][0] < -0.99]
     assert len(fronts) == 2
     easts = sorted(p["extent"]["centroid"][1] for p in fronts)
-    assert abs(easts[0] - 1.0) < 0.2 and abs(easts[1] - 3.0) < 0.2
+    assert abs(easts[0] - 1.0) < 0.2
+    assert abs(easts[1] - 3.0) < 0.2
 
 
 # --------------------------------------------------------------------------- builder input, threads, persistence
@@ -297,8 +299,9 @@ def test_replay_is_deterministic_and_changes_describe_the_map() -> None:
         assert abs(np.linalg.norm(n) - 1) < 1e-9
         assert abs(n @ np.array(p["extent"]["centroid"]) + p["d"]) < 1e-9
     assert set(b1.tracks) == {"rov1", "rov2"}
-    t, n, e, d = b1.tracks["rov1"][0]
-    assert isinstance(t, int) and abs(d - 1.0) < 0.3
+    t, _n, _e, d = b1.tracks["rov1"][0]
+    assert isinstance(t, int)
+    assert abs(d - 1.0) < 0.3
 
 
 def test_persistence_round_trip_continues_the_same_map(tmp_path: Path) -> None:
@@ -330,7 +333,7 @@ def test_persistence_round_trip_continues_the_same_map(tmp_path: Path) -> None:
 
 def test_corrupt_state_is_refused_with_the_path(tmp_path: Path) -> None:
     (tmp_path / "map_state.npz").write_bytes(b"not a zip")
-    with pytest.raises(MapStoreError, match="map_state.npz"):
+    with pytest.raises(MapStoreError, match=r"map_state\.npz"):
         MapBuilder(MapConfig(), tmp_path)
     with pytest.raises(MapStoreError, match="state directory"):
         MapBuilder(MapConfig()).save()
