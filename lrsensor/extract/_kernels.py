@@ -436,3 +436,146 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
                 out[u] = val[u]
                 done[u] = True
     return out
+
+
+@_njit
+def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-untyped-def]
+    """Picks of half-resolution detection columns to full columns: column c stands for 2c and 2c + 1.
+
+    The row of 2c + 1 is the mean of the rows at c and c + 1 when both are on one chain. Input and output are
+    sorted by (virtual) column; ``chain_len`` is doubled (full columns).
+    """
+    n = col_d.size
+    cols = np.empty(2 * n, np.int64)
+    rows = np.empty(2 * n, np.float64)
+    ch = np.empty(2 * n, np.int64)
+    cl = np.empty(2 * n, np.int64)
+    k = 0
+    for i in range(n):
+        laser = col_d[i] // wd
+        c = col_d[i] - laser * wd
+        cols[k] = laser * w + 2 * c
+        rows[k] = rows_f[i]
+        ch[k] = chain[i]
+        cl[k] = 2 * chain_len[i]
+        k += 1
+        if 2 * c + 1 < w:
+            r = rows_f[i]
+            if i + 1 < n and col_d[i + 1] == col_d[i] + 1 and chain[i + 1] == chain[i]:
+                r = 0.5 * (rows_f[i] + rows_f[i + 1])
+            cols[k] = laser * w + 2 * c + 1
+            rows[k] = r
+            ch[k] = chain[i]
+            cl[k] = 2 * chain_len[i]
+            k += 1
+    return cols[:k], rows[:k], ch[:k], cl[:k]
+
+
+@_njit
+def neighbours(laser, cols, v, amp, sig, good, n_lasers, width, max_dist):  # type: ignore[no-untyped-def]
+    """Loop twin of :func:`lrsensor.extract.subpixel._neighbours`: nearest other-laser stripe per point."""
+    V = np.full((n_lasers, width), np.nan)
+    A = np.zeros((n_lasers, width))
+    S = np.ones((n_lasers, width))
+    n = v.size
+    for t in range(n):
+        if good[t]:
+            V[laser[t], cols[t]] = v[t]
+            A[laser[t], cols[t]] = amp[t]
+            S[laser[t], cols[t]] = sig[t] if math.isfinite(sig[t]) else 1.0
+    out_v = np.full(n, np.nan)
+    out_a = np.zeros(n)
+    out_s = np.ones(n)
+    for t in range(n):
+        best = max_dist
+        for other in range(n_lasers):
+            if other == laser[t]:
+                continue
+            ov = V[other, cols[t]]
+            if math.isfinite(ov) and math.isfinite(v[t]):
+                dist = abs(ov - v[t])
+                if dist < best:
+                    best = dist
+                    out_v[t] = ov
+                    out_a[t] = A[other, cols[t]]
+                    out_s[t] = S[other, cols[t]]
+    return out_v, out_a, out_s
+
+
+@_njit
+def finish_points(  # type: ignore[no-untyped-def]
+    col_v,
+    vv,
+    amp,
+    sig,
+    sat,
+    ok,
+    lnoise,
+    chain,
+    chain_len,
+    noise_l,
+    w,
+    n_cols,
+    min_contrast,
+    min_snr,
+    min_run,
+    max_sigma,
+    scales,
+):
+    """Signal-to-noise gate, runs, along-stripe smoothing and quality (loop twin of the numpy tail of ``extract``).
+
+    Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
+    """
+    n = col_v.size
+    keep = np.zeros(n, np.bool_)
+    snr = np.zeros(n)
+    for t in range(n):
+        noise = max(max(noise_l[col_v[t] // w], lnoise[t]), 0.5)
+        snr[t] = amp[t] / noise
+        keep[t] = ok[t] and amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
+    # runs: kept columns on one chain with gaps of at most 3 columns
+    run_id = np.full(n, -1, np.int64)
+    r = -1
+    last_col = -10
+    last_chain = -1
+    for t in range(n):
+        if not keep[t]:
+            continue
+        if col_v[t] - last_col > 3 or chain[t] != last_chain:
+            r += 1
+        run_id[t] = r
+        last_col = col_v[t]
+        last_chain = chain[t]
+    counts = np.zeros(r + 1, np.int64)
+    for t in range(n):
+        if run_id[t] >= 0:
+            counts[run_id[t]] += 1
+    need = max(2, min_run // 2)
+    y = np.full(n_cols, np.nan)
+    run = np.full(n_cols, -1, np.int64)
+    m = 0
+    for t in range(n):
+        if run_id[t] >= 0 and counts[run_id[t]] >= need:
+            y[col_v[t]] = vv[t]
+            run[col_v[t]] = run_id[t]
+            m += 1
+    ys = smooth_runs(y, run, scales) if scales.size > 0 else y
+    u_out = np.empty(m)
+    v_out = np.empty(m)
+    l_out = np.empty(m, np.int64)
+    q_out = np.empty(m)
+    k = 0
+    for t in range(n):
+        if run_id[t] < 0 or counts[run_id[t]] < need:
+            continue
+        laser = col_v[t] // w
+        u_out[k] = col_v[t] - laser * w
+        v_out[k] = ys[col_v[t]]
+        l_out[k] = laser
+        s = sig[t] if math.isfinite(sig[t]) else max_sigma
+        q_snr = 1.0 - math.exp(-snr[t] / 8.0)
+        q_w = min(max(min(s / 0.6, 1.5 * max_sigma / max(s, 1e-6) - 0.5), 0.2), 1.0)
+        q_run = min(max(chain_len[t] / (4.0 * min_run), 0.0), 1.0)
+        q_out[k] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
+        k += 1
+    return u_out, v_out, l_out, q_out

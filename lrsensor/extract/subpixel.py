@@ -140,26 +140,31 @@ def _plan(calibration: Calibration, min_range_m: float, max_range_m: float, marg
     return _Plan(bands, tuple(bands.row_range(i) for i in range(bands.n_lasers)))
 
 
-def _noise_dn(g: NDArray[np.uint8]) -> float:
-    """Robust pixel noise (DN) of a band of the green channel, insensitive to smooth gradients (glow, murk).
+def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
+    """Robust pixel noise (DN) of a band of a green channel, insensitive to smooth gradients (glow, murk).
 
     Second differences ``g[r] - 2 g[r + 2] + g[r + 4]`` (rows two apart, so independent; linear gradients cancel)
-    on every 8th row triple and every 2nd column; for Gaussian noise of std s their median absolute value is
-    0.6745 sqrt(6) s.
+    on every ``step``-th row triple and every 2nd column; for Gaussian noise of std s their median absolute
+    value is 0.6745 sqrt(6) s.
     """
     if g.shape[0] < 5:
         return 1.0
-    n = (g.shape[0] - 4 + 7) // 8
-    a = g[0 : 8 * n : 8, ::2][:n]
-    b = g[2 : 8 * n + 2 : 8, ::2][:n]
-    c = g[4 : 8 * n + 4 : 8, ::2][:n]
+    n = (g.shape[0] - 4 + step - 1) // step
+    a = g[0 : step * n : step][:n, ::2]
+    b = g[2 : step * n + 2 : step][:n, ::2]
+    c = g[4 : step * n + 4 : step][:n, ::2]
     ac: Any = cv2.add(a, c, dtype=cv2.CV_16U)
     bb: Any = cv2.add(b, b, dtype=cv2.CV_16U)
     d = cv2.absdiff(ac, bb)
     hist = np.bincount(np.minimum(d.ravel(), 1023), minlength=1024)
     cum = np.cumsum(hist)
-    med = float(np.searchsorted(cum, 0.5 * cum[-1]))
-    return max(med / (0.6745 * math.sqrt(6.0)), 0.5)
+    half = 0.5 * float(cum[-1])
+    k = int(np.searchsorted(cum, half))
+    below = float(cum[k - 1]) if k > 0 else 0.0
+    # the median inside its integer bin (|d| = k covers [k - 0.5, k + 0.5) of the continuous value; 0 covers [0, 0.5))
+    lo, width = (0.0, 0.5) if k == 0 else (k - 0.5, 1.0)
+    med = lo + width * (half - below) / max(float(hist[k]), 1.0)
+    return max(med / (0.6745 * math.sqrt(6.0)), 0.05)
 
 
 def _candidates(
@@ -186,7 +191,7 @@ def _candidates(
     top, bot = d - (r0 - a0), d - (a1 - r1)
     if top > 0 or bot > 0:  # pad to the full shift range (replicate border rows)
         g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0), 0, 0, cv2.BORDER_REPLICATE)
-    noise = _noise_dn(g)
+    noise = max(_noise_dn(g, int(np.clip(g.shape[0] // 24, 2, 16))), 0.5)
     if scale == 2:
         g = cv2.pyrDown(g)  # row y <-> full row r0 - d + 2 y, column c <-> full column 2 c
         noise_s = noise * _PYR_NOISE
@@ -610,7 +615,9 @@ def extract(
         col_d, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols_d, cfg, wd, jump, min_run)
     if col_d.size == 0:
         return Detections.empty()
-    if scale == 2:
+    if scale == 2 and fast:
+        col_v, rows_f, chain, chain_len = _kernels.expand_half(col_d, rows_f, chain, chain_len, wd, w)
+    elif scale == 2:
         # every detection column c stands for the full columns 2c and 2c + 1 (between c and c + 1)
         laser_d = col_d // wd
         c = col_d - laser_d * wd
@@ -670,13 +677,37 @@ def extract(
     # alternating a few times (both estimates start pulled toward each other)
     if n_l > 1:
         for _ in range(4):
-            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
+            args = (laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
+            nb = _kernels.neighbours(*args) if fast else _neighbours(*args)
             idx = np.flatnonzero(np.isfinite(nb[0]))
             if idx.size == 0:
                 break
             res = fit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
             for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
                 arr[idx] = new
+    k0 = cfg.smooth_half_cols
+    scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+    if fast:
+        u_o, v_o, l_o, q_o = _kernels.finish_points(
+            col_v,
+            vv,
+            amp,
+            sig,
+            _sat,
+            ok,
+            lnoise,
+            chain,
+            chain_len,
+            noise,
+            w,
+            n_cols,
+            float(cfg.min_contrast_dn),
+            float(cfg.min_snr),
+            cfg.min_run_cols,
+            float(cfg.max_sigma_px),
+            np.asarray(scales, np.int64),
+        )
+        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o)
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
@@ -692,17 +723,12 @@ def extract(
     keep = np.bincount(run_id)[run_id] >= max(2, cfg.min_run_cols // 2)
     col_v, vv, sig, chain_len, run_id, snr = col_v[keep], vv[keep], sig[keep], chain_len[keep], run_id[keep], snr[keep]
     # 5. along-stripe smoothing
-    if cfg.smooth_half_cols >= 1 and col_v.size:
+    if scales and col_v.size:
         y = np.full(n_cols, np.nan)
         run = np.full(n_cols, -1, np.int64)
         y[col_v] = vv
         run[col_v] = run_id
-        k0 = cfg.smooth_half_cols
-        scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True))
-        if fast:
-            vv = _kernels.smooth_runs(y, run, np.asarray(scales, np.int64))[col_v]
-        else:
-            vv = _smooth(y, run, scales)[col_v]
+        vv = _smooth(y, run, scales)[col_v]
     # 6. quality
     laser = col_v // w
     q_snr = 1.0 - np.exp(-snr / 8.0)
