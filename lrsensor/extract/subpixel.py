@@ -63,9 +63,11 @@ class SubpixelConfig:
         min_contrast_dn: smallest accepted stripe peak above the local background, DN.
         snr_threshold: detection threshold in units of the measured background noise.
         max_candidates: candidates kept per column (strongest first).
-        max_jump_px: largest row change between neighbouring columns of one stripe piece.
+        max_jump_px: largest row change between neighbouring columns of one stripe piece (x1.5 per pyramid
+            column when ``detect_scale`` is 2).
         min_run_cols: shortest accepted stripe piece, columns.
-        smooth_half_cols: half-width of the along-stripe quadratic smoothing, columns (0 = off).
+        smooth_half_cols: half-width of the middle scale of the along-stripe line fits, columns; the scales are
+            4x, 1x and 1/4x this (0 = no smoothing).
         min_green_ratio: a candidate's green rise must exceed this fraction of its red and blue rises.
         smooth_detect_cols: horizontal box smoothing of the detection response at full scale, columns.
         detect_scale: 2 = detect candidates on one Gaussian pyramid level (faster, averages noise), 1 = full
@@ -117,7 +119,7 @@ class SubpixelConfig:
 
     @property
     def contrast_px(self) -> int:
-        """Row offset of the two-sided contrast: beyond the half-width of the widest (saturated) stripe."""
+        """Row offset d of the two-sided contrast (even): about 2 sigma beyond the widest stripe's centre."""
         return 2 * math.ceil(self.max_sigma_px + 2.0)
 
     @property
