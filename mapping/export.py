@@ -1,4 +1,8 @@
-"""Export of the map: binary PLY (plane points and plane patches) and JSON."""
+"""Export of the map: binary PLY (plane points and plane patches) and JSON.
+
+The PLY writer is local because the map needs a face element (one quad per plane patch), which
+``lrsensor.ply.write_ply`` (vertices only) does not write; ``lrsensor.ply.read_ply`` reads the vertices back.
+"""
 
 from __future__ import annotations
 

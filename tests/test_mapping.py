@@ -368,7 +368,7 @@ def test_map_json_can_be_read_while_another_thread_feeds() -> None:
 # --------------------------------------------------------------------------- export, view, CLI, imports
 def test_cli_export_and_view(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from lrsensor.cli import main
-    from mapping.export import read_ply_vertices
+    from lrsensor.ply import read_ply
 
     state = tmp_path / "state"
     b = MapBuilder(MapConfig(), state)
@@ -394,7 +394,7 @@ def test_cli_export_and_view(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     doc = json.loads((out / "m.json").read_text())
     assert doc["planes"] == b.map_json()["planes"]
     assert set(doc["tracks"]) == {"rov1", "rov2"}
-    verts = read_ply_vertices(out / "m.ply")
+    verts = read_ply(out / "m.ply")  # the sensor core's reader reads the map's vertices too
     assert int((verts["corner"] == 1).sum()) == 4 * len(doc["planes"])
     assert set(np.unique(verts["plane"])) == {p["id"] for p in doc["planes"]}
     assert (out / "top.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
