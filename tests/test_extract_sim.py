@@ -90,6 +90,8 @@ def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch) -> None
 
     if not _kernels.HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
+    _kernels.warm_up()
+    assert _kernels.ready()
     r = sim.named_scene("cluttered").render(seed=2)
     monkeypatch.setattr(subpixel, "USE_NUMBA", True)
     fast = subpixel.extract(r.image, r.calibration)

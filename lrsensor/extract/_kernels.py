@@ -2,13 +2,20 @@
 
 The image-wide steps (band response, local maxima) are OpenCV operations; what remains is a few thousand
 columns of small, branchy work (candidate chains, profile fits, along-stripe smoothing) where numpy spends its
-time in call overhead. These loops compile once (``cache=True``) and run in a fraction of a millisecond.
-Import :data:`HAVE_NUMBA` to know whether they are available; the extractor falls back to numpy otherwise.
+time in call overhead. These loops compile once (``cache=True``, tens of seconds the very first time, about a
+second from the on-disk cache) and then run in a fraction of a millisecond.
+
+Compilation never blocks a caller: :func:`ready` starts it in a background thread on first use and returns False
+until every kernel is compiled for the argument types the extractor uses; meanwhile the extractor runs its numpy
+path (same algorithm). :func:`warm_up` compiles synchronously (benchmarks, tests). Without numba
+(:data:`HAVE_NUMBA` False) the numpy path is used throughout.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -579,3 +586,63 @@ def finish_points(  # type: ignore[no-untyped-def]
         q_out[k] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
         k += 1
     return u_out, v_out, l_out, q_out
+
+
+# --------------------------------------------------------------------------- compilation management
+_READY = threading.Event()
+_LOCK = threading.Lock()
+_STARTED = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the extractor's argument types; blocks until done."""
+    if not HAVE_NUMBA or _READY.is_set():
+        return
+    with _LOCK:
+        if _READY.is_set():
+            return
+        i64 = np.zeros(4, np.int64)
+        f64 = np.zeros(4)
+        nan = np.full(4, np.nan)
+        b = np.zeros(4, np.bool_)
+        img = np.zeros((8, 8, 3), np.uint8)
+        select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
+        expand_half(i64, f64, i64, i64, 4, 8)
+        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, nan, nan, nan)
+        neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
+        finish_points(i64, f64, f64, f64, b, b, f64, i64, i64, np.ones(2), 8, 16, 5.0, 2.5, 8, 5.0, np.array([4, 1]))
+        smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))
+        _READY.set()
+
+
+def ready() -> bool:
+    """True when the compiled kernels can be called without compiling; starts the background compile once."""
+    global _STARTED
+    if not HAVE_NUMBA:
+        return False
+    if _READY.is_set():
+        return True
+    if not _STARTED:
+        _STARTED = True
+        if _cached():
+            warm_up()  # loading from the on-disk cache takes about a second: do it now
+            return True
+        threading.Thread(target=warm_up, name="lrsensor-numba-warmup", daemon=True).start()
+    return False
+
+
+_KERNEL_NAMES = ("select_candidates", "expand_half", "fit_columns", "neighbours", "finish_points", "smooth_runs")
+
+
+def _cached() -> bool:
+    """Whether numba's on-disk cache holds an index for every kernel as defined now (then loading is quick)."""
+    cache_dir = Path(__file__).parent / "__pycache__"
+    stem = Path(__file__).stem
+    try:
+        for name in _KERNEL_NAMES:
+            line = globals()[name].py_func.__code__.co_firstlineno
+            if not any(cache_dir.glob(f"{stem}.{name}-{line}.*.nbi")):
+                return False
+    except (OSError, AttributeError, KeyError):
+        return False
+    return True

@@ -580,10 +580,11 @@ def extract(
         :class:`Detections` with pixel coordinates (N, 2), laser index (N,) and quality (N,).
     """
     cfg = SubpixelConfig.from_options(config, **options)
+    image = np.ascontiguousarray(image)
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     w = image.shape[1]
     n_l = plan.bands.n_lasers
-    fast = USE_NUMBA
+    fast = USE_NUMBA and _kernels.ready()  # the numpy path runs while the kernels compile in the background
     # 1-2. candidates of every laser in its band; laser l's detection columns are numbered l * wd + c
     scale = cfg.detect_scale
     wd = (w + scale - 1) // scale
