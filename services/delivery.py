@@ -36,6 +36,10 @@ from .wire import ENCODING, CloudMsg
 
 log = logging.getLogger(__name__)
 
+#: Re-sends per cycle while acknowledgements are stalled: a probe, not a flood (a base that never
+#: acknowledges must not receive the whole outbox every few seconds).
+STALL_PROBES = 10
+
 
 @dataclass
 class DeliveryCounters:
@@ -250,6 +254,7 @@ class OutboxSink:
             return
         now = time.monotonic()
         budget = self.max_resend_per_cycle
+        probes = STALL_PROBES  # while acks are stalled, only a few of the oldest go (the base may not ack)
         with self._lock:
             acked_high = self._acked_high
             stalled = now - self._last_progress >= self.stall_s
@@ -263,8 +268,11 @@ class OutboxSink:
             # later cloud was acknowledged, or acknowledgements stalled altogether. A base station that is
             # merely slow keeps acknowledging in order, and gets no duplicates to make it slower still.
             overdue = now - last >= self.resend_after_s
-            if not unheard and not (overdue and (seq < acked_high or stalled)):
-                continue
+            lost = overdue and seq < acked_high
+            if not unheard and not lost:
+                if not (overdue and stalled and probes > 0):
+                    continue
+                probes -= 1
             payload = self.outbox.get(seq)  # read from disk only what goes out
             if payload is None:  # acknowledged meanwhile
                 continue

@@ -230,3 +230,21 @@ def test_a_lost_last_cloud_is_resent_after_a_stall(net: tuple[Any, Any], tmp_pat
         assert sink.stats()["resent"] == 1
     assert base.seqs.ranges() == [[0, 9]]
     base.close()
+
+
+def test_a_base_that_never_acknowledges_gets_probes_not_floods(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router)
+    base.q.undeclare()  # receives, never acknowledges
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.2, stall_s=0.3) as sink:
+        assert _wait_until(sink.base_present)
+        for seq in range(100):
+            sink.send(_cloud(seq))
+        t0 = time.monotonic()
+        time.sleep(1.5)
+        cycles = (time.monotonic() - t0) / 0.1 + 2
+        resent = sink.stats()["resent"]
+    assert 0 < resent <= 10 * cycles < 100 * 1.5 / 0.2  # a flood would re-send all 100 every 0.2 s
+    assert min(base.arrivals) == 0  # the probes are the oldest
+    base.sub.undeclare()
