@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .atomic import atomic_write
 from .camera import Camera
 from .errors import CalibrationFileError, GeometryError
 from .frames import R_CAM_FROM_BODY_DEFAULT
@@ -140,13 +140,9 @@ class Calibration:
             ),
         )
 
-    def with_lasers(
-        self, lasers: Sequence[LaserPlane], metadata: Mapping[str, Any] | None = None
-    ) -> Calibration:
+    def with_lasers(self, lasers: Sequence[LaserPlane], metadata: Mapping[str, Any] | None = None) -> Calibration:
         """A copy with other laser planes (and optionally other metadata)."""
-        return replace(
-            self, lasers=tuple(lasers), metadata=dict(self.metadata if metadata is None else metadata)
-        )
+        return replace(self, lasers=tuple(lasers), metadata=dict(self.metadata if metadata is None else metadata))
 
     # ----------------------------------------------------------------- (de)serialisation
     def to_dict(self) -> dict[str, Any]:
@@ -166,9 +162,7 @@ class Calibration:
             },
             "R_cam_from_body": [list(r) for r in self.R_cam_from_body],
             "t_cam_from_body": list(self.t_cam_from_body),
-            "lasers": [
-                {"name": l.name, "point": list(l.point), "normal": list(l.normal)} for l in self.lasers
-            ],
+            "lasers": [{"name": l.name, "point": list(l.point), "normal": list(l.normal)} for l in self.lasers],
         }
         if self.metadata:
             out["metadata"] = dict(self.metadata)
@@ -180,19 +174,7 @@ class Calibration:
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the calibration file atomically (temporary file then rename)."""
-        target = Path(path)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(self.to_json() + "\n")
-                fh.flush()
-                os.fsync(fh.fileno())
-            Path(tmp).chmod(0o644)
-            Path(tmp).replace(target)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write(path, self.to_json() + "\n")
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "calibration") -> Calibration:

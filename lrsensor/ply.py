@@ -7,13 +7,13 @@ mapping export. Files are written atomically (temporary file in the same directo
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .atomic import atomic_write
 from .errors import LrsensorError
 from .scan import Scan
 
@@ -79,19 +79,7 @@ def write_ply(
     header += [f"property {_NUMPY_TO_PLY[np.dtype(dt).str[1:]]} {name}" for name, dt in fields]
     header.append("end_header")
     data = ("\n".join(header) + "\n").encode("ascii") + rec.tobytes()
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        Path(tmp).replace(target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
+    return atomic_write(path, data)
 
 
 def write_scan_ply(path: str | os.PathLike[str], scan: Scan, comments: tuple[str, ...] = ()) -> Path:
