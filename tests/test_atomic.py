@@ -22,7 +22,6 @@ def test_writes_text_and_bytes_with_readable_mode(tmp_path: Path) -> None:
 def test_failed_write_keeps_the_old_file(tmp_path: Path) -> None:
     p = atomic_write(tmp_path / "f.bin", b"old")
 
-
     with pytest.raises(TypeError):
         atomic_write(p, 12345)  # type: ignore[arg-type]
     assert p.read_bytes() == b"old"
