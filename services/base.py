@@ -25,7 +25,6 @@ from __future__ import annotations
 import collections
 import json
 import logging
-import os
 import queue
 import tempfile
 import threading
@@ -37,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from lrsensor.atomic import atomic_write
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
 from lrsensor.frames import body_to_ned
@@ -54,21 +54,6 @@ STATE_VERSION = 1
 UNKNOWN_SENDER = "?"
 #: Poses kept per robot for the track plot.
 MAX_TRACK_POINTS = 20_000
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (temporary file in the same folder, fsync, rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        Path(tmp).replace(path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 @dataclass
@@ -301,7 +286,7 @@ class BaseStation:
                 },
             }
             self._dirty = False
-        write_atomic(path, json.dumps(data))
+        atomic_write(path, json.dumps(data))
         with self._lock:
             for r, ranges in acked_now.items():
                 if r in self.records:
