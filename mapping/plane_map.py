@@ -108,9 +108,9 @@ class PlaneRecord:
             tuple((2 * m + n) // (2 * n) for m in stats.centred_scatter()),  # type: ignore[arg-type]
         )
 
-    def fit(self, quantum_m: float, within: bool = True) -> PlaneFit:
+    def fit(self, quantum_m: float, between_weight: float = 1.0) -> PlaneFit:
         """Refit from the statistics, normal signed by the orientation vector (see :func:`fit_parts`)."""
-        return fit_parts(self.stats, self.within, self.orient, quantum_m, within)
+        return fit_parts(self.stats, self.within, self.orient, quantum_m, between_weight)
 
 
 def fit_parts(
@@ -118,20 +118,24 @@ def fit_parts(
     within: tuple[int, ...],
     orient: tuple[int, int, int],
     quantum_m: float,
-    use_within: bool = True,
+    between_weight: float = 1.0,
 ) -> PlaneFit:
     """The plane of exact statistics: centroid and covariance of all points; normal from ``within``.
 
     ``within`` is the sum over fused observations of each one's centred scatter (``n`` times its covariance,
     rounded to whole quanta^2 once per observation, so sums stay exact): its smallest
-    axis is the normal once per-observation offsets (navigation drift) are removed. With ``use_within`` false,
-    or before any observation, the normal is the smallest axis of the plain covariance. The normal is signed to
-    agree with ``orient``; ``eigvals`` are the plain covariance's variances along the chosen axes.
+    axis is the normal once per-observation offsets (navigation drift) are removed. The normal is the smallest
+    axis of ``W + between_weight * B``, where ``B = T - W`` is the between-observation part of the total scatter
+    ``T``: weight 1 gives the plain fit of all points, 0 ignores where observations sit relative to each other.
+    The normal is signed to agree with ``orient``; ``eigvals`` are the plain covariance's variances along the
+    chosen axes.
     """
     f = stats.fit(quantum_m)
     axes = f.axes
-    if use_within and any(within):
-        _w, axes = np.linalg.eigh(scatter_matrix(within, 1.0))
+    if between_weight < 1.0 and any(within):
+        w = scatter_matrix(within, 1.0)
+        t = f.cov * (float(stats.n) / (quantum_m * quantum_m))
+        _w, axes = np.linalg.eigh(w + between_weight * (t - w))
     normal = axes[:, 0].copy()
     if normal @ np.array(orient, dtype=np.float64) < 0:
         normal = -normal
@@ -168,7 +172,7 @@ class MapPlane:
     def fit(self) -> PlaneFit:
         """The plane fitted to the record's statistics (cached)."""
         if self._fit is None:
-            self._fit = self.record.fit(self.cfg.quantum_m, bool(self.cfg.fit_within_windows))
+            self._fit = self.record.fit(self.cfg.quantum_m, self.cfg.between_window_weight)
         return self._fit
 
     def to_json(self) -> dict[str, Any]:
@@ -181,7 +185,7 @@ class MapPlane:
 def plane_json(plane_id: int, rec: PlaneRecord, cfg: MapConfig) -> dict[str, Any]:
     """JSON-ready dict of one plane in NED (``normal . p + d = 0``), metres and nanoseconds."""
     q = cfg.quantum_m
-    f = rec.fit(q, bool(cfg.fit_within_windows))
+    f = rec.fit(q, cfg.between_window_weight)
     u, v = in_plane_axes(f.normal)
     cen = rec.voxels.centroids_m(q)
     if cen.shape[0]:
@@ -266,7 +270,7 @@ class PlaneMap:
             tuple(x + y for x, y in zip(a.within, b.within, strict=True)),
             (a.orient[0] + b.orient[0], a.orient[1] + b.orient[1], a.orient[2] + b.orient[2]),
             cfg.quantum_m,
-            bool(cfg.fit_within_windows),
+            cfg.between_window_weight,
         )
         return merged.rms_m <= cfg.merge_max_rms_m
 
@@ -287,7 +291,7 @@ class PlaneMap:
         cfg = self.cfg
         if obs.stats.n < 3:
             return []
-        f_obs = obs.fit(cfg.quantum_m, bool(cfg.fit_within_windows))
+        f_obs = obs.fit(cfg.quantum_m, cfg.between_window_weight)
         hint = np.array(obs.hint_normal) if obs.hint_normal is not None else None
         hits = [
             pid

@@ -65,10 +65,11 @@ class MapConfig:
             single window's plane stays tentative (one odd window must not put a plane on the map).
 
     Merging (see :mod:`mapping.plane_map`):
-        fit_within_windows: 0 (default): a map plane's normal is the smallest axis of the scatter of all its
-            points. 1: of the pooled scatter of its observations each about its own centroid, so a robot's
-            slowly drifting position (an offset per window) cannot tilt it, at the price of losing the lever arm
-            between observations (measured: better on big walls, worse on small pillar faces; see the report).
+        between_window_weight: a map plane's normal is the smallest axis of ``W + w B``: ``W`` pools the scatter of
+            each fused observation (one window of one robot) about its own centroid, ``B`` is the rest of the
+            scatter of all points (where the observations sit relative to each other). Navigation drift moves
+            whole windows, so it lives in ``B``: with w = 0 (default) a drifting robot cannot tilt a plane; w = 1
+            is the plain least-squares fit of all points. The offset ``d`` always averages every point.
         merge_angle_deg: oriented normals within this angle (opposite faces of a thin wall never fuse);
         merge_offset_m: the points of one plane within this RMS distance of the other plane (either way round).
         merge_gap_m: bounding boxes (inflated by this in north and east) must overlap or touch.
@@ -104,16 +105,16 @@ class MapConfig:
     min_inliers: int = 25
     min_width_m: float = 0.02
     min_extent_m: float = 0.1
-    max_rms_m: float = 0.015
+    max_rms_m: float = 0.02
     max_sagitta_m: float = 0.015
-    max_frame_sagitta_m: float = 0.005
+    max_frame_sagitta_m: float = 0.008
     min_sensor_distance_m: float = 0.2
     min_commit_points: int = 100
     min_obs_publish: int = 2
 
-    fit_within_windows: int = 0
+    between_window_weight: float = 0.0
     merge_angle_deg: float = 40.0
-    merge_offset_m: float = 0.04
+    merge_offset_m: float = 0.06
     merge_gap_m: float = 0.3
     merge_gap_down_m: float = 1.0
     merge_max_rms_m: float = 0.03
@@ -133,7 +134,8 @@ class MapConfig:
                 msg = f"MapConfig.{f.name} must be an integer, got {value!r}"
                 raise MapConfigError(msg)
             if (
-                f.name not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz", "fit_within_windows")
+                f.name
+                not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz", "between_window_weight")
                 and value <= 0
             ):
                 msg = f"MapConfig.{f.name} must be > 0, got {value!r}"
