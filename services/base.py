@@ -109,9 +109,10 @@ class LatencyStats:
         if transit_ns is not None:
             self.transit.append(transit_ns)
 
-    def percentiles_ms(self, qs: Iterable[float] = (50, 99)) -> dict[str, float]:
-        """Percentiles of the recorded latencies in ms (NaN when empty)."""
-        arr = np.asarray(self.values, dtype=float)
+    def percentiles_ms(self, qs: Iterable[float] = (50, 99), transit: bool = False) -> dict[str, float]:
+        """Percentiles in ms (NaN when empty) of the end-to-end latencies, or with ``transit`` of the
+        publication-to-base times (meaningful also when a recorded dive with old capture times is replayed)."""
+        arr = np.asarray(self.transit if transit else self.values, dtype=float)
         return {f"p{q:g}": float(np.percentile(arr, q) / 1e6) if arr.size else float("nan") for q in qs}
 
 
@@ -670,6 +671,7 @@ class BaseStation:
         with self._lock:
             robots = {r: rec.to_json() for r, rec in sorted(self.records.items()) if robot in (None, r)}
             lat = self.latency.percentiles_ms()
+            transit = self.latency.percentiles_ms(transit=True)
             return {
                 "fleet": self.keys.fleet,
                 "t_ns": time.time_ns(),
@@ -686,6 +688,7 @@ class BaseStation:
                     "processed": self.processed,
                     "queued": self._queue.qsize(),
                     "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
+                    "transit_ms": {k: (None if v != v else round(v, 3)) for k, v in transit.items()},
                 },
             }
 

@@ -215,6 +215,18 @@ def test_counters_survive_a_restart(tmp_path: Path) -> None:
         assert (st["received"], st["missed"], st["last_seq"]) == (5, 1, 5)
 
 
+def test_status_reports_transit_time_of_replayed_clouds(tmp_path: Path) -> None:
+    # capture times from 2023 (a replayed recording): end-to-end latency is years, transit is milliseconds
+    with TestNetwork("t5b") as net:
+        base = net.start_base(tmp_path / "state", map_mode="off")
+        pub = publisher(net.session(), net.keys.cloud("rov1"))
+        pub.put(a_cloud("rov1", 0).with_sent_ns(time.time_ns()).to_bytes())
+        assert wait_for(lambda: base.processed == 1)
+        ingest = base.status()["ingest"]
+        assert ingest["latency_ms"]["p50"] > 1e9
+        assert 0 <= ingest["transit_ms"]["p50"] < 5_000
+
+
 def test_frames_outside_the_imu_span_are_skipped_not_guessed(dives: dict[str, Path], tmp_path: Path) -> None:
     folder = dives["rov2"]
     full = CsvImu(folder / "imu.csv").track
