@@ -101,9 +101,16 @@ def main() -> int:
     open3d()  # import once, outside the timings
     stream = _stream(args.robots, args.seconds)
     configs = {
-        "default (extract every 15 clouds, 1 cm cloud thinning)": MapConfig(),
-        "extract every 30 clouds (1 s)": MapConfig(window_clouds=30, extract_every_clouds=30),
-        "2 cm cloud thinning": MapConfig(cloud_voxel_m=0.02),
+        "default: map takes 10 clouds/s per robot, 1 cm thinning, extract every 1 s": MapConfig(),
+        "map takes 10 clouds/s per robot, extract every 2 s": MapConfig(
+            window_clouds=20, extract_every_clouds=20, extract_every_s=2.0, extract_every_points=80_000
+        ),
+        "every cloud (max_cloud_rate_hz=0), extract every 15 clouds": MapConfig(
+            max_cloud_rate_hz=0.0, window_clouds=15, extract_every_clouds=15, extract_every_s=0.5
+        ),
+        "every cloud, extract every 30 clouds (1 s)": MapConfig(
+            max_cloud_rate_hz=0.0, window_clouds=30, extract_every_clouds=30, extract_every_points=120_000
+        ),
     }
     load0 = os.getloadavg()[0]
     rows = []
@@ -111,7 +118,7 @@ def main() -> int:
         r = bench_stream(cfg, stream)
         rows.append((name, r))
         print(name, r, flush=True)
-    full = bench_full(MapConfig(), stream)
+    full = bench_full(MapConfig(extract_every_points=200_000), stream)
     load1 = os.getloadavg()[0]
     need = args.robots * 30
     lines = [
