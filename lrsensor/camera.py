@@ -80,9 +80,7 @@ class Camera:
             msg = f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}"
             raise GeometryError(msg)
         if len(self.distortion) != 5:
-            msg = (
-                f"camera distortion must have 5 coefficients [k1, k2, p1, p2, k3], got {len(self.distortion)}"
-            )
+            msg = f"camera distortion must have 5 coefficients [k1, k2, p1, p2, k3], got {len(self.distortion)}"
             raise GeometryError(msg)
 
     @classmethod
@@ -131,8 +129,5 @@ class Camera:
         q = np.asarray(uv, dtype=float).reshape(-1, 2)
         with np.errstate(invalid="ignore"):
             return (
-                (q[:, 0] >= -0.5)
-                & (q[:, 0] <= self.width - 0.5)
-                & (q[:, 1] >= -0.5)
-                & (q[:, 1] <= self.height - 0.5)
+                (q[:, 0] >= -0.5) & (q[:, 0] <= self.width - 0.5) & (q[:, 1] >= -0.5) & (q[:, 1] <= self.height - 0.5)
             )

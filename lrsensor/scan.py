@@ -56,12 +56,8 @@ class Scan:
     def finite(self) -> Scan:
         """The scan without rows whose point is not finite."""
         keep = np.all(np.isfinite(self.points), axis=1)
-        return Scan(
-            self.points[keep], self.laser[keep], self.uv[keep], self.quality[keep], self.method, self.info
-        )
+        return Scan(self.points[keep], self.laser[keep], self.uv[keep], self.quality[keep], self.method, self.info)
 
     def select(self, mask: NDArray[np.bool_]) -> Scan:
         """The rows of the scan where ``mask`` (N,) is true."""
-        return Scan(
-            self.points[mask], self.laser[mask], self.uv[mask], self.quality[mask], self.method, self.info
-        )
+        return Scan(self.points[mask], self.laser[mask], self.uv[mask], self.quality[mask], self.method, self.info)

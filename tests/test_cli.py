@@ -31,8 +31,6 @@ def test_each_subcommand_has_help(name: str, capsys: pytest.CaptureFixture[str])
 
 
 def test_console_entry_point_runs() -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", "lrsensor", "--help"], capture_output=True, text=True, timeout=60
-    )
+    out = subprocess.run([sys.executable, "-m", "lrsensor", "--help"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0
     assert "demo" in out.stdout

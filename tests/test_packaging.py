@@ -34,4 +34,4 @@ def test_ci_runs_the_readme_test_command() -> None:
     assert commands == ["./run demo", "./run test"]
     ci = (ROOT / ".ci" / "run").read_text()
     assert "./run test" in ci
-    assert "lrsensor = \"lrsensor.cli:main\"" in (ROOT / "pyproject.toml").read_text()
+    assert 'lrsensor = "lrsensor.cli:main"' in (ROOT / "pyproject.toml").read_text()

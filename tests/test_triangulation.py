@@ -46,9 +46,7 @@ def test_eq24_equals_eq29_for_parallel_lasers() -> None:
 
 @pytest.mark.parametrize("distorted", [False, True])
 def test_project_then_triangulate_gives_point_back(distorted: bool) -> None:
-    cam = Camera(
-        1920, 1080, 554.28, 554.28, 959.5, 539.5, (-0.2, 0.05, 0.001, -0.001, 0.0) if distorted else (0,) * 5
-    )  # type: ignore[arg-type]
+    cam = Camera(1920, 1080, 554.28, 554.28, 959.5, 539.5, (-0.2, 0.05, 0.001, -0.001, 0.0) if distorted else (0,) * 5)  # type: ignore[arg-type]
     R = R_ned_from_body(0.01, -0.02, 0.015) @ np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]).T
     R_cam_from_body = R.T
     cal = Calibration(
@@ -76,9 +74,7 @@ def test_project_then_triangulate_gives_point_back(distorted: bool) -> None:
 
 
 def test_parallel_and_behind_rays_are_nan() -> None:
-    pts, d = intersect_rays_plane(
-        [0, 0, 0], [[1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]], [0, 0, 1.0], [0, 0, 1.0]
-    )
+    pts, d = intersect_rays_plane([0, 0, 0], [[1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]], [0, 0, 1.0], [0, 0, 1.0])
     assert np.isnan(pts[0]).all()
     assert np.isnan(d[0])
     np.testing.assert_allclose(pts[1], [0, 0, 1.0])

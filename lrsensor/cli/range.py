@@ -22,16 +22,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=[0.3, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0],
         help="distances of the table rows in metres",
     )
-    parser.add_argument(
-        "--focal-m", type=float, default=0.009238, help="focal length f in metres (paper: 0.009238)"
-    )
-    parser.add_argument(
-        "--sensor-height-m", type=float, default=0.018, help="sensor height h_s in metres (0.018)"
-    )
+    parser.add_argument("--focal-m", type=float, default=0.009238, help="focal length f in metres (paper: 0.009238)")
+    parser.add_argument("--sensor-height-m", type=float, default=0.018, help="sensor height h_s in metres (0.018)")
     parser.add_argument("--rows", type=int, default=1080, help="vertical resolution h_p in pixels (1080)")
-    parser.add_argument(
-        "--step-m", type=float, default=0.1, help="range step for the pixel change column (0.1 m)"
-    )
+    parser.add_argument("--step-m", type=float, default=0.1, help="range step for the pixel change column (0.1 m)")
     parser.add_argument("--plot", type=Path, default=None, help="write the Fig. 9 / Fig. 10 plot to this PNG")
     parser.add_argument("--max-distance-m", type=float, default=8.0, help="x axis extent of the plot")
 
