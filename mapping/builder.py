@@ -30,7 +30,7 @@ from lrsensor.frames import Pose
 from .errors import MapInputError, MappingError, MapStoreError
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
-from .planes import claim_points, extract_planes, frame_sagitta, pack_keys
+from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapConfig, PlaneStats
@@ -62,6 +62,7 @@ class _Counters:
     extractions: int = 0
     observations: int = 0
     curved: int = 0
+    single_frame: int = 0
     extract_s: float = 0.0
 
 
@@ -220,6 +221,7 @@ class MapBuilder:
         changes: list[dict[str, Any]] = []
         n_obs = 0
         n_curved = 0
+        n_single = 0
         if ex.candidates:
             eligible = np.zeros(n_total, dtype=bool)
             eligible[n_total - n_eligible :] = True
@@ -229,6 +231,10 @@ class MapBuilder:
             records = []
             for cand, idx in zip(ex.candidates, claims, strict=True):
                 if idx.shape[0] < cfg.min_commit_points:
+                    continue
+                support = frame_support(pts_m, ex.grid, cand, frame_of, cfg.distance_threshold_m, cfg.min_frame_points)
+                if support < cfg.min_obs_frames:
+                    n_single += 1
                     continue
                 bulge = frame_sagitta(pts_m[idx], frame_of[idx], cand.normal)
                 if bulge > cfg.max_frame_sagitta_m:
@@ -243,6 +249,7 @@ class MapBuilder:
             self._counters.extractions += 1
             self._counters.observations += n_obs
             self._counters.curved += n_curved
+            self._counters.single_frame += n_single
             self._counters.extract_s += time.perf_counter() - t0
         return _squash(changes)
 
@@ -285,6 +292,7 @@ class MapBuilder:
                 "extractions": c.extractions,
                 "observations": c.observations,
                 "curved_rejected": c.curved,
+                "single_frame_rejected": c.single_frame,
                 "extract_mean_s": c.extract_s / c.extractions if c.extractions else 0.0,
                 "planes": sum(1 for p in self._map.planes.values() if p.record.n_obs >= self.cfg.min_obs_publish),
                 "tentative": sum(1 for p in self._map.planes.values() if p.record.n_obs < self.cfg.min_obs_publish),

@@ -503,6 +503,41 @@ def frame_sagitta(
     return float(np.median(bulge))
 
 
+def frame_support(
+    points: FloatArray,
+    grid: VoxelGrid,
+    cand: PlaneCandidate,
+    frame: IntArray,
+    distance_m: float,
+    min_points: int,
+) -> int:
+    """How many frames of the window see ``cand``: frames with at least ``min_points`` full-resolution points
+    within ``distance_m`` of its plane in the voxels of its inliers.
+
+    Every frame of a window (committed context included) counts. One frame alone is two laser stripes a few
+    centimetres apart that share one pose and one image: an error of that single image (a stripe triangulated
+    with the wrong laser, a reflection, a mis-detected stripe near a corner where the range is longest) moves
+    both stripes together and they still fit a plane perfectly, only a plane that is not there. Real surfaces
+    are seen by consecutive frames of the window; a candidate supported by a single frame is dropped.
+
+    Args:
+        points: (N, 3) full-resolution window points (same frame as the extraction), metres.
+        grid: the window's voxel grid (``grid.inverse`` maps points to voxels).
+        cand: the candidate plane.
+        frame: (N,) frame (cloud) index of every point.
+        distance_m: inlier distance to the candidate's plane.
+        min_points: points a frame needs to count.
+    """
+    in_vox = np.zeros(grid.keys.shape[0], dtype=bool)
+    in_vox[cand.voxel_index] = True
+    sel = in_vox[grid.inverse]
+    sel[sel] = np.abs(points[sel] @ cand.normal + cand.d) <= distance_m
+    if not np.any(sel):
+        return 0
+    _, counts = np.unique(frame[sel], return_counts=True)
+    return int(np.count_nonzero(counts >= min_points))
+
+
 def describe(extraction: Extraction) -> dict[str, Any]:
     """Small diagnostic summary of an extraction (counts and rejection reasons)."""
     reasons: dict[str, int] = {}

@@ -243,14 +243,24 @@ def simulate_dive(
     range_noise_m: float = 0.002,
     seed: int = 0,
     t0_ns: int = 1_700_000_000_000_000_000,
+    bad_frame_fraction: float = 0.0,
+    bad_frame_yaw_deg: float = 25.0,
+    bad_frame_scale: float = 1.15,
 ) -> list[DiveFrame]:
     """Frames of all robots in capture-time order (robots interleaved as a base station would receive them).
 
     Attitude noise is white per frame (``attitude_noise_deg``); position noise is white per frame
     (``position_noise_m``) plus a random walk (``position_walk_m_per_sqrt_s``, dead-reckoning drift), as in
     ``lrsensor.sim.dive.ImuNoise``; range noise is white along each ray.
+
+    ``bad_frame_fraction`` > 0 corrupts that fraction of the frames (drawn from a separate generator, so the
+    other frames do not change) the way one wrongly triangulated image does (seen in the camera-in-the-loop demo
+    near the tank's corners): all its body-frame points are turned about the vehicle's z axis by a random angle
+    within +-``bad_frame_yaw_deg`` and scaled by a random factor in [1, ``bad_frame_scale``], so both stripes
+    stay straight and parallel but land on a plane that is not there.
     """
     rng = np.random.default_rng(seed)
+    bad_rng = np.random.default_rng([seed, 1])
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
     frames: list[DiveFrame] = []
     per_robot = []
@@ -283,6 +293,10 @@ def simulate_dive(
             pb = ned_to_body(hits.points_ned, true)
             rng_b = np.linalg.norm(pb, axis=1, keepdims=True)
             pb = pb + pb / np.maximum(rng_b, 1e-9) * rng.normal(0.0, range_noise_m, size=(pb.shape[0], 1))
+            if bad_frame_fraction > 0 and bad_rng.uniform() < bad_frame_fraction:
+                a = math.radians(bad_rng.uniform(-bad_frame_yaw_deg, bad_frame_yaw_deg))
+                turn = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+                pb = bad_rng.uniform(1.0, bad_frame_scale) * pb @ turn.T
             frames.append(DiveFrame(plan.robot, t0_ns + round(t[k] * 1e9), true, est, hits, body_to_ned(pb, est)))
     return frames
 

@@ -61,6 +61,9 @@ class MapConfig:
         min_sensor_distance_m: a plane passing closer than this to the observing vehicle is the laser sheet
             itself (all hits of one laser are coplanar), not a surface; rejected.
         min_commit_points: full-resolution points an observation needs to enter the map.
+        min_obs_frames, min_frame_points: an observation needs at least ``min_obs_frames`` frames of its window
+            with ``min_frame_points`` points each on the plane (:func:`mapping.planes.frame_support`): the two
+            stripes of one frame always fit a plane, also when that one image was triangulated wrongly.
         min_obs_publish: a plane is served (``map_json``, changes) once this many observations confirmed it; a
             single window's plane stays tentative (one odd window must not put a plane on the map).
 
@@ -110,6 +113,8 @@ class MapConfig:
     max_frame_sagitta_m: float = 0.008
     min_sensor_distance_m: float = 0.2
     min_commit_points: int = 100
+    min_obs_frames: int = 2
+    min_frame_points: int = 20
     min_obs_publish: int = 2
 
     between_window_weight: float = 0.0
