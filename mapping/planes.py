@@ -16,7 +16,9 @@ So extraction runs in four steps, all vectorized numpy except the Open3D call:
    the cell adjacency graph). A region is one connected face; coplanar faces that do not touch stay apart.
 4. **RANSAC per region** with Open3D ``segment_plane`` (re-seeded before every call, so the result depends only
    on the input), peeling up to ``max_planes_per_region`` planes. Each inlier set must pass: enough points, a
-   second principal spread of at least ``min_width_m`` (a single stripe is a line and defines no plane), both
+   second principal spread of at least ``min_width_m`` (a single stripe is a line and defines no plane), a
+   spread along down of at least ``min_down_spread_m`` (the lasers are horizontal sheets a baseline apart: a
+   true face holds both stripes; a tilted plane through one noisy stripe does not), both
    in-plane extents of at least ``min_extent_m``, an RMS below ``max_rms_m``, a quadratic residual model bending
    less than ``max_sagitta_m`` (pipes are curved), and the plane must not pass within ``min_sensor_distance_m``
    of the observing vehicle (that would be the laser sheet).
@@ -303,9 +305,11 @@ def _check_inliers(
     proj_v = (pts - c) @ axes[:, 1]
     extent = min(float(np.ptp(proj_u)), float(np.ptp(proj_v)))
     sensor_dist = float(np.median(veh @ normal + d))
+    spread_down = float(np.std(pts[:, 2]))  # the lasers are horizontal: two stripes are ~baseline apart in down
     checks = (
         ("too few inliers", k < cfg.min_inliers, float(k)),
         ("line-like (degenerate)", width < cfg.min_width_m, width),
+        ("one stripe (no spread across the laser sheets)", spread_down < cfg.min_down_spread_m, spread_down),
         ("too small", extent < cfg.min_extent_m, extent),
         ("rms too large", rms > cfg.max_rms_m, rms),
         ("curved", sag > cfg.max_sagitta_m, sag),

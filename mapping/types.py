@@ -52,6 +52,9 @@ class MapConfig:
         max_planes_per_region: RANSAC peels at most this many planes off one region.
         min_region_points, min_inliers: down-sampled point counts below which a region / plane is ignored.
         min_width_m: the inliers' second principal standard deviation must reach this (rejects a single line).
+        min_down_spread_m: the inliers' standard deviation along down must reach this: the two horizontal laser
+            sheets cross any face a baseline (0.1 m, std 0.05 m) apart, so a plane made of one stripe and its
+            noise (a thin band tilted toward the horizontal, seen in the camera demo) has far less.
         min_extent_m: both in-plane extents (max - min) must reach this.
         max_rms_m: inlier RMS distance to the fitted plane must stay below this.
         max_sagitta_m: a quadratic fit of the window's residuals over the in-plane coordinates may not bend
@@ -107,6 +110,7 @@ class MapConfig:
     min_region_points: int = 25
     min_inliers: int = 25
     min_width_m: float = 0.02
+    min_down_spread_m: float = 0.03
     min_extent_m: float = 0.1
     max_rms_m: float = 0.02
     max_sagitta_m: float = 0.015

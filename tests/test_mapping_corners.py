@@ -102,3 +102,39 @@ def test_pillar_corner_gives_its_two_faces_only(bad_fraction: float) -> None:
             assert ang <= 2.0, best
             assert off <= 0.05, best
     assert spurious == 0
+
+
+def _band(rng: np.random.Generator, stripes: tuple[float, ...], noise_m: float) -> np.ndarray:
+    """Stripes on the wall east = 8 (NED metres): 2 m long, ``noise_m`` noisy across the wall, 1.5 cm down
+    jitter (heave between frames)."""
+    pts = []
+    for z in stripes:
+        n = 400
+        pts.append(
+            np.stack([rng.uniform(6.0, 8.0, n), 8.0 + rng.normal(0, noise_m, n), z + rng.normal(0, 0.015, n)], 1)
+        )
+    return np.concatenate(pts)
+
+
+def test_a_plane_through_one_noisy_stripe_is_refused_both_stripes_are_a_face() -> None:
+    from mapping.planes import _check_inliers
+
+    rng = np.random.default_rng(3)
+    cfg = MapConfig()
+    veh = np.array([[7.0, 6.0, 2.4]])
+    one = _band(rng, (2.4,), 0.025)  # as noisy as the camera demo's clouds
+    # the tilted plane such a band allows (what RANSAC kept in the demo): normal 20-70 deg from the wall's
+    n = np.array([0.0, -0.38, -0.92])
+    one = one[np.abs((one - one.mean(0)) @ n) <= cfg.distance_threshold_m]
+    cand, rej, _n, _d = _check_inliers(one, np.repeat(veh, one.shape[0], 0), cfg)
+    assert cand is None
+    assert rej is not None
+    assert rej.reason.startswith("one stripe"), rej
+    # every other check lets it through: without this one it would be a plane
+    loose = MapConfig(min_down_spread_m=1e-6)
+    assert _check_inliers(one, np.repeat(veh, one.shape[0], 0), loose)[0] is not None
+    two = _band(rng, (2.35, 2.45), 0.01)
+    cand, rej, normal, _d = _check_inliers(two, np.repeat(veh, two.shape[0], 0), cfg)
+    assert rej is None, rej
+    assert cand is not None
+    assert abs(normal[1] + 1.0) < 0.01
