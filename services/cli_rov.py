@@ -38,6 +38,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="process at most HZ frames per second")
     parser.add_argument("--method", default=None, help="stripe extractor (default: the best one)")
     parser.add_argument(
+        "--min-range-m", type=float, default=None, help="nearest range searched, metres along the optical axis"
+    )
+    parser.add_argument(
+        "--max-range-m",
+        type=float,
+        default=None,
+        help="farthest range searched, metres (default: the extractor's; lower it for low-resolution cameras)",
+    )
+    parser.add_argument(
         "--calib-timeout-s", type=float, default=15.0, help="how long to ask the base station for a calibration"
     )
     parser.add_argument(
@@ -143,6 +152,9 @@ def run(args: argparse.Namespace) -> int:
             calibration,
             rate_hz=args.rate,
             method=args.method,
+            process_options={
+                k: v for k, v in (("min_range_m", args.min_range_m), ("max_range_m", args.max_range_m)) if v is not None
+            },
             ack_timeout_s=args.ack_timeout_s,
             seq_start=seq_start,
             sink=sink,

@@ -15,6 +15,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -182,6 +183,7 @@ class RovService:
         *,
         rate_hz: float | None = None,
         method: str | None = None,
+        process_options: Mapping[str, Any] | None = None,
         ack_timeout_s: float = 10.0,
         status_period_s: float = 1.0,
         seq_start: int = 0,
@@ -196,6 +198,7 @@ class RovService:
         self.sensor = Sensor(calibration)
         self.rate_hz = rate_hz
         self.method = method
+        self.process_options = dict(process_options or {})
         self.ack_timeout_s = ack_timeout_s
         self.status_period_s = status_period_s
         self.seq = seq_start
@@ -303,7 +306,10 @@ class RovService:
             log.debug("rov %s: frame at %d outside the IMU span %s: skipped", self.robot, t_ns, span)
             return
         try:
-            scan = self.sensor.process(image, method=self.method) if self.method else self.sensor.process(image)
+            options = dict(self.process_options)
+            if self.method:
+                options["method"] = self.method
+            scan = self.sensor.process(image, **options)
             msg = CloudMsg.from_scan(self.robot, self.seq, t_ns, pose, scan)
         except LrsensorError as err:
             with self._lock:

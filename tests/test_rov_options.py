@@ -1,0 +1,38 @@
+"""Range limits reach the ROV's extractor; the demo's range limit follows the camera's resolution."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lrsensor import Calibration
+from lrsensor.sim import named_scene
+from services.demo import MIN_STRIPE_OFFSET_PX, useful_range_m
+from services.rov import RovService
+
+
+def test_useful_range_follows_resolution() -> None:
+    full = Calibration.paper()
+    assert useful_range_m(full) == 5.0
+    low = named_scene("wall_1.0", width=640, height=360).calibration
+    r = useful_range_m(low)
+    # at that range the stripe sits MIN_STRIPE_OFFSET_PX from the principal row
+    assert low.camera.fy * 0.05 / r == pytest.approx(MIN_STRIPE_OFFSET_PX)
+    assert 2.0 < r < 2.6
+
+
+def test_process_options_reach_the_extractor() -> None:
+    setup = named_scene("wall_2.0", width=640, height=360)
+    image = setup.render(seed=0).image
+    cal = setup.calibration
+
+    class Probe(RovService):
+        def __init__(self, **kw: object) -> None:  # no Zenoh needed to check the processing options
+            super().__init__(None, None, "rov1", None, None, cal, **kw)  # type: ignore[arg-type]
+
+    near = Probe(process_options={"max_range_m": 1.0})
+    far = Probe(process_options={"max_range_m": 3.0})
+    assert len(near.sensor.process(image, **near.process_options)) == 0
+    scan = far.sensor.process(image, **far.process_options)
+    assert len(scan) > 100
+    assert np.median(scan.points[:, 0]) == pytest.approx(2.0, rel=0.02)
