@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 from typing import Any
 
@@ -44,4 +45,31 @@ class Sensor:
         det = get_extractor(method)(img, self.calibration, **options)
         points = triangulate(self.calibration, det.uv, det.laser)
         scan = Scan(points, det.laser.astype(int), det.uv, det.quality, method)
-        return scan if bool(np.isfinite(points).all()) else scan.finite()
+        lo, hi = range_limits(method, options)
+        depth = self.calibration.body_to_cam(points)[:, 2] if len(scan) else np.zeros(0)
+        with np.errstate(invalid="ignore"):
+            keep = (depth >= lo) & (depth <= hi)  # NaN rows fail both: dropped too
+        return scan if bool(keep.all()) else scan.select(keep)
+
+
+#: Extractor name -> (module, configuration class) holding its default range limits.
+_CONFIGS = {
+    "subpixel": ("lrsensor.extract.subpixel", "SubpixelConfig"),
+    "paper": ("lrsensor.extract.paper", "PaperConfig"),
+}
+
+
+def range_limits(method: str, options: dict[str, Any]) -> tuple[float, float]:
+    """The ``(min_range_m, max_range_m)`` depth gate of an extractor call: the options, else its defaults.
+
+    Depth is measured along the optical axis (camera z), as the extractors' laser bands are. A stripe found at the
+    edge of its band can triangulate beyond the limit; :meth:`Sensor.process` drops such points so that the
+    range limits hold for the output, not only for the search.
+    """
+    lo, hi = options.get("min_range_m"), options.get("max_range_m")
+    if (lo is None or hi is None) and method in _CONFIGS:
+        module_name, cls_name = _CONFIGS[method]
+        defaults = getattr(importlib.import_module(module_name), cls_name)()
+        lo = defaults.min_range_m if lo is None else lo
+        hi = defaults.max_range_m if hi is None else hi
+    return (0.0 if lo is None else float(lo)), (np.inf if hi is None else float(hi))

@@ -36,3 +36,19 @@ def test_process_options_reach_the_extractor() -> None:
     scan = far.sensor.process(image, **far.process_options)
     assert len(scan) > 100
     assert np.median(scan.points[:, 0]) == pytest.approx(2.0, rel=0.02)
+
+
+def test_range_limits_hold_for_the_output() -> None:
+    from lrsensor import Sensor
+    from lrsensor.sensor import range_limits
+
+    assert range_limits("subpixel", {"max_range_m": 2.0}) == (0.2, 2.0)
+    assert range_limits("paper", {}) == (0.2, 5.0)
+    setup = named_scene("wall_2.0", width=640, height=360)
+    image = setup.render(seed=0).image
+    sensor = Sensor(setup.calibration)
+    for hi in (1.9, 2.5):
+        scan = sensor.process(image, max_range_m=hi)
+        depth = setup.calibration.body_to_cam(scan.points)[:, 2]
+        assert np.all(depth <= hi)
+    assert len(sensor.process(image, max_range_m=1.9)) < len(sensor.process(image, max_range_m=2.5)) / 10
