@@ -195,9 +195,7 @@ def run_demo(cfg: DemoConfig, stop: threading.Event | None = None) -> DemoResult
         base = net.start_base(state, map_mode="auto")
         sims = {}
         for robot in robots:
-            dive, imu, calib = open_sim(max_frames, cfg.width, cfg.height, cfg.seed, robot, cfg.rate_hz)
-            dive.trajectory = _with_speed(dive, cfg.speed_m_s)
-            sims[robot] = (dive, imu, calib)
+            sims[robot] = simulated_robot(robot, cfg, max_frames)
         _warm_up(sims[robots[0]][0])
         deadline = time.monotonic() + cfg.duration_s
         handles: dict[str, RovHandle] = {}
@@ -250,6 +248,13 @@ def _warm_up(dive: SimDive) -> None:
     frame = next(iter(dive))
     Sensor(dive.calibration).process(frame.image)
     log.info("sensor warmed up in %.1f s", time.monotonic() - t0)
+
+
+def simulated_robot(robot: str, cfg: DemoConfig, n_frames: int) -> tuple[SimDive, Any, Any]:
+    """One demo ROV: its frame source flying at ``cfg.speed_m_s``, the IMU of that same flight, its calibration."""
+    dive, _, calib = open_sim(n_frames, cfg.width, cfg.height, cfg.seed, robot, cfg.rate_hz)
+    dive.trajectory = _with_speed(dive, cfg.speed_m_s)
+    return dive, dive.imu(), calib  # the IMU must follow the trajectory actually flown
 
 
 def _with_speed(dive: SimDive, speed_m_s: float) -> Any:

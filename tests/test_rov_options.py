@@ -52,3 +52,15 @@ def test_range_limits_hold_for_the_output() -> None:
         depth = setup.calibration.body_to_cam(scan.points)[:, 2]
         assert np.all(depth <= hi)
     assert len(sensor.process(image, max_range_m=1.9)) < len(sensor.process(image, max_range_m=2.5)) / 10
+
+
+def test_demo_imu_follows_the_flown_trajectory() -> None:
+    # regression: the demo changed the vehicles' speed after making their IMU, so frames and poses disagreed
+    from services.demo import DemoConfig, simulated_robot
+
+    dive, imu, _ = simulated_robot("rov2", DemoConfig(speed_m_s=0.6), 40)
+    for t in dive.times[::8]:
+        true, measured = dive.true_pose(int(t)), imu.track.pose_at(int(t))
+        assert measured is not None
+        assert np.hypot(true.north_m - measured.north_m, true.east_m - measured.east_m) < 0.1
+        assert abs(np.rad2deg(true.yaw_rad - measured.yaw_rad)) < 1.5
