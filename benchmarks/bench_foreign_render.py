@@ -41,8 +41,30 @@ class Foreign:
     color: tuple[float, float, float] = (0.25, 1.0, 0.35)
     sat: bool = False
     seed: int = 0
+    psf_first: bool = False
     size: tuple[int, int] = (1920, 1080)
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _erf(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Error function (Abramowitz-Stegun 7.1.26, |error| < 1.5e-7)."""
+    t = 1.0 / (1.0 + 0.3275911 * np.abs(x))
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    return np.sign(x) * (1.0 - poly * np.exp(-x * x))
+
+
+def _box_psf_pixels(
+    rows: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], s: float
+) -> NDArray[np.float64]:
+    """Integral over each pixel row [r - 0.5, r + 0.5] of the box [a, b] convolved with a Gaussian of sigma s."""
+
+    def anti(t: NDArray[np.float64]) -> NDArray[np.float64]:  # antiderivative of Phi(t / s)
+        return t * 0.5 * (1.0 + _erf(t / (s * np.sqrt(2.0)))) + s * np.exp(-0.5 * (t / s) ** 2) / np.sqrt(2 * np.pi)
+
+    def cdf_int(x: NDArray[np.float64]) -> NDArray[np.float64]:  # integral of (box * Gauss) up to x
+        return anti(x - a) - anti(x - b)
+
+    return np.asarray(cdf_int(rows + 0.5) - cdf_int(rows - 0.5))
 
 
 def render(
@@ -67,13 +89,17 @@ def render(
             x_b = c.d / (np.cos(a) + np.sin(a) * xn)
             v = cam.cy + cam.fy * off / x_b
             halfw = 0.5 * c.width_m * cam.fy / x_b
-            cover = np.clip(np.minimum(rows + 0.5, v + halfw) - np.maximum(rows - 0.5, v - halfw), 0, None)
+            if c.psf_first:  # optics blur the box before the pixels integrate it (a camera's order)
+                cover = _box_psf_pixels(rows, v - halfw, v + halfw, c.blur)
+            else:  # the box is area-integrated on the pixel grid, the blur comes after (digital filtering)
+                cover = np.clip(np.minimum(rows + 0.5, v + halfw) - np.maximum(rows - 0.5, v - halfw), 0, None)
             inten = 400.0 if c.sat else c.peak * (0.6 / x_b)
             img += cover * np.minimum(inten, 400) / ss / np.maximum(2 * halfw, 1e-9) * np.minimum(2 * halfw, 1.0)
         xn = (u - cam.cx) / cam.fx
         x_t = c.d / (np.cos(a) + np.sin(a) * xn)
         truth[li] = (cam.cy + cam.fy * off / x_t, x_t)
-    img = cv2.GaussianBlur(img, (0, 0), c.blur)
+    if not c.psf_first:
+        img = cv2.GaussianBlur(img, (0, 0), c.blur)
     bg = cv2.resize(rng.normal(0, 1, (max(H // 40, 2), max(W // 40, 2))), (W, H), interpolation=cv2.INTER_CUBIC)
     out = np.zeros((H, W, 3))
     base = np.array([40.0, 35.0, 12.0])  # BGR bluish-green murk

@@ -168,8 +168,45 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
 
 
 @_njit
+def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
+    """Width of a profile (window ``P[o:o + m]`` minus the line ``bl + slope (q - xl)``) at ``level``: distance
+    of the first crossings below it left and right of ``R`` (linear interpolation); inf when one is missing."""
+    xa = -1.0
+    for q in range(R - 1, -1, -1):
+        aq = P[o + q] - (bl + slope * (q - xl))
+        if aq < level:
+            an = P[o + q + 1] - (bl + slope * (q + 1 - xl))
+            xa = q + (level - aq) / (an - aq)
+            break
+    xb = -1.0
+    for q in range(R + 1, m):
+        aq = P[o + q] - (bl + slope * (q - xl))
+        if aq < level:
+            an = P[o + q - 1] - (bl + slope * (q - 1 - xl))
+            xb = q - (level - aq) / (an - aq)
+            break
+    return xb - xa if (xa >= 0 and xb >= 0) else np.inf
+
+
+@_njit
 def fit_columns(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, nb_v, nb_a, nb_s
+    image,
+    cols,
+    rows,
+    half,
+    e,
+    sigma_hint,
+    sat_dn,
+    min_sig,
+    max_sig,
+    flank,
+    iterations,
+    green_ratio,
+    nb_v,
+    nb_a,
+    nb_s,
+    max_fwhm,
+    wide_fwhm,
 ):
     """Sub-pixel centre per column, the loop twin of :func:`lrsensor.extract.centre.fit_profiles`.
 
@@ -179,6 +216,9 @@ def fit_columns(  # type: ignore[no-untyped-def]
     symmetric-window centroid). The colour check compares the rise of green with red and blue at the peak.
     ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
     (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
+    Profiles whose half-level width exceeds ``wide_fwhm`` (flat-topped thick sheets close to the wall) take the
+    symmetric-window centroid from the midpoint of their half-level crossings, with the background flanks moved
+    beyond them; they pass while that width is at most ``max_fwhm`` (N,) (the physical limit at that row).
 
     Returns:
         ``(centre_row, amplitude, sigma, saturated, ok, local_noise)``, each (N,).
@@ -274,6 +314,52 @@ def fit_columns(  # type: ignore[no-untyped-def]
         inv2 = 0.5 / (sig_w * sig_w)
         gain = 1.0 if saturated else 1.0 + sig_p * sig_p * 2.0 * inv2
         hs = 0.5 * n_sat + 2.5 * sigma_hint + 1.0
+        # half-level width and midpoint (flat tops: the log-parabola sees no curvature there)
+        wide = False
+        fw = np.inf
+        if not saturated and a0 > 0:
+            hl = 0.5 * a0
+            xa = -1.0
+            for q in range(R - 1, -1, -1):
+                aq = P[o + q] - (bl + slope * (q - xl))
+                if aq < hl:
+                    an = P[o + q + 1] - (bl + slope * (q + 1 - xl))
+                    xa = q + (hl - aq) / (an - aq)
+                    break
+            xb = -1.0
+            for q in range(R + 1, m):
+                aq = P[o + q] - (bl + slope * (q - xl))
+                if aq < hl:
+                    an = P[o + q - 1] - (bl + slope * (q - 1 - xl))
+                    xb = q - (hl - aq) / (an - aq)
+                    break
+            fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
+            # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most
+            # half the half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
+            w25 = _level_width(P, o, R, m, bl, slope, xl, 0.25 * a0)
+            w75 = _level_width(P, o, R, m, bl, slope, xl, 0.75 * a0)
+            flat = w25 - w75 <= 0.5 * fw
+            if fw > wide_fwhm and math.isfinite(fw):
+                c = 0.5 * (xa + xb)  # wide: the peak sample may be anywhere on the top; start from the middle
+            if fw > wide_fwhm and flat:
+                wide = True
+                ok = fw <= max_fwhm[t]
+                if math.isfinite(fw):
+                    c = 0.5 * (xa + xb)
+                    sigma = fw / 2.3548200450309493
+                    # background flanks beyond the flat top and its edges
+                    off = int(min(max(off, math.ceil(0.5 * fw + 4.0)), R - flank + 1))
+                    bl = 0.0
+                    br = 0.0
+                    for q in range(flank):
+                        bl += P[o + R - off - q]
+                        br += P[o + R + off + q]
+                    bl /= flank
+                    br /= flank
+                    xl = R - off - 0.5 * (flank - 1)
+                    slope = (br - bl) / (2.0 * off + flank - 1)
+                    hs = min(0.5 * fw + 3.0, off - 1.0) + 0.5
+                    a0 = P[o + R] - (bl + slope * (R - xl))
         # 3. centroid iterations
         g2 = math.exp(-2.0 * inv2)
         for _ in range(iterations):
@@ -285,7 +371,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
             ratio = math.exp(-(2.0 * d0 + 1.0) * inv2)
             for q in range(m):
                 d = q - c
-                if saturated:
+                if saturated or wide:
                     wq = min(max(hs - abs(d), 0.0), 1.0)
                 else:
                     wq = w
@@ -295,14 +381,15 @@ def fit_columns(  # type: ignore[no-untyped-def]
                 s0 += wa
                 s1 += wa * d
             if s0 != 0.0:
-                step = gain * s1 / s0
+                step = (1.0 if wide else gain) * s1 / s0
                 if math.isfinite(step):
                     c += min(max(step, -1.0), 1.0)
         if saturated:
             amp = P[o + R] - (bl + slope * (R - xl))
         else:
             amp = a0
-        ok = ok and math.isfinite(c) and abs(c - R) <= 2.0 and amp > 0
+        lim_c = 0.5 * fw + 1.0 if (fw > wide_fwhm and math.isfinite(fw)) else 2.0
+        ok = ok and math.isfinite(c) and abs(c - R) <= lim_c and amp > 0
         # colour: the rise of green at the peak must beat red and blue (saturated peaks pass)
         if ok and not saturated:
             rp = min(max(pk_row, 0), h - 1)
@@ -608,7 +695,7 @@ def warm_up() -> None:
         img = np.zeros((8, 8, 3), np.uint8)
         select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
         expand_half(i64, f64, i64, i64, 4, 8)
-        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, nan, nan, nan)
+        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, nan, nan, nan, f64 + 20.0, 4.7)
         neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
         finish_points(i64, f64, f64, f64, b, b, f64, i64, i64, np.ones(2), 8, 16, 5.0, 2.5, 8, 5.0, np.array([4, 1]))
         smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))

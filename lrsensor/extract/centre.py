@@ -24,6 +24,8 @@ FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 FWHM_PER_SIGMA = float(2.0 * np.sqrt(2.0 * np.log(2.0)))
+#: Half-level width (px) above which a profile is treated as wide / flat-topped (a Gaussian of sigma 2 px).
+WIDE_FWHM_PX = 2.0 * FWHM_PER_SIGMA
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,23 @@ class ProfileFit:
     noise: FloatArray
 
 
+def _level_width(A: F32, level: F32) -> F32:
+    """Width of each profile of A (M, N) at ``level`` (N,): distance of the first crossings below it left and
+    right of the middle sample (linear interpolation); inf where one is missing."""
+    m, n = A.shape
+    R = m // 2
+    cols = np.arange(n)
+    idx = np.arange(m)[:, None]
+    below = level[None, :] > A
+    qa = np.where(below & (idx < R), idx, -1).max(axis=0)
+    qb = np.where(below & (idx > R), idx, m).min(axis=0)
+    qa_c, qb_c = np.clip(qa, 0, m - 2), np.clip(qb, 1, m - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xa = qa_c + (level - A[qa_c, cols]) / (A[qa_c + 1, cols] - A[qa_c, cols])
+        xb = qb_c - (level - A[qb_c, cols]) / (A[qb_c - 1, cols] - A[qb_c, cols])
+    return np.where((qa >= 0) & (qb < m), xb - xa, np.inf).astype(np.float32)
+
+
 def fit_profiles(
     profiles: NDArray[np.floating] | NDArray[np.integer],
     *,
@@ -59,6 +78,8 @@ def fit_profiles(
     flank_px: int = 3,
     iterations: int = 2,
     transposed: bool = False,
+    max_fwhm_px: float | NDArray[np.floating] | None = None,
+    wide_fwhm_px: float = WIDE_FWHM_PX,
 ) -> ProfileFit:
     """Sub-pixel centres of N stripe profiles (N, M) whose integer peak is the middle sample ``M // 2``.
 
@@ -70,6 +91,12 @@ def fit_profiles(
         flank_px: samples per flank window of the background estimate.
         iterations: centroid iterations.
         transposed: ``profiles`` is given as (M, N) (one profile per column), the faster layout.
+        max_fwhm_px: widest accepted half-level width of a *wide* profile, pixels, scalar or (N,) (the physical
+            limit at each profile's row); default ``FWHM_PER_SIGMA * max_sigma_px``.
+        wide_fwhm_px: flat-topped profiles (wider at half level than the log-parabola's curvature says) with a
+            larger half-level width (thick sheets close to the wall) take the
+            symmetric-window centroid from the midpoint of their half-level crossings, with the background flanks
+            moved beyond them (the log-parabola sees no curvature on a flat top).
 
     Returns:
         :class:`ProfileFit`; ``centre`` is in sample units of the window (add the window's first row).
@@ -111,17 +138,63 @@ def fit_profiles(
     delta = np.clip(np.where(curved, 0.5 * s * (ym - yp) / safe, 0.0), -1.0, 1.0)
     sigma = np.where(curved, s / np.sqrt(-safe), np.inf)
     c = (R + delta).astype(np.float32)
+    # half-level width and midpoint: crossings of half the peak level walking out from R
+    idx = np.arange(m)[:, None]
+    a0 = A[R]
+    below = (0.5 * a0)[None, :] > A
+    qa = np.where(below & (idx < R), idx, -1).max(axis=0)
+    qb = np.where(below & (idx > R), idx, m).min(axis=0)
+    found = (qa >= 0) & (qb < m) & (a0 > 0) & ~saturated
+    qa_c, qb_c = np.clip(qa, 0, m - 2), np.clip(qb, 1, m - 1)
+    hl = 0.5 * a0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xa = qa_c + (hl - A[qa_c, cols]) / (A[qa_c + 1, cols] - A[qa_c, cols])
+        xb = qb_c - (hl - A[qb_c, cols]) / (A[qb_c - 1, cols] - A[qb_c, cols])
+    fw = np.where(found, xb - xa, np.inf)
+    # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most half the
+    # half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
+    flat = _level_width(A, 0.25 * a0) - _level_width(A, 0.75 * a0) <= 0.5 * fw
+    wide = ~saturated & (a0 > 0) & (fw > wide_fwhm_px) & flat
+    # wide profiles: the peak sample may be anywhere on the top; start from the middle of the crossings
+    mid = ~saturated & (a0 > 0) & (fw > wide_fwhm_px) & np.isfinite(fw)
+    c = np.where(mid, 0.5 * (xa + xb), c).astype(np.float32)
+    any_wide = bool(wide.any())
+    hs_w = np.zeros(n, np.float32)
+    if any_wide:
+        lim = FWHM_PER_SIGMA * max_sigma_px if max_fwhm_px is None else max_fwhm_px
+        fin = wide & np.isfinite(fw)
+        fwf = np.where(fin, fw, 0.0)
+        c = np.where(fin, 0.5 * (xa + xb), c).astype(np.float32)
+        sigma = np.where(fin, fwf / FWHM_PER_SIGMA, sigma)
+        off_w = np.minimum(np.maximum(off, np.ceil(0.5 * fwf + 4.0)), R - flank_px + 1).astype(np.int64)
+        off_w = np.where(fin, off_w, off)
+        blw = np.zeros(n, np.float32)
+        brw = np.zeros(n, np.float32)
+        for k in range(flank_px):
+            blw += P[R - off_w - k, cols]
+            brw += P[R + off_w + k, cols]
+        blw /= flank_px
+        brw /= flank_px
+        xlw = (R - off_w - 0.5 * (flank_px - 1)).astype(np.float32)
+        slw = (brw - blw) / (2.0 * off_w + flank_px - 1).astype(np.float32)
+        bl = np.where(fin, blw, bl)
+        slope = np.where(fin, slw, slope)
+        xl = np.where(fin, xlw, xl)
+        A = P - (bl + slope * (x - xl))
+        hs_w = (np.minimum(0.5 * fwf + 3.0, off_w - 1.0) + 0.5).astype(np.float32)
     amp = A[R]
     # saturated: plateau half-width from the clipped run; the edges add the stripe's own width
     half_sat = 0.5 * n_sat + 2.5 * sigma_hint + 0.5
     sigma = np.where(saturated, np.maximum(0.5 * n_sat / 1.1774, sigma_hint), sigma)
     ok = saturated | (curved & (sigma >= min_sigma_px) & (sigma <= max_sigma_px))
+    if any_wide:
+        ok = np.where(wide, fw <= lim, ok)
     sig_p = np.clip(np.where(np.isfinite(sigma), sigma, sigma_hint), min_sigma_px, max_sigma_px).astype(np.float32)
     # weights at least 1.1 px wide: narrower Gaussian weights alias on the pixel grid (biased first moment)
     sig_w = np.maximum(sig_p, np.float32(1.1))
     inv2 = 0.5 / (sig_w * sig_w)
     # Newton gain of a Gaussian profile (sigma_p) under Gaussian weights (sigma_w): 1 + sigma_p^2 / sigma_w^2
-    gain = np.where(saturated, np.float32(1.0), 1.0 + (sig_p * sig_p) * (2.0 * inv2)).astype(np.float32)
+    gain = np.where(saturated | wide, np.float32(1.0), 1.0 + (sig_p * sig_p) * (2.0 * inv2)).astype(np.float32)
     hs = (half_sat + 0.5).astype(np.float32)
     any_sat = bool(saturated.any())
     # 3. centroid iterations
@@ -131,6 +204,8 @@ def fit_profiles(
         if any_sat:
             w_s = np.clip(hs - np.abs(d), 0.0, 1.0)
             w = np.where(saturated, w_s, w)
+        if any_wide:
+            w = np.where(wide, np.clip(hs_w - np.abs(d), 0.0, 1.0), w)
         wa = w * A
         s0 = wa.sum(axis=0)
         s1 = (wa * d).sum(axis=0)
@@ -140,6 +215,7 @@ def fit_profiles(
         c = c + step
     c64 = c.astype(np.float64)
     amp = np.where(saturated, P[R] - (bl + slope * (R - xl)), amp).astype(np.float64)
-    ok &= np.isfinite(c64) & (np.abs(c64 - R) <= 2.0) & (amp > 0)
+    lim_c = np.where(mid, 0.5 * np.where(mid, fw, 0.0) + 1.0, 2.0)
+    ok &= np.isfinite(c64) & (np.abs(c64 - R) <= lim_c) & (amp > 0)
     background = (bl + slope * (c - xl)).astype(np.float64)
     return ProfileFit(np.where(ok, c64, np.nan), amp, sigma.astype(np.float64), background, saturated, ok, local_noise)

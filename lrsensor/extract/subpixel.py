@@ -42,9 +42,10 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
+from ..triangulation import triangulate
 from . import Detections, _kernels
 from .bands import LaserBands, laser_bands
-from .centre import FWHM_PER_SIGMA, fit_profiles
+from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -74,12 +75,16 @@ class SubpixelConfig:
             resolution; the centres are always fitted at full resolution.
         min_snr: smallest accepted peak-to-noise ratio of a point (noise: the larger of the band's and the
             profile's flanks'); saturated peaks always pass.
+        max_sheet_mm: thickest laser sheet on the surface (mm, divergence included): a stripe may be as wide
+            as this sheet seen at the range of its row (``max_sheet_mm * f / range``) plus 4 px of blur, or
+            ``FWHM_PER_SIGMA * max_sigma_px`` where that is larger; close to the wall a thick sheet draws a
+            wide, flat-topped stripe, far away the same width would be glow or haze.
     """
 
     min_range_m: float = 0.2
     max_range_m: float = 5.0
     max_sigma_px: float = 5.0
-    min_fwhm_px: float = 1.2
+    min_fwhm_px: float = 0.8
     saturation_dn: float = 250.0
     min_contrast_dn: float = 5.0
     snr_threshold: float = 4.0
@@ -91,6 +96,7 @@ class SubpixelConfig:
     smooth_detect_cols: int = 7
     detect_scale: int = 2
     min_snr: float = 2.5
+    max_sheet_mm: float = 20.0
 
     def __post_init__(self) -> None:
         if not (0 < self.min_range_m < self.max_range_m):
@@ -140,6 +146,28 @@ class _Plan:
 def _plan(calibration: Calibration, min_range_m: float, max_range_m: float, margin_px: int) -> _Plan:
     bands = laser_bands(calibration, min_range_m, max_range_m, margin_px)
     return _Plan(bands, tuple(bands.row_range(i) for i in range(bands.n_lasers)))
+
+
+def _max_fwhm(
+    calibration: Calibration, cols: IntArray, rows: IntArray, laser: IntArray, cfg: SubpixelConfig
+) -> FloatArray:
+    """Widest physically plausible stripe (half-level width, px) at each candidate (N,).
+
+    The candidate pixel is triangulated on its laser's plane; a sheet ``max_sheet_mm`` thick at that depth
+    (along the optical axis) spans ``max_sheet_mm * f / depth`` pixels, plus 4 px for blur and the edges;
+    never below ``FWHM_PER_SIGMA * max_sigma_px``. Pixels whose ray misses the plane get that floor.
+    """
+    floor = FWHM_PER_SIGMA * cfg.max_sigma_px
+    if cols.size == 0 or cfg.max_sheet_mm <= 0:
+        return np.full(cols.size, floor)
+    uv = np.stack([cols.astype(np.float64), rows.astype(np.float64)], axis=1)
+    pts = triangulate(calibration, uv, laser)
+    cam = calibration.camera
+    axis = calibration.rays_body(np.array([[cam.cx, cam.cy]], dtype=np.float64))[0]
+    depth = (pts - calibration.camera_center_body) @ (axis / np.linalg.norm(axis))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = 1e-3 * cfg.max_sheet_mm * cam.fy / depth + 4.0
+    return np.where(np.isfinite(w) & (depth > 0), np.maximum(w, floor), floor)
 
 
 def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
@@ -518,6 +546,7 @@ def _fit_numpy(
     sig: float,
     cfg: SubpixelConfig,
     nb: tuple[FloatArray, FloatArray, FloatArray],
+    max_fwhm: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
     """Numpy path of the profile fits (see ``fit_columns``): centre row, amplitude, sigma, saturated, ok, noise."""
     h, w = image.shape[:2]
@@ -546,6 +575,7 @@ def _fit_numpy(
         saturation_dn=cfg.saturation_dn,
         min_sigma_px=cfg.min_fwhm_px / FWHM_PER_SIGMA,
         max_sigma_px=cfg.max_sigma_px,
+        max_fwhm_px=max_fwhm,
     )
     ok = fit.ok.copy()
     flat = image.reshape(-1)
@@ -641,13 +671,15 @@ def extract(
     laser = col_v // w
     cols = col_v - laser * w
     # 4. sub-pixel centre on the green profile; window and spacing from the typical width of this frame
+    max_fwhm = _max_fwhm(calibration, cols, rows, laser, cfg)
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
     P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-    sig_med = _typical_sigma(P0, cfg.saturation_dn, cfg.max_sigma_px)
+    wide_lim = float(np.median(max_fwhm[sub]))  # a wide-sheet frame needs a longer window
+    sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
     n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
     plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
-    half = int(min(half0, math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
+    half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
 
     def fit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> tuple[Any, ...]:
         c, r = cols[idx], rows[idx]
@@ -669,9 +701,11 @@ def extract(
                     nb[0],
                     nb[1],
                     nb[2],
+                    max_fwhm[idx],
+                    WIDE_FWHM_PX,
                 )
             )
-        return _fit_numpy(image, c, r, half, sig_med, cfg, nb)
+        return _fit_numpy(image, c, r, half, sig_med, cfg, nb, max_fwhm[idx])
 
     every = np.arange(cols.size)
     no_nb = np.full(cols.size, np.nan)
