@@ -163,10 +163,11 @@ def main() -> int:
     from lrsensor.extract._kernels import warm_up
 
     warm_up()
+    order = "blur, then pixel integration" if args.psf_first else "pixel integration, then blur"
     lines = [
         "### Independent stripe model (box line + blur, 1920x1080, f = 554 px, b = 0.1 m)",
         "",
-        f"Method: {args.method}. Order: {'blur, then pixel integration' if args.psf_first else 'pixel integration, then blur'}."
+        f"Method: {args.method}. Order: {order}."
         " Relative range error per point; outliers > 5 %; coverage of visible columns.",
         "",
         "| case | range m | tilt deg | median % | p95 % | outliers % | coverage % | ms |",
