@@ -12,12 +12,10 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import signal
-import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +24,8 @@ import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
+
+from procs import Proc, lrsensor_cmd  # noqa: E402
 
 from lrsensor.frames import Pose  # noqa: E402
 from services.errors import WireError  # noqa: E402
@@ -59,47 +59,6 @@ def wait_for(cond: Callable[[], bool], timeout_s: float = 30.0) -> bool:
     return cond()
 
 
-class Proc:
-    """A child process with its output in a file."""
-
-    def __init__(self, args: list[str], log: Path) -> None:
-        self.log = log
-        self.fh = log.open("ab")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.p = subprocess.Popen(args, stdout=self.fh, stderr=subprocess.STDOUT, env=env)
-
-    def output(self) -> str:
-        self.fh.flush()
-        return self.log.read_text(errors="replace")
-
-    def wait(self, timeout_s: float) -> int:
-        return self.p.wait(timeout_s)
-
-    def signal(self, sig: int, timeout_s: float = 15.0) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-        return self.p.wait(timeout_s)
-
-    def kill(self) -> None:
-        if self.p.poll() is None:
-            self.p.kill()
-            self.p.wait(10)
-        if not self.fh.closed:
-            self.fh.close()
-
-
-def lrsensor(*args: str) -> list[str]:
-    return [sys.executable, "-m", "lrsensor", "-v", *args]
-
-
-@pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    started: list[Proc] = []
-    yield started
-    for p in started:
-        p.kill()
-
-
 @pytest.fixture(scope="module")
 def dive(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return record_sim_dive(tmp_path_factory.mktemp("faults") / "dive", "rov1", n_frames=N_FRAMES, seed=3)
@@ -128,7 +87,7 @@ def robot_status(session: Any, fleet: str, robot: str) -> dict[str, Any]:
 
 
 def rov_args(fleet: str, robot: str, dive: Path, rate: float, outbox: Path, *net: str) -> list[str]:
-    return lrsensor(
+    return lrsensor_cmd(
         "rov", "--fleet", fleet, "--robot", robot, *net,
         "--source", str(dive), "--imu", f"csv:{dive / 'imu.csv'}", "--calib", str(dive / "calib.json"),
         "--rate", str(rate), "--ack-timeout-s", "90", "--outbox", str(outbox),
@@ -136,7 +95,9 @@ def rov_args(fleet: str, robot: str, dive: Path, rate: float, outbox: Path, *net
 
 
 def base_args(fleet: str, state: Path, *net: str, map_mode: str = "off") -> list[str]:
-    return lrsensor("base", "--fleet", fleet, *net, "--state", str(state), "--map", map_mode, "--status-every-s", "0")
+    return lrsensor_cmd(
+        "base", "--fleet", fleet, *net, "--state", str(state), "--map", map_mode, "--status-every-s", "0"
+    )
 
 
 def resent_count(output: str) -> int:
@@ -188,7 +149,7 @@ def test_base_sigkill_mid_dive_loses_nothing(dive: Path, tmp_path: Path, procs: 
     for r in robots:
         assert (final[r]["received"], final[r]["missed"], final[r]["last_seq"]) == (N_FRAMES, 0, N_FRAMES - 1), final
         assert not list((tmp_path / f"outbox-{r}").glob("*.msg")), "every cloud acknowledged"
-    assert base2.signal(signal.SIGTERM) == 0, base2.output()
+    assert base2.stop(signal.SIGTERM) == 0, base2.output()
     saved = json.loads((state / "fleet.json").read_text())
     for r in robots:
         assert saved["robots"][r]["acked"] == [[0, N_FRAMES - 1]]
@@ -226,8 +187,8 @@ def test_router_outage_of_10_s_during_a_replay(dive: Path, tmp_path: Path, procs
         st = robot_status(s, fleet, "rov1")
     assert (st["received"], st["missed"]) == (N_FRAMES, 0), st
     assert base.p.poll() is None, base.output()
-    assert base.signal(signal.SIGTERM) == 0
-    router2.signal(signal.SIGTERM)
+    assert base.stop(signal.SIGTERM) == 0
+    router2.stop(signal.SIGTERM)
 
 
 def _garbage(rng: np.random.Generator, valid: bytes, i: int) -> bytes:
@@ -292,7 +253,7 @@ def test_garbage_on_a_robot_key_is_counted_and_never_stops_the_base(
     assert sum(r1["rejected_reasons"].values()) >= 1
     assert answered == 10
     assert base.p.poll() is None
-    assert base.signal(signal.SIGTERM) == 0
+    assert base.stop(signal.SIGTERM) == 0
 
 
 def test_secure_profile_with_processes(dive: Path, tmp_path: Path, procs: list[Proc]) -> None:
@@ -302,7 +263,7 @@ def test_secure_profile_with_processes(dive: Path, tmp_path: Path, procs: list[P
     fleet, port = "fs", free_port()
     sec = generate_fleet(tmp_path / "secure", fleet, ["rov1", "rov2"], listen=[f"tls/127.0.0.1:{port}"])
     base = Proc(
-        lrsensor("base", "--fleet", fleet, "--config", str(sec.configs["base"]), "--state", str(tmp_path / "state"),
+        lrsensor_cmd("base", "--fleet", fleet, "--config", str(sec.configs["base"]), "--state", str(tmp_path / "state"),
                  "--map", "off", "--status-every-s", "0"),
         tmp_path / "base.log",
     )  # fmt: skip
@@ -344,4 +305,4 @@ def test_secure_profile_with_processes(dive: Path, tmp_path: Path, procs: list[P
     }
     with pytest.raises(zenoh.ZError):
         zenoh.open(zenoh.Config.from_json5(json.dumps(plain)))
-    assert base.signal(signal.SIGTERM) == 0, base.output()
+    assert base.stop(signal.SIGTERM) == 0, base.output()

@@ -5,19 +5,19 @@ dives, watched from an independent Zenoh session and from zenoh-cli; clean exits
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
+from procs import Proc, lrsensor_cmd
 
 from lrsensor.calibration import Calibration
 from services.simsource import record_sim_dive
@@ -29,10 +29,6 @@ pytestmark = pytest.mark.slow
 
 N_FRAMES = 12
 FLEET = "fp"
-
-
-def lrsensor_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "lrsensor", "-v", *args]
 
 
 def wait_for(cond: Callable[[], bool], timeout_s: float = 20.0) -> bool:
@@ -48,44 +44,6 @@ def wait_for(cond: Callable[[], bool], timeout_s: float = 20.0) -> bool:
 def dives(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fleet-dives")
     return {r: record_sim_dive(root / r, r, n_frames=N_FRAMES, seed=5) for r in ("rov1", "rov2")}
-
-
-class Proc:
-    """A child process whose output goes to a file (read after it ended)."""
-
-    def __init__(self, args: list[str], log: Path) -> None:
-        self.log = log
-        self.fh = log.open("wb")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.p = subprocess.Popen(args, stdout=self.fh, stderr=subprocess.STDOUT, env=env)
-
-    def output(self) -> str:
-        if not self.fh.closed:
-            self.fh.flush()
-        return self.log.read_text(errors="replace")
-
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-        try:
-            return self.p.wait(timeout_s)
-        finally:
-            self.fh.close()
-
-    def kill(self) -> None:
-        if self.p.poll() is None:
-            self.p.kill()
-            self.p.wait(10)
-        if not self.fh.closed:
-            self.fh.close()
-
-
-@pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    started: list[Proc] = []
-    yield started
-    for p in started:
-        p.kill()
 
 
 def client_session(port: int) -> Any:
