@@ -27,8 +27,8 @@ import numpy as np
 
 from lrsensor import Sensor
 from lrsensor.extract._kernels import HAVE_NUMBA, warm_up
-from lrsensor.extract.subpixel import _noise_dn
 from lrsensor.sim import named_scene
+from lrsensor.sim.score import score_scan
 
 SCENES = (
     "paper_box",
@@ -83,37 +83,10 @@ def accuracy(name: str, seed: int) -> list[dict[str, float | str]]:
     """Accuracy rows (one per method) of one render of scene ``name``."""
     r = named_scene(name).render(seed=seed)
     sensor = Sensor(r.calibration)
-    C = r.calibration.camera_center_body
-    noise = _noise_dn(np.ascontiguousarray(r.image[:, :, 1]))
     rows: list[dict[str, float | str]] = []
     for method in METHODS:
         scan = sensor.process(r.image, method=method)
-        errs, covered, visible = [], 0, 0
-        for lt in r.truth.lasers:
-            sel = scan.laser == lt.index
-            u = scan.uv[sel, 0]
-            _, p_true, _ = lt.at_columns(u)
-            r_true = np.linalg.norm(p_true - C, axis=1)
-            r_est = np.linalg.norm(scan.points[sel] - C, axis=1)
-            ok = np.isfinite(r_true)
-            errs.append(np.abs(r_est[ok] - r_true[ok]) / r_true[ok])
-            cols = np.arange(r.truth.width, dtype=float)
-            v, _, peak = lt.at_columns(cols)
-            vis = np.flatnonzero(np.isfinite(v) & (np.nan_to_num(peak) >= 3.0 * noise))
-            visible += vis.size
-            covered += int(np.isin(vis, np.rint(u).astype(int)).sum())
-        e = np.concatenate(errs) if errs else np.zeros(0)
-        rows.append(
-            {
-                "scene": name,
-                "method": method,
-                "median": 100 * float(np.median(e)) if e.size else float("nan"),
-                "p95": 100 * float(np.percentile(e, 95)) if e.size else float("nan"),
-                "outliers": 100 * float(np.mean(e > 0.05)) if e.size else float("nan"),
-                "coverage": 100 * covered / max(visible, 1),
-                "points": float(len(scan)),
-            }
-        )
+        rows.append({"scene": name, "method": method, **score_scan(r, scan)})
     return rows
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lrsensor import Sensor
-from lrsensor.extract.subpixel import _noise_dn
+from lrsensor.sim.score import score_scan
 
 sim = pytest.importorskip("lrsensor.sim")
 
@@ -18,29 +18,7 @@ def _score(name: str, method: str = "subpixel", seed: int = 0) -> dict[str, floa
     """Median / p95 relative range error (%), outliers (> 5 %, %), coverage of visible columns (%), points."""
     r = sim.named_scene(name).render(seed=seed)
     scan = Sensor(r.calibration).process(r.image, method=method)
-    C = r.calibration.camera_center_body
-    noise = _noise_dn(np.ascontiguousarray(r.image[:, :, 1]))
-    errs, covered, visible = [], 0, 0
-    for lt in r.truth.lasers:
-        sel = scan.laser == lt.index
-        u = scan.uv[sel, 0]
-        _, p_true, _ = lt.at_columns(u)
-        r_true = np.linalg.norm(p_true - C, axis=1)
-        r_est = np.linalg.norm(scan.points[sel] - C, axis=1)
-        ok = np.isfinite(r_true)
-        errs.append(np.abs(r_est[ok] - r_true[ok]) / r_true[ok])
-        v, _, peak = lt.at_columns(np.arange(r.truth.width, dtype=float))
-        vis = np.flatnonzero(np.isfinite(v) & (np.nan_to_num(peak) >= 3.0 * noise))
-        visible += vis.size
-        covered += int(np.isin(vis, np.rint(u).astype(int)).sum())
-    e = np.concatenate(errs)
-    return {
-        "median": 100 * float(np.median(e)),
-        "p95": 100 * float(np.percentile(e, 95)),
-        "outliers": 100 * float(np.mean(e > 0.05)),
-        "coverage": 100 * covered / max(visible, 1),
-        "points": float(len(scan)),
-    }
+    return score_scan(r, scan)
 
 
 @pytest.mark.parametrize("name", ["wall_1.0", "paper_box", "wall_2.0"])
