@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields, replace
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,6 +18,7 @@ from ..calibration import Calibration
 from ..errors import ExtractionError
 
 FloatArray = NDArray[np.float64]
+C = TypeVar("C")
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,17 @@ def get_extractor(method: str) -> Extractor:
     module = importlib.import_module(module_name, __name__)
     fn: Extractor = getattr(module, func)
     return fn
+
+
+def config_with_options(cls: type[C], config: C | None, label: str, options: dict[str, Any]) -> C:
+    """``config`` (or ``cls()``'s defaults) with keyword overrides; unknown names raise :class:`ExtractionError`."""
+    base = config or cls()
+    names = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(options) - names)
+    if unknown:
+        msg = f"unknown {label} extractor option(s) {unknown}; known: {sorted(names)}"
+        raise ExtractionError(msg)
+    return replace(base, **options) if options else base  # type: ignore[type-var]
 
 
 def check_image(image: Any, calibration: Calibration) -> NDArray[np.uint8]:

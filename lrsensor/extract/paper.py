@@ -12,7 +12,7 @@ triangulation (eq. 29) is done by :class:`lrsensor.sensor.Sensor`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
-from . import Detections
+from . import Detections, config_with_options
 from .bands import laser_bands
 
 
@@ -55,13 +55,7 @@ class PaperConfig:
     @classmethod
     def from_options(cls, config: PaperConfig | None = None, **options: Any) -> PaperConfig:
         """``config`` (or the defaults) with keyword overrides; unknown names raise :class:`ExtractionError`."""
-        base = config or cls()
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - names)
-        if unknown:
-            msg = f"unknown paper extractor option(s) {unknown}; known: {sorted(names)}"
-            raise ExtractionError(msg)
-        return replace(base, **options) if options else base
+        return config_with_options(cls, config, "paper", options)
 
 
 def green_mask(image: NDArray[np.uint8], cfg: PaperConfig) -> NDArray[np.uint8]:

@@ -32,7 +32,7 @@ done by :class:`lrsensor.sensor.Sensor`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import ExtractionError
 from ..triangulation import triangulate
-from . import Detections, _kernels
+from . import Detections, _kernels, config_with_options
 from .bands import LaserBands, laser_bands
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 
@@ -115,13 +115,7 @@ class SubpixelConfig:
     @classmethod
     def from_options(cls, config: SubpixelConfig | None = None, **options: Any) -> SubpixelConfig:
         """``config`` (or the defaults) with keyword overrides; unknown names raise :class:`ExtractionError`."""
-        base = config or cls()
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - names)
-        if unknown:
-            msg = f"unknown subpixel extractor option(s) {unknown}; known: {sorted(names)}"
-            raise ExtractionError(msg)
-        return replace(base, **options) if options else base
+        return config_with_options(cls, config, "subpixel", options)
 
     @property
     def contrast_px(self) -> int:
