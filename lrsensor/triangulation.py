@@ -6,6 +6,8 @@ are NaN, never dropped, so row ``i`` of the output always belongs to row ``i`` o
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -93,6 +95,21 @@ def triangulate(calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike)
     if idx.size and (idx.min() < 0 or idx.max() >= len(calibration.lasers)):
         msg = f"laser_index out of range 0..{len(calibration.lasers) - 1}"
         raise GeometryError(msg)
+    from .extract import _kernels  # the compiled twin, once numba has compiled it (never waits for it)
+
+    if q.shape[0] >= 16 and _kernels.ready():
+        cam, dist, R, o, n_all, p_all = _arrays(calibration)
+        return _kernels.triangulate_points(  # type: ignore[no-any-return]
+            np.ascontiguousarray(q[:, 0]),
+            np.ascontiguousarray(q[:, 1]),
+            idx.astype(np.int64),
+            cam,
+            dist,
+            R,
+            o,
+            n_all,
+            p_all,
+        )
     rays = calibration.rays_body(q)
     normals = np.array([l.normal_body for l in calibration.lasers])[idx]
     points = np.array([l.point_body for l in calibration.lasers])[idx]
@@ -103,3 +120,18 @@ def triangulate(calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike)
         d = np.einsum("ij,ij->i", points - o, normals) / denom
     d[~(np.abs(denom) > PARALLEL_COS * scale) | ~(d > 0)] = np.nan
     return o + d[:, None] * rays
+
+
+@lru_cache(maxsize=16)
+def _arrays(calibration: Calibration) -> tuple[FloatArray, ...]:
+    """The calibration as the compiled kernel's arrays: (fx, fy, cx, cy), distortion (5,), R_cam_from_body (3, 3),
+    camera centre (3,), laser normals (L, 3) and points (L, 3), body frame."""
+    cam = calibration.camera
+    return (
+        np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
+        np.ascontiguousarray(cam.dist, dtype=np.float64),
+        np.ascontiguousarray(calibration.R_cam_body),
+        np.ascontiguousarray(calibration.camera_center_body),
+        np.array([l.normal_body for l in calibration.lasers], dtype=np.float64),
+        np.array([l.point_body for l in calibration.lasers], dtype=np.float64),
+    )

@@ -234,6 +234,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
     ok_out = np.zeros(n, np.bool_)
     noise_out = np.zeros(n)
     P = np.empty(m + 2 * e)
+    B = np.empty(m)
     for t in range(n):
         col = cols[t]
         r0 = rows[t] - half - e
@@ -336,9 +337,11 @@ def fit_columns(  # type: ignore[no-untyped-def]
             fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
             # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most
             # half the half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
-            w25 = _level_width(P, o, R, m, bl, slope, xl, 0.25 * a0)
-            w75 = _level_width(P, o, R, m, bl, slope, xl, 0.75 * a0)
-            flat = w25 - w75 <= 0.5 * fw
+            flat = False
+            if fw > wide_fwhm:  # (only then does the shape matter)
+                w25 = _level_width(P, o, R, m, bl, slope, xl, 0.25 * a0)
+                w75 = _level_width(P, o, R, m, bl, slope, xl, 0.75 * a0)
+                flat = w25 - w75 <= 0.5 * fw
             if fw > wide_fwhm and math.isfinite(fw):
                 c = 0.5 * (xa + xb)  # wide: the peak sample may be anywhere on the top; start from the middle
             if fw > wide_fwhm and flat:
@@ -360,30 +363,46 @@ def fit_columns(  # type: ignore[no-untyped-def]
                     slope = (br - bl) / (2.0 * off + flank - 1)
                     hs = min(0.5 * fw + 3.0, off - 1.0) + 0.5
                     a0 = P[o + R] - (bl + slope * (R - xl))
-        # 3. centroid iterations
-        g2 = math.exp(-2.0 * inv2)
-        for _ in range(iterations):
-            s0 = 0.0
-            s1 = 0.0
-            # Gaussian weights by recurrence: w(q+1) = w(q) r(q), r(q+1) = r(q) exp(-2 inv2) (two exp per column)
-            d0 = -c
-            w = math.exp(-(d0 * d0) * inv2)
-            ratio = math.exp(-(2.0 * d0 + 1.0) * inv2)
-            for q in range(m):
-                d = q - c
-                if saturated or wide:
-                    wq = min(max(hs - abs(d), 0.0), 1.0)
-                else:
-                    wq = w
+        # 3. centroid iterations on the background-free profile B
+        for q in range(m):
+            B[q] = P[o + q] - (bl + slope * (q - xl))
+        if saturated or wide:
+            for _ in range(iterations):
+                s0 = 0.0
+                s1 = 0.0
+                for q in range(m):
+                    d = q - c
+                    wa = min(max(hs - abs(d), 0.0), 1.0) * B[q]
+                    s0 += wa
+                    s1 += wa * d
+                if s0 != 0.0:
+                    step = s1 / s0
+                    if math.isfinite(step):
+                        c += min(max(step, -1.0), 1.0)
+        else:
+            g2 = math.exp(-2.0 * inv2)
+            reach = 4.0 * sig_w + 1.0  # weights beyond are below exp(-8)
+            for _ in range(iterations):
+                if not math.isfinite(c):
+                    break
+                q0 = max(int(math.floor(c - reach)), 0)  # noqa: RUF046 (numba: floor of a float is a float)
+                q1 = min(int(math.ceil(c + reach)) + 1, m)  # noqa: RUF046
+                s0 = 0.0
+                s1 = 0.0
+                # Gaussian weights by recurrence: w(q+1) = w(q) r(q), r(q+1) = r(q) exp(-2 inv2) (two exp per column)
+                d0 = q0 - c
+                w = math.exp(-(d0 * d0) * inv2)
+                ratio = math.exp(-(2.0 * d0 + 1.0) * inv2)
+                for q in range(q0, q1):
+                    wa = w * B[q]
+                    s0 += wa
+                    s1 += wa * (q - c)
                     w *= ratio
                     ratio *= g2
-                wa = wq * (P[o + q] - (bl + slope * (q - xl)))
-                s0 += wa
-                s1 += wa * d
-            if s0 != 0.0:
-                step = (1.0 if wide else gain) * s1 / s0
-                if math.isfinite(step):
-                    c += min(max(step, -1.0), 1.0)
+                if s0 != 0.0:
+                    step = gain * s1 / s0
+                    if math.isfinite(step):
+                        c += min(max(step, -1.0), 1.0)
         if saturated:
             amp = P[o + R] - (bl + slope * (R - xl))
         else:
@@ -675,6 +694,76 @@ def finish_points(  # type: ignore[no-untyped-def]
     return u_out, v_out, l_out, q_out
 
 
+@_njit
+def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # type: ignore[no-untyped-def]
+    """Loop twin of :func:`lrsensor.triangulation.triangulate` (eq. 29 with the Brown-Conrady model).
+
+    Args:
+        u, v: (N,) float64 pixel coordinates; laser: (N,) int64 plane index of each pixel.
+        cam: (4,) ``fx, fy, cx, cy``; dist: (5,) ``k1, k2, p1, p2, k3``; R: (3, 3) ``R_cam_from_body``.
+        origin: (3,) camera centre in the body frame; normals, points: (L, 3) laser planes in the body frame.
+
+    Returns:
+        (N, 3) body-frame points, metres; NaN rows where undistortion does not converge, the ray is parallel
+        to the plane or meets it behind the camera.
+    """
+    n = u.size
+    out = np.empty((n, 3))
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
+    n_l = normals.shape[0]
+    off = np.empty(n_l)
+    for i in range(n_l):
+        off[i] = (
+            (points[i, 0] - origin[0]) * normals[i, 0]
+            + (points[i, 1] - origin[1]) * normals[i, 1]
+            + (points[i, 2] - origin[2]) * normals[i, 2]
+        )
+    for t in range(n):
+        xd = (u[t] - cx) / fx
+        yd = (v[t] - cy) / fy
+        x = xd
+        y = yd
+        if distorted:
+            for _ in range(8):
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+                rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+                ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+                a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
+                b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
+                d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
+                det = a * d - b * b
+                sx = (d * rx - b * ry) / det
+                sy = (-b * rx + a * ry) / det
+                x -= sx
+                y -= sy
+                if abs(sx) + abs(sy) < 1e-15:  # converged (quadratically): further steps change nothing
+                    break
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+            ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+            if not (math.sqrt(ex * ex + ey * ey) < 1e-9):
+                x = np.nan
+        # body-frame ray: (x, y, 1) @ R
+        bx = x * R[0, 0] + y * R[1, 0] + R[2, 0]
+        by = x * R[0, 1] + y * R[1, 1] + R[2, 1]
+        bz = x * R[0, 2] + y * R[1, 2] + R[2, 2]
+        li = laser[t]
+        denom = bx * normals[li, 0] + by * normals[li, 1] + bz * normals[li, 2]
+        scale = math.sqrt(bx * bx + by * by + bz * bz)
+        lam = off[li] / denom
+        if not (abs(denom) > 1e-9 * scale) or not (lam > 0):
+            lam = np.nan
+        out[t, 0] = origin[0] + lam * bx
+        out[t, 1] = origin[1] + lam * by
+        out[t, 2] = origin[2] + lam * bz
+    return out
+
+
 # --------------------------------------------------------------------------- compilation management
 _READY = threading.Event()
 _LOCK = threading.Lock()
@@ -699,6 +788,8 @@ def warm_up() -> None:
         neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
         finish_points(i64, f64, f64, f64, b, b, f64, i64, i64, np.ones(2), 8, 16, 5.0, 2.5, 8, 5.0, np.array([4, 1]))
         smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))
+        eye = np.eye(3)
+        triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         _READY.set()
 
 
@@ -718,7 +809,15 @@ def ready() -> bool:
     return False
 
 
-_KERNEL_NAMES = ("select_candidates", "expand_half", "fit_columns", "neighbours", "finish_points", "smooth_runs")
+_KERNEL_NAMES = (
+    "select_candidates",
+    "expand_half",
+    "fit_columns",
+    "neighbours",
+    "finish_points",
+    "smooth_runs",
+    "triangulate_points",
+)
 
 
 def _cached() -> bool:
