@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
-from ..triangulation import triangulate
+from ..triangulation import _arrays, triangulate
 from . import Detections, _kernels, config_with_options
 from .bands import LaserBands, laser_bands
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
@@ -154,14 +154,24 @@ def _max_fwhm(
     floor = FWHM_PER_SIGMA * cfg.max_sigma_px
     if cols.size == 0 or cfg.max_sheet_mm <= 0:
         return np.full(cols.size, floor)
-    uv = np.stack([cols.astype(np.float64), rows.astype(np.float64)], axis=1)
-    pts = triangulate(calibration, uv, laser)
     cam = calibration.camera
-    axis = calibration.rays_body(np.array([[cam.cx, cam.cy]], dtype=np.float64))[0]
-    depth = (pts - calibration.camera_center_body) @ (axis / np.linalg.norm(axis))
+    if _kernels.ready():
+        u, v = cols.astype(np.float64), rows.astype(np.float64)
+        pts = _kernels.triangulate_points(u, v, laser, *_arrays(calibration))
+    else:
+        pts = triangulate(calibration, np.stack([cols.astype(np.float64), rows.astype(np.float64)], axis=1), laser)
+    depth = (pts - calibration.camera_center_body) @ _optical_axis(calibration)
     with np.errstate(divide="ignore", invalid="ignore"):
         w = 1e-3 * cfg.max_sheet_mm * cam.fy / depth + 4.0
     return np.where(np.isfinite(w) & (depth > 0), np.maximum(w, floor), floor)
+
+
+@lru_cache(maxsize=16)
+def _optical_axis(calibration: Calibration) -> FloatArray:
+    """Unit vector (3,) of the camera's optical axis in the body frame."""
+    cam = calibration.camera
+    axis = calibration.rays_body(np.array([[cam.cx, cam.cy]], dtype=np.float64))[0]
+    return axis / np.linalg.norm(axis)  # type: ignore[no-any-return]
 
 
 def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
@@ -192,33 +202,48 @@ def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
 
 
 def _candidates(
-    image: NDArray[np.uint8], r0: int, r1: int, cfg: SubpixelConfig
+    image: NDArray[np.uint8],
+    laser: int,
+    rows: tuple[int, int],
+    bands: LaserBands,
+    cfg: SubpixelConfig,
+    fast: bool,
+    col_offset: int,
 ) -> tuple[IntArray, IntArray, FloatArray, float]:
-    """Stripe candidates in rows [r0, r1) of the green channel.
+    """Stripe candidates of ``laser`` inside its band: rows ``[r0, r1)`` (the band's bounding rows), then the band
+    per column.
 
     The response is a two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` beyond the widest stripe
     (and the same at ``d / 2``, the larger of the two): positive only on ridges narrower than ``2 d`` (not on glow
-    ramps, haze or wide blobs). Candidates are its
-    vertical local maxima above the noise-scaled threshold. With ``detect_scale == 2`` this runs on one
-    Gaussian pyramid level (``cv2.pyrDown``: smoothed, half size), which both averages the noise along the
-    stripe and quarters the work; the sub-pixel fit later works on the full-resolution profiles.
+    ramps, haze or wide blobs). Candidates are its vertical local maxima above the noise-scaled threshold. With
+    ``detect_scale == 2`` this runs on the green channel averaged over 2x2 pixels and then over 3 of those
+    columns (along the stripe): it averages the noise where the stripe is long and quarters the work; the
+    sub-pixel fit later works on the full-resolution profiles. ``fast``: the compiled kernels do the copying,
+    noise and maxima (same results).
 
     Returns:
-        ``(cols, rows, strength, noise)``: detection-scale columns (N,), full-resolution rows (N,), contrast (N,)
-        and the full-resolution pixel noise (DN).
+        ``(cols, rows, strength, noise)``: detection-scale columns plus ``col_offset`` (N,), full-resolution rows
+        (N,), contrast (N,), sorted by column then row, and the full-resolution pixel noise (DN).
     """
-    h = image.shape[0]
+    r0, r1 = rows
+    h, w = image.shape[:2]
     scale = cfg.detect_scale
     d = cfg.contrast_px
     a0, a1 = max(r0 - d, 0), min(r1 + d, h)
-    g: Any = cv2.extractChannel(image[a0:a1], 1)
+    if scale == 2 and (a1 - a0) % 2 and a1 < h:
+        a1 += 1  # an even number of rows for the 2x2 average (one more row below: the band check drops it)
+    g: Any = _kernels.green_rows(image.reshape(-1), w, a0, a1) if fast else cv2.extractChannel(image[a0:a1], 1)
     top, bot = d - (r0 - a0), d - (a1 - r1)
-    if top > 0 or bot > 0:  # pad to the full shift range (replicate border rows)
-        g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0), 0, 0, cv2.BORDER_REPLICATE)
-    noise = max(_noise_dn(g, int(np.clip(g.shape[0] // 24, 2, 16))), 0.5)
+    odd_r, odd_c = (g.shape[0] + max(top, 0) + max(bot, 0)) % 2 * (scale - 1), w % 2 * (scale - 1)
+    if top > 0 or bot > 0 or odd_r or odd_c:  # pad to the full shift range and even sizes (replicate the border)
+        g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0) + odd_r, 0, odd_c, cv2.BORDER_REPLICATE)
+    step = min(max(g.shape[0] // 24, 2), 16)
+    noise = max(_kernels.noise_dn(g, step) if fast else _noise_dn(g, step), 0.5)
     if scale == 2:
-        g = cv2.pyrDown(g)  # row y <-> full row r0 - d + 2 y, column c <-> full column 2 c
-        noise_s = noise * _PYR_NOISE
+        # row y <-> full rows r0 - d + 2 y (+1), column c <-> full columns 2 c (+1)
+        g = cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        g = cv2.blur(g, (3, 1))
+        noise_s = noise * _AREA_NOISE
         ds = d // 2
         thr = max(0.7 * cfg.min_contrast_dn, cfg.snr_threshold * noise_s)
         kernel = _KERNEL_3
@@ -234,6 +259,10 @@ def _candidates(
     if hd >= 2:
         inner = g[ds - hd : g.shape[0] - ds + hd]
         resp = cv2.max(resp, cv2.subtract(g[ds:-ds], cv2.max(inner[: -2 * hd], inner[2 * hd :])))
+    v_lo, v_hi = bands.v_lo[laser], bands.v_hi[laser]
+    if fast:
+        u, v, a = _kernels.local_maxima(resp, float(thr), r0, scale, v_lo, v_hi, w, col_offset)
+        return u, v, a, noise
     loc = cv2.dilate(resp, kernel)
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
     pk &= cv2.compare(resp, thr, cv2.CMP_GT)  # type: ignore[call-overload]
@@ -242,12 +271,16 @@ def _candidates(
         z = np.zeros(0, np.int64)
         return z, z, np.zeros(0), noise
     xy = nz.reshape(-1, 2).astype(np.int64)
-    u, v = xy[:, 0], xy[:, 1]
-    return u, r0 + scale * v, resp[v, u].astype(np.float64), noise
+    u, v = xy[:, 0], r0 + scale * xy[:, 1]
+    a = resp[xy[:, 1], u].astype(np.float64)
+    uf = np.minimum(u * scale, w - 1)
+    inside = (v >= v_lo[uf]) & (v <= v_hi[uf])  # the band need not be a rectangle
+    order = np.argsort(u[inside], kind="stable")  # by column; rows stay ascending (findNonZero is row-major)
+    return u[inside][order] + col_offset, v[inside][order], a[inside][order], noise
 
 
-#: Noise reduction of one ``cv2.pyrDown`` level (binomial 5-tap kernel in both directions): sqrt(70/256)^2.
-_PYR_NOISE = 70.0 / 256.0
+#: Noise reduction of the detection smoothing: 2x2 average (1/2), then a 3-column box (1/sqrt(3)).
+_AREA_NOISE = 0.5 / math.sqrt(3.0)
 _KERNEL_3 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 3))
 _KERNEL_5 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 5))
 
@@ -619,17 +652,14 @@ def extract(
         r0, r1 = plan.rows[i]
         if r1 <= r0:
             continue
-        u, v, a, noise[i] = _candidates(image, r0, r1, cfg)
-        uf = np.minimum(u * scale, w - 1)
-        inside = (v >= bands.v_lo[i][uf]) & (v <= bands.v_hi[i][uf])  # the band need not be a rectangle
-        parts.append((u[inside] + i * wd, v[inside], a[inside]))
+        u, v, a, noise[i] = _candidates(image, i, (r0, r1), bands, cfg, fast, i * wd)
+        parts.append((u, v, a))
     if not parts or sum(p[0].size for p in parts) == 0:
         return Detections.empty()
+    # laser by laser, each sorted by column then row: the concatenation is sorted by (virtual) column
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
-    order = np.argsort(U, kind="stable")  # by column; rows stay ascending (findNonZero is row-major)
-    U, Vr, Ar = U[order], Vr[order], Ar[order]
     n_cols_d = n_l * wd
     n_cols = n_l * w
     # 3. continuity: chains; per column the candidate on the strongest long-enough chain
@@ -668,11 +698,16 @@ def extract(
     max_fwhm = _max_fwhm(calibration, cols, rows, laser, cfg)
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
-    P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-    wide_lim = float(np.median(max_fwhm[sub]))  # a wide-sheet frame needs a longer window
-    sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
-    n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
-    plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
+    if fast:
+        sig_med, plateau, wide_lim = _kernels.frame_profile_stats(
+            image, cols[sub], rows[sub], half0, float(cfg.saturation_dn), float(cfg.max_sigma_px), max_fwhm[sub]
+        )
+    else:
+        P0 = _gather(image, cols[sub], rows[sub], half0, 1)
+        wide_lim = float(np.median(max_fwhm[sub]))  # a wide-sheet frame needs a longer window
+        sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
+        n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
+        plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
 
     def fit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> tuple[Any, ...]:
