@@ -86,6 +86,10 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
             A[c, q] = A[c, q - 1]
         V[c, pos] = mv[t]
         A[c, pos] = ma[t]
+    cnt = np.zeros(n_cols, np.int64)  # candidates per column (packed first: the rest of the row is NaN)
+    for c in range(n_cols):
+        while cnt[c] < K and not math.isnan(V[c, cnt[c]]):
+            cnt[c] += 1
     # 3. chains: mutual nearest links, first between neighbouring columns, then across small gaps
     nn = n_cols * K
     prev = np.arange(nn)
@@ -93,16 +97,16 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     has_prev = np.zeros(nn, np.bool_)
     for lag in range(1, max_gap + 1):
         for c in range(n_cols - lag):
-            if c // block != (c + lag) // block:
+            if cnt[c] == 0 or cnt[c + lag] == 0 or c // block != (c + lag) // block:
                 continue
             d = c + lag
-            for i0 in range(K):
+            for i0 in range(cnt[c]):
                 va = V[c, i0]
                 if math.isnan(va) or has_next[c * K + i0]:
                     continue
                 jb = -1
                 db = np.inf
-                for j0 in range(K):
+                for j0 in range(cnt[d]):
                     vb = V[d, j0]
                     if math.isnan(vb) or has_prev[d * K + j0]:
                         continue
@@ -116,7 +120,7 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
                 ib = -1
                 dbb = np.inf
                 vb = V[d, jb]
-                for q in range(K):
+                for q in range(cnt[c]):
                     vq = V[c, q]
                     if math.isnan(vq) or has_next[c * K + q]:
                         continue
@@ -428,6 +432,202 @@ def fit_columns(  # type: ignore[no-untyped-def]
 
 
 @_njit
+def _fit_common_chunk(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, wide_fwhm
+):
+    """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
+    h = image.shape[0]
+    wid = image.shape[1]
+    flat = image.reshape(-1)
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    M = m + 2 * e
+    P = np.empty((M, n))
+    for k in range(M):
+        for t in range(n):
+            rr = min(max(rows[t] - half - e + k, 0), h - 1)
+            P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+    special = np.zeros(n, np.bool_)
+    bv = np.full(n, -1.0)
+    bq = np.full(n, e + R, np.int64)
+    for k in range(R, R + 2 * e + 1):
+        for t in range(n):
+            x = P[k, t]
+            if x > bv[t]:
+                bv[t] = x
+                bq[t] = k
+            if x >= sat_dn:
+                special[t] = True
+    B = np.empty((m, n))
+    for q in range(m):
+        for t in range(n):
+            x = P[bq[t] - R + q, t]
+            B[q, t] = x
+            if x >= sat_dn:
+                special[t] = True
+    # 1. linear background from the two flanks, subtracted; noise of the flanks
+    off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
+    xl = R - off - 0.5 * (flank - 1)
+    bl = np.zeros(n)
+    br = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            bl[t] += B[R - off - q, t]
+            br[t] += B[R + off + q, t]
+    slope = np.empty(n)
+    for t in range(n):
+        bl[t] /= flank
+        br[t] /= flank
+        slope[t] = (br[t] - bl[t]) / (2.0 * off + flank - 1)
+    for q in range(m):
+        for t in range(n):
+            B[q, t] -= bl[t] + slope[t] * (q - xl)
+    noise = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            noise[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
+    for t in range(n):
+        noise[t] = math.sqrt(noise[t] / max(2 * flank - 2, 1))
+    # 2. log-parabola start
+    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+    c = np.empty(n)
+    sigma = np.empty(n)
+    ok = np.zeros(n, np.bool_)
+    inv2 = np.empty(n)
+    gain = np.empty(n)
+    g2 = np.empty(n)
+    a0 = np.empty(n)
+    sw_max = 1.1
+    for t in range(n):
+        am = B[R - s, t]
+        a0[t] = B[R, t]
+        ap = B[R + s, t]
+        ym = math.log(max(am, 0.5))
+        y0 = math.log(max(a0[t], 0.5))
+        yp = math.log(max(ap, 0.5))
+        den = ym - 2.0 * y0 + yp
+        if den < -1e-6:
+            c[t] = R + min(max(0.5 * s * (ym - yp) / den, -1.0), 1.0)
+            sg = s / math.sqrt(-den)
+            ok[t] = sg >= min_sig and sg <= max_sig
+        else:
+            c[t] = R
+            sg = np.inf
+        sigma[t] = sg
+        sig_p = sg if math.isfinite(sg) else sigma_hint
+        sig_p = min(max(sig_p, min_sig), max_sig)
+        sig_w = max(sig_p, 1.1)
+        sw_max = max(sw_max, sig_w)
+        inv2[t] = 0.5 / (sig_w * sig_w)
+        gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
+        g2[t] = math.exp(-2.0 * inv2[t])
+    # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
+    xa = np.full(n, -1.0)
+    xb = np.full(n, -1.0)
+    for q in range(R - 1, -1, -1):
+        for t in range(n):
+            aq = B[q, t]
+            if xa[t] < 0.0 and aq < 0.5 * a0[t]:
+                xa[t] = q + (0.5 * a0[t] - aq) / (B[q + 1, t] - aq)
+    for q in range(R + 1, m):
+        for t in range(n):
+            aq = B[q, t]
+            if xb[t] < 0.0 and aq < 0.5 * a0[t]:
+                xb[t] = q - (0.5 * a0[t] - aq) / (B[q - 1, t] - aq)
+    for t in range(n):
+        if a0[t] > 0.0 and not (xa[t] >= 0.0 and xb[t] >= 0.0 and xb[t] - xa[t] <= wide_fwhm):
+            special[t] = True
+    # 3. Gaussian-weighted centroid iterations (weights by recurrence, over the reach of the widest weight)
+    reach = int(math.ceil(4.0 * sw_max + 1.0)) + 3  # noqa: RUF046 (numba: ceil of a float is a float)
+    q0 = max(R - reach, 0)
+    q1 = min(R + reach + 1, m)
+    for t in range(n):  # column by column: the recurrence lives in registers
+        ct = c[t]
+        it2 = inv2[t]
+        gt = g2[t]
+        for _ in range(iterations):
+            d0 = q0 - ct
+            wq = math.exp(-(d0 * d0) * it2)
+            rq = math.exp(-(2.0 * d0 + 1.0) * it2)
+            a_s0 = 0.0
+            a_s1 = 0.0
+            for q in range(q0, q1):
+                wa = wq * B[q, t]
+                a_s0 += wa
+                a_s1 += wa * (q - ct)
+                wq *= rq
+                rq *= gt
+            if a_s0 != 0.0:
+                step = gain[t] * a_s1 / a_s0
+                if math.isfinite(step):
+                    ct += min(max(step, -1.0), 1.0)
+        c[t] = ct
+    # 4. acceptance and the colour check
+    centre = np.full(n, np.nan)
+    for t in range(n):
+        good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0.0
+        if good:
+            pk_row = rows[t] + bq[t] - e - R
+            col = cols[t]
+            rp = min(max(pk_row, 0), h - 1)
+            rl = min(max(pk_row - half, 0), h - 1)
+            rh = min(max(pk_row + half, 0), h - 1)
+            rise_b = image[rp, col, 0] - 0.5 * (float(image[rl, col, 0]) + image[rh, col, 0])
+            rise_g = image[rp, col, 1] - 0.5 * (float(image[rl, col, 1]) + image[rh, col, 1])
+            rise_r = image[rp, col, 2] - 0.5 * (float(image[rl, col, 2]) + image[rh, col, 2])
+            good = rise_g >= green_ratio * max(rise_b, rise_r)
+            if good:
+                centre[t] = pk_row - half + c[t]
+        ok[t] = good
+    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special
+
+
+@_njit
+def fit_columns_common(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, wide_fwhm
+):
+    """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize).
+
+    Same arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
+    clipped sample in its window and a half-level width of at most ``wide_fwhm``; the others are flagged in the
+    extra last output ``special`` (N,) bool, and their results are to be taken from :func:`fit_columns`.
+    ``image`` must be C-contiguous. Works in chunks of 256 columns.
+    """
+    n = cols.size
+    centre = np.empty(n)
+    amp = np.empty(n)
+    sigma = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    noise = np.empty(n)
+    special = np.empty(n, np.bool_)
+    for t0 in range(0, n, 256):
+        t1 = min(t0 + 256, n)
+        res = _fit_common_chunk(
+            image,
+            cols[t0:t1],
+            rows[t0:t1],
+            half,
+            e,
+            sigma_hint,
+            sat_dn,
+            min_sig,
+            max_sig,
+            flank,
+            iterations,
+            green_ratio,
+            wide_fwhm,
+        )
+        centre[t0:t1] = res[0]
+        amp[t0:t1] = res[1]
+        sigma[t0:t1] = res[2]
+        ok[t0:t1] = res[4]
+        noise[t0:t1] = res[5]
+        special[t0:t1] = res[6]
+    return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, special
+
+
+@_njit
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing)."""
     n = y.size
@@ -506,6 +706,9 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         for c in range(n):
             acc_c[c] = False
         for c in range(k, n - k):
+            # a fit centred at c serves the columns c, c - k and c + k: skip it when they are all done
+            if done[c] and done[c - k] and (c + k >= n or done[c + k]):
+                continue
             lo = c - k
             hi = c + k + 1
             s0 = c_m[hi] - c_m[lo]
@@ -734,22 +937,24 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
 
 
 @_njit
-def local_maxima(resp, thr, row0, scale, v_lo, v_hi, width, col_offset):  # type: ignore[no-untyped-def]
-    """Vertical local maxima above ``thr`` of a detection response (H', W') uint8, column by column.
+def local_maxima(resp_t, thr, row0, scale, v_lo, v_hi, width, col_offset):  # type: ignore[no-untyped-def]
+    """Vertical local maxima above ``thr`` of a detection response, given transposed: (W', H') uint8.
 
-    Row y of ``resp`` is full-resolution row ``row0 + scale * y``, column x stands for full column ``scale * x``;
-    only maxima inside the laser's band (``v_lo``, ``v_hi``: (W,) first and last row per full column) count.
+    Row y of the response is full-resolution row ``row0 + scale * y``, column x stands for full column
+    ``scale * x``; only maxima inside the laser's band (``v_lo``, ``v_hi``: (W,) first and last row per full
+    column) count.
 
     Returns:
         ``(cols, rows, strength)``: detection columns plus ``col_offset`` (N,), full rows (N,) and response (N,),
         sorted by column, then row.
     """
-    ho, wo = resp.shape
+    wo, ho = resp_t.shape
     cap = 4 * wo + 64
     cu = np.empty(cap, np.int64)
     cv = np.empty(cap, np.int64)
     ca = np.empty(cap, np.float64)
     n = 0
+    t8 = np.uint8(min(max(int(math.floor(thr)), 0), 255))  # noqa: RUF046 (v > thr for an integer v)
     for x in range(wo):
         uf = min(x * scale, width - 1)
         lo = v_lo[uf]
@@ -758,13 +963,14 @@ def local_maxima(resp, thr, row0, scale, v_lo, v_hi, width, col_offset):  # type
             continue
         y0 = max((lo - row0 + scale - 1) // scale, 0)
         y1 = min((hi - row0) // scale + 1, ho)
+        col = resp_t[x]
         for y in range(y0, y1):
-            v = resp[y, x]
-            if v <= thr:
+            v = col[y]
+            if v <= t8:
                 continue
-            if y > 0 and resp[y - 1, x] > v:
+            if y > 0 and col[y - 1] > v:
                 continue
-            if y < ho - 1 and resp[y + 1, x] > v:
+            if y < ho - 1 and col[y + 1] > v:
                 continue
             if n == cap:
                 cap *= 2
@@ -948,6 +1154,7 @@ def warm_up() -> None:
         noise_dn(g, 2)
         local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
+        fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, 4.7)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         _READY.set()
 
@@ -980,6 +1187,7 @@ _KERNEL_NAMES = (
     "noise_dn",
     "local_maxima",
     "frame_profile_stats",
+    "fit_columns_common",
 )
 
 

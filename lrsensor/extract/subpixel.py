@@ -261,7 +261,7 @@ def _candidates(
         resp = cv2.max(resp, cv2.subtract(g[ds:-ds], cv2.max(inner[: -2 * hd], inner[2 * hd :])))
     v_lo, v_hi = bands.v_lo[laser], bands.v_hi[laser]
     if fast:
-        u, v, a = _kernels.local_maxima(resp, float(thr), r0, scale, v_lo, v_hi, w, col_offset)
+        u, v, a = _kernels.local_maxima(cv2.transpose(resp), float(thr), r0, scale, v_lo, v_hi, w, col_offset)
         return u, v, a, noise
     loc = cv2.dilate(resp, kernel)
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
@@ -621,6 +621,9 @@ def _fit_numpy(
 #: Use the compiled kernels when numba is installed (tests switch this to compare both paths).
 USE_NUMBA = _kernels.HAVE_NUMBA
 
+#: Centroid iterations of the sub-pixel fit.
+_ITERATIONS = 2
+
 
 def extract(
     image: NDArray[np.uint8], calibration: Calibration, config: SubpixelConfig | None = None, **options: Any
@@ -695,16 +698,24 @@ def extract(
     laser = col_v // w
     cols = col_v - laser * w
     # 4. sub-pixel centre on the green profile; window and spacing from the typical width of this frame
-    max_fwhm = _max_fwhm(calibration, cols, rows, laser, cfg)
+    # the widest plausible stripe per column, computed where it is needed (frame statistics, wide profiles)
+    max_fwhm = np.full(cols.size, np.nan)
+
+    def max_fwhm_at(idx: IntArray) -> FloatArray:
+        need = idx[np.isnan(max_fwhm[idx])]
+        if need.size:
+            max_fwhm[need] = _max_fwhm(calibration, cols[need], rows[need], laser[need], cfg)
+        return max_fwhm[idx]
+
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
     if fast:
         sig_med, plateau, wide_lim = _kernels.frame_profile_stats(
-            image, cols[sub], rows[sub], half0, float(cfg.saturation_dn), float(cfg.max_sigma_px), max_fwhm[sub]
+            image, cols[sub], rows[sub], half0, float(cfg.saturation_dn), float(cfg.max_sigma_px), max_fwhm_at(sub)
         )
     else:
         P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-        wide_lim = float(np.median(max_fwhm[sub]))  # a wide-sheet frame needs a longer window
+        wide_lim = float(np.median(max_fwhm_at(sub)))  # a wide-sheet frame needs a longer window
         sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
         n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
         plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
@@ -730,15 +741,38 @@ def extract(
                     nb[0],
                     nb[1],
                     nb[2],
-                    max_fwhm[idx],
+                    max_fwhm_at(idx),
                     WIDE_FWHM_PX,
                 )
             )
-        return _fit_numpy(image, c, r, half, sig_med, cfg, nb, max_fwhm[idx])
+        return _fit_numpy(image, c, r, half, sig_med, cfg, nb, max_fwhm_at(idx))
 
-    every = np.arange(cols.size)
-    no_nb = np.full(cols.size, np.nan)
-    vv, amp, sig, _sat, ok, lnoise = fit(every, (no_nb, no_nb, no_nb))
+    if fast:
+        # the common case column-parallel; clipped or wide profiles through the full kernel
+        *res0, special = _kernels.fit_columns_common(
+            image,
+            cols,
+            rows,
+            half,
+            3,
+            sig_med,
+            float(cfg.saturation_dn),
+            cfg.min_fwhm_px / FWHM_PER_SIGMA,
+            float(cfg.max_sigma_px),
+            3,
+            _ITERATIONS,
+            float(cfg.min_green_ratio),
+            WIDE_FWHM_PX,
+        )
+        vv, amp, sig, _sat, ok, lnoise = res0
+        idx = np.flatnonzero(special)
+        if idx.size:
+            no_nb = np.full(idx.size, np.nan)
+            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), fit(idx, (no_nb, no_nb, no_nb)), strict=True):
+                arr[idx] = new
+    else:
+        no_nb = np.full(cols.size, np.nan)
+        vv, amp, sig, _sat, ok, lnoise = fit(np.arange(cols.size), (no_nb, no_nb, no_nb))
     # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
     # alternating a few times (both estimates start pulled toward each other)
     if n_l > 1:
