@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -46,7 +47,8 @@ class Sensor:
         points = triangulate(self.calibration, det.uv, det.laser)
         scan = Scan(points, det.laser.astype(int), det.uv, det.quality, method)
         lo, hi = range_limits(method, options)
-        depth = self.calibration.body_to_cam(points)[:, 2] if len(scan) else np.zeros(0)
+        cal = self.calibration
+        depth = points @ cal.R_cam_body[2] + cal.t_cam_body[2]  # camera z, metres
         with np.errstate(invalid="ignore"):
             keep = (depth >= lo) & (depth <= hi)  # NaN rows fail both: dropped too
         return scan if bool(keep.all()) else scan.select(keep)
@@ -68,8 +70,15 @@ def range_limits(method: str, options: dict[str, Any]) -> tuple[float, float]:
     """
     lo, hi = options.get("min_range_m"), options.get("max_range_m")
     if (lo is None or hi is None) and method in _CONFIGS:
-        module_name, cls_name = _CONFIGS[method]
-        defaults = getattr(importlib.import_module(module_name), cls_name)()
-        lo = defaults.min_range_m if lo is None else lo
-        hi = defaults.max_range_m if hi is None else hi
+        d_lo, d_hi = _default_limits(method)
+        lo = d_lo if lo is None else lo
+        hi = d_hi if hi is None else hi
     return (0.0 if lo is None else float(lo)), (np.inf if hi is None else float(hi))
+
+
+@lru_cache(maxsize=8)
+def _default_limits(method: str) -> tuple[float, float]:
+    """The default ``(min_range_m, max_range_m)`` of a registered extractor's configuration."""
+    module_name, cls_name = _CONFIGS[method]
+    defaults = getattr(importlib.import_module(module_name), cls_name)()
+    return float(defaults.min_range_m), float(defaults.max_range_m)
