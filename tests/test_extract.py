@@ -231,6 +231,20 @@ def test_subpixel_ignores_a_glow_ramp_and_white_objects() -> None:
     assert not np.any(np.abs(bottom_v - (cal.camera.height - 119)) < 3)
 
 
+def test_pooled_gates_keep_a_dim_stripe() -> None:
+    cal = _small_calibration()
+    img, v_top = _stripe_image(cal, 1.0, 1.0, 9.0, seed=5)  # peak 4.5x the pixel noise, blue leaking 30 %
+    pooled = subpixel_extract(img, cal)
+    single = subpixel_extract(img, cal, gate_pool_cols=0)
+    width = cal.camera.width
+    assert (pooled.laser == 0).sum() > 0.95 * width
+    assert (pooled.laser == 0).sum() > (single.laser == 0).sum() + 0.05 * width  # one noisy pixel decided before
+    top = pooled.uv[pooled.laser == 0, 1]
+    assert np.median(np.abs(top - v_top)) < 0.1
+    with pytest.raises(ExtractionError, match="gate_pool_cols"):
+        SubpixelConfig(gate_pool_cols=-1)
+
+
 def test_options_are_validated() -> None:
     cal = _small_calibration()
     img, _ = _stripe_image(cal, 1.0, 1.0, 100.0)

@@ -171,6 +171,10 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     return cols[:out], rows[:out], chain[:out], clen[:out]
 
 
+#: Half-width (rows) of the box smoothing of a profile before its flat-top test.
+FLAT_SMOOTH = 2
+
+
 @_njit
 def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
     """Width of a profile (window ``P[o:o + m]`` minus the line ``bl + slope (q - xl)``) at ``level``: distance
@@ -205,7 +209,6 @@ def fit_columns(  # type: ignore[no-untyped-def]
     max_sig,
     flank,
     iterations,
-    green_ratio,
     nb_v,
     nb_a,
     nb_s,
@@ -217,7 +220,8 @@ def fit_columns(  # type: ignore[no-untyped-def]
     For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
     uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
     flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
-    symmetric-window centroid). The colour check compares the rise of green with red and blue at the peak.
+    symmetric-window centroid). The rises of blue, green and red at the peak over the window ends are returned for
+    the colour test, which is pooled along the stripe (:func:`finish_points`).
     ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
     (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
     Profiles whose half-level width exceeds ``wide_fwhm`` (flat-topped thick sheets close to the wall) take the
@@ -225,7 +229,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
     beyond them; they pass while that width is at most ``max_fwhm`` (N,) (the physical limit at that row).
 
     Returns:
-        ``(centre_row, amplitude, sigma, saturated, ok, local_noise)``, each (N,).
+        ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise)``: (N,) each, and rise (3, N) in B, G, R.
     """
     h = image.shape[0]
     n = cols.size
@@ -237,8 +241,10 @@ def fit_columns(  # type: ignore[no-untyped-def]
     sat_out = np.zeros(n, np.bool_)
     ok_out = np.zeros(n, np.bool_)
     noise_out = np.zeros(n)
+    rise = np.zeros((3, n))
     P = np.empty(m + 2 * e)
     B = np.empty(m)
+    S = np.empty(m)
     for t in range(n):
         col = cols[t]
         r0 = rows[t] - half - e
@@ -343,9 +349,17 @@ def fit_columns(  # type: ignore[no-untyped-def]
             # half the half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
             flat = False
             if fw > wide_fwhm:  # (only then does the shape matter)
-                w25 = _level_width(P, o, R, m, bl, slope, xl, 0.25 * a0)
-                w75 = _level_width(P, o, R, m, bl, slope, xl, 0.75 * a0)
-                flat = w25 - w75 <= 0.5 * fw
+                # on the profile box-smoothed over 2 FLAT_SMOOTH + 1 rows (noise on a plateau must not decide)
+                k = FLAT_SMOOTH
+                for q in range(m):
+                    acc = 0.0
+                    for j in range(max(q - k, 0), min(q + k, m - 1) + 1):
+                        acc += P[o + j] - (bl + slope * (j - xl))
+                    S[q] = acc / (2 * k + 1)
+                a0s = max(S[R], 0.5 * a0)
+                w25 = _level_width(S, 0, R, m, 0.0, 0.0, 0.0, 0.25 * a0s)
+                w75 = _level_width(S, 0, R, m, 0.0, 0.0, 0.0, 0.75 * a0s)
+                flat = w25 - w75 <= 0.5 * fw + k
             if fw > wide_fwhm and math.isfinite(fw):
                 c = 0.5 * (xa + xb)  # wide: the peak sample may be anywhere on the top; start from the middle
             if fw > wide_fwhm and flat:
@@ -413,27 +427,24 @@ def fit_columns(  # type: ignore[no-untyped-def]
             amp = a0
         lim_c = 0.5 * fw + 1.0 if (fw > wide_fwhm and math.isfinite(fw)) else 2.0
         ok = ok and math.isfinite(c) and abs(c - R) <= lim_c and amp > 0
-        # colour: the rise of green at the peak must beat red and blue (saturated peaks pass)
-        if ok and not saturated:
-            rp = min(max(pk_row, 0), h - 1)
-            rl = min(max(pk_row - half, 0), h - 1)
-            rh = min(max(pk_row + half, 0), h - 1)
-            rise_b = image[rp, col, 0] - 0.5 * (float(image[rl, col, 0]) + image[rh, col, 0])
-            rise_g = image[rp, col, 1] - 0.5 * (float(image[rl, col, 1]) + image[rh, col, 1])
-            rise_r = image[rp, col, 2] - 0.5 * (float(image[rl, col, 2]) + image[rh, col, 2])
-            ok = rise_g >= green_ratio * max(rise_b, rise_r)
+        # colour: the rises of blue, green and red at the peak over the window ends (judged along the stripe later)
+        rp = min(max(pk_row, 0), h - 1)
+        rl = min(max(pk_row - half, 0), h - 1)
+        rh = min(max(pk_row + half, 0), h - 1)
+        for ch in range(3):
+            rise[ch, t] = image[rp, col, ch] - 0.5 * (float(image[rl, col, ch]) + image[rh, col, ch])
         if ok:
             centre[t] = pk_row - half + c
         amp_out[t] = amp
         sig_out[t] = sigma
         sat_out[t] = saturated
         ok_out[t] = ok
-    return centre, amp_out, sig_out, sat_out, ok_out, noise_out
+    return centre, amp_out, sig_out, sat_out, ok_out, noise_out, rise
 
 
 @_njit
 def _fit_common_chunk(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, wide_fwhm
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):
     """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
     h = image.shape[0]
@@ -563,35 +574,34 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                 if math.isfinite(step):
                     ct += min(max(step, -1.0), 1.0)
         c[t] = ct
-    # 4. acceptance and the colour check
+    # 4. acceptance and the colour rises
     centre = np.full(n, np.nan)
+    rise = np.zeros((3, n))
     for t in range(n):
         good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0.0
+        pk_row = rows[t] + bq[t] - e - R
+        col = cols[t]
+        rp = min(max(pk_row, 0), h - 1)
+        rl = min(max(pk_row - half, 0), h - 1)
+        rh = min(max(pk_row + half, 0), h - 1)
+        for ch in range(3):
+            rise[ch, t] = image[rp, col, ch] - 0.5 * (float(image[rl, col, ch]) + image[rh, col, ch])
         if good:
-            pk_row = rows[t] + bq[t] - e - R
-            col = cols[t]
-            rp = min(max(pk_row, 0), h - 1)
-            rl = min(max(pk_row - half, 0), h - 1)
-            rh = min(max(pk_row + half, 0), h - 1)
-            rise_b = image[rp, col, 0] - 0.5 * (float(image[rl, col, 0]) + image[rh, col, 0])
-            rise_g = image[rp, col, 1] - 0.5 * (float(image[rl, col, 1]) + image[rh, col, 1])
-            rise_r = image[rp, col, 2] - 0.5 * (float(image[rl, col, 2]) + image[rh, col, 2])
-            good = rise_g >= green_ratio * max(rise_b, rise_r)
-            if good:
-                centre[t] = pk_row - half + c[t]
+            centre[t] = pk_row - half + c[t]
         ok[t] = good
-    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special
+    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special, rise
 
 
 @_njit
 def fit_columns_common(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, green_ratio, wide_fwhm
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):
     """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize).
 
     Same arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
     clipped sample in its window and a half-level width of at most ``wide_fwhm``; the others are flagged in the
     extra last output ``special`` (N,) bool, and their results are to be taken from :func:`fit_columns`.
+    Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 256 columns.
     """
     n = cols.size
@@ -601,6 +611,7 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     ok = np.empty(n, np.bool_)
     noise = np.empty(n)
     special = np.empty(n, np.bool_)
+    rise = np.empty((3, n))
     for t0 in range(0, n, 256):
         t1 = min(t0 + 256, n)
         res = _fit_common_chunk(
@@ -615,7 +626,6 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
             max_sig,
             flank,
             iterations,
-            green_ratio,
             wide_fwhm,
         )
         centre[t0:t1] = res[0]
@@ -624,7 +634,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
         ok[t0:t1] = res[4]
         noise[t0:t1] = res[5]
         special[t0:t1] = res[6]
-    return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, special
+        rise[:, t0:t1] = res[7]
+    return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
 
 
 @_njit
@@ -837,18 +848,54 @@ def finish_points(  # type: ignore[no-untyped-def]
     min_run,
     max_sigma,
     scales,
+    rise,
+    green_ratio,
+    pool,
+    floor_frac,
 ):
-    """Signal-to-noise gate, runs, along-stripe smoothing and quality (loop twin of the numpy tail of ``extract``).
+    """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality (loop twin of the numpy tail of
+    ``extract``).
+
+    The colour test (green must rise more than ``green_ratio`` times red and blue; ``rise`` (3, N) in B, G, R)
+    and the signal-to-noise test are pooled over the fitted columns of the same chain within ``pool`` columns:
+    the rises are summed, and the ratio is the median of the neighbours' (at most ``1 / floor_frac`` times the
+    column's own). One noisy pixel then cannot drop a column of a dim stripe, nor keep one of a white blob.
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
     n = col_v.size
-    keep = np.zeros(n, np.bool_)
     snr = np.zeros(n)
     for t in range(n):
         noise = max(max(noise_l[col_v[t] // w], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
-        keep[t] = ok[t] and amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
+    good = np.zeros(n, np.bool_)
+    for t in range(n):
+        if not ok[t]:
+            continue
+        if sat[t]:
+            good[t] = True
+            continue
+        sb = 0.0
+        sg = 0.0
+        sr = 0.0
+        for t2 in range(max(t - pool, 0), min(t + pool + 1, n)):
+            if ok[t2] and chain[t2] == chain[t] and abs(col_v[t2] - col_v[t]) <= pool:
+                sb += rise[0, t2]
+                sg += rise[1, t2]
+                sr += rise[2, t2]
+        good[t] = sg >= green_ratio * max(sb, sr)
+    keep = np.zeros(n, np.bool_)
+    vals = np.empty(2 * pool + 1)
+    for t in range(n):
+        if not good[t]:
+            continue
+        k = 0
+        for t2 in range(max(t - pool, 0), min(t + pool + 1, n)):
+            if good[t2] and chain[t2] == chain[t] and abs(col_v[t2] - col_v[t]) <= pool:
+                vals[k] = snr[t2]
+                k += 1
+        snr[t] = min(np.median(vals[:k]), snr[t] / floor_frac)
+        keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
     run_id = np.full(n, -1, np.int64)
     r = -1
@@ -920,7 +967,7 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
     for i in range(n):
         r = i * step
         for x in range(0, cols, 2):
-            d = abs(np.int32(g[r, x]) + np.int32(g[r + 4, x]) - 2 * np.int32(g[r + 2, x]))
+            d = abs(int(g[r, x]) + int(g[r + 4, x]) - 2 * int(g[r + 2, x]))
             hist[min(d, 1023)] += 1
     total = 0
     for k in range(1024):
@@ -1145,16 +1192,38 @@ def warm_up() -> None:
         img = np.zeros((8, 8, 3), np.uint8)
         select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
         expand_half(i64, f64, i64, i64, 4, 8)
-        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, nan, nan, nan, f64 + 20.0, 4.7)
+        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
         neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
-        finish_points(i64, f64, f64, f64, b, b, f64, i64, i64, np.ones(2), 8, 16, 5.0, 2.5, 8, 5.0, np.array([4, 1]))
+        finish_points(
+            i64,
+            f64,
+            f64,
+            f64,
+            b,
+            b,
+            f64,
+            i64,
+            i64,
+            np.ones(2),
+            8,
+            16,
+            5.0,
+            2.5,
+            8,
+            5.0,
+            np.array([4, 1]),
+            np.zeros((3, 4)),
+            1.2,
+            4,
+            0.75,
+        )
         smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))
         eye = np.eye(3)
         g = green_rows(img.reshape(-1), 8, 0, 8)
         noise_dn(g, 2)
         local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
-        fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 1.2, 4.7)
+        fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         _READY.set()
 

@@ -26,6 +26,8 @@ F32 = NDArray[np.float32]
 FWHM_PER_SIGMA = float(2.0 * np.sqrt(2.0 * np.log(2.0)))
 #: Half-level width (px) above which a profile is treated as wide / flat-topped (a Gaussian of sigma 2 px).
 WIDE_FWHM_PX = 2.0 * FWHM_PER_SIGMA
+#: Half-width (rows) of the box smoothing of a profile before its flat-top test (as in the compiled kernel).
+FLAT_SMOOTH = 2
 
 
 @dataclass(frozen=True)
@@ -152,8 +154,18 @@ def fit_profiles(
         xb = qb_c - (hl - A[qb_c, cols]) / (A[qb_c - 1, cols] - A[qb_c, cols])
     fw = np.where(found, xb - xa, np.inf)
     # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most half the
-    # half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
-    flat = _level_width(A, 0.25 * a0) - _level_width(A, 0.75 * a0) <= 0.5 * fw
+    # half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that); measured on the
+    # profile box-smoothed over 2 k + 1 rows (plus k of the 2 k it widens steep edges by: wide Gaussians stay
+    # Gaussians), so that noise on a plateau cannot bring the 3/4 crossing next to the peak sample
+    k = FLAT_SMOOTH
+    As = np.copy(A)
+    for o in range(1, k + 1):
+        As[o:] += A[:-o]
+        As[:-o] += A[o:]
+    As /= 2 * k + 1
+    a0s = np.maximum(As[R], 0.5 * a0)
+    with np.errstate(invalid="ignore"):  # inf - inf where a crossing is missing: not flat
+        flat = _level_width(As, 0.25 * a0s) - _level_width(As, 0.75 * a0s) <= 0.5 * fw + k
     wide = ~saturated & (a0 > 0) & (fw > wide_fwhm_px) & flat
     # wide profiles: the peak sample may be anywhere on the top; start from the middle of the crossings
     mid = ~saturated & (a0 > 0) & (fw > wide_fwhm_px) & np.isfinite(fw)

@@ -32,6 +32,7 @@ done by :class:`lrsensor.sensor.Sensor`.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -79,6 +80,9 @@ class SubpixelConfig:
             as this sheet seen at the range of its row (``max_sheet_mm * f / range``) plus 4 px of blur, or
             ``FWHM_PER_SIGMA * max_sigma_px`` where that is larger; close to the wall a thick sheet draws a
             wide, flat-topped stripe, far away the same width would be glow or haze.
+        gate_pool_cols: the colour test and the signal-to-noise ratio of a point are pooled over the fitted
+            columns of its stripe piece within this many columns either side (rises summed, ratios' median);
+            0 = per column. A dim stripe is then not decimated by single noisy pixels.
     """
 
     min_range_m: float = 0.2
@@ -97,6 +101,7 @@ class SubpixelConfig:
     detect_scale: int = 2
     min_snr: float = 2.5
     max_sheet_mm: float = 20.0
+    gate_pool_cols: int = 4
 
     def __post_init__(self) -> None:
         if not (0 < self.min_range_m < self.max_range_m):
@@ -108,8 +113,8 @@ class SubpixelConfig:
         if self.detect_scale not in (1, 2):
             msg = f"detect_scale must be 1 or 2, got {self.detect_scale}"
             raise ExtractionError(msg)
-        if self.max_candidates < 1 or self.min_run_cols < 1 or self.smooth_half_cols < 0:
-            msg = "max_candidates and min_run_cols must be >= 1 and smooth_half_cols >= 0"
+        if self.max_candidates < 1 or self.min_run_cols < 1 or self.smooth_half_cols < 0 or self.gate_pool_cols < 0:
+            msg = "max_candidates and min_run_cols must be >= 1, smooth_half_cols and gate_pool_cols >= 0"
             raise ExtractionError(msg)
 
     @classmethod
@@ -536,6 +541,51 @@ def _neighbours(
     return out_v, out_a, out_s
 
 
+#: The pooled signal-to-noise ratio of a column is at most its own divided by this.
+_SNR_FLOOR_FRAC = 0.75
+
+
+def _pooled_gates(
+    col_v: IntArray,
+    chain: IntArray,
+    ok: NDArray[np.bool_],
+    sat: NDArray[np.bool_],
+    rise: FloatArray,
+    snr: FloatArray,
+    cfg: SubpixelConfig,
+) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Colour test and signal-to-noise ratio pooled along the stripe (numpy twin of ``finish_points``' gates).
+
+    The rises (3, N) of the fitted columns ``ok`` on the same chain within ``cfg.gate_pool_cols`` columns are
+    summed: green must rise ``min_green_ratio`` times more than red and blue (saturated columns pass). The ratio
+    of a column becomes the median of those columns' (still passing) ratios, at most its own over
+    ``_SNR_FLOOR_FRAC``. Columns (N,) are sorted and unique.
+
+    Returns:
+        ``(ok, snr)``: the columns passing the colour test, and the pooled ratios (N,).
+    """
+    pool = cfg.gate_pool_cols
+    n_pad = int(col_v.max()) + 1 + 2 * pool if col_v.size else 1
+    ch = np.full(n_pad, -1, np.int64)
+    ch[col_v + pool] = chain
+    dense = np.zeros((3, n_pad))
+    dense[:, col_v + pool] = np.where(ok, rise, 0.0)
+    acc = np.zeros((3, col_v.size))
+    for o in range(-pool, pool + 1):
+        acc += np.where(ch[col_v + pool + o] == chain, dense[:, col_v + pool + o], 0.0)
+    good = ok & ((acc[1] >= cfg.min_green_ratio * np.maximum(acc[0], acc[2])) | sat)
+    vals = np.full(n_pad, np.nan)
+    vals[col_v + pool] = np.where(good, snr, np.nan)
+    st = np.stack(
+        [np.where(ch[col_v + pool + o] == chain, vals[col_v + pool + o], np.nan) for o in range(-pool, pool + 1)]
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows (columns that fail anyway)
+        pooled = np.nanmedian(st, axis=0)
+    pooled = np.where(np.isfinite(pooled), pooled, snr)
+    return good, np.minimum(pooled, snr / _SNR_FLOOR_FRAC)
+
+
 def _gather(image: NDArray[np.uint8], cols: IntArray, rows: IntArray, half: int, channel: int) -> NDArray[np.uint8]:
     """(2 half + 1, N) samples of ``channel`` in columns ``cols`` around ``rows`` (clamped at the border)."""
     h, w = image.shape[:2]
@@ -574,7 +624,7 @@ def _fit_numpy(
     cfg: SubpixelConfig,
     nb: tuple[FloatArray, FloatArray, FloatArray],
     max_fwhm: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], FloatArray, FloatArray]:
     """Numpy path of the profile fits (see ``fit_columns``): centre row, amplitude, sigma, saturated, ok, noise."""
     h, w = image.shape[:2]
     e = 3
@@ -613,9 +663,8 @@ def _fit_numpy(
     rise = [
         flat[pix + ch].astype(np.float64) - 0.5 * (flat[lo + ch].astype(np.float64) + flat[hi + ch]) for ch in (0, 1, 2)
     ]
-    ok &= (rise[1] >= cfg.min_green_ratio * np.maximum(rise[0], rise[2])) | fit.saturated
     centre = np.where(ok, rows - half + fit.centre, np.nan)
-    return centre, fit.amplitude, fit.sigma, fit.saturated, ok, fit.noise
+    return centre, fit.amplitude, fit.sigma, fit.saturated, ok, fit.noise, np.stack(rise)
 
 
 #: Use the compiled kernels when numba is installed (tests switch this to compare both paths).
@@ -737,7 +786,6 @@ def extract(
                     float(cfg.max_sigma_px),
                     3,
                     2,
-                    float(cfg.min_green_ratio),
                     nb[0],
                     nb[1],
                     nb[2],
@@ -761,18 +809,19 @@ def extract(
             float(cfg.max_sigma_px),
             3,
             _ITERATIONS,
-            float(cfg.min_green_ratio),
             WIDE_FWHM_PX,
         )
-        vv, amp, sig, _sat, ok, lnoise = res0
+        vv, amp, sig, _sat, ok, lnoise, rise = res0
         idx = np.flatnonzero(special)
         if idx.size:
             no_nb = np.full(idx.size, np.nan)
-            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), fit(idx, (no_nb, no_nb, no_nb)), strict=True):
+            *res, rise_i = fit(idx, (no_nb, no_nb, no_nb))
+            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
                 arr[idx] = new
+            rise[:, idx] = rise_i
     else:
         no_nb = np.full(cols.size, np.nan)
-        vv, amp, sig, _sat, ok, lnoise = fit(np.arange(cols.size), (no_nb, no_nb, no_nb))
+        vv, amp, sig, _sat, ok, lnoise, rise = fit(np.arange(cols.size), (no_nb, no_nb, no_nb))
     # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
     # alternating a few times (both estimates start pulled toward each other)
     if n_l > 1:
@@ -782,9 +831,10 @@ def extract(
             idx = np.flatnonzero(np.isfinite(nb[0]))
             if idx.size == 0:
                 break
-            res = fit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
+            *res, rise_i = fit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
             for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
                 arr[idx] = new
+            rise[:, idx] = rise_i
     k0 = cfg.smooth_half_cols
     scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
     if fast:
@@ -806,11 +856,16 @@ def extract(
             cfg.min_run_cols,
             float(cfg.max_sigma_px),
             np.asarray(scales, np.int64),
+            rise,
+            float(cfg.min_green_ratio),
+            cfg.gate_pool_cols,
+            _SNR_FLOOR_FRAC,
         )
         return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o)
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
+    ok, snr = _pooled_gates(col_v, chain, ok, _sat, rise, snr, cfg)
     ok &= (amp >= cfg.min_contrast_dn) & ((snr >= cfg.min_snr) | _sat)
     col_v, chain, chain_len = col_v[ok], chain[ok], chain_len[ok]
     vv, amp, sig, snr = vv[ok], amp[ok], sig[ok], snr[ok]
