@@ -868,6 +868,15 @@ def finish_points(  # type: ignore[no-untyped-def]
     for t in range(n):
         noise = max(max(noise_l[col_v[t] // w], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
+    # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
+    ch = np.full(n_cols + 2 * pool, -1, np.int64)
+    dr = np.zeros((3, n_cols + 2 * pool))
+    for t in range(n):
+        q = col_v[t] + pool
+        ch[q] = chain[t]
+        if ok[t]:
+            for c in range(3):
+                dr[c, q] = rise[c, t]
     good = np.zeros(n, np.bool_)
     for t in range(n):
         if not ok[t]:
@@ -878,23 +887,35 @@ def finish_points(  # type: ignore[no-untyped-def]
         sb = 0.0
         sg = 0.0
         sr = 0.0
-        for t2 in range(max(t - pool, 0), min(t + pool + 1, n)):
-            if ok[t2] and chain[t2] == chain[t] and abs(col_v[t2] - col_v[t]) <= pool:
-                sb += rise[0, t2]
-                sg += rise[1, t2]
-                sr += rise[2, t2]
+        c0 = col_v[t]
+        for q in range(c0, c0 + 2 * pool + 1):
+            if ch[q] == chain[t]:
+                sb += dr[0, q]
+                sg += dr[1, q]
+                sr += dr[2, q]
         good[t] = sg >= green_ratio * max(sb, sr)
+    ds = np.full(n_cols + 2 * pool, np.nan)
+    for t in range(n):
+        if good[t]:
+            ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
     vals = np.empty(2 * pool + 1)
     for t in range(n):
         if not good[t]:
             continue
         k = 0
-        for t2 in range(max(t - pool, 0), min(t + pool + 1, n)):
-            if good[t2] and chain[t2] == chain[t] and abs(col_v[t2] - col_v[t]) <= pool:
-                vals[k] = snr[t2]
+        c0 = col_v[t]
+        for q in range(c0, c0 + 2 * pool + 1):
+            x = ds[q]
+            if ch[q] == chain[t] and x == x:  # same piece, passing (not NaN); insertion-sorted
+                j = k - 1
+                while j >= 0 and vals[j] > x:
+                    vals[j + 1] = vals[j]
+                    j -= 1
+                vals[j + 1] = x
                 k += 1
-        snr[t] = min(np.median(vals[:k]), snr[t] / floor_frac)
+        med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
+        snr[t] = min(med, snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
     run_id = np.full(n, -1, np.int64)
