@@ -86,3 +86,26 @@ def test_triangulate_bad_index() -> None:
 
     with pytest.raises(GeometryError, match="laser_index"):
         triangulate(Calibration.paper(), [[1.0, 2.0]], [5])
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_compiled_triangulation_matches_numpy(distorted: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    from lrsensor.extract import _kernels
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    _kernels.warm_up()
+    cal = Calibration.paper(0.1)
+    if distorted:
+        cam = Camera(1920, 1080, 554.3, 556.0, 950.0, 545.0, (-0.12, 0.03, 0.001, -0.0008, 0.0))
+        tilted = LaserPlane("top", (0.0, 0.0, -0.05), (0.02, 0.03, 1.0))
+        cal = Calibration(camera=cam, lasers=(tilted, cal.lasers[1]))
+    rng = np.random.default_rng(7)
+    uv = rng.uniform([0.0, 0.0], [1919.0, 1079.0], (5000, 2))
+    laser = rng.integers(0, 2, 5000)
+    fast = triangulate(cal, uv, laser)
+    monkeypatch.setattr(_kernels, "ready", lambda: False)
+    slow = triangulate(cal, uv, laser)
+    assert np.array_equal(np.isnan(fast), np.isnan(slow))
+    assert np.isnan(fast).any(axis=1).sum() > 100  # rows on the wrong side of the camera are NaN in both
+    assert np.nanmax(np.abs(fast - slow)) < 1e-9
