@@ -3,8 +3,8 @@
 Pipeline (per laser, only inside the image band the laser can reach for the configured depth limits, see
 :mod:`lrsensor.extract.bands`; that band is what makes it fast):
 
-1. **Response**: on one Gaussian pyramid level of the green channel (``cv2.pyrDown``: averages the noise along
-   the stripe, quarters the work), the two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` just
+1. **Response**: on the green channel averaged over 2x2 pixels and then 3 of those columns (averages the noise
+   along the stripe, quarters the work), the two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` with ``d`` just
    beyond the widest stripe: positive on thin ridges only, not on murk gradients, the backscatter glow of the
    laser sheet, haze or wide blobs.
 2. **Candidates**: its vertical local maxima above a threshold from the measured noise (robust second
@@ -17,7 +17,8 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    middle of a clipped run), local linear background from two flanks, width check (too narrow = speckle or a
    hot pixel, too wide = glow/haze/blob), Gaussian-weighted centroid with a Newton step (saturated: symmetric
    window centroid). Unbiased for any symmetric profile. Then a colour check (green must rise more than red
-   and blue) and a signal-to-noise gate with the local noise of the flanks.
+   and blue) and a signal-to-noise gate with the local noise of the flanks, both pooled over the point's
+   neighbours on its stripe piece (``gate_pool_cols``), so that single noisy pixels do not decide.
 5. **Along-stripe smoothing** (default on): per run of a chain, local straight-line fits over up to
    ``2 (4 smooth_half_cols) + 1`` columns; of the centred, left and right windows the one with the smallest
    residual is kept (corners and steps are not rounded), and the largest window whose residual matches the
@@ -65,14 +66,15 @@ class SubpixelConfig:
         min_contrast_dn: smallest accepted stripe peak above the local background, DN.
         snr_threshold: detection threshold in units of the measured background noise.
         max_candidates: candidates kept per column (strongest first).
-        max_jump_px: largest row change between neighbouring columns of one stripe piece (x1.5 per pyramid
+        max_jump_px: largest row change between neighbouring columns of one stripe piece (x1.5 per detection
             column when ``detect_scale`` is 2).
         min_run_cols: shortest accepted stripe piece, columns.
         smooth_half_cols: half-width of the middle scale of the along-stripe line fits, columns; the scales are
             4x, 1x and 1/4x this (0 = no smoothing).
-        min_green_ratio: a candidate's green rise must exceed this fraction of its red and blue rises.
+        min_green_ratio: the green rise of a point (summed with its neighbours', see ``gate_pool_cols``) must
+            exceed this multiple of the red and of the blue rise.
         smooth_detect_cols: horizontal box smoothing of the detection response at full scale, columns.
-        detect_scale: 2 = detect candidates on one Gaussian pyramid level (faster, averages noise), 1 = full
+        detect_scale: 2 = detect candidates on the 2x2-averaged band (faster, averages noise), 1 = full
             resolution; the centres are always fitted at full resolution.
         min_snr: smallest accepted peak-to-noise ratio of a point (noise: the larger of the band's and the
             profile's flanks'); saturated peaks always pass.
