@@ -123,3 +123,40 @@ def test_ply_round_trip_and_bad_files(tmp_path: Path) -> None:
         "end_header\n1 2 3\n4 5 6\n"
     )
     assert np.allclose(read_ply_points(tmp_path / "asc.ply"), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_overlay_pictures(scene: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    img, img2, calib = scene
+    views = tmp_path / "views"
+    args = ["process", str(img), str(img2), "--calib", str(calib), "--out-dir", str(tmp_path / "ply")]
+    assert main([*args, "--overlay", str(views), "--no-progress"]) == 0
+    for p in (img, img2):
+        pic = cv2.imread(str(views / f"{p.stem}_overlay.png"))
+        src = cv2.imread(str(p))
+        assert pic is not None
+        assert pic.shape == src.shape
+        d = read_ply(tmp_path / "ply" / f"{p.stem}.ply")
+        u = np.rint(d["u"]).astype(int)
+        v = np.rint(d["v"]).astype(int)
+        laser = d["laser"].astype(int)
+        # every point is drawn in its laser's colour (magenta / yellow, dimmed by quality), on a darkened image
+        top = pic[v[laser == 0], u[laser == 0]].astype(int)
+        bottom = pic[v[laser == 1], u[laser == 1]].astype(int)
+        assert np.all(top[:, 1] < 0.2 * top[:, 0])
+        assert np.all(top[:, 0] > 80)
+        assert np.all(bottom[:, 0] < 0.2 * bottom[:, 1])
+        assert np.all(bottom[:, 1] > 80)
+        # the rest is the image darkened: the top rows hold no stripe and no band (0.2 m is 46 rows off centre)
+        assert np.all(pic[:20] <= src[:20])
+        assert pic[:20].mean() < 0.7 * src[:20].mean()
+
+
+def test_overlay_rejects_a_bad_image() -> None:
+    from lrsensor.errors import ExtractionError
+    from lrsensor.overlay import draw_scan
+    from lrsensor.scan import Scan
+
+    empty = Scan(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0))
+    with pytest.raises(ExtractionError, match="uint8 BGR"):
+        draw_scan(np.zeros((10, 10), np.uint8), empty)
+    assert draw_scan(np.full((4, 5, 3), 100, np.uint8), empty).max() == 60  # darkened, nothing drawn

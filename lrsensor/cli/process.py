@@ -2,6 +2,7 @@
 
     lrsensor process IMAGE --calib CALIB.json --out OUT.ply [--method paper|subpixel]
     lrsensor process IMAGE... --calib CALIB.json --out-dir DIR        # one DIR/<image stem>.ply per image
+    lrsensor process IMAGE... --calib CALIB.json --out-dir DIR --overlay VIEWS   # + VIEWS/<stem>_overlay.png
 
 The PLY is binary little-endian with float x, y, z (body frame, metres), uchar laser, float quality, u, v.
 Exit codes: 0 all images written, 2 bad input (missing/unreadable image, wrong size, bad calibration; with
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from ..extract import DEFAULT_METHOD, METHODS
 
@@ -33,6 +35,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--min-range-m", type=float, default=None, help="nearest depth searched, metres (0.2)")
     parser.add_argument("--max-range-m", type=float, default=None, help="farthest depth searched, metres (5.0)")
+    parser.add_argument(
+        "--overlay",
+        metavar="DIR",
+        help="also write DIR/<image stem>_overlay.png: the image darkened, the stripe points drawn in their "
+        "laser's colour (brighter = higher quality) and the search bands' outlines",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -80,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
                 msg = f"{path}: {err}"
                 raise ExtractionError(msg) from err
             write_scan_ply(target, scan, comments=(f"source {path.name}",))
+            if args.overlay is not None:
+                _write_overlay(Path(args.overlay) / f"{path.stem}_overlay.png", image, scan, sensor, options)
         except LrsensorError as err:
             failures += 1
             if len(images) == 1:
@@ -91,3 +101,19 @@ def run(args: argparse.Namespace) -> int:
     if len(images) > 1:
         print(f"processed {len(images) - failures} of {len(images)} images -> {args.out_dir}")
     return 2 if failures else 0
+
+
+def _write_overlay(path: Path, image: Any, scan: Any, sensor: Any, options: dict[str, float]) -> None:
+    """Write the picture of ``scan`` on ``image`` (:func:`lrsensor.overlay.draw_scan`) as a PNG at ``path``."""
+    import cv2
+
+    from ..errors import ExtractionError
+    from ..overlay import draw_scan
+    from ..sensor import range_limits
+
+    lo, hi = range_limits(scan.method, options)
+    picture = draw_scan(image, scan, sensor.calibration, lo, min(hi, 1e3))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), picture):
+        msg = f"{path}: cannot write the overlay image"
+        raise ExtractionError(msg)
