@@ -173,6 +173,11 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
 
 #: Half-width (rows) of the box smoothing of a profile before its flat-top test.
 FLAT_SMOOTH = 2
+#: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
+#: near one end of a long window is diluted in the whole window's residual, not in its quarter's).
+SUBBLOCK_MIN_K = 192
+#: Tolerance of that quarter test, in standard deviations of the chi-square residual.
+SUBBLOCK_SIGMAS = 6.0
 
 
 @_njit
@@ -740,8 +745,28 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
             nvv = c_n2[hi] - c_n2[lo]
             var = (c_d2[hi] - c_d2[lo]) / (6.0 * nvv) if nvv >= 5 else var_all
             dof = max(s0 - 2.0, 1.0)
-            if rss <= max(var, 1e-8) * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)):
+            vv = max(var, 1e-8)
+            if rss <= vv * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)):
                 acc_c[c] = True
+                if k >= SUBBLOCK_MIN_K:
+                    # long windows: each quarter must fit the line too (a kink near one end is diluted in the
+                    # whole window's residual, not in its quarter's)
+                    qn = (2 * k + 1) // 4
+                    for j in range(4):
+                        p0 = lo + j * qn
+                        p1 = hi if j == 3 else p0 + qn
+                        q0 = c_m[p1] - c_m[p0]
+                        if q0 < 1.0:
+                            continue
+                        qx = c_mx[p1] - c_mx[p0] - c * q0
+                        qxx = c_mxx[p1] - c_mxx[p0] - 2.0 * c * (c_mx[p1] - c_mx[p0]) + c * c * q0
+                        qt = c_z[p1] - c_z[p0]
+                        qtx = c_zx[p1] - c_zx[p0] - c * qt
+                        qyy = c_zz[p1] - c_zz[p0]
+                        r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
+                        if r_q > vv * q0 * (1.0 + SUBBLOCK_SIGMAS * math.sqrt(2.0 / q0)):
+                            acc_c[c] = False
+                            break
                 a_c[c] = a
                 b_c[c] = b
                 rss_c[c] = rss

@@ -70,7 +70,7 @@ class SubpixelConfig:
             column when ``detect_scale`` is 2).
         min_run_cols: shortest accepted stripe piece, columns.
         smooth_half_cols: half-width of the middle scale of the along-stripe line fits, columns; the scales are
-            4x, 1x and 1/4x this (0 = no smoothing).
+            16x, 4x, 1x and 1/4x this (0 = no smoothing); the 16x windows must fit in each quarter too.
         min_green_ratio: the green rise of a point (summed with its neighbours', see ``gate_pool_cols``) must
             exceed this multiple of the red and of the blue rise.
         smooth_detect_cols: horizontal box smoothing of the detection response at full scale, columns.
@@ -461,7 +461,25 @@ def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray
         nv = c_n2[hi] - c_n2[lo]
         var = np.where(nv >= 5, (c_d2[hi] - c_d2[lo]) / (6.0 * np.maximum(nv, 1.0)), var_all)
         dof = np.maximum(s0 - 2.0, 1.0)
-        accept = full & (rss <= np.maximum(var, 1e-8) * dof * (1.0 + 3.0 * np.sqrt(2.0 / dof)))
+        vv = np.maximum(var, 1e-8)
+        accept = full & (rss <= vv * dof * (1.0 + 3.0 * np.sqrt(2.0 / dof)))
+        if k >= _kernels.SUBBLOCK_MIN_K:
+            # long windows: each quarter must fit the line too (a kink near one end is diluted in the whole
+            # window's residual, not in its quarter's)
+            qn = (2 * k + 1) // 4
+            for j in range(4):
+                p0 = lo + j * qn
+                p1 = hi if j == 3 else p0 + qn
+                q0 = c_m[p1] - c_m[p0]
+                sxq = c_mx[p1] - c_mx[p0]
+                qx = sxq - cf * q0
+                qxx = c_mxx[p1] - c_mxx[p0] - 2.0 * cf * sxq + cf * cf * q0
+                qt = c_z[p1] - c_z[p0]
+                qtx = c_zx[p1] - c_zx[p0] - cf * qt
+                qyy = c_zz[p1] - c_zz[p0]
+                r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
+                q1 = np.maximum(q0, 1.0)
+                accept &= (q0 < 1.0) | (r_q <= vv * q1 * (1.0 + _kernels.SUBBLOCK_SIGMAS * np.sqrt(2.0 / q1)))
         best = np.full(n, np.inf)
         val = np.full(n, np.nan)
         for shift in (0, -k, k):  # window centre at u + shift
@@ -838,7 +856,7 @@ def extract(
                 arr[idx] = new
             rise[:, idx] = rise_i
     k0 = cfg.smooth_half_cols
-    scales = tuple(sorted({4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
     if fast:
         u_o, v_o, l_o, q_o = _kernels.finish_points(
             col_v,
