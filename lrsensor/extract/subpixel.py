@@ -20,9 +20,10 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    and blue) and a signal-to-noise gate with the local noise of the flanks, both pooled over the point's
    neighbours on its stripe piece (``gate_pool_cols``), so that single noisy pixels do not decide.
 5. **Along-stripe smoothing** (default on): per run of a chain, local straight-line fits over up to
-   ``2 (4 smooth_half_cols) + 1`` columns; of the centred, left and right windows the one with the smallest
+   ``2 (16 smooth_half_cols) + 1`` columns; of the centred, left and right windows the one with the smallest
    residual is kept (corners and steps are not rounded), and the largest window whose residual matches the
-   local noise wins. It averages the independent per-column noise (the dim ends of a stripe most).
+   local noise wins (the longest must match in each of its quarters too). It averages the independent
+   per-column noise (the dim ends of a stripe and far walls most).
 6. **Quality** in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
 The per-column steps run as compiled loops (:mod:`lrsensor.extract._kernels`, numba) when numba is installed,
