@@ -181,9 +181,9 @@ SUBBLOCK_SIGMAS = 6.0
 
 
 @_njit
-def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
-    """Width of a profile (window ``P[o:o + m]`` minus the line ``bl + slope (q - xl)``) at ``level``: distance
-    of the first crossings below it left and right of ``R`` (linear interpolation); inf when one is missing."""
+def _level_crossings(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
+    """First crossings below ``level`` left and right of ``R`` of a profile (window ``P[o:o + m]`` minus the line
+    ``bl + slope (q - xl)``), linearly interpolated: ``(xa, xb)``, -1 where there is none."""
     xa = -1.0
     for q in range(R - 1, -1, -1):
         aq = P[o + q] - (bl + slope * (q - xl))
@@ -198,7 +198,29 @@ def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-d
             an = P[o + q - 1] - (bl + slope * (q - 1 - xl))
             xb = q - (level - aq) / (an - aq)
             break
+    return xa, xb
+
+
+@_njit
+def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
+    """Width at ``level`` between :func:`_level_crossings`; inf when one is missing."""
+    xa, xb = _level_crossings(P, o, R, m, bl, slope, xl, level)
     return xb - xa if (xa >= 0 and xb >= 0) else np.inf
+
+
+@_njit
+def _flank_line(P, o, R, off, flank):  # type: ignore[no-untyped-def]
+    """Background line through the means of the two flank windows ``R -+ (off .. off + flank - 1)`` of the profile
+    window ``P[o:]``: ``(bl, slope, xl)``, the line being ``bl + slope (q - xl)``."""
+    bl = 0.0
+    br = 0.0
+    for q in range(flank):
+        bl += P[o + R - off - q]
+        br += P[o + R + off + q]
+    bl /= flank
+    br /= flank
+    xl = R - off - 0.5 * (flank - 1)
+    return bl, (br - bl) / (2.0 * off + flank - 1), xl
 
 
 @_njit
@@ -289,15 +311,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
         saturated = P[o + R] >= sat_dn and n_sat >= 2
         # 1. linear background
         off = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank + 1))
-        bl = 0.0
-        br = 0.0
-        for q in range(flank):
-            bl += P[o + R - off - q]
-            br += P[o + R + off + q]
-        bl /= flank
-        br /= flank
-        xl = R - off - 0.5 * (flank - 1)
-        slope = (br - bl) / (2.0 * off + flank - 1)
+        bl, slope, xl = _flank_line(P, o, R, off, flank)
         ss = 0.0
         for q in range(flank):
             r1 = P[o + R - off - q] - (bl + slope * (R - off - q - xl))
@@ -334,21 +348,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
         wide = False
         fw = np.inf
         if not saturated and a0 > 0:
-            hl = 0.5 * a0
-            xa = -1.0
-            for q in range(R - 1, -1, -1):
-                aq = P[o + q] - (bl + slope * (q - xl))
-                if aq < hl:
-                    an = P[o + q + 1] - (bl + slope * (q + 1 - xl))
-                    xa = q + (hl - aq) / (an - aq)
-                    break
-            xb = -1.0
-            for q in range(R + 1, m):
-                aq = P[o + q] - (bl + slope * (q - xl))
-                if aq < hl:
-                    an = P[o + q - 1] - (bl + slope * (q - 1 - xl))
-                    xb = q - (hl - aq) / (an - aq)
-                    break
+            xa, xb = _level_crossings(P, o, R, m, bl, slope, xl, 0.5 * a0)
             fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
             # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most
             # half the half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
@@ -375,15 +375,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
                     sigma = fw / 2.3548200450309493
                     # background flanks beyond the flat top and its edges
                     off = int(min(max(off, math.ceil(0.5 * fw + 4.0)), R - flank + 1))
-                    bl = 0.0
-                    br = 0.0
-                    for q in range(flank):
-                        bl += P[o + R - off - q]
-                        br += P[o + R + off + q]
-                    bl /= flank
-                    br /= flank
-                    xl = R - off - 0.5 * (flank - 1)
-                    slope = (br - bl) / (2.0 * off + flank - 1)
+                    bl, slope, xl = _flank_line(P, o, R, off, flank)
                     hs = min(0.5 * fw + 3.0, off - 1.0) + 0.5
                     a0 = P[o + R] - (bl + slope * (R - xl))
         # 3. centroid iterations on the background-free profile B

@@ -16,6 +16,7 @@ flat-topped by saturation), so it does not depend on the exact optics of one ren
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,6 +71,22 @@ def _level_width(A: F32, level: F32) -> F32:
     return np.where((qa >= 0) & (qb < m), xb - xa, np.inf).astype(np.float32)
 
 
+def _flank_line(P: NDArray[np.float32], R: int, off: NDArray[np.int64], flank_px: int) -> tuple[Any, Any, Any]:
+    """Background line of profiles ``P`` (M, N) through the means of their two flank windows
+    ``R -+ (off .. off + flank_px - 1)`` (``off`` (N,)): ``(bl, slope, xl)`` (N,) each, the line being
+    ``bl + slope (q - xl)``."""
+    cols = np.arange(P.shape[1])
+    bl = np.zeros(P.shape[1], np.float32)
+    br = np.zeros(P.shape[1], np.float32)
+    for k in range(flank_px):
+        bl += P[R - off - k, cols]
+        br += P[R + off + k, cols]
+    bl /= flank_px
+    br /= flank_px
+    xl = (R - off - 0.5 * (flank_px - 1)).astype(np.float32)
+    return bl, (br - bl) / (2.0 * off + flank_px - 1).astype(np.float32), xl
+
+
 def fit_profiles(
     profiles: NDArray[np.floating] | NDArray[np.integer],
     *,
@@ -114,15 +131,7 @@ def fit_profiles(
     saturated = sat[R] & (n_sat >= 2)
     # 1. linear background through two flank windows at +-off (beyond the stripe and its plateau)
     off = np.minimum(np.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank_px + 1).astype(np.int64)
-    bl = np.zeros(n, np.float32)
-    br = np.zeros(n, np.float32)
-    for k in range(flank_px):
-        bl += P[R - off - k, cols]
-        br += P[R + off + k, cols]
-    bl /= flank_px
-    br /= flank_px
-    xl = (R - off - 0.5 * (flank_px - 1)).astype(np.float32)
-    slope = (br - bl) / (2.0 * off + flank_px - 1).astype(np.float32)
+    bl, slope, xl = _flank_line(P, R, off, flank_px)
     ss = np.zeros(n, np.float32)
     for k in range(flank_px):
         ss += (P[R - off - k, cols] - bl - slope * (R - off - k - xl)) ** 2
@@ -180,15 +189,7 @@ def fit_profiles(
         sigma = np.where(fin, fwf / FWHM_PER_SIGMA, sigma)
         off_w = np.minimum(np.maximum(off, np.ceil(0.5 * fwf + 4.0)), R - flank_px + 1).astype(np.int64)
         off_w = np.where(fin, off_w, off)
-        blw = np.zeros(n, np.float32)
-        brw = np.zeros(n, np.float32)
-        for k in range(flank_px):
-            blw += P[R - off_w - k, cols]
-            brw += P[R + off_w + k, cols]
-        blw /= flank_px
-        brw /= flank_px
-        xlw = (R - off_w - 0.5 * (flank_px - 1)).astype(np.float32)
-        slw = (brw - blw) / (2.0 * off_w + flank_px - 1).astype(np.float32)
+        blw, slw, xlw = _flank_line(P, R, off_w, flank_px)
         bl = np.where(fin, blw, bl)
         slope = np.where(fin, slw, slope)
         xl = np.where(fin, xlw, xl)

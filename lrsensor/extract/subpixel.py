@@ -806,7 +806,7 @@ def extract(
                     cfg.min_fwhm_px / FWHM_PER_SIGMA,
                     float(cfg.max_sigma_px),
                     3,
-                    2,
+                    _ITERATIONS,
                     nb[0],
                     nb[1],
                     nb[2],
