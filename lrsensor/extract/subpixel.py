@@ -791,55 +791,42 @@ def extract(
         plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
 
+    # the fit's settings, shared by the full kernel and its column-parallel version: window half-length,
+    # re-centring reach, sigma hint, clipping level, sigma limits, flank samples, centroid iterations
+    fit_args = (
+        half,
+        3,
+        sig_med,
+        float(cfg.saturation_dn),
+        cfg.min_fwhm_px / FWHM_PER_SIGMA,
+        float(cfg.max_sigma_px),
+        3,
+        _ITERATIONS,
+    )
+
     def fit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> tuple[Any, ...]:
         c, r = cols[idx], rows[idx]
         if fast:
             return tuple(
-                _kernels.fit_columns(
-                    image,
-                    c,
-                    r,
-                    half,
-                    3,
-                    sig_med,
-                    float(cfg.saturation_dn),
-                    cfg.min_fwhm_px / FWHM_PER_SIGMA,
-                    float(cfg.max_sigma_px),
-                    3,
-                    _ITERATIONS,
-                    nb[0],
-                    nb[1],
-                    nb[2],
-                    max_fwhm_at(idx),
-                    WIDE_FWHM_PX,
-                )
+                _kernels.fit_columns(image, c, r, *fit_args, nb[0], nb[1], nb[2], max_fwhm_at(idx), WIDE_FWHM_PX)
             )
         return _fit_numpy(image, c, r, half, sig_med, cfg, nb, max_fwhm_at(idx))
 
+    def refit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> None:
+        """Fit the columns ``idx`` again (with the neighbour model ``nb``) and store the results in place."""
+        *res, rise_i = fit(idx, nb)
+        for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
+            arr[idx] = new
+        rise[:, idx] = rise_i
+
     if fast:
         # the common case column-parallel; clipped or wide profiles through the full kernel
-        *res0, special = _kernels.fit_columns_common(
-            image,
-            cols,
-            rows,
-            half,
-            3,
-            sig_med,
-            float(cfg.saturation_dn),
-            cfg.min_fwhm_px / FWHM_PER_SIGMA,
-            float(cfg.max_sigma_px),
-            3,
-            _ITERATIONS,
-            WIDE_FWHM_PX,
-        )
+        *res0, special = _kernels.fit_columns_common(image, cols, rows, *fit_args, WIDE_FWHM_PX)
         vv, amp, sig, _sat, ok, lnoise, rise = res0
         idx = np.flatnonzero(special)
         if idx.size:
             no_nb = np.full(idx.size, np.nan)
-            *res, rise_i = fit(idx, (no_nb, no_nb, no_nb))
-            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
-                arr[idx] = new
-            rise[:, idx] = rise_i
+            refit(idx, (no_nb, no_nb, no_nb))
     else:
         no_nb = np.full(cols.size, np.nan)
         vv, amp, sig, _sat, ok, lnoise, rise = fit(np.arange(cols.size), (no_nb, no_nb, no_nb))
@@ -852,10 +839,7 @@ def extract(
             idx = np.flatnonzero(np.isfinite(nb[0]))
             if idx.size == 0:
                 break
-            *res, rise_i = fit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
-            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
-                arr[idx] = new
-            rise[:, idx] = rise_i
+            refit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
     k0 = cfg.smooth_half_cols
     scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
     if fast:
