@@ -452,10 +452,22 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     R = half
     M = m + 2 * e
     P = np.empty((M, n))
-    for k in range(M):
+    inside = True
+    for t in range(n):
+        inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
+    if inside:  # no clamping: one base index per column, a row stride per sample
+        base = np.empty(n, np.int64)
         for t in range(n):
-            rr = min(max(rows[t] - half - e + k, 0), h - 1)
-            P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+            base[t] = ((rows[t] - half - e) * wid + cols[t]) * 3 + 1
+        for k in range(M):
+            o = k * wid * 3
+            for t in range(n):
+                P[k, t] = flat[base[t] + o]
+    else:
+        for k in range(M):
+            for t in range(n):
+                rr = min(max(rows[t] - half - e + k, 0), h - 1)
+                P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
     special = np.zeros(n, np.bool_)
     bv = np.full(n, -1.0)
     bq = np.full(n, e + R, np.int64)
@@ -550,27 +562,31 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     reach = int(math.ceil(4.0 * sw_max + 1.0)) + 3  # noqa: RUF046 (numba: ceil of a float is a float)
     q0 = max(R - reach, 0)
     q1 = min(R + reach + 1, m)
-    for t in range(n):  # column by column: the recurrence lives in registers
-        ct = c[t]
-        it2 = inv2[t]
-        gt = g2[t]
-        for _ in range(iterations):
-            d0 = q0 - ct
-            wq = math.exp(-(d0 * d0) * it2)
-            rq = math.exp(-(2.0 * d0 + 1.0) * it2)
-            a_s0 = 0.0
-            a_s1 = 0.0
-            for q in range(q0, q1):
-                wa = wq * B[q, t]
-                a_s0 += wa
-                a_s1 += wa * (q - ct)
-                wq *= rq
-                rq *= gt
-            if a_s0 != 0.0:
-                step = gain[t] * a_s1 / a_s0
+    # column-parallel (the inner loop runs over columns: independent recurrences, vectorized), each column's
+    # arithmetic in the same order as column by column
+    wq = np.empty(n)
+    rq = np.empty(n)
+    a_s0 = np.empty(n)
+    a_s1 = np.empty(n)
+    for _ in range(iterations):
+        for t in range(n):
+            d0 = q0 - c[t]
+            wq[t] = math.exp(-(d0 * d0) * inv2[t])
+            rq[t] = math.exp(-(2.0 * d0 + 1.0) * inv2[t])
+            a_s0[t] = 0.0
+            a_s1[t] = 0.0
+        for q in range(q0, q1):
+            for t in range(n):
+                wa = wq[t] * B[q, t]
+                a_s0[t] += wa
+                a_s1[t] += wa * (q - c[t])
+                wq[t] *= rq[t]
+                rq[t] *= g2[t]
+        for t in range(n):
+            if a_s0[t] != 0.0:
+                step = gain[t] * a_s1[t] / a_s0[t]
                 if math.isfinite(step):
-                    ct += min(max(step, -1.0), 1.0)
-        c[t] = ct
+                    c[t] += min(max(step, -1.0), 1.0)
     # 4. acceptance and the colour rises
     centre = np.full(n, np.nan)
     rise = np.zeros((3, n))
@@ -916,21 +932,24 @@ def finish_points(  # type: ignore[no-untyped-def]
         if good[t]:
             ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
-    vals = np.empty(2 * pool + 1)
+    nw = 2 * pool + 1
+    vals = np.empty(nw)
     for t in range(n):
         if not good[t]:
             continue
         k = 0
         c0 = col_v[t]
-        for q in range(c0, c0 + 2 * pool + 1):
-            x = ds[q]
-            if ch[q] == chain[t] and x == x:  # same piece, passing (not NaN); insertion-sorted
-                j = k - 1
-                while j >= 0 and vals[j] > x:
-                    vals[j + 1] = vals[j]
-                    j -= 1
-                vals[j + 1] = x
-                k += 1
+        for j in range(nw):
+            x = ds[c0 + j]
+            use = ch[c0 + j] == chain[t] and x == x  # same piece, passing (not NaN)
+            vals[j] = x if use else np.inf
+            k += use
+        # odd-even transposition sort: branch-free compare-exchanges (the missing ones, +inf, go last)
+        for r in range(nw):
+            for j in range(r % 2, nw - 1, 2):
+                lo = min(vals[j], vals[j + 1])
+                vals[j + 1] = max(vals[j], vals[j + 1])
+                vals[j] = lo
         med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
         snr[t] = min(med, snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
