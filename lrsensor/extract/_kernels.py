@@ -932,25 +932,28 @@ def finish_points(  # type: ignore[no-untyped-def]
         if good[t]:
             ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
+    # the pooled windows column-parallel: (2 pool + 1, N), missing values (+inf) sorted last by branch-free
+    # odd-even transposition compare-exchanges that run over all columns at once
     nw = 2 * pool + 1
-    vals = np.empty(nw)
+    vals = np.empty((nw, n))
+    cnt = np.zeros(n, np.int64)
+    for j in range(nw):
+        for t in range(n):
+            x = ds[col_v[t] + j]
+            use = ch[col_v[t] + j] == chain[t] and x == x  # same piece, passing (not NaN)
+            vals[j, t] = x if use else np.inf
+            cnt[t] += use
+    for r in range(nw):
+        for j in range(r % 2, nw - 1, 2):
+            for t in range(n):
+                lo = min(vals[j, t], vals[j + 1, t])
+                vals[j + 1, t] = max(vals[j, t], vals[j + 1, t])
+                vals[j, t] = lo
     for t in range(n):
         if not good[t]:
             continue
-        k = 0
-        c0 = col_v[t]
-        for j in range(nw):
-            x = ds[c0 + j]
-            use = ch[c0 + j] == chain[t] and x == x  # same piece, passing (not NaN)
-            vals[j] = x if use else np.inf
-            k += use
-        # odd-even transposition sort: branch-free compare-exchanges (the missing ones, +inf, go last)
-        for r in range(nw):
-            for j in range(r % 2, nw - 1, 2):
-                lo = min(vals[j], vals[j + 1])
-                vals[j + 1] = max(vals[j], vals[j + 1])
-                vals[j] = lo
-        med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
+        k = cnt[t]
+        med = vals[k // 2, t] if k % 2 else 0.5 * (vals[k // 2 - 1, t] + vals[k // 2, t])
         snr[t] = min(med, snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
