@@ -271,3 +271,15 @@ def test_paper_method_one_point_per_roi_and_laser() -> None:
     assert np.allclose(np.sort(np.unique(scan.uv[:, 0])), 40 * np.arange(16) + 19.5)
     err = np.abs(scan.points[:, 0] - 0.8) / 0.8
     assert np.median(err) < 0.03
+
+
+def test_vectorized_exp_and_log_match_the_library() -> None:
+    from lrsensor.extract._kernels import exp_array, log_array
+
+    rng = np.random.default_rng(7)
+    x = np.concatenate([rng.uniform(-700.0, 700.0, 2000), rng.uniform(-3.0, 3.0, 2000), [0.0, -0.5, 1e-12]])
+    assert np.allclose(exp_array(x), np.exp(x), rtol=4e-16, atol=0.0)
+    assert exp_array(np.array([-1e4]))[0] == np.exp(-700.0)  # clamped, never 0 * inf
+    y = np.concatenate([rng.uniform(0.5, 300.0, 2000), 10.0 ** rng.uniform(-300, 300, 2000), [1.0, 2.0, np.sqrt(2)]])
+    assert np.allclose(log_array(y), np.log(y), rtol=4e-16, atol=4e-16)
+    assert log_array(np.array([1.0]))[0] == 0.0
