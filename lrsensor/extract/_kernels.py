@@ -171,9 +171,12 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     prev = np.arange(nn)
     has_next = np.zeros(nn, np.bool_)
     has_prev = np.zeros(nn, np.bool_)
+    blk = np.empty(n_cols, np.int64)  # the block (laser) of each column, without a division per link
+    for c in range(n_cols):
+        blk[c] = c // block
     for lag in range(1, max_gap + 1):
         for c in range(n_cols - lag):
-            if cnt[c] == 0 or cnt[c + lag] == 0 or c // block != (c + lag) // block:
+            if cnt[c] == 0 or cnt[c + lag] == 0 or blk[c] != blk[c + lag]:
                 continue
             d = c + lag
             for i0 in range(cnt[c]):
@@ -216,10 +219,12 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
             root[node] = root[p]
     length = np.zeros(nn, np.int64)
     strength = np.zeros(nn)
-    for node in range(nn):
-        if not math.isnan(V[node // K, node % K]):
-            length[root[node]] += 1
-            strength[root[node]] += A[node // K, node % K]
+    for c in range(n_cols):
+        for q in range(K):
+            if not math.isnan(V[c, q]):
+                r = root[c * K + q]
+                length[r] += 1
+                strength[r] += A[c, q]
     # 4. per column the candidate on the strongest long-enough chain
     cols = np.empty(n_cols, np.int64)
     rows = np.empty(n_cols, np.float64)
@@ -980,9 +985,16 @@ def finish_points(  # type: ignore[no-untyped-def]
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
     n = col_v.size
+    # the laser of each point: virtual columns are sorted, laser l holds [l w, (l + 1) w) (no division per point)
+    lz = np.empty(n, np.int64)
+    li = 0
+    for t in range(n):
+        while col_v[t] >= (li + 1) * w:
+            li += 1
+        lz[t] = li
     snr = np.zeros(n)
     for t in range(n):
-        noise = max(max(noise_l[col_v[t] // w], lnoise[t]), 0.5)
+        noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
     # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
     ch = np.full(n_cols + 2 * pool, -1, np.int64)
@@ -1074,7 +1086,7 @@ def finish_points(  # type: ignore[no-untyped-def]
     for t in range(n):
         if run_id[t] < 0 or counts[run_id[t]] < need:
             continue
-        laser = col_v[t] // w
+        laser = lz[t]
         u_out[k] = col_v[t] - laser * w
         v_out[k] = ys[col_v[t]]
         l_out[k] = laser
