@@ -43,8 +43,14 @@ class Sensor:
             The scan: finite points only, body frame, metres.
         """
         img = check_image(image, self.calibration)
-        det = get_extractor(method)(img, self.calibration, **options)
-        points = triangulate(self.calibration, det.uv, det.laser)
+        if method == "subpixel":  # the compiled kernels triangulate in the same call
+            from .extract.subpixel import extract_points
+
+            det, xyz = extract_points(img, self.calibration, **options)
+            points = triangulate(self.calibration, det.uv, det.laser) if xyz is None else xyz
+        else:
+            det = get_extractor(method)(img, self.calibration, **options)
+            points = triangulate(self.calibration, det.uv, det.laser)
         scan = Scan(points, det.laser.astype(int), det.uv, det.quality, method)
         lo, hi = range_limits(method, options)
         cal = self.calibration

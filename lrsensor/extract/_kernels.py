@@ -1329,6 +1329,327 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
     return out
 
 
+@_njit
+def max_fwhm_at(cols, rows, laser, floor, sheet_mm, fy, cam, dist, R, origin, normals, points, axis):  # type: ignore[no-untyped-def]
+    """Loop twin of ``subpixel._max_fwhm``: the widest plausible stripe (half-level width, px) at each pixel (N,).
+
+    ``floor``: the width limit where the ray misses the plane (and the least limit); ``sheet_mm``: the thickest
+    sheet (<= 0: the floor everywhere); ``axis`` (3,): unit optical axis in the body frame.
+    """
+    n = cols.size
+    out = np.full(n, floor)
+    if n == 0 or sheet_mm <= 0:
+        return out
+    pts = triangulate_points(
+        cols.astype(np.float64), rows.astype(np.float64), laser, cam, dist, R, origin, normals, points
+    )
+    for t in range(n):
+        depth = (
+            (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]
+        )
+        wv = 1e-3 * sheet_mm * fy / depth + 4.0
+        if math.isfinite(wv) and depth > 0:
+            out[t] = max(wv, floor)
+    return out
+
+
+@_njit
+def process_candidates(  # type: ignore[no-untyped-def]
+    image,
+    U,
+    Vr,
+    Ar,
+    noise_l,
+    ints,
+    reals,
+    scales,
+    cam,
+    dist,
+    R,
+    origin,
+    normals,
+    points,
+    axis,
+    wide_fwhm,
+    tri,
+):
+    """Steps 3-6 of ``subpixel.extract`` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality) in
+    one compiled call, the same kernels in the same order as the Python glue of its numpy-free path.
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; U, Vr, Ar: the candidates of every laser (detection columns with
+            the laser's offset, full rows, strengths), sorted by column then row; noise_l: (L,) band noise, DN.
+        ints: (scale, max_candidates, min_run_cols, gate_pool_cols, window_half_px, n_lasers, iterations);
+        reals: (max_jump_px, saturation_dn, min_fwhm_px, max_sigma_px, min_contrast_dn, min_snr,
+            min_green_ratio, max_sheet_mm, snr_floor_frac); scales: smoothing half-widths, largest first.
+        cam, dist, R, origin, normals, points: the calibration (see :func:`triangulate_points`); axis: (3,) unit
+            optical axis, body frame; wide_fwhm: flat-top width limit of the common fit; tri: also triangulate.
+
+    Returns:
+        ``(u, v, laser, quality, xyz)``: (M,) each and (M, 3) body points (empty (0, 3) unless ``tri``).
+    """
+    w = image.shape[1]
+    scale, max_cand, min_run_cols, pool, half0, n_l, iterations = (
+        ints[0],
+        ints[1],
+        ints[2],
+        ints[3],
+        ints[4],
+        ints[5],
+        ints[6],
+    )
+    max_jump, sat_dn, min_fwhm, max_sigma = reals[0], reals[1], reals[2], reals[3]
+    min_contrast, min_snr, green_ratio, sheet_mm, floor_frac = reals[4], reals[5], reals[6], reals[7], reals[8]
+    fwhm_per_sigma = 2.3548200450309493
+    wd = (w + scale - 1) // scale
+    n_cols_d = n_l * wd
+    n_cols = n_l * w
+    jump = max_jump * (1.5 if scale == 2 else 1.0)
+    min_run = max(2, (min_run_cols + scale - 1) // scale)
+    e_u = np.empty(0)
+    e_i = np.empty(0, np.int64)
+    if U.size == 0:
+        return e_u, e_u, e_i, e_u, np.empty((0, 3))
+    # 3. chains
+    cnt = np.zeros(n_cols_d, np.int64)
+    kk = 0
+    for t in range(U.size):
+        cnt[U[t]] += 1
+        kk = max(kk, cnt[U[t]])
+    k = min(max_cand, kk)
+    col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
+    if col_d.size == 0:
+        return e_u, e_u, e_i, e_u, np.empty((0, 3))
+    if scale == 2:
+        col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
+    else:
+        col_v = col_d
+    n = col_v.size
+    rows = np.empty(n, np.int64)
+    laser = np.empty(n, np.int64)
+    cols = np.empty(n, np.int64)
+    for t in range(n):
+        rows[t] = int(np.rint(rows_f[t]))
+        laser[t] = col_v[t] // w
+        cols[t] = col_v[t] - laser[t] * w
+    # 4. frame statistics (window length), common fits, full fits of the special columns
+    floor = fwhm_per_sigma * max_sigma
+    mfw = np.full(n, np.nan)
+    m_sub = min(n, 48)
+    sub = np.empty(m_sub, np.int64)
+    if m_sub == 1:
+        sub[0] = 0
+    else:
+        step = (n - 1) / (m_sub - 1)
+        for i in range(m_sub):
+            sub[i] = int(i * step)
+        sub[m_sub - 1] = n - 1
+    mf = max_fwhm_at(
+        cols[sub], rows[sub], laser[sub], floor, sheet_mm, cam[1], cam, dist, R, origin, normals, points, axis
+    )
+    for i in range(m_sub):
+        mfw[sub[i]] = mf[i]
+    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
+    half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
+    min_sig = min_fwhm / fwhm_per_sigma
+    vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
+        image, cols, rows, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+    )
+    n_sp = 0
+    for t in range(n):
+        n_sp += special[t]
+    if n_sp:
+        idx = np.flatnonzero(special)
+        _refit(
+            image,
+            cols,
+            rows,
+            laser,
+            idx,
+            np.full(n_sp, np.nan),
+            np.full(n_sp, np.nan),
+            np.full(n_sp, np.nan),
+            mfw,
+            half,
+            sig_med,
+            sat_dn,
+            min_sig,
+            max_sigma,
+            iterations,
+            wide_fwhm,
+            floor,
+            sheet_mm,
+            cam,
+            dist,
+            R,
+            origin,
+            normals,
+            points,
+            axis,
+            vv,
+            amp,
+            sig,
+            sat,
+            ok,
+            lnoise,
+            rise,
+        )
+    # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
+    if n_l > 1:
+        max_d = half + 3.0 * sig_med + 2.0
+        for _ in range(4):
+            good = np.empty(n, np.bool_)
+            for t in range(n):
+                good[t] = ok[t] and not sat[t]
+            nb_v, nb_a, nb_s = neighbours(laser, cols, vv, amp, sig, good, n_l, w, max_d)
+            idx = np.flatnonzero(np.isfinite(nb_v))
+            if idx.size == 0:
+                break
+            _refit(
+                image,
+                cols,
+                rows,
+                laser,
+                idx,
+                nb_v[idx],
+                nb_a[idx],
+                nb_s[idx],
+                mfw,
+                half,
+                sig_med,
+                sat_dn,
+                min_sig,
+                max_sigma,
+                iterations,
+                wide_fwhm,
+                floor,
+                sheet_mm,
+                cam,
+                dist,
+                R,
+                origin,
+                normals,
+                points,
+                axis,
+                vv,
+                amp,
+                sig,
+                sat,
+                ok,
+                lnoise,
+                rise,
+            )
+    # 5-6. gates, runs, smoothing, quality
+    u_o, v_o, l_o, q_o = finish_points(
+        col_v,
+        vv,
+        amp,
+        sig,
+        sat,
+        ok,
+        lnoise,
+        chain,
+        chain_len,
+        noise_l,
+        w,
+        n_cols,
+        min_contrast,
+        min_snr,
+        min_run_cols,
+        max_sigma,
+        scales,
+        rise,
+        green_ratio,
+        pool,
+        floor_frac,
+    )
+    xyz = triangulate_points(u_o, v_o, l_o, cam, dist, R, origin, normals, points) if tri else np.empty((0, 3))
+    return u_o, v_o, l_o, q_o, xyz
+
+
+@_njit
+def _refit(  # type: ignore[no-untyped-def]
+    image,
+    cols,
+    rows,
+    laser,
+    idx,
+    nb_v,
+    nb_a,
+    nb_s,
+    mfw,
+    half,
+    sig_med,
+    sat_dn,
+    min_sig,
+    max_sigma,
+    iterations,
+    wide_fwhm,
+    floor,
+    sheet_mm,
+    cam,
+    dist,
+    R,
+    origin,
+    normals,
+    points,
+    axis,
+    vv,
+    amp,
+    sig,
+    sat,
+    ok,
+    lnoise,
+    rise,
+):
+    """Fit the columns ``idx`` with the full kernel (neighbour model ``nb_*``) and store the results in place;
+    the width limits ``mfw`` (N,) are computed where still NaN."""
+    m = idx.size
+    need = np.empty(m, np.int64)
+    nn = 0
+    for i in range(m):
+        if math.isnan(mfw[idx[i]]):
+            need[nn] = idx[i]
+            nn += 1
+    if nn:
+        nd = need[:nn]
+        mf = max_fwhm_at(
+            cols[nd], rows[nd], laser[nd], floor, sheet_mm, cam[1], cam, dist, R, origin, normals, points, axis
+        )
+        for i in range(nn):
+            mfw[nd[i]] = mf[i]
+    c_i = cols[idx]
+    r_i = rows[idx]
+    res = fit_columns(
+        image,
+        c_i,
+        r_i,
+        half,
+        3,
+        sig_med,
+        sat_dn,
+        min_sig,
+        max_sigma,
+        3,
+        iterations,
+        nb_v,
+        nb_a,
+        nb_s,
+        mfw[idx],
+        wide_fwhm,
+    )
+    for i in range(m):
+        t = idx[i]
+        vv[t] = res[0][i]
+        amp[t] = res[1][i]
+        sig[t] = res[2][i]
+        sat[t] = res[3][i]
+        ok[t] = res[4][i]
+        lnoise[t] = res[5][i]
+        for c in range(3):
+            rise[c, t] = res[6][c, i]
+
+
 # --------------------------------------------------------------------------- compilation management
 _READY = threading.Event()
 _LOCK = threading.Lock()
@@ -1382,6 +1703,25 @@ def warm_up() -> None:
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
+        process_candidates(
+            img,
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.ones(2),
+            np.array([2, 4, 8, 4, 20, 2, 2], np.int64),
+            np.array([3.0, 250.0, 0.8, 5.0, 5.0, 2.5, 1.2, 20.0, 0.75]),
+            np.array([4, 1], np.int64),
+            np.ones(4),
+            np.zeros(5),
+            eye,
+            np.zeros(3),
+            eye[:2],
+            eye[:2],
+            np.array([0.0, 0.0, 1.0]),
+            4.7,
+            True,
+        )
         _READY.set()
 
 
@@ -1414,6 +1754,9 @@ _KERNEL_NAMES = (
     "local_maxima",
     "frame_profile_stats",
     "fit_columns_common",
+    "max_fwhm_at",
+    "process_candidates",
+    "_refit",
 )
 
 

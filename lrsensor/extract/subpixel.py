@@ -709,6 +709,19 @@ def extract(
     Returns:
         :class:`Detections` with pixel coordinates (N, 2), laser index (N,) and quality (N,).
     """
+    return extract_points(image, calibration, config, triangulate=False, **options)[0]
+
+
+def extract_points(
+    image: NDArray[np.uint8],
+    calibration: Calibration,
+    config: SubpixelConfig | None = None,
+    *,
+    triangulate: bool = True,
+    **options: Any,
+) -> tuple[Detections, FloatArray | None]:
+    """:func:`extract`, and with ``triangulate`` the body-frame points (N, 3) of the detections, metres, when the
+    compiled kernels computed them in the same call (else None: triangulate the detections yourself)."""
     cfg = SubpixelConfig.from_options(config, **options)
     image = np.ascontiguousarray(image)
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
@@ -728,26 +741,94 @@ def extract(
         u, v, a, noise[i] = _candidates(image, i, (r0, r1), bands, cfg, fast, i * wd)
         parts.append((u, v, a))
     if not parts or sum(p[0].size for p in parts) == 0:
-        return Detections.empty()
+        return Detections.empty(), (np.zeros((0, 3)) if fast and triangulate else None)
     # laser by laser, each sorted by column then row: the concatenation is sorted by (virtual) column
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
+    k0 = cfg.smooth_half_cols
+    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+    if fast:
+        # 3-6 (and the triangulation) in one compiled call
+        u_o, v_o, l_o, q_o, xyz = _kernels.process_candidates(
+            image,
+            U,
+            Vr,
+            Ar,
+            noise,
+            *_fast_settings(cfg, n_l, scales),
+            *_geometry(calibration),
+            WIDE_FWHM_PX,
+            triangulate,
+        )
+        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o), (xyz if triangulate else None)
+    return _finish_numpy(image, calibration, cfg, U, Vr, Ar, noise, n_l, scales), None
+
+
+@lru_cache(maxsize=16)
+def _fast_settings(
+    cfg: SubpixelConfig, n_lasers: int, scales: tuple[int, ...]
+) -> tuple[IntArray, FloatArray, IntArray]:
+    """The integer and real settings of :func:`_kernels.process_candidates` and its smoothing scales."""
+    ints = np.array(
+        [
+            cfg.detect_scale,
+            cfg.max_candidates,
+            cfg.min_run_cols,
+            cfg.gate_pool_cols,
+            cfg.window_half_px,
+            n_lasers,
+            _ITERATIONS,
+        ],
+        np.int64,
+    )
+    reals = np.array(
+        [
+            cfg.max_jump_px,
+            cfg.saturation_dn,
+            cfg.min_fwhm_px,
+            cfg.max_sigma_px,
+            cfg.min_contrast_dn,
+            cfg.min_snr,
+            cfg.min_green_ratio,
+            cfg.max_sheet_mm,
+            _SNR_FLOOR_FRAC,
+        ],
+        np.float64,
+    )
+    return ints, reals, np.asarray(scales, np.int64)
+
+
+@lru_cache(maxsize=16)
+def _geometry(calibration: Calibration) -> tuple[FloatArray, ...]:
+    """The calibration as the compiled kernels' arrays (see ``_arrays``) and the optical axis (3,), body frame."""
+    return (*_arrays(calibration), _optical_axis(calibration))
+
+
+def _finish_numpy(
+    image: NDArray[np.uint8],
+    calibration: Calibration,
+    cfg: SubpixelConfig,
+    U: IntArray,
+    Vr: IntArray,
+    Ar: FloatArray,
+    noise: FloatArray,
+    n_l: int,
+    scales: tuple[int, ...],
+) -> Detections:
+    """Steps 3-6 of :func:`extract` in numpy (while the compiled kernels are not ready, or without numba)."""
+    w = image.shape[1]
+    scale = cfg.detect_scale
+    wd = (w + scale - 1) // scale
     n_cols_d = n_l * wd
     n_cols = n_l * w
     # 3. continuity: chains; per column the candidate on the strongest long-enough chain
     jump = cfg.max_jump_px * (1.5 if scale == 2 else 1.0)
     min_run = max(2, math.ceil(cfg.min_run_cols / scale))
-    if fast:
-        k = int(min(cfg.max_candidates, np.bincount(U).max()))
-        col_d, rows_f, chain, chain_len = _kernels.select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
-    else:
-        col_d, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols_d, cfg, wd, jump, min_run)
+    col_d, rows_f, chain, chain_len = _pick_numpy(U, Vr, Ar, n_cols_d, cfg, wd, jump, min_run)
     if col_d.size == 0:
         return Detections.empty()
-    if scale == 2 and fast:
-        col_v, rows_f, chain, chain_len = _kernels.expand_half(col_d, rows_f, chain, chain_len, wd, w)
-    elif scale == 2:
+    if scale == 2:
         # every detection column c stands for the full columns 2c and 2c + 1 (between c and c + 1)
         laser_d = col_d // wd
         c = col_d - laser_d * wd
@@ -779,94 +860,31 @@ def extract(
 
     sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
     half0 = cfg.window_half_px
-    if fast:
-        sig_med, plateau, wide_lim = _kernels.frame_profile_stats(
-            image, cols[sub], rows[sub], half0, float(cfg.saturation_dn), float(cfg.max_sigma_px), max_fwhm_at(sub)
-        )
-    else:
-        P0 = _gather(image, cols[sub], rows[sub], half0, 1)
-        wide_lim = float(np.median(max_fwhm_at(sub)))  # a wide-sheet frame needs a longer window
-        sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
-        n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
-        plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
+    P0 = _gather(image, cols[sub], rows[sub], half0, 1)
+    wide_lim = float(np.median(max_fwhm_at(sub)))  # a wide-sheet frame needs a longer window
+    sig_med = _typical_sigma(P0, cfg.saturation_dn, max(cfg.max_sigma_px, wide_lim / FWHM_PER_SIGMA))
+    n_sat = np.sort((cfg.saturation_dn <= P0).sum(axis=0))
+    plateau = float(n_sat[int(0.9 * (n_sat.size - 1))])
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
 
-    # the fit's settings, shared by the full kernel and its column-parallel version: window half-length,
-    # re-centring reach, sigma hint, clipping level, sigma limits, flank samples, centroid iterations
-    fit_args = (
-        half,
-        3,
-        sig_med,
-        float(cfg.saturation_dn),
-        cfg.min_fwhm_px / FWHM_PER_SIGMA,
-        float(cfg.max_sigma_px),
-        3,
-        _ITERATIONS,
+    no_nb = np.full(cols.size, np.nan)
+    vv, amp, sig, _sat, ok, lnoise, rise = _fit_numpy(
+        image, cols, rows, half, sig_med, cfg, (no_nb, no_nb, no_nb), max_fwhm_at(np.arange(cols.size))
     )
-
-    def fit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> tuple[Any, ...]:
-        c, r = cols[idx], rows[idx]
-        if fast:
-            return tuple(
-                _kernels.fit_columns(image, c, r, *fit_args, nb[0], nb[1], nb[2], max_fwhm_at(idx), WIDE_FWHM_PX)
-            )
-        return _fit_numpy(image, c, r, half, sig_med, cfg, nb, max_fwhm_at(idx))
-
-    def refit(idx: IntArray, nb: tuple[FloatArray, FloatArray, FloatArray]) -> None:
-        """Fit the columns ``idx`` again (with the neighbour model ``nb``) and store the results in place."""
-        *res, rise_i = fit(idx, nb)
-        for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
-            arr[idx] = new
-        rise[:, idx] = rise_i
-
-    if fast:
-        # the common case column-parallel; clipped or wide profiles through the full kernel
-        *res0, special = _kernels.fit_columns_common(image, cols, rows, *fit_args, WIDE_FWHM_PX)
-        vv, amp, sig, _sat, ok, lnoise, rise = res0
-        idx = np.flatnonzero(special)
-        if idx.size:
-            no_nb = np.full(idx.size, np.nan)
-            refit(idx, (no_nb, no_nb, no_nb))
-    else:
-        no_nb = np.full(cols.size, np.nan)
-        vv, amp, sig, _sat, ok, lnoise, rise = fit(np.arange(cols.size), (no_nb, no_nb, no_nb))
     # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
     # alternating a few times (both estimates start pulled toward each other)
     if n_l > 1:
         for _ in range(4):
-            args = (laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
-            nb = _kernels.neighbours(*args) if fast else _neighbours(*args)
+            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
             idx = np.flatnonzero(np.isfinite(nb[0]))
             if idx.size == 0:
                 break
-            refit(idx, (nb[0][idx], nb[1][idx], nb[2][idx]))
-    k0 = cfg.smooth_half_cols
-    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
-    if fast:
-        u_o, v_o, l_o, q_o = _kernels.finish_points(
-            col_v,
-            vv,
-            amp,
-            sig,
-            _sat,
-            ok,
-            lnoise,
-            chain,
-            chain_len,
-            noise,
-            w,
-            n_cols,
-            float(cfg.min_contrast_dn),
-            float(cfg.min_snr),
-            cfg.min_run_cols,
-            float(cfg.max_sigma_px),
-            np.asarray(scales, np.int64),
-            rise,
-            float(cfg.min_green_ratio),
-            cfg.gate_pool_cols,
-            _SNR_FLOOR_FRAC,
-        )
-        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o)
+            *res, rise_i = _fit_numpy(
+                image, cols[idx], rows[idx], half, sig_med, cfg, (nb[0][idx], nb[1][idx], nb[2][idx]), max_fwhm_at(idx)
+            )
+            for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
+                arr[idx] = new
+            rise[:, idx] = rise_i
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
