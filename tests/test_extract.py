@@ -283,3 +283,35 @@ def test_vectorized_exp_and_log_match_the_library() -> None:
     y = np.concatenate([rng.uniform(0.5, 300.0, 2000), 10.0 ** rng.uniform(-300, 300, 2000), [1.0, 2.0, np.sqrt(2)]])
     assert np.allclose(log_array(y), np.log(y), rtol=4e-16, atol=4e-16)
     assert log_array(np.array([1.0]))[0] == 0.0
+
+
+@pytest.mark.parametrize(("width", "band"), [(96, (30, 70)), (97, (3, 40)), (64, (65, 99))])
+def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int, int]) -> None:
+    """``detect_band`` (one pass) gives the same candidates and noise as the OpenCV steps of ``_candidates``,
+    also for an odd width and for bands whose contrast margin runs past the top or bottom of the image."""
+    from lrsensor.extract import _kernels
+    from lrsensor.extract.bands import LaserBands
+    from lrsensor.extract.subpixel import _candidates
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    rng = np.random.default_rng(width)
+    h = 100
+    img = rng.normal(40.0, 3.0, (h, width, 3))
+    cols = np.arange(width)
+    mid = 0.5 * (band[0] + band[1])
+    for row0, amp in ((mid - 4.0, 120.0), (mid + 4.0, 40.0)):  # a stripe and a dimmer one close by
+        rows = row0 + 4.0 * np.sin(cols / 15.0)
+        img[:, :, 1] += amp * np.exp(-0.5 * ((np.arange(h)[:, None] - rows[None, :]) / 1.3) ** 2)
+    img = np.ascontiguousarray(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    v_lo = np.full((1, width), band[0], np.int64)
+    v_hi = np.full((1, width), band[1] - 1, np.int64)
+    v_hi[0, width // 3 : width // 2] = band[0] - 1  # an empty stretch: the band need not be a rectangle
+    bands = LaserBands(v_lo, v_hi, v_lo.astype(float), v_hi.astype(float), 0.2, 5.0, 0)
+    cfg = SubpixelConfig()
+    fast = _candidates(img, 0, band, bands, cfg, True, 5)
+    slow = _candidates(img, 0, band, bands, cfg, False, 5)
+    assert fast[0].size > 0.8 * width
+    for a, b in zip(fast[:3], slow[:3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert fast[3] == slow[3]

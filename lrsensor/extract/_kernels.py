@@ -1193,6 +1193,135 @@ def local_maxima(resp_t, thr, row0, scale, v_lo, v_hi, width, col_offset):  # ty
 
 
 @_njit
+def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
+    """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
+    ``subpixel._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
+
+    The green channel of rows ``[r0 - d, r1 + d)`` (replicated beyond the image, evened), its robust noise
+    (:func:`noise_dn`), the 2x2 area average (rounded as ``cv2.resize(INTER_AREA)``), a 3-column box
+    (``cv2.blur``, reflected at the ends), the saturating two-sided contrast at ``d / 2`` and ``d / 4`` detection
+    rows, and its vertical local maxima above ``max(thr_min, snr_thr * noise * area_noise)`` inside the band ``v_lo``,
+    ``v_hi`` (W,).
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; r0, r1: the band's bounding rows; d: contrast offset (even), rows.
+
+    Returns:
+        ``(cols, rows, strength, noise)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
+        int64, response (N,) float64, sorted by column then row; and the pixel noise, DN.
+    """
+    h = image.shape[0]
+    w = image.shape[1]
+    flat = image.reshape(-1)
+    a0 = max(r0 - d, 0)
+    a1 = min(r1 + d, h)
+    if (a1 - a0) % 2 and a1 < h:
+        a1 += 1
+    top = max(d - (r0 - a0), 0)
+    bot = max(d - (a1 - r1), 0)
+    rows_g = a1 - a0 + top + bot
+    rows_g += rows_g % 2
+    # padded green row i -> image row src[i] (replicated border)
+    src = np.empty(rows_g, np.int64)
+    for i in range(rows_g):
+        src[i] = min(max(a0 - top + i, a0), a1 - 1)
+    wp = w + w % 2
+    # the padded green band, contiguous (a strided copy the compiler vectorizes)
+    G = np.empty((rows_g, wp), np.uint8)
+    for i in range(rows_g):
+        base = np.uint64(src[i] * w * 3 + 1)
+        row = G[i]
+        for x in range(w):
+            row[np.uint64(x)] = flat[base + np.uint64(3 * x)]
+        if wp > w:
+            row[w] = row[w - 1]
+    noise = max(noise_dn(G, min(max(rows_g // 24, 2), 16)), 0.5)
+    # 2x2 area average (pairs of columns read as one uint16), then the 3-column box: (gh, wo)
+    gh = rows_g // 2
+    wo = wp // 2
+    B = np.empty((gh, wo), np.int32)
+    A = np.empty(wo + 2, np.int32)
+    G16 = G.reshape(-1).view(np.uint16).reshape((rows_g, wo))
+    for y in range(gh):
+        u0 = G16[2 * y]
+        u1 = G16[2 * y + 1]
+        for x in range(wo):
+            v0 = np.int32(u0[x])
+            v1 = np.int32(u1[x])
+            A[x + 1] = ((v0 & 255) + (v0 >> 8) + (v1 & 255) + (v1 >> 8) + 2) >> 2
+        if wo > 1:
+            A[0] = A[2]
+            A[wo + 1] = A[wo - 1]
+        else:
+            A[0] = A[1]
+            A[2] = A[1]
+        for x in range(wo):  # round(s / 3) = floor((s + 1.5) / 3) for an integer s, without a division
+            B[y, x] = np.int32((A[x] + A[x + 1] + A[x + 2] + 1.5) * (1.0 / 3.0))
+    # two-sided contrast, saturating at 0 (uint8 arithmetic), and at half the offset
+    ds = d // 2
+    hd = ds // 2
+    ho = gh - 2 * ds
+    thr = max(thr_min, snr_thr * (noise * area_noise))
+    t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
+    if ho <= 0:
+        e_i = np.empty(0, np.int64)
+        return e_i, e_i, np.empty(0), noise
+    resp = np.empty((ho, wo), np.int32)
+    for y in range(ho):
+        for x in range(wo):
+            c = B[y + ds, x]
+            r = c - max(B[y, x], B[y + 2 * ds, x])
+            if hd >= 2:
+                r = max(r, c - max(B[y + ds - hd, x], B[y + ds + hd, x]))
+            resp[y, x] = max(r, 0)
+    # vertical local maxima inside the band: counted per column, then placed column by column
+    y0 = np.empty(wo, np.int64)
+    y1 = np.empty(wo, np.int64)
+    for x in range(wo):
+        uf = min(2 * x, w - 1)
+        lo = v_lo[uf]
+        hi = v_hi[uf]
+        if hi < lo:
+            y0[x] = 0
+            y1[x] = 0
+        else:
+            y0[x] = max((lo - r0 + 1) // 2, 0)
+            y1[x] = min((hi - r0) // 2 + 1, ho)
+    cnt = np.zeros(wo + 1, np.int64)
+    w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
+    pk = np.zeros((ho, w8), np.uint8)
+    for y in range(ho):
+        ym = max(y - 1, 0)
+        yp = min(y + 1, ho - 1)
+        for x in range(wo):
+            v = resp[y, x]
+            is_pk = (v > t8) & (resp[ym, x] <= v) & (resp[yp, x] <= v) & (y >= y0[x]) & (y < y1[x])
+            pk[y, x] = is_pk
+            cnt[x + 1] += is_pk
+    for x in range(wo):
+        cnt[x + 1] += cnt[x]
+    n = cnt[wo]
+    cu = np.empty(n, np.int64)
+    cv = np.empty(n, np.int64)
+    ca = np.empty(n)
+    pos = cnt[:wo].copy()
+    words = pk.reshape(-1).view(np.uint64)
+    nw8 = w8 // 8
+    for y in range(ho):
+        for k in range(nw8):
+            if words[y * nw8 + k] == 0:  # no peak among these 8 columns (the common case)
+                continue
+            for x in range(8 * k, min(8 * k + 8, wo)):
+                if pk[y, x]:
+                    j = pos[x]
+                    cu[j] = x + col_offset
+                    cv[j] = r0 + 2 * y
+                    ca[j] = resp[y, x]
+                    pos[x] = j + 1
+    return cu, cv, ca, noise
+
+
+@_njit
 def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  # type: ignore[no-untyped-def]
     """Loop twin of the frame statistics of ``subpixel.extract``: from the green profiles ``rows +- half`` of a
     few picked columns, the median Gaussian-equivalent sigma of the unsaturated ones (see
@@ -1700,6 +1829,7 @@ def warm_up() -> None:
         g = green_rows(img.reshape(-1), 8, 0, 8)
         noise_dn(g, 2)
         local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
+        detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
@@ -1756,6 +1886,7 @@ _KERNEL_NAMES = (
     "fit_columns_common",
     "max_fwhm_at",
     "process_candidates",
+    "detect_band",
     "_refit",
 )
 

@@ -237,6 +237,19 @@ def _candidates(
     h, w = image.shape[:2]
     scale = cfg.detect_scale
     d = cfg.contrast_px
+    if fast and scale == 2:  # all of it in one compiled pass over the band
+        return _kernels.detect_band(  # type: ignore[no-any-return]
+            image,
+            r0,
+            r1,
+            d,
+            float(cfg.snr_threshold),
+            _AREA_NOISE,
+            0.7 * cfg.min_contrast_dn,
+            bands.v_lo[laser],
+            bands.v_hi[laser],
+            col_offset,
+        )
     a0, a1 = max(r0 - d, 0), min(r1 + d, h)
     if scale == 2 and (a1 - a0) % 2 and a1 < h:
         a1 += 1  # an even number of rows for the 2x2 average (one more row below: the band check drops it)
