@@ -741,6 +741,84 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type: ignore[no-untyped-def]
+    """Whether the line ``a + b (x - c)`` fits the columns ``[p0, p1)`` within the noise ``vv`` (or they are empty)."""
+    q0 = c_m[p1] - c_m[p0]
+    qx = c_mx[p1] - c_mx[p0] - c * q0
+    qxx = c_mxx[p1] - c_mxx[p0] - 2.0 * c * (c_mx[p1] - c_mx[p0]) + c * c * q0
+    qt = c_z[p1] - c_z[p0]
+    qtx = c_zx[p1] - c_zx[p0] - c * qt
+    qyy = c_zz[p1] - c_zz[p0]
+    r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
+    q1 = max(q0, 1.0)
+    return (q0 < 1.0) | (r_q <= vv * q1 * (1.0 + SUBBLOCK_SIGMAS * math.sqrt(2.0 / q1)))
+
+
+@_njit
+def _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
+    """The line fits of :func:`smooth_runs` over every window ``[c - k, c + k]`` (same arithmetic), without
+    branches: fills ``a_c``, ``b_c``, ``rss_c`` (N,) and ``acc_c`` (N,) bool for ``c`` in ``[k, n - k)``.
+
+    Unsigned indices (no negative-index wrap-around), no branches, and the quarter checks of long windows in a
+    second pass (one loop with all of it has too many arrays for the compiler's alias checks): both vectorize.
+    """
+    full_n = 0.6 * (2 * k + 1)
+    m = np.uint64(2 * k + 1)
+    uk = np.uint64(k)
+    for i in range(n - 2 * k):
+        lo = np.uint64(i)
+        hi = lo + m
+        c = float(i + k)
+        s0 = c_m[hi] - c_m[lo]
+        sx = c_mx[hi] - c_mx[lo]
+        sxx = c_mxx[hi] - c_mxx[lo]
+        t0 = c_z[hi] - c_z[lo]
+        tx = c_zx[hi] - c_zx[lo]
+        yy = c_zz[hi] - c_zz[lo]
+        s1 = sx - c * s0
+        s2 = sxx - 2.0 * c * sx + c * c * s0
+        t1 = tx - c * t0
+        det = s0 * s2 - s1 * s1
+        full = (s0 >= full_n) & (det > 1e-9)
+        b = (s0 * t1 - s1 * t0) / (det if full else 1.0)
+        a = (t0 - b * s1) / max(s0, 1.0)
+        rss = max(yy - a * t0 - b * t1, 0.0)
+        nvv = c_n2[hi] - c_n2[lo]
+        var = (c_d2[hi] - c_d2[lo]) / (6.0 * max(nvv, 1.0)) if nvv >= 5 else var_all
+        dof = max(s0 - 2.0, 1.0)
+        vv = max(var, 1e-8)
+        ci = lo + uk
+        acc_c[ci] = full & (rss <= vv * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)))
+        a_c[ci] = a
+        b_c[ci] = b
+        rss_c[ci] = rss
+    if k < SUBBLOCK_MIN_K:
+        return
+    # long windows: each quarter must fit the line too (a kink near one end is diluted in the whole window's
+    # residual, not in its quarter's)
+    uq = np.uint64((2 * k + 1) // 4)
+    for i in range(n - 2 * k):
+        lo = np.uint64(i)
+        hi = lo + m
+        c = float(i + k)
+        ci = lo + uk
+        a = a_c[ci]
+        b = b_c[ci]
+        nvv = c_n2[hi] - c_n2[lo]
+        var = (c_d2[hi] - c_d2[lo]) / (6.0 * max(nvv, 1.0)) if nvv >= 5 else var_all
+        vv = max(var, 1e-8)
+        p1 = lo + uq
+        p2 = p1 + uq
+        p3 = p2 + uq
+        acc = acc_c[ci]
+        acc &= _quarter_ok(lo, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz)
+        acc &= _quarter_ok(p1, p2, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz)
+        acc &= _quarter_ok(p2, p3, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz)
+        acc &= _quarter_ok(p3, hi, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz)
+        acc_c[ci] = acc
+
+
 @_njit
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing)."""
@@ -817,57 +895,10 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     for k in scales:
         if k < 1 or 2 * k + 1 > n:
             continue
-        for c in range(n):
-            acc_c[c] = False
-        for c in range(k, n - k):
-            # a fit centred at c serves the columns c, c - k and c + k: skip it when they are all done
-            if done[c] and done[c - k] and (c + k >= n or done[c + k]):
-                continue
-            lo = c - k
-            hi = c + k + 1
-            s0 = c_m[hi] - c_m[lo]
-            sx = c_mx[hi] - c_mx[lo]
-            sxx = c_mxx[hi] - c_mxx[lo]
-            t0 = c_z[hi] - c_z[lo]
-            tx = c_zx[hi] - c_zx[lo]
-            yy = c_zz[hi] - c_zz[lo]
-            s1 = sx - c * s0
-            s2 = sxx - 2.0 * c * sx + c * c * s0
-            t1 = tx - c * t0
-            det = s0 * s2 - s1 * s1
-            if s0 < 0.6 * (2 * k + 1) or det <= 1e-9:
-                continue
-            b = (s0 * t1 - s1 * t0) / det
-            a = (t0 - b * s1) / s0
-            rss = max(yy - a * t0 - b * t1, 0.0)
-            nvv = c_n2[hi] - c_n2[lo]
-            var = (c_d2[hi] - c_d2[lo]) / (6.0 * nvv) if nvv >= 5 else var_all
-            dof = max(s0 - 2.0, 1.0)
-            vv = max(var, 1e-8)
-            if rss <= vv * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)):
-                acc_c[c] = True
-                if k >= SUBBLOCK_MIN_K:
-                    # long windows: each quarter must fit the line too (a kink near one end is diluted in the
-                    # whole window's residual, not in its quarter's)
-                    qn = (2 * k + 1) // 4
-                    for j in range(4):
-                        p0 = lo + j * qn
-                        p1 = hi if j == 3 else p0 + qn
-                        q0 = c_m[p1] - c_m[p0]
-                        if q0 < 1.0:
-                            continue
-                        qx = c_mx[p1] - c_mx[p0] - c * q0
-                        qxx = c_mxx[p1] - c_mxx[p0] - 2.0 * c * (c_mx[p1] - c_mx[p0]) + c * c * q0
-                        qt = c_z[p1] - c_z[p0]
-                        qtx = c_zx[p1] - c_zx[p0] - c * qt
-                        qyy = c_zz[p1] - c_zz[p0]
-                        r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
-                        if r_q > vv * q0 * (1.0 + SUBBLOCK_SIGMAS * math.sqrt(2.0 / q0)):
-                            acc_c[c] = False
-                            break
-                a_c[c] = a
-                b_c[c] = b
-                rss_c[c] = rss
+        # every window's fit, branch-free (vectorized: cheaper than skipping the windows no column needs)
+        acc_c[:k] = False
+        acc_c[n - k :] = False
+        _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
         for u in range(n):
             if done[u]:
                 continue
