@@ -532,18 +532,19 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     m = 2 * half + 1
     R = half
     M = m + 2 * e
-    P = np.empty((M, n))
+    P = np.empty((M, n), np.uint8)
     inside = True
     for t in range(n):
         inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
     if inside:  # no clamping: one base index per column, a row stride per sample
-        base = np.empty(n, np.int64)
+        base = np.empty(n, np.uint64)
         for t in range(n):
-            base[t] = ((rows[t] - half - e) * wid + cols[t]) * 3 + 1
+            base[t] = np.uint64(((rows[t] - half - e) * wid + cols[t]) * 3 + 1)
         for k in range(M):
-            o = k * wid * 3
-            for t in range(n):
-                P[k, t] = flat[base[t] + o]
+            o = np.uint64(k * wid * 3)
+            row = P[k]
+            for t in range(n):  # unsigned indices: no negative-index wrap-around per load
+                row[np.uint64(t)] = flat[base[t] + o]
     else:
         for k in range(M):
             for t in range(n):
@@ -561,12 +562,20 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             if x >= sat_dn:
                 special[t] = True
     B = np.empty((m, n))
-    for q in range(m):
+    Pf = P.reshape(-1)
+    start = np.empty(n, np.uint64)
+    top = np.zeros(n, np.uint8)
+    for t in range(n):
+        start[t] = np.uint64((bq[t] - R) * n + t)
+    for q in range(m):  # the re-centred window (flat unsigned indices, no branches: vectorizes)
+        row = B[q]
+        o = np.uint64(q * n)
         for t in range(n):
-            x = P[bq[t] - R + q, t]
-            B[q, t] = x
-            if x >= sat_dn:
-                special[t] = True
+            x = Pf[start[t] + o]
+            row[np.uint64(t)] = x
+            top[t] = max(top[t], x)
+    for t in range(n):
+        special[t] |= top[t] >= sat_dn
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
@@ -676,20 +685,25 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                 if math.isfinite(step):
                     c[t] += min(max(step, -1.0), 1.0)
     # 4. acceptance and the colour rises
-    centre = np.full(n, np.nan)
+    centre = np.empty(n)
     rise = np.zeros((3, n))
+    stride = wid * 3
     for t in range(n):
         good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0.0
         pk_row = rows[t] + bq[t] - e - R
-        col = cols[t]
-        rp = min(max(pk_row, 0), h - 1)
-        rl = min(max(pk_row - half, 0), h - 1)
-        rh = min(max(pk_row + half, 0), h - 1)
-        for ch in range(3):
-            rise[ch, t] = image[rp, col, ch] - 0.5 * (float(image[rl, col, ch]) + image[rh, col, ch])
-        if good:
-            centre[t] = pk_row - half + c[t]
+        centre[t] = pk_row - half + c[t] if good else np.nan
         ok[t] = good
+        if inside:  # the window lies in the image: flat unsigned indices, no clamping
+            rp = np.uint64((pk_row * wid + cols[t]) * 3)
+            rl = rp - np.uint64(half * stride)
+            rh = rp + np.uint64(half * stride)
+        else:
+            rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
+            rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
+            rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
+        for ch in range(3):
+            uc = np.uint64(ch)
+            rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
     return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special, rise
 
 
