@@ -1164,15 +1164,23 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
     rows, cols = g.shape
     if rows < 5:
         return 1.0
-    hist = np.zeros(1024, np.int64)
+    # four interleaved histograms: consecutive equal bins do not wait on each other's increments
+    h4 = np.zeros((4, 1024), np.int64)
     n = (rows - 4 + step - 1) // step
+    ns = (cols + 1) // 2
     for i in range(n):
         r = i * step
-        for x in range(0, cols, 2):
-            d = abs(int(g[r, x]) + int(g[r + 4, x]) - 2 * int(g[r + 2, x]))
-            hist[min(d, 1023)] += 1
+        ra = g[r]
+        rb = g[r + 2]
+        rc = g[r + 4]
+        for j in range(ns):
+            x = np.uint64(2 * j)
+            d = abs(np.int32(ra[x]) + np.int32(rc[x]) - 2 * np.int32(rb[x]))
+            h4[j & 3, min(d, 1023)] += 1
+    hist = np.empty(1024, np.int64)
     total = 0
     for k in range(1024):
+        hist[k] = h4[0, k] + h4[1, k] + h4[2, k] + h4[3, k]
         total += hist[k]
     half = 0.5 * total
     cum = 0
@@ -1284,24 +1292,26 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     # 2x2 area average (pairs of columns read as one uint16), then the 3-column box: (gh, wo)
     gh = rows_g // 2
     wo = wp // 2
-    B = np.empty((gh, wo), np.int32)
+    B = np.empty((gh, wo), np.int16)
     A = np.empty(wo + 2, np.int32)
     G16 = G.reshape(-1).view(np.uint16).reshape((rows_g, wo))
     for y in range(gh):
         u0 = G16[2 * y]
         u1 = G16[2 * y + 1]
         for x in range(wo):
-            v0 = np.int32(u0[x])
-            v1 = np.int32(u1[x])
-            A[x + 1] = ((v0 & 255) + (v0 >> 8) + (v1 & 255) + (v1 >> 8) + 2) >> 2
+            v0 = np.int32(u0[np.uint64(x)])
+            v1 = np.int32(u1[np.uint64(x)])
+            A[np.uint64(x + 1)] = ((v0 & 255) + (v0 >> 8) + (v1 & 255) + (v1 >> 8) + 2) >> 2
         if wo > 1:
             A[0] = A[2]
             A[wo + 1] = A[wo - 1]
         else:
             A[0] = A[1]
             A[2] = A[1]
-        for x in range(wo):  # round(s / 3) = floor((s + 1.5) / 3) for an integer s, without a division
-            B[y, x] = np.int32((A[x] + A[x + 1] + A[x + 2] + 1.5) * (1.0 / 3.0))
+        by = B[y]
+        for x in range(wo):  # round(s / 3) = floor((s + 1) / 3) = ((s + 1) * 21846) >> 16 for 0 <= s <= 765
+            ux = np.uint64(x)
+            by[ux] = np.int16(((A[ux] + A[ux + 1] + A[ux + 2] + 1) * 21846) >> 16)
     # two-sided contrast, saturating at 0 (uint8 arithmetic), and at half the offset
     ds = d // 2
     hd = ds // 2
@@ -1311,14 +1321,24 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     if ho <= 0:
         e_i = np.empty(0, np.int64)
         return e_i, e_i, np.empty(0), noise
-    resp = np.empty((ho, wo), np.int32)
+    resp = np.empty((ho, wo), np.int16)
     for y in range(ho):
-        for x in range(wo):
-            c = B[y + ds, x]
-            r = c - max(B[y, x], B[y + 2 * ds, x])
-            if hd >= 2:
-                r = max(r, c - max(B[y + ds - hd, x], B[y + ds + hd, x]))
-            resp[y, x] = max(r, 0)
+        bc = B[y + ds]
+        b0 = B[y]
+        b1 = B[y + 2 * ds]
+        ry = resp[y]
+        if hd >= 2:
+            h0 = B[y + ds - hd]
+            h1 = B[y + ds + hd]
+            for x in range(wo):
+                ux = np.uint64(x)
+                c = bc[ux]
+                r = max(c - max(b0[ux], b1[ux]), c - max(h0[ux], h1[ux]))
+                ry[ux] = max(r, 0)
+        else:
+            for x in range(wo):
+                ux = np.uint64(x)
+                ry[ux] = max(bc[ux] - max(b0[ux], b1[ux]), 0)
     # vertical local maxima inside the band: counted per column, then placed column by column
     y0 = np.empty(wo, np.int64)
     y1 = np.empty(wo, np.int64)
@@ -1336,13 +1356,16 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
     pk = np.zeros((ho, w8), np.uint8)
     for y in range(ho):
-        ym = max(y - 1, 0)
-        yp = min(y + 1, ho - 1)
+        rm = resp[max(y - 1, 0)]
+        rc = resp[y]
+        rp = resp[min(y + 1, ho - 1)]
+        py = pk[y]
         for x in range(wo):
-            v = resp[y, x]
-            is_pk = (v > t8) & (resp[ym, x] <= v) & (resp[yp, x] <= v) & (y >= y0[x]) & (y < y1[x])
-            pk[y, x] = is_pk
-            cnt[x + 1] += is_pk
+            ux = np.uint64(x)
+            v = rc[ux]
+            is_pk = (v > t8) & (rm[ux] <= v) & (rp[ux] <= v) & (y >= y0[ux]) & (y < y1[ux])
+            py[ux] = is_pk
+            cnt[ux + 1] += is_pk
     for x in range(wo):
         cnt[x + 1] += cnt[x]
     n = cnt[wo]
