@@ -47,7 +47,9 @@ class Sensor:
             from .extract.subpixel import extract_points
 
             det, xyz = extract_points(img, self.calibration, **options)
-            points = triangulate(self.calibration, det.uv, det.laser) if xyz is None else xyz
+            if xyz is not None:  # triangulated and depth-gated in the compiled call
+                return Scan(xyz, det.laser, det.uv, det.quality, method)
+            points = triangulate(self.calibration, det.uv, det.laser)
         else:
             det = get_extractor(method)(img, self.calibration, **options)
             points = triangulate(self.calibration, det.uv, det.laser)

@@ -48,9 +48,10 @@ def test_range_limits_hold_for_the_output() -> None:
     image = setup.render(seed=0).image
     sensor = Sensor(setup.calibration)
     for hi in (1.9, 2.5):
-        scan = sensor.process(image, max_range_m=hi)
-        depth = setup.calibration.body_to_cam(scan.points)[:, 2]
-        assert np.all(depth <= hi)
+        for scale in (1, 2):  # the one-call compiled path (scale 2) gates in the kernel
+            scan = sensor.process(image, max_range_m=hi, detect_scale=scale)
+            depth = setup.calibration.body_to_cam(scan.points)[:, 2]
+            assert np.all(depth <= hi)
     assert len(sensor.process(image, max_range_m=1.9)) < len(sensor.process(image, max_range_m=2.5)) / 10
 
 

@@ -1765,6 +1765,85 @@ def process_candidates(  # type: ignore[no-untyped-def]
 
 
 @_njit
+def extract_frame(  # type: ignore[no-untyped-def]
+    image,
+    band_rows,
+    v_lo,
+    v_hi,
+    detect,
+    ints,
+    reals,
+    scales,
+    cam,
+    dist,
+    R,
+    origin,
+    normals,
+    points,
+    axis,
+    wide_fwhm,
+    depth_gate,
+):
+    """The whole default extractor on one frame in one compiled call: :func:`detect_band` for every laser (at
+    detection scale 2), then :func:`process_candidates` with the triangulation, and the depth gate.
+
+    Args:
+        band_rows: (L, 2) bounding rows ``[r0, r1)`` of each laser's band; v_lo, v_hi: (L, W) the bands.
+        detect: ``(contrast_px, snr_threshold, area_noise, min_response)`` of :func:`detect_band`.
+        depth_gate: ``(r_x, r_y, r_z, t_z, min_depth, max_depth)``: camera z of a body point is
+            ``r . p + t_z`` (metres); points outside ``[min_depth, max_depth]`` (or NaN) are dropped.
+        the rest: as :func:`process_candidates`.
+
+    Returns:
+        ``(u, v, laser, quality, xyz, noise)``: the kept points (M,) and (M, 3), and the band noise (L,), DN.
+    """
+    n_l = band_rows.shape[0]
+    w = image.shape[1]
+    wd = (w + 1) // 2
+    noise = np.ones(n_l)
+    parts_u = []
+    parts_v = []
+    parts_a = []
+    total = 0
+    for i in range(n_l):
+        r0 = band_rows[i, 0]
+        r1 = band_rows[i, 1]
+        if r1 <= r0:
+            continue
+        u, v, a, noise[i] = detect_band(
+            image, r0, r1, int(detect[0]), detect[1], detect[2], detect[3], v_lo[i], v_hi[i], i * wd
+        )
+        parts_u.append(u)
+        parts_v.append(v)
+        parts_a.append(a)
+        total += u.size
+    U = np.empty(total, np.int64)
+    Vr = np.empty(total, np.int64)
+    Ar = np.empty(total)
+    k = 0
+    for j in range(len(parts_u)):
+        m = parts_u[j].size
+        U[k : k + m] = parts_u[j]
+        Vr[k : k + m] = parts_v[j]
+        Ar[k : k + m] = parts_a[j]
+        k += m
+    u_o, v_o, l_o, q_o, xyz = process_candidates(
+        image, U, Vr, Ar, noise, ints, reals, scales, cam, dist, R, origin, normals, points, axis, wide_fwhm, True
+    )
+    n = u_o.size
+    keep = np.empty(n, np.bool_)
+    m = 0
+    for t in range(n):
+        depth = xyz[t, 0] * depth_gate[0] + xyz[t, 1] * depth_gate[1] + xyz[t, 2] * depth_gate[2] + depth_gate[3]
+        keep[t] = depth >= depth_gate[4] and depth <= depth_gate[5]  # NaN fails both
+        m += keep[t]
+    if m == n:
+        return u_o, v_o, l_o, q_o, xyz, noise
+    idx = np.flatnonzero(keep)
+    return u_o[idx], v_o[idx], l_o[idx], q_o[idx], xyz[idx], noise
+
+
+@_njit
 def _refit(  # type: ignore[no-untyped-def]
     image,
     cols,
@@ -1920,6 +1999,25 @@ def warm_up() -> None:
             4.7,
             True,
         )
+        extract_frame(
+            img,
+            np.array([[2, 6]], np.int64),
+            np.zeros((1, 8), np.int64),
+            np.full((1, 8), 7, np.int64),
+            np.array([2.0, 4.0, 0.3, 3.5]),
+            np.array([2, 4, 8, 4, 20, 1, 2], np.int64),
+            np.array([3.0, 250.0, 0.8, 5.0, 5.0, 2.5, 1.2, 20.0, 0.75]),
+            np.array([4, 1], np.int64),
+            np.ones(4),
+            np.zeros(5),
+            eye,
+            np.zeros(3),
+            eye[:1],
+            eye[:1],
+            np.array([0.0, 0.0, 1.0]),
+            4.7,
+            np.array([0.0, 0.0, 1.0, 0.0, 0.2, 5.0]),
+        )
         _READY.set()
 
 
@@ -1956,6 +2054,7 @@ _KERNEL_NAMES = (
     "process_candidates",
     "detect_band",
     "_refit",
+    "extract_frame",
 )
 
 

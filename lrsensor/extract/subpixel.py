@@ -734,13 +734,17 @@ def extract_points(
     **options: Any,
 ) -> tuple[Detections, FloatArray | None]:
     """:func:`extract`, and with ``triangulate`` the body-frame points (N, 3) of the detections, metres, when the
-    compiled kernels computed them in the same call (else None: triangulate the detections yourself)."""
+    compiled kernels computed them in the same call (else None: triangulate the detections yourself). Points so
+    triangulated are depth-gated too: only those with a camera depth within the range limits are returned."""
     cfg = SubpixelConfig.from_options(config, **options)
     image = np.ascontiguousarray(image)
+    fast = USE_NUMBA and _kernels.ready()  # the numpy path runs while the kernels compile in the background
+    if fast and triangulate and cfg.detect_scale == 2:  # all of it in one compiled call
+        u_o, v_o, l_o, q_o, xyz, _ = _kernels.extract_frame(image, *_frame_settings(calibration, cfg))
+        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o), xyz
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     w = image.shape[1]
     n_l = plan.bands.n_lasers
-    fast = USE_NUMBA and _kernels.ready()  # the numpy path runs while the kernels compile in the background
     # 1-2. candidates of every laser in its band; laser l's detection columns are numbered l * wd + c
     scale = cfg.detect_scale
     wd = (w + scale - 1) // scale
@@ -754,7 +758,7 @@ def extract_points(
         u, v, a, noise[i] = _candidates(image, i, (r0, r1), bands, cfg, fast, i * wd)
         parts.append((u, v, a))
     if not parts or sum(p[0].size for p in parts) == 0:
-        return Detections.empty(), (np.zeros((0, 3)) if fast and triangulate else None)
+        return Detections.empty(), None
     # laser by laser, each sorted by column then row: the concatenation is sorted by (virtual) column
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
@@ -763,7 +767,7 @@ def extract_points(
     scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
     if fast:
         # 3-6 (and the triangulation) in one compiled call
-        u_o, v_o, l_o, q_o, xyz = _kernels.process_candidates(
+        u_o, v_o, l_o, q_o, _ = _kernels.process_candidates(
             image,
             U,
             Vr,
@@ -772,10 +776,32 @@ def extract_points(
             *_fast_settings(cfg, n_l, scales),
             *_geometry(calibration),
             WIDE_FWHM_PX,
-            triangulate,
+            False,
         )
-        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o), (xyz if triangulate else None)
+        return Detections(np.stack([u_o, v_o], axis=1), l_o, q_o), None
     return _finish_numpy(image, calibration, cfg, U, Vr, Ar, noise, n_l, scales), None
+
+
+@lru_cache(maxsize=16)
+def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any, ...]:
+    """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration."""
+    plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
+    n_l = plan.bands.n_lasers
+    k0 = cfg.smooth_half_cols
+    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+    detect = np.array([cfg.contrast_px, cfg.snr_threshold, _AREA_NOISE, 0.7 * cfg.min_contrast_dn], np.float64)
+    r_z = np.asarray(calibration.R_cam_body, np.float64)[2]
+    gate = np.array([r_z[0], r_z[1], r_z[2], float(calibration.t_cam_body[2]), cfg.min_range_m, cfg.max_range_m])
+    return (
+        np.array(plan.rows, np.int64).reshape(n_l, 2),
+        np.ascontiguousarray(plan.bands.v_lo),
+        np.ascontiguousarray(plan.bands.v_hi),
+        detect,
+        *_fast_settings(cfg, n_l, scales),
+        *_geometry(calibration),
+        WIDE_FWHM_PX,
+        gate,
+    )
 
 
 @lru_cache(maxsize=16)
