@@ -1176,7 +1176,7 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
         for j in range(ns):
             x = np.uint64(2 * j)
             d = abs(np.int32(ra[x]) + np.int32(rc[x]) - 2 * np.int32(rb[x]))
-            h4[j & 3, min(d, 1023)] += 1
+            h4[j & 3, min(int(d), 1023)] += 1
     hist = np.empty(1024, np.int64)
     total = 0
     for k in range(1024):
