@@ -1052,50 +1052,59 @@ def finish_points(  # type: ignore[no-untyped-def]
         if ok[t]:
             for c in range(3):
                 dr[c, q] = rise[c, t]
+    # the colour test pooled over the window, for every (virtual) column at once: shifted contiguous reads of
+    # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
+    nw = 2 * pool + 1
+    nd = n_cols
+    sums = np.zeros((3, nd))
+    own = ch[pool : pool + nd]
+    for c in range(3):  # one output per loop: few arrays, cheap alias checks
+        sc = sums[c]
+        dc = dr[c]
+        for j in range(nw):
+            uj = np.uint64(j)
+            for q in range(nd):
+                uq = np.uint64(q)
+                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else 0.0
+    sb = sums[0]
+    sg = sums[1]
+    sr = sums[2]
     good = np.zeros(n, np.bool_)
     for t in range(n):
-        if not ok[t]:
-            continue
-        if sat[t]:
-            good[t] = True
-            continue
-        sb = 0.0
-        sg = 0.0
-        sr = 0.0
-        c0 = col_v[t]
-        for q in range(c0, c0 + 2 * pool + 1):
-            if ch[q] == chain[t]:
-                sb += dr[0, q]
-                sg += dr[1, q]
-                sr += dr[2, q]
-        good[t] = sg >= green_ratio * max(sb, sr)
+        q = col_v[t]
+        good[t] = ok[t] and (sat[t] or sg[q] >= green_ratio * max(sb[q], sr[q]))
     ds = np.full(n_cols + 2 * pool, np.nan)
     for t in range(n):
         if good[t]:
             ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
-    # the pooled windows column-parallel: (2 pool + 1, N), missing values (+inf) sorted last by branch-free
-    # odd-even transposition compare-exchanges that run over all columns at once
-    nw = 2 * pool + 1
-    vals = np.empty((nw, n))
-    cnt = np.zeros(n, np.int64)
+    # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
+    # branch-free odd-even transposition compare-exchanges that run over all columns at once
+    vals = np.empty((nw, nd))
+    cnt_d = np.zeros(nd, np.int64)
     for j in range(nw):
-        for t in range(n):
-            x = ds[col_v[t] + j]
-            use = ch[col_v[t] + j] == chain[t] and x == x  # same piece, passing (not NaN)
-            vals[j, t] = x if use else np.inf
-            cnt[t] += use
+        cj = ch[j : j + nd]
+        xj = ds[j : j + nd]
+        vj = vals[j]
+        for q in range(nd):
+            x = xj[q]
+            use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
+            vj[q] = x if use else np.inf
+            cnt_d[q] += use
     for r in range(nw):
         for j in range(r % 2, nw - 1, 2):
-            for t in range(n):
-                lo = min(vals[j, t], vals[j + 1, t])
-                vals[j + 1, t] = max(vals[j, t], vals[j + 1, t])
-                vals[j, t] = lo
+            va = vals[j]
+            vb = vals[j + 1]
+            for q in range(nd):
+                lo = min(va[q], vb[q])
+                vb[q] = max(va[q], vb[q])
+                va[q] = lo
     for t in range(n):
         if not good[t]:
             continue
-        k = cnt[t]
-        med = vals[k // 2, t] if k % 2 else 0.5 * (vals[k // 2 - 1, t] + vals[k // 2, t])
+        q = col_v[t]
+        k = cnt_d[q]
+        med = vals[k // 2, q] if k % 2 else 0.5 * (vals[k // 2 - 1, q] + vals[k // 2, q])
         snr[t] = min(med, snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
