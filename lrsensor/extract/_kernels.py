@@ -179,6 +179,12 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
             if cnt[c] == 0 or cnt[c + lag] == 0 or blk[c] != blk[c + lag]:
                 continue
             d = c + lag
+            if cnt[c] == 1 and cnt[d] == 1:  # one candidate on each side (the common case): nearest and mutual
+                if not has_next[c * K] and not has_prev[d * K] and abs(V[c, 0] - V[d, 0]) <= max_jump:
+                    prev[d * K] = c * K
+                    has_next[c * K] = True
+                    has_prev[d * K] = True
+                continue
             for i0 in range(cnt[c]):
                 va = V[c, i0]
                 if math.isnan(va) or has_next[c * K + i0]:
