@@ -258,6 +258,13 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     return cols[:out], rows[:out], chain[:out], clen[:out]
 
 
+@_njit
+def noise_col_step(n_triples, cols):  # type: ignore[no-untyped-def]
+    """Column step (even, 2 to 8) of the noise samples of a band of ``n_triples`` row triples and ``cols``
+    columns: about 6000 samples or more, every 2nd column in small images."""
+    return 2 * max(1, min(4, (n_triples * cols) // 12000))
+
+
 #: Half-width (rows) of the box smoothing of a profile before its flat-top test.
 FLAT_SMOOTH = 2
 #: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
@@ -1182,14 +1189,15 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
     # four interleaved histograms: consecutive equal bins do not wait on each other's increments
     h4 = np.zeros((4, 1024), np.int64)
     n = (rows - 4 + step - 1) // step
-    ns = (cols + 1) // 2
+    cs = noise_col_step(n, cols)
+    ns = (cols + cs - 1) // cs
     for i in range(n):
         r = i * step
         ra = g[r]
         rb = g[r + 2]
         rc = g[r + 4]
         for j in range(ns):
-            x = np.uint64(2 * j)
+            x = np.uint64(cs * j)
             d = abs(np.int32(ra[x]) + np.int32(rc[x]) - 2 * np.int32(rb[x]))
             h4[j & 3, min(int(d), 1023)] += 1
     hist = np.empty(1024, np.int64)

@@ -186,15 +186,16 @@ def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
     """Robust pixel noise (DN) of a band of a green channel, insensitive to smooth gradients (glow, murk).
 
     Second differences ``g[r] - 2 g[r + 2] + g[r + 4]`` (rows two apart, so independent; linear gradients cancel)
-    on every ``step``-th row triple and every 2nd column; for Gaussian noise of std s their median absolute
-    value is 0.6745 sqrt(6) s.
+    on every ``step``-th row triple and every 2nd to 8th column (``_kernels.noise_col_step``: about 6000
+    samples); for Gaussian noise of std s their median absolute value is 0.6745 sqrt(6) s.
     """
     if g.shape[0] < 5:
         return 1.0
     n = (g.shape[0] - 4 + step - 1) // step
-    a = g[0 : step * n : step][:n, ::2]
-    b = g[2 : step * n + 2 : step][:n, ::2]
-    c = g[4 : step * n + 4 : step][:n, ::2]
+    cs = getattr(_kernels.noise_col_step, "py_func", _kernels.noise_col_step)(n, g.shape[1])  # not compiled
+    a = g[0 : step * n : step][:n, ::cs]
+    b = g[2 : step * n + 2 : step][:n, ::cs]
+    c = g[4 : step * n + 4 : step][:n, ::cs]
     ac: Any = cv2.add(a, c, dtype=cv2.CV_16U)
     bb: Any = cv2.add(b, b, dtype=cv2.CV_16U)
     d = cv2.absdiff(ac, bb)
