@@ -545,48 +545,56 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     m = 2 * half + 1
     R = half
     M = m + 2 * e
-    P = np.empty((M, n), np.uint8)
     inside = True
     for t in range(n):
         inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
-    if inside:  # no clamping: one base index per column, a row stride per sample
+    special = np.zeros(n, np.bool_)
+    bv = np.full(n, -1.0)
+    bq = np.full(n, e + R, np.int64)
+    B = np.empty((m, n))
+    top = np.zeros(n, np.uint8)
+    if inside:  # no clamping: one base index per column, a row stride per sample, unsigned (no wrap-around)
+        stride = wid * 3
         base = np.empty(n, np.uint64)
         for t in range(n):
             base[t] = np.uint64(((rows[t] - half - e) * wid + cols[t]) * 3 + 1)
-        for k in range(M):
-            o = np.uint64(k * wid * 3)
-            row = P[k]
-            for t in range(n):  # unsigned indices: no negative-index wrap-around per load
-                row[np.uint64(t)] = flat[base[t] + o]
+        # the integer peak among the 2 e + 1 core rows
+        for k in range(R, R + 2 * e + 1):
+            o = np.uint64(k * stride)
+            for t in range(n):
+                x = flat[base[t] + o]
+                if x > bv[t]:
+                    bv[t] = x
+                    bq[t] = k
+                top[t] = max(top[t], x)
+        # the window re-centred on it, straight from the image
+        for t in range(n):
+            base[t] += np.uint64((bq[t] - R) * stride)
+        for q in range(m):
+            row = B[q]
+            o = np.uint64(q * stride)
+            for t in range(n):
+                x = flat[base[t] + o]
+                row[np.uint64(t)] = x
+                top[t] = max(top[t], x)
     else:
+        P = np.empty((M, n), np.uint8)
         for k in range(M):
             for t in range(n):
                 rr = min(max(rows[t] - half - e + k, 0), h - 1)
                 P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
-    special = np.zeros(n, np.bool_)
-    bv = np.full(n, -1.0)
-    bq = np.full(n, e + R, np.int64)
-    for k in range(R, R + 2 * e + 1):
-        for t in range(n):
-            x = P[k, t]
-            if x > bv[t]:
-                bv[t] = x
-                bq[t] = k
-            if x >= sat_dn:
-                special[t] = True
-    B = np.empty((m, n))
-    Pf = P.reshape(-1)
-    start = np.empty(n, np.uint64)
-    top = np.zeros(n, np.uint8)
-    for t in range(n):
-        start[t] = np.uint64((bq[t] - R) * n + t)
-    for q in range(m):  # the re-centred window (flat unsigned indices, no branches: vectorizes)
-        row = B[q]
-        o = np.uint64(q * n)
-        for t in range(n):
-            x = Pf[start[t] + o]
-            row[np.uint64(t)] = x
-            top[t] = max(top[t], x)
+        for k in range(R, R + 2 * e + 1):
+            for t in range(n):
+                x = P[k, t]
+                if x > bv[t]:
+                    bv[t] = x
+                    bq[t] = k
+                top[t] = max(top[t], x)
+        for q in range(m):
+            for t in range(n):
+                x = P[bq[t] - R + q, t]
+                B[q, t] = x
+                top[t] = max(top[t], x)
     for t in range(n):
         special[t] |= top[t] >= sat_dn
     # 1. linear background from the two flanks, subtracted; noise of the flanks
