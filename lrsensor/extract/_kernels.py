@@ -1,9 +1,13 @@
-"""Compiled per-column kernels of the sub-pixel extractor (numba), with the same results as the numpy code.
+"""Compiled kernels of the sub-pixel extractor (numba), with the same results as the numpy/OpenCV code.
 
-The image-wide steps (band response, local maxima) are OpenCV operations; what remains is a few thousand
-columns of small, branchy work (candidate chains, profile fits, along-stripe smoothing) where numpy spends its
-time in call overhead. These loops compile once (``cache=True``, tens of seconds the very first time, about a
-second from the on-disk cache) and then run in a fraction of a millisecond.
+:func:`extract_frame` runs the whole default extractor on one frame in one call: :func:`detect_band` per laser
+(one pass over the band: green copy, noise, 2x2 average, two-sided contrast, local maxima, bit for bit the
+OpenCV steps of ``subpixel._candidates``), then :func:`process_candidates` (candidate chains, column-parallel
+sub-pixel fits, neighbour refits, pooled gates, along-stripe smoothing, quality), the triangulation and the
+range-limit gate. The loops are written so that the compiler vectorizes them across columns: unsigned indices
+where an index could be negative (no wrap-around select per access), few arrays per loop (cheap run-time alias
+checks), selects instead of branches, and :func:`exp_array` / :func:`log_array` instead of libm calls.
+These compile once (``cache=True``, tens of seconds the very first time, about a second from the on-disk cache).
 
 Compilation never blocks a caller: :func:`ready` starts it in a background thread on first use and returns False
 until every kernel is compiled for the argument types the extractor uses; meanwhile the extractor runs its numpy

@@ -26,9 +26,9 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    per-column noise (the dim ends of a stripe and far walls most).
 6. **Quality** in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
-The per-column steps run as compiled loops (:mod:`lrsensor.extract._kernels`, numba) when numba is installed,
-otherwise as numpy code with the same algorithm. Triangulation (eq. 29 with the calibration's distortion) is
-done by :class:`lrsensor.sensor.Sensor`.
+With numba installed the whole pipeline, and the triangulation (eq. 29 with the calibration's distortion) for
+:class:`lrsensor.sensor.Sensor`, runs as one compiled call (:func:`lrsensor.extract._kernels.extract_frame`);
+otherwise as numpy and OpenCV code with the same algorithm.
 """
 
 from __future__ import annotations
