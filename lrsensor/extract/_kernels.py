@@ -905,14 +905,15 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     for q in range(n):
         if have[q]:
             base[q] = y[run_lo[q]]
-    c_m = np.zeros(n + 1)
-    c_mx = np.zeros(n + 1)
-    c_mxx = np.zeros(n + 1)
-    c_z = np.zeros(n + 1)
-    c_zx = np.zeros(n + 1)
-    c_zz = np.zeros(n + 1)
-    c_d2 = np.zeros(n + 1)
-    c_n2 = np.zeros(n + 1)
+    c_m = np.empty(n + 1)  # running sums: every element is written below
+    c_mx = np.empty(n + 1)
+    c_mxx = np.empty(n + 1)
+    c_z = np.empty(n + 1)
+    c_zx = np.empty(n + 1)
+    c_zz = np.empty(n + 1)
+    c_d2 = np.empty(n + 1)
+    c_n2 = np.empty(n + 1)
+    c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
     for q in range(n):
         mq = 1.0 if have[q] else 0.0
         zq = y[q] - base[q] if have[q] else 0.0
