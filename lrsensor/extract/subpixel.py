@@ -123,6 +123,8 @@ class SubpixelConfig:
     @classmethod
     def from_options(cls, config: SubpixelConfig | None = None, **options: Any) -> SubpixelConfig:
         """``config`` (or the defaults) with keyword overrides; unknown names raise :class:`ExtractionError`."""
+        if config is None and not options and cls is SubpixelConfig:
+            return _default_config()  # the per-frame common case: one frozen instance
         return config_with_options(cls, config, "subpixel", options)
 
     @property
@@ -134,6 +136,12 @@ class SubpixelConfig:
     def window_half_px(self) -> int:
         """Half-length of the profile cut out around each stripe for the centre fit."""
         return math.ceil(2.6 * 0.5 * FWHM_PER_SIGMA * self.max_sigma_px + 5.0)
+
+
+@lru_cache(maxsize=1)
+def _default_config() -> SubpixelConfig:
+    """The default :class:`SubpixelConfig` (frozen, so one instance serves every call)."""
+    return SubpixelConfig()
 
 
 @dataclass(frozen=True)
