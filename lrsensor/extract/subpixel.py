@@ -772,10 +772,8 @@ def extract_points(
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
-    k0 = cfg.smooth_half_cols
-    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
-    if fast:
-        # 3-6 (and the triangulation) in one compiled call
+    scales = _scales(cfg.smooth_half_cols)
+    if fast:  # steps 3-6 in one compiled call
         u_o, v_o, l_o, q_o, _ = _kernels.process_candidates(
             image,
             U,
@@ -791,13 +789,17 @@ def extract_points(
     return _finish_numpy(image, calibration, cfg, U, Vr, Ar, noise, n_l, scales), None
 
 
+def _scales(k0: int) -> tuple[int, ...]:
+    """Half-widths (columns) of the along-stripe line fits, largest first: 16, 4, 1 and 1/4 times ``k0``."""
+    return tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+
+
 @lru_cache(maxsize=16)
 def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any, ...]:
     """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration."""
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     n_l = plan.bands.n_lasers
-    k0 = cfg.smooth_half_cols
-    scales = tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
+    scales = _scales(cfg.smooth_half_cols)
     detect = np.array([cfg.contrast_px, cfg.snr_threshold, _AREA_NOISE, 0.7 * cfg.min_contrast_dn], np.float64)
     r_z = np.asarray(calibration.R_cam_body, np.float64)[2]
     gate = np.array([r_z[0], r_z[1], r_z[2], float(calibration.t_cam_body[2]), cfg.min_range_m, cfg.max_range_m])
