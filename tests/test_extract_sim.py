@@ -83,3 +83,26 @@ def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch) -> None
     dv = np.abs(fast.uv[i_f, 1] - slow.uv[i_s, 1])
     assert np.median(dv) < 0.01  # runs (hence smoothing windows) may split differently
     assert np.percentile(dv, 90) < 0.06
+
+
+def test_one_call_kernel_equals_the_stage_by_stage_path() -> None:
+    """``Sensor.process`` (one compiled call: detection, steps 3-6, triangulation, depth gate) gives exactly the
+    points of the stage-by-stage path: ``subpixel.extract``, then ``triangulate`` and the range-limit gate."""
+    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.triangulation import triangulate
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    _kernels.warm_up()
+    r = sim.named_scene("paper_box").render(seed=1)  # walls at 2-3 m: the band edge at 2.5 m cuts through them
+    cal = r.calibration
+    scan = Sensor(cal).process(r.image, max_range_m=2.5)
+    det = subpixel.extract(r.image, cal, max_range_m=2.5)
+    pts = triangulate(cal, det.uv, det.laser)
+    depth = cal.body_to_cam(pts)[:, 2]
+    keep = (depth >= 0.2) & (depth <= 2.5)
+    assert 1000 < len(scan) < det.uv.shape[0] - 500  # the gate drops the points found beyond 2.5 m
+    np.testing.assert_array_equal(scan.laser, det.laser[keep])
+    np.testing.assert_array_equal(scan.uv, det.uv[keep])
+    np.testing.assert_array_equal(scan.quality, det.quality[keep])
+    np.testing.assert_allclose(scan.points, pts[keep], rtol=0, atol=1e-12)
