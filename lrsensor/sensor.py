@@ -49,10 +49,9 @@ class Sensor:
             det, xyz = extract_points(img, self.calibration, **options)
             if xyz is not None:  # triangulated and depth-gated in the compiled call
                 return Scan(xyz, det.laser, det.uv, det.quality, method)
-            points = triangulate(self.calibration, det.uv, det.laser)
         else:
             det = get_extractor(method)(img, self.calibration, **options)
-            points = triangulate(self.calibration, det.uv, det.laser)
+        points = triangulate(self.calibration, det.uv, det.laser)
         scan = Scan(points, det.laser.astype(int), det.uv, det.quality, method)
         lo, hi = range_limits(method, options)
         cal = self.calibration

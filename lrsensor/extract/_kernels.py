@@ -1563,12 +1563,14 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
 
 
 @_njit
-def max_fwhm_at(cols, rows, laser, floor, sheet_mm, fy, cam, dist, R, origin, normals, points, axis):  # type: ignore[no-untyped-def]
+def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
     """Loop twin of ``subpixel._max_fwhm``: the widest plausible stripe (half-level width, px) at each pixel (N,).
 
     ``floor``: the width limit where the ray misses the plane (and the least limit); ``sheet_mm``: the thickest
-    sheet (<= 0: the floor everywhere); ``axis`` (3,): unit optical axis in the body frame.
+    sheet (<= 0: the floor everywhere); ``geo``: ``(cam, dist, R, origin, normals, points, axis)``, the
+    calibration as :func:`triangulate_points` takes it and the unit optical axis (3,) in the body frame.
     """
+    cam, dist, R, origin, normals, points, axis = geo
     n = cols.size
     out = np.full(n, floor)
     if n == 0 or sheet_mm <= 0:
@@ -1580,7 +1582,7 @@ def max_fwhm_at(cols, rows, laser, floor, sheet_mm, fy, cam, dist, R, origin, no
         depth = (
             (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]
         )
-        wv = 1e-3 * sheet_mm * fy / depth + 4.0
+        wv = 1e-3 * sheet_mm * cam[1] / depth + 4.0
         if math.isfinite(wv) and depth > 0:
             out[t] = max(wv, floor)
     return out
@@ -1677,9 +1679,8 @@ def process_candidates(  # type: ignore[no-untyped-def]
         for i in range(m_sub):
             sub[i] = int(i * step)
         sub[m_sub - 1] = n - 1
-    mf = max_fwhm_at(
-        cols[sub], rows[sub], laser[sub], floor, sheet_mm, cam[1], cam, dist, R, origin, normals, points, axis
-    )
+    geo = (cam, dist, R, origin, normals, points, axis)
+    mf = max_fwhm_at(cols[sub], rows[sub], laser[sub], floor, sheet_mm, geo)
     for i in range(m_sub):
         mfw[sub[i]] = mf[i]
     sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
@@ -1688,45 +1689,16 @@ def process_candidates(  # type: ignore[no-untyped-def]
     vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
         image, cols, rows, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
     )
+    # the fit's settings, the width limits and the per-column results that the refits update in place
+    fit = (half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm)
+    limits = (mfw, floor, sheet_mm)
+    res = (vv, amp, sig, sat, ok, lnoise, rise)
     n_sp = 0
     for t in range(n):
         n_sp += special[t]
     if n_sp:
-        idx = np.flatnonzero(special)
-        _refit(
-            image,
-            cols,
-            rows,
-            laser,
-            idx,
-            np.full(n_sp, np.nan),
-            np.full(n_sp, np.nan),
-            np.full(n_sp, np.nan),
-            mfw,
-            half,
-            sig_med,
-            sat_dn,
-            min_sig,
-            max_sigma,
-            iterations,
-            wide_fwhm,
-            floor,
-            sheet_mm,
-            cam,
-            dist,
-            R,
-            origin,
-            normals,
-            points,
-            axis,
-            vv,
-            amp,
-            sig,
-            sat,
-            ok,
-            lnoise,
-            rise,
-        )
+        nan = np.full(n_sp, np.nan)
+        _refit(image, cols, rows, laser, np.flatnonzero(special), nan, nan, nan, fit, limits, geo, res)
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
@@ -1738,40 +1710,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
             idx = np.flatnonzero(np.isfinite(nb_v))
             if idx.size == 0:
                 break
-            _refit(
-                image,
-                cols,
-                rows,
-                laser,
-                idx,
-                nb_v[idx],
-                nb_a[idx],
-                nb_s[idx],
-                mfw,
-                half,
-                sig_med,
-                sat_dn,
-                min_sig,
-                max_sigma,
-                iterations,
-                wide_fwhm,
-                floor,
-                sheet_mm,
-                cam,
-                dist,
-                R,
-                origin,
-                normals,
-                points,
-                axis,
-                vv,
-                amp,
-                sig,
-                sat,
-                ok,
-                lnoise,
-                rise,
-            )
+            _refit(image, cols, rows, laser, idx, nb_v[idx], nb_a[idx], nb_s[idx], fit, limits, geo, res)
     # 5-6. gates, runs, smoothing, quality
     u_o, v_o, l_o, q_o = finish_points(
         col_v,
@@ -1880,42 +1819,17 @@ def extract_frame(  # type: ignore[no-untyped-def]
 
 
 @_njit
-def _refit(  # type: ignore[no-untyped-def]
-    image,
-    cols,
-    rows,
-    laser,
-    idx,
-    nb_v,
-    nb_a,
-    nb_s,
-    mfw,
-    half,
-    sig_med,
-    sat_dn,
-    min_sig,
-    max_sigma,
-    iterations,
-    wide_fwhm,
-    floor,
-    sheet_mm,
-    cam,
-    dist,
-    R,
-    origin,
-    normals,
-    points,
-    axis,
-    vv,
-    amp,
-    sig,
-    sat,
-    ok,
-    lnoise,
-    rise,
-):
-    """Fit the columns ``idx`` with the full kernel (neighbour model ``nb_*``) and store the results in place;
-    the width limits ``mfw`` (N,) are computed where still NaN."""
+def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+    """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
+    results in place.
+
+    ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
+    ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
+    :func:`max_fwhm_at`); ``geo``: as :func:`max_fwhm_at`; ``res``: ``(centre, amplitude, sigma, saturated,
+    ok, local_noise, rise)`` of every column, updated at ``idx``.
+    """
+    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
+    mfw, floor, sheet_mm = limits
     m = idx.size
     need = np.empty(m, np.int64)
     nn = 0
@@ -1925,17 +1839,13 @@ def _refit(  # type: ignore[no-untyped-def]
             nn += 1
     if nn:
         nd = need[:nn]
-        mf = max_fwhm_at(
-            cols[nd], rows[nd], laser[nd], floor, sheet_mm, cam[1], cam, dist, R, origin, normals, points, axis
-        )
+        mf = max_fwhm_at(cols[nd], rows[nd], laser[nd], floor, sheet_mm, geo)
         for i in range(nn):
             mfw[nd[i]] = mf[i]
-    c_i = cols[idx]
-    r_i = rows[idx]
-    res = fit_columns(
+    new = fit_columns(
         image,
-        c_i,
-        r_i,
+        cols[idx],
+        rows[idx],
         half,
         3,
         sig_med,
@@ -1950,16 +1860,17 @@ def _refit(  # type: ignore[no-untyped-def]
         mfw[idx],
         wide_fwhm,
     )
+    vv, amp, sig, sat, ok, lnoise, rise = res
     for i in range(m):
         t = idx[i]
-        vv[t] = res[0][i]
-        amp[t] = res[1][i]
-        sig[t] = res[2][i]
-        sat[t] = res[3][i]
-        ok[t] = res[4][i]
-        lnoise[t] = res[5][i]
+        vv[t] = new[0][i]
+        amp[t] = new[1][i]
+        sig[t] = new[2][i]
+        sat[t] = new[3][i]
+        ok[t] = new[4][i]
+        lnoise[t] = new[5][i]
         for c in range(3):
-            rise[c, t] = res[6][c, i]
+            rise[c, t] = new[6][c, i]
 
 
 # --------------------------------------------------------------------------- compilation management
