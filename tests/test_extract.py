@@ -285,6 +285,31 @@ def test_vectorized_exp_and_log_match_the_library() -> None:
     assert log_array(np.array([1.0]))[0] == 0.0
 
 
+def test_row_overlap_test_never_hides_a_neighbour() -> None:
+    """``_rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``neighbours`` finds no
+    other-laser point within the distance, and False for stripes far apart."""
+    from lrsensor.extract import _kernels
+
+    rng = np.random.default_rng(3)
+    w, max_d = 200, 9.0
+    for trial in range(300):
+        n_l = 2 + trial % 2
+        laser = np.repeat(np.arange(n_l), w)
+        cols = np.tile(np.arange(w), n_l)
+        gap = rng.uniform(0.0, 40.0)
+        v = 100.0 + gap * laser + rng.normal(0.0, rng.uniform(0.1, 5.0), laser.size)
+        good = rng.random(laser.size) < 0.9
+        v[rng.random(laser.size) < 0.05] = np.nan
+        ones = np.ones(laser.size)
+        nb_v, _, _ = _kernels.neighbours(laser, cols, v, ones, ones, good, n_l, w, max_d)
+        if np.isfinite(nb_v).any():
+            assert _kernels._rows_overlap(laser, v, good, n_l, max_d)
+    far = np.array([100.0, 101.0, 130.0, 131.0])
+    lz = np.array([0, 0, 1, 1])
+    assert not _kernels._rows_overlap(lz, far, np.ones(4, bool), 2, 9.0)
+    assert _kernels._rows_overlap(lz, far, np.ones(4, bool), 2, 29.5)
+
+
 @pytest.mark.parametrize(("width", "band"), [(96, (30, 70)), (97, (3, 40)), (64, (65, 99))])
 def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int, int]) -> None:
     """``detect_band`` (one pass) gives the same candidates and noise as the OpenCV steps of ``_candidates``,

@@ -555,7 +555,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     special = np.zeros(n, np.bool_)
     bv = np.full(n, -1.0)
     bq = np.full(n, e + R, np.int64)
-    B = np.empty((m, n))
+    B = np.empty((m, n), np.float32)
     top = np.zeros(n, np.uint8)
     if inside:  # no clamping: one base index per column, a row stride per sample, unsigned (no wrap-around)
         stride = wid * 3
@@ -604,26 +604,29 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
-    bl = np.zeros(n)
-    br = np.zeros(n)
+    bl = np.zeros(n, np.float32)
+    br = np.zeros(n, np.float32)
     for q in range(flank):
         for t in range(n):
             bl[t] += B[R - off - q, t]
             br[t] += B[R + off + q, t]
-    slope = np.empty(n)
+    slope = np.empty(n, np.float32)
+    xlf = np.float32(xl)
+    fl = np.float32(flank)
+    dsl = np.float32(2.0 * off + flank - 1)
     for t in range(n):
-        bl[t] /= flank
-        br[t] /= flank
-        slope[t] = (br[t] - bl[t]) / (2.0 * off + flank - 1)
+        bl[t] /= fl
+        br[t] /= fl
+        slope[t] = (br[t] - bl[t]) / dsl
     for q in range(m):
         for t in range(n):
-            B[q, t] -= bl[t] + slope[t] * (q - xl)
-    noise = np.zeros(n)
+            B[q, t] -= bl[t] + slope[t] * (np.float32(q) - xlf)
+    noise = np.zeros(n, np.float32)
     for q in range(flank):
         for t in range(n):
             noise[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
     for t in range(n):
-        noise[t] = math.sqrt(noise[t] / max(2 * flank - 2, 1))
+        noise[t] = math.sqrt(noise[t] / np.float32(max(2 * flank - 2, 1)))
     # 2. log-parabola start
     s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     c = np.empty(n)
@@ -632,7 +635,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     inv2 = np.empty(n)
     gain = np.empty(n)
     g2 = np.empty(n)
-    a0 = np.empty(n)
+    a0 = np.empty(n, np.float32)
     sw_max = 1.1
     lv = np.empty(3 * n)
     for t in range(n):
@@ -665,16 +668,19 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
     xa = np.full(n, -1.0)
     xb = np.full(n, -1.0)
+    h0 = np.empty(n, np.float32)
+    for t in range(n):
+        h0[t] = np.float32(0.5) * a0[t]
     for q in range(R - 1, -1, -1):
         for t in range(n):
             aq = B[q, t]
-            if xa[t] < 0.0 and aq < 0.5 * a0[t]:
-                xa[t] = q + (0.5 * a0[t] - aq) / (B[q + 1, t] - aq)
+            if xa[t] < 0.0 and aq < h0[t]:
+                xa[t] = q + float(h0[t] - aq) / float(B[q + 1, t] - aq)
     for q in range(R + 1, m):
         for t in range(n):
             aq = B[q, t]
-            if xb[t] < 0.0 and aq < 0.5 * a0[t]:
-                xb[t] = q - (0.5 * a0[t] - aq) / (B[q - 1, t] - aq)
+            if xb[t] < 0.0 and aq < h0[t]:
+                xb[t] = q - float(h0[t] - aq) / float(B[q - 1, t] - aq)
     for t in range(n):
         if a0[t] > 0.0 and not (xa[t] >= 0.0 and xb[t] >= 0.0 and xb[t] - xa[t] <= wide_fwhm):
             special[t] = True
@@ -685,8 +691,14 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     # column-parallel (the inner loop runs over columns: independent recurrences, vectorized), each column's
     # arithmetic in the same order as column by column
     ex = np.empty(2 * n)
-    a_s0 = np.empty(n)
-    a_s1 = np.empty(n)
+    a_s0 = np.empty(n, np.float32)
+    a_s1 = np.empty(n, np.float32)
+    wq = np.empty(n, np.float32)
+    rq = np.empty(n, np.float32)
+    g2f = np.empty(n, np.float32)
+    cf = np.empty(n, np.float32)
+    for t in range(n):
+        g2f[t] = g2[t]
     for _ in range(iterations):
         for t in range(n):
             d0 = q0 - c[t]
@@ -694,19 +706,21 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
             a_s0[t] = 0.0
             a_s1[t] = 0.0
+            cf[t] = c[t]
         ex = exp_array(ex)
-        wq = ex[:n]
-        rq = ex[n:]
+        for t in range(n):
+            wq[t] = ex[t]
+            rq[t] = ex[n + t]
         for q in range(q0, q1):
             for t in range(n):
                 wa = wq[t] * B[q, t]
                 a_s0[t] += wa
-                a_s1[t] += wa * (q - c[t])
+                a_s1[t] += wa * (np.float32(q) - cf[t])
                 wq[t] *= rq[t]
-                rq[t] *= g2[t]
+                rq[t] *= g2f[t]
         for t in range(n):
             if a_s0[t] != 0.0:
-                step = gain[t] * a_s1[t] / a_s0[t]
+                step = gain[t] * float(a_s1[t]) / float(a_s0[t])
                 if math.isfinite(step):
                     c[t] += min(max(step, -1.0), 1.0)
     # 4. acceptance and the colour rises
@@ -739,10 +753,11 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize).
 
     Same arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
-    clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: its logs and
-    exps are :func:`log_array` and :func:`exp_array`, within 2 ulp of the library's, so centres agree to about
-    1e-12 px); the others are flagged in the extra last output ``special`` (N,) bool, and their results are to be
-    taken from :func:`fit_columns`.
+    clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
+    its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
+    its logs and exps are :func:`log_array` and :func:`exp_array`, so centres agree to about 1e-5 px, far below
+    the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
+    results are to be taken from :func:`fit_columns`.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 256 columns.
     """
@@ -993,6 +1008,23 @@ def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-unty
 
 
 @_njit
+def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
+    """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
+    has an other-laser neighbour for :func:`neighbours`: a cheap test that spares its dense arrays)."""
+    lo = np.full(n_lasers, np.inf)
+    hi = np.full(n_lasers, -np.inf)
+    for t in range(v.size):
+        if good[t] and math.isfinite(v[t]):
+            lo[laser[t]] = min(lo[laser[t]], v[t])
+            hi[laser[t]] = max(hi[laser[t]], v[t])
+    for a in range(n_lasers):
+        for b in range(n_lasers):
+            if a != b and lo[a] <= hi[b] + max_dist and lo[b] <= hi[a] + max_dist:
+                return True
+    return False
+
+
+@_njit
 def neighbours(laser, cols, v, amp, sig, good, n_lasers, width, max_dist):  # type: ignore[no-untyped-def]
     """Loop twin of :func:`lrsensor.extract.subpixel._neighbours`: nearest other-laser stripe per point."""
     V = np.full((n_lasers, width), np.nan)
@@ -1172,8 +1204,15 @@ def finish_points(  # type: ignore[no-untyped-def]
         u_out[k] = col_v[t] - laser * w
         v_out[k] = ys[col_v[t]]
         l_out[k] = laser
+        q_out[k] = -snr[t] / 8.0
+        k += 1
+    e_snr = exp_array(q_out)  # vectorized (a library exp per point costs 4 ns)
+    k = 0
+    for t in range(n):
+        if run_id[t] < 0 or counts[run_id[t]] < need:
+            continue
         s = sig[t] if math.isfinite(sig[t]) else max_sigma
-        q_snr = 1.0 - math.exp(-snr[t] / 8.0)
+        q_snr = 1.0 - e_snr[k]
         q_w = min(max(min(s / 0.6, 1.5 * max_sigma / max(s, 1e-6) - 0.5), 0.2), 1.0)
         q_run = min(max(chain_len[t] / (4.0 * min_run), 0.0), 1.0)
         q_out[k] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
@@ -1706,6 +1745,8 @@ def process_candidates(  # type: ignore[no-untyped-def]
             good = np.empty(n, np.bool_)
             for t in range(n):
                 good[t] = ok[t] and not sat[t]
+            if not _rows_overlap(laser, vv, good, n_l, max_d):  # the common case: stripes far apart
+                break
             nb_v, nb_a, nb_s = neighbours(laser, cols, vv, amp, sig, good, n_l, w, max_d)
             idx = np.flatnonzero(np.isfinite(nb_v))
             if idx.size == 0:
