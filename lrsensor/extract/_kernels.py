@@ -553,52 +553,56 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     for t in range(n):
         inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
     special = np.zeros(n, np.bool_)
-    bv = np.full(n, -1.0)
-    bq = np.full(n, e + R, np.int64)
-    B = np.empty((m, n), np.float32)
-    top = np.zeros(n, np.uint8)
+    # the green samples of rows rows - half - e ... rows + half + e: (M, n), one byte gather per sample
+    P = np.empty((M, n), np.uint8)
     if inside:  # no clamping: one base index per column, a row stride per sample, unsigned (no wrap-around)
-        stride = wid * 3
+        stride = np.uint64(wid * 3)
         base = np.empty(n, np.uint64)
         for t in range(n):
             base[t] = np.uint64(((rows[t] - half - e) * wid + cols[t]) * 3 + 1)
-        # the integer peak among the 2 e + 1 core rows
-        for k in range(R, R + 2 * e + 1):
-            o = np.uint64(k * stride)
+        for k in range(M):
+            o = np.uint64(k) * stride
+            pk = P[k]
             for t in range(n):
-                x = flat[base[t] + o]
-                if x > bv[t]:
-                    bv[t] = x
-                    bq[t] = k
-                top[t] = max(top[t], x)
-        # the window re-centred on it, straight from the image
-        for t in range(n):
-            base[t] += np.uint64((bq[t] - R) * stride)
-        for q in range(m):
-            row = B[q]
-            o = np.uint64(q * stride)
-            for t in range(n):
-                x = flat[base[t] + o]
-                row[np.uint64(t)] = x
-                top[t] = max(top[t], x)
+                pk[np.uint64(t)] = flat[base[t] + o]
     else:
-        P = np.empty((M, n), np.uint8)
         for k in range(M):
             for t in range(n):
                 rr = min(max(rows[t] - half - e + k, 0), h - 1)
                 P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
-        for k in range(R, R + 2 * e + 1):
-            for t in range(n):
-                x = P[k, t]
-                if x > bv[t]:
-                    bv[t] = x
-                    bq[t] = k
-                top[t] = max(top[t], x)
-        for q in range(m):
-            for t in range(n):
-                x = P[bq[t] - R + q, t]
-                B[q, t] = x
-                top[t] = max(top[t], x)
+    # the integer peak among the 2 e + 1 core rows (the first of equal ones): its shift d in [0, 2 e]
+    bv = P[R].copy()
+    d = np.zeros(n, np.uint8)
+    top = P[R].copy()
+    for j in range(1, 2 * e + 1):
+        pj = P[R + j]
+        uj = np.uint8(j)
+        for t in range(n):
+            x = pj[t]
+            mk = np.uint8(0) - np.uint8(x > bv[t])
+            bv[t] = max(bv[t], x)
+            d[t] = (uj & mk) | (d[t] & ~mk)
+            top[t] = max(top[t], x)
+    bq = np.empty(n, np.int64)
+    for t in range(n):
+        bq[t] = R + np.int64(d[t])
+    # the window re-centred on it, B[q] = P[q + d]: selects over the 2 e + 1 shifts (vectorized, no gathers)
+    B = np.empty((m, n), np.float32)
+    row = np.empty(n, np.uint8)
+    for q in range(m):
+        p0 = P[q]
+        for t in range(n):
+            row[t] = p0[t]
+        for j in range(1, 2 * e + 1):
+            pj = P[q + j]
+            uj = np.uint8(j)
+            for t in range(n):  # a byte mask, not a conditional expression (which the compiler leaves scalar)
+                mk = np.uint8(0) - np.uint8(d[t] == uj)
+                row[t] = (pj[t] & mk) | (row[t] & ~mk)
+        bqr = B[q]
+        for t in range(n):
+            bqr[t] = row[t]
+            top[t] = max(top[t], row[t])
     for t in range(n):
         special[t] |= top[t] >= sat_dn
     # 1. linear background from the two flanks, subtracted; noise of the flanks
