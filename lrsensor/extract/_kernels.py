@@ -763,7 +763,7 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
     results are to be taken from :func:`fit_columns`.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
-    ``image`` must be C-contiguous. Works in chunks of 256 columns.
+    ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
     n = cols.size
     centre = np.empty(n)
@@ -773,8 +773,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     noise = np.empty(n)
     special = np.empty(n, np.bool_)
     rise = np.empty((3, n))
-    for t0 in range(0, n, 256):
-        t1 = min(t0 + 256, n)
+    for t0 in range(0, n, 512):
+        t1 = min(t0 + 512, n)
         res = _fit_common_chunk(
             image,
             cols[t0:t1],
@@ -1017,10 +1017,19 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
     has an other-laser neighbour for :func:`neighbours`: a cheap test that spares its dense arrays)."""
     lo = np.full(n_lasers, np.inf)
     hi = np.full(n_lasers, -np.inf)
-    for t in range(v.size):
-        if good[t] and math.isfinite(v[t]):
-            lo[laser[t]] = min(lo[laser[t]], v[t])
-            hi[laser[t]] = max(hi[laser[t]], v[t])
+    n = v.size
+    t = 0
+    while t < n:  # runs of one laser (the points are sorted by laser): bounds in registers, branch-free
+        li = laser[t]
+        a = np.inf
+        b = -np.inf
+        while t < n and laser[t] == li:
+            x = v[t] if good[t] else np.nan
+            a = min(a, x) if x == x else a
+            b = max(b, x) if x == x else b
+            t += 1
+        lo[li] = min(lo[li], a)
+        hi[li] = max(hi[li], b)
     for a in range(n_lasers):
         for b in range(n_lasers):
             if a != b and lo[a] <= hi[b] + max_dist and lo[b] <= hi[a] + max_dist:
