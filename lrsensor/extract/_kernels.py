@@ -1409,7 +1409,9 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     if ho <= 0:
         e_i = np.empty(0, np.int64)
         return e_i, e_i, np.empty(0), noise
-    resp = np.empty((ho, wo), np.int16)
+    # in float32 (exact for these small integers): 16 lanes, where integer arithmetic would widen to 64 bits
+    resp = np.empty((ho, wo), np.float32)
+    zero = np.float32(0.0)
     for y in range(ho):
         bc = B[y + ds]
         b0 = B[y]
@@ -1420,16 +1422,16 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             h1 = B[y + ds + hd]
             for x in range(wo):
                 ux = np.uint64(x)
-                c = bc[ux]
-                r = max(c - max(b0[ux], b1[ux]), c - max(h0[ux], h1[ux]))
-                ry[ux] = max(r, 0)
+                c = np.float32(bc[ux])
+                r = max(c - np.float32(max(b0[ux], b1[ux])), c - np.float32(max(h0[ux], h1[ux])))
+                ry[ux] = max(r, zero)
         else:
             for x in range(wo):
                 ux = np.uint64(x)
-                ry[ux] = max(bc[ux] - max(b0[ux], b1[ux]), 0)
+                ry[ux] = max(np.float32(bc[ux]) - np.float32(max(b0[ux], b1[ux])), zero)
     # vertical local maxima inside the band: counted per column, then placed column by column
-    y0 = np.empty(wo, np.int64)
-    y1 = np.empty(wo, np.int64)
+    y0 = np.empty(wo, np.float32)
+    y1 = np.empty(wo, np.float32)
     for x in range(wo):
         uf = min(2 * x, w - 1)
         lo = v_lo[uf]
@@ -1440,20 +1442,25 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         else:
             y0[x] = max((lo - r0 + 1) // 2, 0)
             y1[x] = min((hi - r0) // 2 + 1, ho)
-    cnt = np.zeros(wo + 1, np.int64)
+    cnt_f = np.zeros(wo, np.float32)
     w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
     pk = np.zeros((ho, w8), np.uint8)
+    tf = np.float32(t8)
     for y in range(ho):
         rm = resp[max(y - 1, 0)]
         rc = resp[y]
         rp = resp[min(y + 1, ho - 1)]
         py = pk[y]
+        fy = np.float32(y)
         for x in range(wo):
             ux = np.uint64(x)
             v = rc[ux]
-            is_pk = (v > t8) & (rm[ux] <= v) & (rp[ux] <= v) & (y >= y0[ux]) & (y < y1[ux])
+            is_pk = (v > tf) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
             py[ux] = is_pk
-            cnt[ux + 1] += is_pk
+            cnt_f[ux] += np.float32(is_pk)
+    cnt = np.zeros(wo + 1, np.int64)
+    for x in range(wo):
+        cnt[x + 1] = np.int64(cnt_f[x])
     for x in range(wo):
         cnt[x + 1] += cnt[x]
     n = cnt[wo]
