@@ -1019,7 +1019,7 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
     hi = np.full(n_lasers, -np.inf)
     n = v.size
     t = 0
-    while t < n:  # runs of one laser (the points are sorted by laser): bounds in registers, branch-free
+    while t < n:  # runs of one laser (the points are sorted by laser): each run's bounds kept in registers
         li = laser[t]
         a = np.inf
         b = -np.inf
@@ -1209,6 +1209,7 @@ def finish_points(  # type: ignore[no-untyped-def]
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)
     q_out = np.empty(m)
+    e_snr = exp_array(-snr / 8.0)  # vectorized (a library exp per point costs 4 ns)
     k = 0
     for t in range(n):
         if run_id[t] < 0 or counts[run_id[t]] < need:
@@ -1217,15 +1218,8 @@ def finish_points(  # type: ignore[no-untyped-def]
         u_out[k] = col_v[t] - laser * w
         v_out[k] = ys[col_v[t]]
         l_out[k] = laser
-        q_out[k] = -snr[t] / 8.0
-        k += 1
-    e_snr = exp_array(q_out)  # vectorized (a library exp per point costs 4 ns)
-    k = 0
-    for t in range(n):
-        if run_id[t] < 0 or counts[run_id[t]] < need:
-            continue
         s = sig[t] if math.isfinite(sig[t]) else max_sigma
-        q_snr = 1.0 - e_snr[k]
+        q_snr = 1.0 - e_snr[t]
         q_w = min(max(min(s / 0.6, 1.5 * max_sigma / max(s, 1e-6) - 0.5), 0.2), 1.0)
         q_run = min(max(chain_len[t] / (4.0 * min_run), 0.0), 1.0)
         q_out[k] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
@@ -1458,11 +1452,9 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             is_pk = (v > tf) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
             py[ux] = is_pk
             cnt_f[ux] += np.float32(is_pk)
-    cnt = np.zeros(wo + 1, np.int64)
+    cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
     for x in range(wo):
-        cnt[x + 1] = np.int64(cnt_f[x])
-    for x in range(wo):
-        cnt[x + 1] += cnt[x]
+        cnt[x + 1] = cnt[x] + np.int64(cnt_f[x])
     n = cnt[wo]
     cu = np.empty(n, np.int64)
     cv = np.empty(n, np.int64)
