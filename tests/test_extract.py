@@ -114,6 +114,48 @@ def test_smoothing_keeps_corners_and_reduces_noise() -> None:
     assert np.median(err[near]) < 0.06
 
 
+def test_compiled_smoothing_equals_the_numpy_twin() -> None:
+    """``smooth_runs`` (which fits only the windows the remaining columns can use and stops when all are done)
+    gives the same values as ``_smooth`` on runs with gaps, corners, steps and columns without a measurement."""
+    from lrsensor.extract import _kernels
+
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        n = int(rng.integers(60, 1500))
+        u = np.arange(n, dtype=float)
+        kink = rng.uniform(0.2, 0.8) * n
+        y = 200.0 + 0.03 * u + np.where(u > kink, rng.uniform(-0.2, 0.2) * (u - kink), 0.0)
+        y += rng.uniform(0.02, 0.5) * rng.standard_normal(n)
+        run = np.cumsum(rng.random(n) < 3.0 / n).astype(np.int64)  # a few runs (intervals), ids increasing
+        y[run % 2 == 1] += 15.0  # depth steps between runs
+        gaps = rng.random(n) < 0.05 * (trial % 3)
+        run[gaps] = -1
+        y[gaps] = np.nan
+        scales = (384, 96, 24, 6) if trial % 2 else (48, 12, 3)
+        want = _smooth(y, run, scales)
+        got = _kernels.smooth_runs(y, run, np.array(scales, np.int64))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, equal_nan=True)
+        assert np.any(got[run >= 0] != y[run >= 0])  # it did smooth
+
+
+@pytest.mark.parametrize("n", [2, 5, 8, 9, 10])
+def test_pooled_median_sorting_network_sorts_every_input(n: int) -> None:
+    """The compare-exchange network of the pooled signal-to-noise median sorts all 2^n 0-1 inputs (0-1
+    principle: then it sorts any input); n = 9 is the 25-exchange network of the default pool."""
+    from lrsensor.extract import _kernels
+
+    net = _kernels._sorting_network(n)
+    if n == 9:
+        assert net.shape == (25, 2)
+    bits = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
+    a = bits.T.copy()  # (n, 2^n): one input per column, as the kernel lays them out
+    for i, j in net:
+        lo = np.minimum(a[i], a[j])
+        a[j] = np.maximum(a[i], a[j])
+        a[i] = lo
+    np.testing.assert_array_equal(a.T, np.sort(bits, axis=1))
+
+
 # ----------------------------------------------------------------------------- bands
 
 

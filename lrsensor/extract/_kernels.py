@@ -814,9 +814,10 @@ def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type
 
 
 @_njit
-def _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
+def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
     """The line fits of :func:`smooth_runs` over every window ``[c - k, c + k]`` (same arithmetic), without
-    branches: fills ``a_c``, ``b_c``, ``rss_c`` (N,) and ``acc_c`` (N,) bool for ``c`` in ``[k, n - k)``.
+    branches: fills ``a_c``, ``b_c``, ``rss_c`` (N,) and ``acc_c`` (N,) bool for the centres ``c = i + k``,
+    ``i`` in ``[i0, i1)`` (all of them: ``[0, N - 2 k)``).
 
     Unsigned indices (no negative-index wrap-around), no branches, and the quarter checks of long windows in a
     second pass (one loop with all of it has too many arrays for the compiler's alias checks): both vectorize.
@@ -824,7 +825,7 @@ def _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a
     full_n = 0.6 * (2 * k + 1)
     m = np.uint64(2 * k + 1)
     uk = np.uint64(k)
-    for i in range(n - 2 * k):
+    for i in range(i0, i1):
         lo = np.uint64(i)
         hi = lo + m
         c = float(i + k)
@@ -856,7 +857,7 @@ def _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a
     # long windows: each quarter must fit the line too (a kink near one end is diluted in the whole window's
     # residual, not in its quarter's)
     uq = np.uint64((2 * k + 1) // 4)
-    for i in range(n - 2 * k):
+    for i in range(i0, i1):
         lo = np.uint64(i)
         hi = lo + m
         c = float(i + k)
@@ -879,51 +880,49 @@ def _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a
 
 @_njit
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing)."""
+    """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing).
+
+    ``run`` labels are non-decreasing along the measured columns (runs are intervals). Each scale fits only the
+    windows that the columns still to do can use, and the scales stop once every column is done.
+    """
     n = y.size
     out = y.copy()
     lag = 4
     have = run >= 0
     if n <= 2 * lag + 2:
         return out
-    # run extents
-    run_lo = np.full(n, n, np.int64)
-    run_hi = np.full(n, -1, np.int64)
-    i = 0
-    while i < n:
-        if not have[i]:
-            i += 1
-            continue
-        j = i
-        last = i
-        while j + 1 < n and (not have[j + 1] or run[j + 1] == run[i]):
-            j += 1
-            if have[j]:
-                last = j
-        for q in range(i, last + 1):
-            if have[q]:
-                run_lo[q] = i
-                run_hi[q] = last
-        i = last + 1
-    # local noise: lag-4 second differences inside runs
+    # run extents and each run's first value (the base of the window sums): one pass over the runs' ends
+    n_run = 0
+    for q in range(n):
+        n_run = max(n_run, run[q] + 1)
+    first = np.full(max(n_run, 1), n, np.int64)
+    last = np.full(max(n_run, 1), -1, np.int64)
+    for q in range(n):
+        r = run[q]
+        if r >= 0:
+            first[r] = min(first[r], q)
+            last[r] = q
+    # local noise: lag-4 second differences inside runs (branch-free over all columns, then compacted)
     d2 = np.zeros(n)
     cnt2 = np.zeros(n)
+    for q in range(lag, n - lag):
+        rq = run[q]
+        same = (rq >= 0) & (run[q - lag] == rq) & (run[q + lag] == rq)
+        dd = y[q - lag] - 2.0 * y[q] + y[q + lag]
+        d2[q] = dd * dd if same else 0.0
+        cnt2[q] = 1.0 if same else 0.0
     vals = np.empty(n)
     nv = 0
     for q in range(lag, n - lag):
-        if have[q] and have[q - lag] and have[q + lag] and run[q - lag] == run[q] and run[q + lag] == run[q]:
-            dd = y[q - lag] - 2.0 * y[q] + y[q + lag]
-            d2[q] = dd * dd
-            cnt2[q] = 1.0
-            vals[nv] = dd * dd
+        if cnt2[q] > 0.0:
+            vals[nv] = d2[q]
             nv += 1
     if nv < 8:
         return out
     var_all = np.median(vals[:nv]) / (6.0 * 0.4549) + 1e-8
+    run_lo = np.empty(n, np.int64)
+    run_hi = np.empty(n, np.int64)
     base = np.zeros(n)
-    for q in range(n):
-        if have[q]:
-            base[q] = y[run_lo[q]]
     c_m = np.empty(n + 1)  # running sums: every element is written below
     c_mx = np.empty(n + 1)
     c_mxx = np.empty(n + 1)
@@ -934,8 +933,18 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     c_n2 = np.empty(n + 1)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
     for q in range(n):
-        mq = 1.0 if have[q] else 0.0
-        zq = y[q] - base[q] if have[q] else 0.0
+        r = run[q]
+        if r >= 0:
+            run_lo[q] = first[r]
+            run_hi[q] = last[r]
+            base[q] = y[first[r]]
+            mq = 1.0
+            zq = y[q] - base[q]
+        else:
+            run_lo[q] = n
+            run_hi[q] = -1
+            mq = 0.0
+            zq = 0.0
         c_m[q + 1] = c_m[q] + mq
         c_mx[q + 1] = c_mx[q] + mq * q
         c_mxx[q + 1] = c_mxx[q] + mq * q * q
@@ -949,31 +958,38 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     b_c = np.empty(n)
     rss_c = np.empty(n)
     acc_c = np.zeros(n, np.bool_)
-    best = np.empty(n)
-    val = np.empty(n)
     for k in scales:
         if k < 1 or 2 * k + 1 > n:
             continue
-        # every window's fit, branch-free (vectorized: cheaper than skipping the windows no column needs)
-        acc_c[:k] = False
-        acc_c[n - k :] = False
-        _fit_windows(k, n, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
-        for u in range(n):
+        # the columns still to do span [u_lo, u_hi]; their windows' centres lie within k of that span
+        u_lo = 0
+        while u_lo < n and done[u_lo]:
+            u_lo += 1
+        if u_lo == n:
+            break
+        u_hi = n - 1
+        while done[u_hi]:
+            u_hi -= 1
+        i0 = max(u_lo - 2 * k, 0)
+        i1 = min(u_hi + 1, n - 2 * k)
+        # those windows' fits, branch-free (vectorized: cheaper than skipping the windows no column needs)
+        _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
+        for u in range(u_lo, u_hi + 1):
             if done[u]:
                 continue
-            best[u] = np.inf
-            val[u] = np.nan
+            best = np.inf
+            val = np.nan
             for sh in (0, -k, k):
                 c = u + sh
                 if c < k or c >= n - k or not acc_c[c]:
                     continue
                 if c - k < run_lo[u] or c + k > run_hi[u]:
                     continue
-                if rss_c[c] < best[u]:
-                    best[u] = rss_c[c]
-                    val[u] = a_c[c] + b_c[c] * (-sh) + base[u]
-            if math.isfinite(val[u]):
-                out[u] = val[u]
+                if rss_c[c] < best:
+                    best = rss_c[c]
+                    val = a_c[c] + b_c[c] * (-sh) + base[u]
+            if math.isfinite(val):
+                out[u] = val
                 done[u] = True
     return out
 
@@ -1066,6 +1082,32 @@ def neighbours(laser, cols, v, amp, sig, good, n_lasers, width, max_dist):  # ty
                     out_a[t] = A[other, cols[t]]
                     out_s[t] = S[other, cols[t]]
     return out_v, out_a, out_s
+
+
+#: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
+#: for the default pooled window of 9 columns (odd-even transposition needs 36).
+SORT9 = np.array(
+    [
+        *((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (0, 3), (3, 6), (0, 3), (1, 4)),
+        *((4, 7), (1, 4), (2, 5), (5, 8), (2, 5), (1, 3), (5, 7), (2, 6), (4, 6), (2, 4), (2, 3), (5, 6)),
+    ],
+    np.int64,
+)
+
+
+@_njit
+def _sorting_network(n):  # type: ignore[no-untyped-def]
+    """Compare-exchange pairs (P, 2) that sort ``n`` values: :data:`SORT9` for 9, else odd-even transposition."""
+    if n == 9:
+        return SORT9.copy()
+    pairs = np.empty((n * (n // 2), 2), np.int64)
+    p = 0
+    for r in range(n):
+        for j in range(r % 2, n - 1, 2):
+            pairs[p, 0] = j
+            pairs[p, 1] = j + 1
+            p += 1
+    return pairs[:p]
 
 
 @_njit
@@ -1162,14 +1204,14 @@ def finish_points(  # type: ignore[no-untyped-def]
             use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
             vj[q] = x if use else np.inf
             cnt_d[q] += use
-    for r in range(nw):
-        for j in range(r % 2, nw - 1, 2):
-            va = vals[j]
-            vb = vals[j + 1]
-            for q in range(nd):
-                lo = min(va[q], vb[q])
-                vb[q] = max(va[q], vb[q])
-                va[q] = lo
+    net = _sorting_network(nw)
+    for p in range(net.shape[0]):
+        va = vals[net[p, 0]]
+        vb = vals[net[p, 1]]
+        for q in range(nd):
+            lo = min(va[q], vb[q])
+            vb[q] = max(va[q], vb[q])
+            va[q] = lo
     for t in range(n):
         if not good[t]:
             continue
