@@ -151,25 +151,31 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     K = k_max
     V = np.full((n_cols, K), np.nan)
     A = np.zeros((n_cols, K))
-    for t in range(m):
-        c = mu[t]
-        # insert by strength (descending)
-        pos = K
-        for q in range(K):
-            if not (A[c, q] >= ma[t]) or math.isnan(V[c, q]):
-                pos = q
-                break
-        if pos == K:
-            continue
-        for q in range(K - 1, pos, -1):
-            V[c, q] = V[c, q - 1]
-            A[c, q] = A[c, q - 1]
-        V[c, pos] = mv[t]
-        A[c, pos] = ma[t]
     cnt = np.zeros(n_cols, np.int64)  # candidates per column (packed first: the rest of the row is NaN)
-    for c in range(n_cols):
-        while cnt[c] < K and not math.isnan(V[c, cnt[c]]):
-            cnt[c] += 1
+    t = 0
+    while t < m:
+        c = mu[t]
+        if t + 1 == m or mu[t + 1] != c:  # the only candidate of its column (the common case)
+            V[c, 0] = mv[t]
+            A[c, 0] = ma[t]
+            cnt[c] = 1
+            t += 1
+            continue
+        while t < m and mu[t] == c:
+            # insert by strength (descending; after equal ones)
+            pos = K
+            for q in range(K):
+                if not (A[c, q] >= ma[t]) or q >= cnt[c]:
+                    pos = q
+                    break
+            if pos < K:
+                for q in range(K - 1, pos, -1):
+                    V[c, q] = V[c, q - 1]
+                    A[c, q] = A[c, q - 1]
+                V[c, pos] = mv[t]
+                A[c, pos] = ma[t]
+                cnt[c] = min(cnt[c] + 1, K)
+            t += 1
     # 3. chains: mutual nearest links, first between neighbouring columns, then across small gaps
     nn = n_cols * K
     prev = np.arange(nn)
@@ -230,11 +236,10 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     length = np.zeros(nn, np.int64)
     strength = np.zeros(nn)
     for c in range(n_cols):
-        for q in range(K):
-            if not math.isnan(V[c, q]):
-                r = root[c * K + q]
-                length[r] += 1
-                strength[r] += A[c, q]
+        for q in range(cnt[c]):
+            r = root[c * K + q]
+            length[r] += 1
+            strength[r] += A[c, q]
     # 4. per column the candidate on the strongest long-enough chain
     cols = np.empty(n_cols, np.int64)
     rows = np.empty(n_cols, np.float64)
@@ -244,10 +249,8 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     for c in range(n_cols):
         best_s = -1.0
         best_q = -1
-        for q in range(K):
+        for q in range(cnt[c]):
             node = c * K + q
-            if math.isnan(V[c, q]):
-                continue
             r = root[node]
             if length[r] >= min_run and strength[r] > best_s:
                 best_s = strength[r]
