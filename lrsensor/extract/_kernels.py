@@ -1485,6 +1485,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
     pk = np.zeros((ho, w8), np.uint8)
     tf = np.float32(t8)
+    row_pk = np.empty(ho, np.uint8)  # any peak in the row: the rows without any are skipped below
     for y in range(ho):
         rm = resp[max(y - 1, 0)]
         rc = resp[y]
@@ -1497,6 +1498,10 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             is_pk = (v > tf) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
             py[ux] = is_pk
             cnt_f[ux] += np.float32(is_pk)
+        any_pk = np.uint8(0)
+        for x in range(wo):  # an integer OR (vectorizes; a float sum in the loop above would not)
+            any_pk |= py[np.uint64(x)]
+        row_pk[y] = any_pk
     cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
     for x in range(wo):
         cnt[x + 1] = cnt[x] + np.int64(cnt_f[x])
@@ -1508,6 +1513,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     words = pk.reshape(-1).view(np.uint64)
     nw8 = w8 // 8
     for y in range(ho):
+        if row_pk[y] == 0:
+            continue
         for k in range(nw8):
             if words[y * nw8 + k] == 0:  # no peak among these 8 columns (the common case)
                 continue
