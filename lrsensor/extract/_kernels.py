@@ -1160,8 +1160,10 @@ def finish_points(  # type: ignore[no-untyped-def]
         noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
     # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
-    ch = np.full(n_cols + 2 * pool, -1, np.int64)
-    dr = np.zeros((3, n_cols + 2 * pool))
+    ch = np.full(n_cols + 2 * pool, -1, np.int32)  # chain ids < n_cols * k: 16 lanes in the float32 pooling
+    # the rises are halves of integers below 256 in magnitude: their sums over the window are exact in float32
+    # (twice the vector lanes of float64)
+    dr = np.zeros((3, n_cols + 2 * pool), np.float32)
     for t in range(n):
         q = col_v[t] + pool
         ch[q] = chain[t]
@@ -1172,8 +1174,9 @@ def finish_points(  # type: ignore[no-untyped-def]
     # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
     nw = 2 * pool + 1
     nd = n_cols
-    sums = np.zeros((3, nd))
+    sums = np.zeros((3, nd), np.float32)
     own = ch[pool : pool + nd]
+    zero = np.float32(0.0)
     for c in range(3):  # one output per loop: few arrays, cheap alias checks
         sc = sums[c]
         dc = dr[c]
@@ -1181,14 +1184,14 @@ def finish_points(  # type: ignore[no-untyped-def]
             uj = np.uint64(j)
             for q in range(nd):
                 uq = np.uint64(q)
-                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else 0.0
+                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
     sb = sums[0]
     sg = sums[1]
     sr = sums[2]
     good = np.zeros(n, np.bool_)
     for t in range(n):
         q = col_v[t]
-        good[t] = ok[t] and (sat[t] or sg[q] >= green_ratio * max(sb[q], sr[q]))
+        good[t] = ok[t] and (sat[t] or float(sg[q]) >= green_ratio * float(max(sb[q], sr[q])))
     ds = np.full(n_cols + 2 * pool, np.nan)
     for t in range(n):
         if good[t]:
