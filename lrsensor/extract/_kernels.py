@@ -651,26 +651,27 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         lv[n + t] = max(a0[t], 0.5)
         lv[2 * n + t] = max(B[R + s, t], 0.5)
     lv = log_array(lv)
-    for t in range(n):
+    fR = float(R)
+    sws = np.empty(n)
+    for t in range(n):  # branch-free (vectorizes): a profile without curvature takes the selects' other side
         ym = lv[t]
         y0 = lv[n + t]
         yp = lv[2 * n + t]
         den = ym - 2.0 * y0 + yp
-        if den < -1e-6:
-            c[t] = R + min(max(0.5 * s * (ym - yp) / den, -1.0), 1.0)
-            sg = s / math.sqrt(-den)
-            ok[t] = sg >= min_sig and sg <= max_sig
-        else:
-            c[t] = R
-            sg = np.inf
-        sigma[t] = sg
-        sig_p = sg if math.isfinite(sg) else sigma_hint
-        sig_p = min(max(sig_p, min_sig), max_sig)
+        curved = den < -1e-6
+        dsafe = den if curved else -1.0
+        c[t] = fR + min(max(0.5 * s * (ym - yp) / dsafe, -1.0), 1.0) if curved else fR
+        sg = s / math.sqrt(-dsafe)  # finite where curved
+        ok[t] = curved & (sg >= min_sig) & (sg <= max_sig)
+        sigma[t] = sg if curved else np.inf
+        sig_p = min(max(sg if curved else sigma_hint, min_sig), max_sig)
         sig_w = max(sig_p, 1.1)
-        sw_max = max(sw_max, sig_w)
+        sws[t] = sig_w
         inv2[t] = 0.5 / (sig_w * sig_w)
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
         g2[t] = -2.0 * inv2[t]
+    for t in range(n):
+        sw_max = max(sw_max, sws[t])
     g2 = exp_array(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
     xa = np.full(n, -1.0)
