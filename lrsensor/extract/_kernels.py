@@ -608,6 +608,10 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             top[t] = max(top[t], row[t])
     for t in range(n):
         special[t] |= top[t] >= sat_dn
+    # the green samples of the colour rise (peak row and the window's ends), before the background is removed
+    g_lo = B[0].copy()
+    g_pk = B[R].copy()
+    g_hi = B[m - 1].copy()
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
@@ -733,13 +737,17 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                     c[t] += min(max(step, -1.0), 1.0)
     # 4. acceptance and the colour rises
     centre = np.empty(n)
-    rise = np.zeros((3, n))
-    stride = wid * 3
-    for t in range(n):
-        good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0.0
+    rise = np.empty((3, n))
+    r_g = rise[1]
+    for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
+        good = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
         pk_row = rows[t] + bq[t] - e - R
         centre[t] = pk_row - half + c[t] if good else np.nan
         ok[t] = good
+        r_g[t] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
+    stride = wid * 3
+    for t in range(n):  # blue and red at the same rows: read from the image
+        pk_row = rows[t] + bq[t] - e - R
         if inside:  # the window lies in the image: flat unsigned indices, no clamping
             rp = np.uint64((pk_row * wid + cols[t]) * 3)
             rl = rp - np.uint64(half * stride)
@@ -748,7 +756,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
             rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
             rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
-        for ch in range(3):
+        for ch in (0, 2):
             uc = np.uint64(ch)
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
     return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special, rise
