@@ -1019,8 +1019,10 @@ def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-unty
     ch = np.empty(2 * n, np.int64)
     cl = np.empty(2 * n, np.int64)
     k = 0
+    laser = 0
     for i in range(n):
-        laser = col_d[i] // wd
+        while col_d[i] >= (laser + 1) * wd:  # sorted: the laser only grows (no division per column)
+            laser += 1
         c = col_d[i] - laser * wd
         cols[k] = laser * w + 2 * c
         rows[k] = rows_f[i]
@@ -1778,10 +1780,13 @@ def process_candidates(  # type: ignore[no-untyped-def]
     rows = np.empty(n, np.int64)
     laser = np.empty(n, np.int64)
     cols = np.empty(n, np.int64)
+    li = 0
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
-        laser[t] = col_v[t] // w
-        cols[t] = col_v[t] - laser[t] * w
+        while col_v[t] >= (li + 1) * w:  # sorted by virtual column: no division per point
+            li += 1
+        laser[t] = li
+        cols[t] = col_v[t] - li * w
     # 4. frame statistics (window length), common fits, full fits of the special columns
     floor = fwhm_per_sigma * max_sigma
     mfw = np.full(n, np.nan)
