@@ -917,12 +917,14 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     # local noise: lag-4 second differences inside runs (branch-free over all columns, then compacted)
     d2 = np.zeros(n)
     cnt2 = np.zeros(n)
-    for q in range(lag, n - lag):
-        rq = run[q]
-        same = (rq >= 0) & (run[q - lag] == rq) & (run[q + lag] == rq)
-        dd = y[q - lag] - 2.0 * y[q] + y[q + lag]
-        d2[q] = dd * dd if same else 0.0
-        cnt2[q] = 1.0 if same else 0.0
+    ul = np.uint64(lag)
+    for q in range(lag, n - lag):  # unsigned indices: no wrap-around test, the loop vectorizes
+        uq = np.uint64(q)
+        rq = run[uq]
+        same = (rq >= 0) & (run[uq - ul] == rq) & (run[uq + ul] == rq)
+        dd = y[uq - ul] - 2.0 * y[uq] + y[uq + ul]
+        d2[uq] = dd * dd if same else 0.0
+        cnt2[uq] = 1.0 if same else 0.0
     vals = np.empty(n)
     nv = 0
     for q in range(lag, n - lag):
