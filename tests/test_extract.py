@@ -138,6 +138,19 @@ def test_compiled_smoothing_equals_the_numpy_twin() -> None:
         assert np.any(got[run >= 0] != y[run >= 0])  # it did smooth
 
 
+def test_sorted_blocks_equal_integer_division() -> None:
+    """``sorted_blocks`` (the laser of each sorted virtual column, shared by the chains, the half-column expansion,
+    the fits and the gates) equals ``col // width``, also across empty blocks and for no columns."""
+    from lrsensor.extract import _kernels
+
+    rng = np.random.default_rng(2)
+    for width in (1, 7, 960):
+        col = np.sort(rng.choice(5 * width, size=min(3 * width, 500), replace=False)).astype(np.int64)
+        col = col[(col < width) | (col >= 3 * width)]  # blocks 1 and 2 empty
+        np.testing.assert_array_equal(_kernels.sorted_blocks(col, width), col // width)
+    assert _kernels.sorted_blocks(np.empty(0, np.int64), 4).size == 0
+
+
 @pytest.mark.parametrize("n", [2, 5, 8, 9, 10])
 def test_pooled_median_sorting_network_sorts_every_input(n: int) -> None:
     """The compare-exchange network of the pooled signal-to-noise median sorts all 2^n 0-1 inputs (0-1

@@ -181,9 +181,7 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     prev = np.arange(nn)
     has_next = np.zeros(nn, np.bool_)
     has_prev = np.zeros(nn, np.bool_)
-    blk = np.empty(n_cols, np.int64)  # the block (laser) of each column, without a division per link
-    for c in range(n_cols):
-        blk[c] = c // block
+    blk = sorted_blocks(np.arange(n_cols), block)  # the block (laser) of each column, no division per link
     for lag in range(1, max_gap + 1):
         for c in range(n_cols - lag):
             if cnt[c] == 0 or cnt[c + lag] == 0 or blk[c] != blk[c + lag]:
@@ -1009,6 +1007,20 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
 
 
 @_njit
+def sorted_blocks(col_v, width):  # type: ignore[no-untyped-def]
+    """The block ``col_v // width`` of each sorted virtual column (N,) int64, without a division per element
+    (block ``l`` holds ``[l width, (l + 1) width)``: a laser's columns, at full or detection resolution)."""
+    n = col_v.size
+    out = np.empty(n, np.int64)
+    b = 0
+    for t in range(n):
+        while col_v[t] >= (b + 1) * width:
+            b += 1
+        out[t] = b
+    return out
+
+
+@_njit
 def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-untyped-def]
     """Picks of half-resolution detection columns to full columns: column c stands for 2c and 2c + 1.
 
@@ -1021,10 +1033,9 @@ def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-unty
     ch = np.empty(2 * n, np.int64)
     cl = np.empty(2 * n, np.int64)
     k = 0
-    laser = 0
+    lasers = sorted_blocks(col_d, wd)
     for i in range(n):
-        while col_d[i] >= (laser + 1) * wd:  # sorted: the laser only grows (no division per column)
-            laser += 1
+        laser = lasers[i]
         c = col_d[i] - laser * wd
         cols[k] = laser * w + 2 * c
         rows[k] = rows_f[i]
@@ -1129,6 +1140,7 @@ def _sorting_network(n):  # type: ignore[no-untyped-def]
 @_njit
 def finish_points(  # type: ignore[no-untyped-def]
     col_v,
+    lz,
     vv,
     amp,
     sig,
@@ -1158,16 +1170,11 @@ def finish_points(  # type: ignore[no-untyped-def]
     the rises are summed, and the ratio is the median of the neighbours' (at most ``1 / floor_frac`` times the
     column's own). One noisy pixel then cannot drop a column of a dim stripe, nor keep one of a white blob.
 
+    ``lz`` (N,) is the laser of each point, ``col_v // w`` (:func:`sorted_blocks`).
+
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
     n = col_v.size
-    # the laser of each point: virtual columns are sorted, laser l holds [l w, (l + 1) w) (no division per point)
-    lz = np.empty(n, np.int64)
-    li = 0
-    for t in range(n):
-        while col_v[t] >= (li + 1) * w:
-            li += 1
-        lz[t] = li
     snr = np.zeros(n)
     for t in range(n):
         noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
@@ -1783,15 +1790,11 @@ def process_candidates(  # type: ignore[no-untyped-def]
         col_v = col_d
     n = col_v.size
     rows = np.empty(n, np.int64)
-    laser = np.empty(n, np.int64)
+    laser = sorted_blocks(col_v, w)
     cols = np.empty(n, np.int64)
-    li = 0
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
-        while col_v[t] >= (li + 1) * w:  # sorted by virtual column: no division per point
-            li += 1
-        laser[t] = li
-        cols[t] = col_v[t] - li * w
+        cols[t] = col_v[t] - laser[t] * w
     # 4. frame statistics (window length), common fits, full fits of the special columns
     floor = fwhm_per_sigma * max_sigma
     mfw = np.full(n, np.nan)
@@ -1841,6 +1844,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
     # 5-6. gates, runs, smoothing, quality
     u_o, v_o, l_o, q_o = finish_points(
         col_v,
+        laser,
         vv,
         amp,
         sig,
@@ -2023,6 +2027,7 @@ def warm_up() -> None:
         fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
         neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
         finish_points(
+            i64,
             i64,
             f64,
             f64,
