@@ -1445,16 +1445,20 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     # 2x2 area average (pairs of columns read as one uint16), then the 3-column box: (gh, wo)
     gh = rows_g // 2
     wo = wp // 2
-    B = np.empty((gh, wo), np.int16)
+    B = np.empty((gh, wo), np.uint8)
     A = np.empty(wo + 2, np.int32)
     G16 = G.reshape(-1).view(np.uint16).reshape((rows_g, wo))
+    m8 = np.uint16(255)
+    s8 = np.uint16(8)
+    two = np.uint16(2)
     for y in range(gh):
         u0 = G16[2 * y]
         u1 = G16[2 * y + 1]
-        for x in range(wo):
-            v0 = np.int32(u0[np.uint64(x)])
-            v1 = np.int32(u1[np.uint64(x)])
-            A[np.uint64(x + 1)] = ((v0 & 255) + (v0 >> 8) + (v1 & 255) + (v1 >> 8) + 2) >> 2
+        for x in range(wo):  # in uint16 (16 lanes; the sum of four bytes and 2 fits)
+            v0 = u0[np.uint64(x)]
+            v1 = u1[np.uint64(x)]
+            s4 = np.uint16(np.uint16(v0 & m8) + np.uint16(v0 >> s8) + np.uint16(v1 & m8) + np.uint16(v1 >> s8) + two)
+            A[np.uint64(x + 1)] = np.int32(np.uint16(s4 >> two))
         if wo > 1:
             A[0] = A[2]
             A[wo + 1] = A[wo - 1]
@@ -1464,7 +1468,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         by = B[y]
         for x in range(wo):  # round(s / 3) = floor((s + 1) / 3) = ((s + 1) * 21846) >> 16 for 0 <= s <= 765
             ux = np.uint64(x)
-            by[ux] = np.int16(((A[ux] + A[ux + 1] + A[ux + 2] + 1) * 21846) >> 16)
+            s3 = np.int32(A[ux] + A[ux + 1] + A[ux + 2] + 1)  # int32 throughout: 8 lanes, not 4
+            by[ux] = np.uint8(np.int32(s3 * np.int32(21846)) >> np.int32(16))
     # two-sided contrast, saturating at 0 (uint8 arithmetic), and at half the offset
     ds = d // 2
     hd = ds // 2
@@ -1474,9 +1479,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     if ho <= 0:
         e_i = np.empty(0, np.int64)
         return e_i, e_i, np.empty(0), noise
-    # in float32 (exact for these small integers): 16 lanes, where integer arithmetic would widen to 64 bits
-    resp = np.empty((ho, wo), np.float32)
-    zero = np.float32(0.0)
+    # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
+    resp = np.empty((ho, wo), np.uint8)
     for y in range(ho):
         bc = B[y + ds]
         b0 = B[y]
@@ -1487,16 +1491,17 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             h1 = B[y + ds + hd]
             for x in range(wo):
                 ux = np.uint64(x)
-                c = np.float32(bc[ux])
-                r = max(c - np.float32(max(b0[ux], b1[ux])), c - np.float32(max(h0[ux], h1[ux])))
-                ry[ux] = max(r, zero)
+                c = bc[ux]
+                m = min(max(b0[ux], b1[ux]), max(h0[ux], h1[ux]))
+                ry[ux] = c - min(c, m)
         else:
             for x in range(wo):
                 ux = np.uint64(x)
-                ry[ux] = max(np.float32(bc[ux]) - np.float32(max(b0[ux], b1[ux])), zero)
+                c = bc[ux]
+                ry[ux] = c - min(c, max(b0[ux], b1[ux]))
     # vertical local maxima inside the band: counted per column, then placed column by column
-    y0 = np.empty(wo, np.float32)
-    y1 = np.empty(wo, np.float32)
+    y0 = np.empty(wo, np.uint16)
+    y1 = np.empty(wo, np.uint16)
     for x in range(wo):
         uf = min(2 * x, w - 1)
         lo = v_lo[uf]
@@ -1505,32 +1510,32 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             y0[x] = 0
             y1[x] = 0
         else:
-            y0[x] = max((lo - r0 + 1) // 2, 0)
-            y1[x] = min((hi - r0) // 2 + 1, ho)
-    cnt_f = np.zeros(wo, np.float32)
+            y0[x] = min(max((lo - r0 + 1) // 2, 0), 65535)
+            y1[x] = min(max(min((hi - r0) // 2 + 1, ho), 0), 65535)
+    cnt16 = np.zeros(wo, np.uint16)
     w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
     pk = np.zeros((ho, w8), np.uint8)
-    tf = np.float32(t8)
+    tu = np.uint8(t8)
     row_pk = np.empty(ho, np.uint8)  # any peak in the row: the rows without any are skipped below
     for y in range(ho):
         rm = resp[max(y - 1, 0)]
         rc = resp[y]
         rp = resp[min(y + 1, ho - 1)]
         py = pk[y]
-        fy = np.float32(y)
+        fy = np.uint16(y)
         for x in range(wo):
             ux = np.uint64(x)
             v = rc[ux]
-            is_pk = (v > tf) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
+            is_pk = (v > tu) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
             py[ux] = is_pk
-            cnt_f[ux] += np.float32(is_pk)
+            cnt16[ux] += np.uint16(is_pk)
         any_pk = np.uint8(0)
-        for x in range(wo):  # an integer OR (vectorizes; a float sum in the loop above would not)
+        for x in range(wo):  # an integer OR (vectorizes)
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
     cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
     for x in range(wo):
-        cnt[x + 1] = cnt[x] + np.int64(cnt_f[x])
+        cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
     n = cnt[wo]
     cu = np.empty(n, np.int64)
     cv = np.empty(n, np.int64)
