@@ -6,7 +6,8 @@ OpenCV steps of ``subpixel._candidates``), then :func:`process_candidates` (cand
 sub-pixel fits, neighbour refits, pooled gates, along-stripe smoothing, quality), the triangulation and the
 range-limit gate. The loops are written so that the compiler vectorizes them across columns: unsigned indices
 where an index could be negative (no wrap-around select per access), few arrays per loop (cheap run-time alias
-checks), selects instead of branches, and :func:`exp_array` / :func:`log_array` instead of libm calls.
+checks), selects instead of branches, and :func:`exp_array` / :func:`log_array` (and their float32 twins)
+instead of libm calls.
 These compile once (``cache=True``, tens of seconds the very first time, about a second from the on-disk cache).
 
 Compilation never blocks a caller: :func:`ready` starts it in a background thread on first use and returns False
@@ -109,6 +110,66 @@ def log_array(x):  # type: ignore[no-untyped-def]
         for d in (21.0, 19.0, 17.0, 15.0, 13.0, 11.0, 9.0, 7.0, 5.0, 3.0, 1.0):
             p = p * z + 1.0 / d
         out[i] = 2.0 * s * p + ex[i] * _LN2_LO + ex[i] * _LN2_HI
+    return out
+
+
+_LN2_HI_F = np.float32(0.693359375)  # ln 2 = _LN2_HI_F + _LN2_LO_F, the first with few mantissa bits
+_LN2_LO_F = np.float32(-2.12194440e-4)
+_INV_LN2_F = np.float32(1.44269504)
+_SQRT2_BITS_F = 0x3FB504F3  # the float32 bits of sqrt(2)
+
+
+@_njit
+def exp_array32(x):  # type: ignore[no-untyped-def]
+    """``exp`` of every element of ``x`` (N,) float32, as a new float32 array, within 2 ulp (float32) of
+    ``math.exp``: :func:`exp_array` in single precision (twice its vector lanes, a degree-7 polynomial).
+    Arguments are clamped to [-87, 88] (e^-87 = 1.6e-38, the smallest normal float32)."""
+    n = x.size
+    out = np.empty(n, np.float32)
+    ib = np.empty(n, np.int32)
+    lo = np.float32(-87.0)
+    hi = np.float32(88.0)
+    half = np.float32(0.5)
+    for i in range(n):
+        xi = min(max(x[i], lo), hi)
+        k = np.floor(xi * _INV_LN2_F + half)
+        r = (xi - k * _LN2_HI_F) - k * _LN2_LO_F
+        p = np.float32(1.0 / 5040.0)  # Horner: r^7 / 7! + ... + r + 1 (|r| <= ln2 / 2: error 5e-9)
+        for f in (720.0, 120.0, 24.0, 6.0, 2.0, 1.0, 1.0):
+            p = p * r + np.float32(1.0 / f)
+        out[i] = p
+        ib[i] = (np.int32(k) + np.int32(127)) << np.int32(23)
+    scale = ib.view(np.float32)
+    for i in range(n):
+        out[i] *= scale[i]
+    return out
+
+
+@_njit
+def log_array32(x):  # type: ignore[no-untyped-def]
+    """Natural logarithm of every element of ``x`` (N,) float32 (positive, finite, normal), as a new float32
+    array, within 2 ulp (float32) of ``math.log``: :func:`log_array` in single precision (series to ``s^9``)."""
+    n = x.size
+    out = np.empty(n, np.float32)
+    mant = x.copy()
+    ib = mant.view(np.int32)
+    ex = np.empty(n, np.float32)
+    for i in range(n):
+        bits = ib[i]
+        mb = (bits & np.int32(0x7FFFFF)) | np.int32(0x3F800000)
+        big = np.int32(mb > np.int32(_SQRT2_BITS_F))
+        ib[i] = mb - (np.int32(1) << np.int32(23)) * big
+        ex[i] = np.float32(((bits >> np.int32(23)) & np.int32(0xFF)) - np.int32(127) + big)
+    one = np.float32(1.0)
+    two = np.float32(2.0)
+    for i in range(n):
+        m = mant[i]
+        s = (m - one) / (m + one)
+        z = s * s
+        p = np.float32(1.0 / 11.0)  # Horner: z^5 / 11 + ... + z / 3 + 1 (|s| <= 0.172: error 1e-10)
+        for d in (9.0, 7.0, 5.0, 3.0, 1.0):
+            p = p * z + np.float32(1.0 / d)
+        out[i] = two * s * p + ex[i] * _LN2_LO_F + ex[i] * _LN2_HI_F
     return out
 
 
@@ -643,22 +704,23 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     ok = np.zeros(n, np.bool_)
     inv2 = np.empty(n)
     gain = np.empty(n)
-    g2 = np.empty(n)
+    g2 = np.empty(n, np.float32)
     a0 = np.empty(n, np.float32)
     sw_max = 1.1
-    lv = np.empty(3 * n)
+    lv = np.empty(3 * n, np.float32)
+    f_half = np.float32(0.5)
     for t in range(n):
         a0[t] = B[R, t]
-        lv[t] = max(B[R - s, t], 0.5)
-        lv[n + t] = max(a0[t], 0.5)
-        lv[2 * n + t] = max(B[R + s, t], 0.5)
-    lv = log_array(lv)
+        lv[t] = max(B[R - s, t], f_half)
+        lv[n + t] = max(a0[t], f_half)
+        lv[2 * n + t] = max(B[R + s, t], f_half)
+    lv = log_array32(lv)
     fR = float(R)
     sws = np.empty(n)
     for t in range(n):  # branch-free (vectorizes): a profile without curvature takes the selects' other side
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
+        ym = float(lv[t])
+        y0 = float(lv[n + t])
+        yp = float(lv[2 * n + t])
         den = ym - 2.0 * y0 + yp
         curved = den < -1e-6
         dsafe = den if curved else -1.0
@@ -671,10 +733,10 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         sws[t] = sig_w
         inv2[t] = 0.5 / (sig_w * sig_w)
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
-        g2[t] = -2.0 * inv2[t]
+        g2[t] = np.float32(-2.0 * inv2[t])
     for t in range(n):
         sw_max = max(sw_max, sws[t])
-    g2 = exp_array(g2)
+    g2f = exp_array32(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
     xa = np.full(n, -1.0)
     xb = np.full(n, -1.0)
@@ -700,24 +762,21 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     q1 = min(R + reach + 1, m)
     # column-parallel (the inner loop runs over columns: independent recurrences, vectorized), each column's
     # arithmetic in the same order as column by column
-    ex = np.empty(2 * n)
+    ex = np.empty(2 * n, np.float32)
     a_s0 = np.empty(n, np.float32)
     a_s1 = np.empty(n, np.float32)
     wq = np.empty(n, np.float32)
     rq = np.empty(n, np.float32)
-    g2f = np.empty(n, np.float32)
     cf = np.empty(n, np.float32)
-    for t in range(n):
-        g2f[t] = g2[t]
     for _ in range(iterations):
         for t in range(n):
             d0 = q0 - c[t]
-            ex[t] = -(d0 * d0) * inv2[t]
-            ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
+            ex[t] = np.float32(-(d0 * d0) * inv2[t])
+            ex[n + t] = np.float32(-(2.0 * d0 + 1.0) * inv2[t])
             a_s0[t] = 0.0
             a_s1[t] = 0.0
             cf[t] = c[t]
-        ex = exp_array(ex)
+        ex = exp_array32(ex)
         for t in range(n):
             wq[t] = ex[t]
             rq[t] = ex[n + t]
@@ -769,7 +828,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     Same arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
     clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
     its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
-    its logs and exps are :func:`log_array` and :func:`exp_array`, so centres agree to about 1e-5 px, far below
+    its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to about
+    1e-5 px, far below
     the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
     results are to be taken from :func:`fit_columns`.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
