@@ -1390,6 +1390,38 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
             x = np.uint64(cs * j)
             d = abs(np.int32(ra[x]) + np.int32(rc[x]) - 2 * np.int32(rb[x]))
             h4[j & 3, min(int(d), 1023)] += 1
+    return _noise_from_histograms(h4)
+
+
+@_njit
+def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
+    """:func:`noise_dn` of the green rows ``src`` (R,) of an image given as ``flat``, the (H * W * 3,) view of a
+    C-contiguous BGR image of ``width`` columns, evened (as the band of :func:`detect_band`, whose extra column
+    is never sampled: the column step is even): the same samples, read in place (no copy of the band)."""
+    rows = src.size
+    if rows < 5:
+        return 1.0
+    h4 = np.zeros((4, 1024), np.int64)
+    n = (rows - 4 + step - 1) // step
+    cols = width + width % 2
+    cs = noise_col_step(n, cols)
+    ns = (cols + cs - 1) // cs
+    for i in range(n):
+        r = i * step
+        ba = np.uint64(src[r] * width * 3 + 1)
+        bb = np.uint64(src[r + 2] * width * 3 + 1)
+        bc = np.uint64(src[r + 4] * width * 3 + 1)
+        for j in range(ns):
+            o = np.uint64(3 * cs * j)
+            d = abs(np.int32(flat[ba + o]) + np.int32(flat[bc + o]) - 2 * np.int32(flat[bb + o]))
+            h4[j & 3, min(int(d), 1023)] += 1
+    return _noise_from_histograms(h4)
+
+
+@_njit
+def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
+    """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
+    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.subpixel._noise_dn`)."""
     hist = np.empty(1024, np.int64)
     total = 0
     for k in range(1024):
@@ -1491,34 +1523,32 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     src = np.empty(rows_g, np.int64)
     for i in range(rows_g):
         src[i] = min(max(a0 - top + i, a0), a1 - 1)
-    wp = w + w % 2
-    # the padded green band, contiguous (a strided copy the compiler vectorizes)
-    G = np.empty((rows_g, wp), np.uint8)
-    for i in range(rows_g):
-        base = np.uint64(src[i] * w * 3 + 1)
-        row = G[i]
-        for x in range(w):
-            row[np.uint64(x)] = flat[base + np.uint64(3 * x)]
-        if wp > w:
-            row[w] = row[w - 1]
-    noise = max(noise_dn(G, min(max(rows_g // 24, 2), 16)), 0.5)
-    # 2x2 area average (pairs of columns read as one uint16), then the 3-column box: (gh, wo)
+    noise = max(noise_dn_rows(flat, w, src, min(max(rows_g // 24, 2), 16)), 0.5)
+    # 2x2 area average straight from the image (green bytes 3 apart; an odd last column is paired with itself),
+    # then the 3-column box: (gh, wo)
     gh = rows_g // 2
-    wo = wp // 2
+    wo = (w + 1) // 2
+    w2 = w // 2
     B = np.empty((gh, wo), np.uint8)
     A = np.empty(wo + 2, np.int32)
-    G16 = G.reshape(-1).view(np.uint16).reshape((rows_g, wo))
-    m8 = np.uint16(255)
-    s8 = np.uint16(8)
     two = np.uint16(2)
+    third = np.uint64(3)
     for y in range(gh):
-        u0 = G16[2 * y]
-        u1 = G16[2 * y + 1]
-        for x in range(wo):  # in uint16 (16 lanes; the sum of four bytes and 2 fits)
-            v0 = u0[np.uint64(x)]
-            v1 = u1[np.uint64(x)]
-            s4 = np.uint16(np.uint16(v0 & m8) + np.uint16(v0 >> s8) + np.uint16(v1 & m8) + np.uint16(v1 >> s8) + two)
+        b0 = np.uint64(src[2 * y] * w * 3 + 1)
+        b1 = np.uint64(src[2 * y + 1] * w * 3 + 1)
+        for x in range(w2):  # in uint16 (16 lanes; the sum of four bytes and 2 fits)
+            o = np.uint64(6 * x)
+            s4 = np.uint16(
+                np.uint16(flat[b0 + o])
+                + np.uint16(flat[b0 + o + third])
+                + np.uint16(flat[b1 + o])
+                + np.uint16(flat[b1 + o + third])
+                + two
+            )
             A[np.uint64(x + 1)] = np.int32(np.uint16(s4 >> two))
+        if wo > w2:
+            o = np.uint64(3 * (w - 1))
+            A[wo] = (2 * np.int32(flat[b0 + o]) + 2 * np.int32(flat[b1 + o]) + 2) >> 2
         if wo > 1:
             A[0] = A[2]
             A[wo + 1] = A[wo - 1]
@@ -2119,6 +2149,7 @@ def warm_up() -> None:
         eye = np.eye(3)
         g = green_rows(img.reshape(-1), 8, 0, 8)
         noise_dn(g, 2)
+        noise_dn_rows(img.reshape(-1), 8, np.arange(8), 2)
         local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
         detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
@@ -2191,6 +2222,7 @@ _KERNEL_NAMES = (
     "triangulate_points",
     "green_rows",
     "noise_dn",
+    "noise_dn_rows",
     "local_maxima",
     "frame_profile_stats",
     "fit_columns_common",
