@@ -1272,15 +1272,16 @@ def finish_points(  # type: ignore[no-untyped-def]
     for t in range(n):
         q = col_v[t]
         good[t] = ok[t] and (sat[t] or float(sg[q]) >= green_ratio * float(max(sb[q], sr[q])))
-    ds = np.full(n_cols + 2 * pool, np.nan)
+    ds = np.full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
     for t in range(n):
         if good[t]:
             ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
     # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
     # branch-free odd-even transposition compare-exchanges that run over all columns at once
-    vals = np.empty((nw, nd))
-    cnt_d = np.zeros(nd, np.int64)
+    vals = np.empty((nw, nd), np.float32)
+    cnt_d = np.zeros(nd, np.int32)
+    inf32 = np.float32(np.inf)
     for j in range(nw):
         cj = ch[j : j + nd]
         xj = ds[j : j + nd]
@@ -1288,8 +1289,8 @@ def finish_points(  # type: ignore[no-untyped-def]
         for q in range(nd):
             x = xj[q]
             use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
-            vj[q] = x if use else np.inf
-            cnt_d[q] += use
+            vj[q] = x if use else inf32
+            cnt_d[q] += np.int32(use)
     net = _sorting_network(nw)
     for p in range(net.shape[0]):
         va = vals[net[p, 0]]
@@ -1303,7 +1304,7 @@ def finish_points(  # type: ignore[no-untyped-def]
             continue
         q = col_v[t]
         k = cnt_d[q]
-        med = vals[k // 2, q] if k % 2 else 0.5 * (vals[k // 2 - 1, q] + vals[k // 2, q])
+        med = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
         snr[t] = min(med, snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
@@ -1337,11 +1338,14 @@ def finish_points(  # type: ignore[no-untyped-def]
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)
     q_out = np.empty(m)
-    e_snr = exp_array(-snr / 8.0)  # vectorized (a library exp per point costs 4 ns)
+    e_arg = np.empty(n, np.float32)
+    for t in range(n):
+        e_arg[t] = -snr[t] / 8.0
+    e_snr = exp_array32(e_arg)  # vectorized (a library exp per point costs 4 ns); float32 is plenty for a score
     qual = np.empty(n)
     for t in range(n):  # every point's quality, branch-free (vectorizes), before the kept ones are packed
         s = sig[t] if math.isfinite(sig[t]) else max_sigma
-        q_snr = 1.0 - e_snr[t]
+        q_snr = 1.0 - float(e_snr[t])
         q_w = min(max(min(s / 0.6, 1.5 * max_sigma / max(s, 1e-6) - 0.5), 0.2), 1.0)
         q_run = min(max(chain_len[t] / (4.0 * min_run), 0.0), 1.0)
         qual[t] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
