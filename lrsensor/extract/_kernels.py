@@ -738,21 +738,24 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         sw_max = max(sw_max, sws[t])
     g2f = exp_array32(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
-    xa = np.full(n, -1.0)
-    xb = np.full(n, -1.0)
+    xa = np.full(n, -1.0, np.float32)
+    xb = np.full(n, -1.0, np.float32)
     h0 = np.empty(n, np.float32)
+    z32 = np.float32(0.0)
     for t in range(n):
         h0[t] = np.float32(0.5) * a0[t]
     for q in range(R - 1, -1, -1):
+        fq = np.float32(q)
         for t in range(n):
             aq = B[q, t]
-            if xa[t] < 0.0 and aq < h0[t]:
-                xa[t] = q + float(h0[t] - aq) / float(B[q + 1, t] - aq)
+            if xa[t] < z32 and aq < h0[t]:
+                xa[t] = fq + (h0[t] - aq) / (B[q + 1, t] - aq)
     for q in range(R + 1, m):
+        fq = np.float32(q)
         for t in range(n):
             aq = B[q, t]
-            if xb[t] < 0.0 and aq < h0[t]:
-                xb[t] = q - float(h0[t] - aq) / float(B[q - 1, t] - aq)
+            if xb[t] < z32 and aq < h0[t]:
+                xb[t] = fq - (h0[t] - aq) / (B[q - 1, t] - aq)
     for t in range(n):
         if a0[t] > 0.0 and not (xa[t] >= 0.0 and xb[t] >= 0.0 and xb[t] - xa[t] <= wide_fwhm):
             special[t] = True
