@@ -106,3 +106,23 @@ def test_one_call_kernel_equals_the_stage_by_stage_path() -> None:
     np.testing.assert_array_equal(scan.uv, det.uv[keep])
     np.testing.assert_array_equal(scan.quality, det.quality[keep])
     np.testing.assert_allclose(scan.points, pts[keep], rtol=0, atol=1e-12)
+
+
+def test_speed_references_agree() -> None:
+    """The benchmark's three arg-max references (numpy uint8, numpy float32, compiled loops) measure the same thing:
+    the same centre in every column of a frame, so their times compare like with like."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    img = sim.named_scene("cluttered").render(seed=0).image
+    ref = be.argmax_parabola(img)
+    assert ref.shape == (img.shape[1],)
+    assert np.allclose(be.argmax_parabola_float(img), ref, atol=1e-5)
+    if be.argmax_parabola_compiled is None:
+        pytest.skip("numba is not installed")
+    assert np.array_equal(be.argmax_parabola_compiled(img), ref)
+    flat = np.zeros((40, 3, 3), np.uint8)  # no peak anywhere: row 1 (clipped first row), no offset
+    assert np.array_equal(be.argmax_parabola_compiled(flat), be.argmax_parabola(flat))
