@@ -10,10 +10,10 @@ Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b =
   three times the image noise, measured on the frame; the paper's method gives one point per ROI by design);
 - points per frame.
 
-Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread CPU time, median of interleaved
-repetitions): ``Sensor.process`` with each method (extraction and triangulation) and, measured in the same run,
-a plain per-column arg-max of the green channel with a parabolic fit over the full frame (numpy on uint8 and on
-float32, and compiled loops).
+Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread CPU time, medians, each call
+from cold caches and back to back): ``Sensor.process`` with each method (extraction and triangulation) and,
+measured in the same run, a plain per-column arg-max of the green channel with a parabolic fit over the full
+frame (numpy on uint8 and on float32, and compiled loops).
 """
 
 from __future__ import annotations
@@ -111,9 +111,7 @@ if HAVE_NUMBA:
     import numba
 
     #: The reference compiled (numba): what a per-column arg-max costs when written as tight loops.
-    argmax_parabola_compiled: Callable[[np.ndarray], np.ndarray] | None = numba.njit(cache=True)(
-        _argmax_parabola_loops
-    )
+    argmax_parabola_compiled: Callable[[np.ndarray], np.ndarray] | None = numba.njit(cache=True)(_argmax_parabola_loops)
 else:  # pragma: no cover - depends on the platform
     argmax_parabola_compiled = None
 
@@ -129,24 +127,53 @@ def accuracy(name: str, seed: int) -> list[dict[str, float | str]]:
     return rows
 
 
-def timed(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, tuple[float, float]]:
-    """Median per-thread CPU time and median wall time (ms) of each function, interleaved repetitions."""
+#: Bytes written before each cold call: twice the last-level cache of common CPUs, so that the frame, the
+#: kernels' code and their work arrays all come from memory, as for a new camera frame.
+FLUSH_BYTES = 64 << 20
+_flush_buf: np.ndarray | None = None
+
+
+def flush_caches() -> None:
+    """Write one byte of every cache line of a :data:`FLUSH_BYTES` buffer (evicts whatever the caches held)."""
+    global _flush_buf
+    if _flush_buf is None:
+        _flush_buf = np.zeros(FLUSH_BYTES, np.uint8)
+    _flush_buf[::64] += 1
+
+
+def timed(fns: dict[str, Callable[[], object]], repeats: int, cold: bool) -> dict[str, tuple[float, float]]:
+    """Median per-thread CPU time and median wall time (ms) of each function.
+
+    ``cold``: repetitions interleaved, each call right after :func:`flush_caches` (every function starts from the
+    same state: nothing cached). Otherwise warm: each function's repetitions back to back, after one untimed call.
+    """
     cpu: dict[str, list[float]] = {k: [] for k in fns}
     wall: dict[str, list[float]] = {k: [] for k in fns}
+
+    def one(k: str, f: Callable[[], object]) -> None:
+        t0, w0 = time.thread_time(), time.perf_counter()
+        f()
+        cpu[k].append(time.thread_time() - t0)
+        wall[k].append(time.perf_counter() - w0)
+
     for f in fns.values():
         f()
-    for _ in range(repeats):
+    if cold:
+        for _ in range(repeats):
+            for k, f in fns.items():
+                flush_caches()
+                one(k, f)
+    else:
         for k, f in fns.items():
-            t0, w0 = time.thread_time(), time.perf_counter()
             f()
-            cpu[k].append(time.thread_time() - t0)
-            wall[k].append(time.perf_counter() - w0)
+            for _ in range(repeats):
+                one(k, f)
     return {k: (1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(wall[k]))) for k in fns}
 
 
 #: The stages of ``Sensor.process`` (default method): the compiled kernels that ``extract_frame`` calls.
 STAGES = {
-    "detection (band copy, noise, response, local maxima)": ("detect_band",),
+    "detection (noise, 2x2 average, response, local maxima)": ("detect_band",),
     "candidate chains": ("select_candidates", "expand_half"),
     "sub-pixel fits (frame statistics, width limits, special and neighbour refits)": (
         "max_fwhm_at",
@@ -247,16 +274,18 @@ def main() -> int:
         "",
         "### Speed (ms per 1920x1080 frame, one thread)",
         "",
-        "Per-thread CPU time (ms) unless marked wall, medians of interleaved repetitions in one run. "
+        "Per-thread CPU time (ms), medians of repetitions in one run, in two cache states: **cold**, every call "
+        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code and work arrays all come from memory, as for "
+        "a new camera frame; calls interleaved), and **warm**, each function's calls back to back. "
         "`Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola over the "
         "full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the same "
         "written as loops and compiled (numba), which is what the arg-max itself costs. "
         f"Compiled kernels: {'numba' if HAVE_NUMBA else 'no (numpy fallback)'}.",
         "",
-        "| frame | reference (uint8) | reference (float32) | reference (compiled) | subpixel | paper "
+        "| frame | caches | reference (uint8) | reference (float32) | reference (compiled) | subpixel | paper "
         "| subpixel / reference (uint8) | subpixel / reference (float32) | subpixel / reference (compiled) "
-        "| subpixel wall | reference (uint8) wall |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| subpixel wall |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name in SPEED_SCENES:
         r = named_scene(name).render(seed=0)
@@ -270,23 +299,24 @@ def main() -> int:
         }
         if argmax_parabola_compiled is not None:
             fns["refc"] = functools.partial(argmax_parabola_compiled, img)
-        t = timed(fns, args.repeats)
-        sub = t["subpixel"][0]
-        refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
-        speed_lines.append(
-            f"| {name} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} | {sub:.2f} | {t['paper'][0]:.2f} | "
-            f"{sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} | {ratio_c} | {t['subpixel'][1]:.2f} "
-            f"| {t['ref'][1]:.2f} |"
-        )
+        for cold in (True, False):
+            t = timed(fns, args.repeats, cold)
+            sub = t["subpixel"][0]
+            refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
+            speed_lines.append(
+                f"| {name} | {'cold' if cold else 'warm'} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
+                f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} "
+                f"| {ratio_c} | {t['subpixel'][1]:.2f} |"
+            )
     r = named_scene("wall_1.0").render(seed=0)
     stage_lines = [
         "",
         "### Where the time goes (wall_1.0, ms per frame, one thread)",
         "",
         "Per-thread CPU time of each compiled stage of `Sensor.process` (default method), mean over back-to-back "
-        "repetitions on the same frame (its band stays in the cache, so the totals are below the interleaved median "
-        "above). The stages are timed one call at a time from Python (each call's argument passing included), so "
-        "they add up to more than the single compiled call that `Sensor.process` makes.",
+        "repetitions on the same frame (warm, as the warm rows above). The stages are timed one call at a time "
+        "from Python (each call's argument passing included), so they add up to more than the single compiled "
+        "call that `Sensor.process` makes.",
         "",
         "| stage | ms |",
         "|---|---:|",

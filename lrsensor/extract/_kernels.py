@@ -1,7 +1,7 @@
 """Compiled kernels of the sub-pixel extractor (numba), with the same results as the numpy/OpenCV code.
 
 :func:`extract_frame` runs the whole default extractor on one frame in one call: :func:`detect_band` per laser
-(one pass over the band: green copy, noise, 2x2 average, two-sided contrast, local maxima, bit for bit the
+(one pass over the band, read in place: noise, 2x2 average, two-sided contrast, local maxima, bit for bit the
 OpenCV steps of ``subpixel._candidates``), then :func:`process_candidates` (candidate chains, column-parallel
 sub-pixel fits, neighbour refits, pooled gates, along-stripe smoothing, quality), the triangulation and the
 range-limit gate. The loops are written so that the compiler vectorizes them across columns: unsigned indices
@@ -832,8 +832,7 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
     its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
     its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to about
-    1e-5 px, far below
-    the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
+    1e-5 px, far below the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
     results are to be taken from :func:`fit_columns`.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
