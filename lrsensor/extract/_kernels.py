@@ -832,8 +832,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
     its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
     its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to about
-    1e-5 px, far below the extractor's noise); the others are flagged in the extra last output ``special`` (N,) bool, and their
-    results are to be taken from :func:`fit_columns`.
+    1e-5 px, far below the extractor's noise); the others are flagged in the extra last output ``special`` (N,)
+    bool, and their results are to be taken from :func:`fit_columns`.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
