@@ -1748,47 +1748,63 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
             + (points[i, 1] - origin[1]) * normals[i, 1]
             + (points[i, 2] - origin[2]) * normals[i, 2]
         )
+    xs = np.empty(n)  # normalized undistorted image coordinates
+    ys = np.empty(n)
     for t in range(n):
-        xd = (u[t] - cx) / fx
-        yd = (v[t] - cy) / fy
+        xs[t] = (u[t] - cx) / fx
+        ys[t] = (v[t] - cy) / fy
+    for t in range(n if distorted else 0):  # Newton on the Brown-Conrady model, per point
+        xd = xs[t]
+        yd = ys[t]
         x = xd
         y = yd
-        if distorted:
-            for _ in range(8):
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-                rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-                ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-                a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
-                b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
-                d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
-                det = a * d - b * b
-                sx = (d * rx - b * ry) / det
-                sy = (-b * rx + a * ry) / det
-                x -= sx
-                y -= sy
-                if abs(sx) + abs(sy) < 1e-15:  # converged (quadratically): further steps change nothing
-                    break
+        for _ in range(8):
             r2 = x * x + y * y
             radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-            ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-            if not (math.sqrt(ex * ex + ey * ey) < 1e-9):
-                x = np.nan
-        # body-frame ray: (x, y, 1) @ R
-        bx = x * R[0, 0] + y * R[1, 0] + R[2, 0]
-        by = x * R[0, 1] + y * R[1, 1] + R[2, 1]
-        bz = x * R[0, 2] + y * R[1, 2] + R[2, 2]
-        li = laser[t]
-        denom = bx * normals[li, 0] + by * normals[li, 1] + bz * normals[li, 2]
+            dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+            ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+            a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
+            b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
+            d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
+            det = a * d - b * b
+            sx = (d * rx - b * ry) / det
+            sy = (-b * rx + a * ry) / det
+            x -= sx
+            y -= sy
+            if abs(sx) + abs(sy) < 1e-15:  # converged (quadratically): further steps change nothing
+                break
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+        ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+        if not (math.sqrt(ex * ex + ey * ey) < 1e-9):
+            x = np.nan
+        xs[t] = x
+        ys[t] = y
+    # body-frame ray (x, y, 1) @ R met with the laser's plane: branch-free over the points (vectorizes)
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    nx = normals[:, 0].copy()
+    ny = normals[:, 1].copy()
+    nz = normals[:, 2].copy()
+    for t in range(n):
+        x = xs[t]
+        y = ys[t]
+        bx = x * r00 + y * r10 + r20
+        by = x * r01 + y * r11 + r21
+        bz = x * r02 + y * r12 + r22
+        li = np.uint64(laser[t])  # unsigned: no wrap-around select per access
+        denom = bx * nx[li] + by * ny[li] + bz * nz[li]
         scale = math.sqrt(bx * bx + by * by + bz * bz)
         lam = off[li] / denom
-        if not (abs(denom) > 1e-9 * scale) or not (lam > 0):
-            lam = np.nan
-        out[t, 0] = origin[0] + lam * bx
-        out[t, 1] = origin[1] + lam * by
-        out[t, 2] = origin[2] + lam * bz
+        good = (abs(denom) > 1e-9 * scale) & (lam > 0)
+        lam = lam if good else np.nan
+        out[t, 0] = o0 + lam * bx
+        out[t, 1] = o1 + lam * by
+        out[t, 2] = o2 + lam * bz
     return out
 
 
