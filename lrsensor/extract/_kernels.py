@@ -1032,40 +1032,64 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     b_c = np.empty(n)
     rss_c = np.empty(n)
     acc_c = np.zeros(n, np.bool_)
+    left = 0  # columns still to do
+    for q in range(n):
+        left += not done[q]
     for k in scales:
+        if left == 0:
+            break
         if k < 1 or 2 * k + 1 > n:
             continue
-        # the columns still to do span [u_lo, u_hi]; their windows' centres lie within k of that span
-        u_lo = 0
-        while u_lo < n and done[u_lo]:
-            u_lo += 1
-        if u_lo == n:
-            break
-        u_hi = n - 1
-        while done[u_hi]:
-            u_hi -= 1
-        i0 = max(u_lo - 2 * k, 0)
-        i1 = min(u_hi + 1, n - 2 * k)
-        # those windows' fits, branch-free (vectorized: cheaper than skipping the windows no column needs)
-        _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
-        for u in range(u_lo, u_hi + 1):
-            if done[u]:
+        for r in range(n_run):
+            f = first[r]
+            la = last[r]
+            if la - f < 2 * k:  # no window of this scale fits in the run
                 continue
-            best = np.inf
-            val = np.nan
-            for sh in (0, -k, k):
-                c = u + sh
-                if c < k or c >= n - k or not acc_c[c]:
-                    continue
-                if c - k < run_lo[u] or c + k > run_hi[u]:
-                    continue
-                if rss_c[c] < best:
-                    best = rss_c[c]
-                    val = a_c[c] + b_c[c] * (-sh) + base[u]
-            if math.isfinite(val):
-                out[u] = val
-                done[u] = True
+            # the run's columns still to do span [u_lo, u_hi]; the windows they can use lie in the run and
+            # have their centres within k of that span
+            u_lo = f
+            while u_lo <= la and done[u_lo]:
+                u_lo += 1
+            if u_lo > la:
+                continue
+            u_hi = la
+            while done[u_hi]:
+                u_hi -= 1
+            i0 = max(u_lo - 2 * k, f)
+            i1 = min(u_hi + 1, la - 2 * k + 1)
+            if i1 <= i0:
+                continue
+            # those windows' fits, branch-free (vectorized: cheaper than skipping the windows no column needs)
+            _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
+            left -= _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out)
     return out
+
+
+@_njit
+def _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out):  # type: ignore[no-untyped-def]
+    """For the columns ``[u_lo, u_hi]`` still to do (``done`` False): the value of the best accepted line of
+    :func:`smooth_runs` at scale ``k`` (centred, left or right window, inside the column's run; smallest residual)
+    into ``out``, and ``done`` set. Returns how many columns got one."""
+    got = 0
+    for u in range(u_lo, u_hi + 1):
+        if done[u]:
+            continue
+        best = np.inf
+        val = np.nan
+        for sh in (0, -k, k):
+            c = u + sh
+            if c < k or c >= n - k or not acc_c[c]:
+                continue
+            if c - k < run_lo[u] or c + k > run_hi[u]:
+                continue
+            if rss_c[c] < best:
+                best = rss_c[c]
+                val = a_c[c] + b_c[c] * (-sh) + base[u]
+        if math.isfinite(val):
+            out[u] = val
+            done[u] = True
+            got += 1
+    return got
 
 
 @_njit
