@@ -803,8 +803,10 @@ def _scales(k0: int) -> tuple[int, ...]:
 
 
 @lru_cache(maxsize=16)
+@lru_cache(maxsize=16)
 def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any, ...]:
-    """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration."""
+    """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration
+    (cached: the same arrays every frame; the kernels only read them)."""
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     n_l = plan.bands.n_lasers
     scales = _scales(cfg.smooth_half_cols)
