@@ -1006,27 +1006,37 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     c_d2 = np.empty(n + 1)
     c_n2 = np.empty(n + 1)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
+    # the sums run in registers (read back from the arrays, each would wait on its own store)
     for q in range(n):
         r = run[q]
         if r >= 0:
             run_lo[q] = first[r]
             run_hi[q] = last[r]
             base[q] = y[first[r]]
-            mq = 1.0
-            zq = y[q] - base[q]
         else:
             run_lo[q] = n
             run_hi[q] = -1
-            mq = 0.0
-            zq = 0.0
-        c_m[q + 1] = c_m[q] + mq
-        c_mx[q + 1] = c_mx[q] + mq * q
-        c_mxx[q + 1] = c_mxx[q] + mq * q * q
-        c_z[q + 1] = c_z[q] + zq
-        c_zx[q + 1] = c_zx[q] + zq * q
-        c_zz[q + 1] = c_zz[q] + zq * zq
-        c_d2[q + 1] = c_d2[q] + d2[q]
-        c_n2[q + 1] = c_n2[q] + cnt2[q]
+    s_m = s_mx = s_mxx = s_z = s_zx = s_zz = s_d2 = s_n2 = 0.0
+    for q in range(n):
+        h = have[q]
+        mq = 1.0 if h else 0.0
+        zq = y[q] - base[q] if h else 0.0
+        s_m += mq
+        s_mx += mq * q
+        s_mxx += mq * q * q
+        s_z += zq
+        s_zx += zq * q
+        s_zz += zq * zq
+        s_d2 += d2[q]
+        s_n2 += cnt2[q]
+        c_m[q + 1] = s_m
+        c_mx[q + 1] = s_mx
+        c_mxx[q + 1] = s_mxx
+        c_z[q + 1] = s_z
+        c_zx[q + 1] = s_zx
+        c_zz[q + 1] = s_zz
+        c_d2[q + 1] = s_d2
+        c_n2[q + 1] = s_n2
     done = ~have
     a_c = np.empty(n)
     b_c = np.empty(n)
