@@ -27,6 +27,7 @@ import numpy as np
 
 try:  # pragma: no cover - depends on the platform
     import numba
+    from numba.cpython.unsafe.numbers import trailing_zeros
 
     HAVE_NUMBA = True
     _njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -35,6 +36,10 @@ except ImportError:  # pragma: no cover
 
     def _njit(f: Any) -> Any:
         return f
+
+    def trailing_zeros(x: Any) -> int:
+        """The number of trailing zero bits of a positive integer."""
+        return (int(x) & -int(x)).bit_length() - 1
 
 
 _LN2_HI = 6.93147180369123816490e-01
@@ -1676,16 +1681,18 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     for y in range(ho):
         if row_pk[y] == 0:
             continue
+        ry = resp[y]
+        vy = r0 + 2 * y
         for k in range(nw8):
-            if words[y * nw8 + k] == 0:  # no peak among these 8 columns (the common case)
-                continue
-            for x in range(8 * k, min(8 * k + 8, wo)):
-                if pk[y, x]:
-                    j = pos[x]
-                    cu[j] = x + col_offset
-                    cv[j] = r0 + 2 * y
-                    ca[j] = resp[y, x]
-                    pos[x] = j + 1
+            wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0 or 1) each
+            while wk:  # the set bytes, lowest first (none in the common case)
+                x = 8 * k + (trailing_zeros(wk) >> 3)
+                wk &= wk - np.uint64(1)
+                j = pos[x]
+                cu[j] = x + col_offset
+                cv[j] = vy
+                ca[j] = ry[x]
+                pos[x] = j + 1
     return cu, cv, ca, noise
 
 
