@@ -27,19 +27,22 @@ import numpy as np
 
 try:  # pragma: no cover - depends on the platform
     import numba
-    from numba.cpython.unsafe.numbers import trailing_zeros
+    from numba.cpython.unsafe.numbers import trailing_zeros as _ctz
 
     HAVE_NUMBA = True
     _njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy")
+    trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
     def _njit(f: Any) -> Any:
         return f
 
-    def trailing_zeros(x: Any) -> int:
+    def _trailing_zeros_py(x: Any) -> int:
         """The number of trailing zero bits of a positive integer."""
         return (int(x) & -int(x)).bit_length() - 1
+
+    trailing_zeros = _trailing_zeros_py
 
 
 _LN2_HI = 6.93147180369123816490e-01
