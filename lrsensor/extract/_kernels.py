@@ -2062,7 +2062,8 @@ def extract_frame(  # type: ignore[no-untyped-def]
         the rest: as :func:`process_candidates`.
 
     Returns:
-        ``(u, v, laser, quality, xyz, noise)``: the kept points (M,) and (M, 3), and the band noise (L,), DN.
+        ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
+        and body-frame points (M, 3), and the band noise (L,), DN.
     """
     n_l = band_rows.shape[0]
     w = image.shape[1]
@@ -2104,10 +2105,17 @@ def extract_frame(  # type: ignore[no-untyped-def]
         depth = xyz[t, 0] * depth_gate[0] + xyz[t, 1] * depth_gate[1] + xyz[t, 2] * depth_gate[2] + depth_gate[3]
         keep[t] = depth >= depth_gate[4] and depth <= depth_gate[5]  # NaN fails both
         m += keep[t]
+    uv = np.empty((m, 2))
     if m == n:
-        return u_o, v_o, l_o, q_o, xyz, noise
+        for t in range(n):
+            uv[t, 0] = u_o[t]
+            uv[t, 1] = v_o[t]
+        return uv, l_o, q_o, xyz, noise
     idx = np.flatnonzero(keep)
-    return u_o[idx], v_o[idx], l_o[idx], q_o[idx], xyz[idx], noise
+    for j in range(m):
+        uv[j, 0] = u_o[idx[j]]
+        uv[j, 1] = v_o[idx[j]]
+    return uv, l_o[idx], q_o[idx], xyz[idx], noise
 
 
 @_njit

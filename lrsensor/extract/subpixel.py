@@ -749,8 +749,14 @@ def extract_points(
     image = np.ascontiguousarray(image)
     fast = USE_NUMBA and _kernels.ready()  # the numpy path runs while the kernels compile in the background
     if fast and triangulate and cfg.detect_scale == 2:  # all of it in one compiled call
-        u_o, v_o, l_o, q_o, xyz, _ = _kernels.extract_frame(image, *_frame_settings(calibration, cfg))
-        return Detections(_uv(u_o, v_o), l_o, q_o), xyz
+        last = _LAST_SETTINGS
+        if last[0] is calibration and last[1] is cfg:  # the same sensor frame after frame: no hashing
+            settings = last[2]
+        else:
+            settings = _frame_settings(calibration, cfg)
+            _remember_settings(calibration, cfg, settings)
+        uv, l_o, q_o, xyz, _ = _kernels.extract_frame(image, *settings)
+        return Detections(uv, l_o, q_o), xyz
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     w = image.shape[1]
     n_l = plan.bands.n_lasers
@@ -802,7 +808,16 @@ def _scales(k0: int) -> tuple[int, ...]:
     return tuple(sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True)) if k0 >= 1 else ()
 
 
-@lru_cache(maxsize=16)
+#: The calibration and configuration of the last compiled frame and their :func:`_frame_settings` (identity-keyed:
+#: a calibration's hash walks all its fields, tens of microseconds when the caches are cold).
+_LAST_SETTINGS: tuple[Any, Any, tuple[Any, ...]] = (None, None, ())
+
+
+def _remember_settings(calibration: Calibration, cfg: SubpixelConfig, settings: tuple[Any, ...]) -> None:
+    global _LAST_SETTINGS
+    _LAST_SETTINGS = (calibration, cfg, settings)  # one tuple, replaced whole (safe across threads)
+
+
 @lru_cache(maxsize=16)
 def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any, ...]:
     """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration
