@@ -126,3 +126,23 @@ def test_speed_references_agree() -> None:
     assert np.array_equal(be.argmax_parabola_compiled(img), ref)
     flat = np.zeros((40, 3, 3), np.uint8)  # no peak anywhere: row 1 (clipped first row), no offset
     assert np.array_equal(be.argmax_parabola_compiled(flat), be.argmax_parabola(flat))
+
+
+def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
+    """The per-frame settings are reused by identity of (calibration, config): alternating two sensors whose
+    calibrations differ gives each the points of a call with nothing remembered."""
+    from lrsensor.extract import subpixel
+
+    a = sim.named_scene("wall_1.0").render(seed=0)
+    b = sim.named_scene("tilted_lasers").render(seed=0)
+    sa, sb = Sensor(a.calibration), Sensor(b.calibration)
+    subpixel._remember_settings(None, None, ())  # type: ignore[arg-type]
+    fresh_a = sa.process(a.image)
+    subpixel._remember_settings(None, None, ())  # type: ignore[arg-type]
+    fresh_b = sb.process(b.image)
+    for _ in range(2):
+        alt_a = sa.process(a.image)
+        alt_b = sb.process(b.image)
+        assert np.array_equal(fresh_a.points, alt_a.points, equal_nan=True)
+        assert np.array_equal(fresh_b.points, alt_b.points, equal_nan=True)
+    assert len(fresh_b) > 0 and not np.array_equal(fresh_a.points[:100], fresh_b.points[:100])
