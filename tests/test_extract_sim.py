@@ -145,4 +145,5 @@ def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
         alt_b = sb.process(b.image)
         assert np.array_equal(fresh_a.points, alt_a.points, equal_nan=True)
         assert np.array_equal(fresh_b.points, alt_b.points, equal_nan=True)
-    assert len(fresh_b) > 0 and not np.array_equal(fresh_a.points[:100], fresh_b.points[:100])
+    assert len(fresh_b) > 0
+    assert not np.array_equal(fresh_a.points[:100], fresh_b.points[:100])
