@@ -44,9 +44,7 @@ class Sensor:
         """
         img = check_image(image, self.calibration)
         if method == "subpixel":  # the compiled kernels triangulate in the same call
-            from .extract.subpixel import extract_points
-
-            det, xyz = extract_points(img, self.calibration, **options)
+            det, xyz = (_POINTS or _load_points())(img, self.calibration, **options)
             if xyz is not None:  # triangulated and depth-gated in the compiled call
                 return Scan(xyz, det.laser, det.uv, det.quality, method)
         else:
@@ -59,6 +57,19 @@ class Sensor:
         with np.errstate(invalid="ignore"):
             keep = (depth >= lo) & (depth <= hi)  # NaN rows fail both: dropped too
         return scan if bool(keep.all()) else scan.select(keep)
+
+
+#: ``extract.subpixel.extract_points``, imported on first use (it brings in OpenCV); kept here because an import
+#: statement runs the import machinery on every call (tens of microseconds when the caches are cold).
+_POINTS: Any = None
+
+
+def _load_points() -> Any:
+    global _POINTS
+    from .extract.subpixel import extract_points
+
+    _POINTS = extract_points
+    return extract_points
 
 
 #: Extractor name -> (module, configuration class) holding its default range limits.
