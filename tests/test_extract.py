@@ -328,6 +328,26 @@ def test_paper_method_one_point_per_roi_and_laser() -> None:
     assert np.median(err) < 0.03
 
 
+def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
+    """``noise_dn`` (a green band) and ``noise_dn_rows`` (the same rows read in place from the BGR image) give the
+    numpy ``_noise_dn`` exactly, for even and odd widths and several row steps."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, noise_dn, noise_dn_rows
+    from lrsensor.extract.subpixel import _noise_dn
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(11)
+    for w in (640, 641):
+        img = np.clip(rng.normal(60.0, 7.0, (90, w, 3)), 0, 255).astype(np.uint8)
+        g = np.ascontiguousarray(img[:, :, 1])
+        for step in (2, 5, 16):
+            ref = _noise_dn(g, step)
+            assert noise_dn(g, step) == ref
+            if w % 2 == 0:  # the in-place reader samples the evened band (detect_band pads odd widths)
+                assert noise_dn_rows(img.reshape(-1), w, np.arange(90), step) == ref
+    assert 6.0 < _noise_dn(g, 2) < 8.0  # about the noise drawn
+
+
 def test_vectorized_exp_and_log_match_the_library() -> None:
     from lrsensor.extract._kernels import exp_array, log_array
 

@@ -1014,7 +1014,6 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     c_d2 = np.empty(n + 1)
     c_n2 = np.empty(n + 1)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
-    # the sums run in registers (read back from the arrays, each would wait on its own store)
     for q in range(n):
         r = run[q]
         if r >= 0:
@@ -1024,6 +1023,7 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         else:
             run_lo[q] = n
             run_hi[q] = -1
+    # the sums run in registers (read back from the arrays, each would wait on its own store)
     s_m = s_mx = s_mxx = s_z = s_zx = s_zz = s_d2 = s_n2 = 0.0
     for q in range(n):
         h = have[q]
@@ -1422,6 +1422,22 @@ def green_rows(flat, width, r0, r1):  # type: ignore[no-untyped-def]
 def noise_dn(g, step):  # type: ignore[no-untyped-def]
     """Loop twin of :func:`lrsensor.extract.subpixel._noise_dn` (robust noise from second differences, DN)."""
     rows, cols = g.shape
+    return _noise_samples(np.ascontiguousarray(g).reshape(-1), cols, 1, 0, np.arange(rows), cols, step)
+
+
+@_njit
+def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
+    """:func:`noise_dn` of the green rows ``src`` (R,) of an image given as ``flat``, the (H * W * 3,) view of a
+    C-contiguous BGR image of ``width`` columns, evened (as the band of :func:`detect_band`, whose extra column
+    is never sampled: the column step is even): the same samples, read in place (no copy of the band)."""
+    return _noise_samples(flat, 3 * width, 3, 1, src, width + width % 2, step)
+
+
+@_njit
+def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type: ignore[no-untyped-def]
+    """The noise of :func:`noise_dn` from the rows ``src`` (R,) of a flat byte image: sample ``x`` of row ``r`` is
+    ``flat[src[r] * row_bytes + offset + px_bytes * x]``; ``cols`` (the band's width) sets the column step."""
+    rows = src.size
     if rows < 5:
         return 1.0
     # four interleaved histograms: consecutive equal bins do not wait on each other's increments
@@ -1431,36 +1447,11 @@ def noise_dn(g, step):  # type: ignore[no-untyped-def]
     ns = (cols + cs - 1) // cs
     for i in range(n):
         r = i * step
-        ra = g[r]
-        rb = g[r + 2]
-        rc = g[r + 4]
+        ba = np.uint64(src[r] * row_bytes + offset)
+        bb = np.uint64(src[r + 2] * row_bytes + offset)
+        bc = np.uint64(src[r + 4] * row_bytes + offset)
         for j in range(ns):
-            x = np.uint64(cs * j)
-            d = abs(np.int32(ra[x]) + np.int32(rc[x]) - 2 * np.int32(rb[x]))
-            h4[j & 3, min(int(d), 1023)] += 1
-    return _noise_from_histograms(h4)
-
-
-@_njit
-def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
-    """:func:`noise_dn` of the green rows ``src`` (R,) of an image given as ``flat``, the (H * W * 3,) view of a
-    C-contiguous BGR image of ``width`` columns, evened (as the band of :func:`detect_band`, whose extra column
-    is never sampled: the column step is even): the same samples, read in place (no copy of the band)."""
-    rows = src.size
-    if rows < 5:
-        return 1.0
-    h4 = np.zeros((4, 1024), np.int64)
-    n = (rows - 4 + step - 1) // step
-    cols = width + width % 2
-    cs = noise_col_step(n, cols)
-    ns = (cols + cs - 1) // cs
-    for i in range(n):
-        r = i * step
-        ba = np.uint64(src[r] * width * 3 + 1)
-        bb = np.uint64(src[r + 2] * width * 3 + 1)
-        bc = np.uint64(src[r + 4] * width * 3 + 1)
-        for j in range(ns):
-            o = np.uint64(3 * cs * j)
+            o = np.uint64(px_bytes * cs * j)
             d = abs(np.int32(flat[ba + o]) + np.int32(flat[bc + o]) - 2 * np.int32(flat[bb + o]))
             h4[j & 3, min(int(d), 1023)] += 1
     return _noise_from_histograms(h4)
