@@ -618,34 +618,35 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     n = cols.size
     m = 2 * half + 1
     R = half
-    M = m + 2 * e
     inside = True
     for t in range(n):
         inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
     special = np.zeros(n, np.bool_)
-    # the green samples of rows rows - half - e ... rows + half + e: (M, n), one byte gather per sample
-    P = np.empty((M, n), np.uint8)
-    if inside:  # no clamping: one base index per column, a row stride per sample, unsigned (no wrap-around)
-        stride = np.uint64(wid * 3)
-        base = np.empty(n, np.uint64)
+    # the green samples of the 2 e + 1 core rows rows - e ... rows + e: (2 e + 1, n), one byte gather each
+    # (unsigned flat indices where the whole window lies in the image: no clamping, no wrap-around)
+    ne = 2 * e + 1
+    stride = np.uint64(wid * 3)
+    base = np.empty(n, np.uint64)
+    C = np.empty((ne, n), np.uint8)
+    if inside:
         for t in range(n):
-            base[t] = np.uint64(((rows[t] - half - e) * wid + cols[t]) * 3 + 1)
-        for k in range(M):
+            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
+        for k in range(ne):
             o = np.uint64(k) * stride
-            pk = P[k]
+            ck = C[k]
             for t in range(n):
-                pk[np.uint64(t)] = flat[base[t] + o]
+                ck[np.uint64(t)] = flat[base[t] + o]
     else:
-        for k in range(M):
+        for k in range(ne):
             for t in range(n):
-                rr = min(max(rows[t] - half - e + k, 0), h - 1)
-                P[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
-    # the integer peak among the 2 e + 1 core rows (the first of equal ones): its shift d in [0, 2 e]
-    bv = P[R].copy()
+                rr = min(max(rows[t] - e + k, 0), h - 1)
+                C[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+    # the integer peak among them (the first of equal ones): its shift d in [0, 2 e]
+    bv = C[0].copy()
     d = np.zeros(n, np.uint8)
-    top = P[R].copy()
-    for j in range(1, 2 * e + 1):
-        pj = P[R + j]
+    top = C[0].copy()
+    for j in range(1, ne):
+        pj = C[j]
         uj = np.uint8(j)
         for t in range(n):
             x = pj[t]
@@ -656,25 +657,47 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     bq = np.empty(n, np.int64)
     for t in range(n):
         bq[t] = R + np.int64(d[t])
-    # the window re-centred on it, B[q] = P[q + d]: selects over the 2 e + 1 shifts (vectorized, no gathers)
+    # the window centred on it, rows peak - half ... peak + half: (m, n), gathered four rows per pass over the
+    # columns (one base index load for four samples)
     B = np.empty((m, n), np.float32)
-    row = np.empty(n, np.uint8)
-    for q in range(m):
-        p0 = P[q]
+    if inside:
         for t in range(n):
-            row[t] = p0[t]
-        for j in range(1, 2 * e + 1):
-            pj = P[q + j]
-            uj = np.uint8(j)
-            for t in range(n):  # a byte mask, not a conditional expression (which the compiler leaves scalar)
-                mk = np.uint8(0) - np.uint8(d[t] == uj)
-                row[t] = (pj[t] & mk) | (row[t] & ~mk)
+            base[t] = np.uint64(((rows[t] - e - half + np.int64(d[t])) * wid + cols[t]) * 3 + 1)
+        q = 0
+        while q + 4 <= m:
+            o = np.uint64(q) * stride
+            b0 = B[q]
+            b1 = B[q + 1]
+            b2 = B[q + 2]
+            b3 = B[q + 3]
+            for t in range(n):
+                ut = np.uint64(t)
+                i0 = base[ut] + o
+                b0[ut] = flat[i0]
+                b1[ut] = flat[i0 + stride]
+                b2[ut] = flat[i0 + stride + stride]
+                b3[ut] = flat[i0 + stride + stride + stride]
+            q += 4
+        while q < m:
+            o = np.uint64(q) * stride
+            bqr = B[q]
+            for t in range(n):
+                bqr[np.uint64(t)] = flat[base[t] + o]
+            q += 1
+    else:
+        for q in range(m):
+            for t in range(n):
+                rr = min(max(rows[t] - e - half + np.int64(d[t]) + q, 0), h - 1)
+                B[q, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+    topf = np.empty(n, np.float32)
+    for t in range(n):
+        topf[t] = top[t]
+    for q in range(m):
         bqr = B[q]
         for t in range(n):
-            bqr[t] = row[t]
-            top[t] = max(top[t], row[t])
+            topf[t] = max(topf[t], bqr[t])
     for t in range(n):
-        special[t] |= top[t] >= sat_dn
+        special[t] |= topf[t] >= sat_dn
     # the green samples of the colour rise (peak row and the window's ends), before the background is removed
     g_lo = B[0].copy()
     g_pk = B[R].copy()
@@ -752,18 +775,75 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     z32 = np.float32(0.0)
     for t in range(n):
         h0[t] = np.float32(0.5) * a0[t]
-    for q in range(R - 1, -1, -1):
-        fq = np.float32(q)
+    # the first row below the level on each side, its value and its inner neighbour's (selects, four rows per
+    # pass over the columns), then one interpolation per column: no division per row
+    xq = np.full(n, -1.0, np.float32)
+    va = np.zeros(n, np.float32)
+    vn = np.zeros(n, np.float32)
+    for side in (-1, 1):
+        q = R + side
         for t in range(n):
-            aq = B[q, t]
-            if xa[t] < z32 and aq < h0[t]:
-                xa[t] = fq + (h0[t] - aq) / (B[q + 1, t] - aq)
-    for q in range(R + 1, m):
-        fq = np.float32(q)
+            xq[t] = -1.0
+        while q >= 0 and q < m:
+            nq = min(4, q + 1) if side < 0 else min(4, m - q)
+            if nq == 4:
+                r0 = B[q]
+                r1 = B[q + side]
+                r2 = B[q + 2 * side]
+                r3 = B[q + 3 * side]
+                rn = B[q - side]
+                f0 = np.float32(q)
+                f1 = np.float32(q + side)
+                f2 = np.float32(q + 2 * side)
+                f3 = np.float32(q + 3 * side)
+                for t in range(n):
+                    x_ = xq[t]
+                    a_ = va[t]
+                    n_ = vn[t]
+                    lv_ = h0[t]
+                    v0 = r0[t]
+                    v1 = r1[t]
+                    v2 = r2[t]
+                    v3 = r3[t]
+                    vp = rn[t]
+                    tk = (x_ < z32) & (v0 < lv_)
+                    x_ = f0 if tk else x_
+                    n_ = vp if tk else n_
+                    a_ = v0 if tk else a_
+                    tk = (x_ < z32) & (v1 < lv_)
+                    x_ = f1 if tk else x_
+                    n_ = v0 if tk else n_
+                    a_ = v1 if tk else a_
+                    tk = (x_ < z32) & (v2 < lv_)
+                    x_ = f2 if tk else x_
+                    n_ = v1 if tk else n_
+                    a_ = v2 if tk else a_
+                    tk = (x_ < z32) & (v3 < lv_)
+                    x_ = f3 if tk else x_
+                    n_ = v2 if tk else n_
+                    a_ = v3 if tk else a_
+                    xq[t] = x_
+                    va[t] = a_
+                    vn[t] = n_
+                q += 4 * side
+            else:
+                r0 = B[q]
+                rn = B[q - side]
+                f0 = np.float32(q)
+                for t in range(n):
+                    v0 = r0[t]
+                    vp = rn[t]
+                    x_ = xq[t]
+                    tk = (x_ < z32) & (v0 < h0[t])
+                    xq[t] = f0 if tk else x_
+                    vn[t] = vp if tk else vn[t]
+                    va[t] = v0 if tk else va[t]
+                q += side
+        xs = xa if side < 0 else xb
+        sf = np.float32(side)
         for t in range(n):
-            aq = B[q, t]
-            if xb[t] < z32 and aq < h0[t]:
-                xb[t] = fq - (h0[t] - aq) / (B[q - 1, t] - aq)
+            if xq[t] >= z32:
+                xs[t] = xq[t] - sf * ((h0[t] - va[t]) / (vn[t] - va[t]))
     for t in range(n):
         if a0[t] > 0.0 and not (xa[t] >= 0.0 and xb[t] >= 0.0 and xb[t] - xa[t] <= wide_fwhm):
             special[t] = True
@@ -791,13 +871,60 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         for t in range(n):
             wq[t] = ex[t]
             rq[t] = ex[n + t]
-        for q in range(q0, q1):
+        # four rows per pass over the columns, the running values in registers between them (a pass per row
+        # stores all four back for every row: store-bound); each row's operations in the same order
+        q = q0
+        while q + 4 <= q1:
+            b0 = B[q]
+            b1 = B[q + 1]
+            b2 = B[q + 2]
+            b3 = B[q + 3]
+            f0 = np.float32(q)
+            f1 = np.float32(q + 1)
+            f2 = np.float32(q + 2)
+            f3 = np.float32(q + 3)
             for t in range(n):
-                wa = wq[t] * B[q, t]
+                s0 = a_s0[t]
+                s1 = a_s1[t]
+                w_ = wq[t]
+                r_ = rq[t]
+                g_ = g2f[t]
+                c_ = cf[t]
+                wa = w_ * b0[t]
+                s0 += wa
+                s1 += wa * (f0 - c_)
+                w_ *= r_
+                r_ *= g_
+                wa = w_ * b1[t]
+                s0 += wa
+                s1 += wa * (f1 - c_)
+                w_ *= r_
+                r_ *= g_
+                wa = w_ * b2[t]
+                s0 += wa
+                s1 += wa * (f2 - c_)
+                w_ *= r_
+                r_ *= g_
+                wa = w_ * b3[t]
+                s0 += wa
+                s1 += wa * (f3 - c_)
+                w_ *= r_
+                r_ *= g_
+                a_s0[t] = s0
+                a_s1[t] = s1
+                wq[t] = w_
+                rq[t] = r_
+            q += 4
+        while q < q1:
+            bq_ = B[q]
+            fq = np.float32(q)
+            for t in range(n):
+                wa = wq[t] * bq_[t]
                 a_s0[t] += wa
-                a_s1[t] += wa * (np.float32(q) - cf[t])
+                a_s1[t] += wa * (fq - cf[t])
                 wq[t] *= rq[t]
                 rq[t] *= g2f[t]
+            q += 1
         for t in range(n):
             if a_s0[t] != 0.0:
                 step = gain[t] * float(a_s1[t]) / float(a_s0[t])
