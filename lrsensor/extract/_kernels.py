@@ -1369,6 +1369,181 @@ def _sorting_network(n):  # type: ignore[no-untyped-def]
 
 
 @_njit
+def _pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
+    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: as
+    :func:`_pooled_median9`, each compare-exchange a pass over all columns. Returns (nd,) float64."""
+    # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
+    # branch-free odd-even transposition compare-exchanges that run over all columns at once
+    vals = np.empty((nw, nd), np.float32)
+    cnt_d = np.zeros(nd, np.int32)
+    inf32 = np.float32(np.inf)
+    for j in range(nw):
+        cj = ch[j : j + nd]
+        xj = ds[j : j + nd]
+        vj = vals[j]
+        for q in range(nd):
+            x = xj[q]
+            use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
+            vj[q] = x if use else inf32
+            cnt_d[q] += np.int32(use)
+    net = _sorting_network(nw)
+    for p in range(net.shape[0]):
+        va = vals[net[p, 0]]
+        vb = vals[net[p, 1]]
+        for q in range(nd):
+            lo = min(va[q], vb[q])
+            vb[q] = max(va[q], vb[q])
+            va[q] = lo
+    med = np.empty(nd)
+    for q in range(nd):
+        k = cnt_d[q]
+        med[q] = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
+    return med
+
+
+@_njit
+def _pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
+    """The pooled signal-to-noise medians of :func:`finish_points` for windows of 9 columns (``pool`` 4), each
+    column's window sorted in registers by the compare-exchanges of :data:`SORT9` (the same operations, in the
+    same order, as its pass-per-exchange twin over rows of ``vals``), so only the median is stored.
+
+    ``ch``, ``ds``: (nd + 8,) the padded chains and passing ratios (NaN: none). Returns the median of each
+    column's window over the values of its own piece (NaN and other pieces left out), as
+    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64.
+    """
+    med = np.empty(nd)
+    inf32 = np.float32(np.inf)
+    for q in range(nd):
+        uq = np.uint64(q)
+        o = ch[uq + np.uint64(4)]
+        x0 = ds[uq + np.uint64(0)]
+        u0 = (ch[uq + np.uint64(0)] == o) & (x0 == x0)
+        v0 = x0 if u0 else inf32
+        x1 = ds[uq + np.uint64(1)]
+        u1 = (ch[uq + np.uint64(1)] == o) & (x1 == x1)
+        v1 = x1 if u1 else inf32
+        x2 = ds[uq + np.uint64(2)]
+        u2 = (ch[uq + np.uint64(2)] == o) & (x2 == x2)
+        v2 = x2 if u2 else inf32
+        x3 = ds[uq + np.uint64(3)]
+        u3 = (ch[uq + np.uint64(3)] == o) & (x3 == x3)
+        v3 = x3 if u3 else inf32
+        x4 = ds[uq + np.uint64(4)]
+        u4 = (ch[uq + np.uint64(4)] == o) & (x4 == x4)
+        v4 = x4 if u4 else inf32
+        x5 = ds[uq + np.uint64(5)]
+        u5 = (ch[uq + np.uint64(5)] == o) & (x5 == x5)
+        v5 = x5 if u5 else inf32
+        x6 = ds[uq + np.uint64(6)]
+        u6 = (ch[uq + np.uint64(6)] == o) & (x6 == x6)
+        v6 = x6 if u6 else inf32
+        x7 = ds[uq + np.uint64(7)]
+        u7 = (ch[uq + np.uint64(7)] == o) & (x7 == x7)
+        v7 = x7 if u7 else inf32
+        x8 = ds[uq + np.uint64(8)]
+        u8 = (ch[uq + np.uint64(8)] == o) & (x8 == x8)
+        v8 = x8 if u8 else inf32
+        k = np.int32(u0) + np.int32(u1) + np.int32(u2) + np.int32(u3) + np.int32(u4)
+        k += np.int32(u5) + np.int32(u6) + np.int32(u7) + np.int32(u8)
+        lo = min(v0, v1)
+        v1 = max(v0, v1)
+        v0 = lo
+        lo = min(v3, v4)
+        v4 = max(v3, v4)
+        v3 = lo
+        lo = min(v6, v7)
+        v7 = max(v6, v7)
+        v6 = lo
+        lo = min(v1, v2)
+        v2 = max(v1, v2)
+        v1 = lo
+        lo = min(v4, v5)
+        v5 = max(v4, v5)
+        v4 = lo
+        lo = min(v7, v8)
+        v8 = max(v7, v8)
+        v7 = lo
+        lo = min(v0, v1)
+        v1 = max(v0, v1)
+        v0 = lo
+        lo = min(v3, v4)
+        v4 = max(v3, v4)
+        v3 = lo
+        lo = min(v6, v7)
+        v7 = max(v6, v7)
+        v6 = lo
+        lo = min(v0, v3)
+        v3 = max(v0, v3)
+        v0 = lo
+        lo = min(v3, v6)
+        v6 = max(v3, v6)
+        v3 = lo
+        lo = min(v0, v3)
+        v3 = max(v0, v3)
+        v0 = lo
+        lo = min(v1, v4)
+        v4 = max(v1, v4)
+        v1 = lo
+        lo = min(v4, v7)
+        v7 = max(v4, v7)
+        v4 = lo
+        lo = min(v1, v4)
+        v4 = max(v1, v4)
+        v1 = lo
+        lo = min(v2, v5)
+        v5 = max(v2, v5)
+        v2 = lo
+        lo = min(v5, v8)
+        v8 = max(v5, v8)
+        v5 = lo
+        lo = min(v2, v5)
+        v5 = max(v2, v5)
+        v2 = lo
+        lo = min(v1, v3)
+        v3 = max(v1, v3)
+        v1 = lo
+        lo = min(v5, v7)
+        v7 = max(v5, v7)
+        v5 = lo
+        lo = min(v2, v6)
+        v6 = max(v2, v6)
+        v2 = lo
+        lo = min(v4, v6)
+        v6 = max(v4, v6)
+        v4 = lo
+        lo = min(v2, v4)
+        v4 = max(v2, v4)
+        v2 = lo
+        lo = min(v2, v3)
+        v3 = max(v2, v3)
+        v2 = lo
+        lo = min(v5, v6)
+        v6 = max(v5, v6)
+        v5 = lo
+        h = k // 2
+        a = v0
+        a = v1 if h == 1 else a
+        a = v2 if h == 2 else a
+        a = v3 if h == 3 else a
+        a = v4 if h == 4 else a
+        a = v5 if h == 5 else a
+        a = v6 if h == 6 else a
+        a = v7 if h == 7 else a
+        a = v8 if h == 8 else a
+        b = v8  # index h - 1 = -1 (no value: wraps to the last, as the row view does)
+        b = v0 if h == 1 else b
+        b = v1 if h == 2 else b
+        b = v2 if h == 3 else b
+        b = v3 if h == 4 else b
+        b = v4 if h == 5 else b
+        b = v5 if h == 6 else b
+        b = v6 if h == 7 else b
+        b = v7 if h == 8 else b
+        med[uq] = float(a) if k % 2 else 0.5 * (float(b) + float(a))
+    return med
+
+
+@_njit
 def finish_points(  # type: ignore[no-untyped-def]
     col_v,
     lz,
@@ -1428,17 +1603,51 @@ def finish_points(  # type: ignore[no-untyped-def]
     sums = np.zeros((3, nd), np.float32)
     own = ch[pool : pool + nd]
     zero = np.float32(0.0)
-    for c in range(3):  # one output per loop: few arrays, cheap alias checks
-        sc = sums[c]
-        dc = dr[c]
-        for j in range(nw):
-            uj = np.uint64(j)
-            for q in range(nd):
-                uq = np.uint64(q)
-                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
     sb = sums[0]
     sg = sums[1]
     sr = sums[2]
+    db = dr[0]
+    dg = dr[1]
+    dR = dr[2]
+    j = 0
+    while j + 3 <= nw:  # three offsets per pass, the running sums in registers (one store per three terms)
+        u1 = np.uint64(j)
+        u2 = u1 + np.uint64(1)
+        u3 = u1 + np.uint64(2)
+        for q in range(nd):
+            uq = np.uint64(q)
+            o = own[uq]
+            m1 = ch[uq + u1] == o
+            m2 = ch[uq + u2] == o
+            m3 = ch[uq + u3] == o
+            b1, b2, b3 = db[uq + u1], db[uq + u2], db[uq + u3]
+            g1, g2, g3 = dg[uq + u1], dg[uq + u2], dg[uq + u3]
+            r1, r2, r3 = dR[uq + u1], dR[uq + u2], dR[uq + u3]
+            x = sb[uq]
+            x += b1 if m1 else zero
+            x += b2 if m2 else zero
+            x += b3 if m3 else zero
+            sb[uq] = x
+            x = sg[uq]
+            x += g1 if m1 else zero
+            x += g2 if m2 else zero
+            x += g3 if m3 else zero
+            sg[uq] = x
+            x = sr[uq]
+            x += r1 if m1 else zero
+            x += r2 if m2 else zero
+            x += r3 if m3 else zero
+            sr[uq] = x
+        j += 3
+    while j < nw:
+        uj = np.uint64(j)
+        for c in range(3):
+            sc = sums[c]
+            dc = dr[c]
+            for q in range(nd):
+                uq = np.uint64(q)
+                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
+        j += 1
     good = np.zeros(n, np.bool_)
     for t in range(n):
         q = col_v[t]
@@ -1448,35 +1657,14 @@ def finish_points(  # type: ignore[no-untyped-def]
         if good[t]:
             ds[col_v[t] + pool] = snr[t]
     keep = np.zeros(n, np.bool_)
-    # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
-    # branch-free odd-even transposition compare-exchanges that run over all columns at once
-    vals = np.empty((nw, nd), np.float32)
-    cnt_d = np.zeros(nd, np.int32)
-    inf32 = np.float32(np.inf)
-    for j in range(nw):
-        cj = ch[j : j + nd]
-        xj = ds[j : j + nd]
-        vj = vals[j]
-        for q in range(nd):
-            x = xj[q]
-            use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
-            vj[q] = x if use else inf32
-            cnt_d[q] += np.int32(use)
-    net = _sorting_network(nw)
-    for p in range(net.shape[0]):
-        va = vals[net[p, 0]]
-        vb = vals[net[p, 1]]
-        for q in range(nd):
-            lo = min(va[q], vb[q])
-            vb[q] = max(va[q], vb[q])
-            va[q] = lo
+    if nw == 9:  # the default pool: each window sorted in registers
+        medv = _pooled_median9(ch, ds, nd)
+    else:
+        medv = _pooled_median(ch, ds, own, nw, nd)
     for t in range(n):
         if not good[t]:
             continue
-        q = col_v[t]
-        k = cnt_d[q]
-        med = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
-        snr[t] = min(med, snr[t] / floor_frac)
+        snr[t] = min(medv[col_v[t]], snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
     # runs: kept columns on one chain with gaps of at most 3 columns
     run_id = np.full(n, -1, np.int64)
