@@ -1016,8 +1016,11 @@ def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type
     qtx = c_zx[p1] - c_zx[p0] - c * qt
     qyy = c_zz[p1] - c_zz[p0]
     r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
+    # r_q <= vv q1 (1 + S sqrt(2 / q1)), squared (no square root, no division): the excess over vv q1 is at most
+    # vv S sqrt(2 q1)
     q1 = max(q0, 1.0)
-    return (q0 < 1.0) | (r_q <= vv * q1 * (1.0 + SUBBLOCK_SIGMAS * math.sqrt(2.0 / q1)))
+    ex = r_q - vv * q1
+    return (q0 < 1.0) | (ex <= 0.0) | (ex * ex <= (2.0 * SUBBLOCK_SIGMAS * SUBBLOCK_SIGMAS) * (vv * vv * q1))
 
 
 @_njit
@@ -1055,7 +1058,8 @@ def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_a
         dof = max(s0 - 2.0, 1.0)
         vv = max(var, 1e-8)
         ci = lo + uk
-        acc_c[ci] = full & (rss <= vv * dof * (1.0 + 3.0 * math.sqrt(2.0 / dof)))
+        ex = rss - vv * dof  # rss <= vv dof (1 + 3 sqrt(2 / dof)), squared as in _quarter_ok
+        acc_c[ci] = full & ((ex <= 0.0) | (ex * ex <= 18.0 * (vv * vv * dof)))
         a_c[ci] = a
         b_c[ci] = b
         rss_c[ci] = rss
