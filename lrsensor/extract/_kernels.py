@@ -216,17 +216,17 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
         ma[m] = best
         m += 1
         i = j + 1
-    # 2. k strongest per column
+    # 2. k strongest per column, stored by rank: VT[q, c], AT[q, c] (entries q >= cnt[c] are never read)
     K = k_max
-    V = np.full((n_cols, K), np.nan)
-    A = np.zeros((n_cols, K))
-    cnt = np.zeros(n_cols, np.int64)  # candidates per column (packed first: the rest of the row is NaN)
+    VT = np.empty((K, n_cols))
+    AT = np.empty((K, n_cols))
+    cnt = np.zeros(n_cols, np.int64)  # candidates per column
     t = 0
     while t < m:
         c = mu[t]
         if t + 1 == m or mu[t + 1] != c:  # the only candidate of its column (the common case)
-            V[c, 0] = mv[t]
-            A[c, 0] = ma[t]
+            VT[0, c] = mv[t]
+            AT[0, c] = ma[t]
             cnt[c] = 1
             t += 1
             continue
@@ -234,43 +234,73 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
             # insert by strength (descending; after equal ones)
             pos = K
             for q in range(K):
-                if not (A[c, q] >= ma[t]) or q >= cnt[c]:
+                if q >= cnt[c] or not (AT[q, c] >= ma[t]):
                     pos = q
                     break
             if pos < K:
                 for q in range(K - 1, pos, -1):
-                    V[c, q] = V[c, q - 1]
-                    A[c, q] = A[c, q - 1]
-                V[c, pos] = mv[t]
-                A[c, pos] = ma[t]
+                    VT[q, c] = VT[q - 1, c]
+                    AT[q, c] = AT[q - 1, c]
+                VT[pos, c] = mv[t]
+                AT[pos, c] = ma[t]
                 cnt[c] = min(cnt[c] + 1, K)
             t += 1
-    # 3. chains: mutual nearest links, first between neighbouring columns, then across small gaps
+    # 3. chains: mutual nearest links, first between neighbouring columns, then across small gaps. Within one
+    # lag the columns are independent (column c only touches its own "has next" flags and column c + lag's "has
+    # previous" flags and links), so each lag takes the columns with one candidate on both sides in one
+    # branch-free pass and the others one by one. Flags and links by rank: [q, c]; links hold node ids c K + q.
     nn = n_cols * K
-    prev = np.arange(nn)
-    has_next = np.zeros(nn, np.bool_)
-    has_prev = np.zeros(nn, np.bool_)
+    prevT = np.empty((K, n_cols), np.int64)
+    for q in range(K):
+        for c in range(n_cols):
+            prevT[q, c] = c * K + q
+    has_next = np.zeros((K, n_cols), np.uint8)
+    has_prev = np.zeros((K, n_cols), np.uint8)
     blk = sorted_blocks(np.arange(n_cols), block)  # the block (laser) of each column, no division per link
+    one = np.zeros(n_cols, np.uint8)  # exactly one candidate
+    multi = np.empty(n_cols, np.int64)  # the columns with more than one
+    n_multi = 0
+    for c in range(n_cols):
+        one[c] = cnt[c] == 1
+        if cnt[c] > 1:
+            multi[n_multi] = c
+            n_multi += 1
+    v0 = VT[0]
+    hn0 = has_next[0]
+    hp0 = has_prev[0]
+    pv0 = prevT[0]
     for lag in range(1, max_gap + 1):
-        for c in range(n_cols - lag):
-            if cnt[c] == 0 or cnt[c + lag] == 0 or blk[c] != blk[c + lag]:
+        ul = np.uint64(lag)
+        kl = np.int64(K * lag)
+        for c in range(n_cols - lag):  # one candidate each side (the common case): nearest and mutual
+            uc = np.uint64(c)
+            ud = uc + ul
+            ok = (one[uc] & one[ud] & ~hn0[uc] & ~hp0[ud]) & np.uint8(blk[uc] == blk[ud])
+            ok &= np.uint8(abs(v0[uc] - v0[ud]) <= max_jump)
+            hn0[uc] |= ok
+            hp0[ud] |= ok
+            pv0[ud] = pv0[ud] - kl if ok else pv0[ud]
+        # the pairs with more candidates on a side: c multi, or c + lag multi
+        for i in range(2 * n_multi):
+            c = multi[i] if i < n_multi else multi[i - n_multi] - lag
+            if c < 0 or c + lag >= n_cols:
                 continue
             d = c + lag
-            if cnt[c] == 1 and cnt[d] == 1:  # one candidate on each side (the common case): nearest and mutual
-                if not has_next[c * K] and not has_prev[d * K] and abs(V[c, 0] - V[d, 0]) <= max_jump:
-                    prev[d * K] = c * K
-                    has_next[c * K] = True
-                    has_prev[d * K] = True
+            if cnt[c] == 0 or cnt[d] == 0 or blk[c] != blk[d]:
+                continue
+            if cnt[c] == 1 and cnt[d] == 1:  # handled above
+                continue
+            if i >= n_multi and cnt[c] > 1:  # counted once, as c multi
                 continue
             for i0 in range(cnt[c]):
-                va = V[c, i0]
-                if math.isnan(va) or has_next[c * K + i0]:
+                va = VT[i0, c]
+                if math.isnan(va) or has_next[i0, c]:
                     continue
                 jb = -1
                 db = np.inf
                 for j0 in range(cnt[d]):
-                    vb = V[d, j0]
-                    if math.isnan(vb) or has_prev[d * K + j0]:
+                    vb = VT[j0, d]
+                    if math.isnan(vb) or has_prev[j0, d]:
                         continue
                     dd = abs(va - vb)
                     if dd < db:
@@ -281,10 +311,10 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
                 # mutual: is i0 the nearest free node of column c for jb?
                 ib = -1
                 dbb = np.inf
-                vb = V[d, jb]
+                vb = VT[jb, d]
                 for q in range(cnt[c]):
-                    vq = V[c, q]
-                    if math.isnan(vq) or has_next[c * K + q]:
+                    vq = VT[q, c]
+                    if math.isnan(vq) or has_next[q, c]:
                         continue
                     dd = abs(vq - vb)
                     if dd < dbb:
@@ -292,21 +322,21 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
                         ib = q
                 if ib != i0:
                     continue
-                prev[d * K + jb] = c * K + i0
-                has_next[c * K + i0] = True
-                has_prev[d * K + jb] = True
-    root = np.arange(nn)
-    for node in range(nn):  # links point to lower columns: one pass in column order
-        p = prev[node]
-        if p != node:
-            root[node] = root[p]
+                prevT[jb, d] = c * K + i0
+                has_next[i0, c] = 1
+                has_prev[jb, d] = 1
+    # chain roots, lengths and summed strengths (links point to lower columns: one pass in column order)
+    root = np.empty(nn, np.int64)
     length = np.zeros(nn, np.int64)
     strength = np.zeros(nn)
     for c in range(n_cols):
         for q in range(cnt[c]):
-            r = root[c * K + q]
+            node = c * K + q
+            p = prevT[q, c]
+            r = root[p] if p != node else node
+            root[node] = r
             length[r] += 1
-            strength[r] += A[c, q]
+            strength[r] += AT[q, c]
     # 4. per column the candidate on the strongest long-enough chain
     cols = np.empty(n_cols, np.int64)
     rows = np.empty(n_cols, np.float64)
@@ -325,7 +355,7 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
         if best_q >= 0:
             node = c * K + best_q
             cols[out] = c
-            rows[out] = V[c, best_q]
+            rows[out] = VT[best_q, c]
             chain[out] = root[node]
             clen[out] = length[root[node]]
             out += 1
