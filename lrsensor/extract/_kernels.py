@@ -1143,7 +1143,8 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         if r >= 0:
             first[r] = min(first[r], q)
             last[r] = q
-    # local noise: lag-4 second differences inside runs (branch-free over all columns, then compacted)
+    # local noise: lag-4 second differences inside runs (branch-free over all columns; compacted for the pooled
+    # median only where a window needs it)
     d2 = np.zeros(n)
     cnt2 = np.zeros(n)
     ul = np.uint64(lag)
@@ -1154,15 +1155,12 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         dd = y[uq - ul] - 2.0 * y[uq] + y[uq + ul]
         d2[uq] = dd * dd if same else 0.0
         cnt2[uq] = 1.0 if same else 0.0
-    vals = np.empty(n)
-    nv = 0
+    nv = 0.0
     for q in range(lag, n - lag):
-        if cnt2[q] > 0.0:
-            vals[nv] = d2[q]
-            nv += 1
+        nv += cnt2[q]
     if nv < 8:
         return out
-    var_all = np.median(vals[:nv]) / (6.0 * 0.4549) + 1e-8
+    var_all = np.nan  # the pooled noise: only windows with fewer than 5 samples of their own use it (computed then)
     run_lo = np.empty(n, np.int64)
     run_hi = np.empty(n, np.int64)
     base = np.zeros(n)
@@ -1239,6 +1237,18 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
             if i1 <= i0:
                 continue
             # those windows' fits, branch-free (vectorized: cheaper than skipping the windows no column needs)
+            if math.isnan(var_all):
+                few = False
+                for i in range(i0, i1):
+                    few |= c_n2[i + 2 * k + 1] - c_n2[i] < 5
+                if few:
+                    vals = np.empty(n)
+                    m = 0
+                    for q in range(lag, n - lag):
+                        if cnt2[q] > 0.0:
+                            vals[m] = d2[q]
+                            m += 1
+                    var_all = np.median(vals[:m]) / (6.0 * 0.4549) + 1e-8
             _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
             left -= _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out)
     return out
