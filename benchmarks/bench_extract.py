@@ -53,7 +53,7 @@ SCENES = (
     "turbid",
     "cluttered",
 )
-SPEED_SCENES = ("paper_box", "wall_1.0", "turbid", "cluttered")
+SPEED_SCENES = ("paper_box", "wall_0.3", "wall_0.5", "wall_1.0", "turbid", "cluttered")
 METHODS = ("subpixel", "paper")
 
 
@@ -179,6 +179,7 @@ STAGES = {
         "max_fwhm_at",
         "frame_profile_stats",
         "fit_columns_common",
+        "fit_columns_saturated",
         "_refit",
         "neighbours",
     ),

@@ -169,7 +169,6 @@ def test_pooled_median_sorting_network_sorts_every_input(n: int) -> None:
     np.testing.assert_array_equal(a.T, np.sort(bits, axis=1))
 
 
-
 def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
     """The default pool's medians (9-column windows sorted in registers) equal the generic kernel's (one pass over
     all columns per compare-exchange) bit for bit, and the median of each window of its own piece's passing
@@ -191,6 +190,7 @@ def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
             assert fast[q] == pytest.approx(float(np.median(win.astype(np.float64))), rel=1e-6)
         else:
             assert fast[q] == np.inf
+
 
 # ----------------------------------------------------------------------------- bands
 
@@ -369,6 +369,43 @@ def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
             if w % 2 == 0:  # the in-place reader samples the evened band (detect_band pads odd widths)
                 assert noise_dn_rows(img.reshape(-1), w, np.arange(90), step) == ref
     assert 6.0 < _noise_dn(g, 2) < 8.0  # about the noise drawn
+
+
+def test_column_parallel_saturated_fit_equals_the_full_kernel() -> None:
+    """``fit_columns_saturated`` (clipped peaks, column-parallel) flags the same columns as saturated as
+    ``fit_columns`` and gives them the same centre, amplitude, sigma, noise, acceptance and colour rises: flat
+    tops of several widths and sub-pixel phases on a sloped background, single clipped samples (not saturated),
+    unclipped peaks and windows cut by the image border."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_saturated
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(3)
+    h, w = 120, 300
+    rows_c = rng.uniform(4.0, h - 5.0, w)
+    rows_c[:10] = np.linspace(0.5, 3.0, 10)  # windows beyond the top
+    sigma = rng.uniform(0.8, 3.0, w)
+    amp = rng.choice([120.0, 255.0 * 1.5, 255.0 * 6.0], w)
+    y = np.arange(h)[:, None]
+    green = 20.0 + 0.05 * y + amp * np.exp(-0.5 * ((y - rows_c) / sigma) ** 2)
+    green += rng.normal(0.0, 1.5, green.shape)
+    img = np.zeros((h, w, 3), np.uint8)
+    img[:, :, 1] = np.clip(np.round(green), 0, 255)
+    img[:, :, 0] = np.clip(np.round(0.3 * green), 0, 255)
+    img[:, :, 2] = np.clip(np.round(0.2 * green), 0, 255)
+    img[40, 200:210, 1] = 255  # single clipped samples
+    cols = np.arange(w, dtype=np.int64)
+    rows = np.rint(rows_c).astype(np.int64) + rng.integers(-2, 3, w)
+    nan = np.full(w, np.nan)
+    for half, it in ((8, 2), (12, 3)):
+        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
+        fast = fit_columns_saturated(img, cols, rows, half, 3, 1.2, 250.0, 3, it)
+        sat = full[3]
+        assert 50 < sat.sum() < w - 50
+        np.testing.assert_array_equal(fast[3], sat)
+        for a, b in zip(fast[:3] + fast[4:6], full[:3] + full[4:6], strict=True):
+            np.testing.assert_allclose(np.asarray(a)[sat], np.asarray(b)[sat], rtol=0, atol=1e-9, equal_nan=True)
+        np.testing.assert_array_equal(fast[6][:, sat], full[6][:, sat])
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:

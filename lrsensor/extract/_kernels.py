@@ -1036,6 +1036,172 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
 
 
+@_njit
+def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
+    """:func:`fit_columns_saturated` on one chunk of columns (its arrays stay in the cache)."""
+    h = image.shape[0]
+    wid = image.shape[1]
+    flat = image.reshape(-1)
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    ne = 2 * e + 1
+    # the core rows rows - e ... rows + e: the peak is the middle of their clipped run, else the first maximum
+    C = np.empty((ne, n), np.uint8)
+    for k in range(ne):
+        for t in range(n):
+            rr = min(max(rows[t] - e + k, 0), h - 1)
+            C[k, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+    d = np.zeros(n, np.int64)
+    bv = np.full(n, -1.0)
+    first = np.full(n, -1, np.int64)
+    last = np.full(n, -1, np.int64)
+    for j in range(ne):
+        cj = C[j]
+        for t in range(n):
+            x = float(cj[t])
+            up = x > bv[t]
+            bv[t] = x if up else bv[t]
+            d[t] = j if up else d[t]
+            s_ = x >= sat_dn
+            first[t] = j if (s_ and first[t] < 0) else first[t]
+            last[t] = j if s_ else last[t]
+    for t in range(n):
+        if first[t] >= 0:
+            d[t] = (first[t] + last[t]) // 2
+    # the window centred on it, rows peak - half ... peak + half: (m, n) float64
+    W = np.empty((m, n))
+    for q in range(m):
+        for t in range(n):
+            rr = min(max(rows[t] - e - half + d[t] + q, 0), h - 1)
+            W[q, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+    n_sat = np.zeros(n, np.int64)
+    for q in range(m):
+        wq = W[q]
+        for t in range(n):
+            n_sat[t] += wq[t] >= sat_dn
+    sat = np.empty(n, np.bool_)
+    for t in range(n):
+        sat[t] = W[R, t] >= sat_dn and n_sat[t] >= 2
+    # 1. linear background through the flanks beyond the clipped run, and their noise
+    bl = np.zeros(n)
+    slope = np.empty(n)
+    xl = np.empty(n)
+    off = np.empty(n, np.int64)
+    noise = np.empty(n)
+    for t in range(n):
+        o = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat[t] + 1.0), R - flank + 1))
+        off[t] = o
+        b_l = 0.0
+        b_r = 0.0
+        for q in range(flank):
+            b_l += W[R - o - q, t]
+            b_r += W[R + o + q, t]
+        b_l /= flank
+        b_r /= flank
+        bl[t] = b_l
+        slope[t] = (b_r - b_l) / (2.0 * o + flank - 1)
+        xl[t] = R - o - 0.5 * (flank - 1)
+        ss = 0.0
+        for q in range(flank):
+            r1 = W[R - o - q, t] - (b_l + slope[t] * (R - o - q - xl[t]))
+            r2 = W[R + o + q, t] - (b_l + slope[t] * (R + o + q - xl[t]))
+            ss += r1 * r1 + r2 * r2
+        noise[t] = math.sqrt(ss / max(2 * flank - 2, 1))
+    # 2. log-parabola start (its shift only: the width of a clipped peak is its run)
+    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+    lv = np.empty(3 * n)
+    a0 = np.empty(n)
+    for t in range(n):
+        lv[t] = max(W[R - s, t] - (bl[t] + slope[t] * (R - s - xl[t])), 0.5)
+        a0[t] = W[R, t] - (bl[t] + slope[t] * (R - xl[t]))
+        lv[n + t] = max(a0[t], 0.5)
+        lv[2 * n + t] = max(W[R + s, t] - (bl[t] + slope[t] * (R + s - xl[t])), 0.5)
+    lv = log_array(lv)
+    c = np.empty(n)
+    hs = np.empty(n)
+    sigma = np.empty(n)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
+        hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
+    # 3. symmetric-window centroid on the background-free profile
+    for q in range(m):
+        wq = W[q]
+        for t in range(n):
+            wq[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
+    s0 = np.empty(n)
+    s1 = np.empty(n)
+    for _ in range(iterations):
+        for t in range(n):
+            s0[t] = 0.0
+            s1[t] = 0.0
+        for q in range(m):
+            wq = W[q]
+            for t in range(n):
+                dq = q - c[t]
+                wa = min(max(hs[t] - abs(dq), 0.0), 1.0) * wq[t]
+                s0[t] += wa
+                s1[t] += wa * dq
+        for t in range(n):
+            if s0[t] != 0.0:
+                step = s1[t] / s0[t]
+                if math.isfinite(step):
+                    c[t] += min(max(step, -1.0), 1.0)
+    # 4. acceptance and the colour rises
+    centre = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    rise = np.empty((3, n))
+    for t in range(n):
+        pk_row = rows[t] + d[t] - e
+        good = sat[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
+        ok[t] = good
+        centre[t] = pk_row - half + c[t] if good else np.nan
+        rp = min(max(pk_row, 0), h - 1)
+        rl = min(max(pk_row - half, 0), h - 1)
+        rh = min(max(pk_row + half, 0), h - 1)
+        for ch in range(3):
+            rise[ch, t] = image[rp, cols[t], ch] - 0.5 * (float(image[rl, cols[t], ch]) + image[rh, cols[t], ch])
+    return centre, a0, sigma, sat, ok, noise, rise
+
+
+@_njit
+def fit_columns_saturated(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
+    """:func:`fit_columns` for clipped peaks, column-parallel (the inner loops run over columns): the same
+    arithmetic for every column whose profile is saturated (its peak sample clipped and at least two clipped
+    samples), up to the vectorized logarithm of the log-parabola start (:func:`log_array`, within 2 ulp).
+
+    Same arguments as :func:`fit_columns` without the neighbour model and the width limits (which a clipped
+    peak does not use). Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise)``; the results
+    of columns with ``saturated`` False are not :func:`fit_columns`'s: those are to be fitted by it.
+    ``image`` must be C-contiguous. Works in chunks of 512 columns.
+    """
+    n = cols.size
+    centre = np.empty(n)
+    amp = np.empty(n)
+    sigma = np.empty(n)
+    sat = np.empty(n, np.bool_)
+    ok = np.empty(n, np.bool_)
+    noise = np.empty(n)
+    rise = np.empty((3, n))
+    for t0 in range(0, n, 512):
+        t1 = min(t0 + 512, n)
+        res = _fit_saturated_chunk(image, cols[t0:t1], rows[t0:t1], half, e, sigma_hint, sat_dn, flank, iterations)
+        centre[t0:t1] = res[0]
+        amp[t0:t1] = res[1]
+        sigma[t0:t1] = res[2]
+        sat[t0:t1] = res[3]
+        ok[t0:t1] = res[4]
+        noise[t0:t1] = res[5]
+        rise[:, t0:t1] = res[6]
+    return centre, amp, sigma, sat, ok, noise, rise
+
+
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
 def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type: ignore[no-untyped-def]
     """Whether the line ``a + b (x - c)`` fits the columns ``[p0, p1)`` within the noise ``vv`` (or they are empty)."""
@@ -2335,9 +2501,28 @@ def process_candidates(  # type: ignore[no-untyped-def]
     n_sp = 0
     for t in range(n):
         n_sp += special[t]
-    if n_sp:
-        nan = np.full(n_sp, np.nan)
-        _refit(image, cols, rows, laser, np.flatnonzero(special), nan, nan, nan, fit, limits, geo, res)
+    if n_sp:  # clipped peaks (close to the wall) column-parallel; the other special ones by the full kernel
+        sp_idx = np.flatnonzero(special)
+        r_s = fit_columns_saturated(image, cols[sp_idx], rows[sp_idx], half, 3, sig_med, sat_dn, 3, iterations)
+        rest = np.empty(n_sp, np.int64)
+        n_rest = 0
+        for i in range(n_sp):
+            t = sp_idx[i]
+            if r_s[3][i]:
+                vv[t] = r_s[0][i]
+                amp[t] = r_s[1][i]
+                sig[t] = r_s[2][i]
+                sat[t] = True
+                ok[t] = r_s[4][i]
+                lnoise[t] = r_s[5][i]
+                for c in range(3):
+                    rise[c, t] = r_s[6][c, i]
+            else:
+                rest[n_rest] = t
+                n_rest += 1
+        if n_rest:
+            nan = np.full(n_rest, np.nan)
+            _refit(image, cols, rows, laser, rest[:n_rest], nan, nan, nan, fit, limits, geo, res)
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
@@ -2578,6 +2763,7 @@ def warm_up() -> None:
         detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
+        fit_columns_saturated(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         process_candidates(
             img,
@@ -2650,6 +2836,7 @@ _KERNEL_NAMES = (
     "local_maxima",
     "frame_profile_stats",
     "fit_columns_common",
+    "fit_columns_saturated",
     "max_fwhm_at",
     "process_candidates",
     "detect_band",
