@@ -1047,11 +1047,25 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
     R = half
     ne = 2 * e + 1
     # the core rows rows - e ... rows + e: the peak is the middle of their clipped run, else the first maximum
+    inside = True
+    for t in range(n):
+        inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
+    stride = np.uint64(wid * 3)
+    base = np.empty(n, np.uint64)
     C = np.empty((ne, n), np.uint8)
-    for k in range(ne):
+    if inside:  # no clamping: one base index per column, a row stride per sample (as the common fit)
         for t in range(n):
-            rr = min(max(rows[t] - e + k, 0), h - 1)
-            C[k, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
+        for k in range(ne):
+            o = np.uint64(k) * stride
+            ck = C[k]
+            for t in range(n):
+                ck[np.uint64(t)] = flat[base[t] + o]
+    else:
+        for k in range(ne):
+            for t in range(n):
+                rr = min(max(rows[t] - e + k, 0), h - 1)
+                C[k, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
     d = np.zeros(n, np.int64)
     bv = np.full(n, -1.0)
     first = np.full(n, -1, np.int64)
@@ -1069,12 +1083,21 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
     for t in range(n):
         if first[t] >= 0:
             d[t] = (first[t] + last[t]) // 2
-    # the window centred on it, rows peak - half ... peak + half: (m, n) float64
-    W = np.empty((m, n))
-    for q in range(m):
+    # the window centred on it, rows peak - half ... peak + half: (m, n) bytes
+    W = np.empty((m, n), np.uint8)
+    if inside:
         for t in range(n):
-            rr = min(max(rows[t] - e - half + d[t] + q, 0), h - 1)
-            W[q, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+            base[t] = np.uint64(((rows[t] - e - half + d[t]) * wid + cols[t]) * 3 + 1)
+        for q in range(m):
+            o = np.uint64(q) * stride
+            wq = W[q]
+            for t in range(n):
+                wq[np.uint64(t)] = flat[base[t] + o]
+    else:
+        for q in range(m):
+            for t in range(n):
+                rr = min(max(rows[t] - e - half + d[t] + q, 0), h - 1)
+                W[q, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
     n_sat = np.zeros(n, np.int64)
     for q in range(m):
         wq = W[q]
@@ -1083,40 +1106,83 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
     sat = np.empty(n, np.bool_)
     for t in range(n):
         sat[t] = W[R, t] >= sat_dn and n_sat[t] >= 2
-    # 1. linear background through the flanks beyond the clipped run, and their noise
+    # 1. linear background through the flanks beyond the clipped run (their rows differ per column: gathers)
     bl = np.zeros(n)
+    br = np.zeros(n)
     slope = np.empty(n)
     xl = np.empty(n)
     off = np.empty(n, np.int64)
+    lim = R - flank + 1
+    for t in range(n):
+        off[t] = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat[t] + 1.0), lim))
+    # the flank samples (flank, n) of each side picked by byte selects over the window's rows (64 lanes; the
+    # rows differ per column)
+    FL = np.zeros((flank, n), np.uint8)
+    FR = np.zeros((flank, n), np.uint8)
+    if m + R + 2 * flank < 250:
+        tl8 = np.empty(n, np.uint8)  # the inner flank rows R -+ off
+        tr8 = np.empty(n, np.uint8)
+        for t in range(n):
+            tl8[t] = np.uint8(R - off[t])
+            tr8[t] = np.uint8(R + off[t])
+        for j in range(m):
+            wj = W[j]
+            for q in range(flank):
+                jl = np.uint8(j + q)  # row j is R - off - q where R - off = j + q
+                jr = np.uint8(j - q if j >= q else 255)  # and R + off + q where R + off = j - q
+                fl = FL[q]
+                fr = FR[q]
+                for t in range(n):
+                    mkl = np.uint8(0) - np.uint8(tl8[t] == jl)
+                    mkr = np.uint8(0) - np.uint8(tr8[t] == jr)
+                    x = wj[t]
+                    fl[t] = (x & mkl) | (fl[t] & ~mkl)
+                    fr[t] = (x & mkr) | (fr[t] & ~mkr)
+    else:  # (windows too long for byte row arithmetic)
+        for q in range(flank):
+            for t in range(n):
+                FL[q, t] = W[R - off[t] - q, t]
+                FR[q, t] = W[R + off[t] + q, t]
+    for q in range(flank):
+        fl = FL[q]
+        fr = FR[q]
+        for t in range(n):
+            bl[t] += fl[t]
+            br[t] += fr[t]
+    for t in range(n):
+        bl[t] /= flank
+        br[t] /= flank
+        slope[t] = (br[t] - bl[t]) / (2.0 * off[t] + flank - 1)
+        xl[t] = R - off[t] - 0.5 * (flank - 1)
+    ss = np.zeros(n)
+    for q in range(flank):
+        fl = FL[q]
+        fr = FR[q]
+        for t in range(n):
+            ql = R - off[t] - q
+            qr = R + off[t] + q
+            r1 = fl[t] - (bl[t] + slope[t] * (ql - xl[t]))
+            r2 = fr[t] - (bl[t] + slope[t] * (qr - xl[t]))
+            ss[t] += r1 * r1 + r2 * r2
     noise = np.empty(n)
     for t in range(n):
-        o = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat[t] + 1.0), R - flank + 1))
-        off[t] = o
-        b_l = 0.0
-        b_r = 0.0
-        for q in range(flank):
-            b_l += W[R - o - q, t]
-            b_r += W[R + o + q, t]
-        b_l /= flank
-        b_r /= flank
-        bl[t] = b_l
-        slope[t] = (b_r - b_l) / (2.0 * o + flank - 1)
-        xl[t] = R - o - 0.5 * (flank - 1)
-        ss = 0.0
-        for q in range(flank):
-            r1 = W[R - o - q, t] - (b_l + slope[t] * (R - o - q - xl[t]))
-            r2 = W[R + o + q, t] - (b_l + slope[t] * (R + o + q - xl[t]))
-            ss += r1 * r1 + r2 * r2
-        noise[t] = math.sqrt(ss / max(2 * flank - 2, 1))
+        noise[t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
+    # the background-free profile (m, n) float64
+    B = np.empty((m, n))
+    for q in range(m):
+        wq = W[q]
+        bq_ = B[q]
+        for t in range(n):
+            bq_[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
     # 2. log-parabola start (its shift only: the width of a clipped peak is its run)
     s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     lv = np.empty(3 * n)
     a0 = np.empty(n)
     for t in range(n):
-        lv[t] = max(W[R - s, t] - (bl[t] + slope[t] * (R - s - xl[t])), 0.5)
-        a0[t] = W[R, t] - (bl[t] + slope[t] * (R - xl[t]))
+        lv[t] = max(B[R - s, t], 0.5)
+        a0[t] = B[R, t]
         lv[n + t] = max(a0[t], 0.5)
-        lv[2 * n + t] = max(W[R + s, t] - (bl[t] + slope[t] * (R + s - xl[t])), 0.5)
+        lv[2 * n + t] = max(B[R + s, t], 0.5)
     lv = log_array(lv)
     c = np.empty(n)
     hs = np.empty(n)
@@ -1131,23 +1197,50 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
         sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
         hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
     # 3. symmetric-window centroid on the background-free profile
-    for q in range(m):
-        wq = W[q]
-        for t in range(n):
-            wq[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
     s0 = np.empty(n)
     s1 = np.empty(n)
     for _ in range(iterations):
         for t in range(n):
             s0[t] = 0.0
             s1[t] = 0.0
-        for q in range(m):
-            wq = W[q]
+        q = 0
+        while q + 4 <= m:  # four rows per pass, the sums in registers (each row's operations in order)
+            w0 = B[q]
+            w1 = B[q + 1]
+            w2 = B[q + 2]
+            w3 = B[q + 3]
+            for t in range(n):
+                ct = c[t]
+                ht = hs[t]
+                a_ = s0[t]
+                b_ = s1[t]
+                dq = q - ct
+                wa = min(max(ht - abs(dq), 0.0), 1.0) * w0[t]
+                a_ += wa
+                b_ += wa * dq
+                dq = q + 1 - ct
+                wa = min(max(ht - abs(dq), 0.0), 1.0) * w1[t]
+                a_ += wa
+                b_ += wa * dq
+                dq = q + 2 - ct
+                wa = min(max(ht - abs(dq), 0.0), 1.0) * w2[t]
+                a_ += wa
+                b_ += wa * dq
+                dq = q + 3 - ct
+                wa = min(max(ht - abs(dq), 0.0), 1.0) * w3[t]
+                a_ += wa
+                b_ += wa * dq
+                s0[t] = a_
+                s1[t] = b_
+            q += 4
+        while q < m:
+            wq = B[q]
             for t in range(n):
                 dq = q - c[t]
                 wa = min(max(hs[t] - abs(dq), 0.0), 1.0) * wq[t]
                 s0[t] += wa
                 s1[t] += wa * dq
+            q += 1
         for t in range(n):
             if s0[t] != 0.0:
                 step = s1[t] / s0[t]
@@ -1162,11 +1255,12 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
         good = sat[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
         ok[t] = good
         centre[t] = pk_row - half + c[t] if good else np.nan
-        rp = min(max(pk_row, 0), h - 1)
-        rl = min(max(pk_row - half, 0), h - 1)
-        rh = min(max(pk_row + half, 0), h - 1)
+        rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
+        rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
+        rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
         for ch in range(3):
-            rise[ch, t] = image[rp, cols[t], ch] - 0.5 * (float(image[rl, cols[t], ch]) + image[rh, cols[t], ch])
+            uc = np.uint64(ch)
+            rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
     return centre, a0, sigma, sat, ok, noise, rise
 
 
