@@ -2407,35 +2407,44 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
     for t in range(n):
         xs[t] = (u[t] - cx) / fx
         ys[t] = (v[t] - cy) / fy
-    for t in range(n if distorted else 0):  # Newton on the Brown-Conrady model, per point
-        xd = xs[t]
-        yd = ys[t]
-        x = xd
-        y = yd
+    if distorted:
+        # Newton on the Brown-Conrady model, all points a step at a time (vectorizes): a point stops once its
+        # step is below 1e-15 (converged quadratically), exactly as it would on its own
+        xd = xs.copy()
+        yd = ys.copy()
+        act = np.ones(n, np.bool_)
         for _ in range(8):
+            left = 0
+            for t in range(n):
+                x = xs[t]
+                y = ys[t]
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+                rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[t]
+                ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[t]
+                a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
+                b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
+                d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
+                det = a * d - b * b
+                sx = (d * rx - b * ry) / det
+                sy = (-b * rx + a * ry) / det
+                on = act[t]
+                xs[t] = x - sx if on else x
+                ys[t] = y - sy if on else y
+                on &= not (abs(sx) + abs(sy) < 1e-15)
+                act[t] = on
+                left += on
+            if left == 0:
+                break
+        for t in range(n):
+            x = xs[t]
+            y = ys[t]
             r2 = x * x + y * y
             radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-            ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-            a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
-            b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
-            d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
-            det = a * d - b * b
-            sx = (d * rx - b * ry) / det
-            sy = (-b * rx + a * ry) / det
-            x -= sx
-            y -= sy
-            if abs(sx) + abs(sy) < 1e-15:  # converged (quadratically): further steps change nothing
-                break
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-        ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-        if not (math.sqrt(ex * ex + ey * ey) < 1e-9):
-            x = np.nan
-        xs[t] = x
-        ys[t] = y
+            ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[t]
+            ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[t]
+            xs[t] = x if math.sqrt(ex * ex + ey * ey) < 1e-9 else np.nan
     # body-frame ray (x, y, 1) @ R met with the laser's plane: branch-free over the points (vectorizes)
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
