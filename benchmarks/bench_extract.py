@@ -179,6 +179,7 @@ STAGES = {
         "max_fwhm_at",
         "frame_profile_stats",
         "fit_columns_common",
+        "core_clipped",
         "fit_columns_saturated",
         "_refit",
         "neighbours",

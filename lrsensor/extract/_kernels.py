@@ -1265,6 +1265,25 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
 
 
 @_njit
+def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
+    """Whether any green sample of rows ``rows - e ... rows + e`` (clamped to the image) of each column reaches
+    ``sat_dn``: (N,) bool."""
+    h = image.shape[0]
+    wid = image.shape[1]
+    flat = image.reshape(-1)
+    n = cols.size
+    top = np.zeros(n, np.uint8)
+    for k in range(2 * e + 1):
+        for t in range(n):
+            rr = min(max(rows[t] - e + k, 0), h - 1)
+            top[t] = max(top[t], flat[np.uint64((rr * wid + cols[t]) * 3 + 1)])
+    out = np.empty(n, np.bool_)
+    for t in range(n):
+        out[t] = top[t] >= sat_dn
+    return out
+
+
+@_njit
 def fit_columns_saturated(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
     """:func:`fit_columns` for clipped peaks, column-parallel (the inner loops run over columns): the same
     arithmetic for every column whose profile is saturated (its peak sample clipped and at least two clipped
@@ -2594,9 +2613,40 @@ def process_candidates(  # type: ignore[no-untyped-def]
     sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     min_sig = min_fwhm / fwhm_per_sigma
-    vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
-        image, cols, rows, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
-    )
+    # columns with a clipped sample among the 2 e + 1 rows around their candidate are special in the common fit
+    # anyway (its window holds that sample): in a frame with clipped stripes they skip it
+    clip = core_clipped(image, cols, rows, 3, sat_dn) if plateau > 0 else np.zeros(n, np.bool_)
+    n_clip = 0
+    for t in range(n):
+        n_clip += clip[t]
+    if n_clip == 0:
+        vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
+            image, cols, rows, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+        )
+    else:
+        vv = np.full(n, np.nan)
+        amp = np.zeros(n)
+        sig = np.full(n, np.nan)
+        sat = np.zeros(n, np.bool_)
+        ok = np.zeros(n, np.bool_)
+        lnoise = np.zeros(n)
+        rise = np.zeros((3, n))
+        special = clip.copy()
+        keep = np.flatnonzero(~clip)
+        if keep.size:
+            r_c = fit_columns_common(
+                image, cols[keep], rows[keep], half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+            )
+            for i in range(keep.size):
+                t = keep[i]
+                vv[t] = r_c[0][i]
+                amp[t] = r_c[1][i]
+                sig[t] = r_c[2][i]
+                ok[t] = r_c[4][i]
+                lnoise[t] = r_c[5][i]
+                for c in range(3):
+                    rise[c, t] = r_c[6][c, i]
+                special[t] = r_c[7][i]
     # the fit's settings, the width limits and the per-column results that the refits update in place
     fit = (half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm)
     limits = (mfw, floor, sheet_mm)
@@ -2867,6 +2917,7 @@ def warm_up() -> None:
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
         fit_columns_saturated(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2)
+        core_clipped(img, i64, i64 + 4, 1, 250.0)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         process_candidates(
             img,
@@ -2940,6 +2991,7 @@ _KERNEL_NAMES = (
     "frame_profile_stats",
     "fit_columns_common",
     "fit_columns_saturated",
+    "core_clipped",
     "max_fwhm_at",
     "process_candidates",
     "detect_band",
