@@ -10,10 +10,10 @@ Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b =
   three times the image noise, measured on the frame; the paper's method gives one point per ROI by design);
 - points per frame.
 
-Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread CPU time, medians, each call
-from cold caches and back to back): ``Sensor.process`` with each method (extraction and triangulation) and,
-measured in the same run, a plain per-column arg-max of the green channel with a parabolic fit over the full
-frame (numpy on uint8 and on float32, and compiled loops).
+Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread CPU time, medians, in three
+cache states: everything cold, a stream of new frames, and the same frame back to back): ``Sensor.process``
+with each method (extraction and triangulation) and, measured in the same run, a plain per-column arg-max of
+the green channel with a parabolic fit over the full frame (numpy on uint8 and on float32, and compiled loops).
 """
 
 from __future__ import annotations
@@ -141,33 +141,52 @@ def flush_caches() -> None:
     _flush_buf[::64] += 1
 
 
-def timed(fns: dict[str, Callable[[], object]], repeats: int, cold: bool) -> dict[str, tuple[float, float]]:
-    """Median per-thread CPU time and median wall time (ms) of each function.
+#: Frames a stream of new frames cycles through: 14 copies of a 1920x1080 frame (87 MB) exceed the last-level
+#: cache, so each call reads a frame that is not cached, while the code and the work arrays stay warm.
+STREAM_FRAMES = 14
+CACHE_STATES = ("cold", "stream", "warm")
 
-    ``cold``: repetitions interleaved, each call right after :func:`flush_caches` (every function starts from the
-    same state: nothing cached). Otherwise warm: each function's repetitions back to back, after one untimed call.
+
+def timed(
+    fns: dict[str, Callable[[np.ndarray], object]], frame: np.ndarray, repeats: int, state: str
+) -> dict[str, tuple[float, float]]:
+    """Median per-thread CPU time and median wall time (ms) of each function called on ``frame``.
+
+    ``state`` (:data:`CACHE_STATES`): ``cold``, repetitions interleaved, each call right after
+    :func:`flush_caches` (every function starts from the same state: nothing cached, code and branch history
+    included); ``stream``, each function's calls back to back on :data:`STREAM_FRAMES` copies of the frame in
+    turn (a new frame from memory each call, as from a camera; code warm); ``warm``, each function's calls back to
+    back on the same frame, after one untimed call.
     """
+    if state not in CACHE_STATES:
+        msg = f"unknown cache state {state!r}; expected one of {CACHE_STATES}"
+        raise ValueError(msg)
     cpu: dict[str, list[float]] = {k: [] for k in fns}
     wall: dict[str, list[float]] = {k: [] for k in fns}
 
-    def one(k: str, f: Callable[[], object]) -> None:
+    def one(k: str, f: Callable[[np.ndarray], object], img: np.ndarray) -> None:
         t0, w0 = time.thread_time(), time.perf_counter()
-        f()
+        f(img)
         cpu[k].append(time.thread_time() - t0)
         wall[k].append(time.perf_counter() - w0)
 
     for f in fns.values():
-        f()
-    if cold:
+        f(frame)
+    if state == "cold":
         for _ in range(repeats):
             for k, f in fns.items():
                 flush_caches()
-                one(k, f)
+                one(k, f, frame)
+    elif state == "stream":
+        frames = [frame.copy() for _ in range(STREAM_FRAMES)]
+        for k, f in fns.items():
+            for i in range(max(repeats, STREAM_FRAMES)):
+                one(k, f, frames[i % STREAM_FRAMES])
     else:
         for k, f in fns.items():
-            f()
+            f(frame)
             for _ in range(repeats):
-                one(k, f)
+                one(k, f, frame)
     return {k: (1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(wall[k]))) for k in fns}
 
 
@@ -180,7 +199,7 @@ STAGES = {
         "frame_profile_stats",
         "fit_columns_common",
         "core_clipped",
-        "fit_columns_saturated",
+        "fit_columns_clipped",
         "_refit",
         "neighbours",
     ),
@@ -276,9 +295,11 @@ def main() -> int:
         "",
         "### Speed (ms per 1920x1080 frame, one thread)",
         "",
-        "Per-thread CPU time (ms), medians of repetitions in one run, in two cache states: **cold**, every call "
-        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code and work arrays all come from memory, as for "
-        "a new camera frame; calls interleaved), and **warm**, each function's calls back to back. "
+        "Per-thread CPU time (ms), medians of repetitions in one run, in three cache states: **cold**, every call "
+        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code, work arrays and branch history all start "
+        "from memory; calls interleaved); **stream**, each function's calls back to back on "
+        f"{STREAM_FRAMES} copies of the frame in turn (a new frame from memory each call, as from a camera, with "
+        "the code warm); and **warm**, each function's calls back to back on one frame. "
         "`Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola over the "
         "full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the same "
         "written as loops and compiled (numba), which is what the arg-max itself costs. "
@@ -292,21 +313,20 @@ def main() -> int:
     for name in SPEED_SCENES:
         r = named_scene(name).render(seed=0)
         sensor = Sensor(r.calibration)
-        img = r.image
-        fns: dict[str, Callable[[], object]] = {
-            "ref": functools.partial(argmax_parabola, img),
-            "ref32": functools.partial(argmax_parabola_float, img),
-            "subpixel": functools.partial(sensor.process, img),
-            "paper": functools.partial(sensor.process, img, method="paper"),
+        fns: dict[str, Callable[[np.ndarray], object]] = {
+            "ref": argmax_parabola,
+            "ref32": argmax_parabola_float,
+            "subpixel": sensor.process,
+            "paper": functools.partial(sensor.process, method="paper"),
         }
         if argmax_parabola_compiled is not None:
-            fns["refc"] = functools.partial(argmax_parabola_compiled, img)
-        for cold in (True, False):
-            t = timed(fns, args.repeats, cold)
+            fns["refc"] = argmax_parabola_compiled
+        for state in CACHE_STATES:
+            t = timed(fns, r.image, args.repeats, state)
             sub = t["subpixel"][0]
             refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
             speed_lines.append(
-                f"| {name} | {'cold' if cold else 'warm'} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
+                f"| {name} | {state} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
                 f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} "
                 f"| {ratio_c} | {t['subpixel'][1]:.2f} |"
             )

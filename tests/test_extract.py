@@ -371,23 +371,26 @@ def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
     assert 6.0 < _noise_dn(g, 2) < 8.0  # about the noise drawn
 
 
-def test_column_parallel_saturated_fit_equals_the_full_kernel() -> None:
-    """``fit_columns_saturated`` (clipped peaks, column-parallel) flags the same columns as saturated as
-    ``fit_columns`` and gives them the same centre, amplitude, sigma, noise, acceptance and colour rises: flat
-    tops of several widths and sub-pixel phases on a sloped background, single clipped samples (not saturated),
-    unclipped peaks and windows cut by the image border."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_saturated
+def test_column_parallel_fits_equal_the_full_kernel() -> None:
+    """``fit_columns_clipped`` (column-parallel) takes the columns of its kind and gives them ``fit_columns``'s
+    centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
+    and sub-pixel phases on a sloped background) in one mode, unclipped and singly clipped narrow ones in the
+    other, and leaves the flat-topped wide ones (and the other mode's) to the full kernel; windows cut by the image
+    border included."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_clipped
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
     rng = np.random.default_rng(3)
-    h, w = 120, 300
+    h, w = 120, 400
     rows_c = rng.uniform(4.0, h - 5.0, w)
     rows_c[:10] = np.linspace(0.5, 3.0, 10)  # windows beyond the top
     sigma = rng.uniform(0.8, 3.0, w)
-    amp = rng.choice([120.0, 255.0 * 1.5, 255.0 * 6.0], w)
+    amp = rng.choice([120.0, 230.0, 255.0 * 1.5, 255.0 * 6.0], w)
     y = np.arange(h)[:, None]
     green = 20.0 + 0.05 * y + amp * np.exp(-0.5 * ((y - rows_c) / sigma) ** 2)
+    flat = rng.random(w) < 0.1  # thick sheets: flat tops 9 px wide, unclipped
+    green[:, flat] = 20.0 + 150.0 * (np.abs(y - rows_c[flat]) <= 4.5)
     green += rng.normal(0.0, 1.5, green.shape)
     img = np.zeros((h, w, 3), np.uint8)
     img[:, :, 1] = np.clip(np.round(green), 0, 255)
@@ -399,13 +402,22 @@ def test_column_parallel_saturated_fit_equals_the_full_kernel() -> None:
     nan = np.full(w, np.nan)
     for half, it in ((8, 2), (12, 3)):
         full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
-        fast = fit_columns_saturated(img, cols, rows, half, 3, 1.2, 250.0, 3, it)
         sat = full[3]
-        assert 50 < sat.sum() < w - 50
-        np.testing.assert_array_equal(fast[3], sat)
-        for a, b in zip(fast[:3] + fast[4:6], full[:3] + full[4:6], strict=True):
-            np.testing.assert_allclose(np.asarray(a)[sat], np.asarray(b)[sat], rtol=0, atol=1e-9, equal_nan=True)
-        np.testing.assert_array_equal(fast[6][:, sat], full[6][:, sat])
+        for plain in (False, True):
+            fast = fit_columns_clipped(img, cols, rows, half, 3, 1.2, 250.0, 3, it, plain, 0.3, 5.0, 4.7)
+            done = fast[7]
+            if plain:  # unsaturated narrow peaks; most flat tops (wider than the limit at half level) left to the
+                # full kernel
+                assert not (done & sat).any()
+                assert (flat & ~done).sum() > 0.5 * flat.sum()
+                narrow = ~flat & ~sat & (2.3548200450309493 * sigma < 4.0)
+                assert done[narrow].mean() > 0.95
+            else:
+                np.testing.assert_array_equal(done, sat)
+            assert done.sum() > 50
+            for a, b in zip(fast[:6], full[:6], strict=True):
+                np.testing.assert_allclose(np.asarray(a)[done], np.asarray(b)[done], rtol=0, atol=1e-9, equal_nan=True)
+            np.testing.assert_array_equal(fast[6][:, done], full[6][:, done])
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:

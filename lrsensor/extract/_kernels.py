@@ -1037,8 +1037,105 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
 
 
 @_njit
-def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
-    """:func:`fit_columns_saturated` on one chunk of columns (its arrays stay in the cache)."""
+def _plain_fit64(B, a0, lv, s, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
+    """The unclipped branch of :func:`fit_columns` column-parallel, in its float64 arithmetic: from the
+    background-free profiles ``B`` (m, n), their peak values ``a0`` (n,) and the logs ``lv`` (3 n,) of the
+    log-parabola samples ``R - s, R, R + s``: the Gaussian-weighted centroid (per column reach, weights by
+    recurrence from two ``math.exp``). Returns ``(centre, sigma, ok, done)``, (n,) each, ``centre`` in window rows;
+    ``done`` False where :func:`fit_columns` would take its wide (flat-topped) branch instead."""
+    m, n = B.shape
+    R = m // 2
+    c = np.empty(n)
+    sigma = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    inv2 = np.empty(n)
+    gain = np.empty(n)
+    reach = np.empty(n)
+    g2 = np.empty(n)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sg = s / math.sqrt(-den) if curved else np.inf
+        sigma[t] = sg
+        ok[t] = curved and sg >= min_sig and sg <= max_sig
+        sig_p = min(max(sg if math.isfinite(sg) else sigma_hint, min_sig), max_sig)
+        sig_w = max(sig_p, 1.1)
+        inv2[t] = 0.5 / (sig_w * sig_w)
+        gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
+        reach[t] = 4.0 * sig_w + 1.0
+        g2[t] = math.exp(-2.0 * inv2[t])
+    # half-level crossings (first row below half the peak on each side, interpolated): selects over the rows
+    done = np.empty(n, np.bool_)
+    xs = np.full((2, n), -1.0)
+    for side in range(2):
+        sg_ = -1 if side == 0 else 1
+        x_ = xs[side]
+        q = R + sg_
+        while 0 <= q < m:
+            bq_ = B[q]
+            bn = B[q - sg_]
+            fq = float(q)
+            for t in range(n):
+                aq = bq_[t]
+                lvl = 0.5 * a0[t]
+                take = (x_[t] < 0.0) & (aq < lvl)
+                x_[t] = (fq - sg_ * ((lvl - aq) / (bn[t] - aq))) if take else x_[t]
+            q += sg_
+    for t in range(n):
+        xa = xs[0, t]
+        xb = xs[1, t]
+        fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
+        done[t] = a0[t] <= 0 or fw <= wide_fwhm
+    # Gaussian-weighted centroid, each column over its own reach; a column stops for good once not finite
+    act = np.ones(n, np.bool_)
+    q0 = np.empty(n, np.int64)
+    q1 = np.empty(n, np.int64)
+    w = np.empty(n)
+    ratio = np.empty(n)
+    s0 = np.empty(n)
+    s1 = np.empty(n)
+    for _ in range(iterations):
+        for t in range(n):
+            act[t] = act[t] and math.isfinite(c[t])
+            s0[t] = 0.0
+            s1[t] = 0.0
+            if act[t]:
+                q0[t] = max(int(math.floor(c[t] - reach[t])), 0)  # noqa: RUF046 (numba: floor is a float)
+                q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m)  # noqa: RUF046
+                d0 = q0[t] - c[t]
+                w[t] = math.exp(-(d0 * d0) * inv2[t])
+                ratio[t] = math.exp(-(2.0 * d0 + 1.0) * inv2[t])
+            else:
+                q0[t] = 0
+                q1[t] = 0
+                w[t] = 0.0
+                ratio[t] = 0.0
+        for q in range(m):
+            bq_ = B[q]
+            for t in range(n):
+                inr = (q >= q0[t]) & (q < q1[t])
+                wa = w[t] * bq_[t]
+                s0[t] += wa if inr else 0.0
+                s1[t] += wa * (q - c[t]) if inr else 0.0
+                w[t] = w[t] * ratio[t] if inr else w[t]
+                ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
+        for t in range(n):
+            if act[t] and s0[t] != 0.0:
+                step = gain[t] * s1[t] / s0[t]
+                if math.isfinite(step):
+                    c[t] += min(max(step, -1.0), 1.0)
+    return c, sigma, ok, done
+
+
+@_njit
+def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, plain, min_sig, max_sig, wide_fwhm
+):
+    """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache)."""
     h = image.shape[0]
     wid = image.shape[1]
     flat = image.reshape(-1)
@@ -1184,75 +1281,82 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
         lv[n + t] = max(a0[t], 0.5)
         lv[2 * n + t] = max(B[R + s, t], 0.5)
     lv = log_array(lv)
-    c = np.empty(n)
-    hs = np.empty(n)
-    sigma = np.empty(n)
-    for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
-        curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
-        sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
-        hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
-    # 3. symmetric-window centroid on the background-free profile
-    s0 = np.empty(n)
-    s1 = np.empty(n)
-    for _ in range(iterations):
+    if plain:  # profiles without a clipped run: Gaussian-weighted centroid
+        c, sigma, okp, done = _plain_fit64(B, a0, lv, s, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
         for t in range(n):
-            s0[t] = 0.0
-            s1[t] = 0.0
-        q = 0
-        while q + 4 <= m:  # four rows per pass, the sums in registers (each row's operations in order)
-            w0 = B[q]
-            w1 = B[q + 1]
-            w2 = B[q + 2]
-            w3 = B[q + 3]
-            for t in range(n):
-                ct = c[t]
-                ht = hs[t]
-                a_ = s0[t]
-                b_ = s1[t]
-                dq = q - ct
-                wa = min(max(ht - abs(dq), 0.0), 1.0) * w0[t]
-                a_ += wa
-                b_ += wa * dq
-                dq = q + 1 - ct
-                wa = min(max(ht - abs(dq), 0.0), 1.0) * w1[t]
-                a_ += wa
-                b_ += wa * dq
-                dq = q + 2 - ct
-                wa = min(max(ht - abs(dq), 0.0), 1.0) * w2[t]
-                a_ += wa
-                b_ += wa * dq
-                dq = q + 3 - ct
-                wa = min(max(ht - abs(dq), 0.0), 1.0) * w3[t]
-                a_ += wa
-                b_ += wa * dq
-                s0[t] = a_
-                s1[t] = b_
-            q += 4
-        while q < m:
-            wq = B[q]
-            for t in range(n):
-                dq = q - c[t]
-                wa = min(max(hs[t] - abs(dq), 0.0), 1.0) * wq[t]
-                s0[t] += wa
-                s1[t] += wa * dq
-            q += 1
+            done[t] &= not sat[t]
+    else:  # clipped runs: symmetric-window centroid
+        c = np.empty(n)
+        hs = np.empty(n)
+        sigma = np.empty(n)
         for t in range(n):
-            if s0[t] != 0.0:
-                step = s1[t] / s0[t]
-                if math.isfinite(step):
-                    c[t] += min(max(step, -1.0), 1.0)
+            ym = lv[t]
+            y0 = lv[n + t]
+            yp = lv[2 * n + t]
+            den = ym - 2.0 * y0 + yp
+            curved = den < -1e-6
+            c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+            sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
+            hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
+        # 3. symmetric-window centroid on the background-free profile
+        s0 = np.empty(n)
+        s1 = np.empty(n)
+        for _ in range(iterations):
+            for t in range(n):
+                s0[t] = 0.0
+                s1[t] = 0.0
+            q = 0
+            while q + 4 <= m:  # four rows per pass, the sums in registers (each row's operations in order)
+                w0 = B[q]
+                w1 = B[q + 1]
+                w2 = B[q + 2]
+                w3 = B[q + 3]
+                for t in range(n):
+                    ct = c[t]
+                    ht = hs[t]
+                    a_ = s0[t]
+                    b_ = s1[t]
+                    dq = q - ct
+                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w0[t]
+                    a_ += wa
+                    b_ += wa * dq
+                    dq = q + 1 - ct
+                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w1[t]
+                    a_ += wa
+                    b_ += wa * dq
+                    dq = q + 2 - ct
+                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w2[t]
+                    a_ += wa
+                    b_ += wa * dq
+                    dq = q + 3 - ct
+                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w3[t]
+                    a_ += wa
+                    b_ += wa * dq
+                    s0[t] = a_
+                    s1[t] = b_
+                q += 4
+            while q < m:
+                wq = B[q]
+                for t in range(n):
+                    dq = q - c[t]
+                    wa = min(max(hs[t] - abs(dq), 0.0), 1.0) * wq[t]
+                    s0[t] += wa
+                    s1[t] += wa * dq
+                q += 1
+            for t in range(n):
+                if s0[t] != 0.0:
+                    step = s1[t] / s0[t]
+                    if math.isfinite(step):
+                        c[t] += min(max(step, -1.0), 1.0)
+        okp = sat
+        done = sat
     # 4. acceptance and the colour rises
     centre = np.empty(n)
     ok = np.empty(n, np.bool_)
     rise = np.empty((3, n))
     for t in range(n):
         pk_row = rows[t] + d[t] - e
-        good = sat[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
+        good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
         ok[t] = good
         centre[t] = pk_row - half + c[t] if good else np.nan
         rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
@@ -1261,7 +1365,7 @@ def _fit_saturated_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, 
         for ch in range(3):
             uc = np.uint64(ch)
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
-    return centre, a0, sigma, sat, ok, noise, rise
+    return centre, a0, sigma, sat, ok, noise, rise, done
 
 
 @_njit
@@ -1284,14 +1388,18 @@ def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
 
 
 @_njit
-def fit_columns_saturated(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
-    """:func:`fit_columns` for clipped peaks, column-parallel (the inner loops run over columns): the same
-    arithmetic for every column whose profile is saturated (its peak sample clipped and at least two clipped
-    samples), up to the vectorized logarithm of the log-parabola start (:func:`log_array`, within 2 ulp).
+def fit_columns_clipped(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, plain, min_sig, max_sig, wide_fwhm
+):
+    """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns whose candidate has
+    a clipped sample nearby, in its float64 arithmetic up to the vectorized logarithm of the log-parabola start
+    (:func:`log_array`, within 2 ulp): ``plain`` False, the saturated profiles (peak sample clipped, at least two
+    clipped samples; symmetric-window centroid); ``plain`` True, the profiles that are not saturated and not
+    wider than ``wide_fwhm`` at half level (Gaussian-weighted centroid).
 
-    Same arguments as :func:`fit_columns` without the neighbour model and the width limits (which a clipped
-    peak does not use). Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise)``; the results
-    of columns with ``saturated`` False are not :func:`fit_columns`'s: those are to be fitted by it.
+    Same arguments as :func:`fit_columns` without the neighbour model and the width limits. Returns
+    ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)``: ``done`` (N,) bool marks the
+    columns of the chosen kind, whose results are :func:`fit_columns`'s; the others are to be fitted by it.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
     n = cols.size
@@ -1302,9 +1410,24 @@ def fit_columns_saturated(image, cols, rows, half, e, sigma_hint, sat_dn, flank,
     ok = np.empty(n, np.bool_)
     noise = np.empty(n)
     rise = np.empty((3, n))
+    done = np.empty(n, np.bool_)
     for t0 in range(0, n, 512):
         t1 = min(t0 + 512, n)
-        res = _fit_saturated_chunk(image, cols[t0:t1], rows[t0:t1], half, e, sigma_hint, sat_dn, flank, iterations)
+        res = _fit_clipped_chunk(
+            image,
+            cols[t0:t1],
+            rows[t0:t1],
+            half,
+            e,
+            sigma_hint,
+            sat_dn,
+            flank,
+            iterations,
+            plain,
+            min_sig,
+            max_sig,
+            wide_fwhm,
+        )
         centre[t0:t1] = res[0]
         amp[t0:t1] = res[1]
         sigma[t0:t1] = res[2]
@@ -1312,7 +1435,8 @@ def fit_columns_saturated(image, cols, rows, half, e, sigma_hint, sat_dn, flank,
         ok[t0:t1] = res[4]
         noise[t0:t1] = res[5]
         rise[:, t0:t1] = res[6]
-    return centre, amp, sigma, sat, ok, noise, rise
+        done[t0:t1] = res[7]
+    return centre, amp, sigma, sat, ok, noise, rise, done
 
 
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
@@ -2654,28 +2778,46 @@ def process_candidates(  # type: ignore[no-untyped-def]
     n_sp = 0
     for t in range(n):
         n_sp += special[t]
-    if n_sp:  # clipped peaks (close to the wall) column-parallel; the other special ones by the full kernel
-        sp_idx = np.flatnonzero(special)
-        r_s = fit_columns_saturated(image, cols[sp_idx], rows[sp_idx], half, 3, sig_med, sat_dn, 3, iterations)
-        rest = np.empty(n_sp, np.int64)
-        n_rest = 0
-        for i in range(n_sp):
-            t = sp_idx[i]
-            if r_s[3][i]:
-                vv[t] = r_s[0][i]
-                amp[t] = r_s[1][i]
-                sig[t] = r_s[2][i]
-                sat[t] = True
-                ok[t] = r_s[4][i]
-                lnoise[t] = r_s[5][i]
-                for c in range(3):
-                    rise[c, t] = r_s[6][c, i]
-            else:
-                rest[n_rest] = t
-                n_rest += 1
-        if n_rest:
-            nan = np.full(n_rest, np.nan)
-            _refit(image, cols, rows, laser, rest[:n_rest], nan, nan, nan, fit, limits, geo, res)
+    if n_sp:  # clipped peaks (close to the wall), then the unclipped narrow ones, column-parallel; the rest
+        # (flat tops) by the full kernel
+        rest = np.flatnonzero(special)
+        for plain in (False, True):
+            r_s = fit_columns_clipped(
+                image,
+                cols[rest],
+                rows[rest],
+                half,
+                3,
+                sig_med,
+                sat_dn,
+                3,
+                iterations,
+                plain,
+                min_sig,
+                max_sigma,
+                wide_fwhm,
+            )
+            n_rest = 0
+            for i in range(rest.size):
+                t = rest[i]
+                if r_s[7][i]:
+                    vv[t] = r_s[0][i]
+                    amp[t] = r_s[1][i]
+                    sig[t] = r_s[2][i]
+                    sat[t] = r_s[3][i]
+                    ok[t] = r_s[4][i]
+                    lnoise[t] = r_s[5][i]
+                    for c in range(3):
+                        rise[c, t] = r_s[6][c, i]
+                else:
+                    rest[n_rest] = t
+                    n_rest += 1
+            rest = rest[:n_rest]
+            if n_rest == 0:
+                break
+        if rest.size:
+            nan = np.full(rest.size, np.nan)
+            _refit(image, cols, rows, laser, rest, nan, nan, nan, fit, limits, geo, res)
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
@@ -2916,7 +3058,8 @@ def warm_up() -> None:
         detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
-        fit_columns_saturated(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2)
+        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, False, 0.5, 5.0, 4.7)
+        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, True, 0.5, 5.0, 4.7)
         core_clipped(img, i64, i64 + 4, 1, 250.0)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         process_candidates(
@@ -2990,7 +3133,7 @@ _KERNEL_NAMES = (
     "local_maxima",
     "frame_profile_stats",
     "fit_columns_common",
-    "fit_columns_saturated",
+    "fit_columns_clipped",
     "core_clipped",
     "max_fwhm_at",
     "process_candidates",
