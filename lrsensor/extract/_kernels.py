@@ -1354,14 +1354,21 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
     centre = np.empty(n)
     ok = np.empty(n, np.bool_)
     rise = np.empty((3, n))
-    for t in range(n):
-        pk_row = rows[t] + d[t] - e
-        good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
+    for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
+        good = okp[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0)
         ok[t] = good
-        centre[t] = pk_row - half + c[t] if good else np.nan
-        rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
-        rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
-        rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
+        centre[t] = rows[t] + d[t] - e - half + c[t] if good else np.nan
+    hstride = np.uint64(half * wid * 3)
+    for t in range(n):  # the peak row and the window's ends (flat unsigned indices where inside: no clamping)
+        pk_row = rows[t] + d[t] - e
+        if inside:
+            rp = np.uint64((pk_row * wid + cols[t]) * 3)
+            rl = rp - hstride
+            rh = rp + hstride
+        else:
+            rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
+            rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
+            rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
         for ch in range(3):
             uc = np.uint64(ch)
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
@@ -1377,10 +1384,23 @@ def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
     flat = image.reshape(-1)
     n = cols.size
     top = np.zeros(n, np.uint8)
-    for k in range(2 * e + 1):
+    inside = True
+    for t in range(n):
+        inside &= rows[t] - e >= 0 and rows[t] + e <= h - 1
+    if inside:  # one base index per column, a row stride per sample, unsigned (no clamping, no wrap-around)
+        stride = np.uint64(wid * 3)
+        base = np.empty(n, np.uint64)
         for t in range(n):
-            rr = min(max(rows[t] - e + k, 0), h - 1)
-            top[t] = max(top[t], flat[np.uint64((rr * wid + cols[t]) * 3 + 1)])
+            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
+        for k in range(2 * e + 1):
+            o = np.uint64(k) * stride
+            for t in range(n):
+                top[t] = max(top[t], flat[base[t] + o])
+    else:
+        for k in range(2 * e + 1):
+            for t in range(n):
+                rr = min(max(rows[t] - e + k, 0), h - 1)
+                top[t] = max(top[t], flat[np.uint64((rr * wid + cols[t]) * 3 + 1)])
     out = np.empty(n, np.bool_)
     for t in range(n):
         out[t] = top[t] >= sat_dn
