@@ -1596,21 +1596,20 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     c_d2 = np.empty(n + 1)
     c_n2 = np.empty(n + 1)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
-    for q in range(n):
-        r = run[q]
-        if r >= 0:
-            run_lo[q] = first[r]
-            run_hi[q] = last[r]
-            base[q] = y[first[r]]
-        else:
-            run_lo[q] = n
-            run_hi[q] = -1
-    # the sums run in registers (read back from the arrays, each would wait on its own store)
+    # the sums run in registers (read back from the arrays, each would wait on its own store); each column's run
+    # extent and base in the same pass
     s_m = s_mx = s_mxx = s_z = s_zx = s_zz = s_d2 = s_n2 = 0.0
     for q in range(n):
-        h = have[q]
+        r = run[q]
+        h = r >= 0
+        rr = max(r, 0)
+        f = first[rr]
+        run_lo[q] = f if h else n
+        run_hi[q] = last[rr] if h else -1
+        b = y[min(f, n - 1)] if h else 0.0
+        base[q] = b
         mq = 1.0 if h else 0.0
-        zq = y[q] - base[q] if h else 0.0
+        zq = y[q] - b if h else 0.0
         s_m += mq
         s_mx += mq * q
         s_mxx += mq * q * q
