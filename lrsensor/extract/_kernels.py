@@ -984,7 +984,36 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         for ch in (0, 2):
             uc = np.uint64(ch)
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
-    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, special, rise
+    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
+
+
+@_njit
+def _fit_results(n):  # type: ignore[no-untyped-def]
+    """Empty results of the chunked column-parallel fits for ``n`` columns: ``(centre_row, amplitude, sigma,
+    saturated, ok, local_noise, rise, flag)``, (n,) each and rise (3, n)."""
+    return (
+        np.empty(n),
+        np.empty(n),
+        np.empty(n),
+        np.empty(n, np.bool_),
+        np.empty(n, np.bool_),
+        np.empty(n),
+        np.empty((3, n)),
+        np.empty(n, np.bool_),
+    )
+
+
+@_njit
+def _store_fit(out, res, t0, t1):  # type: ignore[no-untyped-def]
+    """Copy the results ``res`` of the chunk of columns ``[t0, t1)`` into ``out`` (as :func:`_fit_results`)."""
+    out[0][t0:t1] = res[0]
+    out[1][t0:t1] = res[1]
+    out[2][t0:t1] = res[2]
+    out[3][t0:t1] = res[3]
+    out[4][t0:t1] = res[4]
+    out[5][t0:t1] = res[5]
+    out[6][:, t0:t1] = res[6]
+    out[7][t0:t1] = res[7]
 
 
 @_njit
@@ -1002,16 +1031,9 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
-    n = cols.size
-    centre = np.empty(n)
-    amp = np.empty(n)
-    sigma = np.empty(n)
-    ok = np.empty(n, np.bool_)
-    noise = np.empty(n)
-    special = np.empty(n, np.bool_)
-    rise = np.empty((3, n))
-    for t0 in range(0, n, 512):
-        t1 = min(t0 + 512, n)
+    out = _fit_results(cols.size)
+    for t0 in range(0, cols.size, 512):
+        t1 = min(t0 + 512, cols.size)
         res = _fit_common_chunk(
             image,
             cols[t0:t1],
@@ -1026,14 +1048,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
             iterations,
             wide_fwhm,
         )
-        centre[t0:t1] = res[0]
-        amp[t0:t1] = res[1]
-        sigma[t0:t1] = res[2]
-        ok[t0:t1] = res[4]
-        noise[t0:t1] = res[5]
-        special[t0:t1] = res[6]
-        rise[:, t0:t1] = res[7]
-    return centre, amp, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
+        _store_fit(out, res, t0, t1)
+    return out
 
 
 @_njit
@@ -1422,17 +1438,9 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
     columns of the chosen kind, whose results are :func:`fit_columns`'s; the others are to be fitted by it.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
-    n = cols.size
-    centre = np.empty(n)
-    amp = np.empty(n)
-    sigma = np.empty(n)
-    sat = np.empty(n, np.bool_)
-    ok = np.empty(n, np.bool_)
-    noise = np.empty(n)
-    rise = np.empty((3, n))
-    done = np.empty(n, np.bool_)
-    for t0 in range(0, n, 512):
-        t1 = min(t0 + 512, n)
+    out = _fit_results(cols.size)
+    for t0 in range(0, cols.size, 512):
+        t1 = min(t0 + 512, cols.size)
         res = _fit_clipped_chunk(
             image,
             cols[t0:t1],
@@ -1448,15 +1456,8 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
             max_sig,
             wide_fwhm,
         )
-        centre[t0:t1] = res[0]
-        amp[t0:t1] = res[1]
-        sigma[t0:t1] = res[2]
-        sat[t0:t1] = res[3]
-        ok[t0:t1] = res[4]
-        noise[t0:t1] = res[5]
-        rise[:, t0:t1] = res[6]
-        done[t0:t1] = res[7]
-    return centre, amp, sigma, sat, ok, noise, rise, done
+        _store_fit(out, res, t0, t1)
+    return out
 
 
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
@@ -1867,6 +1868,22 @@ def _pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
     return med
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _pooled_value(ch, ds, uq, j, o, inf):  # type: ignore[no-untyped-def]
+    """Value ``j`` of the window at ``uq`` for :func:`_pooled_median9`: ``(value, used)``, +inf when it is not of
+    the piece ``o`` or not passing (NaN)."""
+    i = uq + np.uint64(j)
+    x = ds[i]
+    u = (ch[i] == o) & (x == x)
+    return (x if u else inf), u
+
+
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _exchange(a, b):  # type: ignore[no-untyped-def]
+    """One compare-exchange: ``(min, max)``."""
+    return min(a, b), max(a, b)
+
+
 @_njit
 def _pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
     """The pooled signal-to-noise medians of :func:`finish_points` for windows of 9 columns (``pool`` 4), each
@@ -1882,110 +1899,43 @@ def _pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
     for q in range(nd):
         uq = np.uint64(q)
         o = ch[uq + np.uint64(4)]
-        x0 = ds[uq + np.uint64(0)]
-        u0 = (ch[uq + np.uint64(0)] == o) & (x0 == x0)
-        v0 = x0 if u0 else inf32
-        x1 = ds[uq + np.uint64(1)]
-        u1 = (ch[uq + np.uint64(1)] == o) & (x1 == x1)
-        v1 = x1 if u1 else inf32
-        x2 = ds[uq + np.uint64(2)]
-        u2 = (ch[uq + np.uint64(2)] == o) & (x2 == x2)
-        v2 = x2 if u2 else inf32
-        x3 = ds[uq + np.uint64(3)]
-        u3 = (ch[uq + np.uint64(3)] == o) & (x3 == x3)
-        v3 = x3 if u3 else inf32
-        x4 = ds[uq + np.uint64(4)]
-        u4 = (ch[uq + np.uint64(4)] == o) & (x4 == x4)
-        v4 = x4 if u4 else inf32
-        x5 = ds[uq + np.uint64(5)]
-        u5 = (ch[uq + np.uint64(5)] == o) & (x5 == x5)
-        v5 = x5 if u5 else inf32
-        x6 = ds[uq + np.uint64(6)]
-        u6 = (ch[uq + np.uint64(6)] == o) & (x6 == x6)
-        v6 = x6 if u6 else inf32
-        x7 = ds[uq + np.uint64(7)]
-        u7 = (ch[uq + np.uint64(7)] == o) & (x7 == x7)
-        v7 = x7 if u7 else inf32
-        x8 = ds[uq + np.uint64(8)]
-        u8 = (ch[uq + np.uint64(8)] == o) & (x8 == x8)
-        v8 = x8 if u8 else inf32
+        v0, u0 = _pooled_value(ch, ds, uq, 0, o, inf32)
+        v1, u1 = _pooled_value(ch, ds, uq, 1, o, inf32)
+        v2, u2 = _pooled_value(ch, ds, uq, 2, o, inf32)
+        v3, u3 = _pooled_value(ch, ds, uq, 3, o, inf32)
+        v4, u4 = _pooled_value(ch, ds, uq, 4, o, inf32)
+        v5, u5 = _pooled_value(ch, ds, uq, 5, o, inf32)
+        v6, u6 = _pooled_value(ch, ds, uq, 6, o, inf32)
+        v7, u7 = _pooled_value(ch, ds, uq, 7, o, inf32)
+        v8, u8 = _pooled_value(ch, ds, uq, 8, o, inf32)
         k = np.int32(u0) + np.int32(u1) + np.int32(u2) + np.int32(u3) + np.int32(u4)
         k += np.int32(u5) + np.int32(u6) + np.int32(u7) + np.int32(u8)
-        lo = min(v0, v1)
-        v1 = max(v0, v1)
-        v0 = lo
-        lo = min(v3, v4)
-        v4 = max(v3, v4)
-        v3 = lo
-        lo = min(v6, v7)
-        v7 = max(v6, v7)
-        v6 = lo
-        lo = min(v1, v2)
-        v2 = max(v1, v2)
-        v1 = lo
-        lo = min(v4, v5)
-        v5 = max(v4, v5)
-        v4 = lo
-        lo = min(v7, v8)
-        v8 = max(v7, v8)
-        v7 = lo
-        lo = min(v0, v1)
-        v1 = max(v0, v1)
-        v0 = lo
-        lo = min(v3, v4)
-        v4 = max(v3, v4)
-        v3 = lo
-        lo = min(v6, v7)
-        v7 = max(v6, v7)
-        v6 = lo
-        lo = min(v0, v3)
-        v3 = max(v0, v3)
-        v0 = lo
-        lo = min(v3, v6)
-        v6 = max(v3, v6)
-        v3 = lo
-        lo = min(v0, v3)
-        v3 = max(v0, v3)
-        v0 = lo
-        lo = min(v1, v4)
-        v4 = max(v1, v4)
-        v1 = lo
-        lo = min(v4, v7)
-        v7 = max(v4, v7)
-        v4 = lo
-        lo = min(v1, v4)
-        v4 = max(v1, v4)
-        v1 = lo
-        lo = min(v2, v5)
-        v5 = max(v2, v5)
-        v2 = lo
-        lo = min(v5, v8)
-        v8 = max(v5, v8)
-        v5 = lo
-        lo = min(v2, v5)
-        v5 = max(v2, v5)
-        v2 = lo
-        lo = min(v1, v3)
-        v3 = max(v1, v3)
-        v1 = lo
-        lo = min(v5, v7)
-        v7 = max(v5, v7)
-        v5 = lo
-        lo = min(v2, v6)
-        v6 = max(v2, v6)
-        v2 = lo
-        lo = min(v4, v6)
-        v6 = max(v4, v6)
-        v4 = lo
-        lo = min(v2, v4)
-        v4 = max(v2, v4)
-        v2 = lo
-        lo = min(v2, v3)
-        v3 = max(v2, v3)
-        v2 = lo
-        lo = min(v5, v6)
-        v6 = max(v5, v6)
-        v5 = lo
+        # SORT9, written out
+        v0, v1 = _exchange(v0, v1)
+        v3, v4 = _exchange(v3, v4)
+        v6, v7 = _exchange(v6, v7)
+        v1, v2 = _exchange(v1, v2)
+        v4, v5 = _exchange(v4, v5)
+        v7, v8 = _exchange(v7, v8)
+        v0, v1 = _exchange(v0, v1)
+        v3, v4 = _exchange(v3, v4)
+        v6, v7 = _exchange(v6, v7)
+        v0, v3 = _exchange(v0, v3)
+        v3, v6 = _exchange(v3, v6)
+        v0, v3 = _exchange(v0, v3)
+        v1, v4 = _exchange(v1, v4)
+        v4, v7 = _exchange(v4, v7)
+        v1, v4 = _exchange(v1, v4)
+        v2, v5 = _exchange(v2, v5)
+        v5, v8 = _exchange(v5, v8)
+        v2, v5 = _exchange(v2, v5)
+        v1, v3 = _exchange(v1, v3)
+        v5, v7 = _exchange(v5, v7)
+        v2, v6 = _exchange(v2, v6)
+        v4, v6 = _exchange(v4, v6)
+        v2, v4 = _exchange(v2, v4)
+        v2, v3 = _exchange(v2, v3)
+        v5, v6 = _exchange(v5, v6)
         h = k // 2
         a = v0
         a = v1 if h == 1 else a
