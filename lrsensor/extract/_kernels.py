@@ -1016,6 +1016,20 @@ def _store_fit(out, res, t0, t1):  # type: ignore[no-untyped-def]
     out[7][t0:t1] = res[7]
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _put_fit(res, r, i, t):  # type: ignore[no-untyped-def]
+    """Store result ``i`` of a column-parallel fit ``r`` (as :func:`_fit_results`) as column ``t`` of the
+    per-column results ``res = (centre, amplitude, sigma, saturated, ok, local_noise, rise)``."""
+    res[0][t] = r[0][i]
+    res[1][t] = r[1][i]
+    res[2][t] = r[2][i]
+    res[3][t] = r[3][i]
+    res[4][t] = r[4][i]
+    res[5][t] = r[5][i]
+    for c in range(3):
+        res[6][c, t] = r[6][c, i]
+
+
 @_njit
 def fit_columns_common(  # type: ignore[no-untyped-def]
     image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
@@ -2730,16 +2744,10 @@ def process_candidates(  # type: ignore[no-untyped-def]
             r_c = fit_columns_common(
                 image, cols[keep], rows[keep], half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
             )
+            out = (vv, amp, sig, sat, ok, lnoise, rise)
             for i in range(keep.size):
-                t = keep[i]
-                vv[t] = r_c[0][i]
-                amp[t] = r_c[1][i]
-                sig[t] = r_c[2][i]
-                ok[t] = r_c[4][i]
-                lnoise[t] = r_c[5][i]
-                for c in range(3):
-                    rise[c, t] = r_c[6][c, i]
-                special[t] = r_c[7][i]
+                _put_fit(out, r_c, i, keep[i])
+                special[keep[i]] = r_c[7][i]
     # the fit's settings, the width limits and the per-column results that the refits update in place
     fit = (half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm)
     limits = (mfw, floor, sheet_mm)
@@ -2770,14 +2778,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
             for i in range(rest.size):
                 t = rest[i]
                 if r_s[7][i]:
-                    vv[t] = r_s[0][i]
-                    amp[t] = r_s[1][i]
-                    sig[t] = r_s[2][i]
-                    sat[t] = r_s[3][i]
-                    ok[t] = r_s[4][i]
-                    lnoise[t] = r_s[5][i]
-                    for c in range(3):
-                        rise[c, t] = r_s[6][c, i]
+                    _put_fit(res, r_s, i, t)
                 else:
                     rest[n_rest] = t
                     n_rest += 1
