@@ -128,6 +128,28 @@ def test_speed_references_agree() -> None:
     assert np.array_equal(be.argmax_parabola_compiled(flat), be.argmax_parabola(flat))
 
 
+def test_speed_cache_states_feed_the_frames_they_promise() -> None:
+    """The speed benchmark's cache states: ``stream`` hands each call a different copy of the frame in turn (every
+    call reads a new frame), ``warm`` and ``cold`` the same frame every call; an unknown state is refused."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    frame = np.zeros((4, 5, 3), np.uint8)
+    for state, distinct in (("stream", be.STREAM_FRAMES), ("warm", 1), ("cold", 1)):
+        seen: list[int] = []
+        out = be.timed({"f": lambda img, seen=seen: seen.append(img.ctypes.data)}, frame, 3, state)
+        assert set(out) == {"f"}
+        assert all(t >= 0.0 for t in out["f"])
+        timed_calls = seen[1:] if state != "warm" else seen[2:]  # after the untimed first call(s)
+        assert len(set(timed_calls)) == distinct
+        assert len(timed_calls) == (max(3, be.STREAM_FRAMES) if state == "stream" else 3)
+    with pytest.raises(ValueError, match="unknown cache state"):
+        be.timed({}, frame, 1, "lukewarm")
+
+
 def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
     """The per-frame settings are reused by identity of (calibration, config): alternating two sensors whose
     calibrations differ gives each the points of a call with nothing remembered."""
