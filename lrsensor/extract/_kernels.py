@@ -638,39 +638,96 @@ def fit_columns(  # type: ignore[no-untyped-def]
 
 
 @_njit
-def _fit_common_chunk(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
-):
-    """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
+def _gather_green(image, cols, top, out):  # type: ignore[no-untyped-def]
+    """Green samples of ``out.shape[0]`` consecutive rows per column into ``out`` (K, N), any dtype: sample ``k``
+    of column ``t`` is row ``top[t] + k`` (clamped to the image) of column ``cols[t]``. Where all of them lie in
+    the image: one unsigned base index per column and a row stride per sample (no clamping, no wrap-around), four
+    rows per pass over the columns (one base load for four samples)."""
     h = image.shape[0]
     wid = image.shape[1]
     flat = image.reshape(-1)
     n = cols.size
-    m = 2 * half + 1
-    R = half
+    k_rows = out.shape[0]
     inside = True
     for t in range(n):
-        inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
-    special = np.zeros(n, np.bool_)
-    # the green samples of the 2 e + 1 core rows rows - e ... rows + e: (2 e + 1, n), one byte gather each
-    # (unsigned flat indices where the whole window lies in the image: no clamping, no wrap-around)
-    ne = 2 * e + 1
+        inside &= top[t] >= 0 and top[t] + k_rows - 1 <= h - 1
+    if not inside:
+        for k in range(k_rows):
+            for t in range(n):
+                rr = min(max(top[t] + k, 0), h - 1)
+                out[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+        return
     stride = np.uint64(wid * 3)
     base = np.empty(n, np.uint64)
-    C = np.empty((ne, n), np.uint8)
-    if inside:
+    for t in range(n):
+        base[t] = np.uint64((top[t] * wid + cols[t]) * 3 + 1)
+    k = 0
+    while k + 4 <= k_rows:
+        o = np.uint64(k) * stride
+        b0 = out[k]
+        b1 = out[k + 1]
+        b2 = out[k + 2]
+        b3 = out[k + 3]
         for t in range(n):
-            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
-        for k in range(ne):
-            o = np.uint64(k) * stride
-            ck = C[k]
-            for t in range(n):
-                ck[np.uint64(t)] = flat[base[t] + o]
-    else:
-        for k in range(ne):
-            for t in range(n):
-                rr = min(max(rows[t] - e + k, 0), h - 1)
-                C[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+            ut = np.uint64(t)
+            i0 = base[ut] + o
+            b0[ut] = flat[i0]
+            b1[ut] = flat[i0 + stride]
+            b2[ut] = flat[i0 + stride + stride]
+            b3[ut] = flat[i0 + stride + stride + stride]
+        k += 4
+    while k < k_rows:
+        o = np.uint64(k) * stride
+        bk = out[k]
+        for t in range(n):
+            bk[np.uint64(t)] = flat[base[t] + o]
+        k += 1
+
+
+@_njit
+def _colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no-untyped-def]
+    """The rise of the ``channels`` (of 0, 1, 2: blue, green, red) at each column's peak row over the mean of the
+    rows ``half`` above and below (clamped to the image): into their rows of ``rise`` (3, N), for the colour test
+    pooled along the stripe."""
+    h = image.shape[0]
+    wid = image.shape[1]
+    flat = image.reshape(-1)
+    n = cols.size
+    inside = True
+    for t in range(n):
+        inside &= pk_rows[t] - half >= 0 and pk_rows[t] + half <= h - 1
+    hstride = np.uint64(half * wid * 3)
+    for t in range(n):
+        pk_row = pk_rows[t]
+        if inside:  # flat unsigned indices, no clamping
+            rp = np.uint64((pk_row * wid + cols[t]) * 3)
+            rl = rp - hstride
+            rh = rp + hstride
+        else:
+            rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
+            rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
+            rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
+        for ch in channels:
+            uc = np.uint64(ch)
+            rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
+
+
+@_njit
+def _fit_common_chunk(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
+):
+    """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    special = np.zeros(n, np.bool_)
+    # the green samples of the 2 e + 1 core rows rows - e ... rows + e: (2 e + 1, n)
+    ne = 2 * e + 1
+    top_row = np.empty(n, np.int64)
+    for t in range(n):
+        top_row[t] = rows[t] - e
+    C = np.empty((ne, n), np.uint8)
+    _gather_green(image, cols, top_row, C)
     # the integer peak among them (the first of equal ones): its shift d in [0, 2 e]
     bv = C[0].copy()
     d = np.zeros(n, np.uint8)
@@ -687,38 +744,15 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     bq = np.empty(n, np.int64)
     for t in range(n):
         bq[t] = R + np.int64(d[t])
-    # the window centred on it, rows peak - half ... peak + half: (m, n), gathered four rows per pass over the
-    # columns (one base index load for four samples)
+    # the window centred on it, rows peak - half ... peak + half: (m, n)
+    for t in range(n):
+        top_row[t] = rows[t] - e - half + np.int64(d[t])
     B = np.empty((m, n), np.float32)
-    if inside:
-        for t in range(n):
-            base[t] = np.uint64(((rows[t] - e - half + np.int64(d[t])) * wid + cols[t]) * 3 + 1)
-        q = 0
-        while q + 4 <= m:
-            o = np.uint64(q) * stride
-            b0 = B[q]
-            b1 = B[q + 1]
-            b2 = B[q + 2]
-            b3 = B[q + 3]
-            for t in range(n):
-                ut = np.uint64(t)
-                i0 = base[ut] + o
-                b0[ut] = flat[i0]
-                b1[ut] = flat[i0 + stride]
-                b2[ut] = flat[i0 + stride + stride]
-                b3[ut] = flat[i0 + stride + stride + stride]
-            q += 4
-        while q < m:
-            o = np.uint64(q) * stride
-            bqr = B[q]
-            for t in range(n):
-                bqr[np.uint64(t)] = flat[base[t] + o]
-            q += 1
-    else:
-        for q in range(m):
-            for t in range(n):
-                rr = min(max(rows[t] - e - half + np.int64(d[t]) + q, 0), h - 1)
-                B[q, t] = flat[(rr * wid + cols[t]) * 3 + 1]
+    _gather_green(image, cols, top_row, B)
+    # the green samples of the colour rise (peak row and the window's ends), before the background is removed
+    g_lo = B[0].copy()
+    g_pk = B[R].copy()
+    g_hi = B[m - 1].copy()
     topf = np.empty(n, np.float32)
     for t in range(n):
         topf[t] = top[t]
@@ -728,10 +762,6 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             topf[t] = max(topf[t], bqr[t])
     for t in range(n):
         special[t] |= topf[t] >= sat_dn
-    # the green samples of the colour rise (peak row and the window's ends), before the background is removed
-    g_lo = B[0].copy()
-    g_pk = B[R].copy()
-    g_hi = B[m - 1].copy()
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
@@ -962,28 +992,17 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                     c[t] += min(max(step, -1.0), 1.0)
     # 4. acceptance and the colour rises
     centre = np.empty(n)
-    rise = np.empty((3, n))
-    r_g = rise[1]
+    pk_rows = np.empty(n, np.int64)
     for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
         good = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
-        pk_row = rows[t] + bq[t] - e - R
-        centre[t] = pk_row - half + c[t] if good else np.nan
+        pk_rows[t] = rows[t] + bq[t] - e - R
+        centre[t] = pk_rows[t] - half + c[t] if good else np.nan
         ok[t] = good
+    rise = np.empty((3, n))
+    r_g = rise[1]
+    for t in range(n):
         r_g[t] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
-    stride = wid * 3
-    for t in range(n):  # blue and red at the same rows: read from the image
-        pk_row = rows[t] + bq[t] - e - R
-        if inside:  # the window lies in the image: flat unsigned indices, no clamping
-            rp = np.uint64((pk_row * wid + cols[t]) * 3)
-            rl = rp - np.uint64(half * stride)
-            rh = rp + np.uint64(half * stride)
-        else:
-            rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
-            rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
-            rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
-        for ch in (0, 2):
-            uc = np.uint64(ch)
-            rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
+    _colour_rises(image, cols, pk_rows, half, (0, 2), rise)  # blue and red at the same rows
     return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
 
 
@@ -1166,33 +1185,16 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
     image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, plain, min_sig, max_sig, wide_fwhm
 ):
     """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache)."""
-    h = image.shape[0]
-    wid = image.shape[1]
-    flat = image.reshape(-1)
     n = cols.size
     m = 2 * half + 1
     R = half
     ne = 2 * e + 1
     # the core rows rows - e ... rows + e: the peak is the middle of their clipped run, else the first maximum
-    inside = True
+    top_row = np.empty(n, np.int64)
     for t in range(n):
-        inside &= rows[t] - half - e >= 0 and rows[t] + half + e <= h - 1
-    stride = np.uint64(wid * 3)
-    base = np.empty(n, np.uint64)
+        top_row[t] = rows[t] - e
     C = np.empty((ne, n), np.uint8)
-    if inside:  # no clamping: one base index per column, a row stride per sample (as the common fit)
-        for t in range(n):
-            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
-        for k in range(ne):
-            o = np.uint64(k) * stride
-            ck = C[k]
-            for t in range(n):
-                ck[np.uint64(t)] = flat[base[t] + o]
-    else:
-        for k in range(ne):
-            for t in range(n):
-                rr = min(max(rows[t] - e + k, 0), h - 1)
-                C[k, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+    _gather_green(image, cols, top_row, C)
     d = np.zeros(n, np.int64)
     bv = np.full(n, -1.0)
     first = np.full(n, -1, np.int64)
@@ -1211,20 +1213,10 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
         if first[t] >= 0:
             d[t] = (first[t] + last[t]) // 2
     # the window centred on it, rows peak - half ... peak + half: (m, n) bytes
+    for t in range(n):
+        top_row[t] = rows[t] - e - half + d[t]
     W = np.empty((m, n), np.uint8)
-    if inside:
-        for t in range(n):
-            base[t] = np.uint64(((rows[t] - e - half + d[t]) * wid + cols[t]) * 3 + 1)
-        for q in range(m):
-            o = np.uint64(q) * stride
-            wq = W[q]
-            for t in range(n):
-                wq[np.uint64(t)] = flat[base[t] + o]
-    else:
-        for q in range(m):
-            for t in range(n):
-                rr = min(max(rows[t] - e - half + d[t] + q, 0), h - 1)
-                W[q, t] = flat[np.uint64((rr * wid + cols[t]) * 3 + 1)]
+    _gather_green(image, cols, top_row, W)
     n_sat = np.zeros(n, np.int64)
     for q in range(m):
         wq = W[q]
@@ -1388,20 +1380,10 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
         good = okp[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0)
         ok[t] = good
         centre[t] = rows[t] + d[t] - e - half + c[t] if good else np.nan
-    hstride = np.uint64(half * wid * 3)
-    for t in range(n):  # the peak row and the window's ends (flat unsigned indices where inside: no clamping)
-        pk_row = rows[t] + d[t] - e
-        if inside:
-            rp = np.uint64((pk_row * wid + cols[t]) * 3)
-            rl = rp - hstride
-            rh = rp + hstride
-        else:
-            rp = np.uint64((min(max(pk_row, 0), h - 1) * wid + cols[t]) * 3)
-            rl = np.uint64((min(max(pk_row - half, 0), h - 1) * wid + cols[t]) * 3)
-            rh = np.uint64((min(max(pk_row + half, 0), h - 1) * wid + cols[t]) * 3)
-        for ch in range(3):
-            uc = np.uint64(ch)
-            rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
+    pk_rows = np.empty(n, np.int64)
+    for t in range(n):
+        pk_rows[t] = rows[t] + d[t] - e
+    _colour_rises(image, cols, pk_rows, half, (0, 1, 2), rise)
     return centre, a0, sigma, sat, ok, noise, rise, done
 
 
@@ -1409,28 +1391,17 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
 def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
     """Whether any green sample of rows ``rows - e ... rows + e`` (clamped to the image) of each column reaches
     ``sat_dn``: (N,) bool."""
-    h = image.shape[0]
-    wid = image.shape[1]
-    flat = image.reshape(-1)
     n = cols.size
-    top = np.zeros(n, np.uint8)
-    inside = True
+    top_row = np.empty(n, np.int64)
     for t in range(n):
-        inside &= rows[t] - e >= 0 and rows[t] + e <= h - 1
-    if inside:  # one base index per column, a row stride per sample, unsigned (no clamping, no wrap-around)
-        stride = np.uint64(wid * 3)
-        base = np.empty(n, np.uint64)
+        top_row[t] = rows[t] - e
+    C = np.empty((2 * e + 1, n), np.uint8)
+    _gather_green(image, cols, top_row, C)
+    top = C[0].copy()
+    for k in range(1, 2 * e + 1):
+        ck = C[k]
         for t in range(n):
-            base[t] = np.uint64(((rows[t] - e) * wid + cols[t]) * 3 + 1)
-        for k in range(2 * e + 1):
-            o = np.uint64(k) * stride
-            for t in range(n):
-                top[t] = max(top[t], flat[base[t] + o])
-    else:
-        for k in range(2 * e + 1):
-            for t in range(n):
-                rr = min(max(rows[t] - e + k, 0), h - 1)
-                top[t] = max(top[t], flat[np.uint64((rr * wid + cols[t]) * 3 + 1)])
+            top[t] = max(top[t], ck[t])
     out = np.empty(n, np.bool_)
     for t in range(n):
         out[t] = top[t] >= sat_dn
