@@ -1086,32 +1086,23 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
 
 
 @_njit
-def _plain_fit64(B, a0, lv, s, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
+def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
     """The unclipped branch of :func:`fit_columns` column-parallel, in its float64 arithmetic: from the
-    background-free profiles ``B`` (m, n), their peak values ``a0`` (n,) and the logs ``lv`` (3 n,) of the
-    log-parabola samples ``R - s, R, R + s``: the Gaussian-weighted centroid (per column reach, weights by
-    recurrence from two ``math.exp``). Returns ``(centre, sigma, ok, done)``, (n,) each, ``centre`` in window rows;
-    ``done`` False where :func:`fit_columns` would take its wide (flat-topped) branch instead."""
+    background-free profiles ``B`` (m, n), their peak values ``a0`` (n,) and the log-parabola start (centre ``c``,
+    updated in place, and sigma ``sg``, inf without curvature; (n,) each): the Gaussian-weighted centroid (per
+    column reach, weights by recurrence from two ``math.exp``). Returns ``(centre, sigma, ok, done)``, (n,) each,
+    ``centre`` in window rows; ``done`` False where :func:`fit_columns` would take its wide (flat-topped) branch
+    instead."""
     m, n = B.shape
     R = m // 2
-    c = np.empty(n)
-    sigma = np.empty(n)
     ok = np.empty(n, np.bool_)
     inv2 = np.empty(n)
     gain = np.empty(n)
     reach = np.empty(n)
     g2 = np.empty(n)
     for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
-        curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
-        sg = s / math.sqrt(-den) if curved else np.inf
-        sigma[t] = sg
-        ok[t] = curved and sg >= min_sig and sg <= max_sig
-        sig_p = min(max(sg if math.isfinite(sg) else sigma_hint, min_sig), max_sig)
+        ok[t] = math.isfinite(sg[t]) and sg[t] >= min_sig and sg[t] <= max_sig  # (finite: curved)
+        sig_p = min(max(sg[t] if math.isfinite(sg[t]) else sigma_hint, min_sig), max_sig)
         sig_w = max(sig_p, 1.1)
         inv2[t] = 0.5 / (sig_w * sig_w)
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
@@ -1177,7 +1168,7 @@ def _plain_fit64(B, a0, lv, s, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
                 step = gain[t] * s1[t] / s0[t]
                 if math.isfinite(step):
                     c[t] += min(max(step, -1.0), 1.0)
-    return c, sigma, ok, done
+    return c, sg, ok, done
 
 
 @_njit
@@ -1293,7 +1284,7 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
         bq_ = B[q]
         for t in range(n):
             bq_[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
-    # 2. log-parabola start (its shift only: the width of a clipped peak is its run)
+    # 2. log-parabola start
     s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     lv = np.empty(3 * n)
     a0 = np.empty(n)
@@ -1303,21 +1294,24 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
         lv[n + t] = max(a0[t], 0.5)
         lv[2 * n + t] = max(B[R + s, t], 0.5)
     lv = log_array(lv)
+    c = np.empty(n)
+    sg = np.empty(n)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sg[t] = s / math.sqrt(-den) if curved else np.inf
     if plain:  # profiles without a clipped run: Gaussian-weighted centroid
-        c, sigma, okp, done = _plain_fit64(B, a0, lv, s, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+        c, sigma, okp, done = _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
         for t in range(n):
             done[t] &= not sat[t]
-    else:  # clipped runs: symmetric-window centroid
-        c = np.empty(n)
+    else:  # clipped runs: symmetric-window centroid (the width of a clipped peak is its run)
         hs = np.empty(n)
         sigma = np.empty(n)
         for t in range(n):
-            ym = lv[t]
-            y0 = lv[n + t]
-            yp = lv[2 * n + t]
-            den = ym - 2.0 * y0 + yp
-            curved = den < -1e-6
-            c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
             sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
             hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
         # 3. symmetric-window centroid on the background-free profile
