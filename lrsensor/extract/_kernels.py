@@ -713,6 +713,88 @@ def _colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[n
 
 
 @_njit
+def _half_crossings(B, level):  # type: ignore[no-untyped-def]
+    """The first crossings below ``level`` (n,) left and right of the middle row of profiles ``B`` (m, n), float32
+    or float64, linearly interpolated as :func:`_level_crossings` does column by column (-1 where there is
+    none): ``(xa, xb)``, (n,) each of ``B``'s type. The row below the level, its value and its inner neighbour's
+    are found by selects, four rows per pass over the columns; then one division per column."""
+    m, n = B.shape
+    R = m // 2
+    xq = np.empty_like(B[0])  # the row found, in B's type (-1: none yet)
+    qv = np.empty_like(B[0, :4])  # row numbers in B's type
+    va = np.zeros_like(B[0])
+    vn = np.zeros_like(B[0])
+    xa = np.full_like(B[0], -1.0)
+    xb = np.full_like(B[0], -1.0)
+    for side in (-1, 1):
+        q = R + side
+        for t in range(n):
+            xq[t] = -1.0
+        while 0 <= q < m:
+            if (q + 1 if side < 0 else m - q) >= 4:
+                r0 = B[q]
+                r1 = B[q + side]
+                r2 = B[q + 2 * side]
+                r3 = B[q + 3 * side]
+                rn = B[q - side]
+                for j in range(4):
+                    qv[j] = q + j * side
+                q0 = qv[0]
+                q1 = qv[1]
+                q2 = qv[2]
+                q3 = qv[3]
+                for t in range(n):
+                    x_ = xq[t]
+                    a_ = va[t]
+                    n_ = vn[t]
+                    lv_ = level[t]
+                    v0 = r0[t]
+                    v1 = r1[t]
+                    v2 = r2[t]
+                    v3 = r3[t]
+                    vp = rn[t]
+                    tk = (x_ < 0.0) & (v0 < lv_)
+                    x_ = q0 if tk else x_
+                    n_ = vp if tk else n_
+                    a_ = v0 if tk else a_
+                    tk = (x_ < 0.0) & (v1 < lv_)
+                    x_ = q1 if tk else x_
+                    n_ = v0 if tk else n_
+                    a_ = v1 if tk else a_
+                    tk = (x_ < 0.0) & (v2 < lv_)
+                    x_ = q2 if tk else x_
+                    n_ = v1 if tk else n_
+                    a_ = v2 if tk else a_
+                    tk = (x_ < 0.0) & (v3 < lv_)
+                    x_ = q3 if tk else x_
+                    n_ = v2 if tk else n_
+                    a_ = v3 if tk else a_
+                    xq[t] = x_
+                    va[t] = a_
+                    vn[t] = n_
+                q += 4 * side
+            else:
+                r0 = B[q]
+                rn = B[q - side]
+                qv[0] = q
+                q0 = qv[0]
+                for t in range(n):
+                    v0 = r0[t]
+                    vp = rn[t]
+                    x_ = xq[t]
+                    tk = (x_ < 0.0) & (v0 < level[t])
+                    xq[t] = q0 if tk else x_
+                    vn[t] = vp if tk else vn[t]
+                    va[t] = v0 if tk else va[t]
+                q += side
+        xs = xa if side < 0 else xb
+        for t in range(n):  # q + (level - a) / (a_inner - a) on the left, q - ... on the right (exact in B's type)
+            if xq[t] >= 0.0:
+                xs[t] = xq[t] - side * ((level[t] - va[t]) / (vn[t] - va[t]))
+    return xa, xb
+
+
+@_njit
 def _fit_common_chunk(  # type: ignore[no-untyped-def]
     image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):
@@ -829,81 +911,10 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         sw_max = max(sw_max, sws[t])
     g2f = exp_array32(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
-    xa = np.full(n, -1.0, np.float32)
-    xb = np.full(n, -1.0, np.float32)
     h0 = np.empty(n, np.float32)
-    z32 = np.float32(0.0)
     for t in range(n):
         h0[t] = np.float32(0.5) * a0[t]
-    # the first row below the level on each side, its value and its inner neighbour's (selects, four rows per
-    # pass over the columns), then one interpolation per column: no division per row
-    xq = np.full(n, -1.0, np.float32)
-    va = np.zeros(n, np.float32)
-    vn = np.zeros(n, np.float32)
-    for side in (-1, 1):
-        q = R + side
-        for t in range(n):
-            xq[t] = -1.0
-        while q >= 0 and q < m:
-            nq = min(4, q + 1) if side < 0 else min(4, m - q)
-            if nq == 4:
-                r0 = B[q]
-                r1 = B[q + side]
-                r2 = B[q + 2 * side]
-                r3 = B[q + 3 * side]
-                rn = B[q - side]
-                f0 = np.float32(q)
-                f1 = np.float32(q + side)
-                f2 = np.float32(q + 2 * side)
-                f3 = np.float32(q + 3 * side)
-                for t in range(n):
-                    x_ = xq[t]
-                    a_ = va[t]
-                    n_ = vn[t]
-                    lv_ = h0[t]
-                    v0 = r0[t]
-                    v1 = r1[t]
-                    v2 = r2[t]
-                    v3 = r3[t]
-                    vp = rn[t]
-                    tk = (x_ < z32) & (v0 < lv_)
-                    x_ = f0 if tk else x_
-                    n_ = vp if tk else n_
-                    a_ = v0 if tk else a_
-                    tk = (x_ < z32) & (v1 < lv_)
-                    x_ = f1 if tk else x_
-                    n_ = v0 if tk else n_
-                    a_ = v1 if tk else a_
-                    tk = (x_ < z32) & (v2 < lv_)
-                    x_ = f2 if tk else x_
-                    n_ = v1 if tk else n_
-                    a_ = v2 if tk else a_
-                    tk = (x_ < z32) & (v3 < lv_)
-                    x_ = f3 if tk else x_
-                    n_ = v2 if tk else n_
-                    a_ = v3 if tk else a_
-                    xq[t] = x_
-                    va[t] = a_
-                    vn[t] = n_
-                q += 4 * side
-            else:
-                r0 = B[q]
-                rn = B[q - side]
-                f0 = np.float32(q)
-                for t in range(n):
-                    v0 = r0[t]
-                    vp = rn[t]
-                    x_ = xq[t]
-                    tk = (x_ < z32) & (v0 < h0[t])
-                    xq[t] = f0 if tk else x_
-                    vn[t] = vp if tk else vn[t]
-                    va[t] = v0 if tk else va[t]
-                q += side
-        xs = xa if side < 0 else xb
-        sf = np.float32(side)
-        for t in range(n):
-            if xq[t] >= z32:
-                xs[t] = xq[t] - sf * ((h0[t] - va[t]) / (vn[t] - va[t]))
+    xa, xb = _half_crossings(B, h0)
     for t in range(n):
         if a0[t] > 0.0 and not (xa[t] >= 0.0 and xb[t] >= 0.0 and xb[t] - xa[t] <= wide_fwhm):
             special[t] = True
@@ -1094,7 +1105,6 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     ``centre`` in window rows; ``done`` False where :func:`fit_columns` would take its wide (flat-topped) branch
     instead."""
     m, n = B.shape
-    R = m // 2
     ok = np.empty(n, np.bool_)
     inv2 = np.empty(n)
     gain = np.empty(n)
@@ -1108,27 +1118,14 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
         reach[t] = 4.0 * sig_w + 1.0
         g2[t] = math.exp(-2.0 * inv2[t])
-    # half-level crossings (first row below half the peak on each side, interpolated): selects over the rows
-    done = np.empty(n, np.bool_)
-    xs = np.full((2, n), -1.0)
-    for side in range(2):
-        sg_ = -1 if side == 0 else 1
-        x_ = xs[side]
-        q = R + sg_
-        while 0 <= q < m:
-            bq_ = B[q]
-            bn = B[q - sg_]
-            fq = float(q)
-            for t in range(n):
-                aq = bq_[t]
-                lvl = 0.5 * a0[t]
-                take = (x_[t] < 0.0) & (aq < lvl)
-                x_[t] = (fq - sg_ * ((lvl - aq) / (bn[t] - aq))) if take else x_[t]
-            q += sg_
+    # half-level width: wider profiles take the full kernel's flat-top branch
+    lvl = np.empty(n)
     for t in range(n):
-        xa = xs[0, t]
-        xb = xs[1, t]
-        fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
+        lvl[t] = 0.5 * a0[t]
+    xa, xb = _half_crossings(B, lvl)
+    done = np.empty(n, np.bool_)
+    for t in range(n):
+        fw = xb[t] - xa[t] if (xa[t] >= 0 and xb[t] >= 0) else np.inf
         done[t] = a0[t] <= 0 or fw <= wide_fwhm
     # Gaussian-weighted centroid, each column over its own reach; a column stops for good once not finite
     act = np.ones(n, np.bool_)
