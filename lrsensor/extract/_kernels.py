@@ -2464,6 +2464,18 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
     return sigma, plateau, wide
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _distortion_residual(x, y, xd, yd, dist):  # type: ignore[no-untyped-def]
+    """The Brown-Conrady model (``dist``: ``k1, k2, p1, p2, k3``) at the undistorted normalized point ``(x, y)``
+    minus the distorted one ``(xd, yd)``: ``(rx, ry, r2, radial)`` with ``r2 = x^2 + y^2`` and the radial factor."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+    ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+    return rx, ry, r2, radial
+
+
 @_njit
 def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # type: ignore[no-untyped-def]
     """Loop twin of :func:`lrsensor.triangulation.triangulate` (eq. 29 with the Brown-Conrady model).
@@ -2506,11 +2518,8 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
             for t in range(n):
                 x = xs[t]
                 y = ys[t]
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                rx, ry, r2, radial = _distortion_residual(x, y, xd[t], yd[t], dist)
                 dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-                rx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[t]
-                ry = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[t]
                 a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
                 b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
                 d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
@@ -2528,10 +2537,7 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
         for t in range(n):
             x = xs[t]
             y = ys[t]
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[t]
-            ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[t]
+            ex, ey, _, _ = _distortion_residual(x, y, xd[t], yd[t], dist)
             xs[t] = x if math.sqrt(ex * ex + ey * ey) < 1e-9 else np.nan
     # body-frame ray (x, y, 1) @ R met with the laser's plane: branch-free over the points (vectorizes)
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
