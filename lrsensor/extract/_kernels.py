@@ -445,7 +445,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
     For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
     uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
     flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
-    symmetric-window centroid). The rises of blue, green and red at the peak over the window ends are returned for
+    symmetric-window centroid from the middle of the clipped samples, accepted anywhere on the clipped top). The rises of blue, green and red at the peak over the window ends are returned for
     the colour test, which is pooled along the stripe (:func:`finish_points`).
     ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
     (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
@@ -503,9 +503,13 @@ def fit_columns(  # type: ignore[no-untyped-def]
         pk_row = rows[t] + shift
         # saturation
         n_sat = 0
+        q_first = m
+        q_last = -1
         for q in range(m):
             if P[o + q] >= sat_dn:
                 n_sat += 1
+                q_first = min(q_first, q)
+                q_last = q
         saturated = P[o + R] >= sat_dn and n_sat >= 2
         # 1. linear background
         off = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank + 1))
@@ -533,7 +537,8 @@ def fit_columns(  # type: ignore[no-untyped-def]
             delta = 0.0
             sigma = np.inf
         c = R + delta
-        if saturated:
+        if saturated:  # start from the middle of the clipped samples (the log-parabola sees a flat top)
+            c = 0.5 * (q_first + q_last)
             sigma = max(0.5 * n_sat / 1.1774, sigma_hint)
         ok = saturated or (curved and sigma >= min_sig and sigma <= max_sig)
         sig_p = sigma if math.isfinite(sigma) else sigma_hint
@@ -621,6 +626,8 @@ def fit_columns(  # type: ignore[no-untyped-def]
         else:
             amp = a0
         lim_c = 0.5 * fw + 1.0 if (fw > wide_fwhm and math.isfinite(fw)) else 2.0
+        if saturated:  # anywhere on the clipped top
+            lim_c = 0.5 * n_sat + 1.0
         ok = ok and math.isfinite(c) and abs(c - R) <= lim_c and amp > 0
         # colour: the rises of blue, green and red at the peak over the window ends (judged along the stripe later)
         rp = min(max(pk_row, 0), h - 1)
@@ -1117,7 +1124,8 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
         inv2[t] = 0.5 / (sig_w * sig_w)
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
         reach[t] = 4.0 * sig_w + 1.0
-        g2[t] = math.exp(-2.0 * inv2[t])
+        g2[t] = -2.0 * inv2[t]
+    g2 = exp_array(g2)  # vectorized (a library exp per column costs 15 ns)
     # half-level width: wider profiles take the full kernel's flat-top branch
     lvl = np.empty(n)
     for t in range(n):
@@ -1135,6 +1143,7 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     ratio = np.empty(n)
     s0 = np.empty(n)
     s1 = np.empty(n)
+    ex = np.empty(2 * n)
     for _ in range(iterations):
         for t in range(n):
             act[t] = act[t] and math.isfinite(c[t])
@@ -1144,13 +1153,17 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
                 q0[t] = max(int(math.floor(c[t] - reach[t])), 0)  # noqa: RUF046 (numba: floor is a float)
                 q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m)  # noqa: RUF046
                 d0 = q0[t] - c[t]
-                w[t] = math.exp(-(d0 * d0) * inv2[t])
-                ratio[t] = math.exp(-(2.0 * d0 + 1.0) * inv2[t])
+                ex[t] = -(d0 * d0) * inv2[t]
+                ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
             else:
                 q0[t] = 0
                 q1[t] = 0
-                w[t] = 0.0
-                ratio[t] = 0.0
+                ex[t] = 0.0
+                ex[n + t] = 0.0
+        ex = exp_array(ex)  # the weights' start and ratio (vectorized)
+        for t in range(n):
+            w[t] = ex[t] if act[t] else 0.0
+            ratio[t] = ex[n + t] if act[t] else 0.0
         for q in range(m):
             bq_ = B[q]
             for t in range(n):
@@ -1169,10 +1182,144 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
 
 
 @_njit
-def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, plain, min_sig, max_sig, wide_fwhm
-):
-    """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache)."""
+def _columns(W, idx):  # type: ignore[no-untyped-def]
+    """The columns ``idx`` (k,) of ``W`` (m, n): (m, k), C-contiguous."""
+    m = W.shape[0]
+    k = idx.size
+    out = np.empty((m, k), W.dtype)
+    for q in range(m):
+        wq = W[q]
+        oq = out[q]
+        for i in range(k):
+            oq[i] = wq[idx[i]]
+    return out
+
+
+@_njit
+def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
+    """The unclipped branch of :func:`fit_columns` for the windows ``W`` (m, n) uint8 (peak at the middle row) less
+    their linear backgrounds (``bl + slope (q - xl)``, (n,) each; ``a0`` (n,) the background-free peak):
+    log-parabola start, then :func:`_plain_fit64`. Returns ``(centre, sigma, ok, done)``, (n,) each."""
+    m, n = W.shape
+    R = m // 2
+    B = np.empty((m, n))
+    for q in range(m):
+        wq = W[q]
+        bq_ = B[q]
+        for t in range(n):
+            bq_[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
+    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+    lv = np.empty(3 * n)
+    for t in range(n):
+        lv[t] = max(B[R - s, t], 0.5)
+        lv[n + t] = max(a0[t], 0.5)
+        lv[2 * n + t] = max(B[R + s, t], 0.5)
+    lv = log_array(lv)
+    c = np.empty(n)
+    sg = np.empty(n)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sg[t] = s / math.sqrt(-den) if curved else np.inf
+    return _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+
+
+@_njit
+def _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations):  # type: ignore[no-untyped-def]
+    """The centre (window rows) and sigma (n,) of saturated profiles: the windows ``W`` (m, n) uint8 less their
+    linear backgrounds (``bl + slope (q - xl)``, (n,) each), from the middle of each clipped run, moved
+    ``iterations`` times to the centroid of a symmetric window of half-width ``n_sat / 2 + 2.5 sigma_hint + 1``
+    (weights clipped to [0, 1] at its ends). Float32 sums, four rows per pass (the running sums in registers)."""
+    m, n = W.shape
+    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
+    # the clipped run's middle: half the sum of its first and last rows
+    first = np.full(n, np.uint8(255))
+    last = np.zeros(n, np.uint8)
+    for q in range(m):
+        wq = W[q]
+        uq = np.uint8(q)
+        for t in range(n):
+            sq = wq[t] >= s8
+            first[t] = min(first[t], uq) if sq else first[t]
+            last[t] = uq if sq else last[t]
+    B = np.empty((m, n), np.float32)
+    for q in range(m):
+        wq = W[q]
+        bq_ = B[q]
+        for t in range(n):
+            bq_[t] = np.float32(wq[t] - (bl[t] + slope[t] * (q - xl[t])))
+    c = np.empty(n)
+    cf = np.empty(n, np.float32)
+    hs = np.empty(n, np.float32)
+    sigma = np.empty(n)
+    for t in range(n):
+        c[t] = 0.5 * (float(first[t]) + float(last[t])) if first[t] <= last[t] else 0.5 * (m - 1)
+        sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
+        hs[t] = np.float32(0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0)
+    s0 = np.empty(n, np.float32)
+    s1 = np.empty(n, np.float32)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for _ in range(iterations):
+        for t in range(n):
+            s0[t] = 0.0
+            s1[t] = 0.0
+            cf[t] = np.float32(c[t])
+        q = 0
+        while q + 4 <= m:  # four rows per pass, the sums in registers (each row's operations in order)
+            w0 = B[q]
+            w1 = B[q + 1]
+            w2 = B[q + 2]
+            w3 = B[q + 3]
+            f0 = np.float32(q)
+            for t in range(n):
+                ct = cf[t]
+                ht = hs[t]
+                a_ = s0[t]
+                b_ = s1[t]
+                dq = f0 - ct
+                wa = min(max(ht - abs(dq), zero), one) * w0[t]
+                a_ += wa
+                b_ += wa * dq
+                dq += one
+                wa = min(max(ht - abs(dq), zero), one) * w1[t]
+                a_ += wa
+                b_ += wa * dq
+                dq += one
+                wa = min(max(ht - abs(dq), zero), one) * w2[t]
+                a_ += wa
+                b_ += wa * dq
+                dq += one
+                wa = min(max(ht - abs(dq), zero), one) * w3[t]
+                a_ += wa
+                b_ += wa * dq
+                s0[t] = a_
+                s1[t] = b_
+            q += 4
+        while q < m:
+            wq = B[q]
+            fq = np.float32(q)
+            for t in range(n):
+                dq = fq - cf[t]
+                wa = min(max(hs[t] - abs(dq), zero), one) * wq[t]
+                s0[t] += wa
+                s1[t] += wa * dq
+            q += 1
+        for t in range(n):
+            step = float(s1[t]) / float(s0[t]) if s0[t] != 0.0 else 0.0
+            c[t] += min(max(step, -1.0), 1.0) if math.isfinite(step) else 0.0
+    return c, sigma
+
+
+@_njit
+def _fit_clipped_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
+    """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache): the results of the
+    saturated columns (as :func:`_fit_results`; the others' left to do), and what the unsaturated ones' fits take:
+    ``(W, bl, slope, xl, pk_rows)``, the windows (m, n) uint8, their background lines and peak rows (n,) each."""
     n = cols.size
     m = 2 * half + 1
     R = half
@@ -1205,11 +1352,15 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
         top_row[t] = rows[t] - e - half + d[t]
     W = np.empty((m, n), np.uint8)
     _gather_green(image, cols, top_row, W)
-    n_sat = np.zeros(n, np.int64)
+    n8 = np.zeros(n, np.uint8)  # (m < 256: byte counts, 64 lanes)
+    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
     for q in range(m):
         wq = W[q]
         for t in range(n):
-            n_sat[t] += wq[t] >= sat_dn
+            n8[t] += np.uint8(wq[t] >= s8)
+    n_sat = np.empty(n, np.int64)
+    for t in range(n):
+        n_sat[t] = n8[t]
     sat = np.empty(n, np.bool_)
     for t in range(n):
         sat[t] = W[R, t] >= sat_dn and n_sat[t] >= 2
@@ -1274,108 +1425,55 @@ def _fit_clipped_chunk(  # type: ignore[no-untyped-def]
     noise = np.empty(n)
     for t in range(n):
         noise[t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
-    # the background-free profile (m, n) float64
-    B = np.empty((m, n))
-    for q in range(m):
-        wq = W[q]
-        bq_ = B[q]
-        for t in range(n):
-            bq_[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
-    # 2. log-parabola start
-    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
-    lv = np.empty(3 * n)
     a0 = np.empty(n)
     for t in range(n):
-        lv[t] = max(B[R - s, t], 0.5)
-        a0[t] = B[R, t]
-        lv[n + t] = max(a0[t], 0.5)
-        lv[2 * n + t] = max(B[R + s, t], 0.5)
-    lv = log_array(lv)
-    c = np.empty(n)
-    sg = np.empty(n)
+        a0[t] = W[R, t] - (bl[t] + slope[t] * (R - xl[t]))
+    # 2-3. the saturated profiles: from the middle of their clipped run, symmetric-window centroid (the width of a
+    # clipped peak is its run; float32); the others are fitted by the caller, all chunks' at once
+    n_s = 0
     for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
-        curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
-        sg[t] = s / math.sqrt(-den) if curved else np.inf
-    if plain:  # profiles without a clipped run: Gaussian-weighted centroid
-        c, sigma, okp, done = _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
-        for t in range(n):
-            done[t] &= not sat[t]
-    else:  # clipped runs: symmetric-window centroid (the width of a clipped peak is its run)
-        hs = np.empty(n)
-        sigma = np.empty(n)
-        for t in range(n):
-            sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
-            hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
-        # 3. symmetric-window centroid on the background-free profile
-        s0 = np.empty(n)
-        s1 = np.empty(n)
-        for _ in range(iterations):
-            for t in range(n):
-                s0[t] = 0.0
-                s1[t] = 0.0
-            q = 0
-            while q + 4 <= m:  # four rows per pass, the sums in registers (each row's operations in order)
-                w0 = B[q]
-                w1 = B[q + 1]
-                w2 = B[q + 2]
-                w3 = B[q + 3]
-                for t in range(n):
-                    ct = c[t]
-                    ht = hs[t]
-                    a_ = s0[t]
-                    b_ = s1[t]
-                    dq = q - ct
-                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w0[t]
-                    a_ += wa
-                    b_ += wa * dq
-                    dq = q + 1 - ct
-                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w1[t]
-                    a_ += wa
-                    b_ += wa * dq
-                    dq = q + 2 - ct
-                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w2[t]
-                    a_ += wa
-                    b_ += wa * dq
-                    dq = q + 3 - ct
-                    wa = min(max(ht - abs(dq), 0.0), 1.0) * w3[t]
-                    a_ += wa
-                    b_ += wa * dq
-                    s0[t] = a_
-                    s1[t] = b_
-                q += 4
-            while q < m:
-                wq = B[q]
-                for t in range(n):
-                    dq = q - c[t]
-                    wa = min(max(hs[t] - abs(dq), 0.0), 1.0) * wq[t]
-                    s0[t] += wa
-                    s1[t] += wa * dq
-                q += 1
-            for t in range(n):
-                if s0[t] != 0.0:
-                    step = s1[t] / s0[t]
-                    if math.isfinite(step):
-                        c[t] += min(max(step, -1.0), 1.0)
-        okp = sat
-        done = sat
-    # 4. acceptance and the colour rises
-    centre = np.empty(n)
-    ok = np.empty(n, np.bool_)
-    rise = np.empty((3, n))
-    for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
-        good = okp[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0)
-        ok[t] = good
-        centre[t] = rows[t] + d[t] - e - half + c[t] if good else np.nan
+        n_s += sat[t]
+    if n_s == n:  # (the common case close to the wall: all of them saturated)
+        c, sigma = _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations)
+    else:
+        c = np.full(n, np.nan)
+        sigma = np.full(n, np.nan)
+        if n_s:
+            idx = np.flatnonzero(sat)
+            bl_k = np.empty(n_s)
+            sl_k = np.empty(n_s)
+            xl_k = np.empty(n_s)
+            ns_k = np.empty(n_s, np.int64)
+            for i in range(n_s):
+                t = idx[i]
+                bl_k[i] = bl[t]
+                sl_k[i] = slope[t]
+                xl_k[i] = xl[t]
+                ns_k[i] = n_sat[t]
+            c_k, sig_k = _clipped_centroid(_columns(W, idx), bl_k, sl_k, xl_k, ns_k, sigma_hint, sat_dn, iterations)
+            for i in range(n_s):
+                c[idx[i]] = c_k[i]
+                sigma[idx[i]] = sig_k[i]
+    # 4. acceptance (anywhere on the clipped top) and the colour rises (green from the window: its peak row and
+    # ends)
     pk_rows = np.empty(n, np.int64)
     for t in range(n):
         pk_rows[t] = rows[t] + d[t] - e
-    _colour_rises(image, cols, pk_rows, half, (0, 1, 2), rise)
-    return centre, a0, sigma, sat, ok, noise, rise, done
+    centre = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    rise = np.empty((3, n))
+    for t in range(n):  # branch-free (vectorizes); |c - R| <= lim is False for NaN and inf
+        good = sat[t] & (abs(c[t] - R) <= 0.5 * n_sat[t] + 1.0) & (a0[t] > 0)
+        ok[t] = good
+        centre[t] = pk_rows[t] - half + c[t] if good else np.nan
+    r_g = rise[1]
+    w_lo = W[0]
+    w_pk = W[R]
+    w_hi = W[m - 1]
+    for t in range(n):
+        r_g[t] = float(w_pk[t]) - 0.5 * (float(w_lo[t]) + float(w_hi[t]))
+    _colour_rises(image, cols, pk_rows, half, (0, 2), rise)  # blue and red at the same rows
+    return (centre, a0, sigma, sat, ok, noise, rise, sat.copy()), (W, bl, slope, xl, pk_rows)
 
 
 @_njit
@@ -1401,38 +1499,70 @@ def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
 
 @_njit
 def fit_columns_clipped(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, plain, min_sig, max_sig, wide_fwhm
+    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, min_sig, max_sig, wide_fwhm
 ):
     """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns whose candidate has
-    a clipped sample nearby, in its float64 arithmetic up to the vectorized logarithm of the log-parabola start
-    (:func:`log_array`, within 2 ulp): ``plain`` False, the saturated profiles (peak sample clipped, at least two
-    clipped samples; symmetric-window centroid); ``plain`` True, the profiles that are not saturated and not
-    wider than ``wide_fwhm`` at half level (Gaussian-weighted centroid).
+    a clipped sample nearby: the saturated profiles (peak sample clipped, at least two clipped samples;
+    symmetric-window centroid from the middle of the clipped run, float32 sums: centres within 1e-5 px of
+    :func:`fit_columns`) and the profiles that are not saturated and not wider than ``wide_fwhm`` at half level
+    (Gaussian-weighted centroid, in :func:`fit_columns`'s float64 arithmetic up to the vectorized logarithm of the
+    log-parabola start, :func:`log_array`, within 2 ulp).
 
     Same arguments as :func:`fit_columns` without the neighbour model and the width limits. Returns
     ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)``: ``done`` (N,) bool marks the
-    columns of the chosen kind, whose results are :func:`fit_columns`'s; the others are to be fitted by it.
-    ``image`` must be C-contiguous. Works in chunks of 512 columns.
+    columns of those two kinds, whose results are :func:`fit_columns`'s; the others (flat-topped wide profiles)
+    are to be fitted by it. ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
-    out = _fit_results(cols.size)
-    for t0 in range(0, cols.size, 512):
-        t1 = min(t0 + 512, cols.size)
-        res = _fit_clipped_chunk(
-            image,
-            cols[t0:t1],
-            rows[t0:t1],
-            half,
-            e,
-            sigma_hint,
-            sat_dn,
-            flank,
-            iterations,
-            plain,
-            min_sig,
-            max_sig,
-            wide_fwhm,
+    N = cols.size
+    m = 2 * half + 1
+    out = _fit_results(N)
+    # the unsaturated columns of every chunk, fitted together at the end: their windows, lines and peak rows
+    Wp = np.empty((m, N), np.uint8)
+    ip = np.empty(N, np.int64)
+    lines = np.empty((3, N))
+    pk = np.empty(N, np.int64)
+    n_p = 0
+    for t0 in range(0, N, 512):
+        t1 = min(t0 + 512, N)
+        res, (W, bl, slope, xl, pk_rows) = _fit_clipped_chunk(
+            image, cols[t0:t1], rows[t0:t1], half, e, sigma_hint, sat_dn, flank, iterations
         )
         _store_fit(out, res, t0, t1)
+        sat = res[3]
+        p0 = n_p
+        for t in range(t1 - t0):
+            if not sat[t]:
+                ip[n_p] = t
+                lines[0, n_p] = bl[t]
+                lines[1, n_p] = slope[t]
+                lines[2, n_p] = xl[t]
+                pk[n_p] = pk_rows[t]
+                n_p += 1
+        for q in range(m):
+            wq = W[q]
+            pq = Wp[q]
+            for i in range(p0, n_p):
+                pq[i] = wq[ip[i]]
+        for i in range(p0, n_p):
+            ip[i] += t0
+    if n_p == 0:
+        return out
+    Wk = np.empty((m, n_p), np.uint8)
+    for q in range(m):
+        Wk[q] = Wp[q, :n_p]
+    a0 = np.empty(n_p)
+    for i in range(n_p):
+        a0[i] = out[1][ip[i]]
+    c, sigma, okp, done = _plain_fit(
+        Wk, a0, lines[0, :n_p], lines[1, :n_p], lines[2, :n_p], sigma_hint, min_sig, max_sig, wide_fwhm, iterations
+    )
+    for i in range(n_p):
+        t = ip[i]
+        good = okp[i] and abs(c[i] - half) <= 2.0 and a0[i] > 0
+        out[0][t] = pk[i] - half + c[i] if good else np.nan
+        out[2][t] = sigma[i]
+        out[4][t] = good
+        out[7][t] = done[i]
     return out
 
 
@@ -2726,33 +2856,18 @@ def process_candidates(  # type: ignore[no-untyped-def]
     if n_sp:  # clipped peaks (close to the wall), then the unclipped narrow ones, column-parallel; the rest
         # (flat tops) by the full kernel
         rest = np.flatnonzero(special)
-        for plain in (False, True):
-            r_s = fit_columns_clipped(
-                image,
-                cols[rest],
-                rows[rest],
-                half,
-                3,
-                sig_med,
-                sat_dn,
-                3,
-                iterations,
-                plain,
-                min_sig,
-                max_sigma,
-                wide_fwhm,
-            )
-            n_rest = 0
-            for i in range(rest.size):
-                t = rest[i]
-                if r_s[7][i]:
-                    _put_fit(res, r_s, i, t)
-                else:
-                    rest[n_rest] = t
-                    n_rest += 1
-            rest = rest[:n_rest]
-            if n_rest == 0:
-                break
+        r_s = fit_columns_clipped(
+            image, cols[rest], rows[rest], half, 3, sig_med, sat_dn, 3, iterations, min_sig, max_sigma, wide_fwhm
+        )
+        n_rest = 0
+        for i in range(rest.size):
+            t = rest[i]
+            if r_s[7][i]:
+                _put_fit(res, r_s, i, t)
+            else:
+                rest[n_rest] = t
+                n_rest += 1
+        rest = rest[:n_rest]
         if rest.size:
             nan = np.full(rest.size, np.nan)
             _refit(image, cols, rows, laser, rest, nan, nan, nan, fit, limits, geo, res)
@@ -2996,8 +3111,7 @@ def warm_up() -> None:
         detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
         fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
-        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, False, 0.5, 5.0, 4.7)
-        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, True, 0.5, 5.0, 4.7)
+        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, 0.5, 5.0, 4.7)
         core_clipped(img, i64, i64 + 4, 1, 250.0)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         process_candidates(

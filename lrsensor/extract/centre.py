@@ -9,8 +9,9 @@ flat-topped by saturation), so it does not depend on the exact optics of one ren
    neighbours at a spacing matched to the width);
 3. unsaturated profiles: a Gaussian-weighted centroid matched to the width, iterated with the Newton step of a
    Gaussian profile (``c <- c + 2 (m - c)``); its fixed point is the centre of symmetry and its noise is close
-   to the Cramer-Rao bound of a Gaussian fit. Saturated (flat-topped) profiles: the plain background-subtracted
-   centroid in a window symmetric about the current estimate (the clipped plateau carries no noise).
+   to the Cramer-Rao bound of a Gaussian fit. Saturated (flat-topped) profiles: from the middle of the clipped
+   samples, the plain background-subtracted centroid in a window symmetric about the current estimate (the
+   clipped plateau carries no noise; the log-parabola sees no curvature on it).
 """
 
 from __future__ import annotations
@@ -148,9 +149,12 @@ def fit_profiles(
     safe = np.where(curved, den, np.float32(-1.0))
     delta = np.clip(np.where(curved, 0.5 * s * (ym - yp) / safe, 0.0), -1.0, 1.0)
     sigma = np.where(curved, s / np.sqrt(-safe), np.inf)
-    c = (R + delta).astype(np.float32)
-    # half-level width and midpoint: crossings of half the peak level walking out from R
+    # saturated: from the middle of the clipped samples (the log-parabola sees a flat top)
     idx = np.arange(m)[:, None]
+    q_first = np.where(sat, idx, m).min(axis=0)
+    q_last = np.where(sat, idx, -1).max(axis=0)
+    c = np.where(saturated, 0.5 * (q_first + q_last), R + delta).astype(np.float32)
+    # half-level width and midpoint: crossings of half the peak level walking out from R
     a0 = A[R]
     below = (0.5 * a0)[None, :] > A
     qa = np.where(below & (idx < R), idx, -1).max(axis=0)
@@ -228,7 +232,7 @@ def fit_profiles(
         c = c + step
     c64 = c.astype(np.float64)
     amp = np.where(saturated, P[R] - (bl + slope * (R - xl)), amp).astype(np.float64)
-    lim_c = np.where(mid, 0.5 * np.where(mid, fw, 0.0) + 1.0, 2.0)
+    lim_c = np.where(mid, 0.5 * np.where(mid, fw, 0.0) + 1.0, np.where(saturated, 0.5 * n_sat + 1.0, 2.0))
     ok &= np.isfinite(c64) & (np.abs(c64 - R) <= lim_c) & (amp > 0)
     background = (bl + slope * (c - xl)).astype(np.float64)
     return ProfileFit(np.where(ok, c64, np.nan), amp, sigma.astype(np.float64), background, saturated, ok, local_noise)
