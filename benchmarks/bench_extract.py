@@ -198,7 +198,7 @@ STAGES = {
         "max_fwhm_at",
         "frame_profile_stats",
         "fit_columns_common",
-        "core_clipped",
+        "core_peaks",
         "fit_columns_clipped",
         "_refit",
         "neighbours",

@@ -376,7 +376,7 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
     centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
     and sub-pixel phases on a sloped background; centres on the true ones) and unclipped and singly clipped narrow
     ones, and leaves the flat-topped wide ones to the full kernel; windows cut by the image border included."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_clipped
+    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_clipped
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -402,7 +402,8 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
     for half, it in ((8, 2), (12, 3), (90, 2)):  # 90: windows too long for byte row arithmetic
         full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
         sat = full[3]
-        fast = fit_columns_clipped(img, cols, rows, half, 3, 1.2, 250.0, 3, it, 0.3, 5.0, 4.7)
+        peaks = core_peaks(img, cols, rows, 3, 250.0)[0]
+        fast = fit_columns_clipped(img, cols, peaks, half, 1.2, 250.0, 3, it, 0.3, 5.0, 4.7)
         done = fast[7]
         # every saturated profile, the unsaturated narrow peaks; most flat tops (wider than the limit at half
         # level) left to the full kernel

@@ -445,8 +445,9 @@ def fit_columns(  # type: ignore[no-untyped-def]
     For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
     uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
     flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
-    symmetric-window centroid from the middle of the clipped samples, accepted anywhere on the clipped top). The rises of blue, green and red at the peak over the window ends are returned for
-    the colour test, which is pooled along the stripe (:func:`finish_points`).
+    symmetric-window centroid from the middle of the clipped samples, accepted anywhere on the clipped top). The
+    rises of blue, green and red at the peak over the window ends are returned for the colour test, which is
+    pooled along the stripe (:func:`finish_points`).
     ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
     (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
     Profiles whose half-level width exceeds ``wide_fwhm`` (flat-topped thick sheets close to the wall) take the
@@ -803,49 +804,25 @@ def _half_crossings(B, level):  # type: ignore[no-untyped-def]
 
 @_njit
 def _fit_common_chunk(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
+    image, cols, peaks, half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):
     """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
     n = cols.size
     m = 2 * half + 1
     R = half
     special = np.zeros(n, np.bool_)
-    # the green samples of the 2 e + 1 core rows rows - e ... rows + e: (2 e + 1, n)
-    ne = 2 * e + 1
+    # the window centred on the peak, rows peak - half ... peak + half: (m, n)
     top_row = np.empty(n, np.int64)
     for t in range(n):
-        top_row[t] = rows[t] - e
-    C = np.empty((ne, n), np.uint8)
-    _gather_green(image, cols, top_row, C)
-    # the integer peak among them (the first of equal ones): its shift d in [0, 2 e]
-    bv = C[0].copy()
-    d = np.zeros(n, np.uint8)
-    top = C[0].copy()
-    for j in range(1, ne):
-        pj = C[j]
-        uj = np.uint8(j)
-        for t in range(n):
-            x = pj[t]
-            mk = np.uint8(0) - np.uint8(x > bv[t])
-            bv[t] = max(bv[t], x)
-            d[t] = (uj & mk) | (d[t] & ~mk)
-            top[t] = max(top[t], x)
-    bq = np.empty(n, np.int64)
-    for t in range(n):
-        bq[t] = R + np.int64(d[t])
-    # the window centred on it, rows peak - half ... peak + half: (m, n)
-    for t in range(n):
-        top_row[t] = rows[t] - e - half + np.int64(d[t])
+        top_row[t] = peaks[t] - half
     B = np.empty((m, n), np.float32)
     _gather_green(image, cols, top_row, B)
     # the green samples of the colour rise (peak row and the window's ends), before the background is removed
     g_lo = B[0].copy()
     g_pk = B[R].copy()
     g_hi = B[m - 1].copy()
-    topf = np.empty(n, np.float32)
-    for t in range(n):
-        topf[t] = top[t]
-    for q in range(m):
+    topf = B[0].copy()
+    for q in range(1, m):
         bqr = B[q]
         for t in range(n):
             topf[t] = max(topf[t], bqr[t])
@@ -1013,7 +990,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     pk_rows = np.empty(n, np.int64)
     for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
         good = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
-        pk_rows[t] = rows[t] + bq[t] - e - R
+        pk_rows[t] = peaks[t]
         centre[t] = pk_rows[t] - half + c[t] if good else np.nan
         ok[t] = good
     rise = np.empty((3, n))
@@ -1069,11 +1046,12 @@ def _put_fit(res, r, i, t):  # type: ignore[no-untyped-def]
 
 @_njit
 def fit_columns_common(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
+    image, cols, peaks, half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):
-    """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize).
+    """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize),
+    given each column's peak row (:func:`core_peaks`) instead of its candidate row.
 
-    Same arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
+    Same other arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
     clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
     its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
     its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to about
@@ -1086,18 +1064,7 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     for t0 in range(0, cols.size, 512):
         t1 = min(t0 + 512, cols.size)
         res = _fit_common_chunk(
-            image,
-            cols[t0:t1],
-            rows[t0:t1],
-            half,
-            e,
-            sigma_hint,
-            sat_dn,
-            min_sig,
-            max_sig,
-            flank,
-            iterations,
-            wide_fwhm,
+            image, cols[t0:t1], peaks[t0:t1], half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
         )
         _store_fit(out, res, t0, t1)
     return out
@@ -1316,40 +1283,17 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations): 
 
 
 @_njit
-def _fit_clipped_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
+def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
     """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache): the results of the
     saturated columns (as :func:`_fit_results`; the others' left to do), and what the unsaturated ones' fits take:
-    ``(W, bl, slope, xl, pk_rows)``, the windows (m, n) uint8, their background lines and peak rows (n,) each."""
+    ``(W, bl, slope, xl)``, the windows (m, n) uint8 and their background lines (n,) each."""
     n = cols.size
     m = 2 * half + 1
     R = half
-    ne = 2 * e + 1
-    # the core rows rows - e ... rows + e: the peak is the middle of their clipped run, else the first maximum
+    # the window centred on the peak, rows peak - half ... peak + half: (m, n) bytes
     top_row = np.empty(n, np.int64)
     for t in range(n):
-        top_row[t] = rows[t] - e
-    C = np.empty((ne, n), np.uint8)
-    _gather_green(image, cols, top_row, C)
-    d = np.zeros(n, np.int64)
-    bv = np.full(n, -1.0)
-    first = np.full(n, -1, np.int64)
-    last = np.full(n, -1, np.int64)
-    for j in range(ne):
-        cj = C[j]
-        for t in range(n):
-            x = float(cj[t])
-            up = x > bv[t]
-            bv[t] = x if up else bv[t]
-            d[t] = j if up else d[t]
-            s_ = x >= sat_dn
-            first[t] = j if (s_ and first[t] < 0) else first[t]
-            last[t] = j if s_ else last[t]
-    for t in range(n):
-        if first[t] >= 0:
-            d[t] = (first[t] + last[t]) // 2
-    # the window centred on it, rows peak - half ... peak + half: (m, n) bytes
-    for t in range(n):
-        top_row[t] = rows[t] - e - half + d[t]
+        top_row[t] = peaks[t] - half
     W = np.empty((m, n), np.uint8)
     _gather_green(image, cols, top_row, W)
     n8 = np.zeros(n, np.uint8)  # (m < 256: byte counts, 64 lanes)
@@ -1456,9 +1400,7 @@ def _fit_clipped_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, it
                 sigma[idx[i]] = sig_k[i]
     # 4. acceptance (anywhere on the clipped top) and the colour rises (green from the window: its peak row and
     # ends)
-    pk_rows = np.empty(n, np.int64)
-    for t in range(n):
-        pk_rows[t] = rows[t] + d[t] - e
+    pk_rows = peaks
     centre = np.empty(n)
     ok = np.empty(n, np.bool_)
     rise = np.empty((3, n))
@@ -1473,42 +1415,62 @@ def _fit_clipped_chunk(image, cols, rows, half, e, sigma_hint, sat_dn, flank, it
     for t in range(n):
         r_g[t] = float(w_pk[t]) - 0.5 * (float(w_lo[t]) + float(w_hi[t]))
     _colour_rises(image, cols, pk_rows, half, (0, 2), rise)  # blue and red at the same rows
-    return (centre, a0, sigma, sat, ok, noise, rise, sat.copy()), (W, bl, slope, xl, pk_rows)
+    return (centre, a0, sigma, sat, ok, noise, rise, sat.copy()), (W, bl, slope, xl)
 
 
 @_njit
-def core_clipped(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
-    """Whether any green sample of rows ``rows - e ... rows + e`` (clamped to the image) of each column reaches
-    ``sat_dn``: (N,) bool."""
+def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
+    """The integer peak of the green samples of rows ``rows - e ... rows + e`` (clamped to the image) of each
+    column, as :func:`fit_columns` re-centres its window: the middle of their clipped run (samples of at least
+    ``sat_dn``), else the first maximum. Returns ``(peak_row, clipped)``: (N,) int64 and (N,) bool (a sample of
+    the core clipped)."""
     n = cols.size
+    ne = 2 * e + 1
     top_row = np.empty(n, np.int64)
     for t in range(n):
         top_row[t] = rows[t] - e
-    C = np.empty((2 * e + 1, n), np.uint8)
+    C = np.empty((ne, n), np.uint8)
     _gather_green(image, cols, top_row, C)
-    top = C[0].copy()
-    for k in range(1, 2 * e + 1):
-        ck = C[k]
+    # byte selects (64 lanes): the first maximum, the first and the last clipped sample
+    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
+    bv = C[0].copy()
+    d = np.zeros(n, np.uint8)
+    first = np.full(n, np.uint8(255))
+    last = np.zeros(n, np.uint8)
+    for j in range(ne):
+        pj = C[j]
+        uj = np.uint8(j)
         for t in range(n):
-            top[t] = max(top[t], ck[t])
-    out = np.empty(n, np.bool_)
+            x = pj[t]
+            mk = np.uint8(0) - np.uint8(x > bv[t])
+            bv[t] = max(bv[t], x)
+            d[t] = (uj & mk) | (d[t] & ~mk)
+            sq = x >= s8
+            first[t] = min(first[t], uj) if sq else first[t]
+            last[t] = uj if sq else last[t]
+    peak = np.empty(n, np.int64)
+    clipped = np.empty(n, np.bool_)
     for t in range(n):
-        out[t] = top[t] >= sat_dn
-    return out
+        cl = first[t] <= last[t]
+        clipped[t] = cl
+        mid = (np.int64(first[t]) + np.int64(last[t])) >> 1
+        peak[t] = rows[t] - e + (mid if cl else np.int64(d[t]))
+    return peak, clipped
 
 
 @_njit
 def fit_columns_clipped(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, flank, iterations, min_sig, max_sig, wide_fwhm
+    image, cols, peaks, half, sigma_hint, sat_dn, flank, iterations, min_sig, max_sig, wide_fwhm
 ):
-    """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns whose candidate has
-    a clipped sample nearby: the saturated profiles (peak sample clipped, at least two clipped samples;
-    symmetric-window centroid from the middle of the clipped run, float32 sums: centres within 1e-5 px of
-    :func:`fit_columns`) and the profiles that are not saturated and not wider than ``wide_fwhm`` at half level
-    (Gaussian-weighted centroid, in :func:`fit_columns`'s float64 arithmetic up to the vectorized logarithm of the
-    log-parabola start, :func:`log_array`, within 2 ulp).
+    """:func:`fit_columns` column-parallel (the inner loops run over columns), given each column's peak row
+    (:func:`core_peaks`) instead of its candidate row, for the columns whose candidate has a clipped sample
+    nearby: the saturated profiles (peak sample clipped, at least two clipped samples; symmetric-window centroid
+    from the middle of the clipped run, float32 sums: centres within 1e-5 px of :func:`fit_columns`) and the
+    profiles that are not saturated and not wider than ``wide_fwhm`` at half level (Gaussian-weighted centroid, in
+    :func:`fit_columns`'s float64 arithmetic up to the vectorized logarithm of the log-parabola start,
+    :func:`log_array`, within 2 ulp).
 
-    Same arguments as :func:`fit_columns` without the neighbour model and the width limits. Returns
+    Same other arguments as :func:`fit_columns` without the neighbour model and the width limits. Returns
     ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)``: ``done`` (N,) bool marks the
     columns of those two kinds, whose results are :func:`fit_columns`'s; the others (flat-topped wide profiles)
     are to be fitted by it. ``image`` must be C-contiguous. Works in chunks of 512 columns.
@@ -1524,8 +1486,8 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
     n_p = 0
     for t0 in range(0, N, 512):
         t1 = min(t0 + 512, N)
-        res, (W, bl, slope, xl, pk_rows) = _fit_clipped_chunk(
-            image, cols[t0:t1], rows[t0:t1], half, e, sigma_hint, sat_dn, flank, iterations
+        res, (W, bl, slope, xl) = _fit_clipped_chunk(
+            image, cols[t0:t1], peaks[t0:t1], half, sigma_hint, sat_dn, flank, iterations
         )
         _store_fit(out, res, t0, t1)
         sat = res[3]
@@ -1536,7 +1498,7 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
                 lines[0, n_p] = bl[t]
                 lines[1, n_p] = slope[t]
                 lines[2, n_p] = xl[t]
-                pk[n_p] = pk_rows[t]
+                pk[n_p] = peaks[t0 + t]
                 n_p += 1
         for q in range(m):
             wq = W[q]
@@ -2818,16 +2780,19 @@ def process_candidates(  # type: ignore[no-untyped-def]
     sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     min_sig = min_fwhm / fwhm_per_sigma
-    # columns with a clipped sample among the 2 e + 1 rows around their candidate are special in the common fit
-    # anyway (its window holds that sample): in a frame with clipped stripes they skip it
-    clip = core_clipped(image, cols, rows, 3, sat_dn) if plateau > 0 else np.zeros(n, np.bool_)
+    # each column's integer peak among the 2 e + 1 rows around its candidate; those with a clipped sample there
+    # are special (the common fit's window holds that sample): where they are many (close to the wall), they skip
+    # the common fit
+    peaks, clip = core_peaks(image, cols, rows, 3, sat_dn)
     n_clip = 0
     for t in range(n):
         n_clip += clip[t]
-    if n_clip == 0:
+    if 4 * n_clip <= n:
         vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
-            image, cols, rows, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+            image, cols, peaks, half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
         )
+        for t in range(n):
+            special[t] |= clip[t]
     else:
         vv = np.full(n, np.nan)
         amp = np.zeros(n)
@@ -2840,7 +2805,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
         keep = np.flatnonzero(~clip)
         if keep.size:
             r_c = fit_columns_common(
-                image, cols[keep], rows[keep], half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+                image, cols[keep], peaks[keep], half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
             )
             out = (vv, amp, sig, sat, ok, lnoise, rise)
             for i in range(keep.size):
@@ -2857,7 +2822,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
         # (flat tops) by the full kernel
         rest = np.flatnonzero(special)
         r_s = fit_columns_clipped(
-            image, cols[rest], rows[rest], half, 3, sig_med, sat_dn, 3, iterations, min_sig, max_sigma, wide_fwhm
+            image, cols[rest], peaks[rest], half, sig_med, sat_dn, 3, iterations, min_sig, max_sigma, wide_fwhm
         )
         n_rest = 0
         for i in range(rest.size):
@@ -3110,9 +3075,9 @@ def warm_up() -> None:
         local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
         detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
         frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
-        fit_columns_common(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
-        fit_columns_clipped(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 1, 2, 0.5, 5.0, 4.7)
-        core_clipped(img, i64, i64 + 4, 1, 250.0)
+        core_peaks(img, i64, i64 + 4, 1, 250.0)
+        fit_columns_common(img, i64, i64 + 4, 2, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
+        fit_columns_clipped(img, i64, i64 + 4, 2, 1.0, 250.0, 1, 2, 0.5, 5.0, 4.7)
         triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
         process_candidates(
             img,
@@ -3186,7 +3151,7 @@ _KERNEL_NAMES = (
     "frame_profile_stats",
     "fit_columns_common",
     "fit_columns_clipped",
-    "core_clipped",
+    "core_peaks",
     "max_fwhm_at",
     "process_candidates",
     "detect_band",
