@@ -371,15 +371,12 @@ def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
     assert 6.0 < _noise_dn(g, 2) < 8.0  # about the noise drawn
 
 
-def test_column_parallel_fits_equal_the_full_kernel() -> None:
-    """``fit_columns_clipped`` (column-parallel) takes the columns of its kinds and gives them ``fit_columns``'s
-    centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
-    and sub-pixel phases on a sloped background; centres on the true ones) and unclipped and singly clipped narrow
-    ones, and leaves the flat-topped wide ones to the full kernel; windows cut by the image border included."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_clipped
+def _profiles_image() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A test image of one stripe profile per column (120 x 400): Gaussians of sigma 0.8-3 px and peaks from 120 DN
+    to 6 times the range (clipped runs) on a sloped background, a tenth of them flat tops 9 px wide (thick
+    sheets), ten columns with a single clipped sample, the first ten windows cut by the top border.
 
-    if not HAVE_NUMBA:
-        pytest.skip("numba is not installed")
+    Returns ``(image, cols, rows, true_rows, sigma, flat)``: the candidate rows within 2 rows of the true ones."""
     rng = np.random.default_rng(3)
     h, w = 120, 400
     rows_c = rng.uniform(4.0, h - 5.0, w)
@@ -398,6 +395,20 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
     img[40, 200:210, 1] = 255  # single clipped samples
     cols = np.arange(w, dtype=np.int64)
     rows = np.rint(rows_c).astype(np.int64) + rng.integers(-2, 3, w)
+    return img, cols, rows, rows_c, sigma, flat
+
+
+def test_column_parallel_fits_equal_the_full_kernel() -> None:
+    """``fit_columns_clipped`` (column-parallel) takes the columns of its kinds and gives them ``fit_columns``'s
+    centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
+    and sub-pixel phases on a sloped background; centres on the true ones) and unclipped and singly clipped narrow
+    ones, and leaves the flat-topped wide ones to the full kernel; windows cut by the image border included."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_clipped
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    img, cols, rows, rows_c, sigma, flat = _profiles_image()
+    w = cols.size
     nan = np.full(w, np.nan)
     for half, it in ((8, 2), (12, 3), (90, 2)):  # 90: windows too long for byte row arithmetic
         full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
@@ -428,6 +439,39 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
             assert np.isfinite(err).all()
             assert np.median(err) < 0.05
             assert np.percentile(err, 95) < 0.15
+
+
+def test_common_fit_agrees_with_the_full_kernel_and_flags_the_rest() -> None:
+    """``fit_columns_common`` (float32, column-parallel) flags every column with two or more clipped samples in
+    its window (and the wide flat tops) for the other fits, and gives the rest ``fit_columns``'s results: within
+    2e-4 px where nothing is clipped, within 0.05 px where a single sample is (its flanks then sit up to one row
+    closer than the full kernel's), with the same acceptance and colour rises."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_common
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    img, cols, rows, _rows_c, _sigma, flat = _profiles_image()
+    h, w = img.shape[:2]
+    nan = np.full(w, np.nan)
+    peaks, clip = core_peaks(img, cols, rows, 3, 250.0)
+    for half, it in ((8, 2), (12, 3)):
+        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
+        fast = fit_columns_common(img, cols, peaks, half, 1.2, 250.0, 0.3, 5.0, 3, it, 4.7)
+        special = fast[7]
+        win = np.clip(peaks[None, :] + np.arange(-half, half + 1)[:, None], 0, h - 1)
+        n_clip = (img[win, cols[None, :], 1] >= 250).sum(axis=0)
+        assert (special | (n_clip < 2)).all()
+        assert not (clip & ~special).any()
+        assert (flat & special).sum() > 0.5 * flat.sum()
+        for kind, sel, tol in (("unclipped", n_clip == 0, 2e-4), ("one clipped sample", n_clip == 1, 0.05)):
+            sel = sel & ~special
+            assert sel.sum() >= 10, kind
+            np.testing.assert_array_equal(fast[4][sel], full[4][sel])
+            np.testing.assert_allclose(fast[0][sel], full[0][sel], rtol=0, atol=tol, equal_nan=True)
+            np.testing.assert_array_equal(fast[6][:, sel], full[6][:, sel])
+        sel = (n_clip == 0) & ~special
+        for i in (1, 2, 5):  # amplitude, sigma, local noise: float32 rounding
+            np.testing.assert_allclose(fast[i][sel], full[i][sel], rtol=1e-5, atol=1e-4)
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:

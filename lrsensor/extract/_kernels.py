@@ -821,13 +821,16 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     g_lo = B[0].copy()
     g_pk = B[R].copy()
     g_hi = B[m - 1].copy()
-    topf = B[0].copy()
-    for q in range(1, m):
+    # two or more clipped samples in the window: special (saturated, or the full kernel's flanks move out); a
+    # single clipped sample (a peak just reaching the top of the range) is fitted here as a Gaussian
+    n_clip = np.zeros(n, np.float32)
+    sat32 = np.float32(sat_dn)
+    for q in range(m):
         bqr = B[q]
         for t in range(n):
-            topf[t] = max(topf[t], bqr[t])
+            n_clip[t] += np.float32(1.0) if bqr[t] >= sat32 else np.float32(0.0)
     for t in range(n):
-        special[t] |= topf[t] >= sat_dn
+        special[t] |= n_clip[t] >= np.float32(2.0)
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
@@ -1051,12 +1054,13 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     """:func:`fit_columns` for the common case, column-parallel (the inner loops run over columns and vectorize),
     given each column's peak row (:func:`core_peaks`) instead of its candidate row.
 
-    Same other arguments (without the neighbour model and ``max_fwhm``) and results for every column that has no
-    clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the window,
-    its background line and the centroid sums are float32, twice the lanes of float64 in the vector loops, and
-    its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to about
-    1e-5 px, far below the extractor's noise); the others are flagged in the extra last output ``special`` (N,)
-    bool, and their results are to be taken from :func:`fit_columns`.
+    Same other arguments (without the neighbour model and ``max_fwhm``) and results for every column that has at
+    most one clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the
+    window, its background line and the centroid sums are float32, twice the lanes of float64 in the vector
+    loops, and its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to
+    about 1e-4 px, far below the extractor's noise; with one clipped sample the flanks sit up to a row closer than
+    :func:`fit_columns` puts them, which moves centres by hundredths of a pixel); the others are flagged in the
+    extra last output ``special`` (N,) bool, and their results are to be taken from the other fits.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
@@ -1422,8 +1426,8 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
 def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
     """The integer peak of the green samples of rows ``rows - e ... rows + e`` (clamped to the image) of each
     column, as :func:`fit_columns` re-centres its window: the middle of their clipped run (samples of at least
-    ``sat_dn``), else the first maximum. Returns ``(peak_row, clipped)``: (N,) int64 and (N,) bool (a sample of
-    the core clipped)."""
+    ``sat_dn``), else the first maximum. Returns ``(peak_row, clipped)``: (N,) int64 and (N,) bool (two or more
+    samples of the core clipped)."""
     n = cols.size
     ne = 2 * e + 1
     top_row = np.empty(n, np.int64)
@@ -1452,7 +1456,7 @@ def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
     clipped = np.empty(n, np.bool_)
     for t in range(n):
         cl = first[t] <= last[t]
-        clipped[t] = cl
+        clipped[t] = first[t] < last[t]
         mid = (np.int64(first[t]) + np.int64(last[t])) >> 1
         peak[t] = rows[t] - e + (mid if cl else np.int64(d[t]))
     return peak, clipped
