@@ -410,7 +410,8 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
     img, cols, rows, rows_c, sigma, flat = _profiles_image()
     w = cols.size
     nan = np.full(w, np.nan)
-    for half, it in ((8, 2), (12, 3), (90, 2)):  # 90: windows too long for byte row arithmetic
+    # 90: windows too long for byte row arithmetic; 130: more rows than a byte counts
+    for half, it in ((8, 2), (12, 3), (90, 2), (130, 2)):
         full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
         sat = full[3]
         peaks = core_peaks(img, cols, rows, 3, 250.0)[0]
@@ -454,6 +455,7 @@ def test_common_fit_agrees_with_the_full_kernel_and_flags_the_rest() -> None:
     h, w = img.shape[:2]
     nan = np.full(w, np.nan)
     peaks, clip = core_peaks(img, cols, rows, 3, 250.0)
+    assert not core_peaks(img, cols, rows, 3, 256.0)[1].any()  # above the byte range: nothing is clipped
     for half, it in ((8, 2), (12, 3)):
         full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
         fast = fit_columns_common(img, cols, peaks, half, 1.2, 250.0, 0.3, 5.0, 3, it, 4.7)

@@ -1152,6 +1152,12 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     return c, sg, ok, done
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _clip_level(sat_dn):  # type: ignore[no-untyped-def]
+    """The smallest byte value counted as clipped (``x >= sat_dn``), as uint16: 256 (none) above 255."""
+    return np.uint16(min(max(math.ceil(sat_dn), 0), 256))
+
+
 @_njit
 def _columns(W, idx):  # type: ignore[no-untyped-def]
     """The columns ``idx`` (k,) of ``W`` (m, n): (m, k), C-contiguous."""
@@ -1206,15 +1212,15 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations): 
     ``iterations`` times to the centroid of a symmetric window of half-width ``n_sat / 2 + 2.5 sigma_hint + 1``
     (weights clipped to [0, 1] at its ends). Float32 sums, four rows per pass (the running sums in registers)."""
     m, n = W.shape
-    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
-    # the clipped run's middle: half the sum of its first and last rows
-    first = np.full(n, np.uint8(255))
-    last = np.zeros(n, np.uint8)
+    s16 = _clip_level(sat_dn)
+    # the clipped run's middle: half the sum of its first and last rows (uint16: 32 lanes)
+    first = np.full(n, np.uint16(65535))
+    last = np.zeros(n, np.uint16)
     for q in range(m):
         wq = W[q]
-        uq = np.uint8(q)
+        uq = np.uint16(q)
         for t in range(n):
-            sq = wq[t] >= s8
+            sq = np.uint16(wq[t]) >= s16
             first[t] = min(first[t], uq) if sq else first[t]
             last[t] = uq if sq else last[t]
     B = np.empty((m, n), np.float32)
@@ -1300,15 +1306,15 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
         top_row[t] = peaks[t] - half
     W = np.empty((m, n), np.uint8)
     _gather_green(image, cols, top_row, W)
-    n8 = np.zeros(n, np.uint8)  # (m < 256: byte counts, 64 lanes)
-    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
+    n16 = np.zeros(n, np.uint16)  # (32 lanes)
+    s16 = _clip_level(sat_dn)
     for q in range(m):
         wq = W[q]
         for t in range(n):
-            n8[t] += np.uint8(wq[t] >= s8)
+            n16[t] += np.uint16(np.uint16(wq[t]) >= s16)
     n_sat = np.empty(n, np.int64)
     for t in range(n):
-        n_sat[t] = n8[t]
+        n_sat[t] = n16[t]
     sat = np.empty(n, np.bool_)
     for t in range(n):
         sat[t] = W[R, t] >= sat_dn and n_sat[t] >= 2
@@ -1435,8 +1441,8 @@ def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
         top_row[t] = rows[t] - e
     C = np.empty((ne, n), np.uint8)
     _gather_green(image, cols, top_row, C)
-    # byte selects (64 lanes): the first maximum, the first and the last clipped sample
-    s8 = np.uint8(min(max(math.ceil(sat_dn), 0), 255))
+    # byte selects (64 lanes): the first maximum, the first and the last clipped sample (2 e + 1 < 255)
+    s16 = _clip_level(sat_dn)
     bv = C[0].copy()
     d = np.zeros(n, np.uint8)
     first = np.full(n, np.uint8(255))
@@ -1449,7 +1455,7 @@ def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
             mk = np.uint8(0) - np.uint8(x > bv[t])
             bv[t] = max(bv[t], x)
             d[t] = (uj & mk) | (d[t] & ~mk)
-            sq = x >= s8
+            sq = np.uint16(x) >= s16
             first[t] = min(first[t], uj) if sq else first[t]
             last[t] = uj if sq else last[t]
     peak = np.empty(n, np.int64)
