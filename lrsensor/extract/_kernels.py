@@ -1079,9 +1079,9 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     """The unclipped branch of :func:`fit_columns` column-parallel, in its float64 arithmetic: from the
     background-free profiles ``B`` (m, n), their peak values ``a0`` (n,) and the log-parabola start (centre ``c``,
     updated in place, and sigma ``sg``, inf without curvature; (n,) each): the Gaussian-weighted centroid (per
-    column reach, weights by recurrence from two ``math.exp``). Returns ``(centre, sigma, ok, done)``, (n,) each,
-    ``centre`` in window rows; ``done`` False where :func:`fit_columns` would take its wide (flat-topped) branch
-    instead."""
+    column reach, weights by recurrence from two exps per column and iteration). Returns ``(centre, sigma, ok,
+    done)``, (n,) each, ``centre`` in window rows; ``done`` False where :func:`fit_columns` would take its wide
+    (flat-topped) branch instead."""
     m, n = B.shape
     ok = np.empty(n, np.bool_)
     inv2 = np.empty(n)
@@ -1152,10 +1152,25 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     return c, sg, ok, done
 
 
-@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
-def _clip_level(sat_dn):  # type: ignore[no-untyped-def]
-    """The smallest byte value counted as clipped (``x >= sat_dn``), as uint16: 256 (none) above 255."""
-    return np.uint16(min(max(math.ceil(sat_dn), 0), 256))
+@_njit
+def _clipped_runs(W, sat_dn):  # type: ignore[no-untyped-def]
+    """Per column of ``W`` (m, n) uint8: how many samples are clipped (at least ``sat_dn``) and the rows of the
+    first and the last of them: (n,) uint16 each (first 65535 and last 0 where none; 32 lanes; a level above 255
+    clips nothing)."""
+    m, n = W.shape
+    s16 = np.uint16(min(max(math.ceil(sat_dn), 0), 256))
+    cnt = np.zeros(n, np.uint16)
+    first = np.full(n, np.uint16(65535))
+    last = np.zeros(n, np.uint16)
+    for q in range(m):
+        wq = W[q]
+        uq = np.uint16(q)
+        for t in range(n):
+            sq = np.uint16(wq[t]) >= s16
+            cnt[t] += np.uint16(sq)
+            first[t] = min(first[t], uq) if sq else first[t]
+            last[t] = uq if sq else last[t]
+    return cnt, first, last
 
 
 @_njit
@@ -1206,23 +1221,13 @@ def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, it
 
 
 @_njit
-def _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations):  # type: ignore[no-untyped-def]
+def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # type: ignore[no-untyped-def]
     """The centre (window rows) and sigma (n,) of saturated profiles: the windows ``W`` (m, n) uint8 less their
-    linear backgrounds (``bl + slope (q - xl)``, (n,) each), from the middle of each clipped run, moved
-    ``iterations`` times to the centroid of a symmetric window of half-width ``n_sat / 2 + 2.5 sigma_hint + 1``
-    (weights clipped to [0, 1] at its ends). Float32 sums, four rows per pass (the running sums in registers)."""
+    linear backgrounds (``bl + slope (q - xl)``, (n,) each), from ``c0`` (n,), the middle of each clipped run,
+    moved ``iterations`` times to the centroid of a symmetric window of half-width
+    ``n_sat / 2 + 2.5 sigma_hint + 1`` (weights clipped to [0, 1] at its ends). Float32 sums, four rows per pass
+    (the running sums in registers)."""
     m, n = W.shape
-    s16 = _clip_level(sat_dn)
-    # the clipped run's middle: half the sum of its first and last rows (uint16: 32 lanes)
-    first = np.full(n, np.uint16(65535))
-    last = np.zeros(n, np.uint16)
-    for q in range(m):
-        wq = W[q]
-        uq = np.uint16(q)
-        for t in range(n):
-            sq = np.uint16(wq[t]) >= s16
-            first[t] = min(first[t], uq) if sq else first[t]
-            last[t] = uq if sq else last[t]
     B = np.empty((m, n), np.float32)
     for q in range(m):
         wq = W[q]
@@ -1234,7 +1239,7 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations): 
     hs = np.empty(n, np.float32)
     sigma = np.empty(n)
     for t in range(n):
-        c[t] = 0.5 * (float(first[t]) + float(last[t])) if first[t] <= last[t] else 0.5 * (m - 1)
+        c[t] = c0[t]
         sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
         hs[t] = np.float32(0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0)
     s0 = np.empty(n, np.float32)
@@ -1306,15 +1311,12 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
         top_row[t] = peaks[t] - half
     W = np.empty((m, n), np.uint8)
     _gather_green(image, cols, top_row, W)
-    n16 = np.zeros(n, np.uint16)  # (32 lanes)
-    s16 = _clip_level(sat_dn)
-    for q in range(m):
-        wq = W[q]
-        for t in range(n):
-            n16[t] += np.uint16(np.uint16(wq[t]) >= s16)
+    n16, first, last = _clipped_runs(W, sat_dn)
     n_sat = np.empty(n, np.int64)
+    c0 = np.empty(n)  # the middle of the clipped run: the saturated profiles' start
     for t in range(n):
         n_sat[t] = n16[t]
+        c0[t] = 0.5 * (float(first[t]) + float(last[t])) if first[t] <= last[t] else 0.5 * (m - 1)
     sat = np.empty(n, np.bool_)
     for t in range(n):
         sat[t] = W[R, t] >= sat_dn and n_sat[t] >= 2
@@ -1388,23 +1390,15 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
     for t in range(n):
         n_s += sat[t]
     if n_s == n:  # (the common case close to the wall: all of them saturated)
-        c, sigma = _clipped_centroid(W, bl, slope, xl, n_sat, sigma_hint, sat_dn, iterations)
+        c, sigma = _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations)
     else:
         c = np.full(n, np.nan)
         sigma = np.full(n, np.nan)
         if n_s:
             idx = np.flatnonzero(sat)
-            bl_k = np.empty(n_s)
-            sl_k = np.empty(n_s)
-            xl_k = np.empty(n_s)
-            ns_k = np.empty(n_s, np.int64)
-            for i in range(n_s):
-                t = idx[i]
-                bl_k[i] = bl[t]
-                sl_k[i] = slope[t]
-                xl_k[i] = xl[t]
-                ns_k[i] = n_sat[t]
-            c_k, sig_k = _clipped_centroid(_columns(W, idx), bl_k, sl_k, xl_k, ns_k, sigma_hint, sat_dn, iterations)
+            c_k, sig_k = _clipped_centroid(
+                _columns(W, idx), bl[idx], slope[idx], xl[idx], n_sat[idx], c0[idx], sigma_hint, iterations
+            )
             for i in range(n_s):
                 c[idx[i]] = c_k[i]
                 sigma[idx[i]] = sig_k[i]
@@ -1441,12 +1435,9 @@ def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
         top_row[t] = rows[t] - e
     C = np.empty((ne, n), np.uint8)
     _gather_green(image, cols, top_row, C)
-    # byte selects (64 lanes): the first maximum, the first and the last clipped sample (2 e + 1 < 255)
-    s16 = _clip_level(sat_dn)
+    # byte selects (64 lanes): the first maximum
     bv = C[0].copy()
     d = np.zeros(n, np.uint8)
-    first = np.full(n, np.uint8(255))
-    last = np.zeros(n, np.uint8)
     for j in range(ne):
         pj = C[j]
         uj = np.uint8(j)
@@ -1455,9 +1446,7 @@ def core_peaks(image, cols, rows, e, sat_dn):  # type: ignore[no-untyped-def]
             mk = np.uint8(0) - np.uint8(x > bv[t])
             bv[t] = max(bv[t], x)
             d[t] = (uj & mk) | (d[t] & ~mk)
-            sq = np.uint16(x) >= s16
-            first[t] = min(first[t], uj) if sq else first[t]
-            last[t] = uj if sq else last[t]
+    _cnt, first, last = _clipped_runs(C, sat_dn)
     peak = np.empty(n, np.int64)
     clipped = np.empty(n, np.bool_)
     for t in range(n):
