@@ -1747,27 +1747,36 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
 @_njit
 def _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out):  # type: ignore[no-untyped-def]
     """For the columns ``[u_lo, u_hi]`` still to do (``done`` False): the value of the best accepted line of
-    :func:`smooth_runs` at scale ``k`` (centred, left or right window, inside the column's run; smallest residual)
-    into ``out``, and ``done`` set. Returns how many columns got one."""
+    :func:`smooth_runs` at scale ``k`` (centred, left or right window, inside the column's run; smallest residual,
+    the first of equal ones) into ``out``, and ``done`` set. Returns how many columns got one.
+
+    One branch-free pass over the columns per window position (centre at ``u``, ``u - k``, ``u + k``, in that
+    order), each over the columns whose centre lies in ``[k, n - k)``: contiguous reads, the loops vectorize.
+    """
+    span = u_hi - u_lo + 1
+    best = np.full(span, np.inf)
+    val = np.full(span, np.nan)
+    for sh in (0, -k, k):
+        a0 = max(u_lo, k - sh)  # centre c = u + sh >= k
+        a1 = min(u_hi + 1, n - k - sh)  # c < n - k
+        fs = float(-sh)
+        for u in range(a0, a1):
+            uu = np.uint64(u)
+            c = np.uint64(u + sh)
+            i = np.uint64(u - u_lo)
+            r = rss_c[c]
+            ok = acc_c[c] & (u + sh - k >= run_lo[uu]) & (u + sh + k <= run_hi[uu]) & (r < best[i])
+            v = a_c[c] + b_c[c] * fs + base[uu]
+            best[i] = r if ok else best[i]
+            val[i] = v if ok else val[i]
     got = 0
     for u in range(u_lo, u_hi + 1):
-        if done[u]:
-            continue
-        best = np.inf
-        val = np.nan
-        for sh in (0, -k, k):
-            c = u + sh
-            if c < k or c >= n - k or not acc_c[c]:
-                continue
-            if c - k < run_lo[u] or c + k > run_hi[u]:
-                continue
-            if rss_c[c] < best:
-                best = rss_c[c]
-                val = a_c[c] + b_c[c] * (-sh) + base[u]
-        if math.isfinite(val):
-            out[u] = val
-            done[u] = True
-            got += 1
+        uu = np.uint64(u)
+        v = val[np.uint64(u - u_lo)]
+        take = (not done[uu]) & math.isfinite(v)
+        out[uu] = v if take else out[uu]
+        done[uu] |= take
+        got += take
     return got
 
 
