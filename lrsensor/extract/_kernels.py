@@ -325,18 +325,34 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
                 prevT[jb, d] = c * K + i0
                 has_next[i0, c] = 1
                 has_prev[jb, d] = 1
-    # chain roots, lengths and summed strengths (links point to lower columns: one pass in column order)
+    # chain roots, lengths and summed strengths (links point to lower columns: one pass in column order). The
+    # current chain's length and strength stay in registers while its nodes follow each other (the common case),
+    # not read back from memory node after node; stored when another chain's node comes (the same additions in the
+    # same order)
     root = np.empty(nn, np.int64)
     length = np.zeros(nn, np.int64)
     strength = np.zeros(nn)
+    r_cur = -1
+    l_cur = 0
+    s_cur = 0.0
     for c in range(n_cols):
         for q in range(cnt[c]):
             node = c * K + q
             p = prevT[q, c]
             r = root[p] if p != node else node
             root[node] = r
-            length[r] += 1
-            strength[r] += AT[q, c]
+            if r != r_cur:
+                if r_cur >= 0:
+                    length[r_cur] = l_cur
+                    strength[r_cur] = s_cur
+                r_cur = r
+                l_cur = length[r]
+                s_cur = strength[r]
+            l_cur += 1
+            s_cur += AT[q, c]
+    if r_cur >= 0:
+        length[r_cur] = l_cur
+        strength[r_cur] = s_cur
     # 4. per column the candidate on the strongest long-enough chain
     cols = np.empty(n_cols, np.int64)
     rows = np.empty(n_cols, np.float64)
@@ -344,6 +360,14 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     clen = np.empty(n_cols, np.int64)
     out = 0
     for c in range(n_cols):
+        if cnt[c] == 1:  # the common case, without branches: stored, and counted if its chain is long enough
+            r = root[c * K]
+            cols[out] = c
+            rows[out] = VT[0, c]
+            chain[out] = r
+            clen[out] = length[r]
+            out += length[r] >= min_run
+            continue
         best_s = -1.0
         best_q = -1
         for q in range(cnt[c]):
