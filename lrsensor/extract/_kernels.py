@@ -1676,9 +1676,6 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     if nv < 8:
         return out
     var_all = np.nan  # the pooled noise: only windows with fewer than 5 samples of their own use it (computed then)
-    run_lo = np.empty(n, np.int64)
-    run_hi = np.empty(n, np.int64)
-    base = np.zeros(n)
     c_m = np.empty(n + 1)  # running sums: every element is written below
     c_mx = np.empty(n + 1)
     c_mxx = np.empty(n + 1)
@@ -1688,18 +1685,13 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     c_d2 = np.empty(n + 1)
     c_n2 = np.empty(n + 1)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
-    # the sums run in registers (read back from the arrays, each would wait on its own store); each column's run
-    # extent and base in the same pass
+    # the sums run in registers (read back from the arrays, each would wait on its own store); values relative to
+    # the first of their run
     s_m = s_mx = s_mxx = s_z = s_zx = s_zz = s_d2 = s_n2 = 0.0
     for q in range(n):
         r = run[q]
         h = r >= 0
-        rr = max(r, 0)
-        f = first[rr]
-        run_lo[q] = f if h else n
-        run_hi[q] = last[rr] if h else -1
-        b = y[min(f, n - 1)] if h else 0.0
-        base[q] = b
+        b = y[min(first[max(r, 0)], n - 1)] if h else 0.0
         mq = 1.0 if h else 0.0
         zq = y[q] - b if h else 0.0
         s_m += mq
@@ -1764,33 +1756,34 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
                             m += 1
                     var_all = np.median(vals[:m]) / (6.0 * 0.4549) + 1e-8
             _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
-            left -= _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out)
+            left -= _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y[f], out)
     return out
 
 
 @_njit
-def _pick_windows(k, u_lo, u_hi, n, done, acc_c, rss_c, a_c, b_c, base, run_lo, run_hi, out):  # type: ignore[no-untyped-def]
-    """For the columns ``[u_lo, u_hi]`` still to do (``done`` False): the value of the best accepted line of
-    :func:`smooth_runs` at scale ``k`` (centred, left or right window, inside the column's run; smallest residual,
-    the first of equal ones) into ``out``, and ``done`` set. Returns how many columns got one.
+def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, out):  # type: ignore[no-untyped-def]
+    """For the columns ``[u_lo, u_hi]`` still to do (``done`` False) of the run ``[f, la]`` (whose values are
+    relative to its first, ``y0``): the value of the best accepted line of :func:`smooth_runs` at scale ``k``
+    (centred, left or right window, inside the run; smallest residual, the first of equal ones) into ``out``, and
+    ``done`` set. Returns how many columns got one.
 
     One branch-free pass over the columns per window position (centre at ``u``, ``u - k``, ``u + k``, in that
-    order), each over the columns whose centre lies in ``[k, n - k)``: contiguous reads, the loops vectorize.
+    order), each over the columns whose window lies in the run and in ``[0, n)``: contiguous reads, the loops
+    vectorize.
     """
     span = u_hi - u_lo + 1
     best = np.full(span, np.inf)
     val = np.full(span, np.nan)
     for sh in (0, -k, k):
-        a0 = max(u_lo, k - sh)  # centre c = u + sh >= k
-        a1 = min(u_hi + 1, n - k - sh)  # c < n - k
+        a0 = max(u_lo, k - sh, f + k - sh)  # window of centre c = u + sh from c - k >= max(0, f)
+        a1 = min(u_hi + 1, n - k - sh, la - k - sh + 1)  # to c + k <= min(n - 1, la)
         fs = float(-sh)
         for u in range(a0, a1):
-            uu = np.uint64(u)
             c = np.uint64(u + sh)
             i = np.uint64(u - u_lo)
             r = rss_c[c]
-            ok = acc_c[c] & (u + sh - k >= run_lo[uu]) & (u + sh + k <= run_hi[uu]) & (r < best[i])
-            v = a_c[c] + b_c[c] * fs + base[uu]
+            ok = acc_c[c] & (r < best[i])
+            v = a_c[c] + b_c[c] * fs + y0
             best[i] = r if ok else best[i]
             val[i] = v if ok else val[i]
     got = 0
