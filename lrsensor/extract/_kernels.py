@@ -839,22 +839,28 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     top_row = np.empty(n, np.int64)
     for t in range(n):
         top_row[t] = peaks[t] - half
+    W = np.empty((m, n), np.uint8)
+    _gather_green(image, cols, top_row, W)  # bytes, then converted in a vector pass (cheaper than float stores)
     B = np.empty((m, n), np.float32)
-    _gather_green(image, cols, top_row, B)
+    for q in range(m):
+        wq = W[q]
+        bq_ = B[q]
+        for t in range(n):
+            bq_[t] = np.float32(wq[t])
     # the green samples of the colour rise (peak row and the window's ends), before the background is removed
     g_lo = B[0].copy()
     g_pk = B[R].copy()
     g_hi = B[m - 1].copy()
     # two or more clipped samples in the window: special (saturated, or the full kernel's flanks move out); a
     # single clipped sample (a peak just reaching the top of the range) is fitted here as a Gaussian
-    n_clip = np.zeros(n, np.float32)
-    sat32 = np.float32(sat_dn)
+    n_clip = np.zeros(n, np.uint8)
+    s16 = np.uint16(min(max(math.ceil(sat_dn), 0), 256))  # a level above 255 clips nothing
     for q in range(m):
-        bqr = B[q]
+        wq = W[q]
         for t in range(n):
-            n_clip[t] += np.float32(1.0) if bqr[t] >= sat32 else np.float32(0.0)
+            n_clip[t] = min(n_clip[t], np.uint8(254)) + np.uint8(np.uint16(wq[t]) >= s16)
     for t in range(n):
-        special[t] |= n_clip[t] >= np.float32(2.0)
+        special[t] |= n_clip[t] >= np.uint8(2)
     # 1. linear background from the two flanks, subtracted; noise of the flanks
     off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
     xl = R - off - 0.5 * (flank - 1)
@@ -1252,12 +1258,20 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # t
     ``n_sat / 2 + 2.5 sigma_hint + 1`` (weights clipped to [0, 1] at its ends). Float32 sums, four rows per pass
     (the running sums in registers)."""
     m, n = W.shape
+    # the background line as an intercept and a slope per column in float32 (twice the lanes; the line is
+    # smooth and at most a few hundred DN: its float32 rounding is far below a DN)
+    li = np.empty(n, np.float32)
+    ls = np.empty(n, np.float32)
+    for t in range(n):
+        li[t] = np.float32(bl[t] - slope[t] * xl[t])
+        ls[t] = np.float32(slope[t])
     B = np.empty((m, n), np.float32)
     for q in range(m):
         wq = W[q]
         bq_ = B[q]
+        fq = np.float32(q)
         for t in range(n):
-            bq_[t] = np.float32(wq[t] - (bl[t] + slope[t] * (q - xl[t])))
+            bq_[t] = np.float32(wq[t]) - (li[t] + ls[t] * fq)
     c = np.empty(n)
     cf = np.empty(n, np.float32)
     hs = np.empty(n, np.float32)
