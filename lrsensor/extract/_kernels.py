@@ -7,7 +7,9 @@ sub-pixel fits, neighbour refits, pooled gates, along-stripe smoothing, quality)
 range-limit gate. The loops are written so that the compiler vectorizes them across columns: unsigned indices
 where an index could be negative (no wrap-around select per access), few arrays per loop (cheap run-time alias
 checks), selects instead of branches, and :func:`exp_array` / :func:`log_array` (and their float32 twins)
-instead of libm calls.
+instead of libm calls. Multiplies and adds may be fused (``fastmath={"contract"}``: one rounding instead of two,
+nothing else of fast-math), so floating-point results agree with the numpy twins to rounding, not bit for bit; the
+detection is integer arithmetic and stays bit for bit.
 These compile once (``cache=True``, tens of seconds the very first time, about a second from the on-disk cache).
 
 Compilation never blocks a caller: :func:`ready` starts it in a background thread on first use and returns False
@@ -30,7 +32,7 @@ try:  # pragma: no cover - depends on the platform
     from numba.cpython.unsafe.numbers import trailing_zeros as _ctz
 
     HAVE_NUMBA = True
-    _njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
     trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
