@@ -144,6 +144,12 @@ def flush_caches() -> None:
 #: Frames a stream of new frames cycles through: 14 copies of a 1920x1080 frame (87 MB) exceed the last-level
 #: cache, so each call reads a frame that is not cached, while the code and the work arrays stay warm.
 STREAM_FRAMES = 14
+#: Rounds of the stream and warm timings: each round calls every function back to back, in turn.
+ROUNDS = 5
+#: Untimed calls that start each function's calls in a round of the stream and warm timings: after another
+#: function ran, the first few calls still refill the caches and the branch history (the compiled extractor's
+#: call settles within about five).
+SETTLE_CALLS = 5
 CACHE_STATES = ("cold", "stream", "warm")
 
 
@@ -156,7 +162,9 @@ def timed(
     :func:`flush_caches` (every function starts from the same state: nothing cached, code and branch history
     included); ``stream``, each function's calls back to back on :data:`STREAM_FRAMES` copies of the frame in
     turn (a new frame from memory each call, as from a camera; code warm); ``warm``, each function's calls back to
-    back on the same frame, after one untimed call.
+    back on the same frame. Stream and warm take the functions in turn in :data:`ROUNDS` rounds of back-to-back
+    calls, each after :data:`SETTLE_CALLS` untimed ones, so that a slow spell of the machine (another tenant on
+    the shared cache, say) lands on a few calls of every function rather than on all the calls of one.
     """
     if state not in CACHE_STATES:
         msg = f"unknown cache state {state!r}; expected one of {CACHE_STATES}"
@@ -179,14 +187,24 @@ def timed(
                 one(k, f, frame)
     elif state == "stream":
         frames = [frame.copy() for _ in range(STREAM_FRAMES)]
-        for k, f in fns.items():
-            for i in range(max(repeats, STREAM_FRAMES)):
-                one(k, f, frames[i % STREAM_FRAMES])
+        per_round = max(repeats, STREAM_FRAMES * ROUNDS) // ROUNDS
+        i = 0
+        for _ in range(ROUNDS):
+            for k, f in fns.items():
+                for j in range(SETTLE_CALLS + per_round):
+                    if j < SETTLE_CALLS:
+                        f(frames[i % STREAM_FRAMES])
+                    else:
+                        one(k, f, frames[i % STREAM_FRAMES])
+                    i += 1
     else:
-        for k, f in fns.items():
-            f(frame)
-            for _ in range(repeats):
-                one(k, f, frame)
+        per_round = max(1, -(-repeats // ROUNDS))
+        for _ in range(ROUNDS):
+            for k, f in fns.items():
+                for _ in range(SETTLE_CALLS):
+                    f(frame)
+                for _ in range(per_round):
+                    one(k, f, frame)
     return {k: (1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(wall[k]))) for k in fns}
 
 
@@ -299,7 +317,9 @@ def main() -> int:
         f"right after {FLUSH_BYTES >> 20} MB were written (frame, code, work arrays and branch history all start "
         "from memory; calls interleaved); **stream**, each function's calls back to back on "
         f"{STREAM_FRAMES} copies of the frame in turn (a new frame from memory each call, as from a camera, with "
-        "the code warm); and **warm**, each function's calls back to back on one frame. "
+        "the code warm); and **warm**, each function's calls back to back on one frame. Stream and warm take the "
+        f"functions in turn in {ROUNDS} rounds of back-to-back calls, each after {SETTLE_CALLS} untimed calls (a "
+        "slow spell of the machine then lands on every function alike). "
         "`Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola over the "
         "full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the same "
         "written as loops and compiled (numba), which is what the arg-max itself costs. "

@@ -5,6 +5,8 @@ The bars are the issue's targets with a little margin; ``benchmarks/bench_extrac
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -130,7 +132,8 @@ def test_speed_references_agree() -> None:
 
 def test_speed_cache_states_feed_the_frames_they_promise() -> None:
     """The speed benchmark's cache states: ``stream`` hands each call a different copy of the frame in turn (every
-    call reads a new frame), ``warm`` and ``cold`` the same frame every call; an unknown state is refused."""
+    call reads a new frame), ``warm`` and ``cold`` the same frame every call; stream and warm time every function
+    in each of ``ROUNDS`` rounds; an unknown state is refused."""
     import sys
     from pathlib import Path
 
@@ -143,9 +146,16 @@ def test_speed_cache_states_feed_the_frames_they_promise() -> None:
         out = be.timed({"f": lambda img, seen=seen: seen.append(img.ctypes.data)}, frame, 3, state)
         assert set(out) == {"f"}
         assert all(t >= 0.0 for t in out["f"])
-        timed_calls = seen[1:] if state != "warm" else seen[2:]  # after the untimed first call(s)
-        assert len(set(timed_calls)) == distinct
-        assert len(timed_calls) == (max(3, be.STREAM_FRAMES) if state == "stream" else 3)
+        calls = seen[1:]  # after the untimed first call
+        assert len(set(calls)) == distinct
+        if state == "stream":  # a new frame each call, in every round: the settling calls, then the timed ones
+            assert len(calls) == be.ROUNDS * (be.SETTLE_CALLS + be.STREAM_FRAMES)
+            assert all(a != b for a, b in itertools.pairwise(calls))
+            assert len(out["f"]) == 2  # (cpu, wall) medians
+        elif state == "warm":
+            assert len(calls) == be.ROUNDS * (be.SETTLE_CALLS + -(-3 // be.ROUNDS))
+        else:
+            assert len(calls) == 3
     with pytest.raises(ValueError, match="unknown cache state"):
         be.timed({}, frame, 1, "lukewarm")
 
