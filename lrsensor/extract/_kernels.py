@@ -907,27 +907,36 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         lv[n + t] = max(a0[t], f_half)
         lv[2 * n + t] = max(B[R + s, t], f_half)
     lv = log_array32(lv)
-    fR = float(R)
-    sws = np.empty(n)
+    # in float32 (twice the lanes of the divisions and square roots): the start is refined by the centroid, and
+    # the widths are tested against limits far coarser than its rounding
+    fR = np.float32(R)
+    sf = np.float32(s)
+    f1 = np.float32(1.0)
+    f2 = np.float32(2.0)
+    sh32 = np.float32(sigma_hint)
+    lo32 = np.float32(min_sig)
+    hi32 = np.float32(max_sig)
+    sws = np.empty(n, np.float32)
     for t in range(n):  # branch-free (vectorizes): a profile without curvature takes the selects' other side
-        ym = float(lv[t])
-        y0 = float(lv[n + t])
-        yp = float(lv[2 * n + t])
-        den = ym - 2.0 * y0 + yp
-        curved = den < -1e-6
-        dsafe = den if curved else -1.0
-        c[t] = fR + min(max(0.5 * s * (ym - yp) / dsafe, -1.0), 1.0) if curved else fR
-        sg = s / math.sqrt(-dsafe)  # finite where curved
-        ok[t] = curved & (sg >= min_sig) & (sg <= max_sig)
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - f2 * y0 + yp
+        curved = den < np.float32(-1e-6)
+        dsafe = den if curved else -f1
+        c[t] = fR + min(max(f_half * sf * (ym - yp) / dsafe, -f1), f1) if curved else fR
+        sg = sf / np.sqrt(-dsafe)  # finite where curved
+        ok[t] = curved & (sg >= lo32) & (sg <= hi32)
         sigma[t] = sg if curved else np.inf
-        sig_p = min(max(sg if curved else sigma_hint, min_sig), max_sig)
-        sig_w = max(sig_p, 1.1)
+        sig_p = min(max(sg if curved else sh32, lo32), hi32)
+        sig_w = max(sig_p, np.float32(1.1))
         sws[t] = sig_w
-        inv2[t] = 0.5 / (sig_w * sig_w)
-        gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
-        g2[t] = np.float32(-2.0 * inv2[t])
+        iv = f_half / (sig_w * sig_w)
+        inv2[t] = iv
+        gain[t] = f1 + sig_p * sig_p * f2 * iv
+        g2[t] = -f2 * iv
     for t in range(n):
-        sw_max = max(sw_max, sws[t])
+        sw_max = max(sw_max, float(sws[t]))
     g2f = exp_array32(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
     h0 = np.empty(n, np.float32)
