@@ -1097,10 +1097,11 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
 
     Same other arguments (without the neighbour model and ``max_fwhm``) and results for every column that has at
     most one clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the
-    window, its background line and the centroid sums are float32, twice the lanes of float64 in the vector
-    loops, and its logs and exps are the float32 :func:`log_array32` and :func:`exp_array32`, so centres agree to
-    about 1e-4 px, far below the extractor's noise; with one clipped sample the flanks sit up to a row closer than
-    :func:`fit_columns` puts them, which moves centres by hundredths of a pixel); the others are flagged in the
+    window, its background line, the log-parabola start and the centroid sums are float32, twice the lanes of
+    float64 in the vector loops, and its logs and exps are the float32 :func:`log_array32` and
+    :func:`exp_array32`, so centres agree to about 1e-4 px, far below the extractor's noise; with one clipped sample
+    the flanks sit up to a row closer than :func:`fit_columns` puts them, which moves centres by hundredths of a
+    pixel); the others are flagged in the
     extra last output ``special`` (N,) bool, and their results are to be taken from the other fits.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
