@@ -856,7 +856,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     # two or more clipped samples in the window: special (saturated, or the full kernel's flanks move out); a
     # single clipped sample (a peak just reaching the top of the range) is fitted here as a Gaussian
     n_clip = np.zeros(n, np.uint8)
-    s16 = np.uint16(min(max(math.ceil(sat_dn), 0), 256))  # a level above 255 clips nothing
+    s16 = _clip_level(sat_dn)
     for q in range(m):
         wq = W[q]
         for t in range(n):
@@ -1101,8 +1101,8 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     float64 in the vector loops, and its logs and exps are the float32 :func:`log_array32` and
     :func:`exp_array32`, so centres agree to about 1e-4 px, far below the extractor's noise; with one clipped sample
     the flanks sit up to a row closer than :func:`fit_columns` puts them, which moves centres by hundredths of a
-    pixel); the others are flagged in the
-    extra last output ``special`` (N,) bool, and their results are to be taken from the other fits.
+    pixel); the others are flagged in the extra last output ``special`` (N,) bool, and their results are to be
+    taken from the other fits.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
     """
@@ -1194,13 +1194,20 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
     return c, sg, ok, done
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _clip_level(sat_dn):  # type: ignore[no-untyped-def]
+    """The level from which a byte sample counts as clipped (at least ``sat_dn``), uint16: 256 (nothing clipped)
+    for a level above 255."""
+    return np.uint16(min(max(math.ceil(sat_dn), 0), 256))
+
+
 @_njit
 def _clipped_runs(W, sat_dn):  # type: ignore[no-untyped-def]
     """Per column of ``W`` (m, n) uint8: how many samples are clipped (at least ``sat_dn``) and the rows of the
     first and the last of them: (n,) uint16 each (first 65535 and last 0 where none; 32 lanes; a level above 255
     clips nothing)."""
     m, n = W.shape
-    s16 = np.uint16(min(max(math.ceil(sat_dn), 0), 256))
+    s16 = _clip_level(sat_dn)
     cnt = np.zeros(n, np.uint16)
     first = np.full(n, np.uint16(65535))
     last = np.zeros(n, np.uint16)
@@ -1262,6 +1269,14 @@ def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, it
     return _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _window_sums(a, b, ht, dq, x):  # type: ignore[no-untyped-def]
+    """One row of :func:`_clipped_centroid`'s sums (float32): the sample ``x`` at ``dq`` rows from the centre,
+    weighted 1 within ``ht - 1`` rows, 0 beyond ``ht`` and linearly between: ``(a + w x, b + w x dq)``."""
+    wa = min(max(ht - abs(dq), np.float32(0.0)), np.float32(1.0)) * x
+    return a + wa, b + wa * dq
+
+
 @_njit
 def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # type: ignore[no-untyped-def]
     """The centre (window rows) and sigma (n,) of saturated profiles: the windows ``W`` (m, n) uint8 less their
@@ -1294,7 +1309,6 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # t
         hs[t] = np.float32(0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0)
     s0 = np.empty(n, np.float32)
     s1 = np.empty(n, np.float32)
-    zero = np.float32(0.0)
     one = np.float32(1.0)
     for _ in range(iterations):
         for t in range(n):
@@ -1309,37 +1323,21 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # t
             w3 = B[q + 3]
             f0 = np.float32(q)
             for t in range(n):
-                ct = cf[t]
                 ht = hs[t]
-                a_ = s0[t]
-                b_ = s1[t]
-                dq = f0 - ct
-                wa = min(max(ht - abs(dq), zero), one) * w0[t]
-                a_ += wa
-                b_ += wa * dq
+                dq = f0 - cf[t]
+                a_, b_ = _window_sums(s0[t], s1[t], ht, dq, w0[t])
                 dq += one
-                wa = min(max(ht - abs(dq), zero), one) * w1[t]
-                a_ += wa
-                b_ += wa * dq
+                a_, b_ = _window_sums(a_, b_, ht, dq, w1[t])
                 dq += one
-                wa = min(max(ht - abs(dq), zero), one) * w2[t]
-                a_ += wa
-                b_ += wa * dq
+                a_, b_ = _window_sums(a_, b_, ht, dq, w2[t])
                 dq += one
-                wa = min(max(ht - abs(dq), zero), one) * w3[t]
-                a_ += wa
-                b_ += wa * dq
-                s0[t] = a_
-                s1[t] = b_
+                s0[t], s1[t] = _window_sums(a_, b_, ht, dq, w3[t])
             q += 4
         while q < m:
             wq = B[q]
             fq = np.float32(q)
             for t in range(n):
-                dq = fq - cf[t]
-                wa = min(max(hs[t] - abs(dq), zero), one) * wq[t]
-                s0[t] += wa
-                s1[t] += wa * dq
+                s0[t], s1[t] = _window_sums(s0[t], s1[t], hs[t], fq - cf[t], wq[t])
             q += 1
         for t in range(n):
             step = float(s1[t]) / float(s0[t]) if s0[t] != 0.0 else 0.0
