@@ -476,6 +476,76 @@ def test_common_fit_agrees_with_the_full_kernel_and_flags_the_rest() -> None:
             np.testing.assert_allclose(fast[i][sel], full[i][sel], rtol=1e-5, atol=1e-4)
 
 
+def test_neighbour_refit_equals_the_full_kernel() -> None:
+    """``fit_columns_neighbour`` (column-parallel) gives ``fit_columns``'s results, with the other laser's Gaussian
+    subtracted, for every column it takes (all unclipped narrow ones, neighbours on either side, near and far, and
+    without a neighbour), and leaves the clipped and flat-topped ones to the full kernel."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_neighbour
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    img, cols, rows, rows_c, sigma, flat = _profiles_image()
+    w = cols.size
+    rng = np.random.default_rng(5)
+    # a second stripe 4-14 rows away, of 10-60 DN and sigma 0.6-2.5 px, drawn into the image; a tenth without
+    side = rng.choice([-1.0, 1.0], w)
+    nb_v = rows_c + side * rng.uniform(4.0, 14.0, w)
+    nb_a = rng.uniform(10.0, 60.0, w)
+    nb_s = rng.uniform(0.6, 2.5, w)
+    y = np.arange(img.shape[0])[:, None]
+    g = img[:, :, 1].astype(float) + nb_a * np.exp(-0.5 * ((y - nb_v) / nb_s) ** 2)
+    img[:, :, 1] = np.clip(np.round(g), 0, 255)
+    none = rng.random(w) < 0.1
+    nb_v[none] = np.nan
+    for half, it in ((7, 2), (12, 3)):
+        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nb_v, nb_a, nb_s, nb_v * 0 + 20, 4.7)
+        fast = fit_columns_neighbour(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nb_v, nb_a, nb_s, 4.7)
+        done = fast[7]
+        # a clipped sample in the profile less the neighbour: the full kernel (every saturated one among them)
+        win = rows[None, :] + np.arange(-half - 3, half + 4)[:, None]
+        sub = img[np.clip(win, 0, img.shape[0] - 1), cols[None, :], 1] - np.nan_to_num(
+            nb_a * np.exp(-0.5 * ((win - nb_v) / nb_s) ** 2)
+        )
+        clipped = (sub >= 250).any(axis=0)
+        assert not (done & full[3]).any()
+        narrow = ~flat & ~clipped & (2.3548200450309493 * sigma < 4.0)
+        assert done[narrow].mean() > 0.9
+        assert (flat & ~done).sum() > 0.5 * flat.sum()
+        assert (done & none).sum() >= 5
+        assert (done & ~none).sum() > 50
+        for i in range(6):
+            np.testing.assert_allclose(
+                np.asarray(fast[i][done], float), np.asarray(full[i][done], float), rtol=0, atol=1e-9, equal_nan=True
+            )
+        np.testing.assert_array_equal(fast[6][:, done], full[6][:, done])
+        # the subtraction matters: without it the centres move
+        nan = np.full(w, np.nan)
+        plain = fit_columns_neighbour(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, 4.7)
+        both = done & plain[7] & ~none & np.isfinite(plain[0]) & np.isfinite(fast[0])
+        assert np.max(np.abs(plain[0][both] - fast[0][both])) > 0.1
+
+
+def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
+    """``moved_neighbours`` picks the points with a neighbour that is new or moved by more than the tolerance
+    (row, sigma in px, amplitude relative) and remembers it; a second call with the same neighbours picks none."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, moved_neighbours
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    nb_v = np.array([10.0, np.nan, 20.0, 30.0, 40.0])
+    nb_a = np.array([50.0, 50.0, 50.0, 50.0, 50.0])
+    nb_s = np.ones(5)
+    last = np.full((3, 5), np.nan)
+    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [0, 2, 3, 4])
+    assert moved_neighbours(nb_v, nb_a, nb_s, last).size == 0
+    nb_v[2] += 0.5 * NEIGHBOUR_TOL  # within the tolerance
+    nb_v[3] += 3.0 * NEIGHBOUR_TOL
+    nb_a[4] *= 1.0 + 3.0 * NEIGHBOUR_TOL  # relative
+    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [3, 4])
+    nb_s[0] += 1.0
+    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [0])
+
+
 def test_vectorized_exp_and_log_match_the_library() -> None:
     from lrsensor.extract._kernels import exp_array, log_array
 

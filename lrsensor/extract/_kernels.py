@@ -448,6 +448,33 @@ def _flank_line(P, o, R, off, flank):  # type: ignore[no-untyped-def]
 
 
 @_njit
+def _subtract_gaussian(P, mu, a, sigma):  # type: ignore[no-untyped-def]
+    """``P[q] -= a exp(-(q - mu)^2 / (2 sigma^2))`` for every sample of the profile ``P`` (K,), in place.
+
+    Four ``exp`` in all: the weights by recurrence outward from the sample nearest ``mu``, where each step
+    multiplies by a ratio that itself shrinks by ``exp(-1 / sigma^2)`` (so they only fall: no overflow, and an
+    underflow to zero is the true value's)."""
+    k = P.size
+    inv = 0.5 / (sigma * sigma)
+    g2 = math.exp(-2.0 * inv)
+    qc = min(max(int(math.floor(mu + 0.5)), 0), k - 1)  # noqa: RUF046 (numba: floor of a float is a float)
+    d = qc - mu
+    w0 = a * math.exp(-(d * d) * inv)
+    w = w0
+    ratio = math.exp(-(2.0 * d + 1.0) * inv)  # w(d + 1) / w(d)
+    for q in range(qc, k):
+        P[q] -= w
+        w *= ratio
+        ratio *= g2
+    w = w0
+    ratio = math.exp((2.0 * d - 1.0) * inv)  # w(d - 1) / w(d)
+    for q in range(qc - 1, -1, -1):
+        w *= ratio
+        ratio *= g2
+        P[q] -= w
+
+
+@_njit
 def fit_columns(  # type: ignore[no-untyped-def]
     image,
     cols,
@@ -504,10 +531,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
             rr = min(max(r0 + q, 0), h - 1)
             P[q] = image[rr, col, 1]
         if math.isfinite(nb_v[t]):
-            inv = 0.5 / (nb_s[t] * nb_s[t])
-            for q in range(m + 2 * e):
-                dd = r0 + q - nb_v[t]
-                P[q] -= nb_a[t] * math.exp(-dd * dd * inv)
+            _subtract_gaussian(P, nb_v[t] - r0, nb_a[t], nb_s[t])
         # re-centre on the integer peak within +-e
         bq = e + R
         bv = -1.0
@@ -1269,6 +1293,158 @@ def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, it
     return _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
 
 
+@_njit
+def _neighbour_profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-untyped-def]
+    """The green profiles of rows ``top ... top + k_rows - 1`` (clamped to the image) of columns ``cols`` less the
+    Gaussian ``amp exp(-(row - mu)^2 inv)`` of each column (``g2 = exp(-2 inv)``; (N,) each): (k_rows, N) float64.
+
+    Column-parallel, three ``exp`` per column: each column's Gaussian by recurrence from the first row where it
+    exceeds ``e^-30`` of its peak (a start further out could underflow to zero and stay there)."""
+    n = cols.size
+    W = np.empty((k_rows, n), np.uint8)
+    _gather_green(image, cols, top, W)
+    qs = np.empty(n, np.int64)
+    ex = np.empty(2 * n)
+    for t in range(n):
+        r30 = math.sqrt(30.0 / inv[t])
+        q0 = min(max(int(math.ceil(mu[t] - r30 - top[t])), 0), k_rows) if amp[t] != 0.0 else k_rows  # noqa: RUF046
+        qs[t] = q0
+        d = top[t] + q0 - mu[t] if q0 < k_rows else 0.0
+        ex[t] = -(d * d) * inv[t]
+        ex[n + t] = -(2.0 * d + 1.0) * inv[t]
+    ex = exp_array(ex)
+    w = ex[:n].copy()
+    ratio = ex[n:].copy()
+    P = np.empty((k_rows, n))
+    for q in range(k_rows):
+        wq = W[q]
+        pq = P[q]
+        for t in range(n):
+            on = q >= qs[t]
+            pq[t] = wq[t] - (amp[t] * w[t] if on else 0.0)
+            w[t] = w[t] * ratio[t] if on else w[t]
+            ratio[t] = ratio[t] * g2[t] if on else ratio[t]
+    return P
+
+
+@_njit
+def fit_columns_neighbour(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, nb_v, nb_a, nb_s, wide_fwhm
+):
+    """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns without a clipped
+    sample: with the same arguments but the width limits, the same results up to rounding (the neighbour's
+    Gaussian from vectorized :func:`exp_array`, the log-parabola start from :func:`log_array`, both within 2 ulp).
+
+    The stripes of two lasers close together at long range take this path: there every column of both is
+    refitted with the other's Gaussian subtracted, a few rounds, and :func:`fit_columns` costs about ten times more
+    per column. Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)`` as
+    :func:`_fit_results`: ``done`` (N,) False marks the columns to fit with :func:`fit_columns` instead (a clipped
+    sample in the core or the window, or a profile wider than ``wide_fwhm`` at half level).
+    """
+    h = image.shape[0]
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    out = _fit_results(n)
+    # the neighbour's Gaussian: amplitude, 1 / (2 sigma^2) and exp(-2 / (2 sigma^2)) per column (0: none)
+    amp_nb = np.empty(n)
+    inv = np.empty(n)
+    g2 = np.empty(n)
+    for t in range(n):
+        has = math.isfinite(nb_v[t])
+        amp_nb[t] = nb_a[t] if has else 0.0
+        inv[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
+        g2[t] = -2.0 * inv[t]
+    g2 = exp_array(g2)
+    # re-centre on the integer peak of the core rows - e ... rows + e (the first of equal ones); a clipped core
+    # sample: not here
+    top = np.empty(n, np.int64)
+    for t in range(n):
+        top[t] = rows[t] - e
+    Pc = _neighbour_profiles(image, cols, top, 2 * e + 1, nb_v, amp_nb, inv, g2)
+    bv = np.full(n, -1.0)
+    o = np.zeros(n, np.int64)
+    done = out[7]
+    done[:] = True
+    for q in range(2 * e + 1):
+        pq = Pc[q]
+        for t in range(n):
+            x = pq[t]
+            up = x > bv[t]
+            bv[t] = x if up else bv[t]
+            o[t] = q if up else o[t]
+            done[t] &= x < sat_dn
+    pk = np.empty(n, np.int64)
+    for t in range(n):
+        pk[t] = rows[t] + (o[t] if bv[t] != -1.0 else e) - e  # nothing above -1: the candidate row
+        top[t] = pk[t] - half
+    # the window pk - half ... pk + half, clipped samples anywhere in it: not here
+    off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
+    xl = R - off - 0.5 * (flank - 1)
+    Wn = _neighbour_profiles(image, cols, top, m, nb_v, amp_nb, inv, g2)
+    for q in range(m):
+        wq = Wn[q]
+        for t in range(n):
+            done[t] &= wq[t] < sat_dn
+    # 1. linear background from the two flanks, and the noise of the flanks
+    bl = np.zeros(n)
+    br = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            bl[t] += Wn[R - off - q, t]
+            br[t] += Wn[R + off + q, t]
+    slope = np.empty(n)
+    for t in range(n):
+        bl[t] /= flank
+        br[t] /= flank
+        slope[t] = (br[t] - bl[t]) / (2.0 * off + flank - 1)
+    B = np.empty((m, n))
+    for q in range(m):
+        for t in range(n):
+            B[q, t] = Wn[q, t] - (bl[t] + slope[t] * (q - xl))
+    ss = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            ss[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
+    # 2. log-parabola start, 3. Gaussian-weighted centroid (the unclipped branch of fit_columns)
+    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+    a0 = B[R].copy()
+    lv = np.empty(3 * n)
+    for t in range(n):
+        lv[t] = max(B[R - s, t], 0.5)
+        lv[n + t] = max(a0[t], 0.5)
+        lv[2 * n + t] = max(B[R + s, t], 0.5)
+    lv = log_array(lv)
+    c = np.empty(n)
+    sg = np.empty(n)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
+        den = ym - 2.0 * y0 + yp
+        curved = den < -1e-6
+        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sg[t] = s / math.sqrt(-den) if curved else np.inf
+    c, sigma, okp, plain = _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+    for t in range(n):
+        pk_row = pk[t]
+        good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
+        out[0][t] = pk_row - half + c[t] if good else np.nan
+        out[1][t] = a0[t]
+        out[2][t] = sigma[t]
+        out[3][t] = False
+        out[4][t] = good
+        out[5][t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
+        done[t] &= plain[t]
+        # colour: the rises of blue, green and red at the peak over the window ends
+        rp = min(max(pk_row, 0), h - 1)
+        rl = min(max(pk_row - half, 0), h - 1)
+        rh = min(max(pk_row + half, 0), h - 1)
+        for ch in range(3):
+            out[6][ch, t] = image[rp, cols[t], ch] - 0.5 * (float(image[rl, cols[t], ch]) + image[rh, cols[t], ch])
+    return out
+
+
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
 def _window_sums(a, b, ht, dq, x):  # type: ignore[no-untyped-def]
     """One row of :func:`_clipped_centroid`'s sums (float32): the sample ``x`` at ``dq`` rows from the centre,
@@ -1897,33 +2073,68 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
 
 @_njit
 def neighbours(laser, cols, v, amp, sig, good, n_lasers, width, max_dist):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.extract.subpixel._neighbours`: nearest other-laser stripe per point."""
-    V = np.full((n_lasers, width), np.nan)
-    A = np.zeros((n_lasers, width))
-    S = np.ones((n_lasers, width))
+    """Loop twin of :func:`lrsensor.extract.subpixel._neighbours`: nearest other-laser stripe per point.
+
+    Each laser's ``good`` point per column is found through one (L, W) table of point indices (the last such
+    point of a column, as the twin's dense row, amplitude and sigma tables keep)."""
+    at = np.full((n_lasers, width), -1, np.int32)
     n = v.size
     for t in range(n):
         if good[t]:
-            V[laser[t], cols[t]] = v[t]
-            A[laser[t], cols[t]] = amp[t]
-            S[laser[t], cols[t]] = sig[t] if math.isfinite(sig[t]) else 1.0
+            at[laser[t], cols[t]] = t
     out_v = np.full(n, np.nan)
     out_a = np.zeros(n)
     out_s = np.ones(n)
     for t in range(n):
+        if not math.isfinite(v[t]):
+            continue
         best = max_dist
         for other in range(n_lasers):
-            if other == laser[t]:
+            j = at[other, cols[t]]
+            if other == laser[t] or j < 0:
                 continue
-            ov = V[other, cols[t]]
-            if math.isfinite(ov) and math.isfinite(v[t]):
+            ov = v[j]
+            if math.isfinite(ov):
                 dist = abs(ov - v[t])
                 if dist < best:
                     best = dist
                     out_v[t] = ov
-                    out_a[t] = A[other, cols[t]]
-                    out_s[t] = S[other, cols[t]]
+                    out_a[t] = amp[j]
+                    out_s[t] = sig[j] if math.isfinite(sig[j]) else 1.0
     return out_v, out_a, out_s
+
+
+#: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
+NEIGHBOUR_REFITS = 4
+#: A point is refitted again only if its neighbour moved by more than this since its last refit: row and sigma
+#: in pixels, amplitude relative (:func:`moved_neighbours`). A point's fit depends on nothing else that changes
+#: between the rounds, and it moves by less than its neighbour does.
+NEIGHBOUR_TOL = 1e-4
+
+
+@_njit
+def moved_neighbours(nb_v, nb_a, nb_s, last):  # type: ignore[no-untyped-def]
+    """Indices (M,) of the points with a neighbour (finite ``nb_v`` (N,)) whose row, amplitude or sigma (N,) each
+    differ from ``last`` (3, N) (the neighbour of the point's previous refit, NaN = none yet) by more than
+    :data:`NEIGHBOUR_TOL`; ``last`` is updated at those points."""
+    n = nb_v.size
+    idx = np.empty(n, np.int64)
+    m = 0
+    for t in range(n):
+        if not math.isfinite(nb_v[t]):
+            continue
+        same = (
+            abs(nb_v[t] - last[0, t]) <= NEIGHBOUR_TOL
+            and abs(nb_a[t] - last[1, t]) <= NEIGHBOUR_TOL * max(abs(last[1, t]), 1.0)
+            and abs(nb_s[t] - last[2, t]) <= NEIGHBOUR_TOL
+        )
+        if not same:
+            idx[m] = t
+            m += 1
+            last[0, t] = nb_v[t]
+            last[1, t] = nb_a[t]
+            last[2, t] = nb_s[t]
+    return idx[:m]
 
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
@@ -2888,14 +3099,17 @@ def process_candidates(  # type: ignore[no-untyped-def]
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
-        for _ in range(4):
+        last = np.empty((3, 0))  # the neighbour each point was last refitted with (allocated when needed)
+        for _ in range(NEIGHBOUR_REFITS):
             good = np.empty(n, np.bool_)
             for t in range(n):
                 good[t] = ok[t] and not sat[t]
             if not _rows_overlap(laser, vv, good, n_l, max_d):  # the common case: stripes far apart
                 break
             nb_v, nb_a, nb_s = neighbours(laser, cols, vv, amp, sig, good, n_l, w, max_d)
-            idx = np.flatnonzero(np.isfinite(nb_v))
+            if last.shape[1] != n:
+                last = np.full((3, n), np.nan)
+            idx = moved_neighbours(nb_v, nb_a, nb_s, last)
             if idx.size == 0:
                 break
             _refit(image, cols, rows, laser, idx, nb_v[idx], nb_a[idx], nb_s[idx], fit, limits, geo, res)
@@ -3017,8 +3231,8 @@ def extract_frame(  # type: ignore[no-untyped-def]
 
 @_njit
 def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
-    """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
-    results in place.
+    """Fit the columns ``idx`` again (neighbour model ``nb_*``, NaN rows = none) and store the results in place:
+    column-parallel (:func:`fit_columns_neighbour`) where no sample is clipped, the rest by the full kernel.
 
     ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
     ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
@@ -3028,11 +3242,27 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
     half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
     mfw, floor, sheet_mm = limits
     m = idx.size
-    need = np.empty(m, np.int64)
-    nn = 0
+    cols_i = cols[idx]
+    rows_i = rows[idx]
+    par = fit_columns_neighbour(
+        image, cols_i, rows_i, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, nb_v, nb_a, nb_s, wide_fwhm
+    )
+    n_rest = 0
+    rest = np.empty(m, np.int64)
     for i in range(m):
-        if math.isnan(mfw[idx[i]]):
-            need[nn] = idx[i]
+        if par[7][i]:
+            _put_fit(res, par, i, idx[i])
+        else:
+            rest[n_rest] = i
+            n_rest += 1
+    if n_rest == 0:
+        return
+    rest = rest[:n_rest]
+    need = np.empty(n_rest, np.int64)  # the width limits of the columns still without them
+    nn = 0
+    for i in range(n_rest):
+        if math.isnan(mfw[idx[rest[i]]]):
+            need[nn] = idx[rest[i]]
             nn += 1
     if nn:
         nd = need[:nn]
@@ -3041,8 +3271,8 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
             mfw[nd[i]] = mf[i]
     new = fit_columns(
         image,
-        cols[idx],
-        rows[idx],
+        cols_i[rest],
+        rows_i[rest],
         half,
         3,
         sig_med,
@@ -3051,23 +3281,14 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
         max_sigma,
         3,
         iterations,
-        nb_v,
-        nb_a,
-        nb_s,
-        mfw[idx],
+        nb_v[rest],
+        nb_a[rest],
+        nb_s[rest],
+        mfw[idx[rest]],
         wide_fwhm,
     )
-    vv, amp, sig, sat, ok, lnoise, rise = res
-    for i in range(m):
-        t = idx[i]
-        vv[t] = new[0][i]
-        amp[t] = new[1][i]
-        sig[t] = new[2][i]
-        sat[t] = new[3][i]
-        ok[t] = new[4][i]
-        lnoise[t] = new[5][i]
-        for c in range(3):
-            rise[c, t] = new[6][c, i]
+    for i in range(rest.size):
+        _put_fit(res, new, i, idx[rest[i]])
 
 
 # --------------------------------------------------------------------------- compilation management

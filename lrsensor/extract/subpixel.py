@@ -948,12 +948,23 @@ def _finish_numpy(
     )
     # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
     # alternating a few times (both estimates start pulled toward each other)
+    # (until no point's neighbour moves by more than _kernels.NEIGHBOUR_TOL: a point's fit depends on nothing
+    # else that changes between the rounds)
     if n_l > 1:
-        for _ in range(4):
+        last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
+        tol = _kernels.NEIGHBOUR_TOL
+        for _ in range(_kernels.NEIGHBOUR_REFITS):
             nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
-            idx = np.flatnonzero(np.isfinite(nb[0]))
+            with np.errstate(invalid="ignore"):
+                same = (
+                    (np.abs(nb[0] - last[0]) <= tol)
+                    & (np.abs(nb[1] - last[1]) <= tol * np.maximum(np.abs(last[1]), 1.0))
+                    & (np.abs(nb[2] - last[2]) <= tol)
+                )
+            idx = np.flatnonzero(np.isfinite(nb[0]) & ~same)
             if idx.size == 0:
                 break
+            last[:, idx] = np.stack(nb)[:, idx]
             *res, rise_i = _fit_numpy(
                 image, cols[idx], rows[idx], half, sig_med, cfg, (nb[0][idx], nb[1][idx], nb[2][idx]), max_fwhm_at(idx)
             )
