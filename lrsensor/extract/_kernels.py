@@ -1266,13 +1266,22 @@ def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, it
     their linear backgrounds (``bl + slope (q - xl)``, (n,) each; ``a0`` (n,) the background-free peak):
     log-parabola start, then :func:`_plain_fit64`. Returns ``(centre, sigma, ok, done)``, (n,) each."""
     m, n = W.shape
-    R = m // 2
     B = np.empty((m, n))
     for q in range(m):
         wq = W[q]
         bq_ = B[q]
         for t in range(n):
             bq_[t] = wq[t] - (bl[t] + slope[t] * (q - xl[t]))
+    return _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+
+
+@_njit
+def _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
+    """The unclipped branch of :func:`fit_columns` for background-free profiles ``B`` (m, n) float64 (peak at the
+    middle row; ``a0`` (n,) its value): log-parabola start (:func:`log_array`), then :func:`_plain_fit64`.
+    Returns ``(centre, sigma, ok, done)``, (n,) each."""
+    m, n = B.shape
+    R = m // 2
     s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     lv = np.empty(3 * n)
     for t in range(n):
@@ -1407,25 +1416,8 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
         for t in range(n):
             ss[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
     # 2. log-parabola start, 3. Gaussian-weighted centroid (the unclipped branch of fit_columns)
-    s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     a0 = B[R].copy()
-    lv = np.empty(3 * n)
-    for t in range(n):
-        lv[t] = max(B[R - s, t], 0.5)
-        lv[n + t] = max(a0[t], 0.5)
-        lv[2 * n + t] = max(B[R + s, t], 0.5)
-    lv = log_array(lv)
-    c = np.empty(n)
-    sg = np.empty(n)
-    for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
-        curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * s * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
-        sg[t] = s / math.sqrt(-den) if curved else np.inf
-    c, sigma, okp, plain = _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+    c, sigma, okp, plain = _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
     for t in range(n):
         pk_row = pk[t]
         good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
