@@ -230,6 +230,7 @@ STAGES = {
         "core_peaks",
         "fit_columns_clipped",
         "_refit",
+        "_refit_full",
         "neighbours",
         "moved_neighbours",
     ),

@@ -1350,7 +1350,6 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
     :func:`_fit_results`: ``done`` (N,) False marks the columns to fit with :func:`fit_columns` instead (a clipped
     sample in the core or the window, or a profile wider than ``wide_fwhm`` at half level).
     """
-    h = image.shape[0]
     n = cols.size
     m = 2 * half + 1
     R = half
@@ -1419,21 +1418,15 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
     a0 = B[R].copy()
     c, sigma, okp, plain = _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
     for t in range(n):
-        pk_row = pk[t]
         good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
-        out[0][t] = pk_row - half + c[t] if good else np.nan
+        out[0][t] = pk[t] - half + c[t] if good else np.nan
         out[1][t] = a0[t]
         out[2][t] = sigma[t]
         out[3][t] = False
         out[4][t] = good
         out[5][t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
         done[t] &= plain[t]
-        # colour: the rises of blue, green and red at the peak over the window ends
-        rp = min(max(pk_row, 0), h - 1)
-        rl = min(max(pk_row - half, 0), h - 1)
-        rh = min(max(pk_row + half, 0), h - 1)
-        for ch in range(3):
-            out[6][ch, t] = image[rp, cols[t], ch] - 0.5 * (float(image[rl, cols[t], ch]) + image[rh, cols[t], ch])
+    _colour_rises(image, cols, pk, half, (0, 1, 2), out[6])  # from the image, as fit_columns takes them
     return out
 
 
@@ -3086,8 +3079,8 @@ def process_candidates(  # type: ignore[no-untyped-def]
                 n_rest += 1
         rest = rest[:n_rest]
         if rest.size:
-            nan = np.full(rest.size, np.nan)
-            _refit(image, cols, rows, laser, rest, nan, nan, nan, fit, limits, geo, res)
+            nan = np.full(rest.size, np.nan)  # flat tops, which only the full kernel fits
+            _refit_full(image, cols, rows, laser, rest, nan, nan, nan, fit, limits, geo, res)
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
@@ -3223,16 +3216,11 @@ def extract_frame(  # type: ignore[no-untyped-def]
 
 @_njit
 def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
-    """Fit the columns ``idx`` again (neighbour model ``nb_*``, NaN rows = none) and store the results in place:
-    column-parallel (:func:`fit_columns_neighbour`) where no sample is clipped, the rest by the full kernel.
-
-    ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
-    ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
-    :func:`max_fwhm_at`); ``geo``: as :func:`max_fwhm_at`; ``res``: ``(centre, amplitude, sigma, saturated,
-    ok, local_noise, rise)`` of every column, updated at ``idx``.
+    """Fit the columns ``idx`` again with the other laser's stripe subtracted (neighbour model ``nb_*``, NaN rows =
+    none) and store the results in place: column-parallel (:func:`fit_columns_neighbour`) where no sample is
+    clipped and the profile is not flat-topped, the rest by :func:`_refit_full`. Arguments as :func:`_refit_full`.
     """
     half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
-    mfw, floor, sheet_mm = limits
     m = idx.size
     cols_i = cols[idx]
     rows_i = rows[idx]
@@ -3247,14 +3235,29 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
         else:
             rest[n_rest] = i
             n_rest += 1
-    if n_rest == 0:
-        return
-    rest = rest[:n_rest]
-    need = np.empty(n_rest, np.int64)  # the width limits of the columns still without them
+    if n_rest:
+        rest = rest[:n_rest]
+        _refit_full(image, cols, rows, laser, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, limits, geo, res)
+
+
+@_njit
+def _refit_full(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+    """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
+    results in place.
+
+    ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
+    ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
+    :func:`max_fwhm_at`); ``geo``: as :func:`max_fwhm_at`; ``res``: ``(centre, amplitude, sigma, saturated,
+    ok, local_noise, rise)`` of every column, updated at ``idx``.
+    """
+    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
+    mfw, floor, sheet_mm = limits
+    m = idx.size
+    need = np.empty(m, np.int64)
     nn = 0
-    for i in range(n_rest):
-        if math.isnan(mfw[idx[rest[i]]]):
-            need[nn] = idx[rest[i]]
+    for i in range(m):
+        if math.isnan(mfw[idx[i]]):
+            need[nn] = idx[i]
             nn += 1
     if nn:
         nd = need[:nn]
@@ -3263,8 +3266,8 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
             mfw[nd[i]] = mf[i]
     new = fit_columns(
         image,
-        cols_i[rest],
-        rows_i[rest],
+        cols[idx],
+        rows[idx],
         half,
         3,
         sig_med,
@@ -3273,14 +3276,14 @@ def _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, re
         max_sigma,
         3,
         iterations,
-        nb_v[rest],
-        nb_a[rest],
-        nb_s[rest],
-        mfw[idx[rest]],
+        nb_v,
+        nb_a,
+        nb_s,
+        mfw[idx],
         wide_fwhm,
     )
-    for i in range(rest.size):
-        _put_fit(res, new, i, idx[rest[i]])
+    for i in range(m):
+        _put_fit(res, new, i, idx[i])
 
 
 # --------------------------------------------------------------------------- compilation management
@@ -3418,6 +3421,7 @@ _KERNEL_NAMES = (
     "process_candidates",
     "detect_band",
     "_refit",
+    "_refit_full",
     "extract_frame",
 )
 
