@@ -526,24 +526,58 @@ def test_neighbour_refit_equals_the_full_kernel() -> None:
 
 
 def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
-    """``moved_neighbours`` picks the points with a neighbour that is new or moved by more than the tolerance
-    (row, sigma in px, amplitude relative) and remembers it; a second call with the same neighbours picks none."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, moved_neighbours
+    """``refit_targets`` picks the points with a neighbour that is new or moved by more than the tolerance (row,
+    sigma in px, amplitude relative) and remembers it; a second call with the same neighbours picks none; only
+    the ``touched`` columns are looked at."""
+    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, refit_targets
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
-    nb_v = np.array([10.0, np.nan, 20.0, 30.0, 40.0])
-    nb_a = np.array([50.0, 50.0, 50.0, 50.0, 50.0])
-    nb_s = np.ones(5)
-    last = np.full((3, 5), np.nan)
-    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [0, 2, 3, 4])
-    assert moved_neighbours(nb_v, nb_a, nb_s, last).size == 0
-    nb_v[2] += 0.5 * NEIGHBOUR_TOL  # within the tolerance
-    nb_v[3] += 3.0 * NEIGHBOUR_TOL
-    nb_a[4] *= 1.0 + 3.0 * NEIGHBOUR_TOL  # relative
-    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [3, 4])
-    nb_s[0] += 1.0
-    np.testing.assert_array_equal(moved_neighbours(nb_v, nb_a, nb_s, last), [0])
+    w = 5
+    laser = np.repeat([0, 1], w)
+    cols = np.tile(np.arange(w), 2)
+    v = np.array([100.0] * w + [103.0, 103.0, 103.0, 103.0, 200.0])  # column 4: the stripes far apart
+    amp = np.full(2 * w, 50.0)
+    sig = np.ones(2 * w)
+    good = np.ones(2 * w, bool)
+    last = np.full((3, 2 * w), np.nan)
+    every = np.ones(w, bool)
+
+    def pick(touched: np.ndarray = every) -> list[int]:
+        idx, nb_v, _, _ = refit_targets(laser, cols, v, amp, sig, good, 2, w, 9.0, 8.0, touched, last)
+        np.testing.assert_array_equal(nb_v, v[(idx + w) % (2 * w)])  # the other laser, same column
+        return idx.tolist()
+
+    assert pick() == [0, 1, 2, 3, 5, 6, 7, 8]
+    assert pick() == []
+    v[6] += 0.5 * NEIGHBOUR_TOL  # within the tolerance
+    v[7] += 3.0 * NEIGHBOUR_TOL  # point 2 sees it move, point 7 sees its neighbour (2) unchanged
+    amp[8] *= 1.0 + 3.0 * NEIGHBOUR_TOL  # relative
+    assert pick(np.array([True, True, True, False, True])) == [2]  # column 3 not looked at
+    assert pick() == [3]
+    sig[5] += 1.0
+    assert pick() == [0]
+
+
+def test_far_neighbours_are_not_subtracted() -> None:
+    """A neighbour within the distance but whose Gaussian stays below ``NEIGHBOUR_TAIL`` of the point's amplitude
+    within the reach is no neighbour, in the compiled kernel and in its numpy twin alike."""
+    from lrsensor.extract import _kernels
+    from lrsensor.extract.subpixel import _neighbours
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    laser = np.array([0, 1])
+    cols = np.array([3, 3])
+    v = np.array([100.0, 111.0])  # 3 rows beyond a reach of 8
+    amp = np.array([50.0, 50.0])
+    good = np.ones(2, bool)
+    for s, near in ((0.5, False), (0.9, False), (1.2, True), (2.0, True)):  # tails e^-18, e^-5.6, e^-3.1, e^-1.1
+        sig = np.full(2, s)
+        last = np.full((3, 2), np.nan)
+        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, good, 2, 8, 12.0, 8.0, np.ones(8, bool), last)
+        assert idx.tolist() == ([0, 1] if near else [])
+        assert np.isfinite(_neighbours(laser, cols, v, amp, sig, good, 2, 8, 12.0, 8.0)[0]).tolist() == [near, near]
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:
@@ -580,9 +614,11 @@ def test_float32_exp_and_log_are_within_two_ulp() -> None:
 
 
 def test_row_overlap_test_never_hides_a_neighbour() -> None:
-    """``_rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``neighbours`` finds no
-    other-laser point within the distance, and False for stripes far apart."""
+    """``_rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``refit_targets`` finds
+    no other-laser point within the distance, and False for stripes far apart; ``refit_targets`` picks the points
+    its numpy twin gives a neighbour."""
     from lrsensor.extract import _kernels
+    from lrsensor.extract.subpixel import _neighbours
 
     rng = np.random.default_rng(3)
     w, max_d = 200, 9.0
@@ -594,9 +630,13 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
         v = 100.0 + gap * laser + rng.normal(0.0, rng.uniform(0.1, 5.0), laser.size)
         good = rng.random(laser.size) < 0.9
         v[rng.random(laser.size) < 0.05] = np.nan
-        ones = np.ones(laser.size)
-        nb_v, _, _ = _kernels.neighbours(laser, cols, v, ones, ones, good, n_l, w, max_d)
-        if np.isfinite(nb_v).any():
+        amp = rng.uniform(1.0, 50.0, laser.size)
+        sig = rng.uniform(0.5, 3.0, laser.size)
+        last = np.full((3, laser.size), np.nan)
+        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, good, n_l, w, max_d, 5.0, np.ones(w, bool), last)
+        nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, good, n_l, w, max_d, 5.0)  # the numpy twin
+        np.testing.assert_array_equal(idx, np.flatnonzero(np.isfinite(nb_v)))
+        if idx.size:
             assert _kernels._rows_overlap(laser, v, good, n_l, max_d)
     far = np.array([100.0, 101.0, 130.0, 131.0])
     lz = np.array([0, 0, 1, 1])

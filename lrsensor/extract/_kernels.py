@@ -2033,7 +2033,7 @@ def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-unty
 @_njit
 def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
     """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
-    has an other-laser neighbour for :func:`neighbours`: a cheap test that spares its dense arrays)."""
+    has an other-laser neighbour for :func:`refit_targets`: a cheap test that spares its dense arrays)."""
     lo = np.full(n_lasers, np.inf)
     hi = np.full(n_lasers, -np.inf)
     n = v.size
@@ -2056,70 +2056,98 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
     return False
 
 
-@_njit
-def neighbours(laser, cols, v, amp, sig, good, n_lasers, width, max_dist):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.extract.subpixel._neighbours`: nearest other-laser stripe per point.
-
-    Each laser's ``good`` point per column is found through one (L, W) table of point indices (the last such
-    point of a column, as the twin's dense row, amplitude and sigma tables keep)."""
-    at = np.full((n_lasers, width), -1, np.int32)
-    n = v.size
-    for t in range(n):
-        if good[t]:
-            at[laser[t], cols[t]] = t
-    out_v = np.full(n, np.nan)
-    out_a = np.zeros(n)
-    out_s = np.ones(n)
-    for t in range(n):
-        if not math.isfinite(v[t]):
-            continue
-        best = max_dist
-        for other in range(n_lasers):
-            j = at[other, cols[t]]
-            if other == laser[t] or j < 0:
-                continue
-            ov = v[j]
-            if math.isfinite(ov):
-                dist = abs(ov - v[t])
-                if dist < best:
-                    best = dist
-                    out_v[t] = ov
-                    out_a[t] = amp[j]
-                    out_s[t] = sig[j] if math.isfinite(sig[j]) else 1.0
-    return out_v, out_a, out_s
-
-
+#: A neighbour stripe is subtracted only where its Gaussian exceeds this fraction of the point's own amplitude
+#: (at least 1 DN) somewhere within a row of the point's fit window (:func:`refit_targets`). Below it, the refit
+#: moves the centre by about a thousandth of a pixel at most (walls at 4.5-6 m and the tank: at most 0.0012 px,
+#: none on most points), and the window holds nothing of the neighbour's peak: a thin stripe (sigma 0.8 px)
+#: 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than 1e-3 of its peak to a window of
+#: 7 rows either side.
+NEIGHBOUR_TAIL = 1e-2
 #: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
 NEIGHBOUR_REFITS = 4
 #: A point is refitted again only if its neighbour moved by more than this since its last refit: row and sigma
-#: in pixels, amplitude relative (:func:`moved_neighbours`). A point's fit depends on nothing else that changes
+#: in pixels, amplitude relative (:func:`refit_targets`). A point's fit depends on nothing else that changes
 #: between the rounds, and it moves by less than its neighbour does.
 NEIGHBOUR_TOL = 1e-4
 
 
 @_njit
-def moved_neighbours(nb_v, nb_a, nb_s, last):  # type: ignore[no-untyped-def]
-    """Indices (M,) of the points with a neighbour (finite ``nb_v`` (N,)) whose row, amplitude or sigma (N,) each
-    differ from ``last`` (3, N) (the neighbour of the point's previous refit, NaN = none yet) by more than
-    :data:`NEIGHBOUR_TOL`; ``last`` is updated at those points."""
-    n = nb_v.size
-    idx = np.empty(n, np.int64)
+def refit_targets(laser, cols, v, amp, sig, good, n_lasers, width, max_dist, reach, touched, last):  # type: ignore[no-untyped-def]
+    """The points to refit with another laser's stripe subtracted in one round, and that stripe (loop twin of
+    :func:`lrsensor.extract.subpixel._neighbours` and its round's selection).
+
+    A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
+    rows (through one (L, W) table of point indices: the last such point of a column, as the twin's dense
+    tables keep), kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
+    1 DN) within ``reach`` rows of it (its fit window and a row of re-centring); the tails by one vectorized
+    :func:`exp_array`. A point is picked when its neighbour's row, amplitude or sigma differ from ``last`` (3, N)
+    (the neighbour of its previous refit, NaN = none yet) by more than :data:`NEIGHBOUR_TOL`; ``last`` is updated
+    there. Only points in columns with ``touched`` (W,) set are looked at: a neighbour can change only in the
+    columns of the last round's refits.
+
+    Args:
+        laser, cols, v, amp, sig, good: (N,) per point: laser, column, row (NaN = no fit), amplitude (DN), sigma
+            (px, NaN = 1) and whether it can be a neighbour.
+
+    Returns:
+        ``(idx, nb_v, nb_a, nb_s)``: the picked points (M,) and their neighbours' row, amplitude and sigma (M,).
+    """
+    at = np.full((n_lasers, width), -1, np.int32)
+    n = v.size
+    for t in range(n):
+        if good[t]:
+            at[laser[t], cols[t]] = t
+    cand = np.empty(n, np.int64)
+    nbj = np.empty(n, np.int64)
+    arg = np.empty(n)  # -(gap / sigma)^2 / 2: the neighbour's Gaussian at the nearest row of the reach
     m = 0
     for t in range(n):
-        if not math.isfinite(nb_v[t]):
+        if not (touched[cols[t]] and math.isfinite(v[t])):
             continue
-        same = (
-            abs(nb_v[t] - last[0, t]) <= NEIGHBOUR_TOL
-            and abs(nb_a[t] - last[1, t]) <= NEIGHBOUR_TOL * max(abs(last[1, t]), 1.0)
-            and abs(nb_s[t] - last[2, t]) <= NEIGHBOUR_TOL
-        )
-        if not same:
-            idx[m] = t
+        best = max_dist
+        jb = -1
+        for other in range(n_lasers):
+            j = at[other, cols[t]]
+            if other == laser[t] or j < 0:
+                continue
+            dist = abs(v[j] - v[t])
+            if dist < best:  # (False for a NaN row)
+                best = dist
+                jb = j
+        if jb >= 0:
+            cand[m] = t
+            nbj[m] = jb
+            gap = max(best - reach, 0.0) / (sig[jb] if math.isfinite(sig[jb]) else 1.0)
+            arg[m] = -0.5 * gap * gap
             m += 1
-            last[0, t] = nb_v[t]
-            last[1, t] = nb_a[t]
-            last[2, t] = nb_s[t]
-    return idx[:m]
+    tail = exp_array(arg[:m])
+    idx = np.empty(m, np.int64)
+    nb_v = np.empty(m)
+    nb_a = np.empty(m)
+    nb_s = np.empty(m)
+    k = 0
+    for i in range(m):
+        t = cand[i]
+        j = nbj[i]
+        if not amp[j] * tail[i] > NEIGHBOUR_TAIL * max(amp[t], 1.0):
+            continue
+        s_j = sig[j] if math.isfinite(sig[j]) else 1.0
+        same = (
+            abs(v[j] - last[0, t]) <= NEIGHBOUR_TOL
+            and abs(amp[j] - last[1, t]) <= NEIGHBOUR_TOL * max(abs(last[1, t]), 1.0)
+            and abs(s_j - last[2, t]) <= NEIGHBOUR_TOL
+        )
+        if same:
+            continue
+        last[0, t] = v[j]
+        last[1, t] = amp[j]
+        last[2, t] = s_j
+        idx[k] = t
+        nb_v[k] = v[j]
+        nb_a[k] = amp[j]
+        nb_s[k] = s_j
+        k += 1
+    return idx[:k], nb_v[:k], nb_a[:k], nb_s[:k]
 
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
@@ -3085,19 +3113,23 @@ def process_candidates(  # type: ignore[no-untyped-def]
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
         last = np.empty((3, 0))  # the neighbour each point was last refitted with (allocated when needed)
-        for _ in range(NEIGHBOUR_REFITS):
+        touched = np.ones(w, np.bool_)  # the columns where a neighbour can have changed: all, then the refits'
+        for r in range(NEIGHBOUR_REFITS):
             good = np.empty(n, np.bool_)
             for t in range(n):
                 good[t] = ok[t] and not sat[t]
-            if not _rows_overlap(laser, vv, good, n_l, max_d):  # the common case: stripes far apart
-                break
-            nb_v, nb_a, nb_s = neighbours(laser, cols, vv, amp, sig, good, n_l, w, max_d)
-            if last.shape[1] != n:
+            if r == 0:
+                if not _rows_overlap(laser, vv, good, n_l, max_d):  # the common case: stripes far apart
+                    break
                 last = np.full((3, n), np.nan)
-            idx = moved_neighbours(nb_v, nb_a, nb_s, last)
+            reach = half + 1.0
+            idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, good, n_l, w, max_d, reach, touched, last)
             if idx.size == 0:
                 break
-            _refit(image, cols, rows, laser, idx, nb_v[idx], nb_a[idx], nb_s[idx], fit, limits, geo, res)
+            _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
+            touched[:] = False
+            for i in range(idx.size):
+                touched[cols[idx[i]]] = True
     # 5-6. gates, runs, smoothing, quality
     u_o, v_o, l_o, q_o = finish_points(
         col_v,
@@ -3307,7 +3339,7 @@ def warm_up() -> None:
         select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
         expand_half(i64, f64, i64, i64, 4, 8)
         fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
-        neighbours(i64, i64, f64, f64, f64, b, 2, 8, 10.0)
+        refit_targets(i64, i64, f64, f64, f64, b, 2, 8, 10.0, 8.0, b, np.full((3, 4), np.nan))
         finish_points(
             i64,
             i64,
@@ -3405,7 +3437,7 @@ _KERNEL_NAMES = (
     "select_candidates",
     "expand_half",
     "fit_columns",
-    "neighbours",
+    "refit_targets",
     "finish_points",
     "smooth_runs",
     "triangulate_points",

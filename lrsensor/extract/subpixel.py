@@ -559,9 +559,11 @@ def _neighbours(
     n_lasers: int,
     width: int,
     max_dist: float,
+    reach: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """For every fitted point (N,): the nearest stripe of another laser in the same column (row, amplitude,
-    sigma), NaN row when none is closer than ``max_dist`` rows."""
+    sigma), NaN row when none is closer than ``max_dist`` rows or its Gaussian stays below
+    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude within ``reach`` rows of it."""
     V = np.full((n_lasers, width), np.nan)
     A = np.zeros((n_lasers, width))
     S = np.ones((n_lasers, width))
@@ -581,6 +583,13 @@ def _neighbours(
         out_a = np.where(take, A[other, cols], out_a)
         out_s = np.where(take, S[other, cols], out_s)
         best = np.where(take, dist, best)
+    with np.errstate(invalid="ignore"):
+        gap = np.maximum(best - reach, 0.0)
+        tail = out_a * np.exp(-0.5 * (gap / out_s) ** 2) > _kernels.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
+    far = ~tail
+    out_v[far] = np.nan
+    out_a[far] = 0.0
+    out_s[far] = 1.0
     return out_v, out_a, out_s
 
 
@@ -954,7 +963,7 @@ def _finish_numpy(
         last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
         tol = _kernels.NEIGHBOUR_TOL
         for _ in range(_kernels.NEIGHBOUR_REFITS):
-            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0)
+            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0, half + 1.0)
             with np.errstate(invalid="ignore"):
                 same = (
                     (np.abs(nb[0] - last[0]) <= tol)
