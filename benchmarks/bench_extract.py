@@ -56,7 +56,8 @@ SCENES = (
     "cluttered",
 )
 #: The speed frames: named scenes, and a wall at 5 m (``wall_5.0``, the deepest row of the default range limits,
-#: where the two lasers' stripes lie 11 rows apart and every column is refitted with its neighbour subtracted).
+#: where the two lasers' stripes lie 11 rows apart and the columns the neighbour reaches are refitted with it
+#: subtracted).
 SPEED_SCENES = ("paper_box", "wall_0.3", "wall_0.5", "wall_1.0", "turbid", "cluttered", "tank", "wall_5.0")
 METHODS = ("subpixel", "paper")
 

@@ -68,7 +68,7 @@ def test_paper_method_is_the_percent_level_baseline() -> None:
 @pytest.mark.parametrize("scene", ["cluttered", "wall_5.0"])
 def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch, scene: str) -> None:
     """The compiled and the numpy path find the same points: in clutter, and on a wall at 5 m, where the two
-    lasers' stripes come within a window of each other and every column is refitted with its neighbour's
+    lasers' stripes come within a window of each other and the columns the neighbour reaches are refitted with its
     Gaussian subtracted (compiled: column-parallel), rounds until no neighbour moves."""
     from lrsensor.extract import _kernels, subpixel
 

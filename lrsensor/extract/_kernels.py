@@ -1344,9 +1344,9 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
     sample: with the same arguments but the width limits, the same results up to rounding (the neighbour's
     Gaussian from vectorized :func:`exp_array`, the log-parabola start from :func:`log_array`, both within 2 ulp).
 
-    The stripes of two lasers close together at long range take this path: there every column of both is
-    refitted with the other's Gaussian subtracted, a few rounds, and :func:`fit_columns` costs about ten times more
-    per column. Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)`` as
+    The stripes of two lasers close together at long range take this path: there the columns of both that the
+    other's Gaussian reaches are refitted with it subtracted, a few rounds, and :func:`fit_columns` costs about ten
+    times more per column. Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)`` as
     :func:`_fit_results`: ``done`` (N,) False marks the columns to fit with :func:`fit_columns` instead (a clipped
     sample in the core or the window, or a profile wider than ``wide_fwhm`` at half level).
     """
@@ -3112,24 +3112,24 @@ def process_candidates(  # type: ignore[no-untyped-def]
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
-        last = np.empty((3, 0))  # the neighbour each point was last refitted with (allocated when needed)
-        touched = np.ones(w, np.bool_)  # the columns where a neighbour can have changed: all, then the refits'
-        for r in range(NEIGHBOUR_REFITS):
-            good = np.empty(n, np.bool_)
-            for t in range(n):
-                good[t] = ok[t] and not sat[t]
-            if r == 0:
-                if not _rows_overlap(laser, vv, good, n_l, max_d):  # the common case: stripes far apart
+        good = np.empty(n, np.bool_)  # the points that can be a neighbour (updated where refitted)
+        for t in range(n):
+            good[t] = ok[t] and not sat[t]
+        if _rows_overlap(laser, vv, good, n_l, max_d):  # else the common case: stripes far apart
+            last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
+            touched = np.ones(w, np.bool_)  # the columns where a neighbour can have changed: all, then the refits'
+            for _ in range(NEIGHBOUR_REFITS):
+                idx, nb_v, nb_a, nb_s = refit_targets(
+                    laser, cols, vv, amp, sig, good, n_l, w, max_d, half + 1.0, touched, last
+                )
+                if idx.size == 0:
                     break
-                last = np.full((3, n), np.nan)
-            reach = half + 1.0
-            idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, good, n_l, w, max_d, reach, touched, last)
-            if idx.size == 0:
-                break
-            _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
-            touched[:] = False
-            for i in range(idx.size):
-                touched[cols[idx[i]]] = True
+                _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
+                touched[:] = False
+                for i in range(idx.size):
+                    t = idx[i]
+                    good[t] = ok[t] and not sat[t]
+                    touched[cols[t]] = True
     # 5-6. gates, runs, smoothing, quality
     u_o, v_o, l_o, q_o = finish_points(
         col_v,
