@@ -539,12 +539,13 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
     v = np.array([100.0] * w + [103.0, 103.0, 103.0, 103.0, 200.0])  # column 4: the stripes far apart
     amp = np.full(2 * w, 50.0)
     sig = np.ones(2 * w)
+    sat = np.zeros(2 * w, bool)
     good = np.ones(2 * w, bool)
     last = np.full((3, 2 * w), np.nan)
     every = np.ones(w, bool)
 
     def pick(touched: np.ndarray = every) -> list[int]:
-        idx, nb_v, _, _ = refit_targets(laser, cols, v, amp, sig, good, 2, w, 9.0, 8.0, touched, last)
+        idx, nb_v, _, _ = refit_targets(laser, cols, v, amp, sig, sat, good, 2, w, 9.0, (6.0, 8.0, 2.0), touched, last)
         np.testing.assert_array_equal(nb_v, v[(idx + w) % (2 * w)])  # the other laser, same column
         return idx.tolist()
 
@@ -559,9 +560,20 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
     assert pick() == [0]
 
 
-def test_far_neighbours_are_not_subtracted() -> None:
-    """A neighbour within the distance but whose Gaussian stays below ``NEIGHBOUR_TAIL`` of the point's amplitude
-    within the reach is no neighbour, in the compiled kernel and in its numpy twin alike."""
+@pytest.mark.parametrize(
+    ("own_sig", "own_sat", "near", "picked"),
+    [
+        (1.0, False, 5.0, False),  # reads 6 rows (flanks to 5, a row of re-centring): tail e^-5.6 at 5 rows out
+        (1.0, True, 5.0, True),  # saturated: the whole window (8 rows), tail e^-2
+        (2.5, False, 5.0, True),  # wide: the whole window
+        (1.9, False, 5.0, True),  # its centroid weights reach 6 rows (3 sigma), 7 with re-centring: tail e^-3.6
+        (1.0, False, 6.0, True),  # flanks to 6 rows: 7
+    ],
+)
+def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: float, picked: bool) -> None:
+    """A neighbour within the distance is subtracted only if its Gaussian reaches ``NEIGHBOUR_TAIL`` of the
+    point's amplitude in the rows the point's fit reads (``read_reach``: the flanks, 3 sigma of its centroid
+    weights, the whole window when saturated or wide), in the compiled kernel and its numpy twin alike."""
     from lrsensor.extract import _kernels
     from lrsensor.extract.subpixel import _neighbours
 
@@ -569,15 +581,31 @@ def test_far_neighbours_are_not_subtracted() -> None:
         pytest.skip("numba is not installed")
     laser = np.array([0, 1])
     cols = np.array([3, 3])
-    v = np.array([100.0, 111.0])  # 3 rows beyond a reach of 8
+    v = np.array([100.0, 111.0])
     amp = np.array([50.0, 50.0])
-    good = np.ones(2, bool)
-    for s, near in ((0.5, False), (0.9, False), (1.2, True), (2.0, True)):  # tails e^-18, e^-5.6, e^-3.1, e^-1.1
-        sig = np.full(2, s)
-        last = np.full((3, 2), np.nan)
-        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, good, 2, 8, 12.0, 8.0, np.ones(8, bool), last)
-        assert idx.tolist() == ([0, 1] if near else [])
-        assert np.isfinite(_neighbours(laser, cols, v, amp, sig, good, 2, 8, 12.0, 8.0)[0]).tolist() == [near, near]
+    sig = np.array([own_sig, 1.5])  # the neighbour (point 1): sigma 1.5 px, 11 rows away
+    sat = np.array([own_sat, False])
+    good = np.array([True, True])
+    read = (near, 8.0, 2.0)
+    last = np.full((3, 2), np.nan)
+    idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read, np.ones(8, bool), last)
+    assert (0 in idx.tolist()) == picked
+    assert bool(np.isfinite(_neighbours(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read)[0][0])) == picked
+
+
+def test_read_reach_matches_its_numpy_twin() -> None:
+    from lrsensor.extract import _kernels
+    from lrsensor.extract.subpixel import _read_reach
+
+    rng = np.random.default_rng(5)
+    sig = np.concatenate([rng.uniform(0.3, 4.0, 500), [np.nan, np.inf, 2.0, 1.1, 0.0]])
+    sat = rng.random(sig.size) < 0.2
+    for read in ((6.0, 8.0, 2.0), (3.0, 12.0, 3.5), (9.0, 8.0, 2.0)):
+        twin = _read_reach(sig, sat, read)
+        kernel = [_kernels.read_reach(s, bool(b), *read) for s, b in zip(sig, sat, strict=True)]
+        np.testing.assert_array_equal(twin, kernel)
+        assert np.all(twin <= read[1])
+        assert np.all(twin[sat | ~np.isfinite(sig)] == read[1])
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:
@@ -632,9 +660,13 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
         v[rng.random(laser.size) < 0.05] = np.nan
         amp = rng.uniform(1.0, 50.0, laser.size)
         sig = rng.uniform(0.5, 3.0, laser.size)
+        sat = rng.random(laser.size) < 0.1
+        read = (4.0, 5.0, 2.0)
         last = np.full((3, laser.size), np.nan)
-        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, good, n_l, w, max_d, 5.0, np.ones(w, bool), last)
-        nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, good, n_l, w, max_d, 5.0)  # the numpy twin
+        idx, *_ = _kernels.refit_targets(
+            laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read, np.ones(w, bool), last
+        )
+        nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read)  # the numpy twin
         np.testing.assert_array_equal(idx, np.flatnonzero(np.isfinite(nb_v)))
         if idx.size:
             assert _kernels._rows_overlap(laser, v, good, n_l, max_d)

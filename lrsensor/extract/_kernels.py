@@ -2057,11 +2057,10 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
 
 
 #: A neighbour stripe is subtracted only where its Gaussian exceeds this fraction of the point's own amplitude
-#: (at least 1 DN) somewhere within a row of the point's fit window (:func:`refit_targets`). Below it, the refit
-#: moves the centre by about a thousandth of a pixel at most (walls at 4.5-6 m and the tank: at most 0.0012 px,
-#: none on most points), and the window holds nothing of the neighbour's peak: a thin stripe (sigma 0.8 px)
-#: 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than 1e-3 of its peak to a window of
-#: 7 rows either side.
+#: (at least 1 DN) somewhere in the rows the point's fit reads (:func:`read_reach`, :func:`refit_targets`). Below
+#: it, the refit moves the centre by about a thousandth of a pixel at most (walls at 4.5-6 m and the tank: at most
+#: 0.0012 px, none on most points), and the fit reads nothing of the neighbour's peak: a thin stripe (sigma 0.8 px)
+#: 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than 1e-3 of its peak 7 rows away.
 NEIGHBOUR_TAIL = 1e-2
 #: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
 NEIGHBOUR_REFITS = 4
@@ -2071,27 +2070,41 @@ NEIGHBOUR_REFITS = 4
 NEIGHBOUR_TOL = 1e-4
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
+    """How many rows from its centre a point's fit reads (its neighbour's Gaussian matters only there), one row
+    of re-centring included: the log-parabola and background flanks out to ``near`` rows from the peak, and the
+    Gaussian-weighted centroid out to 3 of its weight's sigma (``max(sig, 1.1)``; the weights beyond are below 1.1 %
+    of the peak's); the whole window (``far``) for a saturated or wide profile (``sig`` above ``wide_sigma`` or
+    not finite: their flanks move out with the plateau). Twin of :func:`lrsensor.extract.subpixel._read_reach`."""
+    if sat or not sig <= wide_sigma:  # (True for a NaN sigma)
+        return far
+    return min(far, 1.0 + max(near, math.ceil(3.0 * max(sig, 1.1))))
+
+
 @_njit
-def refit_targets(laser, cols, v, amp, sig, good, n_lasers, width, max_dist, reach, touched, last):  # type: ignore[no-untyped-def]
+def refit_targets(laser, cols, v, amp, sig, sat, good, n_lasers, width, max_dist, read, touched, last):  # type: ignore[no-untyped-def]
     """The points to refit with another laser's stripe subtracted in one round, and that stripe (loop twin of
     :func:`lrsensor.extract.subpixel._neighbours` and its round's selection).
 
     A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
     rows (through one (L, W) table of point indices: the last such point of a column, as the twin's dense
     tables keep), kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
-    1 DN) within ``reach`` rows of it (its fit window and a row of re-centring); the tails by one vectorized
+    1 DN) in the rows the point's fit reads (:func:`read_reach` of its sigma and saturation, ``read`` = ``(near,
+    far, wide_sigma)``); the tails by one vectorized
     :func:`exp_array`. A point is picked when its neighbour's row, amplitude or sigma differ from ``last`` (3, N)
     (the neighbour of its previous refit, NaN = none yet) by more than :data:`NEIGHBOUR_TOL`; ``last`` is updated
     there. Only points in columns with ``touched`` (W,) set are looked at: a neighbour can change only in the
     columns of the last round's refits.
 
     Args:
-        laser, cols, v, amp, sig, good: (N,) per point: laser, column, row (NaN = no fit), amplitude (DN), sigma
-            (px, NaN = 1) and whether it can be a neighbour.
+        laser, cols, v, amp, sig, sat, good: (N,) per point: laser, column, row (NaN = no fit), amplitude (DN),
+            sigma (px, NaN = 1), saturated, and whether it can be a neighbour.
 
     Returns:
         ``(idx, nb_v, nb_a, nb_s)``: the picked points (M,) and their neighbours' row, amplitude and sigma (M,).
     """
+    near, far, wide_sigma = read
     at = np.full((n_lasers, width), -1, np.int32)
     n = v.size
     for t in range(n):
@@ -2117,6 +2130,7 @@ def refit_targets(laser, cols, v, amp, sig, good, n_lasers, width, max_dist, rea
         if jb >= 0:
             cand[m] = t
             nbj[m] = jb
+            reach = read_reach(sig[t], sat[t], near, far, wide_sigma)
             gap = max(best - reach, 0.0) / (sig[jb] if math.isfinite(sig[jb]) else 1.0)
             arg[m] = -0.5 * gap * gap
             m += 1
@@ -3116,11 +3130,15 @@ def process_candidates(  # type: ignore[no-untyped-def]
         for t in range(n):
             good[t] = ok[t] and not sat[t]
         if _rows_overlap(laser, vv, good, n_l, max_d):  # else the common case: stripes far apart
+            # the rows the fits read: background flanks (3 rows from ``off``, as the column-parallel fits place
+            # them) and the whole window
+            off = int(min(math.ceil(3.0 * sig_med + 1.0), half - 2))
+            read = (float(off + 2), half + 1.0, wide_fwhm / fwhm_per_sigma)
             last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
             touched = np.ones(w, np.bool_)  # the columns where a neighbour can have changed: all, then the refits'
             for _ in range(NEIGHBOUR_REFITS):
                 idx, nb_v, nb_a, nb_s = refit_targets(
-                    laser, cols, vv, amp, sig, good, n_l, w, max_d, half + 1.0, touched, last
+                    laser, cols, vv, amp, sig, sat, good, n_l, w, max_d, read, touched, last
                 )
                 if idx.size == 0:
                     break
@@ -3339,7 +3357,7 @@ def warm_up() -> None:
         select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
         expand_half(i64, f64, i64, i64, 4, 8)
         fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
-        refit_targets(i64, i64, f64, f64, f64, b, 2, 8, 10.0, 8.0, b, np.full((3, 4), np.nan))
+        refit_targets(i64, i64, f64, f64, f64, b, b, 2, 8, 10.0, (6.0, 8.0, 2.0), b, np.full((3, 4), np.nan))
         finish_points(
             i64,
             i64,

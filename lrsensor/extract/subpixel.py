@@ -549,21 +549,33 @@ def _typical_sigma(P: NDArray[np.uint8], saturation_dn: float, max_sigma_px: flo
     return float(np.clip(sigma, 0.6, max_sigma_px)) if math.isfinite(sigma) else 1.0
 
 
+def _read_reach(sig: FloatArray, sat: NDArray[np.bool_], read: tuple[float, float, float]) -> FloatArray:
+    """How many rows from their centres the points' fits read (N,), from their sigma and saturation (N,) and
+    ``read = (near, far, wide_sigma)`` (numpy twin of :func:`lrsensor.extract._kernels.read_reach`)."""
+    near, far, wide_sigma = read
+    with np.errstate(invalid="ignore"):
+        plain = ~sat & (sig <= wide_sigma)
+        own = np.minimum(far, 1.0 + np.maximum(near, np.ceil(3.0 * np.maximum(sig, 1.1))))
+    return np.where(plain, own, far)
+
+
 def _neighbours(
     laser: IntArray,
     cols: IntArray,
     v: FloatArray,
     amp: FloatArray,
     sig: FloatArray,
+    sat: NDArray[np.bool_],
     good: NDArray[np.bool_],
     n_lasers: int,
     width: int,
     max_dist: float,
-    reach: float,
+    read: tuple[float, float, float],
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """For every fitted point (N,): the nearest stripe of another laser in the same column (row, amplitude,
     sigma), NaN row when none is closer than ``max_dist`` rows or its Gaussian stays below
-    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude within ``reach`` rows of it."""
+    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude in the rows the point's fit reads
+    (:func:`_read_reach` with ``read``)."""
     V = np.full((n_lasers, width), np.nan)
     A = np.zeros((n_lasers, width))
     S = np.ones((n_lasers, width))
@@ -584,7 +596,7 @@ def _neighbours(
         out_s = np.where(take, S[other, cols], out_s)
         best = np.where(take, dist, best)
     with np.errstate(invalid="ignore"):
-        gap = np.maximum(best - reach, 0.0)
+        gap = np.maximum(best - _read_reach(sig, sat, read), 0.0)
         tail = out_a * np.exp(-0.5 * (gap / out_s) ** 2) > _kernels.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
     far = ~tail
     out_v[far] = np.nan
@@ -704,6 +716,7 @@ def _fit_numpy(
         saturation_dn=cfg.saturation_dn,
         min_sigma_px=cfg.min_fwhm_px / FWHM_PER_SIGMA,
         max_sigma_px=cfg.max_sigma_px,
+        flank_px=_FLANK_PX,
         max_fwhm_px=max_fwhm,
     )
     ok = fit.ok.copy()
@@ -724,6 +737,8 @@ USE_NUMBA = _kernels.HAVE_NUMBA
 
 #: Centroid iterations of the sub-pixel fit.
 _ITERATIONS = 2
+#: Rows per background flank of the sub-pixel fit (as the compiled kernels take them).
+_FLANK_PX = 3
 
 
 def extract(
@@ -960,10 +975,14 @@ def _finish_numpy(
     # (until no point's neighbour moves by more than _kernels.NEIGHBOUR_TOL: a point's fit depends on nothing
     # else that changes between the rounds)
     if n_l > 1:
+        # the rows the fits read: background flanks (flank_px rows from off, as fit_profiles places them without a
+        # clipped sample) and the whole window
+        off = min(math.ceil(3.0 * sig_med + 1.0), half - _FLANK_PX + 1)
+        read = (float(off + _FLANK_PX - 1), half + 1.0, WIDE_FWHM_PX / FWHM_PER_SIGMA)
         last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
         tol = _kernels.NEIGHBOUR_TOL
         for _ in range(_kernels.NEIGHBOUR_REFITS):
-            nb = _neighbours(laser, cols, vv, amp, sig, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0, half + 1.0)
+            nb = _neighbours(laser, cols, vv, amp, sig, _sat, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0, read)
             with np.errstate(invalid="ignore"):
                 same = (
                     (np.abs(nb[0] - last[0]) <= tol)
