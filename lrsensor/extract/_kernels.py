@@ -1834,20 +1834,26 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         return out
     # run extents and each run's first value (the base of the window sums): one pass over the runs' ends
     n_run = 0
+    n_have = 0  # integer reductions (they vectorize; a float sum is one serial chain of adds)
     for q in range(n):
         n_run = max(n_run, run[q] + 1)
+        n_have += run[q] >= 0
     first = np.full(max(n_run, 1), n, np.int64)
     last = np.full(max(n_run, 1), -1, np.int64)
-    for q in range(n):
+    prev = -1
+    for q in range(n):  # (a run's first column where its label first appears: no load of what was just stored)
         r = run[q]
         if r >= 0:
-            first[r] = min(first[r], q)
+            if r != prev:
+                first[r] = q
+                prev = r
             last[r] = q
     # local noise: lag-4 second differences inside runs (branch-free over all columns; compacted for the pooled
     # median only where a window needs it)
     d2 = np.zeros(n)
     cnt2 = np.zeros(n)
     ul = np.uint64(lag)
+    nv = 0
     for q in range(lag, n - lag):  # unsigned indices: no wrap-around test, the loop vectorizes
         uq = np.uint64(q)
         rq = run[uq]
@@ -1855,9 +1861,7 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         dd = y[uq - ul] - 2.0 * y[uq] + y[uq + ul]
         d2[uq] = dd * dd if same else 0.0
         cnt2[uq] = 1.0 if same else 0.0
-    nv = 0.0
-    for q in range(lag, n - lag):
-        nv += cnt2[q]
+        nv += same
     if nv < 8:
         return out
     var_all = np.nan  # the pooled noise: only windows with fewer than 5 samples of their own use it (computed then)
@@ -1900,9 +1904,7 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     b_c = np.empty(n)
     rss_c = np.empty(n)
     acc_c = np.zeros(n, np.bool_)
-    left = 0  # columns still to do
-    for q in range(n):
-        left += not done[q]
+    left = n_have  # columns still to do
     for k in scales:
         if left == 0:
             break
