@@ -529,7 +529,7 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
     """``refit_targets`` picks the points with a neighbour that is new or moved by more than the tolerance (row,
     sigma in px, amplitude relative) and remembers it; a second call with the same neighbours picks none; only
     the ``touched`` columns are looked at."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, refit_targets
+    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, point_table, refit_targets
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -544,8 +544,11 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
     last = np.full((3, 2 * w), np.nan)
     every = np.ones(w, bool)
 
+    at = point_table(laser, cols, 2, w)
+
     def pick(touched: np.ndarray = every) -> list[int]:
-        idx, nb_v, _, _ = refit_targets(laser, cols, v, amp, sig, sat, good, 2, w, 9.0, (6.0, 8.0, 2.0), touched, last)
+        look = np.flatnonzero(touched)
+        idx, nb_v, _, _ = refit_targets(laser, cols, v, amp, sig, sat, good, at, 9.0, (6.0, 8.0, 2.0), look, last)
         np.testing.assert_array_equal(nb_v, v[(idx + w) % (2 * w)])  # the other laser, same column
         return idx.tolist()
 
@@ -588,7 +591,8 @@ def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: 
     good = np.array([True, True])
     read = (near, 8.0, 2.0)
     last = np.full((3, 2), np.nan)
-    idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read, np.ones(8, bool), last)
+    at = _kernels.point_table(laser, cols, 2, 8)
+    idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, at, 12.0, read, np.arange(8), last)
     assert (0 in idx.tolist()) == picked
     assert bool(np.isfinite(_neighbours(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read)[0][0])) == picked
 
@@ -663,9 +667,8 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
         sat = rng.random(laser.size) < 0.1
         read = (4.0, 5.0, 2.0)
         last = np.full((3, laser.size), np.nan)
-        idx, *_ = _kernels.refit_targets(
-            laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read, np.ones(w, bool), last
-        )
+        at = _kernels.point_table(laser, cols, n_l, w)
+        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, at, max_d, read, np.arange(w), last)
         nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read)  # the numpy twin
         np.testing.assert_array_equal(idx, np.flatnonzero(np.isfinite(nb_v)))
         if idx.size:

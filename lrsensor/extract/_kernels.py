@@ -2085,57 +2085,66 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 
 
 @_njit
-def refit_targets(laser, cols, v, amp, sig, sat, good, n_lasers, width, max_dist, read, touched, last):  # type: ignore[no-untyped-def]
+def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
+    """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
+    :func:`process_candidates` are one per laser and column)."""
+    at = np.full((n_lasers, width), -1, np.int32)
+    for t in range(laser.size):
+        at[laser[t], cols[t]] = t
+    return at
+
+
+@_njit
+def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look, last):  # type: ignore[no-untyped-def]
     """The points to refit with another laser's stripe subtracted in one round, and that stripe (loop twin of
     :func:`lrsensor.extract.subpixel._neighbours` and its round's selection).
 
     A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
-    rows (through one (L, W) table of point indices: the last such point of a column, as the twin's dense
-    tables keep), kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
+    rows, kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
     1 DN) in the rows the point's fit reads (:func:`read_reach` of its sigma and saturation, ``read`` = ``(near,
-    far, wide_sigma)``); the tails by one vectorized
-    :func:`exp_array`. A point is picked when its neighbour's row, amplitude or sigma differ from ``last`` (3, N)
-    (the neighbour of its previous refit, NaN = none yet) by more than :data:`NEIGHBOUR_TOL`; ``last`` is updated
-    there. Only points in columns with ``touched`` (W,) set are looked at: a neighbour can change only in the
-    columns of the last round's refits.
+    far, wide_sigma)``); the tails by one vectorized :func:`exp_array`. A point is picked when its neighbour's
+    row, amplitude or sigma differ from ``last`` (3, N) (the neighbour of its previous refit, NaN = none yet) by
+    more than :data:`NEIGHBOUR_TOL`; ``last`` is updated there. Only the points in the columns ``look`` (K,)
+    (sorted) are looked at: a neighbour can change only in the columns of the last round's refits.
 
     Args:
         laser, cols, v, amp, sig, sat, good: (N,) per point: laser, column, row (NaN = no fit), amplitude (DN),
             sigma (px, NaN = 1), saturated, and whether it can be a neighbour.
+        at: (L, W) the point of each laser and column (:func:`point_table`).
 
     Returns:
-        ``(idx, nb_v, nb_a, nb_s)``: the picked points (M,) and their neighbours' row, amplitude and sigma (M,).
+        ``(idx, nb_v, nb_a, nb_s)``: the picked points (M,), in the order of the points, and their neighbours'
+        row, amplitude and sigma (M,).
     """
     near, far, wide_sigma = read
-    at = np.full((n_lasers, width), -1, np.int32)
-    n = v.size
-    for t in range(n):
-        if good[t]:
-            at[laser[t], cols[t]] = t
+    n_lasers = at.shape[0]
+    n = min(v.size, n_lasers * look.size)
     cand = np.empty(n, np.int64)
     nbj = np.empty(n, np.int64)
     arg = np.empty(n)  # -(gap / sigma)^2 / 2: the neighbour's Gaussian at the nearest row of the reach
     m = 0
-    for t in range(n):
-        if not (touched[cols[t]] and math.isfinite(v[t])):
-            continue
-        best = max_dist
-        jb = -1
-        for other in range(n_lasers):
-            j = at[other, cols[t]]
-            if other == laser[t] or j < 0:
+    for li in range(n_lasers):  # laser by laser, columns in order: the points' order
+        for c in look:
+            t = at[li, c]
+            if t < 0 or not math.isfinite(v[t]):
                 continue
-            dist = abs(v[j] - v[t])
-            if dist < best:  # (False for a NaN row)
-                best = dist
-                jb = j
-        if jb >= 0:
-            cand[m] = t
-            nbj[m] = jb
-            reach = read_reach(sig[t], sat[t], near, far, wide_sigma)
-            gap = max(best - reach, 0.0) / (sig[jb] if math.isfinite(sig[jb]) else 1.0)
-            arg[m] = -0.5 * gap * gap
-            m += 1
+            best = max_dist
+            jb = -1
+            for other in range(n_lasers):
+                j = at[other, c]
+                if other == li or j < 0 or not good[j]:
+                    continue
+                dist = abs(v[j] - v[t])
+                if dist < best:  # (False for a NaN row)
+                    best = dist
+                    jb = j
+            if jb >= 0:
+                cand[m] = t
+                nbj[m] = jb
+                reach = read_reach(sig[t], sat[t], near, far, wide_sigma)
+                gap = max(best - reach, 0.0) / (sig[jb] if math.isfinite(sig[jb]) else 1.0)
+                arg[m] = -0.5 * gap * gap
+                m += 1
     tail = exp_array(arg[:m])
     idx = np.empty(m, np.int64)
     nb_v = np.empty(m)
@@ -3137,19 +3146,20 @@ def process_candidates(  # type: ignore[no-untyped-def]
             off = int(min(math.ceil(3.0 * sig_med + 1.0), half - 2))
             read = (float(off + 2), half + 1.0, wide_fwhm / fwhm_per_sigma)
             last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
-            touched = np.ones(w, np.bool_)  # the columns where a neighbour can have changed: all, then the refits'
+            at = point_table(laser, cols, n_l, w)
+            look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
+            touched = np.zeros(w, np.bool_)
             for _ in range(NEIGHBOUR_REFITS):
-                idx, nb_v, nb_a, nb_s = refit_targets(
-                    laser, cols, vv, amp, sig, sat, good, n_l, w, max_d, read, touched, last
-                )
+                idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
                 if idx.size == 0:
                     break
                 _refit(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
-                touched[:] = False
                 for i in range(idx.size):
                     t = idx[i]
                     good[t] = ok[t] and not sat[t]
                     touched[cols[t]] = True
+                look = np.flatnonzero(touched)
+                touched[look] = False
     # 5-6. gates, runs, smoothing, quality
     u_o, v_o, l_o, q_o = finish_points(
         col_v,
@@ -3359,7 +3369,20 @@ def warm_up() -> None:
         select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
         expand_half(i64, f64, i64, i64, 4, 8)
         fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
-        refit_targets(i64, i64, f64, f64, f64, b, b, 2, 8, 10.0, (6.0, 8.0, 2.0), b, np.full((3, 4), np.nan))
+        refit_targets(
+            i64,
+            i64,
+            f64,
+            f64,
+            f64,
+            b,
+            b,
+            point_table(i64, i64, 2, 8),
+            10.0,
+            (6.0, 8.0, 2.0),
+            i64,
+            np.full((3, 4), np.nan),
+        )
         finish_points(
             i64,
             i64,
@@ -3457,6 +3480,7 @@ _KERNEL_NAMES = (
     "select_candidates",
     "expand_half",
     "fit_columns",
+    "point_table",
     "refit_targets",
     "finish_points",
     "smooth_runs",
