@@ -2349,6 +2349,8 @@ def finish_points(  # type: ignore[no-untyped-def]
     green_ratio,
     pool,
     floor_frac,
+    max_jump,
+    wide_sigma,
 ):
     """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality (loop twin of the numpy tail of
     ``extract``).
@@ -2357,6 +2359,12 @@ def finish_points(  # type: ignore[no-untyped-def]
     and the signal-to-noise test are pooled over the fitted columns of the same chain within ``pool`` columns:
     the rises are summed, and the ratio is the median of the neighbours' (at most ``1 / floor_frac`` times the
     column's own). One noisy pixel then cannot drop a column of a dim stripe, nor keep one of a white blob.
+
+    The smoothing runs along the kept columns of one laser with gaps of at most 3 columns, on one chain; wide
+    profiles (saturated, or sigma above ``wide_sigma``: thick sheets close to the wall) also join the run of the
+    column before them when both are wide and their rows differ by at most ``max_jump``, because the candidate row
+    of a flat top wanders across it and splits the chain into short pieces, whose runs would be too short for the
+    long line fits.
 
     ``lz`` (N,) is the laser of each point, ``col_v // w`` (:func:`sorted_blocks`).
 
@@ -2448,19 +2456,28 @@ def finish_points(  # type: ignore[no-untyped-def]
             continue
         snr[t] = min(medv[col_v[t]], snr[t] / floor_frac)
         keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
-    # runs: kept columns on one chain with gaps of at most 3 columns
+    # runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
+    # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump rows
     run_id = np.full(n, -1, np.int64)
     r = -1
     last_col = -10
     last_chain = -1
+    last_l = -1
+    last_v = np.nan
+    last_wide = False
     for t in range(n):
         if not keep[t]:
             continue
-        if col_v[t] - last_col > 3 or chain[t] != last_chain:
+        wide = sat[t] or sig[t] > wide_sigma  # (False for a NaN sigma)
+        joined = chain[t] == last_chain or (wide and last_wide and abs(vv[t] - last_v) <= max_jump)
+        if col_v[t] - last_col > 3 or lz[t] != last_l or not joined:
             r += 1
         run_id[t] = r
         last_col = col_v[t]
         last_chain = chain[t]
+        last_l = lz[t]
+        last_v = vv[t]
+        last_wide = wide
     counts = np.zeros(r + 1, np.int64)
     for t in range(n):
         if run_id[t] >= 0:
@@ -3184,6 +3201,8 @@ def process_candidates(  # type: ignore[no-untyped-def]
         green_ratio,
         pool,
         floor_frac,
+        max_jump,
+        wide_fwhm / fwhm_per_sigma,
     )
     xyz = triangulate_points(u_o, v_o, l_o, cam, dist, R, origin, normals, points) if tri else np.empty((0, 3))
     return u_o, v_o, l_o, q_o, xyz
@@ -3406,6 +3425,8 @@ def warm_up() -> None:
             1.2,
             4,
             0.75,
+            3.0,
+            2.0,
         )
         smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))
         eye = np.eye(3)

@@ -19,7 +19,8 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    window centroid). Unbiased for any symmetric profile. Then a colour check (green must rise more than red
    and blue) and a signal-to-noise gate with the local noise of the flanks, both pooled over the point's
    neighbours on its stripe piece (``gate_pool_cols``), so that single noisy pixels do not decide.
-5. **Along-stripe smoothing** (default on): per run of a chain, local straight-line fits over up to
+5. **Along-stripe smoothing** (default on): per run of a chain (wide pieces within ``max_jump_px`` rows of each
+   other joined: a flat top's candidate row wanders and splits its chain), local straight-line fits over up to
    ``2 (16 smooth_half_cols) + 1`` columns; of the centred, left and right windows the one with the smallest
    residual is kept (corners and steps are not rounded), and the largest window whose residual matches the
    local noise wins (the longest must match in each of its quarters too). It averages the independent
@@ -1005,12 +1006,17 @@ def _finish_numpy(
     ok, snr = _pooled_gates(col_v, chain, ok, _sat, rise, snr, cfg)
     ok &= (amp >= cfg.min_contrast_dn) & ((snr >= cfg.min_snr) | _sat)
     col_v, chain, chain_len = col_v[ok], chain[ok], chain_len[ok]
-    vv, amp, sig, snr = vv[ok], amp[ok], sig[ok], snr[ok]
+    vv, amp, sig, snr, sat = vv[ok], amp[ok], sig[ok], snr[ok], _sat[ok]
     if col_v.size == 0:
         return Detections.empty()
-    # runs: (virtual) columns on one chain with gaps of at most 3 columns
+    # runs: columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
+    # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump_px rows
+    with np.errstate(invalid="ignore"):
+        wide = sat | (sig > WIDE_FWHM_PX / FWHM_PER_SIGMA)
+    joined = (chain[1:] == chain[:-1]) | (wide[1:] & wide[:-1] & (np.abs(np.diff(vv)) <= cfg.max_jump_px))
+    lz = col_v // w
     new = np.ones(col_v.size, bool)
-    new[1:] = (np.diff(col_v) > 3) | (chain[1:] != chain[:-1])
+    new[1:] = (np.diff(col_v) > 3) | (lz[1:] != lz[:-1]) | ~joined
     run_id = np.cumsum(new) - 1
     keep = np.bincount(run_id)[run_id] >= max(2, cfg.min_run_cols // 2)
     col_v, vv, sig, chain_len, run_id, snr = col_v[keep], vv[keep], sig[keep], chain_len[keep], run_id[keep], snr[keep]
