@@ -1,7 +1,7 @@
 """Robustness of the sub-pixel extractor on an INDEPENDENT stripe model (not the project's simulator).
 
     python benchmarks/bench_foreign_render.py [--out benchmarks/results/extract_foreign.md] [--quick]
-        [--integrate-first]
+        [--integrate-first] [--jpeg QUALITY [--jpeg-444]]
 
 The renderer here is deliberately different from :mod:`lrsensor.sim`: each laser draws a *box* profile of a
 given physical sheet thickness (its image width is ``thickness * f / range``), blurred by a Gaussian optical PSF
@@ -11,7 +11,10 @@ background with gradients and Gaussian noise. Walls are perpendicular to the opt
 body z axis. Truth is the analytic stripe centre row and the wall range along the optical axis at every column.
 ``--integrate-first`` is a stress variant (results in ``extract_foreign_integrate_first.md``): the box is
 integrated on the pixel grid before the blur, so a sheet narrower than a pixel loses its sub-pixel position
-(up to 0.15 px here, 1.1 % of range at 2-3 m); no per-column estimator can recover that.
+(up to 0.15 px here, 1.1 % of range at 2-3 m); no per-column estimator can recover that. ``--jpeg QUALITY``
+passes every frame through a JPEG encoder and back (results in ``extract_foreign_jpeg<QUALITY>.md``), as an MJPEG
+camera delivers them: a third of the green signal of a green stripe then comes from chroma sampled at half
+the resolution.
 
 Per case: median and 95th percentile of the relative range error ``|x_est - x_true| / x_true`` (%), outliers
 (> 5 % off, %), coverage (columns with a point / visible columns, %), ms per frame (wall clock, one call).
@@ -46,6 +49,8 @@ class Foreign:
     sat: bool = False
     seed: int = 0
     psf_first: bool = True
+    jpeg: int = 0
+    jpeg_444: bool = False
     size: tuple[int, int] = (1920, 1080)
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -123,6 +128,12 @@ def render(
 def score(c: Foreign, method: str = "subpixel") -> dict[str, float]:
     """Median / p95 relative range error (%), outliers (> 5 %, %), coverage (%), ms of one ``Sensor.process``."""
     img, cal, truth = render(c)
+    if c.jpeg:  # through a JPEG encoder and back (4:2:0 chroma), as from an MJPEG camera
+        params = [cv2.IMWRITE_JPEG_QUALITY, c.jpeg]
+        if c.jpeg_444:  # full-resolution chroma
+            params += [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
+        buf = cv2.imencode(".jpg", img, params)[1]
+        img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     s = Sensor(cal)
     t = time.perf_counter()
     scan = s.process(img, method=method, **c.extra)
@@ -190,6 +201,15 @@ def main() -> int:
         help="stress variant: pixel integration before the blur (a line narrower than a pixel loses its position "
         "on the pixel grid) instead of the camera's order, blur first",
     )
+    ap.add_argument(
+        "--jpeg",
+        type=int,
+        default=0,
+        metavar="QUALITY",
+        help="variant: each frame through a JPEG encoder at this quality and back (results in "
+        "extract_foreign_jpeg<QUALITY>.md)",
+    )
+    ap.add_argument("--jpeg-444", action="store_true", help="with --jpeg: full-resolution chroma (4:4:4)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     from lrsensor.extract._kernels import warm_up
@@ -198,7 +218,12 @@ def main() -> int:
     psf_first = not args.integrate_first
     if args.integrate_first and args.out == ap.get_default("out"):
         args.out = args.out.with_name("extract_foreign_integrate_first.md")
+    if args.jpeg and args.out == ap.get_default("out"):
+        args.out = args.out.with_name(f"extract_foreign_jpeg{args.jpeg}{'_444' if args.jpeg_444 else ''}.md")
     order = "blur, then pixel integration" if psf_first else "pixel integration, then blur (stress variant)"
+    if args.jpeg:
+        chroma = "4:4:4" if args.jpeg_444 else "4:2:0"
+        order += f"; each frame JPEG-compressed at quality {args.jpeg} ({chroma} chroma) and decoded"
     lines = [
         "### Independent stripe model (box line + blur, 1920x1080, f = 554 px, b = 0.1 m)",
         "",
@@ -213,7 +238,8 @@ def main() -> int:
     geoms = GEOMETRIES if not args.quick else ((1.0, 0.0), (3.0, 0.0))
     for label, kw in CASES:
         for d, ang in geoms:
-            r = score(Foreign(d, ang, psf_first=psf_first, **kw), args.method)
+            c = Foreign(d, ang, psf_first=psf_first, jpeg=args.jpeg, jpeg_444=args.jpeg_444, **kw)
+            r = score(c, args.method)
             cov = "n/a (below 3x noise)" if np.isnan(r["coverage"]) else f"{r['coverage']:.1f}"
             row = (
                 f"| {label} | {d:.1f} | {ang:.0f} | {r['median']:.3f} | {r['p95']:.3f} | {r['outliers']:.2f} "
