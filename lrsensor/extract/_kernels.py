@@ -2060,9 +2060,10 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
 
 #: A neighbour stripe is subtracted only where its Gaussian exceeds this fraction of the point's own amplitude
 #: (at least 1 DN) somewhere in the rows the point's fit reads (:func:`read_reach`, :func:`refit_targets`). Below
-#: it, the refit moves the centre by about a thousandth of a pixel at most (walls at 4.5-6 m and the tank: at most
-#: 0.0012 px, none on most points), and the fit reads nothing of the neighbour's peak: a thin stripe (sigma 0.8 px)
-#: 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than 1e-3 of its peak 7 rows away.
+#: it, the refit moves centres by hundredths of a pixel at most, and not toward the truth (walls at 4.5-6 m and the
+#: tank against no gate: at most 0.048 px, on few points, the gated output as close to the truth or closer), and the
+#: fit reads nothing of the neighbour's peak: a thin stripe (sigma 0.8 px) 11 rows away, as two lasers' stripes
+#: are on a wall at 5 m, adds less than 1e-3 of its peak 7 rows away.
 NEIGHBOUR_TAIL = 1e-2
 #: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
 NEIGHBOUR_REFITS = 4
