@@ -46,6 +46,23 @@ def test_foreign_scenes(case: Foreign, max_median: float, min_coverage: float) -
     assert r["outliers"] <= 3.0, r
 
 
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_thick_sheet_flat_tops_are_smoothed_along_the_stripe(monkeypatch: pytest.MonkeyPatch, use_numba: bool) -> None:
+    """A 6 mm sheet at 0.3 m: a flat-topped stripe 11 px wide and about 36 DN high. Its candidate row wanders
+    across the top and splits the detection chains; the wide pieces still join one smoothing run, so the long line
+    fits average the noisy per-column centres, in the compiled path and the numpy path alike (split into short
+    runs: median 0.069 %, p95 0.26 %, 96.7 % coverage)."""
+    from lrsensor.extract import _kernels, subpixel
+
+    if use_numba and not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(subpixel, "USE_NUMBA", use_numba)
+    r = score(Foreign(0.3, width_m=0.006, blur=1.0, psf_first=True))
+    assert r["median"] <= 0.035, r
+    assert r["p95"] <= 0.15, r
+    assert r["coverage"] >= 99.0, r
+
+
 def test_flat_top_centre_unbiased() -> None:
     """Box profiles 9-15 px wide blurred by 1 px, on a sloped background: centre within 0.03 px of the truth."""
     rng = np.random.default_rng(3)

@@ -447,6 +447,14 @@ def _flank_line(P, o, R, off, flank):  # type: ignore[no-untyped-def]
     return bl, (br - bl) / (2.0 * off + flank - 1), xl
 
 
+@numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
+def _flank_offset(sigma_hint, n_sat, half, flank):  # type: ignore[no-untyped-def]
+    """Rows from the peak to the inner row of each background flank of ``flank`` rows: beyond 3 ``sigma_hint`` and
+    half of ``n_sat`` clipped samples, inside the window of ``half`` rows either side (every fit places its flanks
+    so; :func:`read_reach` takes them as the rows a fit reads)."""
+    return int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), half - flank + 1))
+
+
 @_njit
 def _subtract_gaussian(P, mu, a, sigma):  # type: ignore[no-untyped-def]
     """``P[q] -= a exp(-(q - mu)^2 / (2 sigma^2))`` for every sample of the profile ``P`` (K,), in place.
@@ -563,7 +571,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
                 q_last = q
         saturated = P[o + R] >= sat_dn and n_sat >= 2
         # 1. linear background
-        off = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank + 1))
+        off = _flank_offset(sigma_hint, n_sat, R, flank)
         bl, slope, xl = _flank_line(P, o, R, off, flank)
         ss = 0.0
         for q in range(flank):
@@ -888,7 +896,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     for t in range(n):
         special[t] |= n_clip[t] >= np.uint8(2)
     # 1. linear background from the two flanks, subtracted; noise of the flanks
-    off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
+    off = _flank_offset(sigma_hint, 0, R, flank)
     xl = R - off - 0.5 * (flank - 1)
     bl = np.zeros(n, np.float32)
     br = np.zeros(n, np.float32)
@@ -1387,7 +1395,7 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
         pk[t] = rows[t] + (o[t] if bv[t] != -1.0 else e) - e  # nothing above -1: the candidate row
         top[t] = pk[t] - half
     # the window pk - half ... pk + half, clipped samples anywhere in it: not here
-    off = int(min(math.ceil(3.0 * sigma_hint + 1.0), R - flank + 1))
+    off = _flank_offset(sigma_hint, 0, R, flank)
     xl = R - off - 0.5 * (flank - 1)
     Wn = _neighbour_profiles(image, cols, top, m, nb_v, amp_nb, inv, g2)
     for q in range(m):
@@ -1535,9 +1543,8 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
     slope = np.empty(n)
     xl = np.empty(n)
     off = np.empty(n, np.int64)
-    lim = R - flank + 1
     for t in range(n):
-        off[t] = int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat[t] + 1.0), lim))
+        off[t] = _flank_offset(sigma_hint, n_sat[t], R, flank)
     # the flank samples (flank, n) of each side picked by byte selects over the window's rows (64 lanes; the
     # rows differ per column)
     FL = np.zeros((flank, n), np.uint8)
@@ -3047,6 +3054,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
     max_jump, sat_dn, min_fwhm, max_sigma = reals[0], reals[1], reals[2], reals[3]
     min_contrast, min_snr, green_ratio, sheet_mm, floor_frac = reals[4], reals[5], reals[6], reals[7], reals[8]
     fwhm_per_sigma = 2.3548200450309493
+    wide_sigma = wide_fwhm / fwhm_per_sigma  # profiles wider than this are flat-topped (wide)
     wd = (w + scale - 1) // scale
     n_cols_d = n_l * wd
     n_cols = n_l * w
@@ -3159,10 +3167,9 @@ def process_candidates(  # type: ignore[no-untyped-def]
         for t in range(n):
             good[t] = ok[t] and not sat[t]
         if _rows_overlap(laser, vv, good, n_l, max_d):  # else the common case: stripes far apart
-            # the rows the fits read: background flanks (3 rows from ``off``, as the column-parallel fits place
-            # them) and the whole window
-            off = int(min(math.ceil(3.0 * sig_med + 1.0), half - 2))
-            read = (float(off + 2), half + 1.0, wide_fwhm / fwhm_per_sigma)
+            # the rows the fits read: background flanks of 3 rows (as the fits take them; no clipped sample) and
+            # the whole window
+            read = (float(_flank_offset(sig_med, 0, half, 3) + 2), half + 1.0, wide_sigma)
             last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
             at = point_table(laser, cols, n_l, w)
             look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
@@ -3203,7 +3210,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
         pool,
         floor_frac,
         max_jump,
-        wide_fwhm / fwhm_per_sigma,
+        wide_sigma,
     )
     xyz = triangulate_points(u_o, v_o, l_o, cam, dist, R, origin, normals, points) if tri else np.empty((0, 3))
     return u_o, v_o, l_o, q_o, xyz

@@ -975,11 +975,12 @@ def _finish_numpy(
     # alternating a few times (both estimates start pulled toward each other)
     # (until no point's neighbour moves by more than _kernels.NEIGHBOUR_TOL: a point's fit depends on nothing
     # else that changes between the rounds)
+    wide_sigma = WIDE_FWHM_PX / FWHM_PER_SIGMA  # profiles wider than this are flat-topped (wide)
     if n_l > 1:
         # the rows the fits read: background flanks (flank_px rows from off, as fit_profiles places them without a
         # clipped sample) and the whole window
         off = min(math.ceil(3.0 * sig_med + 1.0), half - _FLANK_PX + 1)
-        read = (float(off + _FLANK_PX - 1), half + 1.0, WIDE_FWHM_PX / FWHM_PER_SIGMA)
+        read = (float(off + _FLANK_PX - 1), half + 1.0, wide_sigma)
         last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
         tol = _kernels.NEIGHBOUR_TOL
         for _ in range(_kernels.NEIGHBOUR_REFITS):
@@ -1012,7 +1013,7 @@ def _finish_numpy(
     # runs: columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
     # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump_px rows
     with np.errstate(invalid="ignore"):
-        wide = sat | (sig > WIDE_FWHM_PX / FWHM_PER_SIGMA)
+        wide = sat | (sig > wide_sigma)
     joined = (chain[1:] == chain[:-1]) | (wide[1:] & wide[:-1] & (np.abs(np.diff(vv)) <= cfg.max_jump_px))
     lz = col_v // w
     new = np.ones(col_v.size, bool)
