@@ -979,7 +979,8 @@ def _finish_numpy(
     if n_l > 1:
         # the rows the fits read: background flanks (flank_px rows from off, as fit_profiles places them without a
         # clipped sample) and the whole window
-        off = min(math.ceil(3.0 * sig_med + 1.0), half - _FLANK_PX + 1)
+        flank_offset = getattr(_kernels._flank_offset, "py_func", _kernels._flank_offset)  # not compiled
+        off = flank_offset(sig_med, 0, half, _FLANK_PX)
         read = (float(off + _FLANK_PX - 1), half + 1.0, wide_sigma)
         last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
         tol = _kernels.NEIGHBOUR_TOL
