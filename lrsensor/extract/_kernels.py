@@ -2684,7 +2684,6 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     src = np.empty(rows_g, np.int64)
     for i in range(rows_g):
         src[i] = min(max(a0 - top + i, a0), a1 - 1)
-    noise = max(noise_dn_rows(flat, w, src, min(max(rows_g // 24, 2), 16)), 0.5)
     # 2x2 area average straight from the image (green bytes 3 apart; an odd last column is paired with itself),
     # then the 3-column box: (gh, wo)
     gh = rows_g // 2
@@ -2721,6 +2720,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
             ux = np.uint64(x)
             s3 = np.int32(A[ux] + A[ux + 1] + A[ux + 2] + 1)  # int32 throughout: 8 lanes, not 4
             by[ux] = np.uint8(np.int32(s3 * np.int32(21846)) >> np.int32(16))
+    # the noise after the pass over the band, whose rows its samples read: cached now, not scattered misses
+    noise = max(noise_dn_rows(flat, w, src, min(max(rows_g // 24, 2), 16)), 0.5)
     # two-sided contrast, saturating at 0 (uint8 arithmetic), and at half the offset
     ds = d // 2
     hd = ds // 2
