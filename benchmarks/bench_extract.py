@@ -1,6 +1,7 @@
 """Benchmark of the stripe extractors on the simulator's named scenes: accuracy and speed.
 
     python benchmarks/bench_extract.py [--seeds 1] [--repeats 15] [--out benchmarks/results/extract.md]
+    python benchmarks/bench_extract.py --cold-after FRAME [--repeats 15]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -14,6 +15,9 @@ Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread 
 cache states: everything cold, a stream of new frames, and the same frame back to back): ``Sensor.process``
 with each method (extraction and triangulation) and, measured in the same run, a plain per-column arg-max of
 the green channel with a parabolic fit over the full frame (numpy on uint8 and on float32, and compiled loops).
+
+``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
+function called just before the cache flush (the flush leaves the branch predictors as that function left them).
 """
 
 from __future__ import annotations
@@ -139,6 +143,8 @@ def speed_frame(name: str) -> Render:
     return sim_scenes.wall_scene(float(name.removeprefix("wall_")), width=1920, height=1080).render(seed=0)
 
 
+#: Where the tables are written.
+RESULTS = Path(__file__).parent / "results"
 #: Bytes written before each cold call: twice the last-level cache of common CPUs, so that the frame, the
 #: kernels' code and their work arrays all come from memory, as for a new camera frame.
 FLUSH_BYTES = 64 << 20
@@ -171,8 +177,9 @@ def timed(
     """Median per-thread CPU time and median wall time (ms) of each function called on ``frame``.
 
     ``state`` (:data:`CACHE_STATES`): ``cold``, repetitions interleaved, each call right after
-    :func:`flush_caches` (every function starts from the same state: nothing cached, code and branch history
-    included); ``stream``, each function's calls back to back on :data:`STREAM_FRAMES` copies of the frame in
+    :func:`flush_caches` (nothing of the frame, the code or the work arrays cached; the flush does not reset the
+    branch predictors, which hold what the function before it in the interleave taught them: see
+    :func:`cold_after`); ``stream``, each function's calls back to back on :data:`STREAM_FRAMES` copies of the frame in
     turn (a new frame from memory each call, as from a camera; code warm); ``warm``, each function's calls back to
     back on the same frame. Stream and warm take the functions in turn in :data:`ROUNDS` rounds of back-to-back
     calls, each after :data:`SETTLE_CALLS` untimed ones, so that a slow spell of the machine (another tenant on
@@ -218,6 +225,79 @@ def timed(
                 for _ in range(per_round):
                     one(k, f, frame)
     return {k: (1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(wall[k]))) for k in fns}
+
+
+def cold_after(
+    before: dict[str, Callable[[np.ndarray], object]],
+    targets: dict[str, Callable[[np.ndarray], object]],
+    frame: np.ndarray,
+    repeats: int,
+) -> dict[tuple[str, str], float]:
+    """Median per-thread CPU time (ms) of each target called cold (right after :func:`flush_caches`) when the
+    function called just before the flush was ``before[b]``: ``{(b, target): ms}``.
+
+    The flush evicts the caches but not the branch predictors, so a cold call still runs with the branch history
+    its predecessor left; this measures how much that predecessor moves the cold time. Pairs are interleaved.
+    """
+    times: dict[tuple[str, str], list[float]] = {(b, k): [] for b in before for k in targets}
+    for f in (*before.values(), *targets.values()):
+        f(frame)
+    for _ in range(repeats):
+        for b, fb in before.items():
+            for k, f in targets.items():
+                fb(frame)
+                flush_caches()
+                t0 = time.thread_time()
+                f(frame)
+                times[(b, k)].append(time.thread_time() - t0)
+    return {key: 1e3 * float(np.median(v)) for key, v in times.items()}
+
+
+#: The functions of the speed table, by key.
+SPEED_LABELS = {
+    "ref": "reference (uint8)",
+    "ref32": "reference (float32)",
+    "subpixel": "subpixel",
+    "paper": "paper",
+    "refc": "reference (compiled)",
+}
+
+
+def speed_functions(sensor: Sensor) -> dict[str, Callable[[np.ndarray], object]]:
+    """The functions the speed table times, keyed as :data:`SPEED_LABELS`, in the order the cold calls interleave
+    them: the references (uint8, float32), ``sensor.process`` with each method, and the compiled reference where
+    numba is installed."""
+    fns: dict[str, Callable[[np.ndarray], object]] = {
+        "ref": argmax_parabola,
+        "ref32": argmax_parabola_float,
+        "subpixel": sensor.process,
+        "paper": functools.partial(sensor.process, method="paper"),
+    }
+    if argmax_parabola_compiled is not None:
+        fns["refc"] = argmax_parabola_compiled
+    return fns
+
+
+def cold_after_table(name: str, repeats: int) -> list[str]:
+    """Markdown table of :func:`cold_after` on speed frame ``name``: ``Sensor.process`` and the uint8 reference,
+    cold, after each function of the speed table (and after themselves), and their ratio per predecessor."""
+    r = speed_frame(name)
+    fns = speed_functions(Sensor(r.calibration))
+    t = cold_after(fns, {"subpixel": fns["subpixel"], "ref": fns["ref"]}, r.image, repeats)
+    lines = [
+        f"### Cold calls by predecessor ({name}, ms, one thread)",
+        "",
+        f"Each call right after {FLUSH_BYTES >> 20} MB were written, the flush itself right after one call of the "
+        "function in the first column (whose branch history the flush leaves in place). Medians of "
+        f"{repeats} interleaved repetitions.",
+        "",
+        "| function called before the flush | subpixel | reference (uint8) | subpixel / reference (uint8) |",
+        "|---|---:|---:|---:|",
+    ]
+    for b in fns:
+        sub, ref = t[(b, "subpixel")], t[(b, "ref")]
+        lines.append(f"| {SPEED_LABELS[b]} | {sub:.3f} | {ref:.3f} | {sub / ref:.3f} |")
+    return lines
 
 
 #: The stages of ``Sensor.process`` (default method): the compiled kernels that ``extract_frame`` calls.
@@ -293,10 +373,25 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=1, help="renders per scene (seeds 0..n-1)")
     ap.add_argument("--repeats", type=int, default=15, help="timing repetitions per frame")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "extract.md"))
+    ap.add_argument(
+        "--out",
+        help="markdown file written (default benchmarks/results/extract.md, or extract_cold_after_FRAME.md)",
+    )
+    ap.add_argument(
+        "--cold-after",
+        metavar="FRAME",
+        help="only the cold calls of one speed frame (e.g. tank) by the function called before the flush",
+    )
     args = ap.parse_args()
+    if args.cold_after and args.cold_after not in SPEED_SCENES:
+        ap.error(f"--cold-after: unknown speed frame {args.cold_after!r}; expected one of {SPEED_SCENES}")
     cv2.setNumThreads(1)
     warm_up()  # compile the kernels now, not during the first timed frames
+    if args.cold_after:
+        text = "\n".join(cold_after_table(args.cold_after, args.repeats)) + "\n"
+        print(text)
+        _write(args.out or RESULTS / f"extract_cold_after_{args.cold_after}.md", text)
+        return 0
 
     rows: list[dict[str, float | str]] = []
     for name in SCENES:
@@ -327,8 +422,9 @@ def main() -> int:
         "### Speed (ms per 1920x1080 frame, one thread)",
         "",
         "Per-thread CPU time (ms), medians of repetitions in one run, in three cache states: **cold**, every call "
-        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code, work arrays and branch history all start "
-        "from memory; calls interleaved); **stream**, each function's calls back to back on "
+        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code and work arrays all start from memory; "
+        "calls interleaved, so each starts with the branch history of the function before it: "
+        "`--cold-after FRAME` measures that); **stream**, each function's calls back to back on "
         f"{STREAM_FRAMES} copies of the frame in turn (a new frame from memory each call, as from a camera, with "
         "the code warm); and **warm**, each function's calls back to back on one frame. Stream and warm take the "
         f"functions in turn in {ROUNDS} rounds of back-to-back calls, each after {SETTLE_CALLS} untimed calls (a "
@@ -345,15 +441,7 @@ def main() -> int:
     ]
     for name in SPEED_SCENES:
         r = speed_frame(name)
-        sensor = Sensor(r.calibration)
-        fns: dict[str, Callable[[np.ndarray], object]] = {
-            "ref": argmax_parabola,
-            "ref32": argmax_parabola_float,
-            "subpixel": sensor.process,
-            "paper": functools.partial(sensor.process, method="paper"),
-        }
-        if argmax_parabola_compiled is not None:
-            fns["refc"] = argmax_parabola_compiled
+        fns = speed_functions(Sensor(r.calibration))
         for state in CACHE_STATES:
             t = timed(fns, r.image, args.repeats, state)
             sub = t["subpixel"][0]
@@ -380,10 +468,15 @@ def main() -> int:
     stage_lines += [f"| {stage} | {ms:.3f} |" for stage, ms in stages]
     text = "\n".join(lines + speed_lines + stage_lines) + "\n"
     print(text)
-    out = Path(args.out)
+    _write(args.out or RESULTS / "extract.md", text)
+    return 0
+
+
+def _write(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path``, creating its folder."""
+    out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
-    return 0
 
 
 if __name__ == "__main__":

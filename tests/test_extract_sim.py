@@ -186,3 +186,62 @@ def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
         assert np.array_equal(fresh_b.points, alt_b.points, equal_nan=True)
     assert len(fresh_b) > 0
     assert not np.array_equal(fresh_a.points[:100], fresh_b.points[:100])
+
+
+def test_cold_after_runs_each_target_right_after_its_predecessor_and_a_flush(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``cold_after`` times every (predecessor, target) pair: the predecessor, then the flush, then the timed
+    target, in that order every repetition; the table has a row per predecessor."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    log: list[str] = []
+    monkeypatch.setattr(be, "flush_caches", lambda: log.append("flush"))
+    before = {"a": lambda img: log.append("a"), "b": lambda img: log.append("b")}
+    targets = {"x": lambda img: log.append("x"), "y": lambda img: log.append("y")}
+    out = be.cold_after(before, targets, np.zeros((2, 2, 3), np.uint8), 2)
+    assert set(out) == {("a", "x"), ("a", "y"), ("b", "x"), ("b", "y")}
+    assert all(t >= 0.0 for t in out.values())
+    timed = log[4:]  # after one untimed call of each function
+    assert timed == ["a", "flush", "x", "a", "flush", "y", "b", "flush", "x", "b", "flush", "y"] * 2
+
+
+def test_cold_after_refuses_an_unknown_frame(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--cold-after`` names one of the speed frames; anything else stops with a message naming them."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    monkeypatch.setattr(sys, "argv", ["bench_extract.py", "--cold-after", "wall_9.9"])
+    with pytest.raises(SystemExit) as e:
+        be.main()
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown speed frame 'wall_9.9'" in err
+    assert "tank" in err
+
+
+def test_cold_after_table_has_a_row_per_function_of_the_speed_table() -> None:
+    """The ``--cold-after`` table: a row per function the speed table times, each with the two cold times (ms)
+    and their ratio."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    lines = be.cold_after_table("paper_box", 1)
+    rows = [ln for ln in lines if ln.startswith("| ") and not ln.startswith("| function")]
+    fns = be.speed_functions(Sensor(sim.named_scene("paper_box").render(seed=0).calibration))
+    assert [r.split("|")[1].strip() for r in rows] == [be.SPEED_LABELS[k] for k in fns]
+    for r in rows:
+        sub, ref, ratio = (float(x) for x in r.split("|")[2:5])
+        assert sub > 0.0
+        assert ref > 0.0
+        assert ratio == pytest.approx(sub / ref, abs=2e-3)
