@@ -1,7 +1,7 @@
 """Robustness of the sub-pixel extractor on an INDEPENDENT stripe model (not the project's simulator).
 
     python benchmarks/bench_foreign_render.py [--out benchmarks/results/extract_foreign.md] [--quick]
-        [--integrate-first] [--jpeg QUALITY [--jpeg-444]]
+        [--integrate-first] [--jpeg QUALITY [--jpeg-444]] [--channel luma]
 
 The renderer here is deliberately different from :mod:`lrsensor.sim`: each laser draws a *box* profile of a
 given physical sheet thickness (its image width is ``thickness * f / range``), blurred by a Gaussian optical PSF
@@ -14,7 +14,8 @@ integrated on the pixel grid before the blur, so a sheet narrower than a pixel l
 (up to 0.15 px here, 1.1 % of range at 2-3 m); no per-column estimator can recover that. ``--jpeg QUALITY``
 passes every frame through a JPEG encoder and back (results in ``extract_foreign_jpeg<QUALITY>.md``), as an MJPEG
 camera delivers them: a third of the green signal of a green stripe then comes from chroma sampled at half
-the resolution.
+the resolution. ``--channel luma`` runs the extractor with ``channel="luma"`` (the full-resolution luma on green's
+scale; results in ``..._luma.md``).
 
 Per case: median and 95th percentile of the relative range error ``|x_est - x_true| / x_true`` (%), outliers
 (> 5 % off, %), coverage (columns with a point / visible columns, %), ms per frame (wall clock, one call).
@@ -210,16 +211,27 @@ def main() -> int:
         "extract_foreign_jpeg<QUALITY>.md)",
     )
     ap.add_argument("--jpeg-444", action="store_true", help="with --jpeg: full-resolution chroma (4:4:4)")
+    ap.add_argument(
+        "--channel",
+        choices=("green", "luma"),
+        default="green",
+        help="the sub-pixel extractor's channel option (results with 'luma' in extract_foreign[...]_luma.md)",
+    )
     args = ap.parse_args()
+    if args.channel != "green" and args.method != "subpixel":
+        ap.error(f"--channel is an option of the subpixel extractor, not of --method {args.method}")
     cv2.setNumThreads(1)
     from lrsensor.extract._kernels import warm_up
 
     warm_up()
     psf_first = not args.integrate_first
-    if args.integrate_first and args.out == ap.get_default("out"):
+    default_out = args.out == ap.get_default("out")  # the variants then write files of their own
+    if args.integrate_first and default_out:
         args.out = args.out.with_name("extract_foreign_integrate_first.md")
-    if args.jpeg and args.out == ap.get_default("out"):
+    if args.jpeg and default_out:
         args.out = args.out.with_name(f"extract_foreign_jpeg{args.jpeg}{'_444' if args.jpeg_444 else ''}.md")
+    if args.channel != "green" and default_out:
+        args.out = args.out.with_name(f"{args.out.stem}_{args.channel}.md")
     order = "blur, then pixel integration" if psf_first else "pixel integration, then blur (stress variant)"
     if args.jpeg:
         chroma = "4:4:4" if args.jpeg_444 else "4:2:0"
@@ -227,7 +239,7 @@ def main() -> int:
     lines = [
         "### Independent stripe model (box line + blur, 1920x1080, f = 554 px, b = 0.1 m)",
         "",
-        f"Method: {args.method}. Order: {order}."
+        f"Method: {args.method}{f' (channel {args.channel})' if args.channel != 'green' else ''}. Order: {order}."
         " Relative range error per point; outliers > 5 %; coverage of visible columns (in the image, range 0.2-5 m,"
         " noise-free stripe peak >= 3x noise).",
         "",
@@ -238,7 +250,8 @@ def main() -> int:
     geoms = GEOMETRIES if not args.quick else ((1.0, 0.0), (3.0, 0.0))
     for label, kw in CASES:
         for d, ang in geoms:
-            c = Foreign(d, ang, psf_first=psf_first, jpeg=args.jpeg, jpeg_444=args.jpeg_444, **kw)
+            extra = {"channel": args.channel} if args.channel != "green" else {}
+            c = Foreign(d, ang, psf_first=psf_first, jpeg=args.jpeg, jpeg_444=args.jpeg_444, extra=extra, **kw)
             r = score(c, args.method)
             cov = "n/a (below 3x noise)" if np.isnan(r["coverage"]) else f"{r['coverage']:.1f}"
             row = (

@@ -47,6 +47,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="farthest range searched, metres (default: the extractor's; lower it for low-resolution cameras)",
     )
     parser.add_argument(
+        "--channel",
+        choices=("green", "luma"),
+        default=None,
+        help="subpixel extractor: 'luma' for a JPEG/MJPEG/H.264 camera (colour stored at half resolution); "
+        "default green",
+    )
+    parser.add_argument(
         "--calib-timeout-s", type=float, default=15.0, help="how long to ask the base station for a calibration"
     )
     parser.add_argument(
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lrsensor.calibration import Calibration
 
-    from .errors import CalibrationUnavailableError
+    from .errors import CalibrationUnavailableError, ServiceError
     from .imu import ImuSource, open_imu
     from .keys import FleetKeys, check_robot_name
     from .rov import RovService, fetch_calibration
@@ -90,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
     from .sources import FolderSource, FrameSource, open_source
     from .zconfig import NetworkOptions, open_session, options_from_args
 
+    if args.channel is not None and args.method not in (None, "subpixel"):
+        msg = f"--channel is an option of the subpixel extractor, not of --method {args.method}"
+        raise ServiceError(msg)
     keys = FleetKeys(args.fleet, args.prefix)
     robot = check_robot_name(args.robot)
     options = options_from_args(args)
@@ -153,7 +163,13 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             method=args.method,
             process_options={
-                k: v for k, v in (("min_range_m", args.min_range_m), ("max_range_m", args.max_range_m)) if v is not None
+                k: v
+                for k, v in (
+                    ("min_range_m", args.min_range_m),
+                    ("max_range_m", args.max_range_m),
+                    ("channel", args.channel),
+                )
+                if v is not None
             },
             ack_timeout_s=args.ack_timeout_s,
             seq_start=seq_start,

@@ -160,3 +160,22 @@ def test_overlay_rejects_a_bad_image() -> None:
     with pytest.raises(ExtractionError, match="uint8 BGR"):
         draw_scan(np.zeros((10, 10), np.uint8), empty)
     assert draw_scan(np.full((4, 5, 3), 100, np.uint8), empty).max() == 60  # darkened, nothing drawn
+
+
+def test_channel_flag(scene: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--channel luma`` reaches the sub-pixel extractor (a JPEG copy of the wall still measures 0.8 m); with
+    another method it is refused, naming the flag; an unknown channel is an argparse error."""
+    img, _, calib = scene
+    jpg = tmp_path / "wall.jpg"
+    cv2.imwrite(str(jpg), cv2.imread(str(img)), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    out = tmp_path / "luma.ply"
+    assert main(["process", str(jpg), "--calib", str(calib), "--out", str(out), "--channel", "luma"]) == 0
+    pts = read_ply_points(out)
+    assert pts.shape[0] > 0.95 * 2 * 640
+    assert np.median(np.abs(pts[:, 0] - 0.8)) < 0.002
+    capsys.readouterr()
+    bad = ["process", str(jpg), "--calib", str(calib), "--out", str(out), "--channel", "luma", "--method", "paper"]
+    assert main(bad) == 2
+    assert "--channel is an option of the subpixel extractor" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["process", str(jpg), "--calib", str(calib), "--out", str(out), "--channel", "blue"])

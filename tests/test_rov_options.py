@@ -65,3 +65,32 @@ def test_demo_imu_follows_the_flown_trajectory() -> None:
         assert measured is not None
         assert np.hypot(true.north_m - measured.north_m, true.east_m - measured.east_m) < 0.1
         assert abs(np.rad2deg(true.yaw_rad - measured.yaw_rad)) < 1.5
+
+
+def test_rov_channel_flag_is_checked_before_the_network(capsys: pytest.CaptureFixture[str]) -> None:
+    """``lrsensor rov --channel luma --method paper`` stops at once, naming the flag (no Zenoh session is opened);
+    ``--channel`` parses to the extractor option."""
+    from lrsensor.cli import build_parser, main
+
+    code = main(["rov", "--fleet", "x", "--robot", "rov1", "--source", "sim", "--channel", "luma", "--method", "paper"])
+    assert code == 2
+    assert "--channel is an option of the subpixel extractor" in capsys.readouterr().err
+    args = build_parser().parse_args(["rov", "--fleet", "x", "--robot", "rov1", "--source", "sim", "--channel", "luma"])
+    assert args.channel == "luma"
+
+
+def test_luma_channel_reaches_the_rov_extractor() -> None:
+    setup = named_scene("wall_1.0", width=640, height=360)
+    image = setup.render(seed=0).image
+    cal = setup.calibration
+
+    class Probe(RovService):
+        def __init__(self, **kw: object) -> None:
+            super().__init__(None, None, "rov1", None, None, cal, **kw)  # type: ignore[arg-type]
+
+    rov = Probe(process_options={"channel": "luma"})
+    scan = rov.sensor.process(image, **rov.process_options)
+    assert len(scan) > 0.95 * 2 * 640
+    assert np.median(scan.points[:, 0]) == pytest.approx(1.0, rel=0.002)
+    with pytest.raises(Exception, match="channel must be one of"):
+        Probe(process_options={"channel": "red"}).sensor.process(image, channel="red")

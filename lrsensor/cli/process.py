@@ -36,6 +36,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-range-m", type=float, default=None, help="nearest depth searched, metres (0.2)")
     parser.add_argument("--max-range-m", type=float, default=None, help="farthest depth searched, metres (5.0)")
     parser.add_argument(
+        "--channel",
+        choices=("green", "luma"),
+        default=None,
+        help="subpixel: what the stripe is fitted in; 'luma' for JPEG/MJPEG/H.264 frames (colour stored at half "
+        "resolution), default 'green' (lossless frames)",
+    )
+    parser.add_argument(
         "--overlay",
         metavar="DIR",
         help="also write DIR/<image stem>_overlay.png: the image darkened, the stripe points drawn in their "
@@ -68,7 +75,12 @@ def run(args: argparse.Namespace) -> int:
             msg = f"several images share the stem(s) {dup}: their PLY files in --out-dir would collide"
             raise ExtractionError(msg)
     sensor = Sensor.from_file(args.calib)
-    options: dict[str, float] = {}
+    options: dict[str, Any] = {}
+    if args.channel is not None:
+        if args.method != "subpixel":
+            msg = f"--channel is an option of the subpixel extractor, not of --method {args.method}"
+            raise ExtractionError(msg)
+        options["channel"] = args.channel
     if args.min_range_m is not None:
         options["min_range_m"] = args.min_range_m
     if args.max_range_m is not None:
@@ -103,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     return 2 if failures else 0
 
 
-def _write_overlay(path: Path, image: Any, scan: Any, sensor: Any, options: dict[str, float]) -> None:
+def _write_overlay(path: Path, image: Any, scan: Any, sensor: Any, options: dict[str, Any]) -> None:
     """Write the picture of ``scan`` on ``image`` (:func:`lrsensor.overlay.draw_scan`) as a PNG at ``path``."""
     import cv2
 
