@@ -34,6 +34,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrsensor import Calibration, Sensor
+from lrsensor.errors import ExtractionError
+from lrsensor.extract import CHANNELS, channel_option
 
 
 @dataclass(frozen=True)
@@ -133,8 +135,11 @@ def score(c: Foreign, method: str = "subpixel") -> dict[str, float]:
         params = [cv2.IMWRITE_JPEG_QUALITY, c.jpeg]
         if c.jpeg_444:  # full-resolution chroma
             params += [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
-        buf = cv2.imencode(".jpg", img, params)[1]
-        img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        decoded = cv2.imdecode(cv2.imencode(".jpg", img, params)[1], cv2.IMREAD_COLOR)
+        if decoded is None:
+            msg = f"the JPEG round trip at quality {c.jpeg} gave no image"
+            raise RuntimeError(msg)
+        img = decoded
     s = Sensor(cal)
     t = time.perf_counter()
     scan = s.process(img, method=method, **c.extra)
@@ -213,13 +218,17 @@ def main() -> int:
     ap.add_argument("--jpeg-444", action="store_true", help="with --jpeg: full-resolution chroma (4:4:4)")
     ap.add_argument(
         "--channel",
-        choices=("green", "luma"),
-        default="green",
-        help="the sub-pixel extractor's channel option (results with 'luma' in extract_foreign[...]_luma.md)",
+        choices=CHANNELS,
+        default=None,
+        help="the sub-pixel extractor's channel option (default green; results with 'luma' in "
+        "extract_foreign[...]_luma.md)",
     )
     args = ap.parse_args()
-    if args.channel != "green" and args.method != "subpixel":
-        ap.error(f"--channel is an option of the subpixel extractor, not of --method {args.method}")
+    try:
+        extra = channel_option(args.method, args.channel)
+    except ExtractionError as err:
+        ap.error(str(err))
+    variant = extra.get("channel", "green")
     cv2.setNumThreads(1)
     from lrsensor.extract._kernels import warm_up
 
@@ -230,8 +239,8 @@ def main() -> int:
         args.out = args.out.with_name("extract_foreign_integrate_first.md")
     if args.jpeg and default_out:
         args.out = args.out.with_name(f"extract_foreign_jpeg{args.jpeg}{'_444' if args.jpeg_444 else ''}.md")
-    if args.channel != "green" and default_out:
-        args.out = args.out.with_name(f"{args.out.stem}_{args.channel}.md")
+    if variant != "green" and default_out:
+        args.out = args.out.with_name(f"{args.out.stem}_{variant}.md")
     order = "blur, then pixel integration" if psf_first else "pixel integration, then blur (stress variant)"
     if args.jpeg:
         chroma = "4:4:4" if args.jpeg_444 else "4:2:0"
@@ -239,7 +248,7 @@ def main() -> int:
     lines = [
         "### Independent stripe model (box line + blur, 1920x1080, f = 554 px, b = 0.1 m)",
         "",
-        f"Method: {args.method}{f' (channel {args.channel})' if args.channel != 'green' else ''}. Order: {order}."
+        f"Method: {args.method}{f' (channel {variant})' if variant != 'green' else ''}. Order: {order}."
         " Relative range error per point; outliers > 5 %; coverage of visible columns (in the image, range 0.2-5 m,"
         " noise-free stripe peak >= 3x noise).",
         "",
@@ -250,7 +259,6 @@ def main() -> int:
     geoms = GEOMETRIES if not args.quick else ((1.0, 0.0), (3.0, 0.0))
     for label, kw in CASES:
         for d, ang in geoms:
-            extra = {"channel": args.channel} if args.channel != "green" else {}
             c = Foreign(d, ang, psf_first=psf_first, jpeg=args.jpeg, jpeg_444=args.jpeg_444, extra=extra, **kw)
             r = score(c, args.method)
             cov = "n/a (below 3x noise)" if np.isnan(r["coverage"]) else f"{r['coverage']:.1f}"

@@ -11,6 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from lrsensor.extract import CHANNELS, channel_option
+
 from .zconfig import add_network_args
 
 log = logging.getLogger(__name__)
@@ -48,7 +50,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--channel",
-        choices=("green", "luma"),
+        choices=CHANNELS,
         default=None,
         help="subpixel extractor: 'luma' for a JPEG/MJPEG/H.264 camera (colour stored at half resolution); "
         "default green",
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lrsensor.calibration import Calibration
 
-    from .errors import CalibrationUnavailableError, ServiceError
+    from .errors import CalibrationUnavailableError
     from .imu import ImuSource, open_imu
     from .keys import FleetKeys, check_robot_name
     from .rov import RovService, fetch_calibration
@@ -97,9 +99,10 @@ def run(args: argparse.Namespace) -> int:
     from .sources import FolderSource, FrameSource, open_source
     from .zconfig import NetworkOptions, open_session, options_from_args
 
-    if args.channel is not None and args.method not in (None, "subpixel"):
-        msg = f"--channel is an option of the subpixel extractor, not of --method {args.method}"
-        raise ServiceError(msg)
+    process_options = {  # (--channel with another method is refused here, before the network)
+        **channel_option(args.method, args.channel),
+        **{k: v for k, v in (("min_range_m", args.min_range_m), ("max_range_m", args.max_range_m)) if v is not None},
+    }
     keys = FleetKeys(args.fleet, args.prefix)
     robot = check_robot_name(args.robot)
     options = options_from_args(args)
@@ -162,15 +165,7 @@ def run(args: argparse.Namespace) -> int:
             calibration,
             rate_hz=args.rate,
             method=args.method,
-            process_options={
-                k: v
-                for k, v in (
-                    ("min_range_m", args.min_range_m),
-                    ("max_range_m", args.max_range_m),
-                    ("channel", args.channel),
-                )
-                if v is not None
-            },
+            process_options=process_options,
             ack_timeout_s=args.ack_timeout_s,
             seq_start=seq_start,
             sink=sink,

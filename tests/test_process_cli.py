@@ -179,3 +179,16 @@ def test_channel_flag(scene: tuple[Path, Path, Path], tmp_path: Path, capsys: py
     assert "--channel is an option of the subpixel extractor" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["process", str(jpg), "--calib", str(calib), "--out", str(out), "--channel", "blue"])
+
+
+def test_channel_option_of_the_command_lines() -> None:
+    """The one translation of ``--channel`` that ``process``, ``rov`` and the benchmark share."""
+    from lrsensor.errors import ExtractionError
+    from lrsensor.extract import channel_option
+
+    assert channel_option("subpixel", None) == {}
+    assert channel_option("paper", None) == {}
+    assert channel_option(None, "luma") == {"channel": "luma"}  # None = the default method, sub-pixel
+    assert channel_option("subpixel", "green") == {"channel": "green"}
+    with pytest.raises(ExtractionError, match="not of --method paper"):
+        channel_option("paper", "luma")

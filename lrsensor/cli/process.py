@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..extract import DEFAULT_METHOD, METHODS
+from ..extract import CHANNELS, DEFAULT_METHOD, METHODS, channel_option
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-range-m", type=float, default=None, help="farthest depth searched, metres (5.0)")
     parser.add_argument(
         "--channel",
-        choices=("green", "luma"),
+        choices=CHANNELS,
         default=None,
         help="subpixel: what the stripe is fitted in; 'luma' for JPEG/MJPEG/H.264 frames (colour stored at half "
         "resolution), default 'green' (lossless frames)",
@@ -75,12 +75,7 @@ def run(args: argparse.Namespace) -> int:
             msg = f"several images share the stem(s) {dup}: their PLY files in --out-dir would collide"
             raise ExtractionError(msg)
     sensor = Sensor.from_file(args.calib)
-    options: dict[str, Any] = {}
-    if args.channel is not None:
-        if args.method != "subpixel":
-            msg = f"--channel is an option of the subpixel extractor, not of --method {args.method}"
-            raise ExtractionError(msg)
-        options["channel"] = args.channel
+    options: dict[str, Any] = channel_option(args.method, args.channel)
     if args.min_range_m is not None:
         options["min_range_m"] = args.min_range_m
     if args.max_range_m is not None:

@@ -49,6 +49,20 @@ METHODS: dict[str, str] = {
     "paper": ".paper:extract",
 }
 DEFAULT_METHOD = "subpixel"
+#: What the sub-pixel extractor's ``channel`` option may name (``SubpixelConfig.channel``).
+CHANNELS = ("green", "luma")
+
+
+def channel_option(method: str | None, channel: str | None) -> dict[str, str]:
+    """The extractor options of a command line's ``--channel`` flag: ``{"channel": channel}``, or none when the
+    flag is not given; an :class:`ExtractionError` when it is given with a ``method`` other than the sub-pixel
+    extractor (None = the default), the only one that has it."""
+    if channel is None:
+        return {}
+    if (method or DEFAULT_METHOD) != "subpixel":
+        msg = f"--channel is an option of the subpixel extractor, not of --method {method}"
+        raise ExtractionError(msg)
+    return {"channel": channel}
 
 
 def get_extractor(method: str) -> Extractor:

@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import ExtractionError
 from ..triangulation import _arrays, triangulate
-from . import Detections, _kernels, config_with_options
+from . import CHANNELS, Detections, _kernels, config_with_options
 from .bands import LaserBands, laser_bands
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 
@@ -58,8 +58,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-#: What :class:`SubpixelConfig` ``channel`` may name.
-CHANNELS = ("green", "luma")
 #: Luma (ITU-R BT.601, as JPEG's) over its green weight, per B, G, R: ``G + 0.194 B + 0.509 R``.
 _LUMA_ON_GREEN = np.array([[1.0, 0.0, 0.0], [0.114 / 0.587, 1.0, 0.299 / 0.587], [0.0, 0.0, 1.0]], np.float32)
 
