@@ -12,7 +12,8 @@ Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b =
 - points per frame.
 
 Speed (ms per 1920x1080 frame, one thread: ``cv2.setNumThreads(1)``, per-thread CPU time, medians, in three
-cache states: everything cold, a stream of new frames, and the same frame back to back): ``Sensor.process``
+cache states: everything cold, a stream of new frames, and the same frame back to back; on 14 renders of each
+frame that differ in their noise, as a camera's frames do): ``Sensor.process``
 with each method (extraction and triangulation) and, measured in the same run, a plain per-column arg-max of
 the green channel with a parabolic fit over the full frame (numpy on uint8 and on float32, and compiled loops).
 
@@ -25,7 +26,7 @@ from __future__ import annotations
 import argparse
 import functools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -136,11 +137,17 @@ def accuracy(name: str, seed: int) -> list[dict[str, float | str]]:
     return rows
 
 
-def speed_frame(name: str) -> Render:
-    """The render (seed 0) of speed frame ``name``: a named scene, or ``wall_<metres>`` at any distance."""
+def speed_frame(name: str, seed: int = 0) -> Render:
+    """The render (noise ``seed``) of speed frame ``name``: a named scene, or ``wall_<metres>`` at any distance."""
     if name in sim_scenes.SCENES:
-        return named_scene(name).render(seed=0)
-    return sim_scenes.wall_scene(float(name.removeprefix("wall_")), width=1920, height=1080).render(seed=0)
+        return named_scene(name).render(seed=seed)
+    return sim_scenes.wall_scene(float(name.removeprefix("wall_")), width=1920, height=1080).render(seed=seed)
+
+
+def speed_frames(name: str, n: int) -> list[Render]:
+    """Renders of speed frame ``name`` with noise seeds ``0 ... n - 1``: the same scene and calibration, frames that
+    differ as a camera's successive frames do (in their noise, so in the candidates, chains and refits)."""
+    return [speed_frame(name, seed) for seed in range(n)]
 
 
 #: Where the tables are written.
@@ -159,8 +166,10 @@ def flush_caches() -> None:
     _flush_buf[::64] += 1
 
 
-#: Frames a stream of new frames cycles through: 14 copies of a 1920x1080 frame (87 MB) exceed the last-level
-#: cache, so each call reads a frame that is not cached, while the code and the work arrays stay warm.
+#: Frames a stream of new frames cycles through: 14 renders of a scene (noise seeds 0-13; 87 MB at 1920x1080)
+#: exceed the last-level cache, so each call reads a frame that is not cached, while the code and the work arrays
+#: stay warm; and each frame differs from the one before, as a camera's do, so the branch predictors cannot replay
+#: the last call (on copies of one frame the compiled extractor ran up to 15 % faster than on such a stream).
 STREAM_FRAMES = 14
 #: Rounds of the stream and warm timings: each round calls every function back to back, in turn.
 ROUNDS = 5
@@ -172,22 +181,28 @@ CACHE_STATES = ("cold", "stream", "warm")
 
 
 def timed(
-    fns: dict[str, Callable[[np.ndarray], object]], frame: np.ndarray, repeats: int, state: str
+    fns: dict[str, Callable[[np.ndarray], object]], frames: Sequence[np.ndarray], repeats: int, state: str
 ) -> dict[str, tuple[float, float]]:
-    """Median per-thread CPU time and median wall time (ms) of each function called on ``frame``.
+    """Median per-thread CPU time and median wall time (ms) of each function called on ``frames``, renders of one
+    scene that differ in their noise (:func:`speed_frames`; one frame is taken as it is).
 
     ``state`` (:data:`CACHE_STATES`): ``cold``, repetitions interleaved, each call right after
     :func:`flush_caches` (nothing of the frame, the code or the work arrays cached; the flush does not reset the
     branch predictors, which hold what the function before it in the interleave taught them: see
-    :func:`cold_after`); ``stream``, each function's calls back to back on :data:`STREAM_FRAMES` copies of the frame in
-    turn (a new frame from memory each call, as from a camera; code warm); ``warm``, each function's calls back to
-    back on the same frame. Stream and warm take the functions in turn in :data:`ROUNDS` rounds of back-to-back
-    calls, each after :data:`SETTLE_CALLS` untimed ones, so that a slow spell of the machine (another tenant on
-    the shared cache, say) lands on a few calls of every function rather than on all the calls of one.
+    :func:`cold_after`), repetition ``i`` on frame ``i mod n``; ``stream``, each function's calls back to back on
+    the frames in turn, at least :data:`STREAM_FRAMES` of them (fewer are repeated as copies), a new frame from
+    memory each call, as from a camera, code warm; ``warm``, each function's calls back to back on the same frame,
+    frame ``r mod n`` in round ``r``. Stream and warm take the functions in turn in :data:`ROUNDS` rounds of
+    back-to-back calls, each after :data:`SETTLE_CALLS` untimed ones, so that a slow spell of the machine (another
+    tenant on the shared cache, say) lands on a few calls of every function rather than on all the calls of one.
     """
     if state not in CACHE_STATES:
         msg = f"unknown cache state {state!r}; expected one of {CACHE_STATES}"
         raise ValueError(msg)
+    if len(frames) == 0:
+        msg = "timed: no frames to time on"
+        raise ValueError(msg)
+    frame = frames[0]
     cpu: dict[str, list[float]] = {k: [] for k in fns}
     wall: dict[str, list[float]] = {k: [] for k in fns}
 
@@ -199,31 +214,32 @@ def timed(
 
     for f in fns.values():
         f(frame)
+    n = len(frames)
     if state == "cold":
-        for _ in range(repeats):
+        for i in range(repeats):
             for k, f in fns.items():
                 flush_caches()
-                one(k, f, frame)
+                one(k, f, frames[i % n])
     elif state == "stream":
-        frames = [frame.copy() for _ in range(STREAM_FRAMES)]
-        per_round = max(repeats, STREAM_FRAMES * ROUNDS) // ROUNDS
+        ring = list(frames) if n >= STREAM_FRAMES else [frames[i % n].copy() for i in range(STREAM_FRAMES)]
+        per_round = max(repeats, len(ring) * ROUNDS) // ROUNDS
         i = 0
         for _ in range(ROUNDS):
             for k, f in fns.items():
                 for j in range(SETTLE_CALLS + per_round):
                     if j < SETTLE_CALLS:
-                        f(frames[i % STREAM_FRAMES])
+                        f(ring[i % len(ring)])
                     else:
-                        one(k, f, frames[i % STREAM_FRAMES])
+                        one(k, f, ring[i % len(ring)])
                     i += 1
     else:
         per_round = max(1, -(-repeats // ROUNDS))
-        for _ in range(ROUNDS):
+        for r in range(ROUNDS):
             for k, f in fns.items():
                 for _ in range(SETTLE_CALLS):
-                    f(frame)
+                    f(frames[r % n])
                 for _ in range(per_round):
-                    one(k, f, frame)
+                    one(k, f, frames[r % n])
     return {k: (1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(wall[k]))) for k in fns}
 
 
@@ -421,14 +437,15 @@ def main() -> int:
         "",
         "### Speed (ms per 1920x1080 frame, one thread)",
         "",
-        "Per-thread CPU time (ms), medians of repetitions in one run, in three cache states: **cold**, every call "
-        f"right after {FLUSH_BYTES >> 20} MB were written (frame, code and work arrays all start from memory; "
-        "calls interleaved, so each starts with the branch history of the function before it: "
-        "`--cold-after FRAME` measures that); **stream**, each function's calls back to back on "
-        f"{STREAM_FRAMES} copies of the frame in turn (a new frame from memory each call, as from a camera, with "
-        "the code warm); and **warm**, each function's calls back to back on one frame. Stream and warm take the "
-        f"functions in turn in {ROUNDS} rounds of back-to-back calls, each after {SETTLE_CALLS} untimed calls (a "
-        "slow spell of the machine then lands on every function alike). "
+        f"Per-thread CPU time (ms), medians of repetitions in one run, on {STREAM_FRAMES} renders of each frame "
+        f"that differ in their noise (seeds 0-{STREAM_FRAMES - 1}, as a camera's successive frames differ), in three "
+        f"cache states: **cold**, every call right after {FLUSH_BYTES >> 20} MB were written (frame, code and work "
+        "arrays all start from memory; calls interleaved, so each starts with the branch history of the function "
+        "before it: `--cold-after FRAME` measures that), repetition i on render i; **stream**, each function's "
+        "calls back to back on the renders in turn (a new frame from memory each call, as from a camera, with the "
+        "code warm); and **warm**, each function's calls back to back on one render, another in each round. Stream "
+        f"and warm take the functions in turn in {ROUNDS} rounds of back-to-back calls, each after {SETTLE_CALLS} "
+        "untimed calls (a slow spell of the machine then lands on every function alike). "
         "`Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola over the "
         "full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the same "
         "written as loops and compiled (numba), which is what the arg-max itself costs. "
@@ -440,10 +457,10 @@ def main() -> int:
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name in SPEED_SCENES:
-        r = speed_frame(name)
-        fns = speed_functions(Sensor(r.calibration))
+        renders = speed_frames(name, STREAM_FRAMES)
+        fns = speed_functions(Sensor(renders[0].calibration))
         for state in CACHE_STATES:
-            t = timed(fns, r.image, args.repeats, state)
+            t = timed(fns, [r.image for r in renders], args.repeats, state)
             sub = t["subpixel"][0]
             refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
             speed_lines.append(

@@ -138,9 +138,9 @@ def test_speed_references_agree() -> None:
 
 
 def test_speed_cache_states_feed_the_frames_they_promise() -> None:
-    """The speed benchmark's cache states: ``stream`` hands each call a different copy of the frame in turn (every
-    call reads a new frame), ``warm`` and ``cold`` the same frame every call; stream and warm time every function
-    in each of ``ROUNDS`` rounds; an unknown state is refused."""
+    """The speed benchmark's cache states on one frame: ``stream`` hands each call a different copy of the frame in
+    turn (every call reads a new frame), ``warm`` and ``cold`` the same frame every call; stream and warm time
+    every function in each of ``ROUNDS`` rounds; an unknown state and no frames are refused."""
     import sys
     from pathlib import Path
 
@@ -150,7 +150,7 @@ def test_speed_cache_states_feed_the_frames_they_promise() -> None:
     frame = np.zeros((4, 5, 3), np.uint8)
     for state, distinct in (("stream", be.STREAM_FRAMES), ("warm", 1), ("cold", 1)):
         seen: list[int] = []
-        out = be.timed({"f": lambda img, seen=seen: seen.append(img.ctypes.data)}, frame, 3, state)
+        out = be.timed({"f": lambda img, seen=seen: seen.append(img.ctypes.data)}, [frame], 3, state)
         assert set(out) == {"f"}
         assert all(t >= 0.0 for t in out["f"])
         calls = seen[1:]  # after the untimed first call
@@ -164,7 +164,38 @@ def test_speed_cache_states_feed_the_frames_they_promise() -> None:
         else:
             assert len(calls) == 3
     with pytest.raises(ValueError, match="unknown cache state"):
-        be.timed({}, frame, 1, "lukewarm")
+        be.timed({}, [frame], 1, "lukewarm")
+    with pytest.raises(ValueError, match="no frames"):
+        be.timed({}, [], 1, "warm")
+
+
+def test_speed_states_take_the_renders_in_turn() -> None:
+    """Given renders that differ (noise seeds), the speed benchmark uses them as a camera would: the stream walks
+    through all of them in order, the warm timing stays on one per round (render r in round r), and the cold
+    repetitions take render i in repetition i; the speed frames are the same scene and calibration with other
+    noise."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    frames = [np.full((4, 5, 3), i, np.uint8) for i in range(be.STREAM_FRAMES)]
+    for state in ("stream", "warm", "cold"):
+        seen: list[int] = []
+        be.timed({"f": lambda img, seen=seen: seen.append(int(img[0, 0, 0]))}, frames, 4, state)
+        calls = seen[1:]  # after the untimed first call (frame 0)
+        if state == "stream":
+            assert calls == [i % be.STREAM_FRAMES for i in range(len(calls))]
+            assert set(calls) == set(range(be.STREAM_FRAMES))
+        elif state == "warm":
+            per = be.SETTLE_CALLS + 1  # 4 repeats over ROUNDS rounds: one timed call per round
+            assert calls == [r for r in range(be.ROUNDS) for _ in range(per)]
+        else:
+            assert calls == [0, 1, 2, 3]
+    a, b = be.speed_frames("wall_5.0", 2)
+    assert a.calibration == b.calibration
+    assert not np.array_equal(a.image, b.image)
 
 
 def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
