@@ -2,6 +2,7 @@
 
     python benchmarks/bench_extract.py [--seeds 1] [--repeats 15] [--out benchmarks/results/extract.md]
     python benchmarks/bench_extract.py --cold-after FRAME [--repeats 15]
+    python benchmarks/bench_extract.py --copies [--repeats 15]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -16,6 +17,9 @@ cache states: everything cold, a stream of new frames, and the same frame back t
 frame that differ in their noise, as a camera's frames do): ``Sensor.process``
 with each method (extraction and triangulation) and, measured in the same run, a plain per-column arg-max of
 the green channel with a parabolic fit over the full frame (numpy on uint8 and on float32, and compiled loops).
+
+``--copies``: only the speed table, timed on copies of one render of each frame instead of renders that differ
+(what replaying the same frame gives the branch predictors).
 
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
@@ -169,7 +173,7 @@ def flush_caches() -> None:
 #: Frames a stream of new frames cycles through: 14 renders of a scene (noise seeds 0-13; 87 MB at 1920x1080)
 #: exceed the last-level cache, so each call reads a frame that is not cached, while the code and the work arrays
 #: stay warm; and each frame differs from the one before, as a camera's do, so the branch predictors cannot replay
-#: the last call (on copies of one frame the compiled extractor ran up to 15 % faster than on such a stream).
+#: the last call (on copies of one frame the extractor ran up to 15 % faster than on such a stream: `--copies`).
 STREAM_FRAMES = 14
 #: Rounds of the stream and warm timings: each round calls every function back to back, in turn.
 ROUNDS = 5
@@ -398,6 +402,12 @@ def main() -> int:
         metavar="FRAME",
         help="only the cold calls of one speed frame (e.g. tank) by the function called before the flush",
     )
+    ap.add_argument(
+        "--copies",
+        action="store_true",
+        help="only the speed table, every frame timed on copies of one render (seed 0): how much replaying the "
+        "same frame flatters the extractor against renders that differ (default out: extract_copies.md)",
+    )
     args = ap.parse_args()
     if args.cold_after and args.cold_after not in SPEED_SCENES:
         ap.error(f"--cold-after: unknown speed frame {args.cold_after!r}; expected one of {SPEED_SCENES}")
@@ -407,6 +417,11 @@ def main() -> int:
         text = "\n".join(cold_after_table(args.cold_after, args.repeats)) + "\n"
         print(text)
         _write(args.out or RESULTS / f"extract_cold_after_{args.cold_after}.md", text)
+        return 0
+    if args.copies:
+        text = "\n".join([*speed_header(copies=True), *speed_rows(1, args.repeats)]) + "\n"
+        print(text)
+        _write(args.out or RESULTS / "extract_copies.md", text)
         return 0
 
     rows: list[dict[str, float | str]] = []
@@ -433,41 +448,8 @@ def main() -> int:
             f"| {m['points']:.0f} |"
         )
 
-    speed_lines = [
-        "",
-        "### Speed (ms per 1920x1080 frame, one thread)",
-        "",
-        f"Per-thread CPU time (ms), medians of repetitions in one run, on {STREAM_FRAMES} renders of each frame "
-        f"that differ in their noise (seeds 0-{STREAM_FRAMES - 1}, as a camera's successive frames differ), in three "
-        f"cache states: **cold**, every call right after {FLUSH_BYTES >> 20} MB were written (frame, code and work "
-        "arrays all start from memory; calls interleaved, so each starts with the branch history of the function "
-        "before it: `--cold-after FRAME` measures that), repetition i on render i; **stream**, each function's "
-        "calls back to back on the renders in turn (a new frame from memory each call, as from a camera, with the "
-        "code warm); and **warm**, each function's calls back to back on one render, another in each round. Stream "
-        f"and warm take the functions in turn in {ROUNDS} rounds of back-to-back calls, each after {SETTLE_CALLS} "
-        "untimed calls (a slow spell of the machine then lands on every function alike). "
-        "`Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola over the "
-        "full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the same "
-        "written as loops and compiled (numba), which is what the arg-max itself costs. "
-        f"Compiled kernels: {'numba' if HAVE_NUMBA else 'no (numpy fallback)'}.",
-        "",
-        "| frame | caches | reference (uint8) | reference (float32) | reference (compiled) | subpixel | paper "
-        "| subpixel / reference (uint8) | subpixel / reference (float32) | subpixel / reference (compiled) "
-        "| subpixel wall |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for name in SPEED_SCENES:
-        renders = speed_frames(name, STREAM_FRAMES)
-        fns = speed_functions(Sensor(renders[0].calibration))
-        for state in CACHE_STATES:
-            t = timed(fns, [r.image for r in renders], args.repeats, state)
-            sub = t["subpixel"][0]
-            refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
-            speed_lines.append(
-                f"| {name} | {state} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
-                f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} "
-                f"| {ratio_c} | {t['subpixel'][1]:.2f} |"
-            )
+    speed_lines = ["", *speed_header(copies=False)]
+    speed_lines += speed_rows(STREAM_FRAMES, args.repeats)
     r = named_scene("wall_1.0").render(seed=0)
     stage_lines = [
         "",
@@ -487,6 +469,59 @@ def main() -> int:
     print(text)
     _write(args.out or RESULTS / "extract.md", text)
     return 0
+
+
+def speed_header(copies: bool) -> list[str]:
+    """The title, the method and the column heads of the speed table: on renders that differ in their noise, or
+    (``copies``) on copies of one render."""
+    frames = (
+        f"on {STREAM_FRAMES} copies of one render of each frame (seed 0; the stream cycles through the copies, and "
+        "every call of a function sees the same frame: its branch predictors can replay the previous call), "
+        if copies
+        else f"on {STREAM_FRAMES} renders of each frame that differ in their noise (seeds 0-{STREAM_FRAMES - 1}, as "
+        "a camera's successive frames differ), "
+    )
+    each = "" if copies else ", repetition i on render i"
+    warm = "the frame" if copies else "one render, another in each round"
+    return [
+        "### Speed (ms per 1920x1080 frame, one thread)" + (": copies of one render" if copies else ""),
+        "",
+        f"Per-thread CPU time (ms), medians of repetitions in one run, {frames}in three cache states: **cold**, "
+        f"every call right after {FLUSH_BYTES >> 20} MB were written (frame, code and work arrays all start from "
+        "memory; calls interleaved, so each starts with the branch history of the function before it: "
+        f"`--cold-after FRAME` measures that){each}; **stream**, each function's calls back to back on the frames "
+        "in turn (a new frame from memory each call, with the code warm); and **warm**, each function's calls back "
+        f"to back on {warm}. Stream and warm take the functions in turn in {ROUNDS} rounds of back-to-back calls, "
+        f"each after {SETTLE_CALLS} untimed calls (a slow spell of the machine then lands on every function "
+        "alike). `Sensor.process` = extraction + triangulation; reference = plain per-column arg-max + parabola "
+        "over the full frame's green channel: numpy on the uint8 channel as stored and on a float32 copy, and the "
+        "same written as loops and compiled (numba), which is what the arg-max itself costs. "
+        f"Compiled kernels: {'numba' if HAVE_NUMBA else 'no (numpy fallback)'}.",
+        "",
+        "| frame | caches | reference (uint8) | reference (float32) | reference (compiled) | subpixel | paper "
+        "| subpixel / reference (uint8) | subpixel / reference (float32) | subpixel / reference (compiled) "
+        "| subpixel wall |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+
+
+def speed_rows(renders: int, repeats: int) -> list[str]:
+    """The rows of the speed table: every speed frame in every cache state, timed on ``renders`` renders of it
+    (noise seeds ``0 ... renders - 1``; one render: the stream cycles through copies of it)."""
+    rows: list[str] = []
+    for name in SPEED_SCENES:
+        frames = speed_frames(name, renders)
+        fns = speed_functions(Sensor(frames[0].calibration))
+        for state in CACHE_STATES:
+            t = timed(fns, [r.image for r in frames], repeats, state)
+            sub = t["subpixel"][0]
+            refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
+            rows.append(
+                f"| {name} | {state} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
+                f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} "
+                f"| {ratio_c} | {t['subpixel'][1]:.2f} |"
+            )
+    return rows
 
 
 def _write(path: str | Path, text: str) -> None:

@@ -276,3 +276,19 @@ def test_cold_after_table_has_a_row_per_function_of_the_speed_table() -> None:
         assert sub > 0.0
         assert ref > 0.0
         assert ratio == pytest.approx(sub / ref, abs=2e-3)
+
+
+def test_speed_table_says_what_it_was_timed_on() -> None:
+    """The speed table's text names its frames: renders that differ in their noise by default, copies of one
+    render with ``--copies`` (same columns, so the two tables compare row by row)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    renders, copies = be.speed_header(copies=False), be.speed_header(copies=True)
+    assert f"{be.STREAM_FRAMES} renders of each frame that differ in their noise" in renders[2]
+    assert f"{be.STREAM_FRAMES} copies of one render" in copies[2]
+    assert "copies" not in renders[2]
+    assert renders[-2:] == copies[-2:]
