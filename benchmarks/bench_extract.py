@@ -3,6 +3,7 @@
     python benchmarks/bench_extract.py [--seeds 1] [--repeats 15] [--out benchmarks/results/extract.md]
     python benchmarks/bench_extract.py --cold-after FRAME [--repeats 15]
     python benchmarks/bench_extract.py --copies [--repeats 15]
+    python benchmarks/bench_extract.py --stages FRAME [--seeds 1] [--repeats 15]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -20,6 +21,8 @@ the green channel with a parabolic fit over the full frame (numpy on uint8 and o
 
 ``--copies``: only the speed table, timed on copies of one render of each frame instead of renders that differ
 (what replaying the same frame gives the branch predictors).
+
+``--stages FRAME``: only the time of each compiled stage on one speed frame, a column per render (``--seeds``).
 
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
@@ -324,16 +327,15 @@ def cold_after_table(name: str, repeats: int) -> list[str]:
 STAGES = {
     "detection (noise, 2x2 average, response, local maxima)": ("detect_band",),
     "candidate chains": ("select_candidates", "expand_half"),
-    "sub-pixel fits (frame statistics, width limits, special and neighbour refits)": (
+    "sub-pixel fits (frame statistics, width limits, clipped and flat-topped profiles)": (
         "max_fwhm_at",
         "frame_profile_stats",
         "fit_columns_common",
         "core_peaks",
         "fit_columns_clipped",
-        "_refit",
         "_refit_full",
-        "refit_targets",
     ),
+    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "_refit"),
     "pooled gates, smoothing, quality": ("finish_points",),
     "triangulation": ("triangulate_points",),
 }
@@ -408,15 +410,27 @@ def main() -> int:
         help="only the speed table, every frame timed on copies of one render (seed 0): how much replaying the "
         "same frame flatters the extractor against renders that differ (default out: extract_copies.md)",
     )
+    ap.add_argument(
+        "--stages",
+        metavar="FRAME",
+        help="only the time of each stage on one speed frame (e.g. wall_5.0), a column per render of --seeds "
+        "(default out: extract_stages_FRAME.md)",
+    )
     args = ap.parse_args()
-    if args.cold_after and args.cold_after not in SPEED_SCENES:
-        ap.error(f"--cold-after: unknown speed frame {args.cold_after!r}; expected one of {SPEED_SCENES}")
+    for flag, frame in (("--cold-after", args.cold_after), ("--stages", args.stages)):
+        if frame and frame not in SPEED_SCENES:
+            ap.error(f"{flag}: unknown speed frame {frame!r}; expected one of {SPEED_SCENES}")
     cv2.setNumThreads(1)
     warm_up()  # compile the kernels now, not during the first timed frames
     if args.cold_after:
         text = "\n".join(cold_after_table(args.cold_after, args.repeats)) + "\n"
         print(text)
         _write(args.out or RESULTS / f"extract_cold_after_{args.cold_after}.md", text)
+        return 0
+    if args.stages:
+        text = "\n".join(stages_table(args.stages, args.seeds, 10 * args.repeats)) + "\n"
+        print(text)
+        _write(args.out or RESULTS / f"extract_stages_{args.stages}.md", text)
         return 0
     if args.copies:
         text = "\n".join([*speed_header(copies=True), *speed_rows(1, args.repeats)]) + "\n"
@@ -450,25 +464,34 @@ def main() -> int:
 
     speed_lines = ["", *speed_header(copies=False)]
     speed_lines += speed_rows(STREAM_FRAMES, args.repeats)
-    r = named_scene("wall_1.0").render(seed=0)
-    stage_lines = [
-        "",
-        "### Where the time goes (wall_1.0, ms per frame, one thread)",
-        "",
-        "Per-thread CPU time of each compiled stage of `Sensor.process` (default method), mean over back-to-back "
-        "repetitions on the same frame (warm, as the warm rows above). The stages are timed one call at a time "
-        "from Python (each call's argument passing included), so they add up to more than the single compiled "
-        "call that `Sensor.process` makes.",
-        "",
-        "| stage | ms |",
-        "|---|---:|",
-    ]
-    stages = stage_times(r.image, Sensor(r.calibration), 10 * args.repeats)
-    stage_lines += [f"| {stage} | {ms:.3f} |" for stage, ms in stages]
+    stage_lines = ["", *stages_table("wall_1.0", 1, 10 * args.repeats)]
     text = "\n".join(lines + speed_lines + stage_lines) + "\n"
     print(text)
     _write(args.out or RESULTS / "extract.md", text)
     return 0
+
+
+def stages_table(name: str, seeds: int, repeats: int) -> list[str]:
+    """Markdown table of :func:`stage_times` on speed frame ``name``: a column per render (noise seeds
+    ``0 ... seeds - 1``), each the mean of ``repeats`` back-to-back repetitions (warm)."""
+    frames = speed_frames(name, seeds)
+    sensor = Sensor(frames[0].calibration)
+    cols = [stage_times(r.image, sensor, repeats) for r in frames]
+    which = "" if seeds == 1 else f", seeds 0-{seeds - 1}"
+    lines = [
+        f"### Where the time goes ({name}{which}, ms per frame, one thread)",
+        "",
+        "Per-thread CPU time of each compiled stage of `Sensor.process` (default method), mean over back-to-back "
+        "repetitions on the same render (warm). The stages are timed one call at a time from Python (each call's "
+        "argument passing included), so they add up to more than the single compiled call that `Sensor.process` "
+        "makes.",
+        "",
+        "| stage | " + " | ".join("ms" if seeds == 1 else f"seed {k}" for k in range(seeds)) + " |",
+        "|---|" + "---:|" * seeds,
+    ]
+    for i, (stage, _) in enumerate(cols[0]):
+        lines.append(f"| {stage} | " + " | ".join(f"{c[i][1]:.3f}" for c in cols) + " |")
+    return lines
 
 
 def speed_header(copies: bool) -> list[str]:

@@ -239,23 +239,46 @@ def test_cold_after_runs_each_target_right_after_its_predecessor_and_a_flush(mon
     assert timed == ["a", "flush", "x", "a", "flush", "y", "b", "flush", "x", "b", "flush", "y"] * 2
 
 
-def test_cold_after_refuses_an_unknown_frame(
-    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("flag", ["--cold-after", "--stages"])
+def test_one_frame_options_refuse_an_unknown_frame(
+    flag: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """``--cold-after`` names one of the speed frames; anything else stops with a message naming them."""
+    """``--cold-after`` and ``--stages`` name one of the speed frames; anything else stops with a message naming
+    the flag and the frames."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import bench_extract as be
 
-    monkeypatch.setattr(sys, "argv", ["bench_extract.py", "--cold-after", "wall_9.9"])
+    monkeypatch.setattr(sys, "argv", ["bench_extract.py", flag, "wall_9.9"])
     with pytest.raises(SystemExit) as e:
         be.main()
     assert e.value.code == 2
     err = capsys.readouterr().err
-    assert "unknown speed frame 'wall_9.9'" in err
+    assert f"{flag}: unknown speed frame 'wall_9.9'" in err
     assert "tank" in err
+
+
+def test_stage_table_has_a_column_per_render_and_a_row_per_stage() -> None:
+    """``--stages``: a row per stage (the neighbour refits apart), then the sum and the whole call, a column per
+    render; on a wall at 5 m the refits take time, on a wall at 1 m none."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    lines = be.stages_table("wall_5.0", 2, 2)
+    assert lines[0].startswith("### Where the time goes (wall_5.0, seeds 0-1")
+    rows = [ln.split("|")[1:-1] for ln in lines if ln.startswith("| ") and not ln.startswith("| stage")]
+    assert [r[0].strip() for r in rows[:-2]] == list(be.STAGES)
+    assert all(len(r) == 3 for r in rows)
+    refits = next(r for r in rows if r[0].strip().startswith("neighbour refits"))
+    assert all(float(x) > 0.0 for x in refits[1:])
+    near = be.stages_table("wall_1.0", 1, 1)
+    row = next(ln for ln in near if ln.startswith("| neighbour refits"))
+    assert float(row.split("|")[2]) == 0.0
 
 
 def test_cold_after_table_has_a_row_per_function_of_the_speed_table() -> None:
