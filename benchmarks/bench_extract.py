@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from lrsensor import Sensor
+from lrsensor.atomic import atomic_write
 from lrsensor.extract import _kernels, subpixel
 from lrsensor.extract._kernels import HAVE_NUMBA, warm_up
 from lrsensor.sim import named_scene
@@ -397,7 +398,8 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=15, help="timing repetitions per frame")
     ap.add_argument(
         "--out",
-        help="markdown file written (default benchmarks/results/extract.md, or extract_cold_after_FRAME.md)",
+        help="markdown file written (default benchmarks/results/extract.md; extract_cold_after_FRAME.md, "
+        "extract_stages_FRAME.md or extract_copies.md with those options)",
     )
     ap.add_argument(
         "--cold-after",
@@ -423,19 +425,13 @@ def main() -> int:
     cv2.setNumThreads(1)
     warm_up()  # compile the kernels now, not during the first timed frames
     if args.cold_after:
-        text = "\n".join(cold_after_table(args.cold_after, args.repeats)) + "\n"
-        print(text)
-        _write(args.out or RESULTS / f"extract_cold_after_{args.cold_after}.md", text)
+        _publish(cold_after_table(args.cold_after, args.repeats), args.out, f"extract_cold_after_{args.cold_after}.md")
         return 0
     if args.stages:
-        text = "\n".join(stages_table(args.stages, args.seeds, 10 * args.repeats)) + "\n"
-        print(text)
-        _write(args.out or RESULTS / f"extract_stages_{args.stages}.md", text)
+        _publish(stages_table(args.stages, args.seeds, 10 * args.repeats), args.out, f"extract_stages_{args.stages}.md")
         return 0
     if args.copies:
-        text = "\n".join([*speed_header(copies=True), *speed_rows(1, args.repeats)]) + "\n"
-        print(text)
-        _write(args.out or RESULTS / "extract_copies.md", text)
+        _publish([*speed_header(copies=True), *speed_rows(1, args.repeats)], args.out, "extract_copies.md")
         return 0
 
     rows: list[dict[str, float | str]] = []
@@ -465,9 +461,7 @@ def main() -> int:
     speed_lines = ["", *speed_header(copies=False)]
     speed_lines += speed_rows(STREAM_FRAMES, args.repeats)
     stage_lines = ["", *stages_table("wall_1.0", 1, 10 * args.repeats)]
-    text = "\n".join(lines + speed_lines + stage_lines) + "\n"
-    print(text)
-    _write(args.out or RESULTS / "extract.md", text)
+    _publish(lines + speed_lines + stage_lines, args.out, "extract.md")
     return 0
 
 
@@ -547,11 +541,12 @@ def speed_rows(renders: int, repeats: int) -> list[str]:
     return rows
 
 
-def _write(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path``, creating its folder."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text, encoding="utf-8")
+def _publish(lines: list[str], out: str | None, default: str) -> None:
+    """Print the markdown ``lines`` and write them to ``out``, else to ``default`` in :data:`RESULTS`
+    (:func:`lrsensor.atomic.atomic_write`: the folder created, no half-written table)."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    atomic_write(Path(out) if out else RESULTS / default, text, fsync=False)
 
 
 if __name__ == "__main__":

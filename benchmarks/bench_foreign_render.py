@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrsensor import Calibration, Sensor
+from lrsensor.atomic import atomic_write
 from lrsensor.errors import ExtractionError
 from lrsensor.extract import CHANNELS, channel_option
 
@@ -269,8 +270,7 @@ def main() -> int:
             print(row, flush=True)
             lines.append(row)
     if not args.quick:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("\n".join(lines) + "\n")
+        atomic_write(args.out, "\n".join(lines) + "\n", fsync=False)
     return 0
 
 
