@@ -570,13 +570,15 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
         (1.0, True, 5.0, True),  # saturated: the whole window (8 rows), tail e^-2
         (2.5, False, 5.0, True),  # wide: the whole window
         (1.9, False, 5.0, True),  # its centroid weights reach 6 rows (3 sigma), 7 with re-centring: tail e^-3.6
-        (1.0, False, 6.0, True),  # flanks to 6 rows: 7
+        (1.0, False, 6.0, False),  # flanks to 6 rows, 7 read: tail e^-3.6 = 2.8 %, below the flanks' 5 %
+        (1.0, False, 7.0, True),  # flanks to 7 rows, 8 read: tail e^-2 = 13.5 %
     ],
 )
 def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: float, picked: bool) -> None:
     """A neighbour within the distance is subtracted only if its Gaussian reaches ``NEIGHBOUR_TAIL`` of the
-    point's amplitude in the rows the point's fit reads (``read_reach``: the flanks, 3 sigma of its centroid
-    weights, the whole window when saturated or wide), in the compiled kernel and its numpy twin alike."""
+    point's amplitude in the rows the point's centroid reads (``read_reach``: 3 sigma of its weights, the whole
+    window when saturated or wide) or ``NEIGHBOUR_FLANK_TAIL`` in its background flanks, in the compiled kernel
+    and its numpy twin alike."""
     from lrsensor.extract import _kernels
     from lrsensor.extract.subpixel import _neighbours
 
@@ -605,11 +607,14 @@ def test_read_reach_matches_its_numpy_twin() -> None:
     sig = np.concatenate([rng.uniform(0.3, 4.0, 500), [np.nan, np.inf, 2.0, 1.1, 0.0]])
     sat = rng.random(sig.size) < 0.2
     for read in ((6.0, 8.0, 2.0), (3.0, 12.0, 3.5), (9.0, 8.0, 2.0)):
-        twin = _read_reach(sig, sat, read)
+        twin = np.stack(_read_reach(sig, sat, read), axis=1)
         kernel = [_kernels.read_reach(s, bool(b), *read) for s, b in zip(sig, sat, strict=True)]
         np.testing.assert_array_equal(twin, kernel)
         assert np.all(twin <= read[1])
-        assert np.all(twin[sat | ~np.isfinite(sig)] == read[1])
+        assert np.all(twin[sat | ~np.isfinite(sig)] == read[1])  # saturated or wide: the whole window
+        plain = ~sat & (sig <= read[2])
+        assert np.all(twin[plain, 1] == min(read[0] + 1.0, read[1]))  # flanks out to near, a row of re-centring
+        assert np.all(twin[plain, 0] >= 5.0)  # the centroid's weights: 3 sigma of at least 1.1 px
 
 
 def test_vectorized_exp_and_log_match_the_library() -> None:

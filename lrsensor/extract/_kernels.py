@@ -2066,30 +2066,41 @@ def _rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untype
 
 
 #: A neighbour stripe is subtracted only where its Gaussian exceeds this fraction of the point's own amplitude
-#: (at least 1 DN) somewhere in the rows the point's fit reads (:func:`read_reach`, :func:`refit_targets`). Below
-#: it, the refit moves centres by hundredths of a pixel at most, and not toward the truth (walls at 4.5-6 m and the
-#: tank against no gate: at most 0.048 px, on few points, the gated output as close to the truth or closer), and the
-#: fit reads nothing of the neighbour's peak: a thin stripe (sigma 0.8 px) 11 rows away, as two lasers' stripes
-#: are on a wall at 5 m, adds less than 1e-3 of its peak 7 rows away.
+#: (at least 1 DN) somewhere in the rows the point's centroid reads (:func:`read_reach`, :func:`refit_targets`).
+#: Below it, the refit moves centres by hundredths of a pixel at most, and not toward the truth (walls at 4.5-6 m
+#: and the tank against no gate: at most 0.048 px, on few points, the gated output as close to the truth or
+#: closer): a thin stripe (sigma 0.8 px) 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than
+#: 1e-3 of its peak 7 rows away.
 NEIGHBOUR_TAIL = 1e-2
+#: The same threshold for the rows of the background flanks only (beyond the centroid's reach). There the tail
+#: tilts the background line instead of adding to the peak: a contamination ``eps`` (fraction of the amplitude)
+#: of one flank's mean moves a centroid of weight sigma ``s`` by about ``sqrt(2) eps s^2 / D`` pixels, ``D`` the
+#: rows between the flanks' centres (12-16): at most 0.004 px for a tail of 5 % at the outer flank row (its mean
+#: over the flank's 3 rows is less than half of that) and ``s`` up to 1.5 px, a few hundredths of the centre's
+#: noise where stripes meet (beyond 4 m). On a wall at 5 m the two stripes' tails reach 1-5 % of the other's
+#: peak at the outer flank rows, depending on each frame's window (``refit_targets``).
+NEIGHBOUR_FLANK_TAIL = 5e-2
+#: ``log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)``: the flank rows' tail scaled to :data:`NEIGHBOUR_TAIL`'s test.
+LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
 #: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
 NEIGHBOUR_REFITS = 4
 #: A point is refitted again only if its neighbour moved by more than this since its last refit: row and sigma
 #: in pixels, amplitude relative (:func:`refit_targets`). A point's fit depends on nothing else that changes
 #: between the rounds, and it moves by less than its neighbour does.
-NEIGHBOUR_TOL = 1e-4
+NEIGHBOUR_TOL = 1e-2
 
 
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
 def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
-    """How many rows from its centre a point's fit reads (its neighbour's Gaussian matters only there), one row
-    of re-centring included: the log-parabola and background flanks out to ``near`` rows from the peak, and the
-    Gaussian-weighted centroid out to 3 of its weight's sigma (``max(sig, 1.1)``; the weights beyond are below 1.1 %
-    of the peak's); the whole window (``far``) for a saturated or wide profile (``sig`` above ``wide_sigma`` or
-    not finite: their flanks move out with the plateau). Twin of :func:`lrsensor.extract.subpixel._read_reach`."""
+    """How many rows from its centre a point's fit reads, one row of re-centring included: ``(core, flanks)``, the
+    Gaussian-weighted centroid out to 3 of its weight's sigma (``max(sig, 1.1)``; the weights beyond are below
+    1.1 % of the peak's) and the log-parabola and background flanks out to ``near`` rows from the peak (a
+    neighbour's Gaussian matters only there, and less in the flanks: :data:`NEIGHBOUR_FLANK_TAIL`); the whole
+    window (``far``) for both for a saturated or wide profile (``sig`` above ``wide_sigma`` or not finite: their
+    flanks move out with the plateau). Twin of :func:`lrsensor.extract.subpixel._read_reach`."""
     if sat or not sig <= wide_sigma:  # (True for a NaN sigma)
-        return far
-    return min(far, 1.0 + max(near, math.ceil(3.0 * max(sig, 1.1))))
+        return far, far
+    return min(far, 1.0 + math.ceil(3.0 * max(sig, 1.1))), min(far, 1.0 + near)
 
 
 @_njit
@@ -2129,7 +2140,7 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     n = min(v.size, n_lasers * look.size)
     cand = np.empty(n, np.int64)
     nbj = np.empty(n, np.int64)
-    arg = np.empty(n)  # -(gap / sigma)^2 / 2: the neighbour's Gaussian at the nearest row of the reach
+    arg = np.empty(n)  # the log of the neighbour's Gaussian at the nearest row read, the flanks' scaled
     m = 0
     for li in range(n_lasers):  # laser by laser, columns in order: the points' order
         for c in look:
@@ -2149,9 +2160,11 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
             if jb >= 0:
                 cand[m] = t
                 nbj[m] = jb
-                reach = read_reach(sig[t], sat[t], near, far, wide_sigma)
-                gap = max(best - reach, 0.0) / (sig[jb] if math.isfinite(sig[jb]) else 1.0)
-                arg[m] = -0.5 * gap * gap
+                core, flanks = read_reach(sig[t], sat[t], near, far, wide_sigma)
+                s_j = sig[jb] if math.isfinite(sig[jb]) else 1.0
+                g_c = max(best - core, 0.0) / s_j
+                g_f = max(best - flanks, 0.0) / s_j
+                arg[m] = max(-0.5 * g_c * g_c, -0.5 * g_f * g_f + LOG_FLANK_TAIL)
                 m += 1
     tail = exp_array(arg[:m])
     idx = np.empty(m, np.int64)

@@ -580,14 +580,17 @@ def _typical_sigma(P: NDArray[np.uint8], saturation_dn: float, max_sigma_px: flo
     return float(np.clip(sigma, 0.6, max_sigma_px)) if math.isfinite(sigma) else 1.0
 
 
-def _read_reach(sig: FloatArray, sat: NDArray[np.bool_], read: tuple[float, float, float]) -> FloatArray:
-    """How many rows from their centres the points' fits read (N,), from their sigma and saturation (N,) and
-    ``read = (near, far, wide_sigma)`` (numpy twin of :func:`lrsensor.extract._kernels.read_reach`)."""
+def _read_reach(
+    sig: FloatArray, sat: NDArray[np.bool_], read: tuple[float, float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """How many rows from their centres the points' fits read (N,) each, ``(core, flanks)``: their centroids and
+    their background flanks, from their sigma and saturation (N,) and ``read = (near, far, wide_sigma)`` (numpy
+    twin of :func:`lrsensor.extract._kernels.read_reach`)."""
     near, far, wide_sigma = read
     with np.errstate(invalid="ignore"):
         plain = ~sat & (sig <= wide_sigma)
-        own = np.minimum(far, 1.0 + np.maximum(near, np.ceil(3.0 * np.maximum(sig, 1.1))))
-    return np.where(plain, own, far)
+        core = np.minimum(far, 1.0 + np.ceil(3.0 * np.maximum(sig, 1.1)))
+    return np.where(plain, core, far), np.where(plain, min(far, 1.0 + near), far)
 
 
 def _neighbours(
@@ -605,8 +608,9 @@ def _neighbours(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """For every fitted point (N,): the nearest stripe of another laser in the same column (row, amplitude,
     sigma), NaN row when none is closer than ``max_dist`` rows or its Gaussian stays below
-    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude in the rows the point's fit reads
-    (:func:`_read_reach` with ``read``)."""
+    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude in the rows the point's centroid
+    reads, or :data:`~lrsensor.extract._kernels.NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`_read_reach`
+    with ``read``)."""
     V = np.full((n_lasers, width), np.nan)
     A = np.zeros((n_lasers, width))
     S = np.ones((n_lasers, width))
@@ -626,9 +630,12 @@ def _neighbours(
         out_a = np.where(take, A[other, cols], out_a)
         out_s = np.where(take, S[other, cols], out_s)
         best = np.where(take, dist, best)
+    core, flanks = _read_reach(sig, sat, read)
     with np.errstate(invalid="ignore"):
-        gap = np.maximum(best - _read_reach(sig, sat, read), 0.0)
-        tail = out_a * np.exp(-0.5 * (gap / out_s) ** 2) > _kernels.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
+        g_c = np.maximum(best - core, 0.0) / out_s
+        g_f = np.maximum(best - flanks, 0.0) / out_s
+        log_tail = np.maximum(-0.5 * g_c**2, -0.5 * g_f**2 + _kernels.LOG_FLANK_TAIL)
+        tail = out_a * np.exp(log_tail) > _kernels.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
     far = ~tail
     out_v[far] = np.nan
     out_a[far] = 0.0
