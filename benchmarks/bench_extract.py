@@ -4,6 +4,7 @@
     python benchmarks/bench_extract.py --cold-after FRAME [--repeats 15]
     python benchmarks/bench_extract.py --copies [--repeats 15]
     python benchmarks/bench_extract.py --stages FRAME [--seeds 1] [--repeats 15]
+    python benchmarks/bench_extract.py --flank-gate [--seeds 1]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -24,6 +25,11 @@ the green channel with a parabolic fit over the full frame (numpy on uint8 and o
 
 ``--stages FRAME``: only the time of each compiled stage on one speed frame, a column per render (``--seeds``).
 
+``--flank-gate``: only the effect of the neighbour refits' flank threshold (a neighbour's tail in a point's
+background flanks triggers a refit from ``NEIGHBOUR_FLANK_TAIL`` of its amplitude, against 1 % as in the rows its
+centroid reads) on walls at 3.5-6 m and the tank: refitted columns, accuracy, and how far the centres move. The
+thresholds are compiled into the kernels, so both are run on the numpy path, which reads them at each call.
+
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
 """
@@ -36,6 +42,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -44,6 +51,7 @@ from lrsensor import Sensor
 from lrsensor.atomic import atomic_write
 from lrsensor.extract import _kernels, subpixel
 from lrsensor.extract._kernels import HAVE_NUMBA, warm_up
+from lrsensor.scan import Scan
 from lrsensor.sim import named_scene
 from lrsensor.sim import scenes as sim_scenes
 from lrsensor.sim.render import Render
@@ -399,7 +407,7 @@ def main() -> int:
     ap.add_argument(
         "--out",
         help="markdown file written (default benchmarks/results/extract.md; extract_cold_after_FRAME.md, "
-        "extract_stages_FRAME.md or extract_copies.md with those options)",
+        "extract_stages_FRAME.md, extract_copies.md or extract_flank_gate.md with those options)",
     )
     ap.add_argument(
         "--cold-after",
@@ -418,6 +426,12 @@ def main() -> int:
         help="only the time of each stage on one speed frame (e.g. wall_5.0), a column per render of --seeds "
         "(default out: extract_stages_FRAME.md)",
     )
+    ap.add_argument(
+        "--flank-gate",
+        action="store_true",
+        help="only the neighbour refits' flank threshold against 1 %% on walls at 3.5-6 m and the tank, --seeds "
+        "renders each, on the numpy path (default out: extract_flank_gate.md)",
+    )
     args = ap.parse_args()
     for flag, frame in (("--cold-after", args.cold_after), ("--stages", args.stages)):
         if frame and frame not in SPEED_SCENES:
@@ -429,6 +443,9 @@ def main() -> int:
         return 0
     if args.stages:
         _publish(stages_table(args.stages, args.seeds, 10 * args.repeats), args.out, f"extract_stages_{args.stages}.md")
+        return 0
+    if args.flank_gate:
+        _publish(flank_gate_table(args.seeds), args.out, "extract_flank_gate.md")
         return 0
     if args.copies:
         _publish([*speed_header(copies=True), *speed_rows(1, args.repeats)], args.out, "extract_copies.md")
@@ -485,6 +502,90 @@ def stages_table(name: str, seeds: int, repeats: int) -> list[str]:
     ]
     for i, (stage, _) in enumerate(cols[0]):
         lines.append(f"| {stage} | " + " | ".join(f"{c[i][1]:.3f}" for c in cols) + " |")
+    return lines
+
+
+#: The frames of ``--flank-gate``: walls where the two lasers' stripes come close (beyond about 4 m) and the tank.
+FLANK_GATE_FRAMES = ("wall_3.5", "wall_4.0", "wall_4.5", "wall_5.0", "wall_5.5", "wall_6.0", "tank")
+
+
+@contextmanager
+def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
+    """Run the sub-pixel extractor on its numpy path with the flank threshold ``log(NEIGHBOUR_TAIL / flank)``;
+    yields a list to which every refit round appends the number of points it finds a neighbour to subtract for."""
+    neighbours = subpixel._neighbours
+    saved = (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL)
+    rounds: list[int] = []
+
+    def counted(*a: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        out = neighbours(*a)
+        rounds.append(int(np.isfinite(out[0]).sum()))
+        return out
+
+    subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL = False, log_flank_tail
+    subpixel._neighbours = counted  # type: ignore[assignment]
+    try:
+        yield rounds
+    finally:
+        subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL = saved
+        subpixel._neighbours = neighbours
+
+
+def _row_moves(a: Scan, b: Scan) -> np.ndarray:
+    """|row change| (px) of the points of two scans of one frame at the same laser and column."""
+    rows_a = {(int(l), round(float(u))): float(v) for l, (u, v) in zip(a.laser, a.uv, strict=True)}
+    rows_b = {(int(l), round(float(u))): float(v) for l, (u, v) in zip(b.laser, b.uv, strict=True)}
+    return np.array([abs(rows_a[k] - rows_b[k]) for k in rows_a.keys() & rows_b.keys()])
+
+
+def flank_gate_table(seeds: int) -> list[str]:
+    """Markdown table: per frame of :data:`FLANK_GATE_FRAMES` (``seeds`` renders each), the neighbour refits with
+    the flank threshold at 1 % (as the centroid's rows) and at ``NEIGHBOUR_FLANK_TAIL``: columns refitted in the
+    first round, median and p95 range error, outliers, points; and how far the centres move between the two."""
+    flank = _kernels.NEIGHBOUR_FLANK_TAIL
+    variants = {"1 %": 0.0, f"{100 * flank:g} %": _kernels.LOG_FLANK_TAIL}
+    lines = [
+        f"### Neighbour refits: a tail in the background flanks from 1 % against {100 * flank:g} % (numpy path)",
+        "",
+        "A point is refitted with the other laser's stripe subtracted where that stripe's Gaussian reaches "
+        f"{100 * _kernels.NEIGHBOUR_TAIL:g} % of the point's amplitude in the rows its centroid reads, or the "
+        "flank threshold in its background flanks. Columns: points refitted in the first round, then range error "
+        "(%, median and p95), outliers (> 5 % off, %) and points per frame with the flanks at 1 % -> at "
+        f"{100 * flank:g} %, means over seeds 0-{seeds - 1}; and the row change of the points both keep (px: mean "
+        "over the points that move, 95th percentile and largest).",
+        "",
+        "| frame | refitted | median % | p95 % | outliers % | points | moved | mean px | p95 px | max px |",
+        "|---|---|---|---|---|---|---:|---:|---:|---:|",
+    ]
+    for name in FLANK_GATE_FRAMES:
+        per: dict[str, list[dict[str, float]]] = {k: [] for k in variants}
+        refits: dict[str, list[int]] = {k: [] for k in variants}
+        moves = []
+        for seed in range(seeds):
+            r = speed_frame(name, seed)
+            sensor = Sensor(r.calibration)
+            scans = {}
+            for key, log_tail in variants.items():
+                with _numpy_path(log_tail) as rounds:
+                    scans[key] = sensor.process(r.image)
+                refits[key].append(rounds[0] if rounds else 0)
+                per[key].append(score_scan(r, scans[key]))
+            moves.append(_row_moves(*scans.values()))
+        d = np.concatenate(moves)
+        moved = d[d > 1e-9]
+
+        def pair(k: str, fmt: str, per: dict[str, list[dict[str, float]]] = per) -> str:
+            a, b = (float(np.mean([m[k] for m in per[v]])) for v in variants)
+            return f"{a:{fmt}} -> {b:{fmt}}"
+
+        a, b = (float(np.mean(refits[v])) for v in variants)
+        stats = (
+            f"{moved.mean():.4f} | {np.percentile(moved, 95):.4f} | {moved.max():.3f}" if moved.size else "0 | 0 | 0"
+        )
+        lines.append(
+            f"| {name} | {a:.0f} -> {b:.0f} | {pair('median', '.3f')} | {pair('p95', '.2f')} "
+            f"| {pair('outliers', '.2f')} | {pair('points', '.0f')} | {moved.size} of {d.size} | {stats} |"
+        )
     return lines
 
 

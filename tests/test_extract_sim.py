@@ -315,3 +315,35 @@ def test_speed_table_says_what_it_was_timed_on() -> None:
     assert f"{be.STREAM_FRAMES} copies of one render" in copies[2]
     assert "copies" not in renders[2]
     assert renders[-2:] == copies[-2:]
+
+
+def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--flank-gate``: per frame, the refitted columns and the accuracy with the flank threshold at 1 % and at
+    ``NEIGHBOUR_FLANK_TAIL`` (fewer refits at the larger one on a wall at 5 m, where the stripes meet), and the
+    centres' moves; the numpy path and the threshold are restored afterwards, also when a frame fails."""
+    import sys
+    from pathlib import Path
+
+    from lrsensor.extract import _kernels, subpixel
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_extract as be
+
+    state = (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours)
+    monkeypatch.setattr(be, "FLANK_GATE_FRAMES", ("wall_5.0",))
+    lines = be.flank_gate_table(1)
+    assert lines[0].startswith("### Neighbour refits: a tail in the background flanks from 1 % against 5 %")
+    row = lines[-1].split("|")[1:-1]
+    assert row[0].strip() == "wall_5.0"
+    before, after = (int(x) for x in row[1].split("->"))
+    assert before > after > 0
+    median, p95, outliers, points = ([float(x) for x in cell.split("->")] for cell in row[2:6])
+    assert median[1] == pytest.approx(median[0], rel=0.02)  # the same accuracy and points
+    assert points[1] == pytest.approx(points[0], rel=0.02)
+    assert p95[1] <= 1.05 * p95[0]
+    assert outliers[1] <= 1.05 * outliers[0]
+    assert (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours) == state
+    monkeypatch.setattr(subpixel, "_finish_numpy", lambda *_: 1 / 0)  # a frame fails inside the numpy path
+    with pytest.raises(ZeroDivisionError):
+        be.flank_gate_table(1)
+    assert (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours) == state
