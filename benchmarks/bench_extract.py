@@ -636,7 +636,7 @@ def speed_rows(renders: int, repeats: int) -> list[str]:
             refc, ratio_c = ("n/a", "n/a") if "refc" not in t else (f"{t['refc'][0]:.2f}", f"{sub / t['refc'][0]:.2f}")
             rows.append(
                 f"| {name} | {state} | {t['ref'][0]:.2f} | {t['ref32'][0]:.2f} | {refc} "
-                f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.2f} | {sub / t['ref32'][0]:.2f} "
+                f"| {sub:.2f} | {t['paper'][0]:.2f} | {sub / t['ref'][0]:.3f} | {sub / t['ref32'][0]:.2f} "
                 f"| {ratio_c} | {t['subpixel'][1]:.2f} |"
             )
     return rows
