@@ -2075,10 +2075,11 @@ NEIGHBOUR_TAIL = 1e-2
 #: The same threshold for the rows of the background flanks only (beyond the centroid's reach). There the tail
 #: tilts the background line instead of adding to the peak: a contamination ``eps`` (fraction of the amplitude)
 #: of one flank's mean moves a centroid of weight sigma ``s`` by about ``sqrt(2) eps s^2 / D`` pixels, ``D`` the
-#: rows between the flanks' centres (12-16): at most 0.004 px for a tail of 5 % at the outer flank row (its mean
-#: over the flank's 3 rows is less than half of that) and ``s`` up to 1.5 px, a few hundredths of the centre's
-#: noise where stripes meet (beyond 4 m). On a wall at 5 m the two stripes' tails reach 1-5 % of the other's
-#: peak at the outer flank rows, depending on each frame's window (``refit_targets``).
+#: rows between the flanks' centres (10 or more). A tail of 5 % at the outer flank row averages less than 2.5 % over
+#: the flank's 3 rows, so a centre moves by at most about 0.01 px (``s`` up to 2 px) and typically 0.003 px (``s``
+#: 1.1 px): a tenth to a thirtieth of the centre's noise where the stripes meet (about 0.09 px on a wall at 5 m).
+#: There the two stripes' tails reach 1-5 % of the other's peak at the outer flank rows, depending on each frame's
+#: window (``refit_targets``).
 NEIGHBOUR_FLANK_TAIL = 5e-2
 #: ``log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)``: the flank rows' tail scaled to :data:`NEIGHBOUR_TAIL`'s test.
 LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
