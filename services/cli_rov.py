@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from lrsensor.extract import CHANNELS, channel_option
+from lrsensor.extract import CHANNELS, command_line_options
 
 from .zconfig import add_network_args
 
@@ -99,10 +99,8 @@ def run(args: argparse.Namespace) -> int:
     from .sources import FolderSource, FrameSource, open_source
     from .zconfig import NetworkOptions, open_session, options_from_args
 
-    process_options = {  # (--channel with another method is refused here, before the network)
-        **channel_option(args.method, args.channel),
-        **{k: v for k, v in (("min_range_m", args.min_range_m), ("max_range_m", args.max_range_m)) if v is not None},
-    }
+    # (--channel with another method is refused here, before the network)
+    process_options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)
     keys = FleetKeys(args.fleet, args.prefix)
     robot = check_robot_name(args.robot)
     options = options_from_args(args)

@@ -192,3 +192,21 @@ def test_channel_option_of_the_command_lines() -> None:
     assert channel_option("subpixel", "green") == {"channel": "green"}
     with pytest.raises(ExtractionError, match="not of --method paper"):
         channel_option("paper", "luma")
+
+
+def test_command_line_options_of_process_and_rov() -> None:
+    """The extractor options ``process`` and ``rov`` build from their flags: only the flags given, ``--channel``
+    refused with another method than the sub-pixel extractor."""
+    from lrsensor.errors import ExtractionError
+    from lrsensor.extract import command_line_options
+
+    assert command_line_options("subpixel", None, None, None) == {}
+    assert command_line_options("paper", None, 0.5, None) == {"min_range_m": 0.5}
+    assert command_line_options(None, "luma", None, 3.0) == {"channel": "luma", "max_range_m": 3.0}
+    assert command_line_options("subpixel", "green", 0.3, 4.0) == {
+        "channel": "green",
+        "min_range_m": 0.3,
+        "max_range_m": 4.0,
+    }
+    with pytest.raises(ExtractionError, match="not of --method paper"):
+        command_line_options("paper", "luma", 0.5, None)

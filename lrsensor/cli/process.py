@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..extract import CHANNELS, DEFAULT_METHOD, METHODS, channel_option
+from ..extract import CHANNELS, DEFAULT_METHOD, METHODS, command_line_options
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -75,11 +75,7 @@ def run(args: argparse.Namespace) -> int:
             msg = f"several images share the stem(s) {dup}: their PLY files in --out-dir would collide"
             raise ExtractionError(msg)
     sensor = Sensor.from_file(args.calib)
-    options: dict[str, Any] = channel_option(args.method, args.channel)
-    if args.min_range_m is not None:
-        options["min_range_m"] = args.min_range_m
-    if args.max_range_m is not None:
-        options["max_range_m"] = args.max_range_m
+    options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)
     failures = 0
     bar = tqdm(images, unit="img", disable=args.no_progress or len(images) < 2, file=sys.stderr)
     for path in bar:

@@ -65,6 +65,20 @@ def channel_option(method: str | None, channel: str | None) -> dict[str, str]:
     return {"channel": channel}
 
 
+def command_line_options(
+    method: str | None, channel: str | None, min_range_m: float | None, max_range_m: float | None
+) -> dict[str, Any]:
+    """The extractor options of a command line's ``--channel``, ``--min-range-m`` and ``--max-range-m`` flags, for
+    ``Sensor.process(image, method=method, **options)``: the flags given (None = not given, the extractor's
+    default); ``--channel`` as :func:`channel_option` (refused with another method)."""
+    options: dict[str, Any] = dict(channel_option(method, channel))
+    if min_range_m is not None:
+        options["min_range_m"] = min_range_m
+    if max_range_m is not None:
+        options["max_range_m"] = max_range_m
+    return options
+
+
 def get_extractor(method: str) -> Extractor:
     """The extractor function registered under ``method``; raises :class:`ExtractionError` if unknown."""
     try:
