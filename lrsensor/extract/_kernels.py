@@ -862,9 +862,10 @@ def _half_crossings(B, level):  # type: ignore[no-untyped-def]
 
 @_njit
 def _fit_common_chunk(  # type: ignore[no-untyped-def]
-    image, cols, peaks, half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
+    image, cols, peaks, half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm, out, t0
 ):
-    """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache)."""
+    """:func:`fit_columns_common` on one chunk of columns (its arrays stay in the cache): the results written
+    into ``out`` (as :func:`_fit_results`, columns ``t0`` on; no copy of a chunk's results)."""
     n = cols.size
     m = 2 * half + 1
     R = half
@@ -1061,20 +1062,25 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                 step = gain[t] * float(a_s1[t]) / float(a_s0[t])
                 if math.isfinite(step):
                     c[t] += min(max(step, -1.0), 1.0)
-    # 4. acceptance and the colour rises
-    centre = np.empty(n)
-    pk_rows = np.empty(n, np.int64)
+    # 4. acceptance, the results into ``out`` from column ``t0`` on, and the colour rises
+    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_sp = out
+    nan = np.nan
     for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
+        u = np.uint64(t0 + t)
         good = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
-        pk_rows[t] = peaks[t]
-        centre[t] = pk_rows[t] - half + c[t] if good else np.nan
-        ok[t] = good
-    rise = np.empty((3, n))
-    r_g = rise[1]
+        o_c[u] = peaks[t] - half + c[t] if good else nan
+        o_ok[u] = good
     for t in range(n):
-        r_g[t] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
-    _colour_rises(image, cols, pk_rows, half, (0, 2), rise)  # blue and red at the same rows
-    return centre, a0, sigma, np.zeros(n, np.bool_), ok, noise, rise, special
+        u = np.uint64(t0 + t)
+        o_a[u] = a0[t]
+        o_sg[u] = sigma[t]
+        o_sat[u] = False
+        o_no[u] = noise[t]
+        o_sp[u] = special[t]
+    r_g = o_ri[1]
+    for t in range(n):
+        r_g[np.uint64(t0 + t)] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
+    _colour_rises(image, cols, peaks, half, (0, 2), o_ri[:, t0 : t0 + n])  # blue and red at the same rows
 
 
 @_njit
@@ -1091,19 +1097,6 @@ def _fit_results(n):  # type: ignore[no-untyped-def]
         np.empty((3, n)),
         np.empty(n, np.bool_),
     )
-
-
-@_njit
-def _store_fit(out, res, t0, t1):  # type: ignore[no-untyped-def]
-    """Copy the results ``res`` of the chunk of columns ``[t0, t1)`` into ``out`` (as :func:`_fit_results`)."""
-    out[0][t0:t1] = res[0]
-    out[1][t0:t1] = res[1]
-    out[2][t0:t1] = res[2]
-    out[3][t0:t1] = res[3]
-    out[4][t0:t1] = res[4]
-    out[5][t0:t1] = res[5]
-    out[6][:, t0:t1] = res[6]
-    out[7][t0:t1] = res[7]
 
 
 @numba.njit(inline="always", error_model="numpy") if HAVE_NUMBA else _njit
@@ -1141,10 +1134,21 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     out = _fit_results(cols.size)
     for t0 in range(0, cols.size, 512):
         t1 = min(t0 + 512, cols.size)
-        res = _fit_common_chunk(
-            image, cols[t0:t1], peaks[t0:t1], half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
+        _fit_common_chunk(
+            image,
+            cols[t0:t1],
+            peaks[t0:t1],
+            half,
+            sigma_hint,
+            sat_dn,
+            min_sig,
+            max_sig,
+            flank,
+            iterations,
+            wide_fwhm,
+            out,
+            t0,
         )
-        _store_fit(out, res, t0, t1)
     return out
 
 
@@ -1515,10 +1519,11 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # t
 
 
 @_njit
-def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iterations):  # type: ignore[no-untyped-def]
+def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iterations, out, t0):  # type: ignore[no-untyped-def]
     """:func:`fit_columns_clipped` on one chunk of columns (its arrays stay in the cache): the results of the
-    saturated columns (as :func:`_fit_results`; the others' left to do), and what the unsaturated ones' fits take:
-    ``(W, bl, slope, xl)``, the windows (m, n) uint8 and their background lines (n,) each."""
+    saturated columns written into ``out`` (as :func:`_fit_results`, columns ``t0`` on; the others' left to do),
+    and returned what the unsaturated ones' fits take: ``(W, bl, slope, xl, sat)``, the windows (m, n) uint8,
+    their background lines and whether each is saturated (n,) each."""
     n = cols.size
     m = 2 * half + 1
     R = half
@@ -1620,22 +1625,28 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
                 sigma[idx[i]] = sig_k[i]
     # 4. acceptance (anywhere on the clipped top) and the colour rises (green from the window: its peak row and
     # ends)
-    pk_rows = peaks
-    centre = np.empty(n)
-    ok = np.empty(n, np.bool_)
-    rise = np.empty((3, n))
+    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_dn = out
+    nan = np.nan
     for t in range(n):  # branch-free (vectorizes); |c - R| <= lim is False for NaN and inf
+        u = np.uint64(t0 + t)
         good = sat[t] & (abs(c[t] - R) <= 0.5 * n_sat[t] + 1.0) & (a0[t] > 0)
-        ok[t] = good
-        centre[t] = pk_rows[t] - half + c[t] if good else np.nan
-    r_g = rise[1]
+        o_ok[u] = good
+        o_c[u] = peaks[t] - half + c[t] if good else nan
+    for t in range(n):
+        u = np.uint64(t0 + t)
+        o_a[u] = a0[t]
+        o_sg[u] = sigma[t]
+        o_sat[u] = sat[t]
+        o_no[u] = noise[t]
+        o_dn[u] = sat[t]
+    r_g = o_ri[1]
     w_lo = W[0]
     w_pk = W[R]
     w_hi = W[m - 1]
     for t in range(n):
-        r_g[t] = float(w_pk[t]) - 0.5 * (float(w_lo[t]) + float(w_hi[t]))
-    _colour_rises(image, cols, pk_rows, half, (0, 2), rise)  # blue and red at the same rows
-    return (centre, a0, sigma, sat, ok, noise, rise, sat.copy()), (W, bl, slope, xl)
+        r_g[np.uint64(t0 + t)] = float(w_pk[t]) - 0.5 * (float(w_lo[t]) + float(w_hi[t]))
+    _colour_rises(image, cols, peaks, half, (0, 2), o_ri[:, t0 : t0 + n])  # blue and red at the same rows
+    return W, bl, slope, xl, sat
 
 
 @_njit
@@ -1701,11 +1712,9 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
     n_p = 0
     for t0 in range(0, N, 512):
         t1 = min(t0 + 512, N)
-        res, (W, bl, slope, xl) = _fit_clipped_chunk(
-            image, cols[t0:t1], peaks[t0:t1], half, sigma_hint, sat_dn, flank, iterations
+        W, bl, slope, xl, sat = _fit_clipped_chunk(
+            image, cols[t0:t1], peaks[t0:t1], half, sigma_hint, sat_dn, flank, iterations, out, t0
         )
-        _store_fit(out, res, t0, t1)
-        sat = res[3]
         p0 = n_p
         for t in range(t1 - t0):
             if not sat[t]:
@@ -2393,28 +2402,31 @@ def finish_points(  # type: ignore[no-untyped-def]
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
     n = col_v.size
-    snr = np.zeros(n)
-    for t in range(n):
-        noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
-        snr[t] = amp[t] / noise
+    snr = np.empty(n)
     # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
     ch = np.full(n_cols + 2 * pool, -1, np.int32)  # chain ids < n_cols * k: 16 lanes in the float32 pooling
     # the rises are halves of integers below 256 in magnitude: their sums over the window are exact in float32
     # (twice the vector lanes of float64)
     dr = np.zeros((3, n_cols + 2 * pool), np.float32)
-    for t in range(n):
-        q = col_v[t] + pool
+    zero = np.float32(0.0)
+    d_b = dr[0]
+    d_g = dr[1]
+    d_r = dr[2]
+    for t in range(n):  # the points' signal-to-noise ratios and their dense rows, one pass (no branch)
+        noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
+        snr[t] = amp[t] / noise
+        q = np.uint64(col_v[t] + pool)
         ch[q] = chain[t]
-        if ok[t]:
-            for c in range(3):
-                dr[c, q] = rise[c, t]
+        okt = ok[t]
+        d_b[q] = np.float32(rise[0, t]) if okt else zero
+        d_g[q] = np.float32(rise[1, t]) if okt else zero
+        d_r[q] = np.float32(rise[2, t]) if okt else zero
     # the colour test pooled over the window, for every (virtual) column at once: shifted contiguous reads of
     # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
     nw = 2 * pool + 1
     nd = n_cols
     sums = np.zeros((3, nd), np.float32)
     own = ch[pool : pool + nd]
-    zero = np.float32(0.0)
     sb = sums[0]
     sg = sums[1]
     sr = sums[2]
@@ -2460,27 +2472,31 @@ def finish_points(  # type: ignore[no-untyped-def]
                 uq = np.uint64(q)
                 sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
         j += 1
-    good = np.zeros(n, np.bool_)
-    for t in range(n):
-        q = col_v[t]
-        good[t] = ok[t] and (sat[t] or float(sg[q]) >= green_ratio * float(max(sb[q], sr[q])))
+    good = np.empty(n, np.bool_)
     ds = np.full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
-    for t in range(n):
-        if good[t]:
-            ds[col_v[t] + pool] = snr[t]
-    keep = np.zeros(n, np.bool_)
+    nan32 = np.float32(np.nan)
+    for t in range(n):  # the colour gate and the passing ratios, one branch-free pass
+        q = np.uint64(col_v[t])
+        g = ok[t] & (sat[t] | (float(sg[q]) >= green_ratio * float(max(sb[q], sr[q]))))
+        good[t] = g
+        ds[q + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
+    keep = np.empty(n, np.bool_)
     if nw == 9:  # the default pool: each window sorted in registers
         medv = _pooled_median9(ch, ds, nd)
     else:
         medv = _pooled_median(ch, ds, own, nw, nd)
-    for t in range(n):
-        if not good[t]:
-            continue
-        snr[t] = min(medv[col_v[t]], snr[t] / floor_frac)
-        keep[t] = amp[t] >= min_contrast and (snr[t] >= min_snr or sat[t]) and math.isfinite(vv[t])
+    e_arg = np.empty(n, np.float32)
+    for t in range(n):  # branch-free: the pooled ratio of the points that pass the colour gate, and the gates
+        g = good[t]
+        s = min(medv[np.uint64(col_v[t])], snr[t] / floor_frac) if g else snr[t]
+        snr[t] = s
+        keep[t] = g & (amp[t] >= min_contrast) & ((s >= min_snr) | sat[t]) & math.isfinite(vv[t])
+        e_arg[t] = -s / 8.0
     # runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
     # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump rows
     run_id = np.full(n, -1, np.int64)
+    counts = np.empty(n, np.int64)  # points per run (a run's count kept in a register while it grows)
+    cur = 0
     r = -1
     last_col = -10
     last_chain = -1
@@ -2493,34 +2509,37 @@ def finish_points(  # type: ignore[no-untyped-def]
         wide = sat[t] or sig[t] > wide_sigma  # (False for a NaN sigma)
         joined = chain[t] == last_chain or (wide and last_wide and abs(vv[t] - last_v) <= max_jump)
         if col_v[t] - last_col > 3 or lz[t] != last_l or not joined:
+            if r >= 0:
+                counts[r] = cur
             r += 1
+            cur = 0
+        cur += 1
         run_id[t] = r
         last_col = col_v[t]
         last_chain = chain[t]
         last_l = lz[t]
         last_v = vv[t]
         last_wide = wide
-    counts = np.zeros(r + 1, np.int64)
-    for t in range(n):
-        if run_id[t] >= 0:
-            counts[run_id[t]] += 1
+    if r >= 0:
+        counts[r] = cur
     need = max(2, min_run // 2)
     y = np.full(n_cols, np.nan)
     run = np.full(n_cols, -1, np.int64)
+    long_ = np.empty(n, np.bool_)  # in a run long enough
     m = 0
     for t in range(n):
-        if run_id[t] >= 0 and counts[run_id[t]] >= need:
+        ri = run_id[t]
+        lg = ri >= 0 and counts[ri] >= need
+        long_[t] = lg
+        if lg:
             y[col_v[t]] = vv[t]
-            run[col_v[t]] = run_id[t]
+            run[col_v[t]] = ri
             m += 1
     ys = smooth_runs(y, run, scales) if scales.size > 0 else y
     u_out = np.empty(m)
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)
     q_out = np.empty(m)
-    e_arg = np.empty(n, np.float32)
-    for t in range(n):
-        e_arg[t] = -snr[t] / 8.0
     e_snr = exp_array32(e_arg)  # vectorized (a library exp per point costs 4 ns); float32 is plenty for a score
     qual = np.empty(n)
     for t in range(n):  # every point's quality, branch-free (vectorizes), before the kept ones are packed
@@ -2531,7 +2550,7 @@ def finish_points(  # type: ignore[no-untyped-def]
         qual[t] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
     k = 0
     for t in range(n):
-        if run_id[t] < 0 or counts[run_id[t]] < need:
+        if not long_[t]:
             continue
         laser = lz[t]
         u_out[k] = col_v[t] - laser * w
