@@ -1057,11 +1057,12 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
                 wq[t] *= rq[t]
                 rq[t] *= g2f[t]
             q += 1
-        for t in range(n):
-            if a_s0[t] != 0.0:
-                step = gain[t] * float(a_s1[t]) / float(a_s0[t])
-                if math.isfinite(step):
-                    c[t] += min(max(step, -1.0), 1.0)
+        for t in range(n):  # branch-free (vectorizes): no step where the sum is zero or the step not finite
+            d = float(a_s0[t])
+            nz = d != 0.0
+            step = gain[t] * float(a_s1[t]) / (d if nz else 1.0)
+            take = nz & math.isfinite(step)
+            c[t] = c[t] + min(max(step, -1.0), 1.0) if take else c[t]
     # 4. acceptance, the results into ``out`` from column ``t0`` on, and the colour rises
     o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_sp = out
     nan = np.nan
@@ -1512,9 +1513,12 @@ def _clipped_centroid(W, bl, slope, xl, n_sat, c0, sigma_hint, iterations):  # t
             for t in range(n):
                 s0[t], s1[t] = _window_sums(s0[t], s1[t], hs[t], fq - cf[t], wq[t])
             q += 1
-        for t in range(n):
-            step = float(s1[t]) / float(s0[t]) if s0[t] != 0.0 else 0.0
-            c[t] += min(max(step, -1.0), 1.0) if math.isfinite(step) else 0.0
+        for t in range(n):  # branch-free (vectorizes): no step where the sum is zero or the step not finite
+            d = float(s0[t])
+            nz = d != 0.0
+            step = float(s1[t]) / (d if nz else 1.0)
+            take = nz & math.isfinite(step)
+            c[t] = c[t] + min(max(step, -1.0), 1.0) if take else c[t]
     return c, sigma
 
 
