@@ -185,8 +185,7 @@ def flush_caches() -> None:
 #: Frames a stream of new frames cycles through: 14 renders of a scene (noise seeds 0-13; 87 MB at 1920x1080)
 #: exceed the last-level cache, so each call reads a frame that is not cached, while the code and the work arrays
 #: stay warm; and each frame differs from the one before, as a camera's do, so the branch predictors cannot replay
-#: the last call (on copies of one frame the extractor ran up to 9 % faster than on such a stream, 15 % before the
-#: neighbour refits' flank threshold: `--copies`).
+#: the last call (on copies of one frame the extractor ran up to 13 % faster than on such a stream: `--copies`).
 STREAM_FRAMES = 14
 #: Rounds of the stream and warm timings: each round calls every function back to back, in turn.
 ROUNDS = 5

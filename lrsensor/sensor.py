@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from .calibration import Calibration
-from .extract import DEFAULT_METHOD, check_image, get_extractor
+from .extract import DEFAULT_METHOD, _kernels, check_image, get_extractor
 from .scan import Scan
 from .triangulation import triangulate
 
@@ -25,6 +25,10 @@ class Sensor:
 
     def __init__(self, calibration: Calibration) -> None:
         self.calibration = calibration
+        # the compiled extractor, now rather than in the first process(): loaded from numba's on-disk cache (about a
+        # second, once per process), or, without a cache, compiled in a background thread (the numpy path runs
+        # meanwhile); nothing without numba
+        _kernels.ready()
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str]) -> Sensor:

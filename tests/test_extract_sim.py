@@ -347,3 +347,32 @@ def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch:
     with pytest.raises(ZeroDivisionError):
         be.flank_gate_table(1)
     assert (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours) == state
+
+
+def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
+    """A new ``Sensor`` loads the compiled kernels at once (or starts compiling them), so that its first
+    ``process()`` does not wait for them: in a fresh interpreter, nothing has started them before the constructor,
+    and right after it they are ready where numba's cache holds them (as ``./run`` leaves it), else compiling."""
+    import subprocess
+    import sys
+
+    from lrsensor.extract import _kernels
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    code = (
+        "from lrsensor import Sensor, sim\n"
+        "from lrsensor.extract import _kernels as k\n"
+        "cal = sim.named_scene('paper_box').calibration\n"
+        "cached = k._cached()\n"
+        "before = k._STARTED or k._READY.is_set()\n"
+        "Sensor(cal)\n"
+        "print(before, cached, k._STARTED, k._READY.is_set())\n"
+        "if k._STARTED:\n"
+        "    k._READY.wait(600)  # a background compile: let it finish before the interpreter exits\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900, check=True)
+    before, cached, started, ready = out.stdout.split()
+    assert before == "False"
+    assert started == "True"
+    assert ready == cached
