@@ -2419,12 +2419,12 @@ def finish_points(  # type: ignore[no-untyped-def]
     for t in range(n):  # the points' signal-to-noise ratios and their dense rows, one pass (no branch)
         noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
-        q = np.uint64(col_v[t] + pool)
-        ch[q] = chain[t]
+        qp = np.uint64(col_v[t] + pool)
+        ch[qp] = chain[t]
         okt = ok[t]
-        d_b[q] = np.float32(rise[0, t]) if okt else zero
-        d_g[q] = np.float32(rise[1, t]) if okt else zero
-        d_r[q] = np.float32(rise[2, t]) if okt else zero
+        d_b[qp] = np.float32(rise[0, t]) if okt else zero
+        d_g[qp] = np.float32(rise[1, t]) if okt else zero
+        d_r[qp] = np.float32(rise[2, t]) if okt else zero
     # the colour test pooled over the window, for every (virtual) column at once: shifted contiguous reads of
     # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
     nw = 2 * pool + 1
@@ -2480,10 +2480,10 @@ def finish_points(  # type: ignore[no-untyped-def]
     ds = np.full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
     nan32 = np.float32(np.nan)
     for t in range(n):  # the colour gate and the passing ratios, one branch-free pass
-        q = np.uint64(col_v[t])
-        g = ok[t] & (sat[t] | (float(sg[q]) >= green_ratio * float(max(sb[q], sr[q]))))
+        qc = np.uint64(col_v[t])
+        g = ok[t] & (sat[t] | (float(sg[qc]) >= green_ratio * float(max(sb[qc], sr[qc]))))
         good[t] = g
-        ds[q + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
+        ds[qc + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
     keep = np.empty(n, np.bool_)
     if nw == 9:  # the default pool: each window sorted in registers
         medv = _pooled_median9(ch, ds, nd)
