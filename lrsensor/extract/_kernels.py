@@ -1063,21 +1063,33 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             step = gain[t] * float(a_s1[t]) / (d if nz else 1.0)
             take = nz & math.isfinite(step)
             c[t] = c[t] + min(max(step, -1.0), 1.0) if take else c[t]
-    # 4. acceptance, the results into ``out`` from column ``t0`` on, and the colour rises
-    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_sp = out
-    nan = np.nan
+    # 4. acceptance, then the results into ``out`` from column ``t0`` on, with the colour rises
     for t in range(n):  # branch-free (vectorizes); |c - R| <= 2 is False for NaN and inf
+        ok[t] = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
+    no_sat = np.zeros(n, np.bool_)
+    _store_chunk(out, t0, image, cols, peaks, half, c, ok, a0, sigma, no_sat, noise, special, g_lo, g_pk, g_hi)
+
+
+@_njit
+def _store_chunk(out, t0, image, cols, peaks, half, c, good, a0, sigma, sat, noise, flag, g_lo, g_pk, g_hi):  # type: ignore[no-untyped-def]
+    """Store the fits of one chunk of ``n`` columns into ``out`` (as :func:`_fit_results`) from column ``t0`` on:
+    the centre row ``peaks - half + c`` where ``good`` (else NaN), ``good`` as ok, and ``a0``, ``sigma``, ``sat``,
+    ``noise`` and ``flag`` (n,) each as they are; the green rise from the window's first, middle and last rows
+    (``g_lo``, ``g_pk``, ``g_hi``, (n,) each), blue and red read at the same rows (:func:`_colour_rises`)."""
+    n = cols.size
+    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_fl = out
+    nan = np.nan
+    for t in range(n):
         u = np.uint64(t0 + t)
-        good = ok[t] & (abs(c[t] - R) <= 2.0) & (a0[t] > 0.0)
-        o_c[u] = peaks[t] - half + c[t] if good else nan
-        o_ok[u] = good
+        o_c[u] = peaks[t] - half + c[t] if good[t] else nan
+        o_ok[u] = good[t]
     for t in range(n):
         u = np.uint64(t0 + t)
         o_a[u] = a0[t]
         o_sg[u] = sigma[t]
-        o_sat[u] = False
+        o_sat[u] = sat[t]
         o_no[u] = noise[t]
-        o_sp[u] = special[t]
+        o_fl[u] = flag[t]
     r_g = o_ri[1]
     for t in range(n):
         r_g[np.uint64(t0 + t)] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
@@ -1629,27 +1641,10 @@ def _fit_clipped_chunk(image, cols, peaks, half, sigma_hint, sat_dn, flank, iter
                 sigma[idx[i]] = sig_k[i]
     # 4. acceptance (anywhere on the clipped top) and the colour rises (green from the window: its peak row and
     # ends)
-    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_dn = out
-    nan = np.nan
+    good = np.empty(n, np.bool_)
     for t in range(n):  # branch-free (vectorizes); |c - R| <= lim is False for NaN and inf
-        u = np.uint64(t0 + t)
-        good = sat[t] & (abs(c[t] - R) <= 0.5 * n_sat[t] + 1.0) & (a0[t] > 0)
-        o_ok[u] = good
-        o_c[u] = peaks[t] - half + c[t] if good else nan
-    for t in range(n):
-        u = np.uint64(t0 + t)
-        o_a[u] = a0[t]
-        o_sg[u] = sigma[t]
-        o_sat[u] = sat[t]
-        o_no[u] = noise[t]
-        o_dn[u] = sat[t]
-    r_g = o_ri[1]
-    w_lo = W[0]
-    w_pk = W[R]
-    w_hi = W[m - 1]
-    for t in range(n):
-        r_g[np.uint64(t0 + t)] = float(w_pk[t]) - 0.5 * (float(w_lo[t]) + float(w_hi[t]))
-    _colour_rises(image, cols, peaks, half, (0, 2), o_ri[:, t0 : t0 + n])  # blue and red at the same rows
+        good[t] = sat[t] & (abs(c[t] - R) <= 0.5 * n_sat[t] + 1.0) & (a0[t] > 0)
+    _store_chunk(out, t0, image, cols, peaks, half, c, good, a0, sigma, sat, noise, sat, W[0], W[R], W[m - 1])
     return W, bl, slope, xl, sat
 
 
