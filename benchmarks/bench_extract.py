@@ -533,8 +533,11 @@ def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
 
 def _row_moves(a: Scan, b: Scan) -> np.ndarray:
     """|row change| (px) of the points of two scans of one frame at the same laser and column."""
-    rows_a = {(int(l), round(float(u))): float(v) for l, (u, v) in zip(a.laser, a.uv, strict=True)}
-    rows_b = {(int(l), round(float(u))): float(v) for l, (u, v) in zip(b.laser, b.uv, strict=True)}
+
+    def rows(s: Scan) -> dict[tuple[int, int], float]:
+        return {(int(l), round(float(u))): float(v) for l, (u, v) in zip(s.laser, s.uv, strict=True)}
+
+    rows_a, rows_b = rows(a), rows(b)
     return np.array([abs(rows_a[k] - rows_b[k]) for k in rows_a.keys() & rows_b.keys()])
 
 
