@@ -15,6 +15,8 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from waiting import wait_until  # noqa: E402
+
 from lrsensor.frames import Pose  # noqa: E402
 from services.delivery import OutboxSink, parse_ack_reply  # noqa: E402
 from services.keys import FleetKeys  # noqa: E402
@@ -23,6 +25,7 @@ from services.seqset import SeqSet  # noqa: E402
 from services.wire import CloudMsg  # noqa: E402
 
 KEYS = FleetKeys("t1")
+WAIT_S = 15.0  # how long a test waits for the base station to show up
 
 
 def _free_port() -> int:
@@ -51,15 +54,6 @@ def _cloud(seq: int, n: int = 5) -> CloudMsg:
         np.zeros(n, np.uint8),
         np.ones(n, np.float32),
     )
-
-
-def _wait_until(pred: Callable[[], bool], timeout_s: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 class FakeBase:
@@ -104,7 +98,7 @@ def test_delivered_and_acked(net: tuple[Any, Any], tmp_path: Path) -> None:
     base = FakeBase(router)
     box = Outbox(tmp_path / "outbox", fsync=False)
     with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1) as sink:
-        assert _wait_until(sink.base_present)
+        assert wait_until(sink.base_present, WAIT_S)
         for seq in range(50):
             sink.send(_cloud(seq))
         assert sink.wait_empty(15.0)
@@ -136,7 +130,7 @@ def test_lost_deliveries_are_resent(net: tuple[Any, Any], tmp_path: Path) -> Non
     base = FakeBase(router, lose=lambda seq, n: seq % 3 == 0 and n == 0)  # first copy of every third is lost
     box = Outbox(tmp_path / "outbox", fsync=False)
     with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.5) as sink:
-        assert _wait_until(sink.base_present)
+        assert wait_until(sink.base_present, WAIT_S)
         for seq in range(30):
             sink.send(_cloud(seq))
         assert sink.wait_empty(15.0)
@@ -208,7 +202,7 @@ def test_a_slow_base_gets_no_duplicates(net: tuple[Any, Any], tmp_path: Path) ->
     base.q = router.declare_queryable(KEYS.base_acks_all, lagging_acks)
     box = Outbox(tmp_path / "outbox", fsync=False)
     with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.5, stall_s=5.0) as sink:
-        assert _wait_until(sink.base_present)
+        assert wait_until(sink.base_present, WAIT_S)
         for seq in range(40):
             sink.send(_cloud(seq))
             time.sleep(0.05)
@@ -223,7 +217,7 @@ def test_a_lost_last_cloud_is_resent_after_a_stall(net: tuple[Any, Any], tmp_pat
     base = FakeBase(router, lose=lambda seq, n: seq == 9 and n == 0)  # the last one's first copy is lost
     box = Outbox(tmp_path / "outbox", fsync=False)
     with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.3, stall_s=1.0) as sink:
-        assert _wait_until(sink.base_present)
+        assert wait_until(sink.base_present, WAIT_S)
         for seq in range(10):
             sink.send(_cloud(seq))
         assert sink.wait_empty(15.0)
@@ -238,7 +232,7 @@ def test_a_base_that_never_acknowledges_gets_probes_not_floods(net: tuple[Any, A
     base.q.undeclare()  # receives, never acknowledges
     box = Outbox(tmp_path / "outbox", fsync=False)
     with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=0.2, stall_s=0.3) as sink:
-        assert _wait_until(sink.base_present)
+        assert wait_until(sink.base_present, WAIT_S)
         for seq in range(100):
             sink.send(_cloud(seq))
         t0 = time.monotonic()

@@ -15,7 +15,6 @@ import json
 import signal
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +25,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from procs import Proc, lrsensor_cmd  # noqa: E402
+from waiting import wait_until  # noqa: E402
 
 from lrsensor.frames import Pose  # noqa: E402
 from services.errors import WireError  # noqa: E402
@@ -36,6 +36,7 @@ from services.wire import CloudMsg  # noqa: E402
 pytestmark = pytest.mark.slow
 
 N_FRAMES = 40
+WAIT_S = 30.0  # how long a test waits for a service or a state unless it says otherwise
 
 ROUTER_SCRIPT = """
 import json, signal, sys, threading, zenoh
@@ -48,15 +49,6 @@ with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))):
     print("router up", flush=True)
     stop.wait()
 """
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +111,7 @@ def test_base_sigkill_mid_dive_loses_nothing(dive: Path, tmp_path: Path, procs: 
     procs.append(base)
     robots = ("rov1", "rov2")
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: get_status(s, fleet) is not None), base.output()
+        assert wait_until(lambda: get_status(s, fleet) is not None, WAIT_S), base.output()
     rovs = {}
     for r in robots:
         rovs[r] = Proc(
@@ -128,7 +120,9 @@ def test_base_sigkill_mid_dive_loses_nothing(dive: Path, tmp_path: Path, procs: 
         )
         procs.append(rovs[r])
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: all(robot_status(s, fleet, r).get("acked", 0) >= 8 for r in robots), 60), base.output()
+        assert wait_until(lambda: all(robot_status(s, fleet, r).get("acked", 0) >= 8 for r in robots), 60), (
+            base.output()
+        )
         before = {r: robot_status(s, fleet, r) for r in robots}
     # mid-dive: the base station (and its in-process router) dies without a chance to save anything
     base.p.send_signal(signal.SIGKILL)
@@ -138,7 +132,7 @@ def test_base_sigkill_mid_dive_loses_nothing(dive: Path, tmp_path: Path, procs: 
     base2 = Proc(base_args(fleet, state, *listen, map_mode="auto"), tmp_path / "base.log")
     procs.append(base2)
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: get_status(s, fleet) is not None), base2.output()
+        assert wait_until(lambda: get_status(s, fleet) is not None, WAIT_S), base2.output()
         after = {r: robot_status(s, fleet, r) for r in robots}
         for r in robots:  # nothing it had acknowledged is lost
             assert after[r]["received"] >= before[r]["acked"] > 0, (before, after)
@@ -159,19 +153,19 @@ def test_router_outage_of_10_s_during_a_replay(dive: Path, tmp_path: Path, procs
     fleet, port = "fo", free_port()
     router = Proc([sys.executable, "-c", ROUTER_SCRIPT, str(port)], tmp_path / "router.log")
     procs.append(router)
-    assert wait_for(lambda: "router up" in router.output()), router.output()
+    assert wait_until(lambda: "router up" in router.output(), WAIT_S), router.output()
     connect = ("--mode", "client", "--connect", f"tcp/127.0.0.1:{port}")
     base = Proc(base_args(fleet, tmp_path / "state", *connect), tmp_path / "base.log")
     procs.append(base)
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: get_status(s, fleet) is not None), base.output()
+        assert wait_until(lambda: get_status(s, fleet) is not None, WAIT_S), base.output()
     rov = Proc(
         rov_args(fleet, "rov1", dive, 2.5, tmp_path / "outbox", "--connect", f"tcp/127.0.0.1:{port}"),
         tmp_path / "rov1.log",
     )
     procs.append(rov)
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: robot_status(s, fleet, "rov1").get("received", 0) >= 5, 60), rov.output()
+        assert wait_until(lambda: robot_status(s, fleet, "rov1").get("received", 0) >= 5, 60), rov.output()
     router.p.send_signal(signal.SIGKILL)
     router.wait(10)
     t_down = time.monotonic()
@@ -179,7 +173,7 @@ def test_router_outage_of_10_s_during_a_replay(dive: Path, tmp_path: Path, procs
     assert rov.p.poll() is None, "the replay must still be running when the router comes back"
     router2 = Proc([sys.executable, "-c", ROUTER_SCRIPT, str(port)], tmp_path / "router.log")
     procs.append(router2)
-    assert wait_for(lambda: router2.output().count("router up") == 2), router2.output()
+    assert wait_until(lambda: router2.output().count("router up") == 2, WAIT_S), router2.output()
     assert time.monotonic() - t_down >= 10.0
     assert_delivered(rov, "rov1")
     assert resent_count(rov.output()) > 0, rov.output()  # the outage cost deliveries; the outbox made them up
@@ -226,13 +220,13 @@ def test_garbage_on_a_robot_key_is_counted_and_never_stops_the_base(
         with contextlib.suppress(WireError):
             assert CloudMsg.from_bytes(g).robot != "rov1"
     with zenoh.open(client_conf(port)) as s:
-        assert wait_for(lambda: get_status(s, fleet) is not None), base.output()
+        assert wait_until(lambda: get_status(s, fleet) is not None, WAIT_S), base.output()
         rov = Proc(
             rov_args(fleet, "rov1", dive, 8.0, tmp_path / "outbox", "--connect", f"tcp/127.0.0.1:{port}"),
             tmp_path / "rov1.log",
         )
         procs.append(rov)
-        assert wait_for(lambda: robot_status(s, fleet, "rov1").get("received", 0) >= 1, 60), rov.output()
+        assert wait_until(lambda: robot_status(s, fleet, "rov1").get("received", 0) >= 1, 60), rov.output()
         pub = s.declare_publisher(f"lrs/{fleet}/rov1/cloud", congestion_control=zenoh.CongestionControl.BLOCK)
         stray = s.declare_publisher(f"lrs/{fleet}/base/cloud", congestion_control=zenoh.CongestionControl.BLOCK)
         answered = 0
@@ -243,7 +237,7 @@ def test_garbage_on_a_robot_key_is_counted_and_never_stops_the_base(
                 assert get_status(s, fleet) is not None, "the base must keep answering during the flood"
                 answered += 1
         pub.put(b"\x01" * (17 * 1024 * 1024))  # oversized
-        assert wait_for(lambda: robot_status(s, fleet, "rov1").get("rejected", 0) == 301, 60), get_status(s, fleet)
+        assert wait_until(lambda: robot_status(s, fleet, "rov1").get("rejected", 0) == 301, 60), get_status(s, fleet)
         assert_delivered(rov, "rov1")
         st = get_status(s, fleet)
     assert st is not None
@@ -269,9 +263,9 @@ def test_secure_profile_with_processes(dive: Path, tmp_path: Path, procs: list[P
     )  # fmt: skip
     procs.append(base)
     op_conf = zenoh.Config.from_file(str(sec.configs["operator"]))
-    assert wait_for(lambda: "running" in base.output()), base.output()
+    assert wait_until(lambda: "running" in base.output(), WAIT_S), base.output()
     with zenoh.open(op_conf) as op:
-        assert wait_for(lambda: get_status(op, fleet) is not None), base.output()
+        assert wait_until(lambda: get_status(op, fleet) is not None, WAIT_S), base.output()
         rov = Proc(
             rov_args(fleet, "rov1", dive, 10.0, tmp_path / "outbox", "--config", str(sec.configs["rov1"])),
             tmp_path / "rov1.log",
@@ -281,7 +275,7 @@ def test_secure_profile_with_processes(dive: Path, tmp_path: Path, procs: list[P
         # rov1's certificate, another robot's key: the router drops it (the base never counts rov2)
         with zenoh.open(zenoh.Config.from_file(str(sec.configs["rov1"]))) as spoof:
             own = spoof.declare_publisher(f"lrs/{fleet}/rov1/status")
-            assert wait_for(lambda: own.matching_status.matching), "rov1's link is up"
+            assert wait_until(lambda: own.matching_status.matching, WAIT_S), "rov1's link is up"
             rng = np.random.default_rng(1)
             for seq in range(20):
                 fake = CloudMsg(

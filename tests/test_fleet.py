@@ -11,13 +11,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
 from procs import Proc, lrsensor_cmd
+from waiting import wait_until
 
 from lrsensor.calibration import Calibration
 from services.simsource import record_sim_dive
@@ -29,15 +29,7 @@ pytestmark = pytest.mark.slow
 
 N_FRAMES = 12
 FLEET = "fp"
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
+WAIT_S = 20.0  # how long a test waits for a service or a message unless it says otherwise
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +90,7 @@ def test_base_and_two_rov_processes(dives: dict[str, Path], tmp_path: Path, proc
     )
     procs.append(base)
     with client_session(port) as session:
-        assert wait_for(lambda: get_status(session) is not None), base.output()
+        assert wait_until(lambda: get_status(session) is not None, WAIT_S), base.output()
         members = Membership(session)
         rovs = {}
         for robot, folder in dives.items():
@@ -111,7 +103,7 @@ def test_base_and_two_rov_processes(dives: dict[str, Path], tmp_path: Path, proc
 
         # liveliness shows both robots, and each answers its calibration queryable while it runs
         for robot, folder in dives.items():
-            assert wait_for(lambda r=robot: members.has(r, "joined")), rovs[robot].output()
+            assert wait_until(lambda r=robot: members.has(r, "joined"), WAIT_S), rovs[robot].output()
             replies = [r.ok for r in session.get(f"lrs/{FLEET}/{robot}/calib", timeout=5.0) if r.ok is not None]
             assert len(replies) == 1, f"{robot}: calibration queryable did not answer"
             msg = CalibMsg.from_bytes(replies[0].payload.to_bytes())
@@ -128,7 +120,7 @@ def test_base_and_two_rov_processes(dives: dict[str, Path], tmp_path: Path, proc
 
         # ... and liveliness shows their departure
         for robot in dives:
-            assert wait_for(lambda r=robot: members.has(r, "left"))
+            assert wait_until(lambda r=robot: members.has(r, "left"), WAIT_S)
 
         # every cloud published arrived, counted by sequence number
         status = get_status(session)
@@ -182,7 +174,7 @@ def test_entry_points_close_on_signals(tmp_path: Path, procs: list[Proc], sig: i
     )
     procs.append(base)
     with client_session(port) as session:
-        assert wait_for(lambda: get_status(session) is not None), base.output()
+        assert wait_until(lambda: get_status(session) is not None, WAIT_S), base.output()
         rov = Proc(
             lrsensor_cmd(
                 "rov",
@@ -204,14 +196,14 @@ def test_entry_points_close_on_signals(tmp_path: Path, procs: list[Proc], sig: i
             tmp_path / "rov.log",
         )
         procs.append(rov)
-        assert wait_for(
+        assert wait_until(
             lambda: (get_status(session) or {}).get("robots", {}).get("rov3", {}).get("received", 0) >= 2, 60
         ), rov.output()
         t0 = time.monotonic()
         assert rov.stop(sig, timeout_s=10) == 0, rov.output()
         assert time.monotonic() - t0 < 8  # "within a few seconds", with margin for a loaded machine
         assert "rov rov3: frames" in rov.output()
-        assert wait_for(lambda: (get_status(session) or {})["robots"]["rov3"]["alive"] is False, 10)
+        assert wait_until(lambda: (get_status(session) or {})["robots"]["rov3"]["alive"] is False, 10)
     t0 = time.monotonic()
     assert base.stop(sig, timeout_s=10) == 0, base.output()
     assert time.monotonic() - t0 < 8

@@ -6,17 +6,19 @@ import math
 import os
 import pty
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
+from waiting import wait_until
 
 from lrsensor.frames import Pose, R_ned_from_body
 from services.errors import ImuError
 from services.imu import CsvImu, OpenRovParser, SerialImu, open_imu, parse_serial_spec, write_csv
 from services.posetrack import PoseTrack
+
+WAIT_S = 5.0  # how long a test waits for the reader thread to parse what it wrote
 
 # ----------------------------------------------------------------------------- pose track
 
@@ -212,21 +214,12 @@ def test_parser_random_bytes_never_raise() -> None:
     assert out[-1].down_m == 5.0
 
 
-def _wait(cond, timeout_s: float = 5.0) -> bool:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_serial_imu_over_pyserial_loop() -> None:
     port = serial.serial_for_url("loop://", timeout=0.05)
     with SerialImu("loop://", serial_port=port) as imu:
         port.write(b"hdgd:45;deep:3.25;pit")
         port.write(b"c:1;roll:-2\n\xde\xad\xbe\xef\nhdgd:46;deep:3.3;pitc:1;roll:-2\n")
-        assert _wait(lambda: len(imu.track) == 2)
+        assert wait_until(lambda: len(imu.track) == 2, WAIT_S)
         assert imu.rejected == 1
         t0, _ = imu.track.span  # type: ignore[misc]
         p = imu.track.pose_at(t0)
@@ -241,10 +234,10 @@ def test_serial_imu_over_a_pty() -> None:
     try:
         with open_imu(f"serial:{name}@57600") as imu:
             os.write(master, b"garbage\x00\x01\nhdgd:10;deep:1;pitc:0;roll:0\n")
-            assert _wait(lambda: len(imu.track) == 1)
+            assert wait_until(lambda: len(imu.track) == 1, WAIT_S)
             os.write(master, b"hdgd:12;deep:1.1;")
             os.write(master, b"pitc:0;roll:0\n")
-            assert _wait(lambda: len(imu.track) == 2)
+            assert wait_until(lambda: len(imu.track) == 2, WAIT_S)
             assert imu.rejected == 1
     finally:
         os.close(master)

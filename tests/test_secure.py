@@ -11,7 +11,7 @@ import socket
 import stat
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,8 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("cryptography")
+
+from waiting import wait_until  # noqa: E402
 
 from services import certs  # noqa: E402
 from services.certs import CertificateError, FleetSecrets, certificate_common_name, generate_fleet  # noqa: E402
@@ -32,15 +34,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def _wait_until(pred: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 class Inbox:
@@ -95,7 +88,7 @@ def _open_robot(fleet: FleetSecrets, name: str) -> Any:
 def _connected_publisher(session: Any, key: str) -> Any:
     """A BLOCK publisher on ``key``, once the base station's subscriber matches it (i.e. the link is up)."""
     pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-    assert _wait_until(lambda: pub.matching_status.matching), f"{key}: the base station never matched"
+    assert wait_until(lambda: pub.matching_status.matching, WAIT_S), f"{key}: the base station never matched"
     return pub
 
 
@@ -243,7 +236,7 @@ def test_peer_without_certificate_opens_but_nothing_flows(fleet: FleetSecrets, b
             pub.put(b"intruder")
             time.sleep(0.05)
         legit.put(b"rov2-after-intruder")
-        assert _wait_until(lambda: inbox.has(b"rov2-after-intruder"))
+        assert wait_until(lambda: inbox.has(b"rov2-after-intruder"), WAIT_S)
         assert not pub.matching_status.matching
         assert not inbox.has(b"intruder")
 
@@ -263,7 +256,7 @@ def test_robot_may_publish_only_under_its_own_prefix(fleet: FleetSecrets, base: 
             rov1.put(key, b"spoof")
             rov1.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK).put(b"spoof")
         own.put(b"rov1-own")
-        assert _wait_until(lambda: inbox.has(b"rov1-own"))
+        assert wait_until(lambda: inbox.has(b"rov1-own"), WAIT_S)
         assert inbox.keys_of(b"rov1-own") == [f"{ROOT}/rov1/cloud"]
         time.sleep(0.2)
         assert not inbox.has(b"spoof"), inbox.keys_of(b"spoof")
@@ -282,7 +275,7 @@ def test_robot_cannot_answer_the_fleet_queryables(fleet: FleetSecrets, base: tup
         def answers(key: str) -> list[bytes]:
             return [r.ok.payload.to_bytes() for r in op.get(key, timeout=2.0) if r.ok is not None]
 
-        assert _wait_until(lambda: answers(f"{ROOT}/rov1/calib") == [b"rov1-calib"])
+        assert wait_until(lambda: answers(f"{ROOT}/rov1/calib") == [b"rov1-calib"], WAIT_S)
         assert answers(f"{ROOT}/base/status") == [b"real-status"]
         assert answers(f"{ROOT}/map") == []  # nobody legit serves it here, and the robot may not
         # The robot itself may ask the fleet side and gets the real answer.
@@ -309,7 +302,7 @@ def test_unknown_certificate_name_is_denied(fleet: FleetSecrets, base: tuple[Any
         rov9.put(f"{ROOT}/rov9/cloud", b"rov9")
         time.sleep(0.1)
         legit.put(b"rov2-after-rov9")
-        assert _wait_until(lambda: inbox.has(b"rov2-after-rov9"))
+        assert wait_until(lambda: inbox.has(b"rov2-after-rov9"), WAIT_S)
         time.sleep(0.2)
         assert not inbox.has(b"rov9")
         assert [r for r in rov9.get(f"{ROOT}/base/status", timeout=1.0) if r.ok] == []

@@ -7,13 +7,14 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
+from waiting import wait_until
 
 from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose
@@ -31,15 +32,7 @@ from services.wire import ENCODING, CalibMsg, CloudMsg
 from services.zconfig import NetworkOptions, make_config
 
 N_FRAMES = 6
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
+WAIT_S = 10.0  # how long a test waits for a message or a state unless it says otherwise
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +69,7 @@ def publisher(session: Any, key: str) -> Any:
     pub = session.declare_publisher(
         key, encoding=zenoh.Encoding(ENCODING), congestion_control=zenoh.CongestionControl.BLOCK
     )
-    assert wait_for(lambda: pub.matching_status.matching, 10), f"no subscriber matched {key}"
+    assert wait_until(lambda: pub.matching_status.matching, 10), f"no subscriber matched {key}"
     return pub
 
 
@@ -120,7 +113,7 @@ def test_two_rovs_every_cloud_arrives_and_membership_is_followed(dives: dict[str
             assert h.result is not None
             assert h.result.published == N_FRAMES
             assert h.result.delivered
-        assert wait_for(lambda: not any(r.alive for r in base.records.values()))
+        assert wait_until(lambda: not any(r.alive for r in base.records.values()), WAIT_S)
         status = get_json(net.session(), net.keys.base_status)
         for robot in dives:
             st = status["robots"][robot]
@@ -183,7 +176,7 @@ def test_garbage_spoofing_and_duplicates_are_counted_and_never_stop_the_base(tmp
         pub1.put(good)
         pub1.put(good)  # duplicate
         pub1.put(a_cloud("rov1", 0).to_bytes())
-        assert wait_for(lambda: base.processed == 2 and base.records["rov1"].duplicates == 1)
+        assert wait_until(lambda: base.processed == 2 and base.records["rov1"].duplicates == 1, WAIT_S)
         assert base.drain(10)
         st = get_json(s, net.keys.base_status)["robots"]
         assert st["rov1"]["rejected"] == 200
@@ -202,7 +195,7 @@ def test_counters_survive_a_restart(tmp_path: Path) -> None:
         pub = publisher(net.session(), net.keys.cloud("rov1"))
         for seq in (0, 1, 2, 5):
             pub.put(a_cloud("rov1", seq).to_bytes())
-        assert wait_for(lambda: base.processed == 4)
+        assert wait_until(lambda: base.processed == 4, WAIT_S)
     saved = json.loads((state / "fleet.json").read_text())
     assert saved["robots"]["rov1"]["ranges"] == [[0, 2], [5, 5]]
     with TestNetwork("t5") as net:
@@ -210,7 +203,7 @@ def test_counters_survive_a_restart(tmp_path: Path) -> None:
         pub = publisher(net.session(), net.keys.cloud("rov1"))
         pub.put(a_cloud("rov1", 2).to_bytes())
         pub.put(a_cloud("rov1", 3).to_bytes())
-        assert wait_for(lambda: base.processed == 1 and base.records["rov1"].duplicates == 1)
+        assert wait_until(lambda: base.processed == 1 and base.records["rov1"].duplicates == 1, WAIT_S)
         st = base.status()["robots"]["rov1"]
         assert (st["received"], st["missed"], st["last_seq"]) == (5, 1, 5)
 
@@ -221,7 +214,7 @@ def test_status_reports_transit_time_of_replayed_clouds(tmp_path: Path) -> None:
         base = net.start_base(tmp_path / "state", map_mode="off")
         pub = publisher(net.session(), net.keys.cloud("rov1"))
         pub.put(a_cloud("rov1", 0).with_sent_ns(time.time_ns()).to_bytes())
-        assert wait_for(lambda: base.processed == 1)
+        assert wait_until(lambda: base.processed == 1, WAIT_S)
         ingest = base.status()["ingest"]
         assert ingest["latency_ms"]["p50"] > 1e9
         assert 0 <= ingest["transit_ms"]["p50"] < 5_000
@@ -255,7 +248,7 @@ def test_published_pose_is_the_interpolated_imu_pose(dives: dict[str, Path]) -> 
         )
         h = net.start_rov("rov1", FolderSource(folder), imu, Calibration.load(folder / "calib.json"), ack_timeout_s=0)
         assert h.join(60)
-        assert wait_for(lambda: len(got) == N_FRAMES)
+        assert wait_until(lambda: len(got) == N_FRAMES, WAIT_S)
         sub.undeclare()
     for m in got:
         expect = imu.track.pose_at(m.t_ns)
@@ -413,7 +406,7 @@ def test_base_serves_the_map_and_publishes_its_updates(tmp_path: Path) -> None:
             assert abs(np.linalg.norm(p["normal"]) - 1.0) < 1e-6
             assert np.isfinite(p["d"])
         assert base.status()["map"]["planes"] == len(served["planes"])
-        assert wait_for(lambda: len(updates) > 0)
+        assert wait_until(lambda: len(updates) > 0, WAIT_S)
         assert all("planes" in u for u in updates)
         sub.undeclare()
     assert (tmp_path / "state" / "map").is_dir()
