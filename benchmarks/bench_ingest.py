@@ -89,7 +89,6 @@ def generate(
     """
     import zenoh
 
-    sys.path.insert(0, str(ROOT)) if str(ROOT) not in sys.path else None
     from lrsensor.frames import Pose
     from services.wire import ENCODING, CloudMsg
     from services.zconfig import NetworkOptions, open_session
@@ -274,7 +273,6 @@ def main() -> int:
     ap.add_argument("--map", action="store_true", help="also build the map (Open3D) in the base station")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "ingest.md"))
     args = ap.parse_args()
-    sys.path.insert(0, str(ROOT)) if str(ROOT) not in sys.path else None
     load_before = os.getloadavg()[0]
     rows = []
     for n in (int(x) for x in args.robots.split(",")):

@@ -6,15 +6,10 @@ camera's order), other colours and background than the project's simulator. Full
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_foreign_render import Foreign, render, score
-
+from benchmarks.bench_foreign_render import Foreign, render, score
 from lrsensor.extract.centre import fit_profiles
 
 

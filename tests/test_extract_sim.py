@@ -10,6 +10,7 @@ import itertools
 import numpy as np
 import pytest
 
+from benchmarks import bench_extract as be
 from lrsensor import Sensor
 from lrsensor.sim.score import score_scan
 
@@ -120,12 +121,6 @@ def test_one_call_kernel_equals_the_stage_by_stage_path() -> None:
 def test_speed_references_agree() -> None:
     """The benchmark's three arg-max references (numpy uint8, numpy float32, compiled loops) measure the same thing:
     the same centre in every column of a frame, so their times compare like with like."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     img = sim.named_scene("cluttered").render(seed=0).image
     ref = be.argmax_parabola(img)
     assert ref.shape == (img.shape[1],)
@@ -141,12 +136,6 @@ def test_speed_cache_states_feed_the_frames_they_promise() -> None:
     """The speed benchmark's cache states on one frame: ``stream`` hands each call a different copy of the frame in
     turn (every call reads a new frame), ``warm`` and ``cold`` the same frame every call; stream and warm time
     every function in each of ``ROUNDS`` rounds; an unknown state and no frames are refused."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     frame = np.zeros((4, 5, 3), np.uint8)
     for state, distinct in (("stream", be.STREAM_FRAMES), ("warm", 1), ("cold", 1)):
         seen: list[int] = []
@@ -174,12 +163,6 @@ def test_speed_states_take_the_renders_in_turn() -> None:
     through all of them in order, the warm timing stays on one per round (render r in round r), and the cold
     repetitions take render i in repetition i; the speed frames are the same scene and calibration with other
     noise."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     frames = [np.full((4, 5, 3), i, np.uint8) for i in range(be.STREAM_FRAMES)]
     for state in ("stream", "warm", "cold"):
         seen: list[int] = []
@@ -222,12 +205,6 @@ def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
 def test_cold_after_runs_each_target_right_after_its_predecessor_and_a_flush(monkeypatch: pytest.MonkeyPatch) -> None:
     """``cold_after`` times every (predecessor, target) pair: the predecessor, then the flush, then the timed
     target, in that order every repetition; the table has a row per predecessor."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     log: list[str] = []
     monkeypatch.setattr(be, "flush_caches", lambda: log.append("flush"))
     before = {"a": lambda img: log.append("a"), "b": lambda img: log.append("b")}
@@ -246,10 +223,6 @@ def test_one_frame_options_refuse_an_unknown_frame(
     """``--cold-after`` and ``--stages`` name one of the speed frames; anything else stops with a message naming
     the flag and the frames."""
     import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
 
     monkeypatch.setattr(sys, "argv", ["bench_extract.py", flag, "wall_9.9"])
     with pytest.raises(SystemExit) as e:
@@ -263,12 +236,6 @@ def test_one_frame_options_refuse_an_unknown_frame(
 def test_stage_table_has_a_column_per_render_and_a_row_per_stage() -> None:
     """``--stages``: a row per stage (the neighbour refits apart), then the sum and the whole call, a column per
     render; on a wall at 5 m the refits take time, on a wall at 1 m none."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     lines = be.stages_table("wall_5.0", 2, 2)
     assert lines[0].startswith("### Where the time goes (wall_5.0, seeds 0-1")
     rows = [ln.split("|")[1:-1] for ln in lines if ln.startswith("| ") and not ln.startswith("| stage")]
@@ -284,12 +251,6 @@ def test_stage_table_has_a_column_per_render_and_a_row_per_stage() -> None:
 def test_cold_after_table_has_a_row_per_function_of_the_speed_table() -> None:
     """The ``--cold-after`` table: a row per function the speed table times, each with the two cold times (ms)
     and their ratio."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     lines = be.cold_after_table("paper_box", 1)
     rows = [ln for ln in lines if ln.startswith("| ") and not ln.startswith("| function")]
     fns = be.speed_functions(Sensor(sim.named_scene("paper_box").render(seed=0).calibration))
@@ -304,12 +265,6 @@ def test_cold_after_table_has_a_row_per_function_of_the_speed_table() -> None:
 def test_speed_table_says_what_it_was_timed_on() -> None:
     """The speed table's text names its frames: renders that differ in their noise by default, copies of one
     render with ``--copies`` (same columns, so the two tables compare row by row)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
-
     renders, copies = be.speed_header(copies=False), be.speed_header(copies=True)
     assert f"{be.STREAM_FRAMES} renders of each frame that differ in their noise" in renders[2]
     assert f"{be.STREAM_FRAMES} copies of one render" in copies[2]
@@ -321,13 +276,7 @@ def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch:
     """``--flank-gate``: per frame, the refitted columns and the accuracy with the flank threshold at 1 % and at
     ``NEIGHBOUR_FLANK_TAIL`` (fewer refits at the larger one on a wall at 5 m, where the stripes meet), and the
     centres' moves; the numpy path and the threshold are restored afterwards, also when a frame fails."""
-    import sys
-    from pathlib import Path
-
     from lrsensor.extract import _kernels, subpixel
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import bench_extract as be
 
     state = (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours)
     monkeypatch.setattr(be, "FLANK_GATE_FRAMES", ("wall_5.0",))
