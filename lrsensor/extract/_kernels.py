@@ -6,9 +6,9 @@ OpenCV steps of ``subpixel._candidates``), then :func:`process_candidates` (cand
 sub-pixel fits, neighbour refits, pooled gates, along-stripe smoothing, quality), the triangulation and the
 range-limit gate. The loops are written so that the compiler vectorizes them across columns: unsigned indices
 where an index could be negative (no wrap-around select per access), few arrays per loop (cheap run-time alias
-checks), selects instead of branches, and :func:`exp_array` / :func:`log_array` (and their float32 twins)
-instead of libm calls. Multiplies and adds may be fused (``fastmath={"contract"}``: one rounding instead of two,
-nothing else of fast-math), so floating-point results agree with the numpy twins to rounding, not bit for bit; the
+checks) and selects instead of branches. Multiplies and adds may be fused (``fastmath={"contract"}``: one
+rounding instead of two, nothing else of fast-math), so floating-point results agree with the numpy twins to
+rounding, not bit for bit; the
 detection is integer arithmetic and stays bit for bit.
 These compile once (``cache=True``, tens of seconds the very first time, about a second from the on-disk cache).
 
@@ -45,142 +45,6 @@ except ImportError:  # pragma: no cover
         return (int(x) & -int(x)).bit_length() - 1
 
     trailing_zeros = _trailing_zeros_py
-
-
-_LN2_HI = 6.93147180369123816490e-01
-_LN2_LO = 1.90821492927058770002e-10
-_INV_LN2 = 1.44269504088896338700e00
-_SQRT2_BITS = 0x3FF6A09E667F3BCD  # the bits of sqrt(2)
-
-
-@_njit
-def exp_array(x):  # type: ignore[no-untyped-def]
-    """``exp`` of every element of ``x`` (N,) float64, as a new array, within 2 ulp of ``math.exp``.
-
-    Written so that the compiler vectorizes it (``math.exp`` in a loop is a scalar library call, 4 ns each):
-    ``x = k ln2 + r`` with ``|r| <= ln2 / 2``, ``e^r`` by its Taylor polynomial of degree 13 and ``2^k`` built
-    from its exponent bits. Arguments are clamped to [-700, 700] (e^-700 = 1e-304 stands for anything smaller).
-    """
-    n = x.size
-    out = np.empty(n)
-    ib = np.empty(n, np.int64)
-    for i in range(n):
-        xi = min(max(x[i], -700.0), 700.0)
-        k = math.floor(xi * _INV_LN2 + 0.5)
-        r = (xi - k * _LN2_HI) - k * _LN2_LO
-        p = 1.0 / 6227020800.0  # Horner: 1/13! r^13 + ... + r + 1
-        for f in (
-            479001600.0,
-            39916800.0,
-            3628800.0,
-            362880.0,
-            40320.0,
-            5040.0,
-            720.0,
-            120.0,
-            24.0,
-            6.0,
-            2.0,
-            1.0,
-            1.0,
-        ):
-            p = p * r + 1.0 / f
-        out[i] = p
-        ib[i] = (np.int64(k) + 1023) << 52
-    scale = ib.view(np.float64)
-    for i in range(n):
-        out[i] *= scale[i]
-    return out
-
-
-@_njit
-def log_array(x):  # type: ignore[no-untyped-def]
-    """Natural logarithm of every element of ``x`` (N,) float64 (positive, finite, normal), as a new array,
-    within 2 ulp of ``math.log``; vectorizable like :func:`exp_array`.
-
-    ``x = 2^e m`` with ``m`` in [sqrt(1/2), sqrt(2)) from the bits, ``ln m = 2 atanh(s)``, ``s = (m - 1) / (m + 1)``
-    (``|s| <= 0.172``) by its odd series to ``s^23``.
-    """
-    n = x.size
-    out = np.empty(n)
-    mant = x.copy()
-    ib = mant.view(np.int64)
-    ex = np.empty(n)
-    for i in range(n):
-        bits = ib[i]
-        mb = (bits & 0xFFFFFFFFFFFFF) | 0x3FF0000000000000
-        big = mb > _SQRT2_BITS
-        ib[i] = mb - (np.int64(1) << 52) * big
-        ex[i] = ((bits >> 52) & 0x7FF) - 1023 + big
-    for i in range(n):
-        m = mant[i]
-        s = (m - 1.0) / (m + 1.0)
-        z = s * s
-        p = 1.0 / 23.0  # Horner: z^11 / 23 + ... + z / 3 + 1
-        for d in (21.0, 19.0, 17.0, 15.0, 13.0, 11.0, 9.0, 7.0, 5.0, 3.0, 1.0):
-            p = p * z + 1.0 / d
-        out[i] = 2.0 * s * p + ex[i] * _LN2_LO + ex[i] * _LN2_HI
-    return out
-
-
-_LN2_HI_F = np.float32(0.693359375)  # ln 2 = _LN2_HI_F + _LN2_LO_F, the first with few mantissa bits
-_LN2_LO_F = np.float32(-2.12194440e-4)
-_INV_LN2_F = np.float32(1.44269504)
-_SQRT2_BITS_F = 0x3FB504F3  # the float32 bits of sqrt(2)
-
-
-@_njit
-def exp_array32(x):  # type: ignore[no-untyped-def]
-    """``exp`` of every element of ``x`` (N,) float32, as a new float32 array, within 2 ulp (float32) of
-    ``math.exp``: :func:`exp_array` in single precision (twice its vector lanes, a degree-7 polynomial).
-    Arguments are clamped to [-87, 88] (e^-87 = 1.6e-38, the smallest normal float32)."""
-    n = x.size
-    out = np.empty(n, np.float32)
-    ib = np.empty(n, np.int32)
-    lo = np.float32(-87.0)
-    hi = np.float32(88.0)
-    half = np.float32(0.5)
-    for i in range(n):
-        xi = min(max(x[i], lo), hi)
-        k = np.floor(xi * _INV_LN2_F + half)
-        r = (xi - k * _LN2_HI_F) - k * _LN2_LO_F
-        p = np.float32(1.0 / 5040.0)  # Horner: r^7 / 7! + ... + r + 1 (|r| <= ln2 / 2: error 5e-9)
-        for f in (720.0, 120.0, 24.0, 6.0, 2.0, 1.0, 1.0):
-            p = p * r + np.float32(1.0 / f)
-        out[i] = p
-        ib[i] = (np.int32(k) + np.int32(127)) << np.int32(23)
-    scale = ib.view(np.float32)
-    for i in range(n):
-        out[i] *= scale[i]
-    return out
-
-
-@_njit
-def log_array32(x):  # type: ignore[no-untyped-def]
-    """Natural logarithm of every element of ``x`` (N,) float32 (positive, finite, normal), as a new float32
-    array, within 2 ulp (float32) of ``math.log``: :func:`log_array` in single precision (series to ``s^9``)."""
-    n = x.size
-    out = np.empty(n, np.float32)
-    mant = x.copy()
-    ib = mant.view(np.int32)
-    ex = np.empty(n, np.float32)
-    for i in range(n):
-        bits = ib[i]
-        mb = (bits & np.int32(0x7FFFFF)) | np.int32(0x3F800000)
-        big = np.int32(mb > np.int32(_SQRT2_BITS_F))
-        ib[i] = mb - (np.int32(1) << np.int32(23)) * big
-        ex[i] = np.float32(((bits >> np.int32(23)) & np.int32(0xFF)) - np.int32(127) + big)
-    one = np.float32(1.0)
-    two = np.float32(2.0)
-    for i in range(n):
-        m = mant[i]
-        s = (m - one) / (m + one)
-        z = s * s
-        p = np.float32(1.0 / 11.0)  # Horner: z^5 / 11 + ... + z / 3 + 1 (|s| <= 0.172: error 1e-10)
-        for d in (9.0, 7.0, 5.0, 3.0, 1.0):
-            p = p * z + np.float32(1.0 / d)
-        out[i] = two * s * p + ex[i] * _LN2_LO_F + ex[i] * _LN2_HI_F
-    return out
 
 
 @_njit
@@ -939,7 +803,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         lv[t] = max(B[R - s, t], f_half)
         lv[n + t] = max(a0[t], f_half)
         lv[2 * n + t] = max(B[R + s, t], f_half)
-    lv = log_array32(lv)
+    lv = np.log(lv)
     # in float32 (twice the lanes of the divisions and square roots): the start is refined by the centroid, and
     # the widths are tested against limits far coarser than its rounding
     fR = np.float32(R)
@@ -970,7 +834,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
         g2[t] = -f2 * iv
     for t in range(n):
         sw_max = max(sw_max, float(sws[t]))
-    g2f = exp_array32(g2)
+    g2f = np.exp(g2)
     # half-level widths: wide profiles (flat tops) and profiles without both crossings go to the full kernel
     h0 = np.empty(n, np.float32)
     for t in range(n):
@@ -999,7 +863,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
             a_s0[t] = 0.0
             a_s1[t] = 0.0
             cf[t] = c[t]
-        ex = exp_array32(ex)
+        ex = np.exp(ex)
         for t in range(n):
             wq[t] = ex[t]
             rq[t] = ex[n + t]
@@ -1136,10 +1000,10 @@ def fit_columns_common(  # type: ignore[no-untyped-def]
     Same other arguments (without the neighbour model and ``max_fwhm``) and results for every column that has at
     most one clipped sample in its window and a half-level width of at most ``wide_fwhm`` (up to rounding: the
     window, its background line, the log-parabola start and the centroid sums are float32, twice the lanes of
-    float64 in the vector loops, and its logs and exps are the float32 :func:`log_array32` and
-    :func:`exp_array32`, so centres agree to about 1e-4 px, far below the extractor's noise; with one clipped sample
-    the flanks sit up to a row closer than :func:`fit_columns` puts them, which moves centres by hundredths of a
-    pixel); the others are flagged in the extra last output ``special`` (N,) bool, and their results are to be
+    float64 in the vector loops, and so are its logs and exps, so centres agree to about 1e-4 px, far below the
+    extractor's noise; with one clipped sample the flanks sit up to a row closer than :func:`fit_columns` puts
+    them, which moves centres by hundredths of a pixel); the others are flagged in the extra last output
+    ``special`` (N,) bool, and their results are to be
     taken from the other fits.
     Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, special)``.
     ``image`` must be C-contiguous. Works in chunks of 512 columns.
@@ -1187,7 +1051,7 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
         gain[t] = 1.0 + sig_p * sig_p * 2.0 * inv2[t]
         reach[t] = 4.0 * sig_w + 1.0
         g2[t] = -2.0 * inv2[t]
-    g2 = exp_array(g2)  # vectorized (a library exp per column costs 15 ns)
+    g2 = np.exp(g2)
     # half-level width: wider profiles take the full kernel's flat-top branch
     lvl = np.empty(n)
     for t in range(n):
@@ -1222,7 +1086,7 @@ def _plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
                 q1[t] = 0
                 ex[t] = 0.0
                 ex[n + t] = 0.0
-        ex = exp_array(ex)  # the weights' start and ratio (vectorized)
+        ex = np.exp(ex)  # the weights' start and ratio
         for t in range(n):
             w[t] = ex[t] if act[t] else 0.0
             ratio[t] = ex[n + t] if act[t] else 0.0
@@ -1303,7 +1167,7 @@ def _plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, it
 @_njit
 def _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
     """The unclipped branch of :func:`fit_columns` for background-free profiles ``B`` (m, n) float64 (peak at the
-    middle row; ``a0`` (n,) its value): log-parabola start (:func:`log_array`), then :func:`_plain_fit64`.
+    middle row; ``a0`` (n,) its value): log-parabola start, then :func:`_plain_fit64`.
     Returns ``(centre, sigma, ok, done)``, (n,) each."""
     m, n = B.shape
     R = m // 2
@@ -1313,7 +1177,7 @@ def _plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iteratio
         lv[t] = max(B[R - s, t], 0.5)
         lv[n + t] = max(a0[t], 0.5)
         lv[2 * n + t] = max(B[R + s, t], 0.5)
-    lv = log_array(lv)
+    lv = np.log(lv)
     c = np.empty(n)
     sg = np.empty(n)
     for t in range(n):
@@ -1346,7 +1210,7 @@ def _neighbour_profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ig
         d = top[t] + q0 - mu[t] if q0 < k_rows else 0.0
         ex[t] = -(d * d) * inv[t]
         ex[n + t] = -(2.0 * d + 1.0) * inv[t]
-    ex = exp_array(ex)
+    ex = np.exp(ex)
     w = ex[:n].copy()
     ratio = ex[n:].copy()
     P = np.empty((k_rows, n))
@@ -1366,8 +1230,7 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
     image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, nb_v, nb_a, nb_s, wide_fwhm
 ):
     """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns without a clipped
-    sample: with the same arguments but the width limits, the same results up to rounding (the neighbour's
-    Gaussian from vectorized :func:`exp_array`, the log-parabola start from :func:`log_array`, both within 2 ulp).
+    sample: with the same arguments but the width limits, the same results up to rounding.
 
     The stripes of two lasers close together at long range take this path: there the columns of both that the
     other's Gaussian reaches are refitted with it subtracted, a few rounds, and :func:`fit_columns` costs about ten
@@ -1388,7 +1251,7 @@ def fit_columns_neighbour(  # type: ignore[no-untyped-def]
         amp_nb[t] = nb_a[t] if has else 0.0
         inv[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
         g2[t] = -2.0 * inv[t]
-    g2 = exp_array(g2)
+    g2 = np.exp(g2)
     # re-centre on the integer peak of the core rows - e ... rows + e (the first of equal ones); a clipped core
     # sample: not here
     top = np.empty(n, np.int64)
@@ -1692,8 +1555,7 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
     nearby: the saturated profiles (peak sample clipped, at least two clipped samples; symmetric-window centroid
     from the middle of the clipped run, float32 sums: centres within 1e-5 px of :func:`fit_columns`) and the
     profiles that are not saturated and not wider than ``wide_fwhm`` at half level (Gaussian-weighted centroid, in
-    :func:`fit_columns`'s float64 arithmetic up to the vectorized logarithm of the log-parabola start,
-    :func:`log_array`, within 2 ulp).
+    :func:`fit_columns`'s float64 arithmetic).
 
     Same other arguments as :func:`fit_columns` without the neighbour model and the width limits. Returns
     ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)``: ``done`` (N,) bool marks the
@@ -2130,7 +1992,7 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
     rows, kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
     1 DN) in the rows the point's fit reads (:func:`read_reach` of its sigma and saturation, ``read`` = ``(near,
-    far, wide_sigma)``); the tails by one vectorized :func:`exp_array`. A point is picked when its neighbour's
+    far, wide_sigma)``). A point is picked when its neighbour's
     row, amplitude or sigma differ from ``last`` (3, N) (the neighbour of its previous refit, NaN = none yet) by
     more than :data:`NEIGHBOUR_TOL`; ``last`` is updated there. Only the points in the columns ``look`` (K,)
     (sorted) are looked at: a neighbour can change only in the columns of the last round's refits.
@@ -2175,7 +2037,7 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
                 g_f = max(best - flanks, 0.0) / s_j
                 arg[m] = max(-0.5 * g_c * g_c, -0.5 * g_f * g_f + LOG_FLANK_TAIL)
                 m += 1
-    tail = exp_array(arg[:m])
+    tail = np.exp(arg[:m])
     idx = np.empty(m, np.int64)
     nb_v = np.empty(m)
     nb_a = np.empty(m)
@@ -2539,7 +2401,7 @@ def finish_points(  # type: ignore[no-untyped-def]
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)
     q_out = np.empty(m)
-    e_snr = exp_array32(e_arg)  # vectorized (a library exp per point costs 4 ns); float32 is plenty for a score
+    e_snr = np.exp(e_arg)  # float32 is plenty for a score
     qual = np.empty(n)
     for t in range(n):  # every point's quality, branch-free (vectorizes), before the kept ones are packed
         s = sig[t] if math.isfinite(sig[t]) else max_sigma
