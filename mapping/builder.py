@@ -9,6 +9,10 @@ map's statistics exactly once, even when ``window_clouds > extract_every_clouds`
 Threading: one thread calls :meth:`add_cloud` / :meth:`flush` (the base station's map worker); :meth:`map_json`,
 :attr:`tracks`, :meth:`save` may be called from any thread. A lock guards the map, the tracks and the windows;
 the expensive extraction runs outside it.
+
+Output: :meth:`add_cloud` and :meth:`flush` return typed :class:`~mapping.types.MapChange` values (a plane's new
+state, or its removal into another plane), at most one per plane per call, in the order they happened. Applied
+in order to the previous :meth:`map_json`, they give the new one; turning them into JSON is the publisher's job.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
-from .types import MapConfig, PlaneStats
+from .types import MapChange, MapConfig, PlaneStats
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +96,7 @@ class MapBuilder:
             self._load(*loaded)
 
     # ------------------------------------------------------------------ input
-    def add_cloud(self, robot: str, t_ns: int, points_ned: Any, pose: Pose) -> list[dict[str, Any]]:
+    def add_cloud(self, robot: str, t_ns: int, points_ned: Any, pose: Pose) -> list[MapChange]:
         """Add one cloud of ``robot`` captured at ``t_ns`` (ns).
 
         Args:
@@ -102,9 +106,10 @@ class MapBuilder:
             pose: vehicle pose at capture time (its position orients normals and makes the track).
 
         Returns:
-            Changed planes (dicts as in :meth:`map_json`) and removals (``{"id", "removed", "merged_into"}``);
-            empty unless this cloud triggered an extraction. Clouds closer in time than 1 / ``max_cloud_rate_hz``
-            to the robot's last one taken only extend its track.
+            The changes: planes updated (``change.plane.to_json()`` is the dict :meth:`map_json` lists) and
+            planes removed (fused into ``change.merged_into``); empty unless this cloud triggered an extraction.
+            Clouds closer in time than 1 / ``max_cloud_rate_hz`` to the robot's last one taken only extend its
+            track.
         """
         if not isinstance(robot, str) or not robot:
             msg = f"robot must be a non-empty string, got {robot!r}"
@@ -164,7 +169,7 @@ class MapBuilder:
             pq = pq[keep]
         return pq
 
-    def add_cloud_body(self, robot: str, t_ns: int, points_body: Any, pose: Pose) -> list[dict[str, Any]]:
+    def add_cloud_body(self, robot: str, t_ns: int, points_body: Any, pose: Pose) -> list[MapChange]:
         """Like :meth:`add_cloud` for body-frame points (transformed with ``pose`` first)."""
         from .ned import cloud_to_ned
 
@@ -179,9 +184,9 @@ class MapBuilder:
             return win.clouds[-1].t_ns - first_new.t_ns >= cfg.extract_every_s * 1e9
         return False
 
-    def flush(self) -> list[dict[str, Any]]:
+    def flush(self) -> list[MapChange]:
         """Run the pending extraction of every robot now (end of a dive, tests); returns the changes."""
-        changes: list[dict[str, Any]] = []
+        changes: list[MapChange] = []
         with self._lock:
             robots = sorted(r for r, w in self._windows.items() if w.n_new > 0)
         for robot in robots:
@@ -189,7 +194,7 @@ class MapBuilder:
         return changes
 
     # ------------------------------------------------------------- extraction
-    def _extract(self, robot: str) -> list[dict[str, Any]]:
+    def _extract(self, robot: str) -> list[MapChange]:
         cfg = self.cfg
         q = cfg.quantum_m
         with self._lock:
@@ -218,7 +223,7 @@ class MapBuilder:
         veh_m = veh_q * q - origin_m
         seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
         ex = extract_planes(pts_m, veh_m, cfg, seed)
-        changes: list[dict[str, Any]] = []
+        changes: list[MapChange] = []
         n_obs = 0
         n_curved = 0
         n_single = 0
@@ -463,10 +468,10 @@ def _saved_config(header: dict[str, Any]) -> MapConfig:
         return MapConfig()
 
 
-def _squash(changes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _squash(changes: list[MapChange]) -> list[MapChange]:
     """Keep the last change per plane id (a plane updated twice in one extraction is reported once)."""
-    last: dict[int, dict[str, Any]] = {}
+    last: dict[int, MapChange] = {}
     for ch in changes:
-        last.pop(int(ch["id"]), None)
-        last[int(ch["id"])] = ch
+        last.pop(ch.plane_id, None)
+        last[ch.plane_id] = ch
     return list(last.values())

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .stats import Contribution, VoxelSet, merge_contributions
-from .types import MapConfig, PlaneFit, PlaneStats, scatter_matrix
+from .types import MapChange, MapConfig, PlaneFit, PlaneStats, scatter_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -160,13 +160,17 @@ def in_plane_axes(normal: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 @dataclass
 class MapPlane:
-    """A plane of the map: its id, record, cached fit and cached JSON form."""
+    """A plane of the map: its id, record, cached fit and cached JSON form.
+
+    Never edited once in the map (a change of the plane is a new ``MapPlane``), so a :class:`MapChange` may hold
+    it; the caches are filled on first use and take no part in equality.
+    """
 
     id: int
     record: PlaneRecord
     cfg: MapConfig
-    _fit: PlaneFit | None = None
-    _json: dict[str, Any] | None = None
+    _fit: PlaneFit | None = field(default=None, compare=False, repr=False)
+    _json: dict[str, Any] | None = field(default=None, compare=False, repr=False)
 
     @property
     def fit(self) -> PlaneFit:
@@ -281,12 +285,12 @@ class PlaneMap:
     def _published(self, rec: PlaneRecord) -> bool:
         return rec.n_obs >= self.cfg.min_obs_publish
 
-    def add(self, obs: PlaneRecord) -> list[dict[str, Any]]:
-        """Associate and fuse one observation; returns the changes (plane dicts, or removals).
+    def add(self, obs: PlaneRecord) -> list[MapChange]:
+        """Associate and fuse one observation; returns the changes (the plane it joined or started, removals).
 
-        A removal is ``{"id": i, "removed": True, "merged_into": j}``. An observation that matches nothing and
-        cannot start a plane of its own (line-like) is dropped and gives no change. Tentative planes (fewer than
-        ``min_obs_publish`` observations) are not reported.
+        A plane ``i`` fused into plane ``j`` is reported as ``MapChange.removed(i, j)``. An observation that matches
+        nothing and cannot start a plane of its own (line-like) is dropped and gives no change. Tentative planes
+        (fewer than ``min_obs_publish`` observations) are not reported.
         """
         cfg = self.cfg
         if obs.stats.n < 3:
@@ -304,7 +308,7 @@ class PlaneMap:
             pid = self.next_id
             self.next_id += 1
             self.planes[pid] = MapPlane(pid, replace(obs, hint_normal=None), cfg)
-            return [self.planes[pid].to_json()] if self._published(obs) else []
+            return [MapChange.updated(self.planes[pid])] if self._published(obs) else []
         keep = hits[0]
         rec = self.planes[keep].record + obs
         removed: list[int] = []
@@ -329,8 +333,8 @@ class PlaneMap:
                 if self._published(gone):
                     removed.append(pid)
         self.planes[keep] = MapPlane(keep, rec, cfg)
-        changes: list[dict[str, Any]] = [self.planes[keep].to_json()] if self._published(rec) else []
-        changes.extend({"id": pid, "removed": True, "merged_into": keep} for pid in removed)
+        changes = [MapChange.updated(self.planes[keep])] if self._published(rec) else []
+        changes.extend(MapChange.removed(pid, keep) for pid in removed)
         return changes
 
     def to_json(self, include_tentative: bool = False) -> list[dict[str, Any]]:

@@ -1,21 +1,31 @@
-"""Shared value types of the mapping package: the configuration and the exact plane statistics.
+"""Shared value types of the mapping package: the configuration, the exact plane statistics, the map changes.
 
 Statistics are kept as *exact integers*: every point is quantized to ``quantum_m`` (0.1 mm by default, far below
 the sensor's noise) and the sums of points and of outer products are Python integers. Fusing two planes is then
 plain integer addition, which is associative and commutative: the map does not depend on the order in which
 observations were fused, and a persisted map reloads bit for bit.
+
+What leaves the package when the map changes is a :class:`MapChange`, one per plane: either the plane as it now
+is (created, grown, or fused with others) or the removal of a plane that was fused into another. It carries the
+map's own :class:`~mapping.plane_map.MapPlane` (immutable once in a change: the map replaces a plane, it never
+edits one), not its JSON form: the plane's serving dict is built only where a change is published
+(``services.mapfeed``), and a base station with no one listening never builds it.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import MapConfigError
+from .errors import MapConfigError, MappingError
+
+if TYPE_CHECKING:
+    from .plane_map import MapPlane
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -313,3 +323,49 @@ class PlaneStats:
             raise ValueError(msg)
         v = values
         return cls(v[0], (v[1], v[2], v[3]), (v[4], v[5], v[6], v[7], v[8], v[9]))
+
+
+class ChangeKind(enum.Enum):
+    """What happened to one plane of the map."""
+
+    #: the plane was created, grew, or absorbed others: :attr:`MapChange.plane` is its new state
+    UPDATED = "updated"
+    #: the plane was fused into another one: :attr:`MapChange.merged_into` names the plane that holds it now
+    REMOVED = "removed"
+
+
+@dataclass(frozen=True)
+class MapChange:
+    """One change of the shared map, as :meth:`mapping.MapBuilder.add_cloud` and ``flush`` return them.
+
+    Attributes:
+        kind: :attr:`ChangeKind.UPDATED` or :attr:`ChangeKind.REMOVED`.
+        plane_id: the id of the plane that changed.
+        plane: the plane as it now is (``UPDATED`` only; ``plane.to_json()`` is its serving form, the one
+            ``MapBuilder.map_json`` lists).
+        merged_into: the id of the plane it was fused into (``REMOVED`` only).
+    """
+
+    kind: ChangeKind
+    plane_id: int
+    plane: MapPlane | None = None
+    merged_into: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind is ChangeKind.UPDATED:
+            if self.plane is None or self.plane.id != self.plane_id or self.merged_into is not None:
+                msg = f"an updated plane {self.plane_id} needs that plane and no merged_into"
+                raise MappingError(msg)
+        elif self.plane is not None or self.merged_into is None:
+            msg = f"a removed plane {self.plane_id} needs merged_into and no plane"
+            raise MappingError(msg)
+
+    @classmethod
+    def updated(cls, plane: MapPlane) -> MapChange:
+        """The new state of ``plane``."""
+        return cls(ChangeKind.UPDATED, plane.id, plane)
+
+    @classmethod
+    def removed(cls, plane_id: int, merged_into: int) -> MapChange:
+        """Plane ``plane_id`` was fused into plane ``merged_into``."""
+        return cls(ChangeKind.REMOVED, plane_id, merged_into=merged_into)

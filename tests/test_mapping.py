@@ -14,7 +14,17 @@ import numpy as np
 import pytest
 
 from lrsensor.frames import Pose
-from mapping import MapBuilder, MapConfig, MapConfigError, MapInputError, MapStoreError, PlaneStats
+from mapping import (
+    ChangeKind,
+    MapBuilder,
+    MapChange,
+    MapConfig,
+    MapConfigError,
+    MapInputError,
+    MappingError,
+    MapStoreError,
+    PlaneStats,
+)
 from mapping.plane_map import PlaneMap, PlaneRecord
 from mapping.synth import Cylinder, DivePlan, Face, Scene, box_pillar, simulate_dive
 
@@ -137,9 +147,11 @@ def test_bridging_observation_fuses_two_map_planes() -> None:
     assert len(pm) == 2  # 0.6 m apart: separate faces
     changes = pm.add(_obs(rng, "c", 3.0, (0.8, 1.8), (1.0, 1.2), 5))
     assert len(pm) == 1
-    assert {"id": 2, "removed": True, "merged_into": 1} in changes
-    assert changes[0]["id"] == 1
-    assert changes[0]["n_obs"] == 5
+    assert MapChange.removed(2, merged_into=1) in changes
+    assert changes[0].kind is ChangeKind.UPDATED
+    assert changes[0].plane_id == 1
+    assert changes[0].plane is not None
+    assert changes[0].plane.to_json()["n_obs"] == 5
 
 
 def test_opposite_faces_of_a_thin_wall_never_merge() -> None:
@@ -170,7 +182,27 @@ def test_tentative_planes_are_not_served() -> None:
     assert pm.to_json() == []
     assert len(pm.to_json(include_tentative=True)) == 1
     changes = pm.add(_obs(rng, "a", 3.0, (0, 1), (1, 1.3), 2))
-    assert [c["id"] for c in changes] == [1]
+    assert [c.plane_id for c in changes] == [1]
+
+
+def test_a_map_change_is_either_a_plane_or_a_removal() -> None:
+    rng = np.random.default_rng(6)
+    pm = PlaneMap(MapConfig())
+    pm.add(_obs(rng, "a", 3.0, (0, 1), (1, 1.3), 1))
+    (change,) = pm.add(_obs(rng, "a", 3.0, (0, 1), (1, 1.3), 2))
+    plane = pm.planes[1]
+    assert change == MapChange.updated(plane)
+    assert (change.kind, change.plane_id, change.plane, change.merged_into) == (ChangeKind.UPDATED, 1, plane, None)
+    gone = MapChange.removed(2, merged_into=1)
+    assert (gone.kind, gone.plane_id, gone.plane, gone.merged_into) == (ChangeKind.REMOVED, 2, None, 1)
+    with pytest.raises(MappingError, match="updated plane 2"):
+        MapChange(ChangeKind.UPDATED, 2, plane)  # the id must be the plane's
+    with pytest.raises(MappingError, match="updated plane 1"):
+        MapChange(ChangeKind.UPDATED, 1)
+    with pytest.raises(MappingError, match="removed plane 2"):
+        MapChange(ChangeKind.REMOVED, 2)
+    with pytest.raises(MappingError, match="removed plane 1"):
+        MapChange(ChangeKind.REMOVED, 1, plane, merged_into=3)
 
 
 # --------------------------------------------------------------------------- extraction guards
@@ -274,17 +306,19 @@ def test_replay_is_deterministic_and_changes_describe_the_map() -> None:
     frames = _small_dive()
     b1 = MapBuilder(MapConfig())
     changes: dict[int, dict] = {}
+
+    def apply(ch: MapChange) -> None:
+        if ch.kind is ChangeKind.REMOVED:
+            changes.pop(ch.plane_id, None)
+        else:
+            assert ch.plane is not None
+            changes[ch.plane_id] = ch.plane.to_json()
+
     for f in frames:
         for ch in b1.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est):
-            if ch.get("removed"):
-                changes.pop(ch["id"], None)
-            else:
-                changes[ch["id"]] = ch
+            apply(ch)
     for ch in b1.flush():
-        if ch.get("removed"):
-            changes.pop(ch["id"], None)
-        else:
-            changes[ch["id"]] = ch
+        apply(ch)
     b2 = MapBuilder(MapConfig())
     _feed(b2, frames)
     m1, m2 = b1.map_json(include_tracks=True), b2.map_json(include_tracks=True)

@@ -1,0 +1,287 @@
+"""The base station's map feed: accepted clouds -> one map thread -> ``mapping.MapBuilder`` -> map updates.
+
+Road: an ingest worker that accepted a cloud hands it to :meth:`MapFeed.take`, which puts it in a bounded
+queue; the one map thread (``MapBuilder.add_cloud`` is single-writer) transforms its points to NED, feeds the
+builder, and publishes what changed. Each cloud is then reported to the ledger (``on_mapped``): taken in by
+the map, it is acknowledgeable at the next checkpoint. Without the map (``--map off``, or Open3D missing with
+``--map auto``) :meth:`MapFeed.take` reports the cloud at once.
+
+Back-pressure, then loss that is counted: a full map queue blocks the ingest worker for up to ``map_wait_s``,
+which in turn fills the ingest queue and blocks the Zenoh callback, which pushes back on the robots' BLOCK
+publishers. A map stalled longer than that loses the cloud (``map.skipped`` in the status); the cloud is
+still received and acknowledged, or the robot would re-send it forever to a map that cannot take it.
+
+Wire form of the updates (``<root>/map/updates``, JSON, one message per cloud that changed the map)::
+
+    {"t_ns": capture time of the cloud (or publication time for a flush), "robot", "seq",
+     "planes": [plane as in the map JSON, or {"id", "removed": true, "merged_into"}]}
+
+The builder returns typed :class:`mapping.MapChange` values; they become JSON only here, at the wire
+(:func:`change_json`), and only when the base publishes.
+
+Also here: the end-to-end latency statistics (capture time to the moment a cloud is handed to the map) and
+the publication-to-base transit times (:class:`LatencyStats`), and :func:`load_map_builder`, which finds out
+whether the map can run on this install (Open3D lives behind the ``mapping`` import).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from lrsensor.frames import body_to_ned
+
+from .errors import MappingUnavailableError
+from .wire import CloudMsg
+
+if TYPE_CHECKING:
+    from mapping import MapBuilder, MapChange
+
+log = logging.getLogger(__name__)
+
+#: How long :meth:`MapFeed.close` waits for the map thread to finish its queue, seconds.
+CLOSE_TIMEOUT_S = 60.0
+#: Marker in the map queue: flush the map.
+_FLUSH: Any = object()
+
+
+class LatencyStats:
+    """End-to-end latencies (base processing time minus capture time), ns, of the most recent clouds.
+
+    Thread-safe: any thread may :meth:`add` while another asks for percentiles.
+    """
+
+    def __init__(self, maxlen: int = 200_000) -> None:
+        self.values: collections.deque[int] = collections.deque(maxlen=maxlen)
+        self.transit: collections.deque[int] = collections.deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+
+    def add(self, latency_ns: int, transit_ns: int | None) -> None:
+        """Record one cloud."""
+        with self._lock:
+            self.values.append(latency_ns)
+            if transit_ns is not None:
+                self.transit.append(transit_ns)
+
+    def percentiles_ms(self, qs: Iterable[float] = (50, 99), transit: bool = False) -> dict[str, float]:
+        """Percentiles in ms (NaN when empty) of the end-to-end latencies, or with ``transit`` of the
+        publication-to-base times (meaningful also when a recorded dive with old capture times is replayed)."""
+        with self._lock:
+            arr = np.asarray(self.transit if transit else self.values, dtype=float)
+        return {f"p{q:g}": float(np.percentile(arr, q) / 1e6) if arr.size else float("nan") for q in qs}
+
+
+def load_map_builder(map_dir: Path, mode: str) -> MapBuilder | None:
+    """``mapping.MapBuilder`` for ``map_dir`` (reloading its map), or None when the map is off.
+
+    ``mode``: ``"on"`` (missing mapping is an error), ``"auto"`` (missing mapping is a warning), ``"off"``.
+    """
+    if mode == "off":
+        return None
+    try:
+        from mapping import MapBuilder, MapConfig  # Open3D lives behind this import
+    except (ImportError, OSError) as err:
+        text = (
+            f"the shared map needs the 'mapping' package with Open3D (pip install 'lrsensor[base]'; the open3d "
+            f"wheel also needs the system library libusb-1.0-0): {err}"
+        )
+        if mode == "on":
+            raise MappingUnavailableError(text) from err
+        log.warning("map disabled: %s", text)
+        return None
+    map_dir.mkdir(parents=True, exist_ok=True)
+    return MapBuilder(MapConfig(), map_dir)
+
+
+def change_json(change: MapChange) -> dict[str, Any]:
+    """The wire form of one map change: the plane's serving dict, or ``{"id", "removed", "merged_into"}``."""
+    if change.plane is not None:
+        return change.plane.to_json()
+    return {"id": change.plane_id, "removed": True, "merged_into": change.merged_into}
+
+
+def json_default(obj: Any) -> Any:
+    """``json.dumps`` fallback for numpy values and sets in map data."""
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    msg = f"not JSON serialisable: {type(obj).__name__}"
+    raise TypeError(msg)
+
+
+class MapFeed:
+    """The map queue, the map thread and the publication of map changes (see the module docstring).
+
+    Args:
+        builder: the map (None: the map is off; clouds are reported to ``on_mapped`` at once).
+        on_mapped: called with ``(robot, seq)`` once a cloud is taken in by the map or left out of it.
+        queue_size: map queue capacity, clouds.
+        map_wait_s: how long :meth:`take` waits for room in the map queue before the cloud is left out of
+            the map (counted as ``skipped``).
+    """
+
+    def __init__(
+        self,
+        builder: MapBuilder | None,
+        on_mapped: Callable[[str, int], None],
+        *,
+        queue_size: int = 1024,
+        map_wait_s: float = 5.0,
+    ) -> None:
+        self.builder = builder
+        self.on_mapped = on_mapped
+        self.map_wait_s = map_wait_s
+        self.latency = LatencyStats()
+        #: clouds the builder has taken, clouds left out because the map was too far behind, map failures
+        self.clouds = 0
+        self.skipped = 0
+        self.errors = 0
+        self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
+        self._publish: Callable[[str], object] | None = None
+        self._thread: threading.Thread | None = None
+        self._planes = 0
+        self._planes_stale = True
+
+    @property
+    def enabled(self) -> bool:
+        """Whether there is a map to feed."""
+        return self.builder is not None
+
+    def start(self, publish: Callable[[str], object] | None) -> None:
+        """Start the map thread (when the map is on); ``publish`` puts one JSON update on the wire."""
+        self._publish = publish
+        if self.builder is not None:
+            self._thread = threading.Thread(target=self._worker, name="base-map", daemon=True)
+            self._thread.start()
+
+    def close(self, save: bool) -> None:
+        """Stop publishing, let the map thread finish its queue, flush the map, and save it when ``save``."""
+        self._publish = None
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join(timeout=CLOSE_TIMEOUT_S)
+            self._thread = None
+        if self.builder is not None:
+            try:
+                self.builder.flush()
+                if save:
+                    self.builder.save()
+            except Exception as err:
+                log.error("map flush/save failed: %s", err)
+
+    def save(self) -> None:
+        """Write the map to its folder (no-op when the map is off)."""
+        if self.builder is not None:
+            self.builder.save()
+
+    # ------------------------------------------------------------------ input
+    def take(self, msg: CloudMsg, recv_ns: int) -> None:
+        """Hand an accepted cloud, received at ``recv_ns``, to the map (blocks up to ``map_wait_s``)."""
+        if self.builder is not None and len(msg):
+            try:
+                # back-pressure while the map keeps up; a map stalled for map_wait_s loses the cloud (counted)
+                self._queue.put(msg, timeout=self.map_wait_s)
+            except queue.Full:
+                self.skipped += 1
+                self.on_mapped(msg.robot, msg.seq)  # counted, not silent; or the robot re-sends it forever
+                if self.skipped <= 5 or self.skipped % 100 == 0:
+                    log.warning(
+                        "map is %.0f s behind: cloud %s#%d not mapped (%d so far)",
+                        self.map_wait_s,
+                        msg.robot,
+                        msg.seq,
+                        self.skipped,
+                    )
+        else:
+            self.on_mapped(msg.robot, msg.seq)
+        self.latency.add(time.time_ns() - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
+
+    def idle(self) -> bool:
+        """Whether every cloud handed over has been through the map."""
+        return self._queue.unfinished_tasks == 0
+
+    def flush(self) -> None:
+        """Let the map thread finish its queue and extract what the map still holds (end of a dive)."""
+        if self.builder is None:
+            return
+        self._queue.put(_FLUSH)
+        self._queue.join()
+
+    # ------------------------------------------------------------------ the map thread
+    def _worker(self) -> None:
+        """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
+        while True:
+            msg = self._queue.get()
+            try:
+                if msg is None:
+                    return
+                if msg is _FLUSH:
+                    self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
+                    continue
+                self._map_one(msg)
+            except Exception as err:  # the map must never stop the ingest
+                self.errors += 1
+                log.exception("map update failed: %s", err)
+            finally:
+                if isinstance(msg, CloudMsg):  # taken in (or refused by the map): acknowledgeable
+                    self.on_mapped(msg.robot, msg.seq)
+                self._queue.task_done()
+
+    def _map_one(self, msg: CloudMsg) -> None:
+        assert self.builder is not None
+        points_ned = body_to_ned(msg.points_body.astype(np.float64), msg.pose)
+        changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, msg.pose)
+        self.clouds += 1
+        self._publish_changes(msg, changes)
+
+    def _publish_changes(self, msg: CloudMsg | None, changes: list[MapChange]) -> None:
+        if not changes:
+            return
+        self._planes_stale = True
+        publish = self._publish
+        if publish is None:
+            return
+        update: dict[str, Any] = {"t_ns": time.time_ns(), "planes": [change_json(c) for c in changes]}
+        if msg is not None:
+            update.update(t_ns=msg.t_ns, robot=msg.robot, seq=msg.seq)
+        try:
+            publish(json.dumps(update, default=json_default))
+        except Exception as err:
+            log.debug("map update not published: %s", err)
+
+    # ------------------------------------------------------------------ views
+    def map_json(self) -> dict[str, Any]:
+        """The whole map as JSON-ready data (``{"planes": [], "enabled": False}`` when the map is off)."""
+        if self.builder is None:
+            return {"planes": [], "enabled": False}
+        data: dict[str, Any] = self.builder.map_json()
+        self._planes = len(data.get("planes", []))
+        self._planes_stale = False
+        out: dict[str, Any] = json.loads(json.dumps(data, default=json_default))
+        return out
+
+    def status_json(self) -> dict[str, Any]:
+        """The ``map`` part of the status JSON."""
+        if self.builder is not None and self._planes_stale:
+            self._planes = self.builder.n_planes  # counted under the builder's lock, no JSON built
+            self._planes_stale = False
+        return {
+            "planes": self._planes,
+            "enabled": self.builder is not None,
+            "clouds": self.clouds,
+            "skipped": self.skipped,
+            "queued": self._queue.qsize(),
+            "errors": self.errors,
+        }
