@@ -1,0 +1,106 @@
+"""The base station's parts without a network: the robot ledger (counting, state file, acknowledgements) and
+the map feed (wire form of the map changes, clouds reported to the ledger, latency statistics)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lrsensor.frames import Pose
+from services.base import BaseStation
+from services.errors import ServiceError
+from services.keys import FleetKeys
+from services.ledger import STATE_FORMAT, Ledger
+from services.mapfeed import LatencyStats, MapFeed, change_json
+from services.wire import CloudMsg
+
+
+def a_cloud(robot: str, seq: int, n: int = 10, sent_ns: int = 0) -> CloudMsg:
+    rng = np.random.default_rng(seq)
+    msg = CloudMsg(
+        robot,
+        seq,
+        1_700_000_000_000_000_000 + seq,
+        Pose(1, 2, 3, 0, 0, 0.5),
+        rng.normal(0, 1, (n, 3)).astype(np.float32),
+        np.zeros(n, np.uint8),
+        np.ones(n, np.float32),
+    )
+    return msg.with_sent_ns(sent_ns) if sent_ns else msg
+
+
+def test_ledger_counts_duplicates_and_rejections() -> None:
+    ledger = Ledger(None)
+    assert ledger.accept(a_cloud("rov1", 0))
+    assert ledger.accept(a_cloud("rov1", 2, n=5))
+    assert not ledger.accept(a_cloud("rov1", 2))
+    ledger.reject("rov1", "garbage")
+    st = ledger.robots_json()["rov1"]
+    assert (st["received"], st["missed"], st["duplicates"], st["rejected"], st["points"]) == (2, 1, 1, 1, 15)
+    assert st["rejected_reasons"] == {"garbage": 1}
+    assert ledger.tracks()["rov1"].shape == (2, 4)
+    assert list(ledger.robots_json("rov2")) == []
+
+
+def test_ledger_with_the_map_acknowledges_only_what_the_map_took(tmp_path: Path) -> None:
+    saves: list[str] = []
+    ledger = Ledger(tmp_path, save_map=lambda: saves.append("map"))
+    for seq in range(4):
+        ledger.accept(a_cloud("rov1", seq))
+    ledger.mark_mapped("rov1", 0)
+    ledger.mark_mapped("rov1", 1)
+    ledger.ack_now("rov1")  # with the map only checkpoints acknowledge
+    assert ledger.acks_json("rov1")["ranges"] == []
+    ledger.checkpoint()
+    assert saves == ["map"]
+    assert ledger.acks_json("rov1") == {"robot": "rov1", "ranges": [[0, 1]], "received": 4}
+    saved = json.loads((tmp_path / "fleet.json").read_text())
+    assert saved["format"] == STATE_FORMAT
+    assert saved["robots"]["rov1"]["ranges"] == [[0, 3]]
+    assert saved["robots"]["rov1"]["acked"] == [[0, 1]]
+    again = Ledger(tmp_path)
+    assert again.records["rov1"].seqs.ranges() == [[0, 1]]  # 2 and 3 will come again from the outbox
+
+
+def test_ledger_refuses_a_foreign_state_file(tmp_path: Path) -> None:
+    (tmp_path / "fleet.json").write_text(json.dumps({"format": "other", "version": 1, "robots": {}}))
+    with pytest.raises(ServiceError, match="not a base-station state file"):
+        Ledger(tmp_path)
+    with pytest.raises(ServiceError, match="not a base-station state file"):
+        BaseStation(None, FleetKeys("t"), tmp_path, map_mode="off")
+
+
+def test_map_feed_without_a_map_reports_each_cloud_at_once() -> None:
+    mapped: list[tuple[str, int]] = []
+    feed = MapFeed(None, lambda robot, seq: mapped.append((robot, seq)))
+    feed.take(a_cloud("rov1", 7, sent_ns=1_700_000_000_000_000_000), 1_700_000_000_002_000_000)
+    assert mapped == [("rov1", 7)]
+    assert feed.idle()
+    assert feed.status_json() == {"planes": 0, "enabled": False, "clouds": 0, "skipped": 0, "queued": 0, "errors": 0}
+    assert feed.map_json() == {"planes": [], "enabled": False}
+    assert feed.latency.percentiles_ms(transit=True) == {"p50": 2.0, "p99": 2.0}
+
+
+def test_latency_percentiles_are_nan_when_empty() -> None:
+    stats = LatencyStats()
+    assert all(math.isnan(v) for v in stats.percentiles_ms().values())
+    stats.add(1_000_000, None)
+    stats.add(3_000_000, 500_000)
+    assert stats.percentiles_ms((50,)) == {"p50": 2.0}
+    assert stats.percentiles_ms((50,), transit=True) == {"p50": 0.5}
+
+
+def test_map_changes_go_on_the_wire_as_before() -> None:
+    from mapping import MapChange, MapConfig
+    from mapping.plane_map import MapPlane, PlaneRecord
+
+    rng = np.random.default_rng(1)
+    points_q = np.rint(np.column_stack([np.full(500, 3.0), rng.uniform(0, 1, 500), rng.uniform(1, 1.3, 500)]) / 1e-4)
+    rec = PlaneRecord.from_points(points_q.astype(np.int64), np.array([-1.0, 0, 0]), "rov1", 10, 20, MapConfig())
+    plane = MapPlane(4, rec, MapConfig())
+    assert change_json(MapChange.updated(plane)) == plane.to_json()
+    assert change_json(MapChange.removed(5, merged_into=4)) == {"id": 5, "removed": True, "merged_into": 4}
