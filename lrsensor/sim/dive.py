@@ -28,7 +28,8 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import SimulationError
 from ..frames import Pose
-from .render import LaserModel, _trace_samples, fan_basis, render, trace_truth
+from .fan import LaserModel, fan_basis, trace_samples
+from .render import render, trace_truth
 from .scene import Scene
 from .scenes import TANK_PILLARS, TANK_SIZE_M, paper_calibration, tank_scene
 from .water import WaterModel
@@ -464,7 +465,7 @@ def trace_dive_clouds(
             th = lt.theta_at_columns(cols)
             th = th[np.isfinite(th)]
             origin, a, b = fan_basis(calib, lt.index)
-            s = _trace_samples(truth.scene_body, calib, origin, a, b, th, model.max_range_m, 0.0)
+            s = trace_samples(truth.scene_body, calib, origin, a, b, th, model.max_range_m, 0.0)
             pts.append(s.points[s.ok])
             lasers.append(np.full(int(s.ok.sum()), lt.index, dtype=np.int64))
             uvs.append(s.uv[s.ok])

@@ -1,0 +1,174 @@
+"""Light in the image other than the stripe: the glow of the laser sheets and ambient light.
+
+What: :func:`laser_glow` is the backscatter of one laser sheet in the water (a faint band along the fan,
+brighter near the camera), at quarter resolution; :func:`paint_ambient` blends the surfaces lit by ambient
+light, and printed checkerboards, over the water background.
+
+Inputs: a scene in the body frame (metres), the TRUE :class:`~lrsensor.calibration.Calibration`, the
+:class:`~lrsensor.sim.water.WaterModel` (attenuation per metre, backscatter gain, glow blur, ambient level in
+DN) and, for the glow, the laser index and :class:`~lrsensor.sim.fan.LaserModel`.
+
+Outputs: :func:`laser_glow` returns a float32 image in DN of shape
+:func:`~lrsensor.sim.water.low_res_shape` (H/4, W/4); the renderer multiplies it by the laser's colour and
+upsamples it with the other smooth layers. :func:`paint_ambient` changes an (H, W, 3) float32 BGR image in
+DN in place.
+
+Why these approximations: the glow is single scattering only (multiple scattering and the sheet's thickness
+are a blur) and ignores objects between the camera and the sheet, and ambient shading is computed at quarter
+resolution: both are smooth, and what matters for the extractor is their shape and level, not their
+radiometry. Checkerboards, on the other hand, are drawn at full resolution with an exact box filter over
+each pixel's footprint, because the camera calibration detects their corners to a few hundredths of a pixel.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..calibration import Calibration
+from .fan import LaserModel, fan_basis
+from .scene import Rectangle, Scene
+from .water import LOW_RES_FACTOR, WaterModel, low_res_shape
+
+FloatArray = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+
+@functools.lru_cache(maxsize=8)
+def _low_res_rays(calib: Calibration, h: int, w: int) -> tuple[FloatArray, FloatArray]:
+    """Body-frame viewing rays (M, 3) and their lengths (M,) of the quarter-resolution pixel centres."""
+    hl, wl = low_res_shape(h, w)
+    f = LOW_RES_FACTOR
+    ys, xs = np.mgrid[0:hl, 0:wl]
+    uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
+    rays = calib.rays_body(uv)
+    rays.setflags(write=False)
+    norm = np.linalg.norm(rays, axis=1)
+    norm.setflags(write=False)
+    return rays, norm
+
+
+def laser_glow(
+    scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel, shape: tuple[int, int]
+) -> F32:
+    """Backscatter glow of one laser sheet at quarter resolution (:func:`low_res_shape`), float32 DN.
+
+    Single-scattering radiance of the sheet seen along each camera ray: the ray crosses the laser plane at a
+    point at distance ``s`` from the laser; if that point lies inside the fan and before the laser's first hit,
+    it glows with ``exp(-c (s + r_cam)) / (s |cos a|)`` (sheet irradiance ~ 1/s, path through the sheet
+    ~ 1/|cos a| for a ray at angle a to the sheet normal) times a phase factor ``1 / (1 + s / 0.5 m)`` that
+    makes it brighter near the camera. Computed at quarter resolution and blurred by ``water.glow_sigma_px``
+    (sheet thickness and multiple scattering); occlusion of the glow by objects between the camera and the
+    sheet is ignored.
+    """
+    h, w = shape
+    hl, wl = low_res_shape(h, w)
+    f = LOW_RES_FACTOR
+    origin, a, b = fan_basis(calib, laser)
+    n = calib.lasers[laser].normal_body
+    half = model.fan_angle_rad / 2.0
+    # fan table: distance to the first hit per fan angle
+    n_rays = 721
+    theta_tab = np.linspace(-half, half, n_rays)
+    d = np.cos(theta_tab)[:, None] * a + np.sin(theta_tab)[:, None] * b
+    t_tab, _, _ = scene.raycast(origin, d)
+    c = water.attenuation_per_m
+    t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(c, 0.2)))
+    rays, norm = _low_res_rays(calib, h, w)
+    C = calib.camera_center_body
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = rays @ n
+        tp = ((origin - C) @ n) / denom
+        p = C + tp[:, None] * rays
+        q = p - origin
+        s = np.linalg.norm(q, axis=1)
+        th = np.arctan2(q @ b, q @ a)
+        ok = np.isfinite(tp) & (tp > 0) & (np.abs(th) <= half)
+        ok &= s < np.interp(th, theta_tab, t_tab)
+        r_c = tp * norm
+        cos_a = np.abs(denom) / norm
+        val = np.exp(-c * (s + r_c)) / (np.maximum(s, 0.02) * np.maximum(cos_a, 0.02)) / (1.0 + s / 0.5)
+    val = np.where(ok, val, 0.0).reshape(hl, wl).astype(np.float32)
+    sig = max(water.glow_sigma_px * w / 1920.0 / f, 0.5)
+    val = np.asarray(cv2.GaussianBlur(val, (0, 0), sig), np.float32)
+    # 0.2: a gain of 1 gives a faint band of a few DN with the default laser power
+    return val * np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)
+
+
+def paint_ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> None:
+    """Surfaces lit by ambient light, and printed checkerboards, blended over the water background in place.
+
+    With ``water.ambient_dn > 0`` every surface is shaded (at quarter resolution: it is smooth). Checkerboards
+    are drawn at full resolution with an analytic box filter over each pixel's footprint on the board (exact
+    anti-aliasing, so corner detectors find the true corners to a few hundredths of a pixel); when the water
+    has no ambient light the board is lit by a lamp of 170 DN.
+    """
+    cam = calib.camera
+    h, w = cam.height, cam.width
+    boards = [i for i, s in enumerate(scene.surfaces) if isinstance(s, Rectangle) and s.board is not None]
+    if water.ambient_dn <= 0 and not boards:
+        return
+    level = water.ambient_dn if water.ambient_dn > 0 else 170.0
+    C = calib.camera_center_body
+    colour = np.array([0.95, 1.0, 0.9], np.float32)
+    albedo = np.array([sf.albedo for sf in scene.surfaces] + [0.0])
+    c_att = water.attenuation_per_m
+
+    if water.ambient_dn > 0:
+        f = 4
+        ys, xs = np.mgrid[0:h:f, 0:w:f]
+        uv = np.stack([xs.ravel() + (f - 1) / 2.0, ys.ravel() + (f - 1) / 2.0], axis=1).astype(float)
+        rays = calib.rays_body(uv)
+        t, sid, _ = scene.raycast(C, rays)
+        hit = np.isfinite(t)
+        dist = np.where(hit, t * np.linalg.norm(rays, axis=1), 0.0)
+        val = np.where(hit, level * albedo[sid] * np.exp(-c_att * dist), 0.0)
+        hl, wl = ys.shape
+        vimg = cv2.resize(val.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        himg = cv2.resize(hit.reshape(hl, wl).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        trans = np.float32(1.0)
+        img *= (1.0 - trans * himg)[:, :, None] + trans * himg[:, :, None] * 0.15
+        img += vimg[:, :, None] * colour
+    for bi in boards:
+        rect = scene.surfaces[bi]
+        assert isinstance(rect, Rectangle)
+        assert rect.board is not None
+        board = rect.board
+        eu, ev, c0 = np.asarray(rect.axis_u), np.asarray(rect.axis_v), np.asarray(rect.center)
+        outline = board.outline_uv()
+        corners = c0 + outline[:, :1] * eu + outline[:, 1:] * ev
+        uvc = calib.project_body(corners)
+        if not np.all(np.isfinite(uvc)):
+            continue
+        x0 = int(max(0, math.floor(uvc[:, 0].min()) - 3))
+        x1 = int(min(w, math.ceil(uvc[:, 0].max()) + 4))
+        y0 = int(max(0, math.floor(uvc[:, 1].min()) - 3))
+        y1 = int(min(h, math.ceil(uvc[:, 1].max()) + 4))
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ys, xs = np.mgrid[y0:y1, x0:x1]
+        uv = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(float)
+        rays = calib.rays_body(uv)
+        t, sid, _ = scene.raycast(C, rays)
+        # board coordinates of each pixel centre on the board's plane (occluders checked with sid)
+        n = rect.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tp = ((c0 - C) @ n) / (rays @ n)
+        p = C + tp[:, None] * rays
+        ca, cb, _ = rect.local(p)
+        bx, by = board.to_board(ca.reshape(ys.shape), cb.reshape(ys.shape))
+        # pixel footprint on the board (metres, along the board's axes), from the local Jacobian
+        wa = np.abs(np.gradient(bx, axis=1)) + np.abs(np.gradient(bx, axis=0))
+        wb = np.abs(np.gradient(by, axis=1)) + np.abs(np.gradient(by, axis=0))
+        refl, cover = board.filtered_reflectance(bx, by, wa, wb)
+        on = (sid == bi).reshape(ys.shape) & np.isfinite(bx) & (tp.reshape(ys.shape) > 0)
+        dist = np.linalg.norm(p - C, axis=1).reshape(ys.shape)
+        val = level * refl * np.exp(-c_att * np.where(on, dist, 0.0))
+        frac = np.where(on, cover, 0.0).astype(np.float32)
+        patch = img[y0:y1, x0:x1]
+        patch *= (1.0 - frac)[:, :, None]
+        patch += (frac * val.astype(np.float32))[:, :, None] * colour
