@@ -49,8 +49,10 @@ import numpy as np
 
 from lrsensor import Sensor
 from lrsensor.atomic import atomic_write
-from lrsensor.extract import _kernels, subpixel
-from lrsensor.extract._kernels import HAVE_NUMBA, warm_up
+from lrsensor.extract import refit, subpixel
+from lrsensor.extract.compile import HAVE_NUMBA, warm_up
+from lrsensor.extract.frame import extract_frame, process_candidates
+from lrsensor.extract.refit import NEIGHBOUR_FLANK_TAIL, NEIGHBOUR_TAIL
 from lrsensor.scan import Scan
 from lrsensor.sim import named_scene
 from lrsensor.sim import scenes as sim_scenes
@@ -342,9 +344,9 @@ STAGES = {
         "fit_columns_common",
         "core_peaks",
         "fit_columns_clipped",
-        "_refit_full",
+        "refit_full",
     ),
-    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "_refit"),
+    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "refit_columns"),
     "pooled gates, smoothing, quality": ("finish_points",),
     "triangulation": ("triangulate_points",),
 }
@@ -352,10 +354,10 @@ STAGES = {
 
 @contextmanager
 def _stage_clock(totals: dict[str, float]) -> Iterator[Callable[..., object]]:
-    """A Python twin of ``_kernels.extract_frame`` that calls the same compiled stage kernels, each wrapped in a
+    """A Python twin of ``extract_frame`` that calls the same compiled stage kernels, each wrapped in a
     clock: the per-thread CPU time spent in each of :data:`STAGES` adds up in ``totals`` (s)."""
-    frame = _kernels.extract_frame.py_func
-    steps = _kernels.process_candidates.py_func
+    frame = extract_frame.py_func
+    steps = process_candidates.py_func
     saved = {name: frame.__globals__[name] for names in STAGES.values() for name in names}
     saved["process_candidates"] = frame.__globals__["process_candidates"]
     for stage, names in STAGES.items():
@@ -514,7 +516,7 @@ def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
     """Run the sub-pixel extractor on its numpy path with the flank threshold ``log(NEIGHBOUR_TAIL / flank)``;
     yields a list to which every refit round appends the number of points it finds a neighbour to subtract for."""
     neighbours = subpixel._neighbours
-    saved = (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL)
+    saved = (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL)
     rounds: list[int] = []
 
     def counted(*a: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -522,12 +524,12 @@ def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
         rounds.append(int(np.isfinite(out[0]).sum()))
         return out
 
-    subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL = False, log_flank_tail
+    subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL = False, log_flank_tail
     subpixel._neighbours = counted  # type: ignore[assignment]
     try:
         yield rounds
     finally:
-        subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL = saved
+        subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL = saved
         subpixel._neighbours = neighbours
 
 
@@ -545,13 +547,13 @@ def flank_gate_table(seeds: int) -> list[str]:
     """Markdown table: per frame of :data:`FLANK_GATE_FRAMES` (``seeds`` renders each), the neighbour refits with
     the flank threshold at 1 % (as the centroid's rows) and at ``NEIGHBOUR_FLANK_TAIL``: columns refitted in the
     first round, median and p95 range error, outliers, points; and how far the centres move between the two."""
-    flank = _kernels.NEIGHBOUR_FLANK_TAIL
-    variants = {"1 %": 0.0, f"{100 * flank:g} %": _kernels.LOG_FLANK_TAIL}
+    flank = NEIGHBOUR_FLANK_TAIL
+    variants = {"1 %": 0.0, f"{100 * flank:g} %": refit.LOG_FLANK_TAIL}
     lines = [
         f"### Neighbour refits: a tail in the background flanks from 1 % against {100 * flank:g} % (numpy path)",
         "",
         "A point is refitted with the other laser's stripe subtracted where that stripe's Gaussian reaches "
-        f"{100 * _kernels.NEIGHBOUR_TAIL:g} % of the point's amplitude in the rows its centroid reads, or the "
+        f"{100 * NEIGHBOUR_TAIL:g} % of the point's amplitude in the rows its centroid reads, or the "
         "flank threshold in its background flanks. Columns: points refitted in the first round, then range error "
         "(%, median and p95), outliers (> 5 % off, %) and points per frame with the flanks at 1 % -> at "
         f"{100 * flank:g} %, means over seeds 0-{seeds - 1}; and the row change of the points both keep (px: mean "

@@ -231,7 +231,7 @@ def main() -> int:
         ap.error(str(err))
     variant = extra.get("channel", "green")
     cv2.setNumThreads(1)
-    from lrsensor.extract._kernels import warm_up
+    from lrsensor.extract.compile import warm_up
 
     warm_up()
     psf_first = not args.integrate_first

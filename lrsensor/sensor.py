@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from .calibration import Calibration
-from .extract import DEFAULT_METHOD, _kernels, check_image, get_extractor
+from .extract import DEFAULT_METHOD, check_image, get_extractor
+from .extract.compile import ready as _compiled_ready
 from .scan import Scan
 from .triangulation import triangulate
 
@@ -28,7 +29,7 @@ class Sensor:
         # the compiled extractor, now rather than in the first process(): loaded from numba's on-disk cache (about a
         # second, once per process), or, without a cache, compiled in a background thread (the numpy path runs
         # meanwhile); nothing without numba
-        _kernels.ready()
+        _compiled_ready()
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str]) -> Sensor:

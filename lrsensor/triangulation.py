@@ -95,11 +95,11 @@ def triangulate(calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike)
     if idx.size and (idx.min() < 0 or idx.max() >= len(calibration.lasers)):
         msg = f"laser_index out of range 0..{len(calibration.lasers) - 1}"
         raise GeometryError(msg)
-    from .extract import _kernels  # the compiled twin, once numba has compiled it (never waits for it)
+    from .extract import compile, geometry  # the compiled twin, once numba has compiled it (never waits for it)
 
-    if q.shape[0] >= 16 and _kernels.ready():
+    if q.shape[0] >= 16 and compile.ready():
         cam, dist, R, o, n_all, p_all = _arrays(calibration)
-        return _kernels.triangulate_points(  # type: ignore[no-any-return]
+        return geometry.triangulate_points(  # type: ignore[no-any-return]
             np.ascontiguousarray(q[:, 0]),
             np.ascontiguousarray(q[:, 1]),
             idx.astype(np.int64),

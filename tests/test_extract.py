@@ -117,7 +117,7 @@ def test_smoothing_keeps_corners_and_reduces_noise() -> None:
 def test_compiled_smoothing_equals_the_numpy_twin() -> None:
     """``smooth_runs`` (which fits only the windows the remaining columns can use and stops when all are done)
     gives the same values as ``_smooth`` on runs with gaps, corners, steps and columns without a measurement."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.smooth import smooth_runs
 
     rng = np.random.default_rng(11)
     for trial in range(20):
@@ -133,7 +133,7 @@ def test_compiled_smoothing_equals_the_numpy_twin() -> None:
         y[gaps] = np.nan
         scales = (384, 96, 24, 6) if trial % 2 else (48, 12, 3)
         want = _smooth(y, run, scales)
-        got = _kernels.smooth_runs(y, run, np.array(scales, np.int64))
+        got = smooth_runs(y, run, np.array(scales, np.int64))
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, equal_nan=True)
         assert np.any(got[run >= 0] != y[run >= 0])  # it did smooth
 
@@ -141,23 +141,23 @@ def test_compiled_smoothing_equals_the_numpy_twin() -> None:
 def test_sorted_blocks_equal_integer_division() -> None:
     """``sorted_blocks`` (the laser of each sorted virtual column, shared by the chains, the half-column expansion,
     the fits and the gates) equals ``col // width``, also across empty blocks and for no columns."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.chains import sorted_blocks
 
     rng = np.random.default_rng(2)
     for width in (1, 7, 960):
         col = np.sort(rng.choice(5 * width, size=min(3 * width, 500), replace=False)).astype(np.int64)
         col = col[(col < width) | (col >= 3 * width)]  # blocks 1 and 2 empty
-        np.testing.assert_array_equal(_kernels.sorted_blocks(col, width), col // width)
-    assert _kernels.sorted_blocks(np.empty(0, np.int64), 4).size == 0
+        np.testing.assert_array_equal(sorted_blocks(col, width), col // width)
+    assert sorted_blocks(np.empty(0, np.int64), 4).size == 0
 
 
 @pytest.mark.parametrize("n", [2, 5, 8, 9, 10])
 def test_pooled_median_sorting_network_sorts_every_input(n: int) -> None:
     """The compare-exchange network of the pooled signal-to-noise median sorts all 2^n 0-1 inputs (0-1
     principle: then it sorts any input); n = 9 is the 25-exchange network of the default pool."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.finish import sorting_network
 
-    net = _kernels._sorting_network(n)
+    net = sorting_network(n)
     if n == 9:
         assert net.shape == (25, 2)
     bits = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
@@ -173,7 +173,7 @@ def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
     """The default pool's medians (9-column windows sorted in registers) equal the generic kernel's (one pass over
     all columns per compare-exchange) bit for bit, and the median of each window of its own piece's passing
     values: windows with holes (NaN), piece changes, even and odd counts and columns without any value."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.finish import pooled_median, pooled_median9
 
     rng = np.random.default_rng(5)
     nd = 700
@@ -182,8 +182,8 @@ def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
     ds = (rng.random(nd + 8) * 20).astype(np.float32)
     ds[rng.random(nd + 8) < 0.3] = np.nan
     own = ch[4 : 4 + nd]
-    fast = _kernels._pooled_median9(ch, ds, nd)
-    np.testing.assert_array_equal(fast, _kernels._pooled_median(ch, ds, own, 9, nd))
+    fast = pooled_median9(ch, ds, nd)
+    np.testing.assert_array_equal(fast, pooled_median(ch, ds, own, 9, nd))
     for q in range(nd):
         win = ds[q : q + 9][(ch[q : q + 9] == own[q]) & np.isfinite(ds[q : q + 9])]
         if win.size:
@@ -354,7 +354,8 @@ def test_paper_method_one_point_per_roi_and_laser() -> None:
 def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
     """``noise_dn`` (a green band) and ``noise_dn_rows`` (the same rows read in place from the BGR image) give the
     numpy ``_noise_dn`` exactly, for even and odd widths and several row steps."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, noise_dn, noise_dn_rows
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.detect import noise_dn, noise_dn_rows
     from lrsensor.extract.subpixel import _noise_dn
 
     if not HAVE_NUMBA:
@@ -403,7 +404,9 @@ def test_column_parallel_fits_equal_the_full_kernel() -> None:
     centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
     and sub-pixel phases on a sloped background; centres on the true ones) and unclipped and singly clipped narrow
     ones, and leaves the flat-topped wide ones to the full kernel; windows cut by the image border included."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_clipped
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.fit import fit_columns
+    from lrsensor.extract.fit_clipped import core_peaks, fit_columns_clipped
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -447,7 +450,10 @@ def test_common_fit_agrees_with_the_full_kernel_and_flags_the_rest() -> None:
     its window (and the wide flat tops) for the other fits, and gives the rest ``fit_columns``'s results: within
     2e-4 px where nothing is clipped, within 0.05 px where a single sample is (its flanks then sit up to one row
     closer than the full kernel's), with the same acceptance and colour rises."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, core_peaks, fit_columns, fit_columns_common
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.fit import fit_columns
+    from lrsensor.extract.fit_clipped import core_peaks
+    from lrsensor.extract.fit_common import fit_columns_common
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -480,7 +486,9 @@ def test_neighbour_refit_equals_the_full_kernel() -> None:
     """``fit_columns_neighbour`` (column-parallel) gives ``fit_columns``'s results, with the other laser's Gaussian
     subtracted, for every column it takes (all unclipped narrow ones, neighbours on either side, near and far, and
     without a neighbour), and leaves the clipped and flat-topped ones to the full kernel."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, fit_columns, fit_columns_neighbour
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.fit import fit_columns
+    from lrsensor.extract.refit import fit_columns_neighbour
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -529,7 +537,8 @@ def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
     """``refit_targets`` picks the points with a neighbour that is new or moved by more than the tolerance (row,
     sigma in px, amplitude relative) and remembers it; a second call with the same neighbours picks none; only
     the ``touched`` columns are looked at."""
-    from lrsensor.extract._kernels import HAVE_NUMBA, NEIGHBOUR_TOL, point_table, refit_targets
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.refit import NEIGHBOUR_TOL, point_table, refit_targets
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -579,10 +588,11 @@ def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: 
     point's amplitude in the rows the point's centroid reads (``read_reach``: 3 sigma of its weights, the whole
     window when saturated or wide) or ``NEIGHBOUR_FLANK_TAIL`` in its background flanks, in the compiled kernel
     and its numpy twin alike."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.refit import point_table, refit_targets
     from lrsensor.extract.subpixel import _neighbours
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
     laser = np.array([0, 1])
     cols = np.array([3, 3])
@@ -593,14 +603,14 @@ def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: 
     good = np.array([True, True])
     read = (near, 8.0, 2.0)
     last = np.full((3, 2), np.nan)
-    at = _kernels.point_table(laser, cols, 2, 8)
-    idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, at, 12.0, read, np.arange(8), last)
+    at = point_table(laser, cols, 2, 8)
+    idx, *_ = refit_targets(laser, cols, v, amp, sig, sat, good, at, 12.0, read, np.arange(8), last)
     assert (0 in idx.tolist()) == picked
     assert bool(np.isfinite(_neighbours(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read)[0][0])) == picked
 
 
 def test_read_reach_matches_its_numpy_twin() -> None:
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.refit import read_reach
     from lrsensor.extract.subpixel import _read_reach
 
     rng = np.random.default_rng(5)
@@ -608,7 +618,7 @@ def test_read_reach_matches_its_numpy_twin() -> None:
     sat = rng.random(sig.size) < 0.2
     for read in ((6.0, 8.0, 2.0), (3.0, 12.0, 3.5), (9.0, 8.0, 2.0)):
         twin = np.stack(_read_reach(sig, sat, read), axis=1)
-        kernel = [_kernels.read_reach(s, bool(b), *read) for s, b in zip(sig, sat, strict=True)]
+        kernel = [read_reach(s, bool(b), *read) for s, b in zip(sig, sat, strict=True)]
         np.testing.assert_array_equal(twin, kernel)
         assert np.all(twin <= read[1])
         assert np.all(twin[sat | ~np.isfinite(sig)] == read[1])  # saturated or wide: the whole window
@@ -621,7 +631,7 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
     """``_rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``refit_targets`` finds
     no other-laser point within the distance, and False for stripes far apart; ``refit_targets`` picks the points
     its numpy twin gives a neighbour."""
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.refit import point_table, refit_targets, rows_overlap
     from lrsensor.extract.subpixel import _neighbours
 
     rng = np.random.default_rng(3)
@@ -639,27 +649,27 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
         sat = rng.random(laser.size) < 0.1
         read = (4.0, 5.0, 2.0)
         last = np.full((3, laser.size), np.nan)
-        at = _kernels.point_table(laser, cols, n_l, w)
-        idx, *_ = _kernels.refit_targets(laser, cols, v, amp, sig, sat, good, at, max_d, read, np.arange(w), last)
+        at = point_table(laser, cols, n_l, w)
+        idx, *_ = refit_targets(laser, cols, v, amp, sig, sat, good, at, max_d, read, np.arange(w), last)
         nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read)  # the numpy twin
         np.testing.assert_array_equal(idx, np.flatnonzero(np.isfinite(nb_v)))
         if idx.size:
-            assert _kernels._rows_overlap(laser, v, good, n_l, max_d)
+            assert rows_overlap(laser, v, good, n_l, max_d)
     far = np.array([100.0, 101.0, 130.0, 131.0])
     lz = np.array([0, 0, 1, 1])
-    assert not _kernels._rows_overlap(lz, far, np.ones(4, bool), 2, 9.0)
-    assert _kernels._rows_overlap(lz, far, np.ones(4, bool), 2, 29.5)
+    assert not rows_overlap(lz, far, np.ones(4, bool), 2, 9.0)
+    assert rows_overlap(lz, far, np.ones(4, bool), 2, 29.5)
 
 
 @pytest.mark.parametrize(("width", "band"), [(96, (30, 70)), (97, (3, 40)), (64, (65, 99))])
 def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int, int]) -> None:
     """``detect_band`` (one pass) gives the same candidates and noise as the OpenCV steps of ``_candidates``,
     also for an odd width and for bands whose contrast margin runs past the top or bottom of the image."""
-    from lrsensor.extract import _kernels
     from lrsensor.extract.bands import LaserBands
+    from lrsensor.extract.compile import HAVE_NUMBA
     from lrsensor.extract.subpixel import _candidates
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
     rng = np.random.default_rng(width)
     h = 100

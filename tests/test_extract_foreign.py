@@ -15,7 +15,7 @@ from lrsensor.extract.centre import fit_profiles
 
 @pytest.fixture(scope="module", autouse=True)
 def _compiled() -> None:
-    from lrsensor.extract._kernels import warm_up
+    from lrsensor.extract.compile import warm_up
 
     warm_up()
 
@@ -47,9 +47,10 @@ def test_thick_sheet_flat_tops_are_smoothed_along_the_stripe(monkeypatch: pytest
     across the top and splits the detection chains; the wide pieces still join one smoothing run, so the long line
     fits average the noisy per-column centres, in the compiled path and the numpy path alike (split into short
     runs: median 0.069 %, p95 0.26 %, 96.7 % coverage)."""
-    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.extract import subpixel
+    from lrsensor.extract.compile import HAVE_NUMBA
 
-    if use_numba and not _kernels.HAVE_NUMBA:
+    if use_numba and not HAVE_NUMBA:
         pytest.skip("numba is not installed")
     monkeypatch.setattr(subpixel, "USE_NUMBA", use_numba)
     r = score(Foreign(0.3, width_m=0.006, blur=1.0, psf_first=True))
@@ -107,9 +108,10 @@ def test_luma_channel_restores_accuracy_on_jpeg_frames(monkeypatch: pytest.Monke
     """A 4 mm sheet at 1 m through a JPEG encoder at quality 85 (colour at half resolution, as from an MJPEG
     camera): fitted in green the median error is 0.19 % (the stripe shifts with the colour samples); in the luma
     on green's scale (``channel="luma"``) it is back near the lossless frame's 0.013 %, on both paths."""
-    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.extract import subpixel
+    from lrsensor.extract.compile import HAVE_NUMBA
 
-    if use_numba and not _kernels.HAVE_NUMBA:
+    if use_numba and not HAVE_NUMBA:
         pytest.skip("numba is not installed")
     monkeypatch.setattr(subpixel, "USE_NUMBA", use_numba)
     green = score(Foreign(1.0, jpeg=85))

@@ -71,12 +71,13 @@ def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch, scene: 
     """The compiled and the numpy path find the same points: in clutter, and on a wall at 5 m, where the two
     lasers' stripes come within a window of each other and the columns the neighbour reaches are refitted with its
     Gaussian subtracted (compiled: column-parallel), rounds until no neighbour moves."""
-    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.extract import compile, subpixel
+    from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
-    _kernels.warm_up()
-    assert _kernels.ready()
+    warm_up()
+    assert compile.ready()
     if scene == "wall_5.0":
         r = sim.scenes.wall_scene(5.0, width=1920, height=1080).render(seed=2)
     else:
@@ -98,12 +99,13 @@ def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch, scene: 
 def test_one_call_kernel_equals_the_stage_by_stage_path() -> None:
     """``Sensor.process`` (one compiled call: detection, steps 3-6, triangulation, depth gate) gives exactly the
     points of the stage-by-stage path: ``subpixel.extract``, then ``triangulate`` and the range-limit gate."""
-    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.extract import subpixel
+    from lrsensor.extract.compile import HAVE_NUMBA, warm_up
     from lrsensor.triangulation import triangulate
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
-    _kernels.warm_up()
+    warm_up()
     r = sim.named_scene("paper_box").render(seed=1)  # walls at 2-3 m: the band edge at 2.5 m cuts through them
     cal = r.calibration
     scan = Sensor(cal).process(r.image, max_range_m=2.5)
@@ -276,9 +278,9 @@ def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch:
     """``--flank-gate``: per frame, the refitted columns and the accuracy with the flank threshold at 1 % and at
     ``NEIGHBOUR_FLANK_TAIL`` (fewer refits at the larger one on a wall at 5 m, where the stripes meet), and the
     centres' moves; the numpy path and the threshold are restored afterwards, also when a frame fails."""
-    from lrsensor.extract import _kernels, subpixel
+    from lrsensor.extract import refit, subpixel
 
-    state = (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours)
+    state = (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours)
     monkeypatch.setattr(be, "FLANK_GATE_FRAMES", ("wall_5.0",))
     lines = be.flank_gate_table(1)
     assert lines[0].startswith("### Neighbour refits: a tail in the background flanks from 1 % against 5 %")
@@ -291,11 +293,11 @@ def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch:
     assert points[1] == pytest.approx(points[0], rel=0.02)
     assert p95[1] <= 1.05 * p95[0]
     assert outliers[1] <= 1.05 * outliers[0]
-    assert (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours) == state
+    assert (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours) == state
     monkeypatch.setattr(subpixel, "_finish_numpy", lambda *_: 1 / 0)  # a frame fails inside the numpy path
     with pytest.raises(ZeroDivisionError):
         be.flank_gate_table(1)
-    assert (subpixel.USE_NUMBA, _kernels.LOG_FLANK_TAIL, subpixel._neighbours) == state
+    assert (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours) == state
 
 
 def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
@@ -305,13 +307,13 @@ def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
     import subprocess
     import sys
 
-    from lrsensor.extract import _kernels
+    from lrsensor.extract.compile import HAVE_NUMBA
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
     code = (
         "from lrsensor import Sensor, sim\n"
-        "from lrsensor.extract import _kernels as k\n"
+        "from lrsensor.extract import compile as k\n"
         "cal = sim.named_scene('paper_box').calibration\n"
         "cached = k._cached()\n"
         "before = k._STARTED or k._READY.is_set()\n"

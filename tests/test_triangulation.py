@@ -90,11 +90,12 @@ def test_triangulate_bad_index() -> None:
 
 @pytest.mark.parametrize("distorted", [False, True])
 def test_compiled_triangulation_matches_numpy(distorted: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    from lrsensor.extract import _kernels
+    from lrsensor.extract import compile
+    from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 
-    if not _kernels.HAVE_NUMBA:
+    if not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
-    _kernels.warm_up()
+    warm_up()
     cal = Calibration.paper(0.1)
     if distorted:
         cam = Camera(1920, 1080, 554.3, 556.0, 950.0, 545.0, (-0.12, 0.03, 0.001, -0.0008, 0.0))
@@ -104,7 +105,7 @@ def test_compiled_triangulation_matches_numpy(distorted: bool, monkeypatch: pyte
     uv = rng.uniform([0.0, 0.0], [1919.0, 1079.0], (5000, 2))
     laser = rng.integers(0, 2, 5000)
     fast = triangulate(cal, uv, laser)
-    monkeypatch.setattr(_kernels, "ready", lambda: False)
+    monkeypatch.setattr(compile, "ready", lambda: False)
     slow = triangulate(cal, uv, laser)
     assert np.array_equal(np.isnan(fast), np.isnan(slow))
     assert np.isnan(fast).any(axis=1).sum() > 100  # rows on the wrong side of the camera are NaN in both

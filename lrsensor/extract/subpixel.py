@@ -31,7 +31,7 @@ Compressed frames (JPEG, MJPEG, H.264: colour stored at half resolution) take ``
 then reads, in place of green, the full-resolution luma on green's scale (:func:`luma_as_green`).
 
 With numba installed the whole pipeline, and the triangulation (eq. 29 with the calibration's distortion) for
-:class:`lrsensor.sensor.Sensor`, runs as one compiled call (:func:`lrsensor.extract._kernels.extract_frame`);
+:class:`lrsensor.sensor.Sensor`, runs as one compiled call (:func:`lrsensor.extract.frame.extract_frame`);
 otherwise as numpy and OpenCV code with the same algorithm.
 """
 
@@ -50,7 +50,8 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import ExtractionError
 from ..triangulation import _arrays, triangulate
-from . import CHANNELS, Detections, _kernels, config_with_options
+from . import CHANNELS, Detections, _jit, config_with_options, detect, fit, frame, geometry, refit, smooth
+from . import compile as _compile
 from .bands import LaserBands, laser_bands
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 
@@ -202,9 +203,9 @@ def _max_fwhm(
     if cols.size == 0 or cfg.max_sheet_mm <= 0:
         return np.full(cols.size, floor)
     cam = calibration.camera
-    if _kernels.ready():
+    if _compile.ready():
         u, v = cols.astype(np.float64), rows.astype(np.float64)
-        pts = _kernels.triangulate_points(u, v, laser, *_arrays(calibration))
+        pts = geometry.triangulate_points(u, v, laser, *_arrays(calibration))
     else:
         pts = triangulate(calibration, np.stack([cols.astype(np.float64), rows.astype(np.float64)], axis=1), laser)
     depth = (pts - calibration.camera_center_body) @ _optical_axis(calibration)
@@ -225,13 +226,13 @@ def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
     """Robust pixel noise (DN) of a band of a green channel, insensitive to smooth gradients (glow, murk).
 
     Second differences ``g[r] - 2 g[r + 2] + g[r + 4]`` (rows two apart, so independent; linear gradients cancel)
-    on every ``step``-th row triple and every 2nd to 8th column (``_kernels.noise_col_step``: about 6000
+    on every ``step``-th row triple and every 2nd to 8th column (``detect.noise_col_step``: about 6000
     samples); for Gaussian noise of std s their median absolute value is 0.6745 sqrt(6) s.
     """
     if g.shape[0] < 5:
         return 1.0
     n = (g.shape[0] - 4 + step - 1) // step
-    cs = getattr(_kernels.noise_col_step, "py_func", _kernels.noise_col_step)(n, g.shape[1])  # not compiled
+    cs = getattr(detect.noise_col_step, "py_func", detect.noise_col_step)(n, g.shape[1])  # not compiled
     a = g[0 : step * n : step][:n, ::cs]
     b = g[2 : step * n + 2 : step][:n, ::cs]
     c = g[4 : step * n + 4 : step][:n, ::cs]
@@ -278,7 +279,7 @@ def _candidates(
     scale = cfg.detect_scale
     d = cfg.contrast_px
     if fast and scale == 2:  # all of it in one compiled pass over the band
-        return _kernels.detect_band(  # type: ignore[no-any-return]
+        return detect.detect_band(  # type: ignore[no-any-return]
             image,
             r0,
             r1,
@@ -293,13 +294,13 @@ def _candidates(
     a0, a1 = max(r0 - d, 0), min(r1 + d, h)
     if scale == 2 and (a1 - a0) % 2 and a1 < h:
         a1 += 1  # an even number of rows for the 2x2 average (one more row below: the band check drops it)
-    g: Any = _kernels.green_rows(image.reshape(-1), w, a0, a1) if fast else cv2.extractChannel(image[a0:a1], 1)
+    g: Any = detect.green_rows(image.reshape(-1), w, a0, a1) if fast else cv2.extractChannel(image[a0:a1], 1)
     top, bot = d - (r0 - a0), d - (a1 - r1)
     odd_r, odd_c = (g.shape[0] + max(top, 0) + max(bot, 0)) % 2 * (scale - 1), w % 2 * (scale - 1)
     if top > 0 or bot > 0 or odd_r or odd_c:  # pad to the full shift range and even sizes (replicate the border)
         g = cv2.copyMakeBorder(g, max(top, 0), max(bot, 0) + odd_r, 0, odd_c, cv2.BORDER_REPLICATE)
     step = min(max(g.shape[0] // 24, 2), 16)
-    noise = max(_kernels.noise_dn(g, step) if fast else _noise_dn(g, step), 0.5)
+    noise = max(detect.noise_dn(g, step) if fast else _noise_dn(g, step), 0.5)
     if scale == 2:
         # row y <-> full rows r0 - d + 2 y (+1), column c <-> full columns 2 c (+1)
         g = cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
@@ -322,7 +323,7 @@ def _candidates(
         resp = cv2.max(resp, cv2.subtract(g[ds:-ds], cv2.max(inner[: -2 * hd], inner[2 * hd :])))
     v_lo, v_hi = bands.v_lo[laser], bands.v_hi[laser]
     if fast:
-        u, v, a = _kernels.local_maxima(cv2.transpose(resp), float(thr), r0, scale, v_lo, v_hi, w, col_offset)
+        u, v, a = detect.local_maxima(cv2.transpose(resp), float(thr), r0, scale, v_lo, v_hi, w, col_offset)
         return u, v, a, noise
     loc = cv2.dilate(resp, kernel)
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
@@ -517,7 +518,7 @@ def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray
         dof = np.maximum(s0 - 2.0, 1.0)
         vv = np.maximum(var, 1e-8)
         accept = full & (rss <= vv * dof * (1.0 + 3.0 * np.sqrt(2.0 / dof)))
-        if k >= _kernels.SUBBLOCK_MIN_K:
+        if k >= smooth.SUBBLOCK_MIN_K:
             # long windows: each quarter must fit the line too (a kink near one end is diluted in the whole
             # window's residual, not in its quarter's)
             qn = (2 * k + 1) // 4
@@ -533,7 +534,7 @@ def _smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray
                 qyy = c_zz[p1] - c_zz[p0]
                 r_q = qyy - 2.0 * a * qt - 2.0 * b * qtx + a * a * q0 + 2.0 * a * b * qx + b * b * qxx
                 q1 = np.maximum(q0, 1.0)
-                accept &= (q0 < 1.0) | (r_q <= vv * q1 * (1.0 + _kernels.SUBBLOCK_SIGMAS * np.sqrt(2.0 / q1)))
+                accept &= (q0 < 1.0) | (r_q <= vv * q1 * (1.0 + smooth.SUBBLOCK_SIGMAS * np.sqrt(2.0 / q1)))
         best = np.full(n, np.inf)
         val = np.full(n, np.nan)
         for shift in (0, -k, k):  # window centre at u + shift
@@ -585,7 +586,7 @@ def _read_reach(
 ) -> tuple[FloatArray, FloatArray]:
     """How many rows from their centres the points' fits read (N,) each, ``(core, flanks)``: their centroids and
     their background flanks, from their sigma and saturation (N,) and ``read = (near, far, wide_sigma)`` (numpy
-    twin of :func:`lrsensor.extract._kernels.read_reach`)."""
+    twin of :func:`lrsensor.extract.refit.read_reach`)."""
     near, far, wide_sigma = read
     with np.errstate(invalid="ignore"):
         plain = ~sat & (sig <= wide_sigma)
@@ -608,8 +609,8 @@ def _neighbours(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """For every fitted point (N,): the nearest stripe of another laser in the same column (row, amplitude,
     sigma), NaN row when none is closer than ``max_dist`` rows or its Gaussian stays below
-    :data:`~lrsensor.extract._kernels.NEIGHBOUR_TAIL` of the point's amplitude in the rows the point's centroid
-    reads, or :data:`~lrsensor.extract._kernels.NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`_read_reach`
+    :data:`~lrsensor.extract.refit.NEIGHBOUR_TAIL` of the point's amplitude in the rows the point's centroid
+    reads, or :data:`~lrsensor.extract.refit.NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`_read_reach`
     with ``read``)."""
     V = np.full((n_lasers, width), np.nan)
     A = np.zeros((n_lasers, width))
@@ -634,8 +635,8 @@ def _neighbours(
     with np.errstate(invalid="ignore"):
         g_c = np.maximum(best - core, 0.0) / out_s
         g_f = np.maximum(best - flanks, 0.0) / out_s
-        log_tail = np.maximum(-0.5 * g_c**2, -0.5 * g_f**2 + _kernels.LOG_FLANK_TAIL)
-        tail = out_a * np.exp(log_tail) > _kernels.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
+        log_tail = np.maximum(-0.5 * g_c**2, -0.5 * g_f**2 + refit.LOG_FLANK_TAIL)
+        tail = out_a * np.exp(log_tail) > refit.NEIGHBOUR_TAIL * np.maximum(amp, 1.0)
     far = ~tail
     out_v[far] = np.nan
     out_a[far] = 0.0
@@ -771,7 +772,7 @@ def _fit_numpy(
 
 
 #: Use the compiled kernels when numba is installed (tests switch this to compare both paths).
-USE_NUMBA = _kernels.HAVE_NUMBA
+USE_NUMBA = _jit.HAVE_NUMBA
 
 #: Centroid iterations of the sub-pixel fit.
 _ITERATIONS = 2
@@ -809,7 +810,7 @@ def extract_points(
     triangulated are depth-gated too: only those with a camera depth within the range limits are returned."""
     cfg = SubpixelConfig.from_options(config, **options)
     image = np.ascontiguousarray(image) if cfg.channel == "green" else luma_as_green(image)
-    fast = USE_NUMBA and _kernels.ready()  # the numpy path runs while the kernels compile in the background
+    fast = USE_NUMBA and _compile.ready()  # the numpy path runs while the kernels compile in the background
     if fast and triangulate and cfg.detect_scale == 2:  # all of it in one compiled call
         last = _LAST_SETTINGS
         if last[0] is calibration and last[1] is cfg:  # the same sensor frame after frame: no hashing
@@ -817,7 +818,7 @@ def extract_points(
         else:
             settings = _frame_settings(calibration, cfg)
             _remember_settings(calibration, cfg, settings)
-        uv, l_o, q_o, xyz, _ = _kernels.extract_frame(image, *settings)
+        uv, l_o, q_o, xyz, _ = frame.extract_frame(image, *settings)
         return Detections(uv, l_o, q_o), xyz
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     w = image.shape[1]
@@ -842,7 +843,7 @@ def extract_points(
     Ar = np.concatenate([p[2] for p in parts])
     scales = _scales(cfg.smooth_half_cols)
     if fast:  # steps 3-6 in one compiled call
-        u_o, v_o, l_o, q_o, _ = _kernels.process_candidates(
+        u_o, v_o, l_o, q_o, _ = frame.process_candidates(
             image,
             U,
             Vr,
@@ -882,7 +883,7 @@ def _remember_settings(calibration: Calibration, cfg: SubpixelConfig, settings: 
 
 @lru_cache(maxsize=16)
 def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any, ...]:
-    """The arguments of :func:`_kernels.extract_frame` after the image, for this calibration and configuration
+    """The arguments of :func:`frame.extract_frame` after the image, for this calibration and configuration
     (cached: the same arrays every frame; the kernels only read them)."""
     plan = _plan(calibration, cfg.min_range_m, cfg.max_range_m, 2)
     n_l = plan.bands.n_lasers
@@ -906,7 +907,7 @@ def _frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Any,
 def _fast_settings(
     cfg: SubpixelConfig, n_lasers: int, scales: tuple[int, ...]
 ) -> tuple[IntArray, FloatArray, IntArray]:
-    """The integer and real settings of :func:`_kernels.process_candidates` and its smoothing scales."""
+    """The integer and real settings of :func:`frame.process_candidates` and its smoothing scales."""
     ints = np.array(
         [
             cfg.detect_scale,
@@ -1010,18 +1011,18 @@ def _finish_numpy(
     )
     # stripes of two lasers that come close (long range): refit each with the other's Gaussian subtracted,
     # alternating a few times (both estimates start pulled toward each other)
-    # (until no point's neighbour moves by more than _kernels.NEIGHBOUR_TOL: a point's fit depends on nothing
+    # (until no point's neighbour moves by more than refit.NEIGHBOUR_TOL: a point's fit depends on nothing
     # else that changes between the rounds)
     wide_sigma = WIDE_FWHM_PX / FWHM_PER_SIGMA  # profiles wider than this are flat-topped (wide)
     if n_l > 1:
         # the rows the fits read: background flanks (flank_px rows from off, as fit_profiles places them without a
         # clipped sample) and the whole window
-        flank_offset = getattr(_kernels._flank_offset, "py_func", _kernels._flank_offset)  # not compiled
+        flank_offset = getattr(fit.flank_offset, "py_func", fit.flank_offset)  # not compiled
         off = flank_offset(sig_med, 0, half, _FLANK_PX)
         read = (float(off + _FLANK_PX - 1), half + 1.0, wide_sigma)
         last = np.full((3, cols.size), np.nan)  # the neighbour of each point's last refit
-        tol = _kernels.NEIGHBOUR_TOL
-        for _ in range(_kernels.NEIGHBOUR_REFITS):
+        tol = refit.NEIGHBOUR_TOL
+        for _ in range(refit.NEIGHBOUR_REFITS):
             nb = _neighbours(laser, cols, vv, amp, sig, _sat, ok & ~_sat, n_l, w, half + 3.0 * sig_med + 2.0, read)
             with np.errstate(invalid="ignore"):
                 same = (

@@ -1,0 +1,319 @@
+"""Detection: the stripe candidates of one laser in its image band, in one pass over the band.
+
+:func:`detect_band` reads the green channel of the band's rows in place from the (H, W, 3) uint8 BGR image (no
+copy of the band), averages it over 2x2 pixels and then over 3 of those columns (along the stripe: it averages the
+noise and quarters the work), takes the two-sided contrast ``G(v) - max(G(v - d), G(v + d))`` (and the same at
+``d / 2``, the larger of the two) saturating at 0, and keeps its vertical local maxima above a threshold from the
+band's noise. The contrast is positive only on ridges narrower than ``2 d``: thin stripes, not murk gradients,
+the backscatter glow of the laser sheet, haze or wide blobs.
+
+The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of second differences of rows two apart
+(independent; linear gradients cancel) on a subsample of about 6000 pixels, for Gaussian noise of std s
+``0.6745 sqrt(6) s``; histograms, not sorting (integer differences).
+
+Output: per laser, candidates as (N,) detection columns (half resolution, plus the laser's offset so that all
+lasers share one column numbering), (N,) full-resolution rows, (N,) response (DN), sorted by column then row,
+and the band's pixel noise (DN). Every step is integer arithmetic rounded as OpenCV rounds it
+(``cv2.resize(INTER_AREA)``, ``cv2.blur``), so the reference (:mod:`lrsensor.extract.reference`), which calls
+those OpenCV functions, finds the same candidates bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import njit, trailing_zeros
+
+
+@njit
+def noise_col_step(n_triples, cols):  # type: ignore[no-untyped-def]
+    """Column step (even, 2 to 8) of the noise samples of a band of ``n_triples`` row triples and ``cols``
+    columns: about 6000 samples or more, every 2nd column in small images."""
+    return 2 * max(1, min(4, (n_triples * cols) // 12000))
+
+
+@njit
+def green_rows(flat, width, r0, r1):  # type: ignore[no-untyped-def]
+    """The green channel of image rows ``[r0, r1)``: (r1 - r0, width) uint8, from ``flat``, the (H * W * 3,)
+    view of a C-contiguous BGR image (a plain strided copy the compiler vectorizes; faster than OpenCV's)."""
+    n = (r1 - r0) * width
+    out = np.empty(n, np.uint8)
+    base = np.uint64(r0 * width * 3 + 1)
+    for i in range(n):
+        out[np.uint64(i)] = flat[base + np.uint64(3 * i)]
+    return out.reshape((r1 - r0, width))
+
+
+@njit
+def noise_dn(g, step):  # type: ignore[no-untyped-def]
+    """Loop twin of :func:`lrsensor.extract.subpixel._noise_dn` (robust noise from second differences, DN)."""
+    rows, cols = g.shape
+    return _noise_samples(np.ascontiguousarray(g).reshape(-1), cols, 1, 0, np.arange(rows), cols, step)
+
+
+@njit
+def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
+    """:func:`noise_dn` of the green rows ``src`` (R,) of an image given as ``flat``, the (H * W * 3,) view of a
+    C-contiguous BGR image of ``width`` columns, evened (as the band of :func:`detect_band`, whose extra column
+    is never sampled: the column step is even): the same samples, read in place (no copy of the band)."""
+    return _noise_samples(flat, 3 * width, 3, 1, src, width + width % 2, step)
+
+
+@njit
+def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type: ignore[no-untyped-def]
+    """The noise of :func:`noise_dn` from the rows ``src`` (R,) of a flat byte image: sample ``x`` of row ``r`` is
+    ``flat[src[r] * row_bytes + offset + px_bytes * x]``; ``cols`` (the band's width) sets the column step."""
+    rows = src.size
+    if rows < 5:
+        return 1.0
+    # four interleaved histograms: consecutive equal bins do not wait on each other's increments
+    h4 = np.zeros((4, 1024), np.int64)
+    n = (rows - 4 + step - 1) // step
+    cs = noise_col_step(n, cols)
+    ns = (cols + cs - 1) // cs
+    for i in range(n):
+        r = i * step
+        ba = np.uint64(src[r] * row_bytes + offset)
+        bb = np.uint64(src[r + 2] * row_bytes + offset)
+        bc = np.uint64(src[r + 4] * row_bytes + offset)
+        for j in range(ns):
+            o = np.uint64(px_bytes * cs * j)
+            d = abs(np.int32(flat[ba + o]) + np.int32(flat[bc + o]) - 2 * np.int32(flat[bb + o]))
+            h4[j & 3, min(int(d), 1023)] += 1
+    return _noise_from_histograms(h4)
+
+
+@njit
+def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
+    """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
+    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.subpixel._noise_dn`)."""
+    hist = np.empty(1024, np.int64)
+    total = 0
+    for k in range(1024):
+        hist[k] = h4[0, k] + h4[1, k] + h4[2, k] + h4[3, k]
+        total += hist[k]
+    half = 0.5 * total
+    cum = 0
+    k = 0
+    while k < 1023 and cum + hist[k] < half:
+        cum += hist[k]
+        k += 1
+    lo, width = (0.0, 0.5) if k == 0 else (k - 0.5, 1.0)
+    med = lo + width * (half - cum) / max(float(hist[k]), 1.0)
+    return max(med / (0.6745 * math.sqrt(6.0)), 0.05)
+
+
+@njit
+def local_maxima(resp_t, thr, row0, scale, v_lo, v_hi, width, col_offset):  # type: ignore[no-untyped-def]
+    """Vertical local maxima above ``thr`` of a detection response, given transposed: (W', H') uint8.
+
+    Row y of the response is full-resolution row ``row0 + scale * y``, column x stands for full column
+    ``scale * x``; only maxima inside the laser's band (``v_lo``, ``v_hi``: (W,) first and last row per full
+    column) count.
+
+    Returns:
+        ``(cols, rows, strength)``: detection columns plus ``col_offset`` (N,), full rows (N,) and response (N,),
+        sorted by column, then row.
+    """
+    wo, ho = resp_t.shape
+    cap = 4 * wo + 64
+    cu = np.empty(cap, np.int64)
+    cv = np.empty(cap, np.int64)
+    ca = np.empty(cap, np.float64)
+    n = 0
+    t8 = np.uint8(min(max(int(math.floor(thr)), 0), 255))  # noqa: RUF046 (v > thr for an integer v)
+    for x in range(wo):
+        uf = min(x * scale, width - 1)
+        lo = v_lo[uf]
+        hi = v_hi[uf]
+        if hi < lo:
+            continue
+        y0 = max((lo - row0 + scale - 1) // scale, 0)
+        y1 = min((hi - row0) // scale + 1, ho)
+        col = resp_t[x]
+        for y in range(y0, y1):
+            v = col[y]
+            if v <= t8:
+                continue
+            if y > 0 and col[y - 1] > v:
+                continue
+            if y < ho - 1 and col[y + 1] > v:
+                continue
+            if n == cap:
+                cap *= 2
+                cu2 = np.empty(cap, np.int64)
+                cv2_ = np.empty(cap, np.int64)
+                ca2 = np.empty(cap, np.float64)
+                cu2[:n] = cu[:n]
+                cv2_[:n] = cv[:n]
+                ca2[:n] = ca[:n]
+                cu, cv, ca = cu2, cv2_, ca2
+            cu[n] = x + col_offset
+            cv[n] = row0 + scale * y
+            ca[n] = v
+            n += 1
+    return cu[:n], cv[:n], ca[:n]
+
+
+@njit
+def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
+    """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
+    ``subpixel._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
+
+    The green channel of rows ``[r0 - d, r1 + d)`` (replicated beyond the image, evened), its robust noise
+    (:func:`noise_dn`), the 2x2 area average (rounded as ``cv2.resize(INTER_AREA)``), a 3-column box
+    (``cv2.blur``, reflected at the ends), the saturating two-sided contrast at ``d / 2`` and ``d / 4`` detection
+    rows, and its vertical local maxima above ``max(thr_min, snr_thr * noise * area_noise)`` inside the band ``v_lo``,
+    ``v_hi`` (W,).
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; r0, r1: the band's bounding rows; d: contrast offset (even), rows.
+
+    Returns:
+        ``(cols, rows, strength, noise)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
+        int64, response (N,) float64, sorted by column then row; and the pixel noise, DN.
+    """
+    h = image.shape[0]
+    w = image.shape[1]
+    flat = image.reshape(-1)
+    a0 = max(r0 - d, 0)
+    a1 = min(r1 + d, h)
+    if (a1 - a0) % 2 and a1 < h:
+        a1 += 1
+    top = max(d - (r0 - a0), 0)
+    bot = max(d - (a1 - r1), 0)
+    rows_g = a1 - a0 + top + bot
+    rows_g += rows_g % 2
+    # padded green row i -> image row src[i] (replicated border)
+    src = np.empty(rows_g, np.int64)
+    for i in range(rows_g):
+        src[i] = min(max(a0 - top + i, a0), a1 - 1)
+    # 2x2 area average straight from the image (green bytes 3 apart; an odd last column is paired with itself),
+    # then the 3-column box: (gh, wo)
+    gh = rows_g // 2
+    wo = (w + 1) // 2
+    w2 = w // 2
+    B = np.empty((gh, wo), np.uint8)
+    A = np.empty(wo + 2, np.int32)
+    two = np.uint16(2)
+    third = np.uint64(3)
+    for y in range(gh):
+        b0 = np.uint64(src[2 * y] * w * 3 + 1)
+        b1 = np.uint64(src[2 * y + 1] * w * 3 + 1)
+        for x in range(w2):  # in uint16 (16 lanes; the sum of four bytes and 2 fits)
+            o = np.uint64(6 * x)
+            s4 = np.uint16(
+                np.uint16(flat[b0 + o])
+                + np.uint16(flat[b0 + o + third])
+                + np.uint16(flat[b1 + o])
+                + np.uint16(flat[b1 + o + third])
+                + two
+            )
+            A[np.uint64(x + 1)] = np.int32(np.uint16(s4 >> two))
+        if wo > w2:
+            o = np.uint64(3 * (w - 1))
+            A[wo] = (2 * np.int32(flat[b0 + o]) + 2 * np.int32(flat[b1 + o]) + 2) >> 2
+        if wo > 1:
+            A[0] = A[2]
+            A[wo + 1] = A[wo - 1]
+        else:
+            A[0] = A[1]
+            A[2] = A[1]
+        by = B[y]
+        for x in range(wo):  # round(s / 3) = floor((s + 1) / 3) = ((s + 1) * 21846) >> 16 for 0 <= s <= 765
+            ux = np.uint64(x)
+            s3 = np.int32(A[ux] + A[ux + 1] + A[ux + 2] + 1)  # int32 throughout: 8 lanes, not 4
+            by[ux] = np.uint8(np.int32(s3 * np.int32(21846)) >> np.int32(16))
+    # the noise after the pass over the band, whose rows its samples read: cached now, not scattered misses
+    noise = max(noise_dn_rows(flat, w, src, min(max(rows_g // 24, 2), 16)), 0.5)
+    # two-sided contrast, saturating at 0 (uint8 arithmetic), and at half the offset
+    ds = d // 2
+    hd = ds // 2
+    ho = gh - 2 * ds
+    thr = max(thr_min, snr_thr * (noise * area_noise))
+    t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
+    if ho <= 0:
+        e_i = np.empty(0, np.int64)
+        return e_i, e_i, np.empty(0), noise
+    # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
+    resp = np.empty((ho, wo), np.uint8)
+    for y in range(ho):
+        bc = B[y + ds]
+        b0 = B[y]
+        b1 = B[y + 2 * ds]
+        ry = resp[y]
+        if hd >= 2:
+            h0 = B[y + ds - hd]
+            h1 = B[y + ds + hd]
+            for x in range(wo):
+                ux = np.uint64(x)
+                c = bc[ux]
+                m = min(max(b0[ux], b1[ux]), max(h0[ux], h1[ux]))
+                ry[ux] = c - min(c, m)
+        else:
+            for x in range(wo):
+                ux = np.uint64(x)
+                c = bc[ux]
+                ry[ux] = c - min(c, max(b0[ux], b1[ux]))
+    # vertical local maxima inside the band: counted per column, then placed column by column
+    y0 = np.empty(wo, np.uint16)
+    y1 = np.empty(wo, np.uint16)
+    for x in range(wo):
+        uf = min(2 * x, w - 1)
+        lo = v_lo[uf]
+        hi = v_hi[uf]
+        if hi < lo:
+            y0[x] = 0
+            y1[x] = 0
+        else:
+            y0[x] = min(max((lo - r0 + 1) // 2, 0), 65535)
+            y1[x] = min(max(min((hi - r0) // 2 + 1, ho), 0), 65535)
+    cnt16 = np.zeros(wo, np.uint16)
+    w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
+    pk = np.zeros((ho, w8), np.uint8)
+    tu = np.uint8(t8)
+    row_pk = np.empty(ho, np.uint8)  # any peak in the row: the rows without any are skipped below
+    for y in range(ho):
+        rm = resp[max(y - 1, 0)]
+        rc = resp[y]
+        rp = resp[min(y + 1, ho - 1)]
+        py = pk[y]
+        fy = np.uint16(y)
+        for x in range(wo):
+            ux = np.uint64(x)
+            v = rc[ux]
+            is_pk = (v > tu) & (rm[ux] <= v) & (rp[ux] <= v) & (fy >= y0[ux]) & (fy < y1[ux])
+            py[ux] = is_pk
+            cnt16[ux] += np.uint16(is_pk)
+        any_pk = np.uint8(0)
+        for x in range(wo):  # an integer OR (vectorizes)
+            any_pk |= py[np.uint64(x)]
+        row_pk[y] = any_pk
+    cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
+    for x in range(wo):
+        cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
+    n = cnt[wo]
+    cu = np.empty(n, np.int64)
+    cv = np.empty(n, np.int64)
+    ca = np.empty(n)
+    pos = cnt[:wo].copy()
+    words = pk.reshape(-1).view(np.uint64)
+    nw8 = w8 // 8
+    for y in range(ho):
+        if row_pk[y] == 0:
+            continue
+        ry = resp[y]
+        vy = r0 + 2 * y
+        for k in range(nw8):
+            wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0 or 1) each
+            while wk:  # the set bytes, lowest first (none in the common case)
+                x = 8 * k + (trailing_zeros(wk) >> 3)
+                wk &= wk - np.uint64(1)
+                j = pos[x]
+                cu[j] = x + col_offset
+                cv[j] = vy
+                ca[j] = ry[x]
+                pos[x] = j + 1
+    return cu, cv, ca, noise

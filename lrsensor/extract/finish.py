@@ -1,0 +1,380 @@
+"""Finishing: the pooled colour and signal-to-noise gates, runs, smoothing and quality of the fitted points.
+
+:func:`finish_points` takes the fitted points of every laser, one per virtual column (N,): centre row (px),
+amplitude (DN), sigma (px), saturated, ok, local noise (DN), chain and chain length, colour rises (3, N), and:
+
+1. the colour test (green must rise ``min_green_ratio`` times more than red and blue) and the signal-to-noise
+   ratio, pooled over the fitted columns of the same chain within ``pool`` columns: rises summed, the ratio the
+   median of the neighbours' (:func:`pooled_median9`, a sorting network in registers for the default window of
+   9), at most ``1 / snr_floor_frac`` times the column's own. One noisy pixel then cannot drop a column of a dim
+   stripe, nor keep one of a white blob;
+2. runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
+   flat-topped, whose candidate rows wander on the top and split the chains) and within ``max_jump`` rows;
+3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs`);
+4. quality in [0, 1] from the signal-to-noise ratio, the width and the chain length.
+
+Returns the accepted points ``(u, v, laser, quality)``: columns and rows (px), laser index, quality; (M,) each.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import inline, njit
+from .smooth import smooth_runs
+
+#: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
+#: for the default pooled window of 9 columns (odd-even transposition needs 36).
+SORT9 = np.array(
+    [
+        *((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (0, 3), (3, 6), (0, 3), (1, 4)),
+        *((4, 7), (1, 4), (2, 5), (5, 8), (2, 5), (1, 3), (5, 7), (2, 6), (4, 6), (2, 4), (2, 3), (5, 6)),
+    ],
+    np.int64,
+)
+
+
+@njit
+def sorting_network(n):  # type: ignore[no-untyped-def]
+    """Compare-exchange pairs (P, 2) that sort ``n`` values: :data:`SORT9` for 9, else odd-even transposition."""
+    if n == 9:
+        return SORT9.copy()
+    pairs = np.empty((n * (n // 2), 2), np.int64)
+    p = 0
+    for r in range(n):
+        for j in range(r % 2, n - 1, 2):
+            pairs[p, 0] = j
+            pairs[p, 1] = j + 1
+            p += 1
+    return pairs[:p]
+
+
+@njit
+def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
+    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: as
+    :func:`pooled_median9`, each compare-exchange a pass over all columns. Returns (nd,) float64."""
+    # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
+    # branch-free odd-even transposition compare-exchanges that run over all columns at once
+    vals = np.empty((nw, nd), np.float32)
+    cnt_d = np.zeros(nd, np.int32)
+    inf32 = np.float32(np.inf)
+    for j in range(nw):
+        cj = ch[j : j + nd]
+        xj = ds[j : j + nd]
+        vj = vals[j]
+        for q in range(nd):
+            x = xj[q]
+            use = (cj[q] == own[q]) & (x == x)  # same piece, passing (not NaN)
+            vj[q] = x if use else inf32
+            cnt_d[q] += np.int32(use)
+    net = sorting_network(nw)
+    for p in range(net.shape[0]):
+        va = vals[net[p, 0]]
+        vb = vals[net[p, 1]]
+        for q in range(nd):
+            lo = min(va[q], vb[q])
+            vb[q] = max(va[q], vb[q])
+            va[q] = lo
+    med = np.empty(nd)
+    for q in range(nd):
+        k = cnt_d[q]
+        med[q] = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
+    return med
+
+
+@inline
+def _pooled_value(ch, ds, uq, j, o, inf):  # type: ignore[no-untyped-def]
+    """Value ``j`` of the window at ``uq`` for :func:`pooled_median9`: ``(value, used)``, +inf when it is not of
+    the piece ``o`` or not passing (NaN)."""
+    i = uq + np.uint64(j)
+    x = ds[i]
+    u = (ch[i] == o) & (x == x)
+    return (x if u else inf), u
+
+
+@inline
+def _exchange(a, b):  # type: ignore[no-untyped-def]
+    """One compare-exchange: ``(min, max)``."""
+    return min(a, b), max(a, b)
+
+
+@njit
+def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
+    """The pooled signal-to-noise medians of :func:`finish_points` for windows of 9 columns (``pool`` 4), each
+    column's window sorted in registers by the compare-exchanges of :data:`SORT9` (the same operations, in the
+    same order, as its pass-per-exchange twin over rows of ``vals``), so only the median is stored.
+
+    ``ch``, ``ds``: (nd + 8,) the padded chains and passing ratios (NaN: none). Returns the median of each
+    column's window over the values of its own piece (NaN and other pieces left out), as
+    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64.
+    """
+    med = np.empty(nd)
+    inf32 = np.float32(np.inf)
+    for q in range(nd):
+        uq = np.uint64(q)
+        o = ch[uq + np.uint64(4)]
+        v0, u0 = _pooled_value(ch, ds, uq, 0, o, inf32)
+        v1, u1 = _pooled_value(ch, ds, uq, 1, o, inf32)
+        v2, u2 = _pooled_value(ch, ds, uq, 2, o, inf32)
+        v3, u3 = _pooled_value(ch, ds, uq, 3, o, inf32)
+        v4, u4 = _pooled_value(ch, ds, uq, 4, o, inf32)
+        v5, u5 = _pooled_value(ch, ds, uq, 5, o, inf32)
+        v6, u6 = _pooled_value(ch, ds, uq, 6, o, inf32)
+        v7, u7 = _pooled_value(ch, ds, uq, 7, o, inf32)
+        v8, u8 = _pooled_value(ch, ds, uq, 8, o, inf32)
+        k = np.int32(u0) + np.int32(u1) + np.int32(u2) + np.int32(u3) + np.int32(u4)
+        k += np.int32(u5) + np.int32(u6) + np.int32(u7) + np.int32(u8)
+        # SORT9, written out
+        v0, v1 = _exchange(v0, v1)
+        v3, v4 = _exchange(v3, v4)
+        v6, v7 = _exchange(v6, v7)
+        v1, v2 = _exchange(v1, v2)
+        v4, v5 = _exchange(v4, v5)
+        v7, v8 = _exchange(v7, v8)
+        v0, v1 = _exchange(v0, v1)
+        v3, v4 = _exchange(v3, v4)
+        v6, v7 = _exchange(v6, v7)
+        v0, v3 = _exchange(v0, v3)
+        v3, v6 = _exchange(v3, v6)
+        v0, v3 = _exchange(v0, v3)
+        v1, v4 = _exchange(v1, v4)
+        v4, v7 = _exchange(v4, v7)
+        v1, v4 = _exchange(v1, v4)
+        v2, v5 = _exchange(v2, v5)
+        v5, v8 = _exchange(v5, v8)
+        v2, v5 = _exchange(v2, v5)
+        v1, v3 = _exchange(v1, v3)
+        v5, v7 = _exchange(v5, v7)
+        v2, v6 = _exchange(v2, v6)
+        v4, v6 = _exchange(v4, v6)
+        v2, v4 = _exchange(v2, v4)
+        v2, v3 = _exchange(v2, v3)
+        v5, v6 = _exchange(v5, v6)
+        h = k // 2
+        a = v0
+        a = v1 if h == 1 else a
+        a = v2 if h == 2 else a
+        a = v3 if h == 3 else a
+        a = v4 if h == 4 else a
+        a = v5 if h == 5 else a
+        a = v6 if h == 6 else a
+        a = v7 if h == 7 else a
+        a = v8 if h == 8 else a
+        b = v8  # index h - 1 = -1 (no value: wraps to the last, as the row view does)
+        b = v0 if h == 1 else b
+        b = v1 if h == 2 else b
+        b = v2 if h == 3 else b
+        b = v3 if h == 4 else b
+        b = v4 if h == 5 else b
+        b = v5 if h == 6 else b
+        b = v6 if h == 7 else b
+        b = v7 if h == 8 else b
+        med[uq] = float(a) if k % 2 else 0.5 * (float(b) + float(a))
+    return med
+
+
+@njit
+def finish_points(  # type: ignore[no-untyped-def]
+    col_v,
+    lz,
+    vv,
+    amp,
+    sig,
+    sat,
+    ok,
+    lnoise,
+    chain,
+    chain_len,
+    noise_l,
+    w,
+    n_cols,
+    min_contrast,
+    min_snr,
+    min_run,
+    max_sigma,
+    scales,
+    rise,
+    green_ratio,
+    pool,
+    floor_frac,
+    max_jump,
+    wide_sigma,
+):
+    """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality (loop twin of the numpy tail of
+    ``extract``).
+
+    The colour test (green must rise more than ``green_ratio`` times red and blue; ``rise`` (3, N) in B, G, R)
+    and the signal-to-noise test are pooled over the fitted columns of the same chain within ``pool`` columns:
+    the rises are summed, and the ratio is the median of the neighbours' (at most ``1 / floor_frac`` times the
+    column's own). One noisy pixel then cannot drop a column of a dim stripe, nor keep one of a white blob.
+
+    The smoothing runs along the kept columns of one laser with gaps of at most 3 columns, on one chain; wide
+    profiles (saturated, or sigma above ``wide_sigma``: thick sheets close to the wall) also join the run of the
+    column before them when both are wide and their rows differ by at most ``max_jump``, because the candidate row
+    of a flat top wanders across it and splits the chain into short pieces, whose runs would be too short for the
+    long line fits.
+
+    ``lz`` (N,) is the laser of each point, ``col_v // w`` (:func:`sorted_blocks`).
+
+    Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
+    """
+    n = col_v.size
+    snr = np.empty(n)
+    # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
+    ch = np.full(n_cols + 2 * pool, -1, np.int32)  # chain ids < n_cols * k: 16 lanes in the float32 pooling
+    # the rises are halves of integers below 256 in magnitude: their sums over the window are exact in float32
+    # (twice the vector lanes of float64)
+    dr = np.zeros((3, n_cols + 2 * pool), np.float32)
+    zero = np.float32(0.0)
+    d_b = dr[0]
+    d_g = dr[1]
+    d_r = dr[2]
+    for t in range(n):  # the points' signal-to-noise ratios and their dense rows, one pass (no branch)
+        noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
+        snr[t] = amp[t] / noise
+        qp = np.uint64(col_v[t] + pool)
+        ch[qp] = chain[t]
+        okt = ok[t]
+        d_b[qp] = np.float32(rise[0, t]) if okt else zero
+        d_g[qp] = np.float32(rise[1, t]) if okt else zero
+        d_r[qp] = np.float32(rise[2, t]) if okt else zero
+    # the colour test pooled over the window, for every (virtual) column at once: shifted contiguous reads of
+    # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
+    nw = 2 * pool + 1
+    nd = n_cols
+    sums = np.zeros((3, nd), np.float32)
+    own = ch[pool : pool + nd]
+    sb = sums[0]
+    sg = sums[1]
+    sr = sums[2]
+    db = dr[0]
+    dg = dr[1]
+    dR = dr[2]
+    j = 0
+    while j + 3 <= nw:  # three offsets per pass, the running sums in registers (one store per three terms)
+        u1 = np.uint64(j)
+        u2 = u1 + np.uint64(1)
+        u3 = u1 + np.uint64(2)
+        for q in range(nd):
+            uq = np.uint64(q)
+            o = own[uq]
+            m1 = ch[uq + u1] == o
+            m2 = ch[uq + u2] == o
+            m3 = ch[uq + u3] == o
+            b1, b2, b3 = db[uq + u1], db[uq + u2], db[uq + u3]
+            g1, g2, g3 = dg[uq + u1], dg[uq + u2], dg[uq + u3]
+            r1, r2, r3 = dR[uq + u1], dR[uq + u2], dR[uq + u3]
+            x = sb[uq]
+            x += b1 if m1 else zero
+            x += b2 if m2 else zero
+            x += b3 if m3 else zero
+            sb[uq] = x
+            x = sg[uq]
+            x += g1 if m1 else zero
+            x += g2 if m2 else zero
+            x += g3 if m3 else zero
+            sg[uq] = x
+            x = sr[uq]
+            x += r1 if m1 else zero
+            x += r2 if m2 else zero
+            x += r3 if m3 else zero
+            sr[uq] = x
+        j += 3
+    while j < nw:
+        uj = np.uint64(j)
+        for c in range(3):
+            sc = sums[c]
+            dc = dr[c]
+            for q in range(nd):
+                uq = np.uint64(q)
+                sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
+        j += 1
+    good = np.empty(n, np.bool_)
+    ds = np.full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
+    nan32 = np.float32(np.nan)
+    for t in range(n):  # the colour gate and the passing ratios, one branch-free pass
+        qc = np.uint64(col_v[t])
+        g = ok[t] & (sat[t] | (float(sg[qc]) >= green_ratio * float(max(sb[qc], sr[qc]))))
+        good[t] = g
+        ds[qc + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
+    keep = np.empty(n, np.bool_)
+    if nw == 9:  # the default pool: each window sorted in registers
+        medv = pooled_median9(ch, ds, nd)
+    else:
+        medv = pooled_median(ch, ds, own, nw, nd)
+    e_arg = np.empty(n, np.float32)
+    for t in range(n):  # branch-free: the pooled ratio of the points that pass the colour gate, and the gates
+        g = good[t]
+        s = min(medv[np.uint64(col_v[t])], snr[t] / floor_frac) if g else snr[t]
+        snr[t] = s
+        keep[t] = g & (amp[t] >= min_contrast) & ((s >= min_snr) | sat[t]) & math.isfinite(vv[t])
+        e_arg[t] = -s / 8.0
+    # runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
+    # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump rows
+    run_id = np.full(n, -1, np.int64)
+    counts = np.empty(n, np.int64)  # points per run (a run's count kept in a register while it grows)
+    cur = 0
+    r = -1
+    last_col = -10
+    last_chain = -1
+    last_l = -1
+    last_v = np.nan
+    last_wide = False
+    for t in range(n):
+        if not keep[t]:
+            continue
+        wide = sat[t] or sig[t] > wide_sigma  # (False for a NaN sigma)
+        joined = chain[t] == last_chain or (wide and last_wide and abs(vv[t] - last_v) <= max_jump)
+        if col_v[t] - last_col > 3 or lz[t] != last_l or not joined:
+            if r >= 0:
+                counts[r] = cur
+            r += 1
+            cur = 0
+        cur += 1
+        run_id[t] = r
+        last_col = col_v[t]
+        last_chain = chain[t]
+        last_l = lz[t]
+        last_v = vv[t]
+        last_wide = wide
+    if r >= 0:
+        counts[r] = cur
+    need = max(2, min_run // 2)
+    y = np.full(n_cols, np.nan)
+    run = np.full(n_cols, -1, np.int64)
+    long_ = np.empty(n, np.bool_)  # in a run long enough
+    m = 0
+    for t in range(n):
+        ri = run_id[t]
+        lg = ri >= 0 and counts[ri] >= need
+        long_[t] = lg
+        if lg:
+            y[col_v[t]] = vv[t]
+            run[col_v[t]] = ri
+            m += 1
+    ys = smooth_runs(y, run, scales) if scales.size > 0 else y
+    u_out = np.empty(m)
+    v_out = np.empty(m)
+    l_out = np.empty(m, np.int64)
+    q_out = np.empty(m)
+    e_snr = np.exp(e_arg)  # float32 is plenty for a score
+    qual = np.empty(n)
+    for t in range(n):  # every point's quality, branch-free (vectorizes), before the kept ones are packed
+        s = sig[t] if math.isfinite(sig[t]) else max_sigma
+        q_snr = 1.0 - float(e_snr[t])
+        q_w = min(max(min(s / 0.6, 1.5 * max_sigma / max(s, 1e-6) - 0.5), 0.2), 1.0)
+        q_run = min(max(chain_len[t] / (4.0 * min_run), 0.0), 1.0)
+        qual[t] = min(max(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0), 1.0)
+    k = 0
+    for t in range(n):
+        if not long_[t]:
+            continue
+        laser = lz[t]
+        u_out[k] = col_v[t] - laser * w
+        v_out[k] = ys[col_v[t]]
+        l_out[k] = laser
+        q_out[k] = qual[t]
+        k += 1
+    return u_out, v_out, l_out, q_out

@@ -1,0 +1,403 @@
+"""The compiled road: one call that extracts (and triangulates) the stripes of one frame.
+
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole:
+
+1. detection per laser in its band (:func:`.detect.detect_band`), the candidates of all lasers numbered as one
+   row of virtual columns ``laser * width_d + column_d``;
+2. continuity (:func:`.chains.select_candidates`, :func:`.chains.expand_half`): one candidate per column;
+3. frame statistics (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and
+   the sub-pixel fits, column-parallel by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`), the rest by
+   the full kernel (:mod:`.fit`);
+4. neighbour refits where two lasers' stripes come close (:mod:`.refit`);
+5. gates, runs, smoothing and quality (:mod:`.finish`);
+6. with ``triangulate``: the body-frame points (:mod:`.geometry`) and the range-limit gate on camera depth.
+
+Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records built once per (calibration,
+configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
+body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
+
+Why one call: a frame takes about half a millisecond; passing arrays between Python and the kernels stage by
+stage would cost as much again. The numpy reference (:mod:`lrsensor.extract.reference`) implements the same
+algorithm readably for tests and for machines without numba.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import njit
+from .chains import expand_half, select_candidates, sorted_blocks
+from .columns import put_fit
+from .detect import detect_band
+from .finish import finish_points
+from .fit import flank_offset
+from .fit_clipped import core_peaks, fit_columns_clipped
+from .fit_common import fit_columns_common
+from .geometry import max_fwhm_at, triangulate_points
+from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_full, refit_targets, rows_overlap
+
+
+@njit
+def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  # type: ignore[no-untyped-def]
+    """Loop twin of the frame statistics of ``subpixel.extract``: from the green profiles ``rows +- half`` of a
+    few picked columns, the median Gaussian-equivalent sigma of the unsaturated ones (see
+    ``subpixel._typical_sigma``; at most ``max_sigma`` or the median wide limit), the 90th percentile of their
+    clipped-sample counts, and the median of ``max_fwhm`` (M,) at those columns.
+
+    Returns:
+        ``(sigma_px, plateau_px, wide_limit_px)``.
+    """
+    h = image.shape[0]
+    n = cols.size
+    m = 2 * half + 1
+    R = m // 2
+    q = max(2, m // 4)
+    X = np.empty(m)
+    widths = np.empty(n)
+    n_sat = np.empty(n)
+    nw = 0
+    for t in range(n):
+        ns = 0
+        for k in range(m):
+            rr = min(max(rows[t] - half + k, 0), h - 1)
+            X[k] = image[rr, cols[t], 1]
+            if X[k] >= sat_dn:
+                ns += 1
+        n_sat[t] = ns
+        b1 = 0.0
+        b2 = 0.0
+        for k in range(q):
+            b1 += X[k]
+            b2 += X[m - q + k]
+        bg = min(b1, b2) / q
+        pk = -1.0
+        p = R - 3
+        for k in range(R - 3, R + 4):
+            if X[k] > pk:
+                pk = X[k]
+                p = k
+        half_level = 0.5 * (pk + bg)
+        left = -1
+        for k in range(p - 1, -1, -1):
+            if X[k] < half_level:
+                left = k
+                break
+        right = m
+        for k in range(p + 1, m):
+            if X[k] < half_level:
+                right = k
+                break
+        if left < 0 or right >= m or not (pk < sat_dn) or not (pk - bg > 5.0):
+            continue
+        xl = left + (half_level - X[left]) / max(X[left + 1] - X[left], 1e-9)
+        xr = right - (half_level - X[right]) / max(X[right - 1] - X[right], 1e-9)
+        widths[nw] = xr - xl
+        nw += 1
+    wide = np.median(max_fwhm) if max_fwhm.size > 0 else 0.0
+    sigma = 1.0
+    if nw > 0:
+        sg = np.median(widths[:nw]) / 2.3548200450309493
+        if math.isfinite(sg):
+            sigma = min(max(sg, 0.6), max(max_sigma, wide / 2.3548200450309493))
+    srt = np.sort(n_sat)
+    plateau = srt[int(0.9 * (n - 1))] if n > 0 else 0.0
+    return sigma, plateau, wide
+
+
+@njit
+def process_candidates(  # type: ignore[no-untyped-def]
+    image,
+    U,
+    Vr,
+    Ar,
+    noise_l,
+    ints,
+    reals,
+    scales,
+    cam,
+    dist,
+    R,
+    origin,
+    normals,
+    points,
+    axis,
+    wide_fwhm,
+    tri,
+):
+    """Steps 3-6 of ``subpixel.extract`` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality) in
+    one compiled call, the same kernels in the same order as the Python glue of its numpy-free path.
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; U, Vr, Ar: the candidates of every laser (detection columns with
+            the laser's offset, full rows, strengths), sorted by column then row; noise_l: (L,) band noise, DN.
+        ints: (scale, max_candidates, min_run_cols, gate_pool_cols, window_half_px, n_lasers, iterations);
+        reals: (max_jump_px, saturation_dn, min_fwhm_px, max_sigma_px, min_contrast_dn, min_snr,
+            min_green_ratio, max_sheet_mm, snr_floor_frac); scales: smoothing half-widths, largest first.
+        cam, dist, R, origin, normals, points: the calibration (see :func:`triangulate_points`); axis: (3,) unit
+            optical axis, body frame; wide_fwhm: flat-top width limit of the common fit; tri: also triangulate.
+
+    Returns:
+        ``(u, v, laser, quality, xyz)``: (M,) each and (M, 3) body points (empty (0, 3) unless ``tri``).
+    """
+    w = image.shape[1]
+    scale, max_cand, min_run_cols, pool, half0, n_l, iterations = (
+        ints[0],
+        ints[1],
+        ints[2],
+        ints[3],
+        ints[4],
+        ints[5],
+        ints[6],
+    )
+    max_jump, sat_dn, min_fwhm, max_sigma = reals[0], reals[1], reals[2], reals[3]
+    min_contrast, min_snr, green_ratio, sheet_mm, floor_frac = reals[4], reals[5], reals[6], reals[7], reals[8]
+    fwhm_per_sigma = 2.3548200450309493
+    wide_sigma = wide_fwhm / fwhm_per_sigma  # profiles wider than this are flat-topped (wide)
+    wd = (w + scale - 1) // scale
+    n_cols_d = n_l * wd
+    n_cols = n_l * w
+    jump = max_jump * (1.5 if scale == 2 else 1.0)
+    min_run = max(2, (min_run_cols + scale - 1) // scale)
+    e_u = np.empty(0)
+    e_i = np.empty(0, np.int64)
+    if U.size == 0:
+        return e_u, e_u, e_i, e_u, np.empty((0, 3))
+    # 3. chains
+    cnt = np.zeros(n_cols_d, np.int64)
+    kk = 0
+    for t in range(U.size):
+        cnt[U[t]] += 1
+        kk = max(kk, cnt[U[t]])
+    k = min(max_cand, kk)
+    col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
+    if col_d.size == 0:
+        return e_u, e_u, e_i, e_u, np.empty((0, 3))
+    if scale == 2:
+        col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
+    else:
+        col_v = col_d
+    n = col_v.size
+    rows = np.empty(n, np.int64)
+    laser = sorted_blocks(col_v, w)
+    cols = np.empty(n, np.int64)
+    for t in range(n):
+        rows[t] = int(np.rint(rows_f[t]))
+        cols[t] = col_v[t] - laser[t] * w
+    # 4. frame statistics (window length), common fits, full fits of the special columns
+    floor = fwhm_per_sigma * max_sigma
+    mfw = np.full(n, np.nan)
+    m_sub = min(n, 48)
+    sub = np.empty(m_sub, np.int64)
+    if m_sub == 1:
+        sub[0] = 0
+    else:
+        step = (n - 1) / (m_sub - 1)
+        for i in range(m_sub):
+            sub[i] = int(i * step)
+        sub[m_sub - 1] = n - 1
+    geo = (cam, dist, R, origin, normals, points, axis)
+    mf = max_fwhm_at(cols[sub], rows[sub], laser[sub], floor, sheet_mm, geo)
+    for i in range(m_sub):
+        mfw[sub[i]] = mf[i]
+    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
+    half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
+    min_sig = min_fwhm / fwhm_per_sigma
+    # each column's integer peak among the 2 e + 1 rows around its candidate; those with a clipped sample there
+    # are special (the common fit's window holds that sample): where they are many (close to the wall), they skip
+    # the common fit
+    peaks, clip = core_peaks(image, cols, rows, 3, sat_dn)
+    n_clip = 0
+    for t in range(n):
+        n_clip += clip[t]
+    if 4 * n_clip <= n:
+        vv, amp, sig, sat, ok, lnoise, rise, special = fit_columns_common(
+            image, cols, peaks, half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+        )
+        for t in range(n):
+            special[t] |= clip[t]
+    else:
+        vv = np.full(n, np.nan)
+        amp = np.zeros(n)
+        sig = np.full(n, np.nan)
+        sat = np.zeros(n, np.bool_)
+        ok = np.zeros(n, np.bool_)
+        lnoise = np.zeros(n)
+        rise = np.zeros((3, n))
+        special = clip.copy()
+        keep = np.flatnonzero(~clip)
+        if keep.size:
+            r_c = fit_columns_common(
+                image, cols[keep], peaks[keep], half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
+            )
+            out = (vv, amp, sig, sat, ok, lnoise, rise)
+            for i in range(keep.size):
+                put_fit(out, r_c, i, keep[i])
+                special[keep[i]] = r_c[7][i]
+    # the fit's settings, the width limits and the per-column results that the refits update in place
+    fit = (half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm)
+    limits = (mfw, floor, sheet_mm)
+    res = (vv, amp, sig, sat, ok, lnoise, rise)
+    n_sp = 0
+    for t in range(n):
+        n_sp += special[t]
+    if n_sp:  # clipped peaks (close to the wall), then the unclipped narrow ones, column-parallel; the rest
+        # (flat tops) by the full kernel
+        rest = np.flatnonzero(special)
+        r_s = fit_columns_clipped(
+            image, cols[rest], peaks[rest], half, sig_med, sat_dn, 3, iterations, min_sig, max_sigma, wide_fwhm
+        )
+        n_rest = 0
+        for i in range(rest.size):
+            t = rest[i]
+            if r_s[7][i]:
+                put_fit(res, r_s, i, t)
+            else:
+                rest[n_rest] = t
+                n_rest += 1
+        rest = rest[:n_rest]
+        if rest.size:
+            nan = np.full(rest.size, np.nan)  # flat tops, which only the full kernel fits
+            refit_full(image, cols, rows, laser, rest, nan, nan, nan, fit, limits, geo, res)
+    # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
+    if n_l > 1:
+        max_d = half + 3.0 * sig_med + 2.0
+        good = np.empty(n, np.bool_)  # the points that can be a neighbour (updated where refitted)
+        for t in range(n):
+            good[t] = ok[t] and not sat[t]
+        if rows_overlap(laser, vv, good, n_l, max_d):  # else the common case: stripes far apart
+            # the rows the fits read: background flanks of 3 rows (as the fits take them; no clipped sample) and
+            # the whole window
+            read = (float(flank_offset(sig_med, 0, half, 3) + 2), half + 1.0, wide_sigma)
+            last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
+            at = point_table(laser, cols, n_l, w)
+            look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
+            touched = np.zeros(w, np.bool_)
+            for _ in range(NEIGHBOUR_REFITS):
+                idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
+                if idx.size == 0:
+                    break
+                refit_columns(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
+                for i in range(idx.size):
+                    t = idx[i]
+                    good[t] = ok[t] and not sat[t]
+                    touched[cols[t]] = True
+                look = np.flatnonzero(touched)
+                touched[look] = False
+    # 5-6. gates, runs, smoothing, quality
+    u_o, v_o, l_o, q_o = finish_points(
+        col_v,
+        laser,
+        vv,
+        amp,
+        sig,
+        sat,
+        ok,
+        lnoise,
+        chain,
+        chain_len,
+        noise_l,
+        w,
+        n_cols,
+        min_contrast,
+        min_snr,
+        min_run_cols,
+        max_sigma,
+        scales,
+        rise,
+        green_ratio,
+        pool,
+        floor_frac,
+        max_jump,
+        wide_sigma,
+    )
+    xyz = triangulate_points(u_o, v_o, l_o, cam, dist, R, origin, normals, points) if tri else np.empty((0, 3))
+    return u_o, v_o, l_o, q_o, xyz
+
+
+@njit
+def extract_frame(  # type: ignore[no-untyped-def]
+    image,
+    band_rows,
+    v_lo,
+    v_hi,
+    detect,
+    ints,
+    reals,
+    scales,
+    cam,
+    dist,
+    R,
+    origin,
+    normals,
+    points,
+    axis,
+    wide_fwhm,
+    depth_gate,
+):
+    """The whole default extractor on one frame in one compiled call: :func:`detect_band` for every laser (at
+    detection scale 2), then :func:`process_candidates` with the triangulation, and the depth gate.
+
+    Args:
+        band_rows: (L, 2) bounding rows ``[r0, r1)`` of each laser's band; v_lo, v_hi: (L, W) the bands.
+        detect: ``(contrast_px, snr_threshold, area_noise, min_response)`` of :func:`detect_band`.
+        depth_gate: ``(r_x, r_y, r_z, t_z, min_depth, max_depth)``: camera z of a body point is
+            ``r . p + t_z`` (metres); points outside ``[min_depth, max_depth]`` (or NaN) are dropped.
+        the rest: as :func:`process_candidates`.
+
+    Returns:
+        ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
+        and body-frame points (M, 3), and the band noise (L,), DN.
+    """
+    n_l = band_rows.shape[0]
+    w = image.shape[1]
+    wd = (w + 1) // 2
+    noise = np.ones(n_l)
+    parts_u = []
+    parts_v = []
+    parts_a = []
+    total = 0
+    for i in range(n_l):
+        r0 = band_rows[i, 0]
+        r1 = band_rows[i, 1]
+        if r1 <= r0:
+            continue
+        u, v, a, noise[i] = detect_band(
+            image, r0, r1, int(detect[0]), detect[1], detect[2], detect[3], v_lo[i], v_hi[i], i * wd
+        )
+        parts_u.append(u)
+        parts_v.append(v)
+        parts_a.append(a)
+        total += u.size
+    U = np.empty(total, np.int64)
+    Vr = np.empty(total, np.int64)
+    Ar = np.empty(total)
+    k = 0
+    for j in range(len(parts_u)):
+        m = parts_u[j].size
+        U[k : k + m] = parts_u[j]
+        Vr[k : k + m] = parts_v[j]
+        Ar[k : k + m] = parts_a[j]
+        k += m
+    u_o, v_o, l_o, q_o, xyz = process_candidates(
+        image, U, Vr, Ar, noise, ints, reals, scales, cam, dist, R, origin, normals, points, axis, wide_fwhm, True
+    )
+    n = u_o.size
+    keep = np.empty(n, np.bool_)
+    m = 0
+    for t in range(n):
+        depth = xyz[t, 0] * depth_gate[0] + xyz[t, 1] * depth_gate[1] + xyz[t, 2] * depth_gate[2] + depth_gate[3]
+        keep[t] = depth >= depth_gate[4] and depth <= depth_gate[5]  # NaN fails both
+        m += keep[t]
+    uv = np.empty((m, 2))
+    if m == n:
+        for t in range(n):
+            uv[t, 0] = u_o[t]
+            uv[t, 1] = v_o[t]
+        return uv, l_o, q_o, xyz, noise
+    idx = np.flatnonzero(keep)
+    for j in range(m):
+        uv[j, 0] = u_o[idx[j]]
+        uv[j, 1] = v_o[idx[j]]
+    return uv, l_o[idx], q_o[idx], xyz[idx], noise

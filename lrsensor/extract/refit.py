@@ -1,0 +1,391 @@
+"""Neighbour refits: the stripes of two lasers close together, each fitted with the other subtracted.
+
+At long range (walls beyond about 4 m) the two lasers' stripes come within a fit window of each other, and each
+pulls the other's centre. The points whose column holds another laser's good point within ``max_dist`` rows are
+refitted with that point's Gaussian subtracted, a few rounds (:data:`NEIGHBOUR_REFITS`), each round only where the
+neighbour moved by more than :data:`NEIGHBOUR_TOL` since the point's last refit (:func:`refit_targets`), and only
+where the neighbour's tail reaches :data:`NEIGHBOUR_TAIL` of the point's amplitude in the rows its centroid reads
+or :data:`NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`read_reach`). The refits are column-parallel
+(:func:`fit_columns_neighbour`) where nothing is clipped and the profile is narrow, else the full kernel
+(:func:`refit_full`).
+
+The constants here are the one definition that the compiled road and the reference
+(:mod:`lrsensor.extract.reference`) both read.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import inline, njit
+from .columns import colour_rises, fit_results, gather_green, put_fit
+from .fit import fit_columns, flank_offset
+from .fit_plain import plain_fit_profiles
+from .geometry import max_fwhm_at
+
+
+@njit
+def _neighbour_profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-untyped-def]
+    """The green profiles of rows ``top ... top + k_rows - 1`` (clamped to the image) of columns ``cols`` less the
+    Gaussian ``amp exp(-(row - mu)^2 inv)`` of each column (``g2 = exp(-2 inv)``; (N,) each): (k_rows, N) float64.
+
+    Column-parallel, three ``exp`` per column: each column's Gaussian by recurrence from the first row where it
+    exceeds ``e^-30`` of its peak (a start further out could underflow to zero and stay there)."""
+    n = cols.size
+    W = np.empty((k_rows, n), np.uint8)
+    gather_green(image, cols, top, W)
+    qs = np.empty(n, np.int64)
+    ex = np.empty(2 * n)
+    for t in range(n):
+        r30 = math.sqrt(30.0 / inv[t])
+        q0 = min(max(int(math.ceil(mu[t] - r30 - top[t])), 0), k_rows) if amp[t] != 0.0 else k_rows  # noqa: RUF046
+        qs[t] = q0
+        d = top[t] + q0 - mu[t] if q0 < k_rows else 0.0
+        ex[t] = -(d * d) * inv[t]
+        ex[n + t] = -(2.0 * d + 1.0) * inv[t]
+    ex = np.exp(ex)
+    w = ex[:n].copy()
+    ratio = ex[n:].copy()
+    P = np.empty((k_rows, n))
+    for q in range(k_rows):
+        wq = W[q]
+        pq = P[q]
+        for t in range(n):
+            on = q >= qs[t]
+            pq[t] = wq[t] - (amp[t] * w[t] if on else 0.0)
+            w[t] = w[t] * ratio[t] if on else w[t]
+            ratio[t] = ratio[t] * g2[t] if on else ratio[t]
+    return P
+
+
+@njit
+def fit_columns_neighbour(  # type: ignore[no-untyped-def]
+    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, nb_v, nb_a, nb_s, wide_fwhm
+):
+    """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns without a clipped
+    sample: with the same arguments but the width limits, the same results up to rounding.
+
+    The stripes of two lasers close together at long range take this path: there the columns of both that the
+    other's Gaussian reaches are refitted with it subtracted, a few rounds, and :func:`fit_columns` costs about ten
+    times more per column. Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)`` as
+    :func:`fit_results`: ``done`` (N,) False marks the columns to fit with :func:`fit_columns` instead (a clipped
+    sample in the core or the window, or a profile wider than ``wide_fwhm`` at half level).
+    """
+    n = cols.size
+    m = 2 * half + 1
+    R = half
+    out = fit_results(n)
+    # the neighbour's Gaussian: amplitude, 1 / (2 sigma^2) and exp(-2 / (2 sigma^2)) per column (0: none)
+    amp_nb = np.empty(n)
+    inv = np.empty(n)
+    g2 = np.empty(n)
+    for t in range(n):
+        has = math.isfinite(nb_v[t])
+        amp_nb[t] = nb_a[t] if has else 0.0
+        inv[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
+        g2[t] = -2.0 * inv[t]
+    g2 = np.exp(g2)
+    # re-centre on the integer peak of the core rows - e ... rows + e (the first of equal ones); a clipped core
+    # sample: not here
+    top = np.empty(n, np.int64)
+    for t in range(n):
+        top[t] = rows[t] - e
+    Pc = _neighbour_profiles(image, cols, top, 2 * e + 1, nb_v, amp_nb, inv, g2)
+    bv = np.full(n, -1.0)
+    o = np.zeros(n, np.int64)
+    done = out[7]
+    done[:] = True
+    for q in range(2 * e + 1):
+        pq = Pc[q]
+        for t in range(n):
+            x = pq[t]
+            up = x > bv[t]
+            bv[t] = x if up else bv[t]
+            o[t] = q if up else o[t]
+            done[t] &= x < sat_dn
+    pk = np.empty(n, np.int64)
+    for t in range(n):
+        pk[t] = rows[t] + (o[t] if bv[t] != -1.0 else e) - e  # nothing above -1: the candidate row
+        top[t] = pk[t] - half
+    # the window pk - half ... pk + half, clipped samples anywhere in it: not here
+    off = flank_offset(sigma_hint, 0, R, flank)
+    xl = R - off - 0.5 * (flank - 1)
+    Wn = _neighbour_profiles(image, cols, top, m, nb_v, amp_nb, inv, g2)
+    for q in range(m):
+        wq = Wn[q]
+        for t in range(n):
+            done[t] &= wq[t] < sat_dn
+    # 1. linear background from the two flanks, and the noise of the flanks
+    bl = np.zeros(n)
+    br = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            bl[t] += Wn[R - off - q, t]
+            br[t] += Wn[R + off + q, t]
+    slope = np.empty(n)
+    for t in range(n):
+        bl[t] /= flank
+        br[t] /= flank
+        slope[t] = (br[t] - bl[t]) / (2.0 * off + flank - 1)
+    B = np.empty((m, n))
+    for q in range(m):
+        for t in range(n):
+            B[q, t] = Wn[q, t] - (bl[t] + slope[t] * (q - xl))
+    ss = np.zeros(n)
+    for q in range(flank):
+        for t in range(n):
+            ss[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
+    # 2. log-parabola start, 3. Gaussian-weighted centroid (the unclipped branch of fit_columns)
+    a0 = B[R].copy()
+    c, sigma, okp, plain = plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
+    for t in range(n):
+        good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
+        out[0][t] = pk[t] - half + c[t] if good else np.nan
+        out[1][t] = a0[t]
+        out[2][t] = sigma[t]
+        out[3][t] = False
+        out[4][t] = good
+        out[5][t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
+        done[t] &= plain[t]
+    colour_rises(image, cols, pk, half, (0, 1, 2), out[6])  # from the image, as fit_columns takes them
+    return out
+
+
+@njit
+def rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
+    """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
+    has an other-laser neighbour for :func:`refit_targets`: a cheap test that spares its dense arrays)."""
+    lo = np.full(n_lasers, np.inf)
+    hi = np.full(n_lasers, -np.inf)
+    n = v.size
+    t = 0
+    while t < n:  # runs of one laser (the points are sorted by laser): each run's bounds kept in registers
+        li = laser[t]
+        a = np.inf
+        b = -np.inf
+        while t < n and laser[t] == li:
+            x = v[t] if good[t] else np.nan
+            a = min(a, x) if x == x else a
+            b = max(b, x) if x == x else b
+            t += 1
+        lo[li] = min(lo[li], a)
+        hi[li] = max(hi[li], b)
+    for a in range(n_lasers):
+        for b in range(n_lasers):
+            if a != b and lo[a] <= hi[b] + max_dist and lo[b] <= hi[a] + max_dist:
+                return True
+    return False
+
+
+#: A neighbour stripe is subtracted only where its Gaussian exceeds this fraction of the point's own amplitude
+#: (at least 1 DN) somewhere in the rows the point's centroid reads (:func:`read_reach`, :func:`refit_targets`).
+#: Below it, the refit moves centres by hundredths of a pixel at most, and not toward the truth (walls at 4.5-6 m
+#: and the tank against no gate: at most 0.048 px, on few points, the gated output as close to the truth or
+#: closer): a thin stripe (sigma 0.8 px) 11 rows away, as two lasers' stripes are on a wall at 5 m, adds less than
+#: 1e-3 of its peak 7 rows away.
+NEIGHBOUR_TAIL = 1e-2
+
+
+#: The same threshold for the rows of the background flanks only (beyond the centroid's reach). There the tail
+#: tilts the background line instead of adding to the peak: a contamination ``eps`` (fraction of the amplitude)
+#: of one flank's mean moves a centroid of weight sigma ``s`` by about ``sqrt(2) eps s^2 / D`` pixels, ``D`` the
+#: rows between the flanks' centres (10 or more). A tail of 5 % at the outer flank row averages less than 2.5 % over
+#: the flank's 3 rows, so a centre moves by at most about 0.01 px (``s`` up to 2 px) and typically 0.003 px (``s``
+#: 1.1 px): a tenth to a thirtieth of the centre's noise where the stripes meet (about 0.09 px on a wall at 5 m).
+#: There the two stripes' tails reach 1-5 % of the other's peak at the outer flank rows, depending on each frame's
+#: window (``refit_targets``).
+NEIGHBOUR_FLANK_TAIL = 5e-2
+
+
+#: ``log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)``: the flank rows' tail scaled to :data:`NEIGHBOUR_TAIL`'s test.
+LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
+
+
+#: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
+NEIGHBOUR_REFITS = 4
+
+
+#: A point is refitted again only if its neighbour moved by more than this since its last refit: row and sigma
+#: in pixels, amplitude relative (:func:`refit_targets`). A point's fit depends on nothing else that changes
+#: between the rounds, and it moves by less than its neighbour does.
+NEIGHBOUR_TOL = 1e-2
+
+
+@inline
+def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
+    """How many rows from its centre a point's fit reads, one row of re-centring included: ``(core, flanks)``, the
+    Gaussian-weighted centroid out to 3 of its weight's sigma (``max(sig, 1.1)``; the weights beyond are below
+    1.1 % of the peak's) and the log-parabola and background flanks out to ``near`` rows from the peak (a
+    neighbour's Gaussian matters only there, and less in the flanks: :data:`NEIGHBOUR_FLANK_TAIL`); the whole
+    window (``far``) for both for a saturated or wide profile (``sig`` above ``wide_sigma`` or not finite: their
+    flanks move out with the plateau). Twin of :func:`lrsensor.extract.subpixel._read_reach`."""
+    if sat or not sig <= wide_sigma:  # (True for a NaN sigma)
+        return far, far
+    return min(far, 1.0 + math.ceil(3.0 * max(sig, 1.1))), min(far, 1.0 + near)
+
+
+@njit
+def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
+    """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
+    :func:`process_candidates` are one per laser and column)."""
+    at = np.full((n_lasers, width), -1, np.int32)
+    for t in range(laser.size):
+        at[laser[t], cols[t]] = t
+    return at
+
+
+@njit
+def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look, last):  # type: ignore[no-untyped-def]
+    """The points to refit with another laser's stripe subtracted in one round, and that stripe (loop twin of
+    :func:`lrsensor.extract.subpixel._neighbours` and its round's selection).
+
+    A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
+    rows, kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least
+    1 DN) in the rows the point's fit reads (:func:`read_reach` of its sigma and saturation, ``read`` = ``(near,
+    far, wide_sigma)``). A point is picked when its neighbour's
+    row, amplitude or sigma differ from ``last`` (3, N) (the neighbour of its previous refit, NaN = none yet) by
+    more than :data:`NEIGHBOUR_TOL`; ``last`` is updated there. Only the points in the columns ``look`` (K,)
+    (sorted) are looked at: a neighbour can change only in the columns of the last round's refits.
+
+    Args:
+        laser, cols, v, amp, sig, sat, good: (N,) per point: laser, column, row (NaN = no fit), amplitude (DN),
+            sigma (px, NaN = 1), saturated, and whether it can be a neighbour.
+        at: (L, W) the point of each laser and column (:func:`point_table`).
+
+    Returns:
+        ``(idx, nb_v, nb_a, nb_s)``: the picked points (M,), in the order of the points, and their neighbours'
+        row, amplitude and sigma (M,).
+    """
+    near, far, wide_sigma = read
+    n_lasers = at.shape[0]
+    n = min(v.size, n_lasers * look.size)
+    cand = np.empty(n, np.int64)
+    nbj = np.empty(n, np.int64)
+    arg = np.empty(n)  # the log of the neighbour's Gaussian at the nearest row read, the flanks' scaled
+    m = 0
+    for li in range(n_lasers):  # laser by laser, columns in order: the points' order
+        for c in look:
+            t = at[li, c]
+            if t < 0 or not math.isfinite(v[t]):
+                continue
+            best = max_dist
+            jb = -1
+            for other in range(n_lasers):
+                j = at[other, c]
+                if other == li or j < 0 or not good[j]:
+                    continue
+                dist = abs(v[j] - v[t])
+                if dist < best:  # (False for a NaN row)
+                    best = dist
+                    jb = j
+            if jb >= 0:
+                cand[m] = t
+                nbj[m] = jb
+                core, flanks = read_reach(sig[t], sat[t], near, far, wide_sigma)
+                s_j = sig[jb] if math.isfinite(sig[jb]) else 1.0
+                g_c = max(best - core, 0.0) / s_j
+                g_f = max(best - flanks, 0.0) / s_j
+                arg[m] = max(-0.5 * g_c * g_c, -0.5 * g_f * g_f + LOG_FLANK_TAIL)
+                m += 1
+    tail = np.exp(arg[:m])
+    idx = np.empty(m, np.int64)
+    nb_v = np.empty(m)
+    nb_a = np.empty(m)
+    nb_s = np.empty(m)
+    k = 0
+    for i in range(m):
+        t = cand[i]
+        j = nbj[i]
+        if not amp[j] * tail[i] > NEIGHBOUR_TAIL * max(amp[t], 1.0):
+            continue
+        s_j = sig[j] if math.isfinite(sig[j]) else 1.0
+        same = (
+            abs(v[j] - last[0, t]) <= NEIGHBOUR_TOL
+            and abs(amp[j] - last[1, t]) <= NEIGHBOUR_TOL * max(abs(last[1, t]), 1.0)
+            and abs(s_j - last[2, t]) <= NEIGHBOUR_TOL
+        )
+        if same:
+            continue
+        last[0, t] = v[j]
+        last[1, t] = amp[j]
+        last[2, t] = s_j
+        idx[k] = t
+        nb_v[k] = v[j]
+        nb_a[k] = amp[j]
+        nb_s[k] = s_j
+        k += 1
+    return idx[:k], nb_v[:k], nb_a[:k], nb_s[:k]
+
+
+@njit
+def refit_columns(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+    """Fit the columns ``idx`` again with the other laser's stripe subtracted (neighbour model ``nb_*``, NaN rows =
+    none) and store the results in place: column-parallel (:func:`fit_columns_neighbour`) where no sample is
+    clipped and the profile is not flat-topped, the rest by :func:`refit_full`. Arguments as :func:`refit_full`.
+    """
+    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
+    m = idx.size
+    cols_i = cols[idx]
+    rows_i = rows[idx]
+    par = fit_columns_neighbour(
+        image, cols_i, rows_i, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, nb_v, nb_a, nb_s, wide_fwhm
+    )
+    n_rest = 0
+    rest = np.empty(m, np.int64)
+    for i in range(m):
+        if par[7][i]:
+            put_fit(res, par, i, idx[i])
+        else:
+            rest[n_rest] = i
+            n_rest += 1
+    if n_rest:
+        rest = rest[:n_rest]
+        refit_full(image, cols, rows, laser, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, limits, geo, res)
+
+
+@njit
+def refit_full(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+    """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
+    results in place.
+
+    ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
+    ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
+    :func:`max_fwhm_at`); ``geo``: as :func:`max_fwhm_at`; ``res``: ``(centre, amplitude, sigma, saturated,
+    ok, local_noise, rise)`` of every column, updated at ``idx``.
+    """
+    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
+    mfw, floor, sheet_mm = limits
+    m = idx.size
+    need = np.empty(m, np.int64)
+    nn = 0
+    for i in range(m):
+        if math.isnan(mfw[idx[i]]):
+            need[nn] = idx[i]
+            nn += 1
+    if nn:
+        nd = need[:nn]
+        mf = max_fwhm_at(cols[nd], rows[nd], laser[nd], floor, sheet_mm, geo)
+        for i in range(nn):
+            mfw[nd[i]] = mf[i]
+    new = fit_columns(
+        image,
+        cols[idx],
+        rows[idx],
+        half,
+        3,
+        sig_med,
+        sat_dn,
+        min_sig,
+        max_sigma,
+        3,
+        iterations,
+        nb_v,
+        nb_a,
+        nb_s,
+        mfw[idx],
+        wide_fwhm,
+    )
+    for i in range(m):
+        put_fit(res, new, i, idx[i])
