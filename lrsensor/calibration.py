@@ -4,8 +4,11 @@ Format (JSON, see CONVENTIONS.md)::
 
     {"camera": {"width", "height", "fx", "fy", "cx", "cy", "distortion": [k1, k2, p1, p2, k3]},
      "R_cam_from_body": 3x3, "t_cam_from_body": [3],
-     "lasers": [{"name", "point": [3], "normal": [3]}, ...]}
+     "lasers": [{"name", "point": [3], "normal": [3]}, ...],
+     "port": {"type": "flat", "normal_cam": [3], "distance_m", "thickness_m", "n_air", "n_glass", "n_water"}}
 
+``port`` is optional (absent or ``"type": "none"``: the pinhole camera of ``camera``); with a flat port
+``camera`` holds the in-air intrinsics and :mod:`lrsensor.port` models the refraction.
 ``p_cam = R_cam_from_body @ p_body + t_cam_from_body``. A laser plane is every body-frame point ``p`` with
 ``normal . (p - point) = 0``. Unknown extra keys are accepted and kept (``metadata`` is written back).
 """
@@ -27,6 +30,7 @@ from .atomic import atomic_write
 from .camera import Camera
 from .errors import CalibrationFileError, GeometryError
 from .frames import R_CAM_FROM_BODY_DEFAULT
+from .port import FlatPort, blind_pixels, border_pixels
 
 FloatArray = NDArray[np.float64]
 FORMAT_NAME = "lrsensor-calibration"
@@ -85,6 +89,7 @@ class Calibration:
         R_cam_from_body: rotation of body vectors into the camera frame, (3, 3) as nested tuples.
         t_cam_from_body: translation, metres, ``p_cam = R p_body + t``.
         lasers: the laser planes, index = laser index used everywhere else.
+        port: the camera's flat port (``camera`` then holds in-air intrinsics), or None for a pinhole camera.
         metadata: free-form information kept with the file (date, inputs, residuals).
     """
 
@@ -94,6 +99,7 @@ class Calibration:
         default_factory=lambda: _rows3(R_CAM_FROM_BODY_DEFAULT)
     )
     t_cam_from_body: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    port: FlatPort | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
     # ----------------------------------------------------------------- derived geometry
@@ -164,6 +170,8 @@ class Calibration:
             "t_cam_from_body": list(self.t_cam_from_body),
             "lasers": [{"name": l.name, "point": list(l.point), "normal": list(l.normal)} for l in self.lasers],
         }
+        if self.port is not None:
+            out["port"] = self.port.to_dict()
         if self.metadata:
             out["metadata"] = dict(self.metadata)
         return out
@@ -236,12 +244,14 @@ class Calibration:
             except GeometryError as err:
                 msg = f"{where}.normal: {err}"
                 raise CalibrationFileError(msg) from err
+        port = _port(data, camera, source)
         meta = data.get("metadata", {})
         return cls(
             camera=camera,
             lasers=tuple(lasers),
             R_cam_from_body=_rows3(R),
             t_cam_from_body=(t[0], t[1], t[2]),
+            port=port,
             metadata=dict(meta) if isinstance(meta, Mapping) else {},
         )
 
@@ -330,6 +340,42 @@ def _vector(d: Mapping[str, Any], key: str, where: str, n: int) -> tuple[float, 
             raise CalibrationFileError(msg)
         out.append(float(x))
     return tuple(out)
+
+
+def _port(data: Mapping[str, Any], camera: Camera, source: str) -> FlatPort | None:
+    """The optional ``port``: None when absent or ``"type": "none"``; errors name the key (``port.n_water``)."""
+    if "port" not in data:
+        return None
+    port_d = _mapping(data, "port", source)
+    kind = port_d.get("type")
+    if kind == "none":
+        return None
+    if kind != "flat":
+        msg = f'{source}: port.type: must be "flat" or "none", got {kind!r}'
+        raise CalibrationFileError(msg)
+    normal = _vector(port_d, "normal_cam", f"{source}: port.normal_cam", 3)
+    values = {
+        k: _num(port_d, k, f"{source}: port.{k}") for k in ("distance_m", "thickness_m", "n_air", "n_glass", "n_water")
+    }
+    try:
+        port = FlatPort(normal_cam=(normal[0], normal[1], normal[2]), **values)
+    except GeometryError as err:
+        msg = f"{source}: {err}"
+        raise CalibrationFileError(msg) from err
+    if not port.n_water > port.n_air:
+        msg = f"{source}: port.n_water: must exceed port.n_air ({port.n_air}) for a port in water, got {port.n_water}"
+        raise CalibrationFileError(msg)
+    border = border_pixels(camera)
+    blind = border[blind_pixels(camera, port, border)]
+    if blind.shape[0]:
+        u, v = blind[0]
+        msg = (
+            f"{source}: port: {blind.shape[0]} border pixels of the image cannot see into the water (their rays "
+            f"meet the port at grazing incidence or reflect totally), e.g. pixel ({u:g}, {v:g}); "
+            "check port.normal_cam and the camera's field of view"
+        )
+        raise CalibrationFileError(msg)
+    return port
 
 
 def _matrix3(d: Mapping[str, Any], key: str, source: str) -> list[tuple[float, ...]]:

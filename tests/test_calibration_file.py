@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -145,3 +146,24 @@ def test_unreadable_and_garbage(tmp_path: Path) -> None:
     with pytest.raises(CalibrationFileError, match="top level"):
         Calibration.from_json("[1, 2]")
     assert issubclass(CalibrationFileError, LrsensorError)
+
+
+def test_port_round_trip_and_absence(tmp_path: Path) -> None:
+    from lrsensor.port import FlatPort
+
+    port = FlatPort((0.0349, -0.01, 0.9993), distance_m=0.021, thickness_m=0.0085, n_glass=1.5, n_water=1.339)
+    cal = replace(Calibration.paper(0.1), port=port)
+    path = tmp_path / "calib.json"
+    cal.save(path)
+    again = Calibration.load(path)
+    assert again == cal
+    assert again.port == port
+    assert json.loads(path.read_text())["port"]["type"] == "flat"
+    assert "port" not in Calibration.paper(0.1).to_dict()  # no port: the file is written as before
+    assert Calibration.from_dict(CONVENTIONS_EXAMPLE).port is None
+    data = copy.deepcopy(CONVENTIONS_EXAMPLE)
+    data["port"] = {"type": "none"}
+    assert Calibration.from_dict(data).port is None
+    data["port"] = {**port.to_dict(), "thickness_m": -0.001}
+    with pytest.raises(CalibrationFileError, match=r"port\.thickness_m"):
+        Calibration.from_dict(data)
