@@ -28,7 +28,7 @@ the green channel with a parabolic fit over the full frame (numpy on uint8 and o
 ``--flank-gate``: only the effect of the neighbour refits' flank threshold (a neighbour's tail in a point's
 background flanks triggers a refit from ``NEIGHBOUR_FLANK_TAIL`` of its amplitude, against 1 % as in the rows its
 centroid reads) on walls at 3.5-6 m and the tank: refitted columns, accuracy, and how far the centres move. The
-thresholds are compiled into the kernels, so both are run on the numpy path, which reads them at each call.
+thresholds are compiled into the kernels, so both are run in the numpy reference, which reads them at each call.
 
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
@@ -49,10 +49,11 @@ import numpy as np
 
 from lrsensor import Sensor
 from lrsensor.atomic import atomic_write
-from lrsensor.extract import refit, subpixel
+from lrsensor.extract import reference_finish, refit, subpixel
 from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 from lrsensor.extract.frame import extract_frame, process_candidates
 from lrsensor.extract.refit import NEIGHBOUR_FLANK_TAIL, NEIGHBOUR_TAIL
+from lrsensor.extract.settings import frame_settings
 from lrsensor.scan import Scan
 from lrsensor.sim import named_scene
 from lrsensor.sim import scenes as sim_scenes
@@ -383,7 +384,7 @@ def stage_times(image: np.ndarray, sensor: Sensor, repeats: int) -> list[tuple[s
     """Mean per-thread CPU ms per frame of each compiled stage of ``sensor.process(image)`` and of the whole
     call (the stages timed one by one through a Python twin of the one-call kernel, on the same frame)."""
     totals: dict[str, float] = {}
-    args = subpixel._frame_settings(sensor.calibration, subpixel.SubpixelConfig())
+    args = (*frame_settings(sensor.calibration, subpixel.SubpixelConfig()), True)
     with _stage_clock(totals) as frame:
         frame(image, *args)
         totals.clear()
@@ -432,7 +433,7 @@ def main() -> int:
         "--flank-gate",
         action="store_true",
         help="only the neighbour refits' flank threshold against 1 %% on walls at 3.5-6 m and the tank, --seeds "
-        "renders each, on the numpy path (default out: extract_flank_gate.md)",
+        "renders each, in the numpy reference (default out: extract_flank_gate.md)",
     )
     args = ap.parse_args()
     for flag, frame in (("--cold-after", args.cold_after), ("--stages", args.stages)):
@@ -513,10 +514,10 @@ FLANK_GATE_FRAMES = ("wall_3.5", "wall_4.0", "wall_4.5", "wall_5.0", "wall_5.5",
 
 @contextmanager
 def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
-    """Run the sub-pixel extractor on its numpy path with the flank threshold ``log(NEIGHBOUR_TAIL / flank)``;
-    yields a list to which every refit round appends the number of points it finds a neighbour to subtract for."""
-    neighbours = subpixel._neighbours
-    saved = (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL)
+    """Run the sub-pixel extractor's reference with the flank threshold ``log(NEIGHBOUR_TAIL / flank)``; yields a
+    list to which every refit round appends the number of points it finds a neighbour to subtract for."""
+    neighbours = reference_finish.neighbours
+    saved = (subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL)
     rounds: list[int] = []
 
     def counted(*a: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -524,13 +525,13 @@ def _numpy_path(log_flank_tail: float) -> Iterator[list[int]]:
         rounds.append(int(np.isfinite(out[0]).sum()))
         return out
 
-    subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL = False, log_flank_tail
-    subpixel._neighbours = counted  # type: ignore[assignment]
+    subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL = True, log_flank_tail
+    reference_finish.neighbours = counted  # type: ignore[assignment]
     try:
         yield rounds
     finally:
-        subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL = saved
-        subpixel._neighbours = neighbours
+        subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL = saved
+        reference_finish.neighbours = neighbours
 
 
 def _row_moves(a: Scan, b: Scan) -> np.ndarray:
@@ -550,7 +551,7 @@ def flank_gate_table(seeds: int) -> list[str]:
     flank = NEIGHBOUR_FLANK_TAIL
     variants = {"1 %": 0.0, f"{100 * flank:g} %": refit.LOG_FLANK_TAIL}
     lines = [
-        f"### Neighbour refits: a tail in the background flanks from 1 % against {100 * flank:g} % (numpy path)",
+        f"### Neighbour refits: a tail in the background flanks from 1 % against {100 * flank:g} % (numpy reference)",
         "",
         "A point is refitted with the other laser's stripe subtracted where that stripe's Gaussian reaches "
         f"{100 * NEIGHBOUR_TAIL:g} % of the point's amplitude in the rows its centroid reads, or the "

@@ -27,7 +27,7 @@ class Sensor:
     def __init__(self, calibration: Calibration) -> None:
         self.calibration = calibration
         # the compiled extractor, now rather than in the first process(): loaded from numba's on-disk cache (about a
-        # second, once per process), or, without a cache, compiled in a background thread (the numpy path runs
+        # second, once per process), or, without a cache, compiled in a background thread (the numpy reference runs
         # meanwhile); nothing without numba
         _compiled_ready()
 

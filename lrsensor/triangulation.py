@@ -85,8 +85,13 @@ def triangulate_plane(calibration: Calibration, uv: ArrayLike, laser: LaserPlane
     return pts
 
 
-def triangulate(calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike) -> FloatArray:
-    """Triangulate pixels (N, 2), each on the laser plane ``laser_index`` (N,), into body points (N, 3)."""
+def triangulate(
+    calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike, *, compiled: bool = True
+) -> FloatArray:
+    """Triangulate pixels (N, 2), each on the laser plane ``laser_index`` (N,), into body points (N, 3).
+
+    ``compiled``: use the compiled kernel (:func:`lrsensor.extract.geometry.triangulate_points`) for 16 pixels or
+    more once numba has it (never waits for it); False: numpy only (the extractor's reference)."""
     q = np.asarray(uv, dtype=float).reshape(-1, 2)
     idx = np.asarray(laser_index, dtype=int).reshape(-1)
     if idx.shape[0] != q.shape[0]:
@@ -97,7 +102,7 @@ def triangulate(calibration: Calibration, uv: ArrayLike, laser_index: ArrayLike)
         raise GeometryError(msg)
     from .extract import compile, geometry  # the compiled twin, once numba has compiled it (never waits for it)
 
-    if q.shape[0] >= 16 and compile.ready():
+    if compiled and q.shape[0] >= 16 and compile.ready():
         cam, dist, R, o, n_all, p_all = _arrays(calibration)
         return geometry.triangulate_points(  # type: ignore[no-any-return]
             np.ascontiguousarray(q[:, 0]),

@@ -13,7 +13,8 @@ from lrsensor.calibration import Calibration
 from lrsensor.errors import ExtractionError
 from lrsensor.extract.bands import laser_bands
 from lrsensor.extract.centre import fit_profiles
-from lrsensor.extract.subpixel import SubpixelConfig, _smooth
+from lrsensor.extract.reference_finish import smooth
+from lrsensor.extract.subpixel import SubpixelConfig
 from lrsensor.extract.subpixel import extract as subpixel_extract
 
 # ----------------------------------------------------------------------------- synthetic profiles
@@ -104,7 +105,7 @@ def test_smoothing_keeps_corners_and_reduces_noise() -> None:
     truth = np.where(u < 300, 100 + 0.05 * u, 115 - 0.08 * (u - 300))  # a corner (kink) at u = 300
     y = truth + 0.1 * rng.standard_normal(n)
     run = np.zeros(n, np.int64)
-    out = _smooth(y, run, (48, 12, 3))
+    out = smooth(y, run, (48, 12, 3))
     err_raw = np.abs(y - truth)
     err = np.abs(out - truth)
     assert np.median(err) < 0.4 * np.median(err_raw)
@@ -114,9 +115,10 @@ def test_smoothing_keeps_corners_and_reduces_noise() -> None:
     assert np.median(err[near]) < 0.06
 
 
-def test_compiled_smoothing_equals_the_numpy_twin() -> None:
+def test_compiled_smoothing_equals_the_reference() -> None:
     """``smooth_runs`` (which fits only the windows the remaining columns can use and stops when all are done)
-    gives the same values as ``_smooth`` on runs with gaps, corners, steps and columns without a measurement."""
+    gives the same values as the reference's ``smooth`` on runs with gaps, corners, steps and columns without a
+    measurement."""
     from lrsensor.extract.smooth import smooth_runs
 
     rng = np.random.default_rng(11)
@@ -132,7 +134,7 @@ def test_compiled_smoothing_equals_the_numpy_twin() -> None:
         run[gaps] = -1
         y[gaps] = np.nan
         scales = (384, 96, 24, 6) if trial % 2 else (48, 12, 3)
-        want = _smooth(y, run, scales)
+        want = smooth(y, run, scales)
         got = smooth_runs(y, run, np.array(scales, np.int64))
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, equal_nan=True)
         assert np.any(got[run >= 0] != y[run >= 0])  # it did smooth
@@ -351,24 +353,21 @@ def test_paper_method_one_point_per_roi_and_laser() -> None:
     assert np.median(err) < 0.03
 
 
-def test_compiled_noise_equals_the_numpy_twin_on_copies_and_in_place() -> None:
-    """``noise_dn`` (a green band) and ``noise_dn_rows`` (the same rows read in place from the BGR image) give the
-    numpy ``_noise_dn`` exactly, for even and odd widths and several row steps."""
+def test_compiled_noise_read_in_place_equals_the_reference() -> None:
+    """``noise_dn_rows`` (the green rows read in place from the BGR image) gives the reference's ``_noise_dn`` of
+    a copy of the green band exactly, for several widths and row steps."""
     from lrsensor.extract.compile import HAVE_NUMBA
-    from lrsensor.extract.detect import noise_dn, noise_dn_rows
-    from lrsensor.extract.subpixel import _noise_dn
+    from lrsensor.extract.detect import noise_dn_rows
+    from lrsensor.extract.reference import _noise_dn
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
     rng = np.random.default_rng(11)
-    for w in (640, 641):
+    for w in (640, 642, 1920):  # (detect_band evens odd widths, as the reference pads them)
         img = np.clip(rng.normal(60.0, 7.0, (90, w, 3)), 0, 255).astype(np.uint8)
         g = np.ascontiguousarray(img[:, :, 1])
         for step in (2, 5, 16):
-            ref = _noise_dn(g, step)
-            assert noise_dn(g, step) == ref
-            if w % 2 == 0:  # the in-place reader samples the evened band (detect_band pads odd widths)
-                assert noise_dn_rows(img.reshape(-1), w, np.arange(90), step) == ref
+            assert noise_dn_rows(img.reshape(-1), w, np.arange(90), step) == _noise_dn(g, step)
     assert 6.0 < _noise_dn(g, 2) < 8.0  # about the noise drawn
 
 
@@ -587,10 +586,10 @@ def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: 
     """A neighbour within the distance is subtracted only if its Gaussian reaches ``NEIGHBOUR_TAIL`` of the
     point's amplitude in the rows the point's centroid reads (``read_reach``: 3 sigma of its weights, the whole
     window when saturated or wide) or ``NEIGHBOUR_FLANK_TAIL`` in its background flanks, in the compiled kernel
-    and its numpy twin alike."""
+    and its reference alike."""
     from lrsensor.extract.compile import HAVE_NUMBA
+    from lrsensor.extract.reference_finish import neighbours
     from lrsensor.extract.refit import point_table, refit_targets
-    from lrsensor.extract.subpixel import _neighbours
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
@@ -606,18 +605,18 @@ def test_far_neighbours_are_not_subtracted(own_sig: float, own_sat: bool, near: 
     at = point_table(laser, cols, 2, 8)
     idx, *_ = refit_targets(laser, cols, v, amp, sig, sat, good, at, 12.0, read, np.arange(8), last)
     assert (0 in idx.tolist()) == picked
-    assert bool(np.isfinite(_neighbours(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read)[0][0])) == picked
+    assert bool(np.isfinite(neighbours(laser, cols, v, amp, sig, sat, good, 2, 8, 12.0, read)[0][0])) == picked
 
 
-def test_read_reach_matches_its_numpy_twin() -> None:
+def test_read_reach_matches_the_reference() -> None:
+    from lrsensor.extract import reference_finish
     from lrsensor.extract.refit import read_reach
-    from lrsensor.extract.subpixel import _read_reach
 
     rng = np.random.default_rng(5)
     sig = np.concatenate([rng.uniform(0.3, 4.0, 500), [np.nan, np.inf, 2.0, 1.1, 0.0]])
     sat = rng.random(sig.size) < 0.2
     for read in ((6.0, 8.0, 2.0), (3.0, 12.0, 3.5), (9.0, 8.0, 2.0)):
-        twin = np.stack(_read_reach(sig, sat, read), axis=1)
+        twin = np.stack(reference_finish.read_reach(sig, sat, read), axis=1)
         kernel = [read_reach(s, bool(b), *read) for s, b in zip(sig, sat, strict=True)]
         np.testing.assert_array_equal(twin, kernel)
         assert np.all(twin <= read[1])
@@ -628,11 +627,11 @@ def test_read_reach_matches_its_numpy_twin() -> None:
 
 
 def test_row_overlap_test_never_hides_a_neighbour() -> None:
-    """``_rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``refit_targets`` finds
+    """``rows_overlap`` (which lets the fit skip the neighbour refits) is False only when ``refit_targets`` finds
     no other-laser point within the distance, and False for stripes far apart; ``refit_targets`` picks the points
-    its numpy twin gives a neighbour."""
+    the reference gives a neighbour."""
+    from lrsensor.extract.reference_finish import neighbours
     from lrsensor.extract.refit import point_table, refit_targets, rows_overlap
-    from lrsensor.extract.subpixel import _neighbours
 
     rng = np.random.default_rng(3)
     w, max_d = 200, 9.0
@@ -651,7 +650,7 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
         last = np.full((3, laser.size), np.nan)
         at = point_table(laser, cols, n_l, w)
         idx, *_ = refit_targets(laser, cols, v, amp, sig, sat, good, at, max_d, read, np.arange(w), last)
-        nb_v, _, _ = _neighbours(laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read)  # the numpy twin
+        nb_v, _, _ = neighbours(laser, cols, v, amp, sig, sat, good, n_l, w, max_d, read)  # the reference
         np.testing.assert_array_equal(idx, np.flatnonzero(np.isfinite(nb_v)))
         if idx.size:
             assert rows_overlap(laser, v, good, n_l, max_d)
@@ -663,14 +662,16 @@ def test_row_overlap_test_never_hides_a_neighbour() -> None:
 
 @pytest.mark.parametrize(("width", "band"), [(96, (30, 70)), (97, (3, 40)), (64, (65, 99))])
 def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int, int]) -> None:
-    """``detect_band`` (one pass) gives the same candidates and noise as the OpenCV steps of ``_candidates``,
-    also for an odd width and for bands whose contrast margin runs past the top or bottom of the image."""
-    from lrsensor.extract.bands import LaserBands
+    """``detect_band`` (one pass) gives the same candidates and noise as the reference's OpenCV steps
+    (``_candidates``), also for an odd width and for bands whose contrast margin runs past the top or bottom of
+    the image."""
     from lrsensor.extract.compile import HAVE_NUMBA
-    from lrsensor.extract.subpixel import _candidates
+    from lrsensor.extract.detect import detect_band
+    from lrsensor.extract.reference import _candidates
+    from lrsensor.extract.settings import Bands, frame_settings
 
     if not HAVE_NUMBA:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("numba is not installed: only the reference exists")
     rng = np.random.default_rng(width)
     h = 100
     img = rng.normal(40.0, 3.0, (h, width, 3))
@@ -683,10 +684,11 @@ def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int,
     v_lo = np.full((1, width), band[0], np.int64)
     v_hi = np.full((1, width), band[1] - 1, np.int64)
     v_hi[0, width // 3 : width // 2] = band[0] - 1  # an empty stretch: the band need not be a rectangle
-    bands = LaserBands(v_lo, v_hi, v_lo.astype(float), v_hi.astype(float), 0.2, 5.0, 0)
-    cfg = SubpixelConfig()
-    fast = _candidates(img, 0, band, bands, cfg, True, 5)
-    slow = _candidates(img, 0, band, bands, cfg, False, 5)
+    bands = Bands(np.array([band], np.int64), v_lo, v_hi)
+    s = frame_settings(Calibration.paper(), SubpixelConfig())[1]
+    args = (s.contrast_px, s.snr_threshold, s.area_noise, s.min_response_dn, v_lo[0], v_hi[0], 5)
+    fast = detect_band(img, band[0], band[1], *args)
+    slow = _candidates(img, 0, bands, s, 5)
     assert fast[0].size > 0.8 * width
     for a, b in zip(fast[:3], slow[:3], strict=True):
         np.testing.assert_array_equal(a, b)

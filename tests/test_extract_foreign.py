@@ -45,14 +45,14 @@ def test_foreign_scenes(case: Foreign, max_median: float, min_coverage: float) -
 def test_thick_sheet_flat_tops_are_smoothed_along_the_stripe(monkeypatch: pytest.MonkeyPatch, use_numba: bool) -> None:
     """A 6 mm sheet at 0.3 m: a flat-topped stripe 11 px wide and about 36 DN high. Its candidate row wanders
     across the top and splits the detection chains; the wide pieces still join one smoothing run, so the long line
-    fits average the noisy per-column centres, in the compiled path and the numpy path alike (split into short
+    fits average the noisy per-column centres, on the compiled road and in the reference alike (split into short
     runs: median 0.069 %, p95 0.26 %, 96.7 % coverage)."""
     from lrsensor.extract import subpixel
     from lrsensor.extract.compile import HAVE_NUMBA
 
     if use_numba and not HAVE_NUMBA:
         pytest.skip("numba is not installed")
-    monkeypatch.setattr(subpixel, "USE_NUMBA", use_numba)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", not use_numba)
     r = score(Foreign(0.3, width_m=0.006, blur=1.0, psf_first=True))
     assert r["median"] <= 0.035, r
     assert r["p95"] <= 0.15, r
@@ -107,13 +107,14 @@ def test_render_truth_is_the_centre_of_symmetry() -> None:
 def test_luma_channel_restores_accuracy_on_jpeg_frames(monkeypatch: pytest.MonkeyPatch, use_numba: bool) -> None:
     """A 4 mm sheet at 1 m through a JPEG encoder at quality 85 (colour at half resolution, as from an MJPEG
     camera): fitted in green the median error is 0.19 % (the stripe shifts with the colour samples); in the luma
-    on green's scale (``channel="luma"``) it is back near the lossless frame's 0.013 %, on both paths."""
+    on green's scale (``channel="luma"``) it is back near the lossless frame's 0.013 %, on the compiled road and
+    in the reference."""
     from lrsensor.extract import subpixel
     from lrsensor.extract.compile import HAVE_NUMBA
 
     if use_numba and not HAVE_NUMBA:
         pytest.skip("numba is not installed")
-    monkeypatch.setattr(subpixel, "USE_NUMBA", use_numba)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", not use_numba)
     green = score(Foreign(1.0, jpeg=85))
     luma = score(Foreign(1.0, jpeg=85, extra={"channel": "luma"}))
     assert green["median"] > 0.1, green  # the limit the option is for

@@ -67,24 +67,24 @@ def test_paper_method_is_the_percent_level_baseline() -> None:
 
 
 @pytest.mark.parametrize("scene", ["cluttered", "wall_5.0"])
-def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch, scene: str) -> None:
-    """The compiled and the numpy path find the same points: in clutter, and on a wall at 5 m, where the two
-    lasers' stripes come within a window of each other and the columns the neighbour reaches are refitted with its
-    Gaussian subtracted (compiled: column-parallel), rounds until no neighbour moves."""
+def test_compiled_road_and_reference_agree(monkeypatch: pytest.MonkeyPatch, scene: str) -> None:
+    """The compiled road and the numpy reference find the same points on whole frames: in clutter, and on a wall
+    at 5 m, where the two lasers' stripes come within a window of each other and the columns the neighbour reaches
+    are refitted with its Gaussian subtracted (compiled: column-parallel), rounds until no neighbour moves."""
     from lrsensor.extract import compile, subpixel
     from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 
     if not HAVE_NUMBA:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("numba is not installed: only the reference exists")
     warm_up()
     assert compile.ready()
     if scene == "wall_5.0":
         r = sim.scenes.wall_scene(5.0, width=1920, height=1080).render(seed=2)
     else:
         r = sim.named_scene(scene).render(seed=2)
-    monkeypatch.setattr(subpixel, "USE_NUMBA", True)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", False)
     fast = subpixel.extract(r.image, r.calibration)
-    monkeypatch.setattr(subpixel, "USE_NUMBA", False)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", True)
     slow = subpixel.extract(r.image, r.calibration)
     # the same algorithm; ties in the chain linking may be broken differently at a few columns
     kf = fast.laser * 10_000 + np.rint(fast.uv[:, 0]).astype(int)
@@ -96,15 +96,16 @@ def test_compiled_and_numpy_paths_agree(monkeypatch: pytest.MonkeyPatch, scene: 
     assert np.percentile(dv, 90) < 0.06
 
 
-def test_one_call_kernel_equals_the_stage_by_stage_path() -> None:
-    """``Sensor.process`` (one compiled call: detection, steps 3-6, triangulation, depth gate) gives exactly the
-    points of the stage-by-stage path: ``subpixel.extract``, then ``triangulate`` and the range-limit gate."""
+def test_triangulating_call_equals_extract_then_triangulate() -> None:
+    """``Sensor.process`` (one compiled call: detection to quality, triangulation, depth gate) gives exactly the
+    points of ``subpixel.extract`` (the same call without triangulation), then ``triangulate`` and the range-limit
+    gate."""
     from lrsensor.extract import subpixel
     from lrsensor.extract.compile import HAVE_NUMBA, warm_up
     from lrsensor.triangulation import triangulate
 
     if not HAVE_NUMBA:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("numba is not installed: only the reference exists")
     warm_up()
     r = sim.named_scene("paper_box").render(seed=1)  # walls at 2-3 m: the band edge at 2.5 m cuts through them
     cal = r.calibration
@@ -184,16 +185,16 @@ def test_speed_states_take_the_renders_in_turn() -> None:
 
 
 def test_alternating_calibrations_never_reuse_the_other_settings() -> None:
-    """The per-frame settings are reused by identity of (calibration, config): alternating two sensors whose
-    calibrations differ gives each the points of a call with nothing remembered."""
-    from lrsensor.extract import subpixel
+    """The per-frame settings are cached by (calibration, config): alternating two sensors whose calibrations
+    differ gives each the points of a call with nothing cached."""
+    from lrsensor.extract.settings import frame_settings
 
     a = sim.named_scene("wall_1.0").render(seed=0)
     b = sim.named_scene("tilted_lasers").render(seed=0)
     sa, sb = Sensor(a.calibration), Sensor(b.calibration)
-    subpixel._remember_settings(None, None, ())  # type: ignore[arg-type]
+    frame_settings.cache_clear()
     fresh_a = sa.process(a.image)
-    subpixel._remember_settings(None, None, ())  # type: ignore[arg-type]
+    frame_settings.cache_clear()
     fresh_b = sb.process(b.image)
     for _ in range(2):
         alt_a = sa.process(a.image)
@@ -274,13 +275,13 @@ def test_speed_table_says_what_it_was_timed_on() -> None:
     assert renders[-2:] == copies[-2:]
 
 
-def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_flank_gate_table_compares_the_thresholds_on_the_reference(monkeypatch: pytest.MonkeyPatch) -> None:
     """``--flank-gate``: per frame, the refitted columns and the accuracy with the flank threshold at 1 % and at
     ``NEIGHBOUR_FLANK_TAIL`` (fewer refits at the larger one on a wall at 5 m, where the stripes meet), and the
-    centres' moves; the numpy path and the threshold are restored afterwards, also when a frame fails."""
-    from lrsensor.extract import refit, subpixel
+    centres' moves; the reference switch and the threshold are restored afterwards, also when a frame fails."""
+    from lrsensor.extract import reference, reference_finish, refit, subpixel
 
-    state = (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours)
+    state = (subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL, reference_finish.neighbours)
     monkeypatch.setattr(be, "FLANK_GATE_FRAMES", ("wall_5.0",))
     lines = be.flank_gate_table(1)
     assert lines[0].startswith("### Neighbour refits: a tail in the background flanks from 1 % against 5 %")
@@ -293,11 +294,11 @@ def test_flank_gate_table_compares_the_thresholds_on_the_numpy_path(monkeypatch:
     assert points[1] == pytest.approx(points[0], rel=0.02)
     assert p95[1] <= 1.05 * p95[0]
     assert outliers[1] <= 1.05 * outliers[0]
-    assert (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours) == state
-    monkeypatch.setattr(subpixel, "_finish_numpy", lambda *_: 1 / 0)  # a frame fails inside the numpy path
+    assert (subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL, reference_finish.neighbours) == state
+    monkeypatch.setattr(reference, "extract_frame", lambda *_: 1 / 0)  # a frame fails inside the reference
     with pytest.raises(ZeroDivisionError):
         be.flank_gate_table(1)
-    assert (subpixel.USE_NUMBA, refit.LOG_FLANK_TAIL, subpixel._neighbours) == state
+    assert (subpixel.USE_REFERENCE, refit.LOG_FLANK_TAIL, reference_finish.neighbours) == state
 
 
 def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
@@ -310,7 +311,7 @@ def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
     from lrsensor.extract.compile import HAVE_NUMBA
 
     if not HAVE_NUMBA:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("numba is not installed: only the reference exists")
     code = (
         "from lrsensor import Sensor, sim\n"
         "from lrsensor.extract import compile as k\n"

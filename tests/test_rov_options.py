@@ -40,6 +40,7 @@ def test_process_options_reach_the_extractor() -> None:
 
 def test_range_limits_hold_for_the_output() -> None:
     from lrsensor import Sensor
+    from lrsensor.extract import subpixel
     from lrsensor.sensor import range_limits
 
     assert range_limits("subpixel", {"max_range_m": 2.0}) == (0.2, 2.0)
@@ -48,10 +49,14 @@ def test_range_limits_hold_for_the_output() -> None:
     image = setup.render(seed=0).image
     sensor = Sensor(setup.calibration)
     for hi in (1.9, 2.5):
-        for scale in (1, 2):  # the one-call compiled path (scale 2) gates in the kernel
-            scan = sensor.process(image, max_range_m=hi, detect_scale=scale)
+        for reference in (False, True):  # the compiled road gates in the kernel, the reference in numpy
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(subpixel, "USE_REFERENCE", reference)
+                scan = sensor.process(image, max_range_m=hi)
             depth = setup.calibration.body_to_cam(scan.points)[:, 2]
             assert np.all(depth <= hi)
+        paper = sensor.process(image, method="paper", max_range_m=hi)  # gated by Sensor.process
+        assert np.all(setup.calibration.body_to_cam(paper.points)[:, 2] <= hi)
     assert len(sensor.process(image, max_range_m=1.9)) < len(sensor.process(image, max_range_m=2.5)) / 10
 
 

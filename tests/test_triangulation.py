@@ -94,7 +94,7 @@ def test_compiled_triangulation_matches_numpy(distorted: bool, monkeypatch: pyte
     from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 
     if not HAVE_NUMBA:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("numba is not installed: only the reference exists")
     warm_up()
     cal = Calibration.paper(0.1)
     if distorted:

@@ -2,6 +2,20 @@
 
 Every extractor is a function ``extract(image_bgr, calibration, **options) -> Detections``. They are looked up
 by name in :data:`METHODS` (imported lazily so that importing the package stays cheap).
+
+The default extractor (:mod:`.subpixel`) is a package of stage modules on one compiled road:
+
+- :mod:`.subpixel`: the entry points (``extract``, ``extract_points``); :mod:`.config`: its options;
+  :mod:`.settings`: the typed records the road reads, built once per (calibration, configuration);
+  :mod:`.bands`: where each laser's stripe can be;
+- the road (numba kernels): :mod:`.frame` (the one call per frame), :mod:`.detect`, :mod:`.chains`, the fits
+  (:mod:`.fit_common`, :mod:`.fit_clipped`, :mod:`.fit_plain`, :mod:`.fit`, shared pieces in :mod:`.columns`),
+  :mod:`.refit`, :mod:`.finish`, :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and
+  :mod:`.compile` (loading or compiling the kernels);
+- the readable numpy reference of the whole frame: :mod:`.reference`, :mod:`.reference_finish` and
+  :mod:`.centre` (the vectorized profile fit); tests compare the road with it on whole frames.
+
+:mod:`.paper` is the paper's Algorithm 1, the baseline.
 """
 
 from __future__ import annotations

@@ -16,16 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from ._jit import HAVE_NUMBA
-from .chains import expand_half, select_candidates
-from .detect import detect_band, green_rows, local_maxima, noise_dn, noise_dn_rows
-from .finish import finish_points
-from .fit import fit_columns
-from .fit_clipped import core_peaks, fit_columns_clipped
-from .fit_common import fit_columns_common
-from .frame import extract_frame, frame_profile_stats, process_candidates
-from .geometry import max_fwhm_at, triangulate_points
-from .refit import point_table, refit_columns, refit_full, refit_targets
-from .smooth import smooth_runs
+from .frame import extract_frame
+from .geometry import triangulate_points
+from .settings import Bands, Geometry, Settings
+
+__all__ = ["HAVE_NUMBA", "ready", "warm_up"]
 
 _READY = threading.Event()
 _LOCK = threading.Lock()
@@ -39,105 +34,56 @@ def warm_up() -> None:
     with _LOCK:
         if _READY.is_set():
             return
-        i64 = np.zeros(4, np.int64)
-        f64 = np.zeros(4)
-        nan = np.full(4, np.nan)
-        b = np.zeros(4, np.bool_)
+        bands, settings, geometry = _example()
         img = np.zeros((8, 8, 3), np.uint8)
-        select_candidates(np.arange(4, dtype=np.int64), i64 + 2, f64 + 1.0, 8, 2, 3.0, 4, 3, 2)
-        expand_half(i64, f64, i64, i64, 4, 8)
-        fit_columns(img, i64, i64 + 4, 2, 1, 1.0, 250.0, 0.5, 5.0, 1, 2, nan, nan, nan, f64 + 20.0, 4.7)
-        refit_targets(
-            i64,
-            i64,
+        extract_frame(img, bands, settings, geometry, True)
+        f64 = np.zeros(4)
+        triangulate_points(
             f64,
             f64,
-            f64,
-            b,
-            b,
-            point_table(i64, i64, 2, 8),
-            10.0,
-            (6.0, 8.0, 2.0),
-            i64,
-            np.full((3, 4), np.nan),
-        )
-        finish_points(
-            i64,
-            i64,
-            f64,
-            f64,
-            f64,
-            b,
-            b,
-            f64,
-            i64,
-            i64,
-            np.ones(2),
-            8,
-            16,
-            5.0,
-            2.5,
-            8,
-            5.0,
-            np.array([4, 1]),
-            np.zeros((3, 4)),
-            1.2,
-            4,
-            0.75,
-            3.0,
-            2.0,
-        )
-        smooth_runs(np.full(16, np.nan), np.full(16, -1, np.int64), np.array([4, 1]))
-        eye = np.eye(3)
-        g = green_rows(img.reshape(-1), 8, 0, 8)
-        noise_dn(g, 2)
-        noise_dn_rows(img.reshape(-1), 8, np.arange(8), 2)
-        local_maxima(g, 1.0, 0, 2, i64, i64 + 8, 8, 0)
-        detect_band(img, 2, 6, 2, 4.0, 0.3, 3.5, np.zeros(8, np.int64), np.full(8, 7, np.int64), 0)
-        frame_profile_stats(img, i64, i64 + 4, 2, 250.0, 5.0, f64)
-        core_peaks(img, i64, i64 + 4, 1, 250.0)
-        fit_columns_common(img, i64, i64 + 4, 2, 1.0, 250.0, 0.5, 5.0, 1, 2, 4.7)
-        fit_columns_clipped(img, i64, i64 + 4, 2, 1.0, 250.0, 1, 2, 0.5, 5.0, 4.7)
-        triangulate_points(f64, f64, i64, np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:2], eye[:2])
-        process_candidates(
-            img,
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            np.zeros(0),
-            np.ones(2),
-            np.array([2, 4, 8, 4, 20, 2, 2], np.int64),
-            np.array([3.0, 250.0, 0.8, 5.0, 5.0, 2.5, 1.2, 20.0, 0.75]),
-            np.array([4, 1], np.int64),
-            np.ones(4),
-            np.zeros(5),
-            eye,
-            np.zeros(3),
-            eye[:2],
-            eye[:2],
-            np.array([0.0, 0.0, 1.0]),
-            4.7,
-            True,
-        )
-        extract_frame(
-            img,
-            np.array([[2, 6]], np.int64),
-            np.zeros((1, 8), np.int64),
-            np.full((1, 8), 7, np.int64),
-            np.array([2.0, 4.0, 0.3, 3.5]),
-            np.array([2, 4, 8, 4, 20, 1, 2], np.int64),
-            np.array([3.0, 250.0, 0.8, 5.0, 5.0, 2.5, 1.2, 20.0, 0.75]),
-            np.array([4, 1], np.int64),
-            np.ones(4),
-            np.zeros(5),
-            eye,
-            np.zeros(3),
-            eye[:1],
-            eye[:1],
-            np.array([0.0, 0.0, 1.0]),
-            4.7,
-            np.array([0.0, 0.0, 1.0, 0.0, 0.2, 5.0]),
+            np.zeros(4, np.int64),
+            geometry.camera,
+            geometry.distortion,
+            geometry.R_cam_body,
+            geometry.origin_body,
+            geometry.normals_body,
+            geometry.points_body,
         )
         _READY.set()
+
+
+def _example() -> tuple[Bands, Settings, Geometry]:
+    """Records of the types :func:`lrsensor.extract.settings.frame_settings` builds, for an 8x8 image."""
+    bands = Bands(np.array([[2, 6]], np.int64), np.zeros((1, 8), np.int64), np.full((1, 8), 7, np.int64))
+    settings = Settings(
+        contrast_px=2,
+        snr_threshold=4.0,
+        area_noise=0.3,
+        min_response_dn=3.5,
+        max_candidates=4,
+        max_jump_px=3.0,
+        min_run_cols=8,
+        window_half_px=20,
+        iterations=2,
+        saturation_dn=250.0,
+        min_fwhm_px=0.8,
+        max_sigma_px=5.0,
+        wide_fwhm_px=4.7,
+        min_contrast_dn=5.0,
+        min_snr=2.5,
+        min_green_ratio=1.2,
+        gate_pool_cols=4,
+        snr_floor_frac=0.75,
+        max_sheet_mm=20.0,
+        smooth_scales=np.array([4, 1], np.int64),
+        min_range_m=0.2,
+        max_range_m=5.0,
+    )
+    eye = np.eye(3)
+    geometry = Geometry(
+        np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:1].copy(), eye[:1].copy(), np.array([0.0, 0.0, 1.0]), 0.0
+    )
+    return bands, settings, geometry
 
 
 def ready() -> bool:
@@ -156,31 +102,9 @@ def ready() -> bool:
     return False
 
 
-#: The kernels that must be compiled before :func:`ready` says so.
-_KERNELS = (
-    select_candidates,
-    expand_half,
-    fit_columns,
-    point_table,
-    refit_targets,
-    finish_points,
-    smooth_runs,
-    triangulate_points,
-    green_rows,
-    noise_dn,
-    noise_dn_rows,
-    local_maxima,
-    frame_profile_stats,
-    fit_columns_common,
-    fit_columns_clipped,
-    core_peaks,
-    max_fwhm_at,
-    process_candidates,
-    detect_band,
-    refit_columns,
-    refit_full,
-    extract_frame,
-)
+#: The kernels that must be compiled before :func:`ready` says so: the road (which compiles every stage it calls)
+#: and the triangulation, which :func:`lrsensor.triangulation.triangulate` calls on its own.
+_KERNELS = (extract_frame, triangulate_points)
 
 
 def _cached() -> bool:

@@ -26,31 +26,15 @@ import numpy as np
 
 from ._jit import njit, trailing_zeros
 
+#: Noise of the detection response over the pixel noise: 2x2 average (1/2), then a 3-column box (1/sqrt(3)).
+AREA_NOISE = 0.5 / math.sqrt(3.0)
+
 
 @njit
 def noise_col_step(n_triples, cols):  # type: ignore[no-untyped-def]
     """Column step (even, 2 to 8) of the noise samples of a band of ``n_triples`` row triples and ``cols``
     columns: about 6000 samples or more, every 2nd column in small images."""
     return 2 * max(1, min(4, (n_triples * cols) // 12000))
-
-
-@njit
-def green_rows(flat, width, r0, r1):  # type: ignore[no-untyped-def]
-    """The green channel of image rows ``[r0, r1)``: (r1 - r0, width) uint8, from ``flat``, the (H * W * 3,)
-    view of a C-contiguous BGR image (a plain strided copy the compiler vectorizes; faster than OpenCV's)."""
-    n = (r1 - r0) * width
-    out = np.empty(n, np.uint8)
-    base = np.uint64(r0 * width * 3 + 1)
-    for i in range(n):
-        out[np.uint64(i)] = flat[base + np.uint64(3 * i)]
-    return out.reshape((r1 - r0, width))
-
-
-@njit
-def noise_dn(g, step):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.extract.subpixel._noise_dn` (robust noise from second differences, DN)."""
-    rows, cols = g.shape
-    return _noise_samples(np.ascontiguousarray(g).reshape(-1), cols, 1, 0, np.arange(rows), cols, step)
 
 
 @njit
@@ -88,7 +72,7 @@ def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type:
 @njit
 def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
-    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.subpixel._noise_dn`)."""
+    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.reference._noise_dn`)."""
     hist = np.empty(1024, np.int64)
     total = 0
     for k in range(1024):
@@ -106,61 +90,9 @@ def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
 
 
 @njit
-def local_maxima(resp_t, thr, row0, scale, v_lo, v_hi, width, col_offset):  # type: ignore[no-untyped-def]
-    """Vertical local maxima above ``thr`` of a detection response, given transposed: (W', H') uint8.
-
-    Row y of the response is full-resolution row ``row0 + scale * y``, column x stands for full column
-    ``scale * x``; only maxima inside the laser's band (``v_lo``, ``v_hi``: (W,) first and last row per full
-    column) count.
-
-    Returns:
-        ``(cols, rows, strength)``: detection columns plus ``col_offset`` (N,), full rows (N,) and response (N,),
-        sorted by column, then row.
-    """
-    wo, ho = resp_t.shape
-    cap = 4 * wo + 64
-    cu = np.empty(cap, np.int64)
-    cv = np.empty(cap, np.int64)
-    ca = np.empty(cap, np.float64)
-    n = 0
-    t8 = np.uint8(min(max(int(math.floor(thr)), 0), 255))  # noqa: RUF046 (v > thr for an integer v)
-    for x in range(wo):
-        uf = min(x * scale, width - 1)
-        lo = v_lo[uf]
-        hi = v_hi[uf]
-        if hi < lo:
-            continue
-        y0 = max((lo - row0 + scale - 1) // scale, 0)
-        y1 = min((hi - row0) // scale + 1, ho)
-        col = resp_t[x]
-        for y in range(y0, y1):
-            v = col[y]
-            if v <= t8:
-                continue
-            if y > 0 and col[y - 1] > v:
-                continue
-            if y < ho - 1 and col[y + 1] > v:
-                continue
-            if n == cap:
-                cap *= 2
-                cu2 = np.empty(cap, np.int64)
-                cv2_ = np.empty(cap, np.int64)
-                ca2 = np.empty(cap, np.float64)
-                cu2[:n] = cu[:n]
-                cv2_[:n] = cv[:n]
-                ca2[:n] = ca[:n]
-                cu, cv, ca = cu2, cv2_, ca2
-            cu[n] = x + col_offset
-            cv[n] = row0 + scale * y
-            ca[n] = v
-            n += 1
-    return cu[:n], cv[:n], ca[:n]
-
-
-@njit
 def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
     """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
-    ``subpixel._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
+    ``reference._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
 
     The green channel of rows ``[r0 - d, r1 + d)`` (replicated beyond the image, evened), its robust noise
     (:func:`noise_dn`), the 2x2 area average (rounded as ``cv2.resize(INTER_AREA)``), a 3-column box

@@ -176,34 +176,8 @@ def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
 
 
 @njit
-def finish_points(  # type: ignore[no-untyped-def]
-    col_v,
-    lz,
-    vv,
-    amp,
-    sig,
-    sat,
-    ok,
-    lnoise,
-    chain,
-    chain_len,
-    noise_l,
-    w,
-    n_cols,
-    min_contrast,
-    min_snr,
-    min_run,
-    max_sigma,
-    scales,
-    rise,
-    green_ratio,
-    pool,
-    floor_frac,
-    max_jump,
-    wide_sigma,
-):
-    """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality (loop twin of the numpy tail of
-    ``extract``).
+def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s):  # type: ignore[no-untyped-def]
+    """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality of the fitted points.
 
     The colour test (green must rise more than ``green_ratio`` times red and blue; ``rise`` (3, N) in B, G, R)
     and the signal-to-noise test are pooled over the fitted columns of the same chain within ``pool`` columns:
@@ -216,10 +190,22 @@ def finish_points(  # type: ignore[no-untyped-def]
     of a flat top wanders across it and splits the chain into short pieces, whose runs would be too short for the
     long line fits.
 
-    ``lz`` (N,) is the laser of each point, ``col_v // w`` (:func:`sorted_blocks`).
+    Args:
+        col_v: (N,) sorted virtual columns ``laser * w + column``; lz: (N,) the laser of each, ``col_v // w``.
+        fits: ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise)`` (N,) each, rise (3, N) in B, G, R
+            (:func:`.columns.fit_results` without its flag); chain, chain_len: (N,) each point's chain and length.
+        noise_l: (L,) the band noise of each laser, DN; w: image width; s: the
+            :class:`~lrsensor.extract.settings.Settings` (``green_ratio`` above is its ``min_green_ratio``, ``pool``
+            its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``).
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
+    vv, amp, sig, sat, ok, lnoise, rise = fits
+    n_cols = noise_l.size * w
+    min_contrast, min_snr, min_run, max_sigma = s.min_contrast_dn, s.min_snr, s.min_run_cols, s.max_sigma_px
+    scales, green_ratio, pool, floor_frac = s.smooth_scales, s.min_green_ratio, s.gate_pool_cols, s.snr_floor_frac
+    max_jump = s.max_jump_px
+    wide_sigma = s.wide_fwhm_px / 2.3548200450309493
     n = col_v.size
     snr = np.empty(n)
     # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios

@@ -125,7 +125,7 @@ def fit_columns(  # type: ignore[no-untyped-def]
     max_fwhm,
     wide_fwhm,
 ):
-    """Sub-pixel centre per column, the loop twin of :func:`lrsensor.extract.centre.fit_profiles`.
+    """Sub-pixel centre per column (the reference's vectorized fit is :func:`lrsensor.extract.centre.fit_profiles`).
 
     For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
     uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two

@@ -41,9 +41,9 @@ from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_full, ref
 
 @njit
 def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  # type: ignore[no-untyped-def]
-    """Loop twin of the frame statistics of ``subpixel.extract``: from the green profiles ``rows +- half`` of a
-    few picked columns, the median Gaussian-equivalent sigma of the unsaturated ones (see
-    ``subpixel._typical_sigma``; at most ``max_sigma`` or the median wide limit), the 90th percentile of their
+    """The frame statistics (the reference computes them in ``reference.extract_frame``): from the green
+    profiles ``rows +- half`` of a few picked columns, the median Gaussian-equivalent sigma of the unsaturated ones (see
+    ``reference._typical_sigma``; at most ``max_sigma`` or the median wide limit), the 90th percentile of their
     clipped-sample counts, and the median of ``max_fwhm`` (M,) at those columns.
 
     Returns:
@@ -107,63 +107,32 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
 
 
 @njit
-def process_candidates(  # type: ignore[no-untyped-def]
-    image,
-    U,
-    Vr,
-    Ar,
-    noise_l,
-    ints,
-    reals,
-    scales,
-    cam,
-    dist,
-    R,
-    origin,
-    normals,
-    points,
-    axis,
-    wide_fwhm,
-    tri,
-):
-    """Steps 3-6 of ``subpixel.extract`` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality) in
-    one compiled call, the same kernels in the same order as the Python glue of its numpy-free path.
+def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-untyped-def]
+    """Steps 2-5 of :func:`extract_frame` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality).
 
     Args:
         image: (H, W, 3) uint8 C-contiguous; U, Vr, Ar: the candidates of every laser (detection columns with
             the laser's offset, full rows, strengths), sorted by column then row; noise_l: (L,) band noise, DN.
-        ints: (scale, max_candidates, min_run_cols, gate_pool_cols, window_half_px, n_lasers, iterations);
-        reals: (max_jump_px, saturation_dn, min_fwhm_px, max_sigma_px, min_contrast_dn, min_snr,
-            min_green_ratio, max_sheet_mm, snr_floor_frac); scales: smoothing half-widths, largest first.
-        cam, dist, R, origin, normals, points: the calibration (see :func:`triangulate_points`); axis: (3,) unit
-            optical axis, body frame; wide_fwhm: flat-top width limit of the common fit; tri: also triangulate.
+        s: :class:`~lrsensor.extract.settings.Settings`; geo: :class:`~lrsensor.extract.settings.Geometry`.
 
     Returns:
-        ``(u, v, laser, quality, xyz)``: (M,) each and (M, 3) body points (empty (0, 3) unless ``tri``).
+        ``(u, v, laser, quality)``: (M,) each, pixel columns and rows, laser index, quality in [0, 1].
     """
     w = image.shape[1]
-    scale, max_cand, min_run_cols, pool, half0, n_l, iterations = (
-        ints[0],
-        ints[1],
-        ints[2],
-        ints[3],
-        ints[4],
-        ints[5],
-        ints[6],
-    )
-    max_jump, sat_dn, min_fwhm, max_sigma = reals[0], reals[1], reals[2], reals[3]
-    min_contrast, min_snr, green_ratio, sheet_mm, floor_frac = reals[4], reals[5], reals[6], reals[7], reals[8]
+    n_l = noise_l.size
+    max_cand, min_run_cols, half0, iterations = s.max_candidates, s.min_run_cols, s.window_half_px, s.iterations
+    sat_dn, min_fwhm, max_sigma, sheet_mm = s.saturation_dn, s.min_fwhm_px, s.max_sigma_px, s.max_sheet_mm
+    wide_fwhm = s.wide_fwhm_px
     fwhm_per_sigma = 2.3548200450309493
     wide_sigma = wide_fwhm / fwhm_per_sigma  # profiles wider than this are flat-topped (wide)
-    wd = (w + scale - 1) // scale
+    wd = (w + 1) // 2  # detection at half resolution: column c stands for 2c and 2c + 1
     n_cols_d = n_l * wd
-    n_cols = n_l * w
-    jump = max_jump * (1.5 if scale == 2 else 1.0)
-    min_run = max(2, (min_run_cols + scale - 1) // scale)
+    jump = s.max_jump_px * 1.5
+    min_run = max(2, (min_run_cols + 1) // 2)
     e_u = np.empty(0)
     e_i = np.empty(0, np.int64)
     if U.size == 0:
-        return e_u, e_u, e_i, e_u, np.empty((0, 3))
+        return e_u, e_u, e_i, e_u
     # 3. chains
     cnt = np.zeros(n_cols_d, np.int64)
     kk = 0
@@ -173,11 +142,8 @@ def process_candidates(  # type: ignore[no-untyped-def]
     k = min(max_cand, kk)
     col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
     if col_d.size == 0:
-        return e_u, e_u, e_i, e_u, np.empty((0, 3))
-    if scale == 2:
-        col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
-    else:
-        col_v = col_d
+        return e_u, e_u, e_i, e_u
+    col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
     n = col_v.size
     rows = np.empty(n, np.int64)
     laser = sorted_blocks(col_v, w)
@@ -185,7 +151,7 @@ def process_candidates(  # type: ignore[no-untyped-def]
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
-    # 4. frame statistics (window length), common fits, full fits of the special columns
+    # 3. frame statistics (window length), common fits, full fits of the special columns
     floor = fwhm_per_sigma * max_sigma
     mfw = np.full(n, np.nan)
     m_sub = min(n, 48)
@@ -197,7 +163,6 @@ def process_candidates(  # type: ignore[no-untyped-def]
         for i in range(m_sub):
             sub[i] = int(i * step)
         sub[m_sub - 1] = n - 1
-    geo = (cam, dist, R, origin, normals, points, axis)
     mf = max_fwhm_at(cols[sub], rows[sub], laser[sub], floor, sheet_mm, geo)
     for i in range(m_sub):
         mfw[sub[i]] = mf[i]
@@ -285,72 +250,26 @@ def process_candidates(  # type: ignore[no-untyped-def]
                     touched[cols[t]] = True
                 look = np.flatnonzero(touched)
                 touched[look] = False
-    # 5-6. gates, runs, smoothing, quality
-    u_o, v_o, l_o, q_o = finish_points(
-        col_v,
-        laser,
-        vv,
-        amp,
-        sig,
-        sat,
-        ok,
-        lnoise,
-        chain,
-        chain_len,
-        noise_l,
-        w,
-        n_cols,
-        min_contrast,
-        min_snr,
-        min_run_cols,
-        max_sigma,
-        scales,
-        rise,
-        green_ratio,
-        pool,
-        floor_frac,
-        max_jump,
-        wide_sigma,
-    )
-    xyz = triangulate_points(u_o, v_o, l_o, cam, dist, R, origin, normals, points) if tri else np.empty((0, 3))
-    return u_o, v_o, l_o, q_o, xyz
+    # 5. gates, runs, smoothing, quality
+    return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s)
 
 
 @njit
-def extract_frame(  # type: ignore[no-untyped-def]
-    image,
-    band_rows,
-    v_lo,
-    v_hi,
-    detect,
-    ints,
-    reals,
-    scales,
-    cam,
-    dist,
-    R,
-    origin,
-    normals,
-    points,
-    axis,
-    wide_fwhm,
-    depth_gate,
-):
-    """The whole default extractor on one frame in one compiled call: :func:`detect_band` for every laser (at
-    detection scale 2), then :func:`process_candidates` with the triangulation, and the depth gate.
+def extract_frame(image, bands, s, geo, triangulate):  # type: ignore[no-untyped-def]
+    """The whole default extractor on one frame in one compiled call (see the module documentation).
 
     Args:
-        band_rows: (L, 2) bounding rows ``[r0, r1)`` of each laser's band; v_lo, v_hi: (L, W) the bands.
-        detect: ``(contrast_px, snr_threshold, area_noise, min_response)`` of :func:`detect_band`.
-        depth_gate: ``(r_x, r_y, r_z, t_z, min_depth, max_depth)``: camera z of a body point is
-            ``r . p + t_z`` (metres); points outside ``[min_depth, max_depth]`` (or NaN) are dropped.
-        the rest: as :func:`process_candidates`.
+        image: (H, W, 3) uint8 BGR, C-contiguous.
+        bands: :class:`~lrsensor.extract.settings.Bands`; s: :class:`~lrsensor.extract.settings.Settings`;
+            geo: :class:`~lrsensor.extract.settings.Geometry`.
+        triangulate: also triangulate the points and keep only those whose camera depth is within
+            ``[s.min_range_m, s.max_range_m]`` (NaN points dropped); else no points and no depth gate.
 
     Returns:
         ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
-        and body-frame points (M, 3), and the band noise (L,), DN.
+        and body-frame points (M, 3), metres ((0, 3) without ``triangulate``), and the band noise (L,), DN.
     """
-    n_l = band_rows.shape[0]
+    n_l = bands.rows.shape[0]
     w = image.shape[1]
     wd = (w + 1) // 2
     noise = np.ones(n_l)
@@ -359,12 +278,21 @@ def extract_frame(  # type: ignore[no-untyped-def]
     parts_a = []
     total = 0
     for i in range(n_l):
-        r0 = band_rows[i, 0]
-        r1 = band_rows[i, 1]
+        r0 = bands.rows[i, 0]
+        r1 = bands.rows[i, 1]
         if r1 <= r0:
             continue
         u, v, a, noise[i] = detect_band(
-            image, r0, r1, int(detect[0]), detect[1], detect[2], detect[3], v_lo[i], v_hi[i], i * wd
+            image,
+            r0,
+            r1,
+            s.contrast_px,
+            s.snr_threshold,
+            s.area_noise,
+            s.min_response_dn,
+            bands.v_lo[i],
+            bands.v_hi[i],
+            i * wd,
         )
         parts_u.append(u)
         parts_v.append(v)
@@ -380,15 +308,23 @@ def extract_frame(  # type: ignore[no-untyped-def]
         Vr[k : k + m] = parts_v[j]
         Ar[k : k + m] = parts_a[j]
         k += m
-    u_o, v_o, l_o, q_o, xyz = process_candidates(
-        image, U, Vr, Ar, noise, ints, reals, scales, cam, dist, R, origin, normals, points, axis, wide_fwhm, True
-    )
+    u_o, v_o, l_o, q_o = process_candidates(image, U, Vr, Ar, noise, s, geo)
     n = u_o.size
+    if not triangulate:
+        uv = np.empty((n, 2))
+        for t in range(n):
+            uv[t, 0] = u_o[t]
+            uv[t, 1] = v_o[t]
+        return uv, l_o, q_o, np.empty((0, 3)), noise
+    xyz = triangulate_points(
+        u_o, v_o, l_o, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body
+    )
+    r_z = geo.R_cam_body[2]
     keep = np.empty(n, np.bool_)
     m = 0
     for t in range(n):
-        depth = xyz[t, 0] * depth_gate[0] + xyz[t, 1] * depth_gate[1] + xyz[t, 2] * depth_gate[2] + depth_gate[3]
-        keep[t] = depth >= depth_gate[4] and depth <= depth_gate[5]  # NaN fails both
+        depth = xyz[t, 0] * r_z[0] + xyz[t, 1] * r_z[1] + xyz[t, 2] * r_z[2] + geo.cam_z_offset_m
+        keep[t] = depth >= s.min_range_m and depth <= s.max_range_m  # NaN fails both
         m += keep[t]
     uv = np.empty((m, 2))
     if m == n:

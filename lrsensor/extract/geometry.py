@@ -35,7 +35,7 @@ def _distortion_residual(x, y, xd, yd, dist):  # type: ignore[no-untyped-def]
 
 @njit
 def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.triangulation.triangulate` (eq. 29 with the Brown-Conrady model).
+    """Eq. 29 with the Brown-Conrady model, as :func:`lrsensor.triangulation.triangulate` in numpy.
 
     Args:
         u, v: (N,) float64 pixel coordinates; laser: (N,) int64 plane index of each pixel.
@@ -124,19 +124,26 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
 
 @njit
 def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
-    """Loop twin of ``subpixel._max_fwhm``: the widest plausible stripe (half-level width, px) at each pixel (N,).
+    """The widest plausible stripe (half-level width, px) at each pixel ``(cols, rows)`` (N,) of ``laser`` (N,).
 
-    ``floor``: the width limit where the ray misses the plane (and the least limit); ``sheet_mm``: the thickest
-    sheet (<= 0: the floor everywhere); ``geo``: ``(cam, dist, R, origin, normals, points, axis)``, the
-    calibration as :func:`triangulate_points` takes it and the unit optical axis (3,) in the body frame.
+    ``floor``: the width limit where the ray misses the plane (and the least limit), px; ``sheet_mm``: the thickest
+    sheet, mm (<= 0: the floor everywhere); ``geo``: the :class:`~lrsensor.extract.settings.Geometry`.
     """
-    cam, dist, R, origin, normals, points, axis = geo
+    cam, origin, axis = geo.camera, geo.origin_body, geo.axis_body
     n = cols.size
     out = np.full(n, floor)
     if n == 0 or sheet_mm <= 0:
         return out
     pts = triangulate_points(
-        cols.astype(np.float64), rows.astype(np.float64), laser, cam, dist, R, origin, normals, points
+        cols.astype(np.float64),
+        rows.astype(np.float64),
+        laser,
+        cam,
+        geo.distortion,
+        geo.R_cam_body,
+        origin,
+        geo.normals_body,
+        geo.points_body,
     )
     for t in range(n):
         depth = (

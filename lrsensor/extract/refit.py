@@ -203,7 +203,7 @@ NEIGHBOUR_FLANK_TAIL = 5e-2
 LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
 
 
-#: Rounds of refits of the points with another laser's stripe close by (:func:`process_candidates`).
+#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.process_candidates`).
 NEIGHBOUR_REFITS = 4
 
 
@@ -220,7 +220,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
     1.1 % of the peak's) and the log-parabola and background flanks out to ``near`` rows from the peak (a
     neighbour's Gaussian matters only there, and less in the flanks: :data:`NEIGHBOUR_FLANK_TAIL`); the whole
     window (``far``) for both for a saturated or wide profile (``sig`` above ``wide_sigma`` or not finite: their
-    flanks move out with the plateau). Twin of :func:`lrsensor.extract.subpixel._read_reach`."""
+    flanks move out with the plateau). The reference's is :func:`lrsensor.extract.reference_finish.read_reach`."""
     if sat or not sig <= wide_sigma:  # (True for a NaN sigma)
         return far, far
     return min(far, 1.0 + math.ceil(3.0 * max(sig, 1.1))), min(far, 1.0 + near)
@@ -229,7 +229,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 @njit
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
-    :func:`process_candidates` are one per laser and column)."""
+    :func:`lrsensor.extract.frame.process_candidates` are one per laser and column)."""
     at = np.full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
@@ -238,8 +238,8 @@ def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
 
 @njit
 def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look, last):  # type: ignore[no-untyped-def]
-    """The points to refit with another laser's stripe subtracted in one round, and that stripe (loop twin of
-    :func:`lrsensor.extract.subpixel._neighbours` and its round's selection).
+    """The points to refit with another laser's stripe subtracted in one round, and that stripe (the reference's is
+    :func:`lrsensor.extract.reference_finish.neighbours` and its round's selection).
 
     A point's neighbour is the nearest ``good`` point of another laser in its column closer than ``max_dist``
     rows, kept only where its Gaussian exceeds :data:`NEIGHBOUR_TAIL` of the point's amplitude (at least

@@ -112,7 +112,7 @@ def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_a
 
 @njit
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
-    """Loop twin of :func:`lrsensor.extract.subpixel._smooth` (edge-preserving local linear smoothing).
+    """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`).
 
     ``run`` labels are non-decreasing along the measured columns (runs are intervals). Each scale fits only the
     windows that the columns still to do can use, and the scales stop once every column is done.
