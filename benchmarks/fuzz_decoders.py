@@ -2,7 +2,8 @@
 
     python benchmarks/fuzz_decoders.py [--n 2000] [--seed 1]
 
-Decoders: wire messages (cloud, calib, status), calibration JSON, OpenROV serial telemetry lines, CSV IMU
+Decoders: wire messages (cloud schema 1, cloud of either schema with the compact schema 2, calib, status),
+calibration JSON, OpenROV serial telemetry lines, CSV IMU
 logs. Inputs: arbitrary bytes, arbitrary msgpack/JSON values, valid payloads with random edits (truncation,
 byte flips, insertions, deletions, duplications) and valid maps with fields replaced or removed. A decoder
 passes when every input is either accepted or rejected with its own error type; anything else is listed as
@@ -33,7 +34,7 @@ from lrsensor.errors import CalibrationFileError
 from lrsensor.frames import Pose
 from services.errors import ImuError, WireError
 from services.imu import CsvImu, OpenRovParser
-from services.wire import CalibMsg, CloudMsg, StatusMsg
+from services.wire import CalibMsg, CloudMsg, StatusMsg, StripeMsg, calibration_fingerprint, decode_cloud
 
 
 def _valid_cloud(rng: np.random.Generator, n: int) -> CloudMsg:
@@ -46,6 +47,24 @@ def _valid_cloud(rng: np.random.Generator, n: int) -> CloudMsg:
         laser=rng.integers(0, 2, size=n).astype(np.uint8),
         quality=rng.random(n).astype(np.float32),
         uv=None if n % 2 else rng.random((n, 2)).astype(np.float32),
+    )
+
+
+def _valid_stripe(rng: np.random.Generator, n: int) -> StripeMsg:
+    """A compact cloud of two lasers' stripes with a gap and a row jump (several runs)."""
+    laser = np.repeat(np.arange(2, dtype=np.uint8), n // 2 + 1)[:n]
+    column = (np.arange(n) % (n // 2 + 1) + np.where(np.arange(n) % 7 == 3, 5, 0)).astype(np.uint16)
+    row = (rng.normal(540, 3, n) * 4096).astype(np.int32)
+    return StripeMsg(
+        robot="rov1",
+        seq=int(rng.integers(0, 10**6)),
+        t_ns=1_700_000_000_000_000_000,
+        pose=Pose(1.0, -2.0, 3.0, 0.1, -0.05, 1.2),
+        calib_id=calibration_fingerprint(Calibration.paper(0.1)),
+        laser=laser,
+        column=column,
+        row_fx=row,
+        quality_u8=rng.integers(0, 256, n).astype(np.uint8),
     )
 
 
@@ -178,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     valid = {
         "cloud": [_valid_cloud(rng, n).to_bytes() for n in (0, 1, 7, 300)],
+        "stripe": [_valid_stripe(rng, n).to_bytes() for n in (0, 1, 7, 300)],
         "calib": [CalibMsg("rov1", Calibration.paper(0.1)).to_bytes()],
         "status": [StatusMsg("rov1", 1_700_000_000_000_000_000, "running", 10, 9, 1, 0, 8).to_bytes()],
     }
@@ -260,6 +280,7 @@ def main(argv: list[str] | None = None) -> int:
 
     runs = [
         run_decoder("CloudMsg.from_bytes", wire_inputs("cloud"), CloudMsg.from_bytes, (WireError,), args.n, args.seed),
+        run_decoder("decode_cloud (schema 2)", wire_inputs("stripe"), decode_cloud, (WireError,), args.n, args.seed),
         run_decoder("CalibMsg.from_bytes", wire_inputs("calib"), CalibMsg.from_bytes, (WireError,), args.n, args.seed),
         run_decoder(
             "StatusMsg.from_bytes", wire_inputs("status"), StatusMsg.from_bytes, (WireError,), args.n, args.seed

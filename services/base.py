@@ -7,10 +7,12 @@ This module is the Zenoh wiring; the two parts it composes each have their own m
 
 Data path: the Zenoh subscriber callback only enqueues ``(key, payload, receive time)`` into a bounded queue
 (blocking when full, which pushes back on the BLOCK publishers instead of dropping); ingest worker threads
-decode and validate each :class:`~services.wire.CloudMsg` (a payload that fails is counted as rejected, never
-raised), have the ledger de-duplicate and count it, and hand it to the map feed, which transforms its points
-to NED for ``mapping.MapBuilder``. Map changes are published on ``<root>/map/updates``. The callbacks stay
-cheap: nothing in them decodes a cloud or touches the disk.
+decode and validate each cloud of either schema (a payload that fails is counted as rejected, never
+raised), triangulate a compact schema-2 cloud (:class:`~services.wire.StripeMsg`) with the calibration it was
+measured with (:mod:`services.calibbook`: refused and left in the robot's outbox when the base holds no
+calibration of its fingerprint), have the ledger de-duplicate and count it, and hand it to the map feed, which
+transforms its points to NED for ``mapping.MapBuilder``. Map changes are published on ``<root>/map/updates``.
+The callbacks stay cheap: nothing in them decodes a cloud or touches the disk.
 
 Served (queryables, each on its own key; a failure is answered with ``reply_err``):
 
@@ -43,11 +45,12 @@ import numpy as np
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
 
+from .calibbook import CalibrationBook
 from .errors import WireError
 from .keys import FleetKeys
 from .ledger import MAX_TRACK_POINTS, STATE_FORMAT, STATE_VERSION, UNKNOWN_SENDER, Ledger, RobotRecord
 from .mapfeed import LatencyStats, MapFeed, load_map_builder
-from .wire import ENCODING, CalibMsg, CloudMsg, StatusMsg
+from .wire import ENCODING, CalibMsg, StatusMsg, StripeMsg, decode_cloud
 
 __all__ = [
     "MAX_TRACK_POINTS",
@@ -62,6 +65,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: How long the base waits for a robot to answer its calibration query (compact clouds), seconds.
+CALIB_FETCH_TIMEOUT_S = 2.0
 #: How long :meth:`BaseStation.close` waits for the queued clouds, then for each ingest thread, seconds.
 CLOSE_DRAIN_S = 10.0
 CLOSE_JOIN_S = 5.0
@@ -118,6 +123,7 @@ class BaseStation:
             ack_period_s=ack_period_s,
         )
         self.feed = MapFeed(self.map, self.ledger.mark_mapped, queue_size=queue_size, map_wait_s=map_wait_s)
+        self.calibrations = CalibrationBook(self.ledger.calibration_path, self._fetch_robot_calibration)
 
     # ------------------------------------------------------------------ the parts, by their old names
     @property
@@ -319,21 +325,47 @@ class BaseStation:
             self.ledger.reject(UNKNOWN_SENDER, f"cloud on a key that names no robot: {key}")
             return
         try:
-            msg = CloudMsg.from_bytes(payload)
+            any_msg = decode_cloud(payload)
         except WireError as err:
             self.ledger.reject(robot, str(err))
             return
-        if msg.robot != robot:
-            self.ledger.reject(robot, f"cloud of robot {msg.robot!r} published under {key}")
+        if any_msg.robot != robot:
+            self.ledger.reject(robot, f"cloud of robot {any_msg.robot!r} published under {key}")
             return
         if self.allowed is not None and robot not in self.allowed:
             self.ledger.reject(robot, f"robot {robot!r} is not a member of fleet {self.keys.fleet!r}")
             return
+        if isinstance(any_msg, StripeMsg):
+            calib, reason = self.calibrations.lookup(robot, any_msg.calib_id)
+            if calib is None:  # not acknowledged: the robot's outbox keeps it and offers it again
+                self.ledger.reject(robot, reason)
+                return
+            try:
+                msg = any_msg.to_cloud(calib)
+            except WireError as err:
+                self.ledger.reject(robot, str(err))
+                return
+        else:
+            msg = any_msg
         if not self.ledger.accept(msg):
             return  # a duplicate, counted
         self.feed.take(msg, recv_ns)
         with self._lock:
             self.processed += 1
+
+    def _fetch_robot_calibration(self, robot: str) -> Calibration | None:
+        """The calibration ``robot`` serves on ``<root>/<robot>/calib`` (None: no valid answer in time)."""
+        for reply in self.session.get(self.keys.calib(robot), timeout=CALIB_FETCH_TIMEOUT_S):
+            if reply.ok is None:
+                continue
+            try:
+                msg = CalibMsg.from_bytes(reply.ok.payload.to_bytes())
+            except WireError as err:
+                log.warning("calibration answer of %s refused: %s", robot, err)
+                continue
+            if msg.robot == robot:
+                return msg.calibration
+        return None
 
     # ------------------------------------------------------------------ views
     def map_json(self) -> dict[str, Any]:

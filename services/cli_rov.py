@@ -64,6 +64,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=15.0,
         help="at the end of a finite source, wait this long for the base station to acknowledge every cloud",
     )
+    parser.add_argument(
+        "--cloud-schema",
+        type=int,
+        choices=(1, 2),
+        default=2,
+        help="cloud payload: 2 = the stripe's pixels, triangulated at the base with this robot's calibration "
+        "(about 8x smaller, the default); 1 = float32 points (docs/conventions.md)",
+    )
     parser.add_argument("--seq-start", type=int, default=0, help="first sequence number (continue after a restart)")
     g = parser.add_argument_group("store-and-forward outbox (every cloud is kept until the base acknowledges it)")
     g.add_argument(
@@ -167,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
             ack_timeout_s=args.ack_timeout_s,
             seq_start=seq_start,
             sink=sink,
+            cloud_schema=args.cloud_schema,
         )
         counters = service.run(stop)
         if sink is not None:

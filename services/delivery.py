@@ -32,7 +32,7 @@ from typing import Any
 
 from .keys import FleetKeys, check_robot_name
 from .outbox import Outbox, OutboxError
-from .wire import ENCODING, CloudMsg
+from .wire import ENCODING, AnyCloud
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class OutboxSink:
         self._thread.start()
 
     # ------------------------------------------------------------------------------------------- sink
-    def send(self, msg: CloudMsg) -> None:
+    def send(self, msg: AnyCloud) -> None:
         """Publish ``msg`` and store it in the outbox (durably) until the base station acknowledges it.
 
         The live copy goes first so that the disk write (fsync) adds nothing to the live latency; an

@@ -2,7 +2,11 @@
 
 Per frame: the pose at the frame's capture time is interpolated from the IMU track (frames outside the
 track's span are skipped and counted), the image goes through :meth:`lrsensor.Sensor.process`, and the scan
-is published as a :class:`~services.wire.CloudMsg` with BLOCK congestion control (never dropped silently).
+is published with BLOCK congestion control (never dropped silently) as a compact
+:class:`~services.wire.StripeMsg` (cloud schema 2, the default: the stripe's pixels, triangulated at the base
+with the calibration whose fingerprint it carries) or, with ``cloud_schema=1``, as a
+:class:`~services.wire.CloudMsg` of float32 points. A scan that schema 2 cannot carry (columns that are not
+whole pixels, as the paper's Algorithm 1 measures) goes out as schema 1, with a warning the first time.
 While running the ROV holds its liveliness token ``<root>/<robot>/alive``, serves its calibration on
 ``<root>/<robot>/calib`` and publishes :class:`~services.wire.StatusMsg` counters on ``<root>/<robot>/status``.
 
@@ -21,13 +25,15 @@ from typing import Any, Protocol
 
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
+from lrsensor.frames import Pose
+from lrsensor.scan import Scan
 from lrsensor.sensor import Sensor
 
 from .errors import CalibrationUnavailableError, WireError
 from .imu import ImuSource
 from .keys import FleetKeys, check_robot_name
 from .sources import FrameSource
-from .wire import ENCODING, CalibMsg, CloudMsg, StatusMsg
+from .wire import CLOUD_SCHEMAS, ENCODING, AnyCloud, CalibMsg, CloudMsg, StatusMsg, StripeMsg, calibration_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +67,7 @@ class RovCounters:
 class CloudSink(Protocol):
     """Where the ROV puts its clouds (a Zenoh publisher; issue 7 puts an outbox in front of it)."""
 
-    def send(self, msg: CloudMsg) -> None: ...
+    def send(self, msg: AnyCloud) -> None: ...
 
 
 class ZenohCloudSink:
@@ -77,7 +83,7 @@ class ZenohCloudSink:
             reliability=zenoh.Reliability.RELIABLE,
         )
 
-    def send(self, msg: CloudMsg) -> None:
+    def send(self, msg: AnyCloud) -> None:
         """Publish one cloud (stamped with its publication time)."""
         self.publisher.put(msg.with_sent_ns(time.time_ns()).to_bytes())
 
@@ -170,6 +176,7 @@ class RovService:
             every published cloud (0: do not wait).
         seq_start: the first sequence number (a restarted robot continues its numbering).
         sink: where clouds go (default: a Zenoh publisher on ``<root>/<robot>/cloud``).
+        cloud_schema: 2 (compact: pixels and the calibration's fingerprint, the default) or 1 (float32 points).
     """
 
     def __init__(
@@ -188,7 +195,11 @@ class RovService:
         status_period_s: float = 1.0,
         seq_start: int = 0,
         sink: CloudSink | None = None,
+        cloud_schema: int = 2,
     ) -> None:
+        if cloud_schema not in CLOUD_SCHEMAS:
+            msg = f"cloud schema {cloud_schema} is not one of {CLOUD_SCHEMAS}"
+            raise WireError(msg)
         self.session = session
         self.keys = keys
         self.robot = check_robot_name(robot)
@@ -203,6 +214,9 @@ class RovService:
         self.status_period_s = status_period_s
         self.seq = seq_start
         self.sink = sink
+        self.cloud_schema = cloud_schema
+        self.calib_id = calibration_fingerprint(calibration)
+        self._warned_schema = False
         self.counters = RovCounters()
         self.state = "starting"
         self._lock = threading.Lock()
@@ -310,7 +324,7 @@ class RovService:
             if self.method:
                 options["method"] = self.method
             scan = self.sensor.process(image, **options)
-            msg = CloudMsg.from_scan(self.robot, self.seq, t_ns, pose, scan)
+            msg = self._message(t_ns, pose, scan)
         except LrsensorError as err:
             with self._lock:
                 c.failed += 1
@@ -329,3 +343,14 @@ class RovService:
             c.published += 1
             c.points += len(msg)
         self.seq += 1
+
+    def _message(self, t_ns: int, pose: Pose, scan: Scan) -> AnyCloud:
+        """The scan's cloud message in the configured schema (schema 1 when schema 2 cannot carry it)."""
+        if self.cloud_schema == StripeMsg.VERSION:
+            try:
+                return StripeMsg.from_scan(self.robot, self.seq, t_ns, pose, scan, self.calib_id)
+            except WireError as err:
+                if not self._warned_schema:
+                    self._warned_schema = True
+                    log.warning("rov %s: %s; such clouds are sent as schema 1", self.robot, err)
+        return CloudMsg.from_scan(self.robot, self.seq, t_ns, pose, scan)

@@ -28,7 +28,7 @@ from services.seqset import SeqSet
 from services.simsource import open_sim, record_sim_dive
 from services.sources import FolderSource, Frame, open_source
 from services.testnet import TestNetwork
-from services.wire import ENCODING, CalibMsg, CloudMsg
+from services.wire import ENCODING, CalibMsg, CloudMsg, StripeMsg, calibration_fingerprint, decode_cloud
 from services.zconfig import NetworkOptions, make_config
 
 N_FRAMES = 6
@@ -237,20 +237,24 @@ def test_frames_outside_the_imu_span_are_skipped_not_guessed(dives: dict[str, Pa
         assert base.status()["robots"]["rov2"]["received"] == N_FRAMES - 2
 
 
-def test_published_pose_is_the_interpolated_imu_pose(dives: dict[str, Path]) -> None:
+@pytest.mark.parametrize("schema", [1, 2])
+def test_published_pose_is_the_interpolated_imu_pose(dives: dict[str, Path], schema: int) -> None:
     folder = dives["rov1"]
     imu = CsvImu(folder / "imu.csv")
-    got: list[CloudMsg] = []
+    calib = Calibration.load(folder / "calib.json")
+    got: list[CloudMsg | StripeMsg] = []
     with TestNetwork("t7") as net:
         s = net.session()
-        sub = s.declare_subscriber(
-            net.keys.cloud("rov1"), lambda smp: got.append(CloudMsg.from_bytes(smp.payload.to_bytes()))
-        )
-        h = net.start_rov("rov1", FolderSource(folder), imu, Calibration.load(folder / "calib.json"), ack_timeout_s=0)
+        sub = s.declare_subscriber(net.keys.cloud("rov1"), lambda smp: got.append(decode_cloud(smp.payload.to_bytes())))
+        h = net.start_rov("rov1", FolderSource(folder), imu, calib, ack_timeout_s=0, cloud_schema=schema)
         assert h.join(60)
         assert wait_until(lambda: len(got) == N_FRAMES, WAIT_S)
         sub.undeclare()
+    assert {type(m) for m in got} == {CloudMsg if schema == 1 else StripeMsg}
     for m in got:
+        if isinstance(m, StripeMsg):
+            assert m.calib_id == calibration_fingerprint(calib)
+            assert np.isfinite(m.to_cloud(calib).points_body).all()
         expect = imu.track.pose_at(m.t_ns)
         assert expect is not None
         assert m.pose.north_m == pytest.approx(expect.north_m)
