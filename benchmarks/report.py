@@ -44,6 +44,7 @@ TOPICS: dict[str, str] = {
     "simulator": "Simulator",
     "mapping": "Mapping",
     "ingest": "Ingest",
+    "wire": "Wire encoding",
     "soak": "Soak",
     "fuzz": "Fuzz",
     "other": "Other results",
@@ -139,6 +140,7 @@ SOURCES: tuple[Source, ...] = (
         f"{_SOAK} --robots 20 --rate 30 --duration 600 --points 500 --map off "
         "--out benchmarks/results/soak_20x30_500pts_mapoff_10min.md",
     ),
+    Source("wire.md", "wire", "python benchmarks/bench_wire.py"),
     Source("fuzz.md", "fuzz", "python benchmarks/fuzz_decoders.py --n 3000 --seed 1"),
 )
 
