@@ -95,6 +95,7 @@ SOURCES: tuple[Source, ...] = (
     Source("extract_foreign_jpeg85.md", "independent", f"{_FOREIGN} --jpeg 85"),
     Source("extract_foreign_jpeg85_444.md", "independent", f"{_FOREIGN} --jpeg 85 --jpeg-444"),
     Source("extract_foreign_jpeg85_luma.md", "independent", f"{_FOREIGN} --jpeg 85 --channel luma"),
+    Source("extract_turbid.md", "independent", "python benchmarks/bench_turbid.py"),
     Source("calib.md", "calibration", "python benchmarks/bench_calib.py"),
     Source("sim.md", "simulator", "python benchmarks/bench_sim.py --repeat 3"),
     Source("mapping.md", "mapping", "python benchmarks/bench_mapping.py"),

@@ -1,0 +1,246 @@
+"""The extractor in turbid water, on an independent stripe model (``benchmarks/turbid_model.py``; issue 26).
+
+    python benchmarks/bench_turbid.py [--seeds 3] [--out benchmarks/results/extract_turbid.md] [--quick]
+    python -m benchmarks.bench_turbid ...          (the same)
+
+Each cell renders full 1920x1080 frames of a flat wall with both lasers in turbid water (a Gaussian stripe
+plus the sheet's single-scattering glow, which lies on the stripe's outer side and ends at the stripe, both
+blurred by forward scatter, on a sloping veil, with particles and sensor noise) and runs the product as a user
+would: ``Sensor(calibration).process(image)`` with the default method, and ``method="paper"`` (the paper's
+Algorithm 1) for reference. The grid: walls at 0.5, 1, 2 and 3 m perpendicular to the optical axis and one at
+1 m tilted by 30 deg; glow steps 0 (a control without glow), 0.1, 0.3 and 0.5 of the stripe's peak; forward-
+scatter blurs of 1.5 and 4 px; and one cell at 1 m with the physical variation of the step across the columns
+(one scattering coefficient per frame, the step set in the centre column). Other parameters are the model's
+defaults (attenuation 0.3 /m, veil 30 DN sloping by 40 %, 150 particles per megapixel, read noise 1.5 DN,
+8 e-/DN, sheet sigma 1.5 mm, exposure: 100 DN stripe peak in the centre column).
+
+Scores, as ``benchmarks/bench_foreign_render.py`` scores: per point the relative range error
+``(x_est - x_true) / x_true`` against the true point of the same laser and column; **bias** is its median
+(signed: negative = ranges read short, the stripe placed outward), **shift** the median row error towards
+the outside of the image (px, positive on the glow's side), **median** and **p95** of its magnitude,
+**outliers** the points more than 5 % off (% of the points), **within 2 %** the visible columns that have a
+point within 2 % of the truth and **coverage** those that have a point at all (% of the visible columns: in
+the image, range 0.2-5 m, noise-free stripe peak >= 3x the noise at its row). Points are pooled over the seeds
+and both lasers; the column shares are means over the (seed, laser) frames that have visible columns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor import Sensor
+from lrsensor.atomic import atomic_write
+
+try:  # python -m benchmarks.bench_turbid, and the tests
+    from benchmarks.turbid_model import Turbid, TurbidFrame, render
+except ImportError:  # python benchmarks/bench_turbid.py: this file's folder is on the path
+    from turbid_model import Turbid, TurbidFrame, render  # type: ignore[no-redef]
+
+COMMAND = "python benchmarks/bench_turbid.py"
+DEFAULT_OUT = Path(__file__).parent / "results" / "extract_turbid.md"
+METHODS = ("subpixel", "paper")
+#: A point this far off (relative) is an outlier; one this close counts as "within".
+OUTLIER_REL = 0.05
+WITHIN_REL = 0.02
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One row of the table: a geometry and a water, rendered with several seeds."""
+
+    distance_m: float
+    tilt_deg: float
+    glow_step: float
+    blur_px: float
+    step_per_column: bool = True
+
+    def turbid(self, seed: int) -> Turbid:
+        return Turbid(
+            distance_m=self.distance_m,
+            tilt_deg=self.tilt_deg,
+            glow_step=self.glow_step,
+            blur_px=self.blur_px,
+            step_per_column=self.step_per_column,
+            seed=seed,
+        )
+
+
+def grid(quick: bool = False) -> list[Cell]:
+    """The cells of the table (a small one with ``quick``)."""
+    if quick:
+        return [Cell(1.0, 0.0, 0.3, 1.5), Cell(2.0, 0.0, 0.5, 4.0)]
+    cells = [Cell(d, 0.0, g, b) for d in (0.5, 1.0, 2.0, 3.0) for g in (0.0, 0.1, 0.3, 0.5) for b in (1.5, 4.0)]
+    cells += [Cell(1.0, 30.0, g, b) for g in (0.0, 0.1, 0.3, 0.5) for b in (1.5, 4.0)]
+    cells += [Cell(1.0, 0.0, 0.3, b, step_per_column=False) for b in (1.5, 4.0)]
+    return cells
+
+
+@dataclass(frozen=True)
+class FrameScore:
+    """One method on one frame: signed relative range errors of its points (N,), their row errors towards the
+    outside of the image (N,) px (positive: away from the image centre, on the glow's side) and, per laser with
+    visible columns, (share of them with a point, share with a point within 2 %)."""
+
+    errors: NDArray[np.float64]
+    outward_px: NDArray[np.float64]
+    columns: tuple[tuple[float, float], ...]
+
+
+def score_frame(frame: TurbidFrame, method: str) -> FrameScore:
+    """Run ``Sensor(calibration).process`` on the frame and score it against the frame's truth."""
+    scan = Sensor(frame.calibration).process(frame.image, method=method)
+    W = frame.rows.shape[1]
+    errors, outward, columns = [], [], []
+    for li, side in ((0, -1.0), (1, 1.0)):
+        m = scan.laser == li
+        u = np.round(scan.uv[m, 0]).astype(int)
+        ok = (u >= 0) & (u < W)
+        u = u[ok]
+        x_true = frame.range_m[li, u]
+        with np.errstate(invalid="ignore"):
+            rel = (scan.points[m][ok, 0] - x_true) / x_true  # NaN where the column has no wall
+        errors.append(rel)
+        outward.append(side * (scan.uv[m][ok, 1] - frame.rows[li, u]))
+        vis = frame.visible[li]
+        if vis.any():
+            seen = np.zeros(W, bool)
+            seen[u] = True
+            good = np.zeros(W, bool)
+            with np.errstate(invalid="ignore"):
+                good[u[np.abs(rel) <= WITHIN_REL]] = True
+            n = int(vis.sum())
+            columns.append((float((seen & vis).sum()) / n, float((good & vis).sum()) / n))
+    return FrameScore(np.concatenate(errors), np.concatenate(outward), tuple(columns))
+
+
+def summarise(scores: Sequence[FrameScore]) -> dict[str, float]:
+    """Bias, median, p95 (% of range), outliers (% of points), the median row shift outward (px), within 2 % and
+    coverage (% of visible columns), points per frame."""
+    e = np.concatenate([s.errors for s in scores])
+    px = np.concatenate([s.outward_px for s in scores])
+    fin = np.isfinite(e) & np.isfinite(px)
+    e, px = e[fin], px[fin]
+    cols = np.array([c for s in scores for c in s.columns]).reshape(-1, 2)
+    out = {
+        "coverage": 100.0 * float(cols[:, 0].mean()) if len(cols) else np.nan,
+        "within": 100.0 * float(cols[:, 1].mean()) if len(cols) else np.nan,
+        "points": float(e.size) / max(len(scores), 1),
+    }
+    if e.size == 0:
+        return {**out, "bias": np.nan, "shift": np.nan, "median": np.nan, "p95": np.nan, "outliers": np.nan}
+    a = np.abs(e)
+    return {
+        **out,
+        "bias": 100.0 * float(np.median(e)),
+        "shift": float(np.median(px)),
+        "median": 100.0 * float(np.median(a)),
+        "p95": 100.0 * float(np.percentile(a, 95)),
+        "outliers": 100.0 * float(np.mean(a > OUTLIER_REL)),
+    }
+
+
+HEADER = (
+    "| range m | tilt deg | glow step | blur px | bias % | shift px | median % | p95 % | outliers % | within 2 % "
+    "| coverage % | points/frame |",
+    "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+)
+
+
+def table_row(cell: Cell, r: dict[str, float]) -> str:
+    """One Markdown row; a step that holds in the centre column only is marked with an asterisk."""
+    step = f"{cell.glow_step:.1f}" + ("" if cell.step_per_column else "*")
+    return (
+        f"| {cell.distance_m:.1f} | {cell.tilt_deg:.0f} | {step} | {cell.blur_px:.1f} | {r['bias']:+.3f} "
+        f"| {r['shift']:+.2f} | {r['median']:.3f} | {r['p95']:.3f} | {r['outliers']:.2f} | {r['within']:.1f} "
+        f"| {r['coverage']:.1f} | {r['points']:.0f} |"
+    )
+
+
+def run(cells: Sequence[Cell], seeds: Sequence[int], methods: Sequence[str] = METHODS) -> dict[str, list[str]]:
+    """Render every cell with every seed once, score each method on it; per method the table rows (printed as
+    they come)."""
+    rows: dict[str, list[str]] = {m: [] for m in methods}
+    for cell in cells:
+        per_method: dict[str, list[FrameScore]] = {m: [] for m in methods}
+        for seed in seeds:
+            frame = render(cell.turbid(seed))
+            for m in methods:
+                per_method[m].append(score_frame(frame, m))
+        for m in methods:
+            row = table_row(cell, summarise(per_method[m]))
+            rows[m].append(row)
+            print(f"{m:>8} {row}", flush=True)
+    return rows
+
+
+def document(rows: dict[str, list[str]], seeds: Sequence[int], command: str) -> str:
+    """The results file: the command, what was measured, one table per method."""
+    defaults = Turbid()
+    lines = [
+        f"<!-- {command}, {time.strftime('%Y-%m-%dT%H:%MZ', time.gmtime())}, 2-core shared machine -->",
+        "### Turbid water: an independent stripe model (1920x1080, f = 554 px, b = 0.1 m)",
+        "",
+        "Model: `benchmarks/turbid_model.py` (a Gaussian stripe plus the laser sheet's single-scattering glow,"
+        " which lies on the stripe's outer side and ends at the stripe; forward-scatter blur; a sloping veil;"
+        " particles; read and shot noise, 8 bits). Glow step: the glow's value at its edge over the column's"
+        " blurred stripe peak, in every column (* : in the centre column only, one scattering coefficient for the"
+        " frame, so the step grows towards the image's sides). Water and camera: attenuation"
+        f" {defaults.attenuation_per_m:g} /m, veil {defaults.veil_dn:g} DN sloping by {100 * defaults.veil_slope:g} %,"
+        f" {defaults.particles_per_mpx:g} particles per megapixel, read noise {defaults.read_noise_dn:g} DN,"
+        f" {defaults.electrons_per_dn:g} e-/DN, sheet sigma {1000 * defaults.sheet_sigma_m:g} mm, stripe peak"
+        f" {defaults.peak_dn:g} DN in the centre column. Seeds {', '.join(str(s) for s in seeds)} per cell.",
+        "",
+        "Relative range error per point against the true point of the same laser and column: bias = signed median"
+        " (negative: ranges short, the stripe read on the glow's side); shift = median row error towards the"
+        " outside of the image (px, positive: on the glow's side); median and p95 of the error's magnitude, outliers"
+        " > 5 % off (% of points); within 2 % and coverage: visible columns (in the image, range 0.2-5 m, stripe"
+        " peak >= 3x the noise at its row) with a point within 2 % of the truth / with a point.",
+    ]
+    titles = {
+        "subpixel": "Default extractor (`Sensor(calibration).process(image)`)",
+        "paper": 'The paper\'s Algorithm 1 (`method="paper"`), for reference',
+    }
+    notes = {
+        "paper": "One point per laser in each of its 64 regions of interest across the width: its coverage is low"
+        " by design.",
+    }
+    for m, r in rows.items():
+        lines += ["", f"#### {titles.get(m, m)}", ""]
+        if m in notes:
+            lines += [notes[m], ""]
+        lines += [*HEADER, *r]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (0 .. N-1)")
+    ap.add_argument("--out", type=Path, default=None, help=f"results file (default {DEFAULT_OUT}; not with --quick)")
+    ap.add_argument("--quick", action="store_true", help="two cells, one seed; writes only to an explicit --out")
+    args = ap.parse_args(argv)
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    cv2.setNumThreads(1)
+    from lrsensor.extract.compile import warm_up
+
+    warm_up()
+    seeds = range(1 if args.quick else args.seeds)
+    command = COMMAND + ("" if args.seeds == 3 else f" --seeds {args.seeds}") + (" --quick" if args.quick else "")
+    rows = run(grid(args.quick), list(seeds))
+    out = args.out if args.out is not None else (None if args.quick else DEFAULT_OUT)
+    if out is not None:
+        atomic_write(out, document(rows, list(seeds), command), fsync=False)
+        print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
