@@ -11,7 +11,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .extract import DEFAULT_METHOD, check_image, get_extractor
-from .extract.compile import ready as _compiled_ready
+from .extract import compile as _kernels
 from .scan import Scan
 from .triangulation import triangulate
 
@@ -24,12 +24,18 @@ class Sensor:
     >>> scan.points                                      # (N, 3) body frame, metres
     """
 
-    def __init__(self, calibration: Calibration) -> None:
+    def __init__(self, calibration: Calibration, *, wait_for_kernels: bool = True) -> None:
+        """A sensor with ``calibration``; readies the compiled extractor now rather than in the first frame.
+
+        ``wait_for_kernels``: load the compiled kernels from numba's cache (about a second, once per process) or,
+        on a first use, compile them once now (about 20 s, said in the log). False (a live camera that must not
+        stall): compile them in the background while the numpy reference processes the frames (said in the
+        log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`."""
         self.calibration = calibration
-        # the compiled extractor, now rather than in the first process(): loaded from numba's on-disk cache (about a
-        # second, once per process), or, without a cache, compiled in a background thread (the numpy reference runs
-        # meanwhile); nothing without numba
-        _compiled_ready()
+        if wait_for_kernels:
+            _kernels.ensure()
+        else:
+            _kernels.begin()
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str]) -> Sensor:

@@ -25,6 +25,7 @@ from typing import Any, Protocol
 
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
+from lrsensor.extract.compile import ready as extractor_compiled
 from lrsensor.frames import Pose
 from lrsensor.scan import Scan
 from lrsensor.sensor import Sensor
@@ -206,7 +207,8 @@ class RovService:
         self.source = source
         self.imu = imu
         self.calibration = calibration
-        self.sensor = Sensor(calibration)
+        # a live camera must not stall for a first compile: the numpy reference runs meanwhile (said in the log)
+        self.sensor = Sensor(calibration, wait_for_kernels=False)
         self.rate_hz = rate_hz
         self.method = method
         self.process_options = dict(process_options or {})
@@ -256,7 +258,13 @@ class RovService:
         sink = self.sink or ZenohCloudSink(self.session, self.keys.cloud(self.robot))
         # the token goes last: a robot seen alive already answers its calibration queryable
         token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
-        log.info("rov %s: publishing on %s from %s", self.robot, self.keys.cloud(self.robot), self.source.name)
+        log.info(
+            "rov %s: publishing on %s from %s; extractor: %s",
+            self.robot,
+            self.keys.cloud(self.robot),
+            self.source.name,
+            "compiled" if extractor_compiled() else "numpy reference until the compiled kernels are built",
+        )
         period_ns = int(1e9 / self.rate_hz) if self.rate_hz else 0
         next_ns = time.monotonic_ns()
         last_status = 0.0

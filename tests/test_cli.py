@@ -9,7 +9,7 @@ import pytest
 
 from lrsensor.cli import COMMANDS, main
 
-ALL = ["process", "calibrate", "simulate", "range", "base", "rov", "demo", "map"]
+ALL = ["setup", "process", "calibrate", "simulate", "range", "base", "rov", "demo", "map"]
 
 
 def test_help_lists_every_subcommand(capsys: pytest.CaptureFixture[str]) -> None:

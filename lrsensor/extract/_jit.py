@@ -1,13 +1,14 @@
 """The compiler switch of the extractor's kernels: numba when it is installed, plain Python otherwise.
 
 Every kernel of :mod:`lrsensor.extract` is decorated with :data:`njit` (compiled once, cached on disk in
-``__pycache__``, no GIL held, numpy's error model: a division by zero gives inf or NaN, never an exception) or
-:data:`inline` (small helpers inlined into their callers). Multiplies and adds may be fused
-(``fastmath={"contract"}``: one rounding instead of two, nothing else of fast-math), so floating-point results
+``__pycache__``, no GIL held, numpy's error model: a division by zero gives inf or NaN, never an exception),
+:data:`inline` (small helpers inlined into their callers) or :data:`stage` (a large stage inlined into its one
+caller). Multiplies and adds may be fused (``fastmath={"contract"}``: one rounding instead of two, nothing else
+of fast-math), so floating-point results
 agree with the numpy reference (:mod:`lrsensor.extract.reference`) to rounding, not bit for bit; the detection is
 integer arithmetic and stays bit for bit.
 
-Without numba (:data:`HAVE_NUMBA` False) both decorators return the function unchanged: the kernels are then
+Without numba (:data:`HAVE_NUMBA` False) the decorators return the function unchanged: the kernels are then
 importable (the reference reads their constants) but never called, since the extractor runs its reference.
 """
 
@@ -24,6 +25,9 @@ try:  # pragma: no cover - depends on the platform
     njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
     #: Compile a small helper inlined into its callers.
     inline: Any = numba.njit(inline="always", error_model="numpy")
+    #: Compile a large stage that has one caller into that caller (numba inlines it before typing): one library
+    #: less, whose whole call tree LLVM would otherwise optimise once more (:mod:`lrsensor.extract.compile`).
+    stage: Any = numba.njit(inline="always", nogil=True, error_model="numpy", fastmath={"contract"})
     trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
@@ -32,6 +36,7 @@ except ImportError:  # pragma: no cover
         return f
 
     inline = njit
+    stage = njit
 
     def _trailing_zeros_py(x: Any) -> int:
         """The number of trailing zero bits of a positive integer."""

@@ -1,121 +1,355 @@
-"""Compile management of the extractor's kernels: load or compile them without blocking a caller.
+"""Compiling the extractor's kernels once: ahead with ``lrsensor setup``, or at first use with a message.
 
-The kernels compile once (``cache=True``: tens of seconds the very first time, about a second from numba's
-on-disk cache in ``lrsensor/extract/__pycache__``). :func:`ready` starts the compile in a background thread on
-first use and returns False until every kernel is compiled for the argument types the extractor uses (the
-extractor runs its numpy reference meanwhile); where the cache holds every kernel it loads them at once.
-:func:`warm_up` compiles synchronously (benchmarks, tests). Without numba (:data:`HAVE_NUMBA` False) nothing is
-compiled and :func:`ready` stays False.
+The compiled road (:func:`lrsensor.extract.frame.extract_frame`) is the extractor; numba compiles it once and
+keeps the machine code in its on-disk cache (``cache=True``), from which any later process loads it in about a
+second. This module decides when that compile happens and where:
+
+- **In a child process, never in a thread of the caller.** A compile still running when its process ends (a
+  background thread at interpreter shutdown) crashes inside LLVM (SIGSEGV or SIGABRT), and a compile interrupted
+  in the caller's own thread leaves LLVM's state half built. A child (:func:`child_command`)
+  compiles and writes the cache; it can be ended at any moment (numba writes each cache file by an atomic
+  rename, so an unfinished compile leaves nothing half written), it dies with its parent (``PR_SET_PDEATHSIG``
+  on Linux; at a normal exit :func:`atexit` ends it), and the caller only ever *loads* finished kernels.
+- **At LLVM's optimisation level 1** (``NUMBA_OPT=1`` in the child, unless the caller set ``NUMBA_OPT``): numba
+  optimises every kernel's whole call tree again each time it links a caller, so most of a compile is spent in
+  the optimiser; level 1 more than halves that at a few percent of the frame time (docs/performance.md,
+  ``python -m benchmarks.bench_compile``).
+- **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
+  the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
+  (the ROV, which must not stall its camera): the compile runs in the background and the extractor runs its
+  numpy reference until :func:`usable` finds the kernels built (both said in the log). ``lrsensor setup``
+  compiles ahead, after ``pip install``.
+
+Without numba (:data:`HAVE_NUMBA` False) nothing compiles and the extractor runs its numpy reference, with a
+warning once per process.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import logging
+import os
+import subprocess
+import sys
+import tempfile
 import threading
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ._jit import HAVE_NUMBA
-from .frame import extract_frame
-from .geometry import triangulate_points
-from .settings import Bands, Geometry, Settings
 
-__all__ = ["HAVE_NUMBA", "ready", "warm_up"]
+__all__ = [
+    "HAVE_NUMBA",
+    "CompileError",
+    "CompileJob",
+    "begin",
+    "cache_dir",
+    "cached",
+    "ensure",
+    "ready",
+    "start",
+    "usable",
+    "warm_up",
+]
 
-_READY = threading.Event()
-_LOCK = threading.Lock()
-_STARTED = False
+log = logging.getLogger(__name__)
 
-
-def warm_up() -> None:
-    """Compile (or load from the cache) every kernel for the extractor's argument types; blocks until done."""
-    if not HAVE_NUMBA or _READY.is_set():
-        return
-    with _LOCK:
-        if _READY.is_set():
-            return
-        bands, settings, geometry = _example()
-        img = np.zeros((8, 8, 3), np.uint8)
-        extract_frame(img, bands, settings, geometry, True)
-        f64 = np.zeros(4)
-        triangulate_points(
-            f64,
-            f64,
-            np.zeros(4, np.int64),
-            geometry.camera,
-            geometry.distortion,
-            geometry.R_cam_body,
-            geometry.origin_body,
-            geometry.normals_body,
-            geometry.points_body,
-        )
-        _READY.set()
+#: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
+COMPILE_TIME_HINT = "about 20 s"
+#: LLVM's optimisation level of the child's compile (see the module documentation).
+CHILD_OPT_LEVEL = "1"
 
 
-def _example() -> tuple[Bands, Settings, Geometry]:
-    """Records of the types :func:`lrsensor.extract.settings.frame_settings` builds, for an 8x8 image."""
-    bands = Bands(np.array([[2, 6]], np.int64), np.zeros((1, 8), np.int64), np.full((1, 8), 7, np.int64))
-    settings = Settings(
-        contrast_px=2,
-        snr_threshold=4.0,
-        area_noise=0.3,
-        min_response_dn=3.5,
-        max_candidates=4,
-        max_jump_px=3.0,
-        min_run_cols=8,
-        window_half_px=20,
-        iterations=2,
-        saturation_dn=250.0,
-        min_fwhm_px=0.8,
-        max_sigma_px=5.0,
-        wide_fwhm_px=4.7,
-        min_contrast_dn=5.0,
-        min_snr=2.5,
-        min_green_ratio=1.2,
-        gate_pool_cols=4,
-        snr_floor_frac=0.75,
-        max_sheet_mm=20.0,
-        smooth_scales=np.array([4, 1], np.int64),
-        min_range_m=0.2,
-        max_range_m=5.0,
-    )
-    eye = np.eye(3)
-    geometry = Geometry(
-        np.ones(4), np.zeros(5), eye, np.zeros(3), eye[:1].copy(), eye[:1].copy(), np.array([0.0, 0.0, 1.0]), 0.0
-    )
-    return bands, settings, geometry
+class CompileError(RuntimeError):
+    """The kernels could not be compiled (the child's error output is in the message)."""
+
+
+def entry_points() -> tuple[object, ...]:
+    """The kernels the Python side calls (each loaded from the cache on its own): the frame call and the
+    triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
+    from .frame import extract_frame
+    from .geometry import triangulate_points
+
+    return (extract_frame, triangulate_points)
+
+
+def child_command() -> list[str]:
+    """The command line of the compiling child (this interpreter; ``main(["--child"])``)."""
+    return [sys.executable, "-c", "from lrsensor.extract.compile import main; raise SystemExit(main(['--child']))"]
+
+
+def _build() -> None:
+    """Load every entry point from the cache, or compile it here (the child's job; the caller's only where a
+    finished child left no cache behind), by calling each with arguments of the exact types of a real call: the
+    records :func:`~lrsensor.extract.settings.frame_settings` builds, for a small calibration."""
+    import numpy as np
+
+    from ..calibration import Calibration
+    from .config import SubpixelConfig
+    from .frame import extract_frame
+    from .geometry import triangulate_points
+    from .settings import frame_settings
+
+    bands, settings, geometry = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
+    extract_frame(np.zeros((48, 64, 3), np.uint8), bands, settings, geometry, True)
+    f64 = np.zeros(4)
+    g = geometry
+    triangulate_points(
+        f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+        g.points_body,
+    )  # fmt: skip
+
+
+@dataclass
+class CompileJob:
+    """A compile running in a child process (see the module documentation)."""
+
+    process: subprocess.Popen[bytes]
+    log_path: Path
+    started_s: float = field(default_factory=time.monotonic)
+
+    def done(self) -> bool:
+        """Whether the child has ended (successfully or not)."""
+        return self.process.poll() is not None
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait for the child to end (polling, so that a signal handler of the caller runs); True when it did."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while self.process.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.process.wait(0.1)
+        return True
+
+    def check(self) -> None:
+        """Raise :class:`CompileError` if the child ended with an error (with the end of its output)."""
+        code = self.process.poll()
+        if code not in (0, None):
+            try:
+                tail = self.log_path.read_text(errors="replace")[-2000:]
+            except OSError:
+                tail = ""
+            msg = f"compiling the extractor's kernels failed (exit code {code}):\n{tail}"
+            raise CompileError(msg)
+
+    def cancel(self) -> None:
+        """End the child if it still runs (nothing is left half written) and wait for it."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+    @property
+    def elapsed_s(self) -> float:
+        return time.monotonic() - self.started_s
+
+
+class _State:
+    """This process's kernels: loaded or not, and the compile job it started (one per process: the kernels
+    are process-wide, as numba's dispatchers are)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.loaded = threading.Event()
+        self.job: CompileJob | None = None
+        self.failed: str | None = None
+        self.warned_missing = False
+
+
+_STATE = _State()
 
 
 def ready() -> bool:
-    """True when the compiled kernels can be called without compiling; starts the background compile once."""
-    global _STARTED
+    """True when this process has the compiled kernels loaded (calling them compiles nothing). Never waits."""
+    return _STATE.loaded.is_set()
+
+
+def cached() -> bool:
+    """Whether numba's on-disk cache holds every entry point for the sources as they are now (then loading
+    takes about a second). Reads numba's own cache index, so an index left by older sources does not count."""
     if not HAVE_NUMBA:
         return False
-    if _READY.is_set():
+    try:
+        for kernel in entry_points():
+            index = kernel._cache._cache_file._load_index()  # type: ignore[attr-defined]
+            if not index:
+                return False
+    except Exception:  # numba's cache internals moved: assume nothing is cached, compile in a child
+        return False
+    return True
+
+
+def cache_dir() -> Path | None:
+    """Where numba keeps the extractor's compiled kernels (None without numba)."""
+    if not HAVE_NUMBA:
+        return None
+    try:
+        return Path(entry_points()[0]._cache._cache_path)  # type: ignore[attr-defined]
+    except Exception:
+        return None
+
+
+def warm_up() -> float:
+    """Load the kernels in this process, from the cache or, where it misses, by compiling them here (the
+    child's job; tests and benchmarks call it too); blocks; returns the seconds it took (0 without numba)."""
+    if not HAVE_NUMBA:
+        return 0.0
+    t0 = time.monotonic()
+    with _STATE.lock:
+        if not _STATE.loaded.is_set():
+            _build()
+            _STATE.loaded.set()
+            log.info("extractor: compiled kernels loaded in %.1f s", time.monotonic() - t0)
+    return time.monotonic() - t0
+
+
+def start() -> CompileJob | None:
+    """Start compiling in a child process unless the kernels are loaded, cached or already compiling; returns
+    the running job (None when there is nothing to compile). Does not wait: see :func:`usable`."""
+    if not HAVE_NUMBA or ready():
+        return None
+    with _STATE.lock:
+        if _STATE.job is not None and not _STATE.job.done():
+            return _STATE.job
+        if cached():
+            return None
+        env = dict(os.environ)
+        env.setdefault("NUMBA_OPT", CHILD_OPT_LEVEL)
+        fd, name = tempfile.mkstemp(prefix="lrsensor-compile-", suffix=".log")
+        with os.fdopen(fd, "wb") as out:
+            process = subprocess.Popen(
+                child_command(),
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        _STATE.job = CompileJob(process, Path(name))
+        return _STATE.job
+
+
+def _finish(job: CompileJob) -> bool:
+    """After the child ended: load its kernels (True), or record and log its failure once (False)."""
+    try:
+        job.check()
+    except CompileError as err:
+        if _STATE.failed is None:
+            _STATE.failed = str(err)
+            log.error("extractor: %s\nthe numpy reference runs instead", err)
+        return False
+    warm_up()
+    return True
+
+
+def ensure() -> bool:
+    """Make the compiled kernels ready in this process, waiting for them if need be; False where they cannot be
+    (no numba, or the compile failed: the reference runs, said once in the log).
+
+    Loads them from the cache (about a second), or compiles them once in a child process with a warning (the
+    first use after installing, unless ``lrsensor setup`` ran). Ending the process meanwhile ends the child."""
+    if ready():
         return True
-    if not _STARTED:
-        _STARTED = True
-        if _cached():
-            warm_up()  # loading from the on-disk cache takes about a second: do it now
-            return True
-        threading.Thread(target=warm_up, name="lrsensor-numba-warmup", daemon=True).start()
+    if not HAVE_NUMBA:
+        if not _STATE.warned_missing:
+            _STATE.warned_missing = True
+            log.warning("extractor: numba is not installed; the numpy reference runs (tens of ms a frame)")
+        return False
+    if _STATE.failed is not None:
+        return False
+    job = start()
+    if job is None:
+        warm_up()
+        return True
+    log.warning(
+        "extractor: compiling the kernels once (%s; `lrsensor setup` does this ahead of the first use)",
+        COMPILE_TIME_HINT,
+    )
+    try:
+        job.wait()
+    except BaseException:
+        job.cancel()
+        raise
+    if job.process.returncode == 0:
+        log.warning("extractor: kernels compiled in %.0f s and cached in %s", job.elapsed_s, cache_dir())
+    return _finish(job)
+
+
+def begin() -> bool:
+    """Make the compiled kernels ready without waiting for a compile: load them from the cache if it holds
+    them (True), else start compiling in a child process and say that the numpy reference runs until
+    :func:`usable` finds them built (False)."""
+    if ready():
+        return True
+    if not HAVE_NUMBA or _STATE.failed is not None:
+        return ensure()  # says why the reference runs
+    job = start()
+    if job is None:
+        warm_up()
+        return True
+    log.warning(
+        "extractor: the numpy reference runs (tens of ms a frame) while the kernels compile in a child process "
+        "(%s; `lrsensor setup` does this ahead of the first use)",
+        COMPILE_TIME_HINT,
+    )
     return False
 
 
-#: The kernels that must be compiled before :func:`ready` says so: the road (which compiles every stage it calls)
-#: and the triangulation, which :func:`lrsensor.triangulation.triangulate` calls on its own.
-_KERNELS = (extract_frame, triangulate_points)
-
-
-def _cached() -> bool:
-    """Whether numba's on-disk cache holds an index for every kernel as defined now (then loading is quick)."""
-    try:
-        for kernel in _KERNELS:
-            code = kernel.py_func.__code__
-            path = Path(code.co_filename)
-            name = f"{path.stem}.{kernel.py_func.__qualname__}-{code.co_firstlineno}"
-            if not any((path.parent / "__pycache__").glob(f"{name}.*.nbi")):
-                return False
-    except (OSError, AttributeError):
+def usable() -> bool:
+    """Whether the extractor's next frame runs on the compiled road: True when the kernels are loaded, or a
+    background compile (:func:`begin`) has just finished (they are loaded now and take over, said in the log),
+    or a first use compiles them now in the foreground (:func:`ensure`); False while a background compile runs
+    or where the kernels cannot be had."""
+    if ready():
+        return True
+    job = _STATE.job
+    if job is not None and job.process.poll() is None:
         return False
-    return True
+    if job is not None and _STATE.failed is None:
+        if not _finish(job):
+            return False
+        log.warning("extractor: the compiled kernels take over (compiled in %.0f s)", job.elapsed_s)
+        return True
+    return ensure()
+
+
+def _end_child() -> None:
+    job = _STATE.job
+    if job is not None:
+        job.cancel()
+
+
+atexit.register(_end_child)
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to end this process when its parent dies (elsewhere the parent's atexit ends it)."""
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGTERM)
+        if os.getppid() == 1:  # the parent is already gone
+            sys.exit(1)
+    except (OSError, AttributeError):
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The compiling child (:func:`child_command`): compile every entry point into numba's cache."""
+    args = sys.argv[1:] if argv is None else argv
+    if "--child" in args:
+        _die_with_parent()
+    if not HAVE_NUMBA:
+        print("numba is not installed: nothing to compile", file=sys.stderr)
+        return 1
+    seconds = warm_up()
+    print(f"compiled in {seconds:.1f} s", file=sys.stderr)
+    return 0

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import njit, stage
 from .chains import expand_half, select_candidates, sorted_blocks
 from .columns import put_fit
 from .detect import detect_band
@@ -106,7 +106,7 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
     return sigma, plateau, wide
 
 
-@njit
+@stage
 def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-untyped-def]
     """Steps 2-5 of :func:`extract_frame` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality).
 

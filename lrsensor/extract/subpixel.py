@@ -35,7 +35,8 @@ One road: with numba installed the whole pipeline, and for :class:`lrsensor.sens
 (eq. 29 with the calibration's distortion) and the range-limit gate, runs as one compiled call
 (:func:`lrsensor.extract.frame.extract_frame`; the stages are the modules of this package, see the package
 documentation). The numpy and OpenCV reference (:mod:`lrsensor.extract.reference`) runs the same algorithm where
-the compiled road cannot: without numba, while numba compiles in the background, or when a test sets
+the compiled road cannot: without numba, while the kernels compile in the background (a ROV's first use, said in
+the log; :mod:`lrsensor.extract.compile`), or when a test sets
 :data:`USE_REFERENCE`. Both read one set of records built once per (calibration, configuration)
 (:func:`lrsensor.extract.settings.frame_settings`).
 """
@@ -50,7 +51,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from . import Detections, reference
-from .compile import ready
+from .compile import usable
 from .config import SubpixelConfig
 from .frame import extract_frame
 from .reference import _noise_dn as _noise_dn  # (lrsensor.sim.score reads it here)
@@ -113,7 +114,7 @@ def extract_points(
     cfg = SubpixelConfig.from_options(config, **options)
     image = np.ascontiguousarray(image) if cfg.channel == "green" else luma_as_green(image)
     bands, settings, geometry = frame_settings(calibration, cfg)
-    if not USE_REFERENCE and ready():
+    if not USE_REFERENCE and usable():
         uv, laser, quality, xyz, _ = extract_frame(image, bands, settings, geometry, triangulate)
     else:
         uv, laser, quality, xyz = reference.extract_frame(image, calibration, bands, settings, geometry, triangulate)

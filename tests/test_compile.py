@@ -1,0 +1,157 @@
+"""The one-time compile of the extractor's kernels, from outside: `lrsensor setup`, a first use, and processes
+ended while they compile.
+
+Each test gives its processes an empty numba cache of their own (``NUMBA_CACHE_DIR``), so that they start as
+on a fresh install, whatever the repository's own cache holds.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+from procs import lrsensor_cmd
+from waiting import wait_until
+
+from lrsensor.extract import compile as kernels
+from lrsensor.sim import named_scene
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+#: What a crash at exit looks like (signals and LLVM's own messages).
+CRASH_CODES = {-signal.SIGSEGV, -signal.SIGABRT, -signal.SIGBUS, 128 + signal.SIGSEGV, 128 + signal.SIGABRT}
+CRASH_TEXT = ("LLVM ERROR", "Assertion", "Segmentation fault", "Fatal Python error", "core dumped")
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 1920x1080 image of a wall at 1 m and its calibration, as files."""
+    d = tmp_path_factory.mktemp("frame")
+    setup = named_scene("wall_1.0")
+    image, calib = d / "wall.png", d / "calib.json"
+    cv2.imwrite(str(image), setup.render(0).image)
+    setup.calibration.save(calib)
+    return image, calib
+
+
+def _env(cache: Path) -> dict[str, str]:
+    return dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONUNBUFFERED="1")
+
+
+def _children_of_cache(cache: Path) -> list[int]:
+    """Processes (other than this one) whose environment names ``cache``: compiles left running."""
+    found = []
+    needle = f"NUMBA_CACHE_DIR={cache}".encode()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if needle in (entry / "environ").read_bytes().split(b"\0"):
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+def test_setup_then_process_runs_the_compiled_road(frame: tuple[Path, Path], tmp_path: Path) -> None:
+    image, calib = frame
+    env = _env(tmp_path / "cache")
+    check = subprocess.run(lrsensor_cmd("setup", "--check"), env=env, capture_output=True, text=True, timeout=60)
+    assert check.returncode == 1, check.stdout + check.stderr
+    setup = subprocess.run(lrsensor_cmd("setup"), env=env, capture_output=True, text=True, timeout=600)
+    assert setup.returncode == 0, setup.stdout + setup.stderr
+    assert "compiled in" in setup.stdout
+    again = subprocess.run(lrsensor_cmd("setup"), env=env, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "compiled already" in again.stdout, again.stdout
+    out = tmp_path / "wall.ply"
+    done = subprocess.run(
+        lrsensor_cmd("process", str(image), "--calib", str(calib), "--out", str(out), "--no-progress"),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "compiled kernels loaded" in done.stderr, done.stderr
+    assert "reference" not in done.stderr, done.stderr
+    assert "compiling" not in done.stderr, done.stderr
+    assert out.stat().st_size > 3000 * 12
+
+
+def test_without_numba_setup_says_the_reference_runs(monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    from lrsensor.cli import main
+
+    monkeypatch.setattr(kernels, "HAVE_NUMBA", False)
+    assert main(["setup"]) == 1
+    assert "numpy reference" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("command", "sig", "after_s"),
+    [
+        ("process", signal.SIGINT, 1.0),
+        ("process", signal.SIGTERM, 3.0),
+        ("process", signal.SIGINT, 6.0),
+        ("process", signal.SIGTERM, 10.0),
+        ("rov", signal.SIGTERM, 2.0),
+        ("rov", signal.SIGINT, 5.0),
+        ("rov", signal.SIGTERM, 9.0),
+    ],
+)
+def test_ending_a_first_use_at_any_moment_exits_cleanly(
+    frame: tuple[Path, Path], tmp_path: Path, command: str, sig: int, after_s: float
+) -> None:
+    image, calib = frame
+    cache = tmp_path / "cache"
+    if command == "process":
+        args = lrsensor_cmd("process", str(image), "--calib", str(calib), "--out", str(tmp_path / "o.ply"))
+    else:
+        port = _free_port()
+        args = lrsensor_cmd(
+            "rov", "--fleet", "cx", "--robot", "r1", "--mode", "peer", "--listen", f"tcp/127.0.0.1:{port}", "--source", "sim",
+            "--sim-frames", "100000", "--sim-size", "320x180", "--rate", "5", "--no-outbox",
+        )  # fmt: skip
+    p = subprocess.Popen(args, env=_env(cache), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert wait_until(lambda: bool(_children_of_cache(cache)), 30.0) or p.poll() is not None
+        time.sleep(after_s)
+        p.send_signal(sig)
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode not in CRASH_CODES, out
+    assert p.returncode in (0, 130, -sig, 128 + sig), (p.returncode, out)
+    assert not any(text in out for text in CRASH_TEXT), out
+    assert "compiling the kernels once" in out or "numpy reference" in out, out
+    assert wait_until(lambda: not _children_of_cache(cache), 10.0), "a compile outlived its process"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_first_use_compiles_once_with_a_message(frame: tuple[Path, Path], tmp_path: Path) -> None:
+    image, calib = frame
+    env = _env(tmp_path / "cache")
+    args = lrsensor_cmd("process", str(image), "--calib", str(calib), "--out", str(tmp_path / "o.ply"), "--no-progress")
+    first = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    assert "compiling the kernels once" in first.stderr, first.stderr
+    assert "kernels compiled in" in first.stderr, first.stderr
+    first_ply = (tmp_path / "o.ply").read_bytes()
+    second = subprocess.run(args, env=env, capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stderr
+    assert "compiling" not in second.stderr, second.stderr
+    assert (tmp_path / "o.ply").read_bytes() == first_ply
