@@ -114,8 +114,8 @@ def test_ending_a_first_use_at_any_moment_exits_cleanly(
     else:
         port = _free_port()
         args = lrsensor_cmd(
-            "rov", "--fleet", "cx", "--robot", "r1", "--mode", "peer", "--listen", f"tcp/127.0.0.1:{port}", "--source", "sim",
-            "--sim-frames", "100000", "--sim-size", "320x180", "--rate", "5", "--no-outbox",
+            "rov", "--fleet", "cx", "--robot", "r1", "--mode", "peer", "--listen", f"tcp/127.0.0.1:{port}",
+            "--source", "sim", "--sim-frames", "100000", "--sim-size", "320x180", "--rate", "5", "--no-outbox",
         )  # fmt: skip
     p = subprocess.Popen(args, env=_env(cache), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
