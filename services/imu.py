@@ -8,6 +8,7 @@ Every source fills a :class:`~services.posetrack.PoseTrack` that the frame loop 
 * ``serial:PORT[@BAUD]``: a pyserial URL or device (``/dev/ttyUSB0``, ``loop://``, ``socket://...``) streaming
   OpenROV telemetry lines ``hdgd:<deg>;deep:<m>;pitc:<deg>;roll:<deg>;...``: heading is yaw, depth is down;
   no horizontal fix (OpenROV has none). Samples are stamped with the host receive time.
+* ``mavlink:CONNECTION``: an ArduSub autopilot over MAVLink (:mod:`services.imu_mavlink`).
 
 No source invents a horizontal position: where a sample has no fix the track knows none
 (:mod:`services.posetrack` says how a frame's position is then interpolated or left unknown).
@@ -405,8 +406,9 @@ class SerialImu:
             self._serial.close()
 
 
-def open_imu(spec: str) -> ImuSource:
-    """An IMU source from its command-line spec: ``csv:FILE`` or ``serial:PORT[@BAUD]``.
+def open_imu(spec: str, stale_s: float | None = None) -> ImuSource:
+    """An IMU source from its command-line spec: ``csv:FILE``, ``serial:PORT[@BAUD]`` or
+    ``mavlink:CONNECTION`` (``stale_s``: its staleness limit, seconds; None: the default).
 
     ``sim`` is not handled here: the simulated IMU comes with the simulated frame source.
     """
@@ -416,5 +418,9 @@ def open_imu(spec: str) -> ImuSource:
     if kind == "serial" and arg:
         port, baud = parse_serial_spec(arg)
         return SerialImu(port, baud)
-    msg = f"unknown IMU {spec!r}: use sim, csv:FILE or serial:PORT[@BAUD]"
+    if kind == "mavlink" and arg:
+        from .imu_mavlink import DEFAULT_STALE_S, MavlinkImu
+
+        return MavlinkImu(arg, DEFAULT_STALE_S if stale_s is None else stale_s)
+    msg = f"unknown IMU {spec!r}: use sim, csv:FILE, serial:PORT[@BAUD] or mavlink:CONNECTION"
     raise ImuError(msg)

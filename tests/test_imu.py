@@ -355,3 +355,15 @@ def test_serial_imu_over_a_pty() -> None:
 def test_serial_imu_unopenable_port_is_refused() -> None:
     with pytest.raises(ImuError, match="cannot open"), open_imu("serial:/dev/does-not-exist@9600"):
         pass
+
+
+# ----------------------------------------------------------------------------- MAVLink without pymavlink
+
+
+def test_mavlink_without_pymavlink_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pymavlink", None)  # as if it were not installed
+    imu = open_imu("mavlink:udpin:127.0.0.1:14551")  # the import waits until the source opens
+    with pytest.raises(ImuError, match=r"pip install 'lrsensor\[mavlink\]'"), imu:
+        pass
