@@ -2,7 +2,8 @@
 
 A laser's light lies on its plane. Between the depth limits ``min_range_m <= z_c <= max_range_m`` (depth along
 the camera's optical axis, metres; for the default mounting this is the forward distance x_b of the paper) the
-lit part of the plane is a strip; projected through the camera (with its distortion) that strip covers, in each
+lit part of the plane is a strip; projected through the camera (with its distortion, and through the flat port
+exactly when the calibration has one: the bands hold the refracted stripe, no bound) that strip covers, in each
 image column, an interval of rows ``[v_lo, v_hi]``. Only those pixels can hold that laser's stripe, so the
 extractors search nowhere else. The band is computed once per (calibration, limits) and cached.
 
@@ -21,6 +22,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
+from ..port import pixel_rays_in_water, project_through_port
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -104,8 +106,10 @@ def band_samples(
     """Pixels (M, 2) of sample points of the laser plane between the depth limits, and their depths (M,), m.
 
     The plane strip ``{p : n . p = d, min <= z <= max}`` (camera frame) is sampled on lines of constant depth
-    (geometric depth steps) and projected with the camera's distortion. Samples outside the distortion's
-    one-to-one radius or far outside the image are dropped.
+    (geometric depth steps) and projected with the camera's distortion, through the calibration's flat port when
+    it has one (exact refraction, :func:`lrsensor.port.project_through_port`). Samples outside the distortion's
+    one-to-one radius (of the in-air ray), that no pixel sees through the port, or far outside the image are
+    dropped.
     """
     cam = calibration.camera
     n, d = _plane_cam(calibration, laser)
@@ -116,6 +120,12 @@ def band_samples(
         [[0.0, 0.0], [cam.width - 1.0, 0.0], [0.0, cam.height - 1.0], [cam.width - 1.0, cam.height - 1.0]]
     )
     xy_c = np.abs(np.stack([(corners[:, 0] - cam.cx) / cam.fx, (corners[:, 1] - cam.cy) / cam.fy], axis=1))
+    if calibration.port is not None:
+        # the corners' rays in the water are narrower than in air: sample the strip the port lets the camera see
+        _, dirs = pixel_rays_in_water(cam, calibration.port, corners)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            xy_w = np.abs(dirs[:, :2] / dirs[:, 2:])
+        xy_c = np.where(np.isfinite(xy_w), np.minimum(xy_w, xy_c), xy_c)
     r_valid = _distortion_valid_radius(cam.dist)
     span = min(float(np.hypot(xy_c[:, 0], xy_c[:, 1]).max()) * 1.6 + 0.2, r_valid)
     zs = np.geomspace(min_range_m, max_range_m, n_depths)
@@ -130,15 +140,18 @@ def band_samples(
     else:
         e = e / ne
         nxy2 = n[0] ** 2 + n[1] ** 2
-        s = np.linspace(-span, span, n_lateral)
+        # through a port the image's edges spread the water's angles over more pixels: 3x the samples there
+        s = np.linspace(-span, span, n_lateral if calibration.port is None else 3 * n_lateral)
         base = ((d - n[2] * zs) / nxy2)[:, None] * np.array([n[0], n[1], 0.0])[None, :] + zs[:, None] * z_axis
         pts = (base[:, None, :] + (zs[:, None] * s[None, :])[:, :, None] * e[None, None, :]).reshape(-1, 3)
+    # the in-air ray of each point: the point itself for a pinhole, the refracted path's first leg through a port
+    rays = pts if calibration.port is None else project_through_port(calibration.port, pts)
     with np.errstate(invalid="ignore", divide="ignore"):
-        xn = pts[:, 0] / pts[:, 2]
-        yn = pts[:, 1] / pts[:, 2]
-        ok = (pts[:, 2] > 0) & (np.hypot(xn, yn) <= r_valid)
+        xn = rays[:, 0] / rays[:, 2]
+        yn = rays[:, 1] / rays[:, 2]
+        ok = (rays[:, 2] > 0) & (np.hypot(xn, yn) <= r_valid)
     pts = pts[ok]
-    uv = cam.project(pts)
+    uv = cam.project(rays[ok])
     with np.errstate(invalid="ignore"):
         keep = (
             np.isfinite(uv).all(axis=1)
