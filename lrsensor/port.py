@@ -325,6 +325,29 @@ def project_pixels_through_port(camera: Camera, port: FlatPort, points_cam: Arra
     return camera.project(project_through_port(port, points_cam))
 
 
+def water_rows(camera: Camera, port: FlatPort, uv: ArrayLike, step_px: float = 0.25) -> tuple[FloatArray, FloatArray]:
+    """The rows at which a pinhole in the water would see pixels (N, 2) through the port, and their derivative
+    by the image row.
+
+    The pinhole is the camera's with ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis): the row
+    of a pixel is ``cy + fy n_water / n_air w_y / w_z`` of its water ray ``w``. A straight line in the water is
+    (very nearly: the port is not quite central) straight there, where the refracted image curves it; the
+    extractor's along-stripe line fits run on these rows. The derivative is a central difference over
+    ``step_px`` rows.
+
+    Returns:
+        ``(rows, slope)``, each (N,), px and px per px; NaN where the pixel cannot see into the water.
+    """
+    q = np.asarray(uv, dtype=float).reshape(-1, 2)
+    scale = camera.fy * port.n_water / port.n_air
+    out = []
+    for dv in (-step_px, 0.0, step_px):
+        _, w = pixel_rays_in_water(camera, port, q + np.array([0.0, dv]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out.append(camera.cy + scale * w[:, 1] / w[:, 2])
+    return out[1], (out[2] - out[0]) / (2.0 * step_px)
+
+
 def triangulate_through_port(calibration: Calibration, uv: ArrayLike, laser: LaserPlane | ArrayLike) -> FloatArray:
     """Triangulate pixels on laser planes through the calibration's port (exact refraction).
 

@@ -29,6 +29,7 @@ from lrsensor.port import (
     project_through_port,
     rays_in_water,
     triangulate_through_port,
+    water_rows,
 )
 from lrsensor.triangulation import triangulate_plane
 
@@ -558,3 +559,34 @@ def test_water_rays_and_projection_of_the_calibration() -> None:
     np.testing.assert_array_equal(o, plain.camera_center_body)
     np.testing.assert_array_equal(d, plain.rays_body(uv))
     np.testing.assert_array_equal(plain.project_water_body(p), plain.project_body(p))
+
+
+def test_water_rows_straighten_a_line_in_the_water() -> None:
+    """A straight line in the water seen through the port is curved in the image but straight (to the port's
+    small non-centrality) in the rows of :func:`water_rows`; the compiled twin gives the same rows."""
+    from lrsensor.extract import compile
+    from lrsensor.extract.config import SubpixelConfig
+    from lrsensor.extract.geometry import water_rows as water_rows_compiled
+    from lrsensor.extract.settings import frame_settings
+
+    cal = _ported_calibration(PORTS[1])
+    assert cal.port is not None
+    cam = Camera(1920, 1080, 554.28, 554.28, 959.5, 539.5)
+    cal = replace(cal, camera=cam)
+    x = np.linspace(-1.2, 1.2, 2001)
+    line_cam = np.stack([x, np.full_like(x, 0.15), np.full_like(x, 2.0)], axis=1)  # y = 0.15 m at z = 2 m
+    uv = project_pixels_through_port(cam, cal.port, line_cam)
+    uv = uv[cam.in_image(uv)]
+    rows, slope = water_rows(cam, cal.port, uv)
+    bow_image = np.ptp(uv[:, 1] - np.polyval(np.polyfit(uv[:, 0], uv[:, 1], 1), uv[:, 0]))
+    bow_water = np.ptp(rows - np.polyval(np.polyfit(uv[:, 0], rows, 1), uv[:, 0]))
+    assert bow_image > 5.0  # the port curves the line by pixels
+    assert bow_water < 0.05 * bow_image
+    assert (slope > 0.5).all()
+    np.testing.assert_allclose(slope[np.argmin(np.abs(uv[:, 0] - 959.5))], 1.0, atol=0.05)
+    if compile.HAVE_NUMBA:
+        compile.warm_up()
+        _, _, geo = frame_settings(cal, SubpixelConfig())
+        r2, s2 = water_rows_compiled(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), geo)
+        np.testing.assert_allclose(r2, rows, atol=1e-9)
+        np.testing.assert_allclose(s2, slope, atol=1e-6)

@@ -252,7 +252,7 @@ def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-un
                 look = np.flatnonzero(touched)
                 touched[look] = False
     # 5. gates, runs, smoothing, quality
-    return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s)
+    return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s, geo)
 
 
 @njit

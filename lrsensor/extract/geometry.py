@@ -146,6 +146,27 @@ def _refract(dx, dy, dz, nx, ny, nz, cos_in, mu):  # type: ignore[no-untyped-def
     return mu * dx + k * nx, mu * dy + k * ny, mu * dz + k * nz
 
 
+@inline
+def _water_ray(x, y, port):  # type: ignore[no-untyped-def]
+    """The ray in the water of the in-air ray ``(x, y, 1)`` (normalized image coordinates) through the
+    :class:`~lrsensor.extract.settings.Port` ``port``: its exit point on the outer surface and its unit direction,
+    camera frame, ``(qx, qy, qz, wx, wy, wz)``; NaN where the ray cannot reach the water."""
+    pn = port.normal_cam
+    pnx, pny, pnz = pn[0], pn[1], pn[2]
+    norm = math.sqrt(x * x + y * y + 1.0)
+    rx = x / norm
+    ry = y / norm
+    rz = 1.0 / norm
+    cos_air = rx * pnx + ry * pny + rz * pnz
+    cos_air = cos_air if cos_air > 1e-12 else np.nan  # parallel to or away from the port
+    s_in = port.distance_m / cos_air
+    gx, gy, gz = _refract(rx, ry, rz, pnx, pny, pnz, cos_air, port.n_air / port.n_glass)
+    cos_glass = gx * pnx + gy * pny + gz * pnz
+    s_glass = port.thickness_m / cos_glass
+    wx, wy, wz = _refract(gx, gy, gz, pnx, pny, pnz, cos_glass, port.n_glass / port.n_water)
+    return s_in * rx + s_glass * gx, s_in * ry + s_glass * gy, s_in * rz + s_glass * gz, wx, wy, wz
+
+
 @njit
 def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, port):  # type: ignore[no-untyped-def]
     """:func:`triangulate_points` through a flat port: each pixel's in-air ray (camera model with distortion) is
@@ -164,30 +185,9 @@ def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, 
     n = u.size
     out = np.empty((n, 3))
     xs, ys = _undistort(u, v, cam, dist)
-    pn = port.normal_cam
-    pnx, pny, pnz = pn[0], pn[1], pn[2]
-    mu_glass = port.n_air / port.n_glass
-    mu_water = port.n_glass / port.n_water
-    d_in = port.distance_m
-    thick = port.thickness_m
     o0, o1, o2 = origin[0], origin[1], origin[2]
     for t in range(n):
-        x = xs[t]
-        y = ys[t]
-        norm = math.sqrt(x * x + y * y + 1.0)
-        rx = x / norm
-        ry = y / norm
-        rz = 1.0 / norm
-        cos_air = rx * pnx + ry * pny + rz * pnz
-        cos_air = cos_air if cos_air > 1e-12 else np.nan  # parallel to or away from the port
-        s_in = d_in / cos_air
-        gx, gy, gz = _refract(rx, ry, rz, pnx, pny, pnz, cos_air, mu_glass)
-        cos_glass = gx * pnx + gy * pny + gz * pnz
-        s_glass = thick / cos_glass
-        qx = s_in * rx + s_glass * gx  # exit point on the outer surface, camera frame
-        qy = s_in * ry + s_glass * gy
-        qz = s_in * rz + s_glass * gz
-        wx, wy, wz = _refract(gx, gy, gz, pnx, pny, pnz, cos_glass, mu_water)
+        qx, qy, qz, wx, wy, wz = _water_ray(xs[t], ys[t], port)
         # camera vectors to body vectors: R^T v
         ox = o0 + qx * R[0, 0] + qy * R[1, 0] + qz * R[2, 0]
         oy = o1 + qx * R[0, 1] + qy * R[1, 1] + qz * R[2, 1]
@@ -222,6 +222,44 @@ def triangulate_geo(u, v, laser, geo):  # type: ignore[no-untyped-def]
     return triangulate_points(
         u, v, laser, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body
     )
+
+
+#: Row step of the numerical derivative of :func:`water_rows`, px.
+WATER_ROW_STEP_PX = 0.25
+
+
+@njit
+def water_rows(u, v, geo):  # type: ignore[no-untyped-def]
+    """Rows (N,) at which a pinhole in the water would see the pixels ``(u, v)`` (N,) through the port of
+    ``geo``, and their derivative by ``v`` (N,) (the numpy twin: :func:`lrsensor.port.water_rows`).
+
+    The pinhole is the camera's, with ``fy`` scaled by ``n_water / n_air`` (so the two agree near the axis):
+    ``cy + fy n_water / n_air w_y / w_z`` of each pixel's water ray ``w``. A straight line in the water is (very
+    nearly: the port is not quite central) a straight line there, where the refracted image curves it; the
+    along-stripe line fits run on these rows. NaN where the pixel cannot see into the water.
+    """
+    n = u.size
+    port = geo.port
+    cam = geo.camera
+    scale = cam[1] * port.n_water / port.n_air
+    h = WATER_ROW_STEP_PX
+    uu = np.empty(3 * n)
+    vv = np.empty(3 * n)
+    for t in range(n):
+        for j in range(3):
+            uu[3 * t + j] = u[t]
+            vv[3 * t + j] = v[t] + (j - 1) * h
+    xs, ys = _undistort(uu, vv, cam, geo.distortion)
+    g = np.empty(3 * n)
+    for t in range(3 * n):
+        _, _, _, _, wy, wz = _water_ray(xs[t], ys[t], port)
+        g[t] = cam[3] + scale * wy / wz
+    rows = np.empty(n)
+    slope = np.empty(n)
+    for t in range(n):
+        rows[t] = g[3 * t + 1]
+        slope[t] = (g[3 * t + 2] - g[3 * t]) / (2.0 * h)
+    return rows, slope
 
 
 @njit

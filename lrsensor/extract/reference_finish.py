@@ -18,6 +18,8 @@ import warnings
 import numpy as np
 from numpy.typing import NDArray
 
+from ..camera import Camera
+from ..port import FlatPort, water_rows
 from . import refit
 from .settings import Settings
 from .smooth import SUBBLOCK_MIN_K, SUBBLOCK_SIGMAS
@@ -237,4 +239,26 @@ def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
         take = ~done & np.isfinite(val)
         out[take] = val[take]
         done |= take
+    return out
+
+
+def smooth_through_port(
+    y: FloatArray, run: IntArray, scales: tuple[int, ...], w: int, camera: Camera, port: FlatPort
+) -> FloatArray:
+    """:func:`smooth` of rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none) seen through a
+    flat port: the line fits run on the rows a pinhole in the water would see (:func:`lrsensor.port.water_rows`),
+    where the port does not curve a straight stripe, and the corrections go back to image rows through the local
+    derivative (``finish.smooth_through_port`` is the compiled twin). Rows whose pixel cannot see into the water
+    are left as they are."""
+    idx = np.flatnonzero(np.isfinite(y))
+    rows, slope = water_rows(camera, port, np.stack([(idx % w).astype(np.float64), y[idx]], axis=1))
+    yw = np.full(y.size, np.nan)
+    yw[idx] = rows
+    run_w = run.copy()
+    run_w[idx[~np.isfinite(rows)]] = -1
+    sw = smooth(yw, run_w, scales)
+    out = y.copy()
+    with np.errstate(invalid="ignore"):
+        step = (sw[idx] - rows) / slope
+    out[idx] = np.where(np.isfinite(step), y[idx] + step, y[idx])
     return out
