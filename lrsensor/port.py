@@ -325,27 +325,34 @@ def project_pixels_through_port(camera: Camera, port: FlatPort, points_cam: Arra
     return camera.project(project_through_port(port, points_cam))
 
 
-def water_rows(camera: Camera, port: FlatPort, uv: ArrayLike, step_px: float = 0.25) -> tuple[FloatArray, FloatArray]:
-    """The rows at which a pinhole in the water would see pixels (N, 2) through the port, and their derivative
-    by the image row.
+def central_view(
+    calibration: Calibration, uv: ArrayLike, laser: ArrayLike, step_px: float = 0.25
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Where a pinhole in the water at the camera centre would see the points that pixels (N, 2) of lasers (N,)
+    triangulate to through the calibration's port: its columns and rows, and the rows' derivative by the image
+    row (a central difference over ``step_px`` rows).
 
-    The pinhole is the camera's with ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis): the row
-    of a pixel is ``cy + fy n_water / n_air w_y / w_z`` of its water ray ``w``. A straight line in the water is
-    (very nearly: the port is not quite central) straight there, where the refracted image curves it; the
-    extractor's along-stripe line fits run on these rows. The derivative is a central difference over
-    ``step_px`` rows.
+    The pinhole is the camera's with ``fx``, ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis).
+    A straight line in the water (a laser plane on a flat surface) is straight in any central view, where the
+    port's image curves it; the extractor's along-stripe line fits run there.
 
     Returns:
-        ``(rows, slope)``, each (N,), px and px per px; NaN where the pixel cannot see into the water.
+        ``(cols, rows, slope)``, each (N,), px, px and px per px; NaN where the ray misses its plane.
     """
+    assert calibration.port is not None
+    cam = calibration.camera
     q = np.asarray(uv, dtype=float).reshape(-1, 2)
-    scale = camera.fy * port.n_water / port.n_air
-    out = []
+    idx = np.asarray(laser, dtype=int).reshape(-1)
+    n = calibration.port.n_water / calibration.port.n_air
+    rows = []
+    cols = np.full(q.shape[0], np.nan)
     for dv in (-step_px, 0.0, step_px):
-        _, w = pixel_rays_in_water(camera, port, q + np.array([0.0, dv]))
+        p = calibration.body_to_cam(triangulate_through_port(calibration, q + np.array([0.0, dv]), idx))
         with np.errstate(divide="ignore", invalid="ignore"):
-            out.append(camera.cy + scale * w[:, 1] / w[:, 2])
-    return out[1], (out[2] - out[0]) / (2.0 * step_px)
+            rows.append(cam.cy + cam.fy * n * p[:, 1] / p[:, 2])
+            if dv == 0.0:
+                cols = cam.cx + cam.fx * n * p[:, 0] / p[:, 2]
+    return cols, rows[1], (rows[2] - rows[0]) / (2.0 * step_px)
 
 
 def triangulate_through_port(calibration: Calibration, uv: ArrayLike, laser: LaserPlane | ArrayLike) -> FloatArray:

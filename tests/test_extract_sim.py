@@ -333,17 +333,17 @@ def test_constructing_a_sensor_prepares_the_compiled_extractor() -> None:
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
 def test_ported_far_wall_is_unbiased(tilt_deg: float) -> None:
-    """Through a flat port a wall's stripe is curved in the image; the along-stripe line fits run on the rows a
-    pinhole in the water would see, so they do not pull it towards its chords: no bias at 3 m, and the ported
-    scene is as accurate as the unported one."""
+    """Through a flat port a wall's stripe is curved in the image; the along-stripe line fits run where a
+    pinhole in the water at the camera centre would see the stripe's points, so they do not pull it towards its
+    chords: no bias at 3 m."""
     setup = sim.named_scene("wall_3.0").with_port(sim.acrylic_port(tilt_deg))
     r = setup.render(seed=0)
     scan = Sensor(setup.calibration).process(r.image)
     for lt in r.truth.lasers:
         sel = scan.laser == lt.index
         dv = scan.uv[sel, 1] - r.truth.v_at_columns(lt.index, scan.uv[sel, 0])
-        assert abs(np.nanmedian(dv)) < 0.03, (lt.index, np.nanmedian(dv))  # 0.03-0.05 px toward the centre before
+        assert abs(np.nanmedian(dv)) < 0.015, (lt.index, np.nanmedian(dv))  # 0.03-0.05 px in the index's fits
     s = score_scan(r, scan)
-    assert s["median"] <= 0.15, s
-    assert s["p95"] <= 0.4, s
+    assert s["median"] <= 0.1, s
+    assert s["p95"] <= 0.3, s
     assert s["coverage"] >= 99.0, s

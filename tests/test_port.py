@@ -24,12 +24,12 @@ from lrsensor.port import (
     FlatPort,
     blind_mask,
     blind_pixels,
+    central_view,
     pixel_rays_in_water,
     project_pixels_through_port,
     project_through_port,
     rays_in_water,
     triangulate_through_port,
-    water_rows,
 )
 from lrsensor.triangulation import triangulate_plane
 
@@ -561,32 +561,41 @@ def test_water_rays_and_projection_of_the_calibration() -> None:
     np.testing.assert_array_equal(plain.project_water_body(p), plain.project_body(p))
 
 
-def test_water_rows_straighten_a_line_in_the_water() -> None:
-    """A straight line in the water seen through the port is curved in the image but straight (to the port's
-    small non-centrality) in the rows of :func:`water_rows`; the compiled twin gives the same rows."""
+def test_central_view_straightens_a_stripe_on_a_wall() -> None:
+    """A laser's stripe on a flat (tilted) wall seen through the port is curved in the image but straight in
+    :func:`central_view` (a central pinhole in the water); the compiled twin gives the same view."""
     from lrsensor.extract import compile
     from lrsensor.extract.config import SubpixelConfig
-    from lrsensor.extract.geometry import water_rows as water_rows_compiled
+    from lrsensor.extract.geometry import central_view as central_view_compiled
     from lrsensor.extract.settings import frame_settings
 
-    cal = _ported_calibration(PORTS[1])
-    assert cal.port is not None
     cam = Camera(1920, 1080, 554.28, 554.28, 959.5, 539.5)
-    cal = replace(cal, camera=cam)
-    x = np.linspace(-1.2, 1.2, 2001)
-    line_cam = np.stack([x, np.full_like(x, 0.15), np.full_like(x, 2.0)], axis=1)  # y = 0.15 m at z = 2 m
-    uv = project_pixels_through_port(cam, cal.port, line_cam)
-    uv = uv[cam.in_image(uv)]
-    rows, slope = water_rows(cam, cal.port, uv)
+    cal = replace(_ported_calibration(PORTS[1]), camera=cam)
+    assert cal.port is not None
+    laser = cal.lasers[0]
+    # the line where the laser plane meets a wall tilted 30 deg: two points of it, then points between
+    wall_n = np.array([math.cos(math.radians(30)), math.sin(math.radians(30)), 0.0])
+    direction = np.cross(laser.normal_body, wall_n)
+    anchor = np.linalg.lstsq(
+        np.stack([laser.normal_body, wall_n]), np.array([laser.normal_body @ laser.point_body, 1.2]), rcond=None
+    )[0]
+    points = anchor + np.linspace(-3.0, 3.0, 4001)[:, None] * direction
+    uv = cal.project_water_body(points)
+    keep = cam.in_image(uv)
+    uv = uv[keep]
+    assert uv.shape[0] > 1000
+    idx = np.zeros(uv.shape[0], dtype=int)
+    cols, rows, slope = central_view(cal, uv, idx)
     bow_image = np.ptp(uv[:, 1] - np.polyval(np.polyfit(uv[:, 0], uv[:, 1], 1), uv[:, 0]))
-    bow_water = np.ptp(rows - np.polyval(np.polyfit(uv[:, 0], rows, 1), uv[:, 0]))
-    assert bow_image > 5.0  # the port curves the line by pixels
-    assert bow_water < 0.05 * bow_image
-    assert (slope > 0.5).all()
-    np.testing.assert_allclose(slope[np.argmin(np.abs(uv[:, 0] - 959.5))], 1.0, atol=0.05)
+    bow_view = np.ptp(rows - np.polyval(np.polyfit(cols, rows, 1), cols))
+    assert bow_image > 5.0  # the port curves the stripe by pixels
+    assert bow_view < 1e-6  # a central view of a line is a line
+    assert (slope > 0.3).all()
     if compile.HAVE_NUMBA:
         compile.warm_up()
         _, _, geo = frame_settings(cal, SubpixelConfig())
-        r2, s2 = water_rows_compiled(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), geo)
-        np.testing.assert_allclose(r2, rows, atol=1e-9)
-        np.testing.assert_allclose(s2, slope, atol=1e-6)
+        u, v = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
+        c2, r2, s2 = central_view_compiled(u, v, idx.astype(np.int64), geo)
+        np.testing.assert_allclose(c2, cols, atol=1e-7)
+        np.testing.assert_allclose(r2, rows, atol=1e-7)
+        np.testing.assert_allclose(s2, slope, atol=1e-5)

@@ -24,8 +24,8 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
-from .geometry import water_rows
-from .smooth import smooth_runs
+from .geometry import central_view
+from .smooth import smooth_runs, smooth_runs_at
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -180,20 +180,28 @@ def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
 @njit
 def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
     """:func:`.smooth.smooth_runs` of the rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none)
-    seen through the port of ``geo``: the line fits run on the rows a pinhole in the water would see
-    (:func:`.geometry.water_rows`), where a straight stripe stays straight (the port curves it: the line fits
-    would pull a curved stripe towards its chords), and their corrections go back to image rows through the
-    local derivative (the corrections are below a pixel: the first order is exact to far below 1e-3 px).
-    Rows whose pixel cannot see into the water are left as they are."""
+    seen through the port of ``geo``: the line fits run where a pinhole in the water at the camera centre would
+    see the points (:func:`.geometry.central_view`), where a stripe on a flat surface is straight (the port
+    curves it, and line fits would pull a curved stripe towards its chords), and their corrections go back to
+    image rows through the local derivative (the corrections are below a pixel: the first order is exact to far
+    below 1e-3 px). Rows whose ray misses their laser's plane are left as they are."""
     idx = np.flatnonzero(np.isfinite(y))
-    rows, slope = water_rows((idx % w).astype(np.float64), y[idx], geo)
+    cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
     yw = np.full(y.size, np.nan)
     run_w = run.copy()
+    seen = np.isfinite(rows) & np.isfinite(cols)
     for j in range(idx.size):
-        yw[idx[j]] = rows[j]
-        if not math.isfinite(rows[j]):
+        if seen[j]:
+            yw[idx[j]] = rows[j]
+        else:
             run_w[idx[j]] = -1
-    sw = smooth_runs(yw, run_w, scales)
+    # the columns' coordinates: the water pinhole's where seen, interpolated (by the index) between them
+    index = np.arange(y.size).astype(np.float64)
+    x = index
+    if np.any(seen):
+        known = idx[seen]
+        x = np.interp(index, index[known], cols[seen])
+    sw = smooth_runs_at(yw, x, run_w, scales)
     out = y.copy()
     for j in range(idx.size):
         step = (sw[idx[j]] - rows[j]) / slope[j]

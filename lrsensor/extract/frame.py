@@ -9,7 +9,8 @@
    the sub-pixel fits, column-parallel by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`), the rest by
    the full kernel (:mod:`.fit`);
 4. neighbour refits where two lasers' stripes come close (:mod:`.refit`);
-5. gates, runs, smoothing and quality (:mod:`.finish`);
+5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
+   pinhole in the water at the camera centre would see the stripe's points);
 6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has one)
    and the range-limit gate on camera depth.
 

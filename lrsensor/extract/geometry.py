@@ -224,42 +224,56 @@ def triangulate_geo(u, v, laser, geo):  # type: ignore[no-untyped-def]
     )
 
 
-#: Row step of the numerical derivative of :func:`water_rows`, px.
-WATER_ROW_STEP_PX = 0.25
+#: Row step of the numerical derivative of :func:`central_view`, px.
+CENTRAL_VIEW_STEP_PX = 0.25
 
 
 @njit
-def water_rows(u, v, geo):  # type: ignore[no-untyped-def]
-    """Rows (N,) at which a pinhole in the water would see the pixels ``(u, v)`` (N,) through the port of
-    ``geo``, and their derivative by ``v`` (N,) (the numpy twin: :func:`lrsensor.port.water_rows`).
+def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
+    """Where a pinhole in the water at the camera centre would see the points that pixels ``(u, v)`` (N,) of
+    lasers ``laser`` (N,) triangulate to through the port of ``geo``: its columns and rows (N,) and the rows'
+    derivative by ``v`` (N,) (the numpy twin: :func:`lrsensor.port.central_view`).
 
-    The pinhole is the camera's, with ``fy`` scaled by ``n_water / n_air`` (so the two agree near the axis):
-    ``cy + fy n_water / n_air w_y / w_z`` of each pixel's water ray ``w``. A straight line in the water is (very
-    nearly: the port is not quite central) a straight line there, where the refracted image curves it; the
-    along-stripe line fits run on these rows. NaN where the pixel cannot see into the water.
+    The pinhole is the camera's with ``fx``, ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis).
+    A straight line in the water (a laser plane on a flat surface) is a straight line in any central view, where
+    the port's image curves it; the along-stripe line fits run there. NaN where the ray misses the plane.
     """
     n = u.size
     port = geo.port
     cam = geo.camera
-    scale = cam[1] * port.n_water / port.n_air
-    h = WATER_ROW_STEP_PX
+    ratio = port.n_water / port.n_air
+    h = CENTRAL_VIEW_STEP_PX
     uu = np.empty(3 * n)
     vv = np.empty(3 * n)
+    ll = np.empty(3 * n, np.int64)
     for t in range(n):
         for j in range(3):
             uu[3 * t + j] = u[t]
             vv[3 * t + j] = v[t] + (j - 1) * h
-    xs, ys = _undistort(uu, vv, cam, geo.distortion)
+            ll[3 * t + j] = laser[t]
+    pts = triangulate_points_port(
+        uu, vv, ll, cam, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body, port
+    )
+    R = geo.R_cam_body
+    o = geo.origin_body
     g = np.empty(3 * n)
+    cols = np.empty(n)
     for t in range(3 * n):
-        _, _, _, _, wy, wz = _water_ray(xs[t], ys[t], port)
-        g[t] = cam[3] + scale * wy / wz
+        dx = pts[t, 0] - o[0]
+        dy = pts[t, 1] - o[1]
+        dz = pts[t, 2] - o[2]
+        x = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
+        y = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+        z = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+        g[t] = cam[3] + cam[1] * ratio * y / z
+        if t % 3 == 1:
+            cols[t // 3] = cam[2] + cam[0] * ratio * x / z
     rows = np.empty(n)
     slope = np.empty(n)
     for t in range(n):
         rows[t] = g[3 * t + 1]
         slope[t] = (g[3 * t + 2] - g[3 * t]) / (2.0 * h)
-    return rows, slope
+    return cols, rows, slope
 
 
 @njit

@@ -200,7 +200,7 @@ def extract_frame(
         if calibration.port is None:
             vv = smooth(y, run, scales)[col_v]
         else:
-            vv = smooth_through_port(y, run, scales, w, calibration.camera, calibration.port)[col_v]
+            vv = smooth_through_port(y, run, scales, w, calibration)[col_v]
     # quality
     laser = col_v // w
     q_snr = 1.0 - np.exp(-snr / 8.0)
