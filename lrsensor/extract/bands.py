@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
-from ..port import pixel_rays_in_water, project_through_port
+from ..port import project_through_port
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -120,12 +120,6 @@ def band_samples(
         [[0.0, 0.0], [cam.width - 1.0, 0.0], [0.0, cam.height - 1.0], [cam.width - 1.0, cam.height - 1.0]]
     )
     xy_c = np.abs(np.stack([(corners[:, 0] - cam.cx) / cam.fx, (corners[:, 1] - cam.cy) / cam.fy], axis=1))
-    if calibration.port is not None:
-        # the corners' rays in the water are narrower than in air: sample the strip the port lets the camera see
-        _, dirs = pixel_rays_in_water(cam, calibration.port, corners)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            xy_w = np.abs(dirs[:, :2] / dirs[:, 2:])
-        xy_c = np.where(np.isfinite(xy_w), np.minimum(xy_w, xy_c), xy_c)
     r_valid = _distortion_valid_radius(cam.dist)
     span = min(float(np.hypot(xy_c[:, 0], xy_c[:, 1]).max()) * 1.6 + 0.2, r_valid)
     zs = np.geomspace(min_range_m, max_range_m, n_depths)
@@ -140,8 +134,13 @@ def band_samples(
     else:
         e = e / ne
         nxy2 = n[0] ** 2 + n[1] ** 2
-        # through a port the image's edges spread the water's angles over more pixels: 3x the samples there
-        s = np.linspace(-span, span, n_lateral if calibration.port is None else 3 * n_lateral)
+        s = np.linspace(-span, span, n_lateral)
+        if calibration.port is not None:
+            # through a port the same in-air directions, refracted into the water (as a square port bends them):
+            # the samples stay about evenly spread over the image, where the water's angles crowd at its edges
+            port = calibration.port
+            sin_w = np.sin(np.arctan(np.abs(s))) * (port.n_air / port.n_water)
+            s = np.sign(s) * np.tan(np.arcsin(np.minimum(sin_w, 0.9999)))
         base = ((d - n[2] * zs) / nxy2)[:, None] * np.array([n[0], n[1], 0.0])[None, :] + zs[:, None] * z_axis
         pts = (base[:, None, :] + (zs[:, None] * s[None, :])[:, :, None] * e[None, None, :]).reshape(-1, 3)
     # the in-air ray of each point: the point itself for a pinhole, the refracted path's first leg through a port
