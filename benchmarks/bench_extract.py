@@ -349,7 +349,7 @@ STAGES = {
     ),
     "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "refit_columns"),
     "pooled gates, smoothing, quality": ("finish_points",),
-    "triangulation": ("triangulate_points",),
+    "triangulation": ("triangulate_geo",),
 }
 
 

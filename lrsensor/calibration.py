@@ -30,7 +30,7 @@ from .atomic import atomic_write
 from .camera import Camera
 from .errors import CalibrationFileError, GeometryError
 from .frames import R_CAM_FROM_BODY_DEFAULT
-from .port import FlatPort, blind_pixels, border_pixels
+from .port import FlatPort, blind_pixels, border_pixels, pixel_rays_in_water, project_pixels_through_port
 
 FloatArray = NDArray[np.float64]
 FORMAT_NAME = "lrsensor-calibration"
@@ -133,6 +133,26 @@ class Calibration:
     def rays_body(self, uv: FloatArray) -> FloatArray:
         """Viewing-ray directions in the body frame (N, 3) for pixels (N, 2) (not normalised)."""
         return self.camera.unproject(uv) @ self.R_cam_body
+
+    def water_rays_body(self, uv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The rays along which pixels (N, 2) see into the water, body frame: ``(origins, dirs)``.
+
+        Without a port: the camera centre (3,) and :meth:`rays_body` (N, 3) (not normalised). Through the port:
+        each ray's exit point on the port's outer surface (N, 3), metres, and its unit direction in the water
+        (N, 3) (:func:`lrsensor.port.pixel_rays_in_water`; NaN rows for pixels that cannot see into the water).
+        """
+        if self.port is None:
+            return self.camera_center_body, self.rays_body(uv)
+        origins_cam, dirs_cam = pixel_rays_in_water(self.camera, self.port, uv)
+        return self.cam_to_body(origins_cam), dirs_cam @ self.R_cam_body
+
+    def project_water_body(self, points_body: FloatArray) -> FloatArray:
+        """Pixels (N, 2) of body-frame points (N, 3) in the water: :meth:`project_body`, or through the port
+        exactly when there is one (:func:`lrsensor.port.project_pixels_through_port`); NaN rows for points
+        behind the camera (or the port's outer surface)."""
+        if self.port is None:
+            return self.project_body(points_body)
+        return project_pixels_through_port(self.camera, self.port, self.body_to_cam(points_body))
 
     @classmethod
     def paper(cls, baseline_m: float = 0.1, width: int = 1920, height: int = 1080) -> Calibration:

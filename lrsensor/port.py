@@ -325,6 +325,36 @@ def project_pixels_through_port(camera: Camera, port: FlatPort, points_cam: Arra
     return camera.project(project_through_port(port, points_cam))
 
 
+def central_view(
+    calibration: Calibration, uv: ArrayLike, laser: ArrayLike, step_px: float = 0.25
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Where a pinhole in the water at the camera centre would see the points that pixels (N, 2) of lasers (N,)
+    triangulate to through the calibration's port: its columns and rows, and the rows' derivative by the image
+    row (a central difference over ``step_px`` rows).
+
+    The pinhole is the camera's with ``fx``, ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis).
+    A straight line in the water (a laser plane on a flat surface) is straight in any central view, where the
+    port's image curves it; the extractor's along-stripe line fits run there.
+
+    Returns:
+        ``(cols, rows, slope)``, each (N,), px, px and px per px; NaN where the ray misses its plane.
+    """
+    assert calibration.port is not None
+    cam = calibration.camera
+    q = np.asarray(uv, dtype=float).reshape(-1, 2)
+    idx = np.asarray(laser, dtype=int).reshape(-1)
+    n = calibration.port.n_water / calibration.port.n_air
+    rows = []
+    cols = np.full(q.shape[0], np.nan)
+    for dv in (-step_px, 0.0, step_px):
+        p = calibration.body_to_cam(triangulate_through_port(calibration, q + np.array([0.0, dv]), idx))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rows.append(cam.cy + cam.fy * n * p[:, 1] / p[:, 2])
+            if dv == 0.0:
+                cols = cam.cx + cam.fx * n * p[:, 0] / p[:, 2]
+    return cols, rows[1], (rows[2] - rows[0]) / (2.0 * step_px)
+
+
 def triangulate_through_port(calibration: Calibration, uv: ArrayLike, laser: LaserPlane | ArrayLike) -> FloatArray:
     """Triangulate pixels on laser planes through the calibration's port (exact refraction).
 

@@ -90,8 +90,13 @@ def triangulate(
 ) -> FloatArray:
     """Triangulate pixels (N, 2), each on the laser plane ``laser_index`` (N,), into body points (N, 3).
 
-    ``compiled``: use the compiled kernel (:func:`lrsensor.extract.geometry.triangulate_points`) for 16 pixels or
-    more once numba has it (never waits for it); False: numpy only (the extractor's reference)."""
+    With a port (``calibration.port``) each pixel's ray is refracted into the water first (exact, from its exit
+    point on the port's outer surface: :func:`lrsensor.port.triangulate_through_port`); without one it is the
+    pinhole ray from the camera centre (eq. 29).
+
+    ``compiled``: use the compiled kernel (:func:`lrsensor.extract.geometry.triangulate_points`, or
+    ``triangulate_points_port`` through a port) for 16 pixels or more once numba has it (never waits for it);
+    False: numpy only (the extractor's reference)."""
     q = np.asarray(uv, dtype=float).reshape(-1, 2)
     idx = np.asarray(laser_index, dtype=int).reshape(-1)
     if idx.shape[0] != q.shape[0]:
@@ -104,17 +109,18 @@ def triangulate(
 
     if compiled and q.shape[0] >= 16 and compile.ready():
         cam, dist, R, o, n_all, p_all = _arrays(calibration)
-        return geometry.triangulate_points(  # type: ignore[no-any-return]
-            np.ascontiguousarray(q[:, 0]),
-            np.ascontiguousarray(q[:, 1]),
-            idx.astype(np.int64),
-            cam,
-            dist,
-            R,
-            o,
-            n_all,
-            p_all,
-        )
+        u, v, li = np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), idx.astype(np.int64)
+        if calibration.port is not None:
+            from .extract.settings import port_record
+
+            return geometry.triangulate_points_port(  # type: ignore[no-any-return]
+                u, v, li, cam, dist, R, o, n_all, p_all, port_record(calibration.port)
+            )
+        return geometry.triangulate_points(u, v, li, cam, dist, R, o, n_all, p_all)  # type: ignore[no-any-return]
+    if calibration.port is not None:
+        from .port import triangulate_through_port
+
+        return triangulate_through_port(calibration, q, idx)
     rays = calibration.rays_body(q)
     normals = np.array([l.normal_body for l in calibration.lasers])[idx]
     points = np.array([l.point_body for l in calibration.lasers])[idx]

@@ -278,3 +278,29 @@ def test_cli_per_image_wall_normals(bench: dict[str, Any], tmp_path: Path, capsy
     images = json.loads(out.read_text())["metadata"]["laser_calibration"]["images"]
     got = np.array(images[1]["wall_normal"])
     assert np.allclose(got, np.array(normals[0.5]) / np.linalg.norm(normals[0.5]), atol=1e-6)
+
+
+def test_laser_planes_through_a_flat_port() -> None:
+    """Walls rendered through a tilted acrylic port: the stripe points are the refracted rays' hits, so the
+    planes come out within 0.05 deg as without a port; a checkerboard pose through a port is refused."""
+    from dataclasses import replace
+
+    from lrsensor.calib import BoardSpec
+    from lrsensor.sim import acrylic_port
+
+    port = acrylic_port(2.0)
+    true = replace(tilted_calibration(tilts_deg=TILTS_DEG), port=port)
+    nominal = replace(paper_calibration(), port=port)
+    walls = [WallImage(wall_scene(d, calibration=true).render(seed=20 + i).image, d) for i, d in enumerate(DISTANCES_M)]
+    result = calibrate_lasers(walls, nominal)
+    assert result.calibration.port == port
+    errs = _normal_errors_deg(result.calibration, true)
+    assert max(errs) < 0.05, errs
+    for rep in result.report.lasers:
+        assert rep.rms_mm < 0.5
+    # the same images with the port ignored give other planes (the stripe points are off by a quarter)
+    loose = LaserCalibrationConfig(max_rms_m=1.0, max_residual_m=1.0, outlier_m=1.0, max_outlier_fraction=1.0)
+    ignored = calibrate_lasers(walls, paper_calibration(), loose)
+    assert max(_normal_errors_deg(ignored.calibration, true)) > 0.5
+    with pytest.raises(LaserCalibrationError, match="port"):
+        calibrate_lasers(walls, nominal, LaserCalibrationConfig(board=BoardSpec(9, 6, 0.05)))

@@ -140,6 +140,31 @@ def test_compiled_smoothing_equals_the_reference() -> None:
         assert np.any(got[run >= 0] != y[run >= 0])  # it did smooth
 
 
+def test_smoothing_in_given_coordinates() -> None:
+    """``smooth_runs_at`` fits lines in the columns' coordinates ``x`` (a port's central view): a line in ``x``
+    that is curved in the index is kept exactly, and the compiled kernel equals the reference's ``smooth``."""
+    from lrsensor.extract.smooth import smooth_runs, smooth_runs_at
+
+    rng = np.random.default_rng(12)
+    n = 1200
+    u = np.arange(n, dtype=float)
+    x = u + 4e-5 * (u - 600.0) ** 3 / 60.0  # increasing, curved against the index
+    truth = 300.0 + 0.2 * x
+    run = np.zeros(n, np.int64)
+    scales = (384, 96, 24, 6)
+    exact = smooth_runs_at(truth, x, run, np.array(scales, np.int64))
+    np.testing.assert_allclose(exact, truth, atol=1e-9)
+    y = truth + 0.1 * rng.standard_normal(n)
+    got = smooth_runs_at(y, x, run, np.array(scales, np.int64))
+    np.testing.assert_allclose(got, smooth(y, run, scales, x), rtol=0, atol=1e-9)
+    assert np.median(np.abs(got - truth)) < 0.4 * np.median(np.abs(y - truth))
+    # in the index the same stripe is curved: the index's line fits are biased where x bends
+    index_fit = smooth_runs(y, run, np.array(scales, np.int64))
+    assert np.median(np.abs(index_fit - truth)) > np.median(np.abs(got - truth))
+    # the index as coordinates is smooth_runs itself
+    np.testing.assert_array_equal(smooth_runs_at(y, u, run, np.array(scales, np.int64)), index_fit)
+
+
 def test_sorted_blocks_equal_integer_division() -> None:
     """``sorted_blocks`` (the laser of each sorted virtual column, shared by the chains, the half-column expansion,
     the fits and the gates) equals ``col // width``, also across empty blocks and for no columns."""

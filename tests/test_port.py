@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ from lrsensor.port import (
     FlatPort,
     blind_mask,
     blind_pixels,
+    central_view,
     pixel_rays_in_water,
     project_pixels_through_port,
     project_through_port,
@@ -447,3 +449,153 @@ def test_file_port_none_and_not_an_object() -> None:
         Calibration.from_dict(data)
     cal = Calibration.from_dict(PORT_FILE)
     assert cal.port == FlatPort((0.0, 0.0, 1.0), 0.02, 0.008, 1.0, 1.49, 1.34)
+
+
+# ----------------------------------------------------------------------------------------- the port in the road
+def _exact_pixels(cal: Calibration, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (M, 2), their lasers (M,) and true body points (M, 3) of points on both laser planes, through the
+    calibration's port, kept where they fall in the image."""
+    assert cal.port is not None
+    uvs, lasers, points = [], [], []
+    for index, laser in enumerate(cal.lasers):
+        p = _points_on_plane(cal, laser, rng, n)
+        uv = project_pixels_through_port(cal.camera, cal.port, cal.body_to_cam(p))
+        seen = cal.camera.in_image(uv)
+        uvs.append(uv[seen])
+        lasers.append(np.full(int(seen.sum()), index))
+        points.append(p[seen])
+    return np.concatenate(uvs), np.concatenate(lasers), np.concatenate(points)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("compiled", [False, True])
+def test_triangulate_goes_through_the_port(seed: int, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    from lrsensor.extract import compile
+    from lrsensor.triangulation import triangulate
+
+    if compiled:
+        if not compile.HAVE_NUMBA:
+            pytest.skip("numba is not installed: only the reference exists")
+        compile.warm_up()
+    else:
+        monkeypatch.setattr(compile, "ready", lambda: False)
+    rng = np.random.default_rng(70 + seed)
+    cal = _ported_calibration(_random_port(rng))
+    uv, laser, points = _exact_pixels(cal, rng, 2000)
+    got = triangulate(cal, uv, laser)
+    range_m = np.linalg.norm(points - cal.camera_center_body, axis=1)
+    rel = np.linalg.norm(got - points, axis=1) / range_m
+    assert rel.max() < 1e-5, rel.max()  # 0.001 % of range
+    # the same as the numpy road of the port module (to rounding)
+    np.testing.assert_allclose(got, triangulate_through_port(cal, uv, laser), rtol=0, atol=1e-9)
+
+
+def test_compiled_port_triangulation_gives_nan_where_the_numpy_one_does() -> None:
+    from lrsensor.extract import compile
+    from lrsensor.triangulation import triangulate
+
+    if not compile.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    compile.warm_up()
+    # the medium outside less dense than inside: the image's edges are totally reflected (NaN rows)
+    port = FlatPort(_tilted_normal(10.0, 0.0), 0.02, 0.008, 1.33, 1.5, 1.0)
+    cal = _ported_calibration(port)
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([0.0, 0.0], [1919.0, 1079.0], (4000, 2))
+    laser = rng.integers(0, 2, 4000)
+    fast = triangulate(cal, uv, laser)
+    slow = triangulate_through_port(cal, uv, laser)
+    assert np.array_equal(np.isnan(fast).any(axis=1), np.isnan(slow).any(axis=1))
+    assert blind_pixels(cal.camera, port, uv).any()  # the case is exercised
+    assert np.nanmax(np.abs(fast - slow)) < 1e-9
+
+
+def test_geometry_record_carries_the_port() -> None:
+    from lrsensor.extract.config import SubpixelConfig
+    from lrsensor.extract.settings import frame_settings
+
+    _, _, plain = frame_settings(_ported_calibration(None), SubpixelConfig())
+    assert not plain.port.present
+    _, _, ported = frame_settings(_ported_calibration(PORTS[1]), SubpixelConfig())
+    assert ported.port.present
+    np.testing.assert_array_equal(ported.port.normal_cam, PORTS[1].normal)
+    assert (ported.port.distance_m, ported.port.thickness_m) == (PORTS[1].distance_m, PORTS[1].thickness_m)
+    assert (ported.port.n_air, ported.port.n_glass, ported.port.n_water) == (1.0, 1.53, 1.33)
+
+
+@pytest.mark.parametrize("port", [PORTS[0], PORTS[1]])
+def test_bands_hold_the_stripe_seen_through_the_port(port: FlatPort) -> None:
+    from lrsensor.extract.bands import laser_bands
+
+    cal = _ported_calibration(port)
+    bands = laser_bands(cal, 0.3, 3.0, 0)
+    rng = np.random.default_rng(11)
+    for index, laser in enumerate(cal.lasers):
+        p = _points_on_plane(cal, laser, rng, 4000)
+        depth = cal.body_to_cam(p)[:, 2]
+        p = p[(depth >= 0.31) & (depth <= 2.99)]
+        uv = cal.project_water_body(p)
+        uv = uv[cal.camera.in_image(uv)]
+        assert uv.shape[0] > 500
+        assert bands.contains(index, uv, slack_px=0.5).mean() > 0.999
+        # the pinhole bands (the port ignored) miss much of the refracted stripe
+        pinhole = laser_bands(replace(cal, port=None), 0.3, 3.0, 0)
+        assert pinhole.contains(index, uv, slack_px=0.5).mean() < 0.95
+
+
+def test_water_rays_and_projection_of_the_calibration() -> None:
+    cal = _ported_calibration(PORTS[1])
+    rng = np.random.default_rng(5)
+    p = _points_on_plane(cal, cal.lasers[0], rng, 500)
+    uv = cal.project_water_body(p)
+    seen = cal.camera.in_image(uv)
+    origins, dirs = cal.water_rays_body(uv[seen])
+    # each point lies on its pixel's water ray, beyond its origin on the port
+    along = np.einsum("ij,ij->i", p[seen] - origins, dirs)
+    np.testing.assert_allclose(origins + along[:, None] * dirs, p[seen], atol=1e-9)
+    assert (along > 0).all()
+    plain = replace(cal, port=None)
+    o, d = plain.water_rays_body(uv)
+    np.testing.assert_array_equal(o, plain.camera_center_body)
+    np.testing.assert_array_equal(d, plain.rays_body(uv))
+    np.testing.assert_array_equal(plain.project_water_body(p), plain.project_body(p))
+
+
+def test_central_view_straightens_a_stripe_on_a_wall() -> None:
+    """A laser's stripe on a flat (tilted) wall seen through the port is curved in the image but straight in
+    :func:`central_view` (a central pinhole in the water); the compiled twin gives the same view."""
+    from lrsensor.extract import compile
+    from lrsensor.extract.config import SubpixelConfig
+    from lrsensor.extract.geometry import central_view as central_view_compiled
+    from lrsensor.extract.settings import frame_settings
+
+    cam = Camera(1920, 1080, 554.28, 554.28, 959.5, 539.5)
+    cal = replace(_ported_calibration(PORTS[1]), camera=cam)
+    assert cal.port is not None
+    laser = cal.lasers[0]
+    # the line where the laser plane meets a wall tilted 30 deg: two points of it, then points between
+    wall_n = np.array([math.cos(math.radians(30)), math.sin(math.radians(30)), 0.0])
+    direction = np.cross(laser.normal_body, wall_n)
+    anchor = np.linalg.lstsq(
+        np.stack([laser.normal_body, wall_n]), np.array([laser.normal_body @ laser.point_body, 1.2]), rcond=None
+    )[0]
+    points = anchor + np.linspace(-3.0, 3.0, 4001)[:, None] * direction
+    uv = cal.project_water_body(points)
+    keep = cam.in_image(uv)
+    uv = uv[keep]
+    assert uv.shape[0] > 1000
+    idx = np.zeros(uv.shape[0], dtype=int)
+    cols, rows, slope = central_view(cal, uv, idx)
+    bow_image = np.ptp(uv[:, 1] - np.polyval(np.polyfit(uv[:, 0], uv[:, 1], 1), uv[:, 0]))
+    bow_view = np.ptp(rows - np.polyval(np.polyfit(cols, rows, 1), cols))
+    assert bow_image > 5.0  # the port curves the stripe by pixels
+    assert bow_view < 1e-6  # a central view of a line is a line
+    assert (slope > 0.3).all()
+    if compile.HAVE_NUMBA:
+        compile.warm_up()
+        _, _, geo = frame_settings(cal, SubpixelConfig())
+        u, v = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
+        c2, r2, s2 = central_view_compiled(u, v, idx.astype(np.int64), geo)
+        np.testing.assert_allclose(c2, cols, atol=1e-7)
+        np.testing.assert_allclose(r2, rows, atol=1e-7)
+        np.testing.assert_allclose(s2, slope, atol=1e-5)

@@ -19,6 +19,7 @@ from lrsensor.sim import (
     Rectangle,
     Scene,
     WaterModel,
+    acrylic_port,
     box,
     checkerboard_wall_scene,
     named_scene,
@@ -383,3 +384,66 @@ def test_halo_is_symmetric_and_camera_artifacts_render() -> None:
     assert a.dtype == np.uint8
     assert np.abs(a.astype(int) - b.astype(int)).max() > 0  # JPEG changed it
     assert np.abs(b.astype(int) - c.astype(int)).max() > 0  # so did the Bayer mosaic
+
+
+# --------------------------------------------------------------------------- through a flat port
+@pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
+def test_ported_truth_is_exact_through_the_port(tilt_deg: float) -> None:
+    from lrsensor.port import pixel_rays_in_water
+
+    setup = named_scene("paper_box", *SMALL).with_(water=WaterModel.clean()).with_port(acrylic_port(tilt_deg))
+    assert setup.name == "paper_box+port"
+    assert setup.calibration.port == acrylic_port(tilt_deg)
+    r = setup.render(seed=0)
+    cal = r.calibration
+    assert cal.port is not None
+    for lt in r.truth.lasers:
+        assert len(lt) > 100
+        # each truth pixel's ray in the water passes through its truth point
+        o_cam, d_cam = pixel_rays_in_water(cal.camera, cal.port, lt.uv)
+        p_cam = cal.body_to_cam(lt.points_body)
+        along = np.einsum("ij,ij->i", p_cam - o_cam, d_cam)
+        miss = np.linalg.norm(o_cam + along[:, None] * d_cam - p_cam, axis=1)
+        assert miss.max() < 1e-8
+        # and the pinhole projection of the in-air camera is far from it (the port is drawn)
+        assert np.median(np.linalg.norm(cal.project_body(lt.points_body) - lt.uv, axis=1)) > 5.0
+
+
+def test_ported_stripe_centroid_is_the_true_centre() -> None:
+    setup = named_scene("wall_1.0").with_(water=WaterModel.clean()).with_port(acrylic_port(2.0))
+    r = setup.render(seed=0, keep_layers=True)
+    for lt in r.truth.lasers:
+        cols = r.truth.visible_columns(lt.index, min_peak_dn=20.0)[4:-4]
+        assert cols.size > 1500
+        v = r.truth.v_at_columns(lt.index, cols)
+        errf = np.abs(_column_centroids(r.layers["laser"].astype(float), v, cols, 12) - v)
+        assert np.nanmax(errf) < 0.01
+
+
+def test_ported_scene_is_processed_within_a_tenth_of_a_percent() -> None:
+    from lrsensor import Sensor
+    from lrsensor.sim.score import score_scan
+
+    setup = named_scene("wall_1.0", 960, 540).with_port(acrylic_port(2.0))
+    r = setup.render(seed=0)
+    score = score_scan(r, Sensor(setup.calibration).process(r.image))
+    assert score["median"] < 0.1, score
+    assert score["p95"] < 0.5, score
+    assert score["coverage"] > 95.0, score
+    # the same image with the port ignored reads every range about a quarter short
+    ignored = score_scan(r, Sensor(setup.with_port(None).calibration).process(r.image))
+    assert ignored["median"] > 20.0, ignored
+
+
+def test_ported_checkerboard_and_glow_render() -> None:
+    setup = checkerboard_wall_scene(0.9).with_(water=WaterModel.turbid()).with_port(acrylic_port())
+    r = setup.render(seed=1)
+    gray = cv2.cvtColor(r.image, cv2.COLOR_BGR2GRAY)
+    ok, corners = cv2.findChessboardCorners(gray, (9, 6))
+    assert ok
+    board = r.truth.boards()[0]
+    truth_uv = r.calibration.project_water_body(board["corners_body"])
+    corners = corners.reshape(-1, 2)
+    if np.linalg.norm(corners[0] - truth_uv[0]) > np.linalg.norm(corners[-1] - truth_uv[0]):
+        corners = corners[::-1]
+    assert np.median(np.linalg.norm(corners - truth_uv, axis=1)) < 0.5

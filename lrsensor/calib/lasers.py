@@ -1,8 +1,9 @@
 """Laser-plane calibration from images of a flat wall (paper section 2.6, made robust and self-checking).
 
 Procedure, per image: find the stripe pixels with the sub-pixel extractor (laser assignment from the
-extractor, using the input calibration), intersect their camera rays with the wall plane (eq. 30-31), and
-collect the 3D points per laser. Per laser: RANSAC plane, then least-squares refits on the inliers
+extractor, using the input calibration), intersect their camera rays with the wall plane (eq. 30-31; through
+the calibration's flat port, if it has one, the refracted rays in the water), and collect the 3D points per
+laser. Per laser: RANSAC plane, then least-squares refits on the inliers
 (:func:`~lrsensor.calib.planefit.robust_plane_fit`). All stripe points of one wall position lie on one line,
 which does not fix a plane: with a single wall position the plane is fit through the laser's mounting point
 (when one is given) or the calibration is refused.
@@ -320,6 +321,12 @@ def resolve_wall(
     axis = _optical_axis_body(calibration)
     pose = None
     if config.board is not None:
+        if calibration.port is not None:
+            msg = (
+                f"{view.label}: a checkerboard's pose through the flat port (port in the calibration) is not "
+                f"supported yet: give each wall's distance (IMAGE=DIST_M) instead of --board"
+            )
+            raise LaserCalibrationError(msg)
         try:
             pose = estimate_board_pose(image, calibration.camera, config.board, view.label)
         except CalibrationFitError as err:
@@ -379,12 +386,20 @@ def resolve_wall(
 
 
 def wall_points(uv: FloatArray, calibration: Calibration, wall: Plane) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Paper eq. (31): body-frame points (N, 3) where the rays of pixels ``uv`` (N, 2) meet ``wall``.
+    """Paper eq. (31): body-frame points (N, 3) where the rays of pixels ``uv`` (N, 2) meet ``wall``; through the
+    calibration's flat port the rays are the refracted ones in the water, from the port's outer surface.
 
-    Returns the points and a mask (N,) of rays that meet the wall in front of the camera.
+    Returns the points and a mask (N,) of rays that meet the wall in front of the camera (or the port).
     """
-    rays = calibration.rays_body(uv)
-    pts, d = intersect_rays_plane(calibration.camera_center_body, rays, wall.normal * wall.offset, wall.normal)
+    if calibration.port is None:
+        rays = calibration.rays_body(uv)
+        pts, d = intersect_rays_plane(calibration.camera_center_body, rays, wall.normal * wall.offset, wall.normal)
+    else:
+        origins, dirs = calibration.water_rays_body(uv)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = (wall.offset - origins @ wall.normal) / (dirs @ wall.normal)
+        d[~(d > 0)] = np.nan
+        pts = origins + d[:, None] * dirs
     ok = np.isfinite(d) & np.all(np.isfinite(pts), axis=1)
     return pts, ok
 

@@ -2,7 +2,8 @@
 
 A laser's light lies on its plane. Between the depth limits ``min_range_m <= z_c <= max_range_m`` (depth along
 the camera's optical axis, metres; for the default mounting this is the forward distance x_b of the paper) the
-lit part of the plane is a strip; projected through the camera (with its distortion) that strip covers, in each
+lit part of the plane is a strip; projected through the camera (with its distortion, and through the flat port
+exactly when the calibration has one: the bands hold the refracted stripe, no bound) that strip covers, in each
 image column, an interval of rows ``[v_lo, v_hi]``. Only those pixels can hold that laser's stripe, so the
 extractors search nowhere else. The band is computed once per (calibration, limits) and cached.
 
@@ -21,6 +22,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import ExtractionError
+from ..port import project_through_port
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -104,8 +106,10 @@ def band_samples(
     """Pixels (M, 2) of sample points of the laser plane between the depth limits, and their depths (M,), m.
 
     The plane strip ``{p : n . p = d, min <= z <= max}`` (camera frame) is sampled on lines of constant depth
-    (geometric depth steps) and projected with the camera's distortion. Samples outside the distortion's
-    one-to-one radius or far outside the image are dropped.
+    (geometric depth steps) and projected with the camera's distortion, through the calibration's flat port when
+    it has one (exact refraction, :func:`lrsensor.port.project_through_port`). Samples outside the distortion's
+    one-to-one radius (of the in-air ray), that no pixel sees through the port, or far outside the image are
+    dropped.
     """
     cam = calibration.camera
     n, d = _plane_cam(calibration, laser)
@@ -131,14 +135,22 @@ def band_samples(
         e = e / ne
         nxy2 = n[0] ** 2 + n[1] ** 2
         s = np.linspace(-span, span, n_lateral)
+        if calibration.port is not None:
+            # through a port the same in-air directions, refracted into the water (as a square port bends them):
+            # the samples stay about evenly spread over the image, where the water's angles crowd at its edges
+            port = calibration.port
+            sin_w = np.sin(np.arctan(np.abs(s))) * (port.n_air / port.n_water)
+            s = np.sign(s) * np.tan(np.arcsin(np.minimum(sin_w, 0.9999)))
         base = ((d - n[2] * zs) / nxy2)[:, None] * np.array([n[0], n[1], 0.0])[None, :] + zs[:, None] * z_axis
         pts = (base[:, None, :] + (zs[:, None] * s[None, :])[:, :, None] * e[None, None, :]).reshape(-1, 3)
+    # the in-air ray of each point: the point itself for a pinhole, the refracted path's first leg through a port
+    rays = pts if calibration.port is None else project_through_port(calibration.port, pts)
     with np.errstate(invalid="ignore", divide="ignore"):
-        xn = pts[:, 0] / pts[:, 2]
-        yn = pts[:, 1] / pts[:, 2]
-        ok = (pts[:, 2] > 0) & (np.hypot(xn, yn) <= r_valid)
+        xn = rays[:, 0] / rays[:, 2]
+        yn = rays[:, 1] / rays[:, 2]
+        ok = (rays[:, 2] > 0) & (np.hypot(xn, yn) <= r_valid)
     pts = pts[ok]
-    uv = cam.project(pts)
+    uv = cam.project(rays[ok])
     with np.errstate(invalid="ignore"):
         keep = (
             np.isfinite(uv).all(axis=1)

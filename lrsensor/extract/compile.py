@@ -73,9 +73,9 @@ def entry_points() -> tuple[object, ...]:
     """The kernels the Python side calls (each loaded from the cache on its own): the frame call and the
     triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
     from .frame import extract_frame
-    from .geometry import triangulate_points
+    from .geometry import triangulate_points, triangulate_points_port
 
-    return (extract_frame, triangulate_points)
+    return (extract_frame, triangulate_points, triangulate_points_port)
 
 
 def child_command() -> list[str]:
@@ -92,7 +92,7 @@ def _build() -> None:
     from ..calibration import Calibration
     from .config import SubpixelConfig
     from .frame import extract_frame
-    from .geometry import triangulate_points
+    from .geometry import triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, geometry = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
@@ -102,6 +102,10 @@ def _build() -> None:
     triangulate_points(
         f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
         g.points_body,
+    )  # fmt: skip
+    triangulate_points_port(
+        f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+        g.points_body, g.port,
     )  # fmt: skip
 
 

@@ -10,7 +10,8 @@ amplitude (DN), sigma (px), saturated, ok, local noise (DN), chain and chain len
    stripe, nor keep one of a white blob;
 2. runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
    flat-topped, whose candidate rows wander on the top and split the chains) and within ``max_jump`` rows;
-3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs`);
+3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs`; through a port on the rows a
+   pinhole in the water would see, :func:`smooth_through_port`);
 4. quality in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
 Returns the accepted points ``(u, v, laser, quality)``: columns and rows (px), laser index, quality; (M,) each.
@@ -23,7 +24,8 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
-from .smooth import smooth_runs
+from .geometry import central_view
+from .smooth import smooth_runs, smooth_runs_at
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -176,7 +178,40 @@ def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
 
 
 @njit
-def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s):  # type: ignore[no-untyped-def]
+def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
+    """:func:`.smooth.smooth_runs` of the rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none)
+    seen through the port of ``geo``: the line fits run where a pinhole in the water at the camera centre would
+    see the points (:func:`.geometry.central_view`), where a stripe on a flat surface is straight (the port
+    curves it, and line fits would pull a curved stripe towards its chords), and their corrections go back to
+    image rows through the local derivative (the corrections are below a pixel: the first order is exact to far
+    below 1e-3 px). Rows whose ray misses their laser's plane are left as they are."""
+    idx = np.flatnonzero(np.isfinite(y))
+    cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
+    yw = np.full(y.size, np.nan)
+    run_w = run.copy()
+    seen = np.isfinite(rows) & np.isfinite(cols)
+    for j in range(idx.size):
+        if seen[j]:
+            yw[idx[j]] = rows[j]
+        else:
+            run_w[idx[j]] = -1
+    # the columns' coordinates: the water pinhole's where seen, interpolated (by the index) between them
+    index = np.arange(y.size).astype(np.float64)
+    x = index
+    if np.any(seen):
+        known = idx[seen]
+        x = np.interp(index, index[known], cols[seen])
+    sw = smooth_runs_at(yw, x, run_w, scales)
+    out = y.copy()
+    for j in range(idx.size):
+        step = (sw[idx[j]] - rows[j]) / slope[j]
+        if math.isfinite(step):
+            out[idx[j]] = y[idx[j]] + step
+    return out
+
+
+@njit
+def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # type: ignore[no-untyped-def]
     """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality of the fitted points.
 
     The colour test (green must rise more than ``green_ratio`` times red and blue; ``rise`` (3, N) in B, G, R)
@@ -196,7 +231,9 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s):  # type: ig
             (:func:`.columns.fit_results` without its flag); chain, chain_len: (N,) each point's chain and length.
         noise_l: (L,) the band noise of each laser, DN; w: image width; s: the
             :class:`~lrsensor.extract.settings.Settings` (``green_ratio`` above is its ``min_green_ratio``, ``pool``
-            its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``).
+            its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``);
+            geo: the :class:`~lrsensor.extract.settings.Geometry` (through a port the line fits run on the rows a
+            pinhole in the water would see, :func:`smooth_through_port`).
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
@@ -340,7 +377,12 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s):  # type: ig
             y[col_v[t]] = vv[t]
             run[col_v[t]] = ri
             m += 1
-    ys = smooth_runs(y, run, scales) if scales.size > 0 else y
+    if scales.size == 0:
+        ys = y
+    elif geo.port.present:
+        ys = smooth_through_port(y, run, scales, w, geo)
+    else:
+        ys = smooth_runs(y, run, scales)
     u_out = np.empty(m)
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)

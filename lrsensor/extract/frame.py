@@ -9,8 +9,10 @@
    the sub-pixel fits, column-parallel by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`), the rest by
    the full kernel (:mod:`.fit`);
 4. neighbour refits where two lasers' stripes come close (:mod:`.refit`);
-5. gates, runs, smoothing and quality (:mod:`.finish`);
-6. with ``triangulate``: the body-frame points (:mod:`.geometry`) and the range-limit gate on camera depth.
+5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
+   pinhole in the water at the camera centre would see the stripe's points);
+6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has one)
+   and the range-limit gate on camera depth.
 
 Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records built once per (calibration,
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
@@ -35,7 +37,7 @@ from .finish import finish_points
 from .fit import flank_offset
 from .fit_clipped import core_peaks, fit_columns_clipped
 from .fit_common import fit_columns_common
-from .geometry import max_fwhm_at, triangulate_points
+from .geometry import max_fwhm_at, triangulate_geo
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_full, refit_targets, rows_overlap
 
 
@@ -251,7 +253,7 @@ def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-un
                 look = np.flatnonzero(touched)
                 touched[look] = False
     # 5. gates, runs, smoothing, quality
-    return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s)
+    return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s, geo)
 
 
 @njit
@@ -316,9 +318,7 @@ def extract_frame(image, bands, s, geo, triangulate):  # type: ignore[no-untyped
             uv[t, 0] = u_o[t]
             uv[t, 1] = v_o[t]
         return uv, l_o, q_o, np.empty((0, 3)), noise
-    xyz = triangulate_points(
-        u_o, v_o, l_o, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body
-    )
+    xyz = triangulate_geo(u_o, v_o, l_o, geo)
     r_z = geo.R_cam_body[2]
     keep = np.empty(n, np.bool_)
     m = 0

@@ -4,6 +4,10 @@
 Newton steps, its body-frame ray met with its laser's plane; (N, 3) body-frame points in metres, NaN rows where
 undistortion does not converge, the ray is parallel to the plane or meets it behind the camera. It is the
 compiled twin of :func:`lrsensor.triangulation.triangulate` (which calls it for 16 points or more).
+:func:`triangulate_points_port` is the same through a flat port (vector Snell at the port's two surfaces, the
+twin of :func:`lrsensor.port.rays_in_water`), and :func:`triangulate_geo` picks one of them for a
+:class:`~lrsensor.extract.settings.Geometry` (the port when it has one, so without a port the points are those of
+:func:`triangulate_points`, bit for bit).
 
 :func:`max_fwhm_at` bounds the width of a stripe at a pixel: a sheet ``max_sheet_mm`` thick seen at the range of
 that pixel's ray on its plane, plus 4 px of blur and edges, and never below the floor; close to the wall a thick
@@ -33,32 +37,15 @@ def _distortion_residual(x, y, xd, yd, dist):  # type: ignore[no-untyped-def]
     return rx, ry, r2, radial
 
 
-@njit
-def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # type: ignore[no-untyped-def]
-    """Eq. 29 with the Brown-Conrady model, as :func:`lrsensor.triangulation.triangulate` in numpy.
-
-    Args:
-        u, v: (N,) float64 pixel coordinates; laser: (N,) int64 plane index of each pixel.
-        cam: (4,) ``fx, fy, cx, cy``; dist: (5,) ``k1, k2, p1, p2, k3``; R: (3, 3) ``R_cam_from_body``.
-        origin: (3,) camera centre in the body frame; normals, points: (L, 3) laser planes in the body frame.
-
-    Returns:
-        (N, 3) body-frame points, metres; NaN rows where undistortion does not converge, the ray is parallel
-        to the plane or meets it behind the camera.
-    """
+@inline
+def _undistort(u, v, cam, dist):  # type: ignore[no-untyped-def]
+    """Pixels (N,) ``u, v`` to normalized undistorted image coordinates ``(xs, ys)`` (N,) of the camera ``cam``
+    (4,) ``fx, fy, cx, cy`` and ``dist`` (5,) ``k1, k2, p1, p2, k3``; ``xs`` is NaN where undistortion does not
+    converge."""
     n = u.size
-    out = np.empty((n, 3))
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
-    n_l = normals.shape[0]
-    off = np.empty(n_l)
-    for i in range(n_l):
-        off[i] = (
-            (points[i, 0] - origin[0]) * normals[i, 0]
-            + (points[i, 1] - origin[1]) * normals[i, 1]
-            + (points[i, 2] - origin[2]) * normals[i, 2]
-        )
     xs = np.empty(n)  # normalized undistorted image coordinates
     ys = np.empty(n)
     for t in range(n):
@@ -96,6 +83,33 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
             y = ys[t]
             ex, ey, _, _ = _distortion_residual(x, y, xd[t], yd[t], dist)
             xs[t] = x if math.sqrt(ex * ex + ey * ey) < 1e-9 else np.nan
+    return xs, ys
+
+
+@njit
+def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # type: ignore[no-untyped-def]
+    """Eq. 29 with the Brown-Conrady model, as :func:`lrsensor.triangulation.triangulate` in numpy.
+
+    Args:
+        u, v: (N,) float64 pixel coordinates; laser: (N,) int64 plane index of each pixel.
+        cam: (4,) ``fx, fy, cx, cy``; dist: (5,) ``k1, k2, p1, p2, k3``; R: (3, 3) ``R_cam_from_body``.
+        origin: (3,) camera centre in the body frame; normals, points: (L, 3) laser planes in the body frame.
+
+    Returns:
+        (N, 3) body-frame points, metres; NaN rows where undistortion does not converge, the ray is parallel
+        to the plane or meets it behind the camera.
+    """
+    n = u.size
+    out = np.empty((n, 3))
+    n_l = normals.shape[0]
+    off = np.empty(n_l)
+    for i in range(n_l):
+        off[i] = (
+            (points[i, 0] - origin[0]) * normals[i, 0]
+            + (points[i, 1] - origin[1]) * normals[i, 1]
+            + (points[i, 2] - origin[2]) * normals[i, 2]
+        )
+    xs, ys = _undistort(u, v, cam, dist)
     # body-frame ray (x, y, 1) @ R met with the laser's plane: branch-free over the points (vectorizes)
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
@@ -122,6 +136,146 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
     return out
 
 
+@inline
+def _refract(dx, dy, dz, nx, ny, nz, cos_in, mu):  # type: ignore[no-untyped-def]
+    """Snell's law in vector form (as :func:`lrsensor.port._refract`): the unit direction ``d`` crossing a surface
+    of unit normal ``n`` with ``cos_in = d . n > 0`` and index ratio ``mu = n1 / n2``; NaN when totally reflected."""
+    sin2_out = mu * mu * (1.0 - cos_in * cos_in)
+    cos_out = math.sqrt(1.0 - sin2_out) if sin2_out <= 1.0 else np.nan
+    k = cos_out - mu * cos_in
+    return mu * dx + k * nx, mu * dy + k * ny, mu * dz + k * nz
+
+
+@inline
+def _water_ray(x, y, port):  # type: ignore[no-untyped-def]
+    """The ray in the water of the in-air ray ``(x, y, 1)`` (normalized image coordinates) through the
+    :class:`~lrsensor.extract.settings.Port` ``port``: its exit point on the outer surface and its unit direction,
+    camera frame, ``(qx, qy, qz, wx, wy, wz)``; NaN where the ray cannot reach the water."""
+    pn = port.normal_cam
+    pnx, pny, pnz = pn[0], pn[1], pn[2]
+    norm = math.sqrt(x * x + y * y + 1.0)
+    rx = x / norm
+    ry = y / norm
+    rz = 1.0 / norm
+    cos_air = rx * pnx + ry * pny + rz * pnz
+    cos_air = cos_air if cos_air > 1e-12 else np.nan  # parallel to or away from the port
+    s_in = port.distance_m / cos_air
+    gx, gy, gz = _refract(rx, ry, rz, pnx, pny, pnz, cos_air, port.n_air / port.n_glass)
+    cos_glass = gx * pnx + gy * pny + gz * pnz
+    s_glass = port.thickness_m / cos_glass
+    wx, wy, wz = _refract(gx, gy, gz, pnx, pny, pnz, cos_glass, port.n_glass / port.n_water)
+    return s_in * rx + s_glass * gx, s_in * ry + s_glass * gy, s_in * rz + s_glass * gz, wx, wy, wz
+
+
+@njit
+def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, port):  # type: ignore[no-untyped-def]
+    """:func:`triangulate_points` through a flat port: each pixel's in-air ray (camera model with distortion) is
+    refracted at the port's two surfaces (:func:`lrsensor.port.rays_in_water`, the numpy reference) and the ray in
+    the water, from its exit point on the outer surface, is met with its laser's plane.
+
+    Args:
+        u, v, laser, cam, dist, R, origin, normals, points: as :func:`triangulate_points`.
+        port: :class:`~lrsensor.extract.settings.Port`, camera frame, metres.
+
+    Returns:
+        (N, 3) body-frame points, metres; NaN rows where undistortion does not converge, the pixel cannot see
+        into the water (ray parallel to or away from the port, total internal reflection), the water ray is
+        parallel to the plane or meets it behind the port.
+    """
+    n = u.size
+    out = np.empty((n, 3))
+    xs, ys = _undistort(u, v, cam, dist)
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    for t in range(n):
+        qx, qy, qz, wx, wy, wz = _water_ray(xs[t], ys[t], port)
+        # camera vectors to body vectors: R^T v
+        ox = o0 + qx * R[0, 0] + qy * R[1, 0] + qz * R[2, 0]
+        oy = o1 + qx * R[0, 1] + qy * R[1, 1] + qz * R[2, 1]
+        oz = o2 + qx * R[0, 2] + qy * R[1, 2] + qz * R[2, 2]
+        bx = wx * R[0, 0] + wy * R[1, 0] + wz * R[2, 0]
+        by = wx * R[0, 1] + wy * R[1, 1] + wz * R[2, 1]
+        bz = wx * R[0, 2] + wy * R[1, 2] + wz * R[2, 2]
+        li = laser[t]
+        denom = bx * normals[li, 0] + by * normals[li, 1] + bz * normals[li, 2]
+        lam = (
+            (points[li, 0] - ox) * normals[li, 0]
+            + (points[li, 1] - oy) * normals[li, 1]
+            + (points[li, 2] - oz) * normals[li, 2]
+        ) / denom
+        lam = lam if (abs(denom) > 1e-9) and (lam > 0) else np.nan
+        out[t, 0] = ox + lam * bx
+        out[t, 1] = oy + lam * by
+        out[t, 2] = oz + lam * bz
+    return out
+
+
+@njit
+def triangulate_geo(u, v, laser, geo):  # type: ignore[no-untyped-def]
+    """Pixels (N,) ``u, v`` of lasers ``laser`` (N,) to body-frame points (N, 3), metres, with the
+    :class:`~lrsensor.extract.settings.Geometry` ``geo``: through its port when it has one
+    (:func:`triangulate_points_port`), else the pinhole (:func:`triangulate_points`)."""
+    if geo.port.present:
+        return triangulate_points_port(
+            u, v, laser, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body,
+            geo.points_body, geo.port,
+        )  # fmt: skip
+    return triangulate_points(
+        u, v, laser, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body
+    )
+
+
+#: Row step of the numerical derivative of :func:`central_view`, px.
+CENTRAL_VIEW_STEP_PX = 0.25
+
+
+@njit
+def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
+    """Where a pinhole in the water at the camera centre would see the points that pixels ``(u, v)`` (N,) of
+    lasers ``laser`` (N,) triangulate to through the port of ``geo``: its columns and rows (N,) and the rows'
+    derivative by ``v`` (N,) (the numpy twin: :func:`lrsensor.port.central_view`).
+
+    The pinhole is the camera's with ``fx``, ``fy`` scaled by ``n_water / n_air`` (the two agree near the axis).
+    A straight line in the water (a laser plane on a flat surface) is a straight line in any central view, where
+    the port's image curves it; the along-stripe line fits run there. NaN where the ray misses the plane.
+    """
+    n = u.size
+    port = geo.port
+    cam = geo.camera
+    ratio = port.n_water / port.n_air
+    h = CENTRAL_VIEW_STEP_PX
+    uu = np.empty(3 * n)
+    vv = np.empty(3 * n)
+    ll = np.empty(3 * n, np.int64)
+    for t in range(n):
+        for j in range(3):
+            uu[3 * t + j] = u[t]
+            vv[3 * t + j] = v[t] + (j - 1) * h
+            ll[3 * t + j] = laser[t]
+    pts = triangulate_points_port(
+        uu, vv, ll, cam, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body, port
+    )
+    R = geo.R_cam_body
+    o = geo.origin_body
+    g = np.empty(3 * n)
+    cols = np.empty(n)
+    for t in range(3 * n):
+        dx = pts[t, 0] - o[0]
+        dy = pts[t, 1] - o[1]
+        dz = pts[t, 2] - o[2]
+        x = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
+        y = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+        z = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+        g[t] = cam[3] + cam[1] * ratio * y / z
+        if t % 3 == 1:
+            cols[t // 3] = cam[2] + cam[0] * ratio * x / z
+    rows = np.empty(n)
+    slope = np.empty(n)
+    for t in range(n):
+        rows[t] = g[3 * t + 1]
+        slope[t] = (g[3 * t + 2] - g[3 * t]) / (2.0 * h)
+    return cols, rows, slope
+
+
 @njit
 def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
     """The widest plausible stripe (half-level width, px) at each pixel ``(cols, rows)`` (N,) of ``laser`` (N,).
@@ -134,17 +288,7 @@ def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-unt
     out = np.full(n, floor)
     if n == 0 or sheet_mm <= 0:
         return out
-    pts = triangulate_points(
-        cols.astype(np.float64),
-        rows.astype(np.float64),
-        laser,
-        cam,
-        geo.distortion,
-        geo.R_cam_body,
-        origin,
-        geo.normals_body,
-        geo.points_body,
-    )
+    pts = triangulate_geo(cols.astype(np.float64), rows.astype(np.float64), laser, geo)
     for t in range(n):
         depth = (
             (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]

@@ -42,7 +42,7 @@ from . import reference_finish, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import noise_col_step
 from .fit import flank_offset
-from .reference_finish import pooled_gates, smooth
+from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
 
 FloatArray = NDArray[np.float64]
@@ -197,7 +197,10 @@ def extract_frame(
         run = np.full(n_cols, -1, np.int64)
         y[col_v] = vv
         run[col_v] = run_id
-        vv = smooth(y, run, scales)[col_v]
+        if calibration.port is None:
+            vv = smooth(y, run, scales)[col_v]
+        else:
+            vv = smooth_through_port(y, run, scales, w, calibration)[col_v]
     # quality
     laser = col_v // w
     q_snr = 1.0 - np.exp(-snr / 8.0)

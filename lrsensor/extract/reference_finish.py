@@ -18,6 +18,8 @@ import warnings
 import numpy as np
 from numpy.typing import NDArray
 
+from ..calibration import Calibration
+from ..port import central_view
 from . import refit
 from .settings import Settings
 from .smooth import SUBBLOCK_MIN_K, SUBBLOCK_SIGMAS
@@ -130,8 +132,11 @@ def pooled_gates(
     return good, np.minimum(pooled, snr / s.snr_floor_frac)
 
 
-def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
+def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...], x: FloatArray | None = None) -> FloatArray:
     """Edge-preserving local linear smoothing of ``y`` (N,) (NaN = no measurement) within runs.
+
+    ``x`` (N,): the coordinates of the columns in which the lines are straight (finite, increasing within each
+    run; None: the column index).
 
     ``run`` (N,) labels each measured column with its run (a stripe piece: one chain, small gaps allowed;
     -1 = none); runs are intervals of columns. For each column and each half-width k of ``scales`` (largest
@@ -146,7 +151,7 @@ def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
     lag = 4
     if not np.any(have) or n <= 2 * lag + 2:
         return out
-    idx = np.arange(n, dtype=np.float64)
+    idx = np.arange(n, dtype=np.float64) if x is None else np.asarray(x, dtype=np.float64)
     # run extent of every column
     cols = np.flatnonzero(have)
     r = run[cols]
@@ -192,7 +197,7 @@ def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
         t0 = c_z[hi] - c_z[lo]
         tx = c_zx[hi] - c_zx[lo]
         yy = c_zz[hi] - c_zz[lo]
-        cf = c.astype(np.float64)
+        cf = idx[c]
         s1 = sx - cf * s0
         s2 = sxx - 2.0 * cf * sx + cf * cf * s0
         t1 = tx - cf * t0
@@ -233,8 +238,35 @@ def smooth(y: FloatArray, run: IntArray, scales: tuple[int, ...]) -> FloatArray:
             ok = have[u] & accept[ci] & (c[ci] - k >= run_lo[u]) & (c[ci] + k <= run_hi[u]) & (rss[ci] < best[u])
             uu, cc = u[ok], ci[ok]
             best[uu] = rss[cc]
-            val[uu] = a[cc] + b[cc] * float(-shift) + base[uu]
+            val[uu] = a[cc] + b[cc] * (idx[uu] - idx[c[cc]]) + base[uu]
         take = ~done & np.isfinite(val)
         out[take] = val[take]
         done |= take
+    return out
+
+
+def smooth_through_port(
+    y: FloatArray, run: IntArray, scales: tuple[int, ...], w: int, calibration: Calibration
+) -> FloatArray:
+    """:func:`smooth` of rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none) seen through the
+    calibration's flat port: the line fits run where a pinhole in the water at the camera centre would see the
+    points (:func:`lrsensor.port.central_view`), where a stripe on a flat surface is straight, and the
+    corrections go back to image rows through the local derivative (``finish.smooth_through_port`` is the
+    compiled twin). Rows whose ray misses their laser's plane are left as they are."""
+    idx = np.flatnonzero(np.isfinite(y))
+    uv = np.stack([(idx % w).astype(np.float64), y[idx]], axis=1)
+    cols, rows, slope = central_view(calibration, uv, idx // w)
+    seen = np.isfinite(rows) & np.isfinite(cols)
+    yw = np.full(y.size, np.nan)
+    yw[idx[seen]] = rows[seen]
+    run_w = run.copy()
+    run_w[idx[~seen]] = -1
+    # the columns' coordinates: the central view's where seen, interpolated (by the index) between them
+    index = np.arange(y.size, dtype=np.float64)
+    x = np.interp(index, index[idx[seen]], cols[seen]) if seen.any() else index
+    sw = smooth(yw, run_w, scales, x)
+    out = y.copy()
+    with np.errstate(invalid="ignore"):
+        step = (sw[idx] - rows) / slope
+    out[idx] = np.where(np.isfinite(step), y[idx] + step, y[idx])
     return out

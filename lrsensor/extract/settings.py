@@ -8,7 +8,8 @@ once per (calibration, configuration), and read, never written, by the kernels:
 - :class:`Bands`: where each laser's stripe can be (:mod:`lrsensor.extract.bands`), rows in pixels;
 - :class:`Settings`: the options of :class:`~lrsensor.extract.config.SubpixelConfig` and the constants of the
   algorithm, units in the names;
-- :class:`Geometry`: the calibration as arrays (triangulation, the width limits, the depth gate).
+- :class:`Geometry`: the calibration as arrays (triangulation, the width limits, the depth gate), with its
+  flat port as a :class:`Port` (``present`` False without one: the pinhole road, unchanged).
 
 Field types matter: numba compiles one version per record type, so integers are Python ``int`` (int64), reals
 ``float`` (float64), and arrays C-contiguous of the dtype given here.
@@ -23,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..port import FlatPort
 from ..triangulation import _arrays
 from .bands import laser_bands
 from .centre import WIDE_FWHM_PX
@@ -92,6 +94,38 @@ class Settings(NamedTuple):
     max_range_m: float
 
 
+class Port(NamedTuple):
+    """The calibration's flat port as the kernels take it (camera frame, metres; :class:`lrsensor.port.FlatPort`)."""
+
+    #: Whether the camera looks through a port (False: the other fields are placeholders, never read).
+    present: bool
+    #: (3,) the port's unit normal, camera frame, out of the housing.
+    normal_cam: FloatArray
+    #: Distance from the camera centre to the inner surface along the normal, metres.
+    distance_m: float
+    #: Glass thickness, metres.
+    thickness_m: float
+    #: Refractive indices inside the housing, of the glass and of the water.
+    n_air: float
+    n_glass: float
+    n_water: float
+
+
+def port_record(port: FlatPort | None) -> Port:
+    """The kernels' :class:`Port` of a calibration's port (None: ``present`` False)."""
+    if port is None:
+        return Port(False, np.array([0.0, 0.0, 1.0]), 0.0, 0.0, 1.0, 1.0, 1.0)
+    return Port(
+        True,
+        np.ascontiguousarray(port.normal, np.float64),
+        float(port.distance_m),
+        float(port.thickness_m),
+        float(port.n_air),
+        float(port.n_glass),
+        float(port.n_water),
+    )
+
+
 class Geometry(NamedTuple):
     """The calibration as the kernels take it (body frame, metres)."""
 
@@ -110,6 +144,8 @@ class Geometry(NamedTuple):
     axis_body: FloatArray
     #: The camera z of a body point ``p`` is ``R_cam_body[2] . p + cam_z_offset_m``.
     cam_z_offset_m: float
+    #: The flat port the camera looks through (``port.present`` False: none).
+    port: Port
 
 
 @lru_cache(maxsize=16)
@@ -155,6 +191,14 @@ def frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Bands
     cam, dist, R, origin, normals, points = _arrays(calibration)
     axis = calibration.rays_body(np.array([[calibration.camera.cx, calibration.camera.cy]], np.float64))[0]
     geometry = Geometry(
-        cam, dist, R, origin, normals, points, axis / np.linalg.norm(axis), float(calibration.t_cam_body[2])
+        cam,
+        dist,
+        R,
+        origin,
+        normals,
+        points,
+        axis / np.linalg.norm(axis),
+        float(calibration.t_cam_body[2]),
+        port_record(calibration.port),
     )
     return bands, settings, geometry

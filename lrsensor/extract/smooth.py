@@ -45,10 +45,11 @@ def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type
 
 
 @njit
-def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
+def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
     """The line fits of :func:`smooth_runs` over every window ``[c - k, c + k]`` (same arithmetic), without
     branches: fills ``a_c``, ``b_c``, ``rss_c`` (N,) and ``acc_c`` (N,) bool for the centres ``c = i + k``,
-    ``i`` in ``[i0, i1)`` (all of them: ``[0, N - 2 k)``).
+    ``i`` in ``[i0, i1)`` (all of them: ``[0, N - 2 k)``); the lines are in the coordinates ``x`` (N,) of the
+    columns, about the centre's.
 
     Unsigned indices (no negative-index wrap-around), no branches, and the quarter checks of long windows in a
     second pass (one loop with all of it has too many arrays for the compiler's alias checks): both vectorize.
@@ -59,7 +60,7 @@ def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_a
     for i in range(i0, i1):
         lo = np.uint64(i)
         hi = lo + m
-        c = float(i + k)
+        c = x[np.uint64(i + k)]
         s0 = c_m[hi] - c_m[lo]
         sx = c_mx[hi] - c_mx[lo]
         sxx = c_mxx[hi] - c_mxx[lo]
@@ -92,7 +93,7 @@ def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_a
     for i in range(i0, i1):
         lo = np.uint64(i)
         hi = lo + m
-        c = float(i + k)
+        c = x[np.uint64(i + k)]
         ci = lo + uk
         a = a_c[ci]
         b = b_c[ci]
@@ -112,7 +113,16 @@ def _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_a
 
 @njit
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
-    """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`).
+    """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`):
+    :func:`smooth_runs_at` with the columns' own indices as their coordinates."""
+    return smooth_runs_at(y, np.arange(y.size).astype(np.float64), run, scales)
+
+
+@njit
+def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
+    """Edge-preserving local linear smoothing of the rows ``y`` (N,) (NaN = none) whose columns have the
+    coordinates ``x`` (N,) (finite, increasing within each run; the index for image columns): the windows are
+    ``2 k + 1`` columns, the lines straight in ``x``.
 
     ``run`` labels are non-decreasing along the measured columns (runs are intervals). Each scale fits only the
     windows that the columns still to do can use, and the scales stop once every column is done.
@@ -175,10 +185,10 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
         mq = 1.0 if h else 0.0
         zq = y[q] - b if h else 0.0
         s_m += mq
-        s_mx += mq * q
-        s_mxx += mq * q * q
+        s_mx += mq * x[q]
+        s_mxx += mq * x[q] * x[q]
         s_z += zq
-        s_zx += zq * q
+        s_zx += zq * x[q]
         s_zz += zq * zq
         s_d2 += d2[q]
         s_n2 += cnt2[q]
@@ -233,13 +243,13 @@ def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
                             vals[m] = d2[q]
                             m += 1
                     var_all = np.median(vals[:m]) / (6.0 * 0.4549) + 1e-8
-            _fit_windows(k, i0, i1, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
-            left -= _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y[f], out)
+            _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
+            left -= _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y[f], x, out)
     return out
 
 
 @njit
-def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, out):  # type: ignore[no-untyped-def]
+def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, x, out):  # type: ignore[no-untyped-def]
     """For the columns ``[u_lo, u_hi]`` still to do (``done`` False) of the run ``[f, la]`` (whose values are
     relative to its first, ``y0``): the value of the best accepted line of :func:`smooth_runs` at scale ``k``
     (centred, left or right window, inside the run; smallest residual, the first of equal ones) into ``out``, and
@@ -255,13 +265,12 @@ def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, out
     for sh in (0, -k, k):
         a0 = max(u_lo, k - sh, f + k - sh)  # window of centre c = u + sh from c - k >= max(0, f)
         a1 = min(u_hi + 1, n - k - sh, la - k - sh + 1)  # to c + k <= min(n - 1, la)
-        fs = float(-sh)
         for u in range(a0, a1):
             c = np.uint64(u + sh)
             i = np.uint64(u - u_lo)
             r = rss_c[c]
             ok = acc_c[c] & (r < best[i])
-            v = a_c[c] + b_c[c] * fs + y0
+            v = a_c[c] + b_c[c] * (x[np.uint64(u)] - x[c]) + y0
             best[i] = r if ok else best[i]
             val[i] = v if ok else val[i]
     got = 0

@@ -19,6 +19,7 @@ Public API (stable; other parts of the project build on it)::
     r.truth.scene_body.distance_to_surface(points)  # error metric for triangulated points (body frame)
     r.truth.boards()                                # checkerboards: corners_body (rows*cols,3), plane
     r.truth.true_points_on_rays(points, C)          # true point on each measurement's camera ray (scoring)
+    named_scene("wall_1.0").with_port(acrylic_port(2.0))  # the same scene through a flat port (exact)
 
     wall_scene(0.5, normal=(1, 0, 0), calibration=true_calib)   # wall n.p = 0.5 m (n: camera -> wall)
     checkerboard_wall_scene(1.0, board=Checkerboard(9, 6, 0.05, offset_u_m=.., offset_v_m=..))
@@ -32,9 +33,11 @@ the body frame or in NED; ``Scene.raycast(origins, dirs) -> (t, surface_id, norm
 
 Rendering: every laser fan (from the TRUE calibration's plane and point, 120 deg centred on body +x) is traced
 densely into the scene (first hit, then the camera's view of it: occlusion and shadows), projected with
-``Camera.project`` (OpenCV distortion), and drawn per column (per row where steeper than 45 deg) as a Gaussian
-profile at the exact sub-pixel centre (sigma from blur and sheet thickness; peak from range, incidence,
-albedo and water attenuation; clipped at 255: flat-topped close up), green with a little blue/red bleed.
+``Camera.project`` (OpenCV distortion; through the calibration's flat port exactly when it has one, and every
+ray cast from the camera then starts on the port and is refracted, so ported renders have exact truth), and
+drawn per column (per row where steeper than 45 deg) as a Gaussian profile at the exact sub-pixel centre
+(sigma from blur and sheet thickness; peak from range, incidence, albedo and water attenuation; clipped at 255:
+flat-topped close up), green with a little blue/red bleed.
 
 Named scenes (:data:`SCENES`): ``paper_box``, ``wall_0.3`` .. ``wall_3.0``, ``tilted_wall``, ``corner``,
 ``pipe``, ``occluder``, ``turbid``, ``cluttered``, ``tilted_lasers``, ``distorted``, ``checkerboard_wall``,
@@ -81,6 +84,7 @@ from .scenes import (
     SCENES,
     WALL_DISTANCES_M,
     SimSetup,
+    acrylic_port,
     checkerboard_wall_scene,
     distorted_calibration,
     named_scene,
@@ -109,6 +113,7 @@ __all__ = [
     "Surface",
     "Truth",
     "WaterModel",
+    "acrylic_port",
     "box",
     "checkerboard_wall_scene",
     "distorted_calibration",

@@ -8,7 +8,9 @@ the calibration does not (fan angle, power, sheet thickness, blur, sampling dens
 
 Inputs: a scene in the body frame (x forward, y starboard, z down; metres), the TRUE
 :class:`~lrsensor.calibration.Calibration` (laser planes ``normal_body``/``point_body``, camera intrinsics
-with distortion and mounting), a laser index and a :class:`LaserModel`.
+with distortion and mounting, and its flat port if any: the hits are then projected exactly through the port,
+:func:`lrsensor.port.project_through_port`, and seen along the refracted path from the port), a laser index and
+a :class:`LaserModel`.
 
 Outputs: :class:`FanSamples` of N samples sorted by fan angle, all arrays indexed by sample:
 ``theta`` (N,) fan angle in radians (``cos(theta) a + sin(theta) b``, > 0 toward body +y for an untilted
@@ -42,6 +44,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..errors import SimulationError
+from ..port import project_through_port, rays_in_water
 from .scene import Scene
 from .water import WaterModel
 
@@ -133,10 +136,18 @@ def trace_samples(
     p = origin + np.where(hit, t, 0.0)[:, None] * d
     C = calib.camera_center_body
     dc = p - C
-    tc, _, _ = scene.raycast(C, dc)
-    seen = hit & (tc >= 1.0 - 1e-7)
     pc = calib.body_to_cam(p)
-    uv = calib.camera.project(pc)
+    if calib.port is None:
+        tc, _, _ = scene.raycast(C, dc)
+        uv = calib.camera.project(pc)
+    else:
+        # the camera sees the hit along the refracted path: from its exit point on the port to the hit
+        dirs_air = project_through_port(calib.port, pc)
+        uv = calib.camera.project(dirs_air)
+        exit_body = calib.cam_to_body(rays_in_water(calib.port, dirs_air)[0])
+        exit_body = np.where(np.isfinite(exit_body), exit_body, C)  # rows without a path are not drawn anyway
+        tc, _, _ = scene.raycast(exit_body, p - exit_body)
+    seen = hit & (tc >= 1.0 - 1e-7)
     cam = calib.camera
     with np.errstate(invalid="ignore"):
         inside = (

@@ -39,17 +39,19 @@ F32 = NDArray[np.float32]
 
 
 @functools.lru_cache(maxsize=8)
-def _low_res_rays(calib: Calibration, h: int, w: int) -> tuple[FloatArray, FloatArray]:
-    """Body-frame viewing rays (M, 3) and their lengths (M,) of the quarter-resolution pixel centres."""
+def _low_res_rays(calib: Calibration, h: int, w: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Body-frame viewing rays in the water of the quarter-resolution pixel centres: origins ((3,) the camera
+    centre, or (M, 3) the exit points on the port), directions (M, 3) and their lengths (M,)."""
     hl, wl = low_res_shape(h, w)
     f = LOW_RES_FACTOR
     ys, xs = np.mgrid[0:hl, 0:wl]
     uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
-    rays = calib.rays_body(uv)
-    rays.setflags(write=False)
+    origins, rays = calib.water_rays_body(uv)
+    for a in (origins, rays):
+        a.setflags(write=False)
     norm = np.linalg.norm(rays, axis=1)
     norm.setflags(write=False)
-    return rays, norm
+    return origins, rays, norm
 
 
 def laser_glow(
@@ -78,8 +80,7 @@ def laser_glow(
     t_tab, _, _ = scene.raycast(origin, d)
     c = water.attenuation_per_m
     t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(c, 0.2)))
-    rays, norm = _low_res_rays(calib, h, w)
-    C = calib.camera_center_body
+    C, rays, norm = _low_res_rays(calib, h, w)  # C: the rays' origins (the camera centre without a port)
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = rays @ n
         tp = ((origin - C) @ n) / denom
@@ -122,8 +123,8 @@ def paint_ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32)
         f = 4
         ys, xs = np.mgrid[0:h:f, 0:w:f]
         uv = np.stack([xs.ravel() + (f - 1) / 2.0, ys.ravel() + (f - 1) / 2.0], axis=1).astype(float)
-        rays = calib.rays_body(uv)
-        t, sid, _ = scene.raycast(C, rays)
+        origins, rays = calib.water_rays_body(uv)
+        t, sid, _ = scene.raycast(np.where(np.isfinite(origins), origins, C), rays)
         hit = np.isfinite(t)
         dist = np.where(hit, t * np.linalg.norm(rays, axis=1), 0.0)
         val = np.where(hit, level * albedo[sid] * np.exp(-c_att * dist), 0.0)
@@ -141,7 +142,7 @@ def paint_ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32)
         eu, ev, c0 = np.asarray(rect.axis_u), np.asarray(rect.axis_v), np.asarray(rect.center)
         outline = board.outline_uv()
         corners = c0 + outline[:, :1] * eu + outline[:, 1:] * ev
-        uvc = calib.project_body(corners)
+        uvc = calib.project_water_body(corners)
         if not np.all(np.isfinite(uvc)):
             continue
         x0 = int(max(0, math.floor(uvc[:, 0].min()) - 3))
@@ -152,13 +153,14 @@ def paint_ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32)
             continue
         ys, xs = np.mgrid[y0:y1, x0:x1]
         uv = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(float)
-        rays = calib.rays_body(uv)
-        t, sid, _ = scene.raycast(C, rays)
+        o, rays = calib.water_rays_body(uv)  # o: the camera centre, or each ray's exit point on the port
+        o = np.where(np.isfinite(o), o, C)
+        t, sid, _ = scene.raycast(o, rays)
         # board coordinates of each pixel centre on the board's plane (occluders checked with sid)
         n = rect.normal
         with np.errstate(divide="ignore", invalid="ignore"):
-            tp = ((c0 - C) @ n) / (rays @ n)
-        p = C + tp[:, None] * rays
+            tp = ((c0 - o) @ n) / (rays @ n)
+        p = o + tp[:, None] * rays
         ca, cb, _ = rect.local(p)
         bx, by = board.to_board(ca.reshape(ys.shape), cb.reshape(ys.shape))
         # pixel footprint on the board (metres, along the board's axes), from the local Jacobian

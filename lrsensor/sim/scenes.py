@@ -3,6 +3,10 @@
 Body-frame scenes put the camera at the body origin looking along +x (the paper's default mounting); the
 lasers are the planes z_b = -0.05 (top) and +0.05 (bottom) unless the scene changes them (``tilted_lasers``).
 The ``tank`` is given in NED and rendered from a vehicle pose.
+
+Any scene can be seen through a flat port: ``named_scene("wall_1.0").with_port(acrylic_port(2.0))`` (the
+camera of the calibration is then the in-air camera behind the port; :func:`acrylic_port` is the issue's acrylic
+window). Ported scenes are not in :data:`SCENES`, whose renders are the references of the extractor's checks.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from ..calibration import Calibration, LaserPlane
 from ..camera import Camera
 from ..errors import SimulationError
 from ..frames import Pose, rot_x, rot_y
+from ..port import FlatPort
 from .render import LaserModel, Render, render
 from .scene import Checkerboard, Cylinder, Rectangle, Scene, Surface, box, stained
 from .water import WaterModel
@@ -71,6 +76,12 @@ class SimSetup:
         """A copy with some fields changed (``water=...``, ``calibration=...``, ``pose=...``)."""
         return replace(self, **changes)
 
+    def with_port(self, port: FlatPort | None) -> SimSetup:
+        """The same scene seen through a flat port (None: none): the calibration's camera becomes the in-air camera
+        behind ``port``, so the render and its truth are exact through the port (named ``<name>+port``)."""
+        name = self.name.removesuffix("+port") + ("+port" if port is not None else "")
+        return replace(self, name=name, calibration=replace(self.calibration, port=port))
+
 
 def scale_calibration(calib: Calibration, width: int, height: int) -> Calibration:
     """``calib`` with its camera resampled to ``width x height`` (pixel-centre convention kept)."""
@@ -86,6 +97,13 @@ def scale_calibration(calib: Calibration, width: int, height: int) -> Calibratio
         cam.distortion,
     )
     return replace(calib, camera=new)
+
+
+def acrylic_port(tilt_deg: float = 0.0) -> FlatPort:
+    """The flat port of issue 26: acrylic (n 1.49) 8 mm thick, its inner surface 20 mm in front of the lens, sea
+    water (n 1.34); its normal tilted ``tilt_deg`` degrees from the optical axis, about the camera's x axis."""
+    t = math.radians(tilt_deg)
+    return FlatPort((0.0, math.sin(t), math.cos(t)), 0.02, 0.008, 1.0, 1.49, 1.34)
 
 
 def paper_calibration(width: int = 1920, height: int = 1080, baseline_m: float = 0.1) -> Calibration:
