@@ -9,7 +9,8 @@ For each LLVM optimisation level (1, the child's default, and 3, numba's default
 - **frame**: CPU time of ``Sensor.process`` per 1920x1080 frame with the kernels of that level, warm, median of
   60 calls on each of three named scenes, ms.
 
-The compile is bound by one core; run it on a quiet machine (other work on the two cores stretches it).
+The compile is bound by one core; run it on a quiet machine (other work on the two cores stretches it: the
+table gives the highest 1-minute load average seen after a compile, 1.0 being one busy core).
 """
 
 from __future__ import annotations
@@ -57,7 +58,8 @@ def measure(opt: str, repeats: int) -> dict[str, float]:
     """Compile time (median), load time and frame times at LLVM level ``opt``."""
     import json
 
-    compiles = []
+    compiles: list[float] = []
+    loads: list[float] = []
     with tempfile.TemporaryDirectory(prefix="lrsensor-bench-compile-") as top:
         cache = ""
         for i in range(repeats):
@@ -70,7 +72,8 @@ def measure(opt: str, repeats: int) -> dict[str, float]:
                 capture_output=True,
             )
             compiles.append(time.monotonic() - t0)
-            print(f"level {opt}: compile {compiles[-1]:.1f} s", file=sys.stderr)
+            loads.append(os.getloadavg()[0])
+            print(f"level {opt}: compile {compiles[-1]:.1f} s (load average {loads[-1]:.1f})", file=sys.stderr)
         done = subprocess.run(
             [sys.executable, "-c", _SPEED % (SPEED_SCENES,)],
             env=_env(cache, "3"),
@@ -79,7 +82,7 @@ def measure(opt: str, repeats: int) -> dict[str, float]:
             text=True,
         )
     speeds = json.loads(done.stdout.strip().splitlines()[-1])
-    return {"compile_s": statistics.median(compiles), **speeds}
+    return {"compile_s": statistics.median(compiles), "load_avg": max(loads), **speeds}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,13 +99,13 @@ def main(argv: list[str] | None = None) -> int:
         "1920x1080 frame with those kernels (warm, median of 60). `lrsensor setup` and a first use compile at "
         "level 1.",
         "",
-        "| LLVM level | compile s | load s | " + " | ".join(f"{s} ms" for s in SPEED_SCENES) + " |",
-        "|---:|---:|---:|" + "---:|" * len(SPEED_SCENES),
+        "| LLVM level | compile s | machine load | load s | " + " | ".join(f"{s} ms" for s in SPEED_SCENES) + " |",
+        "|---:|---:|---:|---:|" + "---:|" * len(SPEED_SCENES),
     ]
     for opt in args.levels.split(","):
         m = measure(opt.strip(), args.repeats)
         frame = " | ".join(f"{m[s]:.2f}" for s in SPEED_SCENES)
-        rows.append(f"| {opt} | {m['compile_s']:.1f} | {m['load_s']:.2f} | {frame} |")
+        rows.append(f"| {opt} | {m['compile_s']:.1f} | {m['load_avg']:.1f} | {m['load_s']:.2f} | {frame} |")
     text = "\n".join(rows) + "\n"
     print(text)
     atomic_write(args.out, text)

@@ -84,11 +84,18 @@ _SOAK = "python benchmarks/bench_soak.py"
 SOURCES: tuple[Source, ...] = (
     Source("extract.md", "accuracy", f"{_EXTRACT} --seeds 2 --repeats 30", ("Accuracy",), "accuracy tables"),
     Source("extract_flank_gate.md", "accuracy", f"{_EXTRACT} --flank-gate --seeds 6"),
+    Source(
+        "extract_reshape.md",
+        "accuracy",
+        "python benchmarks/compare_points.py compare REF.npz --out benchmarks/results/extract_reshape.md",
+        note="the extractor's reshape against the points saved before it (`compare_points.py save REF.npz`)",
+    ),
     Source("extract.md", "speed", f"{_EXTRACT} --seeds 2 --repeats 30", ("Speed", "Where the time goes"), "speed"),
     Source("extract_copies.md", "speed", f"{_EXTRACT} --copies"),
     Source("extract_cold_after_tank.md", "speed", f"{_EXTRACT} --cold-after tank"),
     Source("extract_cold_after_wall_0.3.md", "speed", f"{_EXTRACT} --cold-after wall_0.3 --repeats 30"),
     Source("extract_stages_wall_5.0.md", "speed", f"{_EXTRACT} --stages wall_5.0 --seeds 4"),
+    Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 2", note="the one-time compile"),
     Source("extract_foreign.md", "independent", _FOREIGN),
     Source("extract_foreign_integrate_first.md", "independent", f"{_FOREIGN} --integrate-first"),
     Source("extract_foreign_luma.md", "independent", f"{_FOREIGN} --channel luma"),

@@ -2,12 +2,16 @@
 
 Modules:
 
-* :mod:`services.wire` msgpack wire messages (``CloudMsg``, ``CalibMsg``, ``StatusMsg``), strict decoding;
+* :mod:`services.wire` msgpack wire messages (``CloudMsg``, ``StripeMsg``, ``CalibMsg``, ``StatusMsg``), strict
+  decoding;
 * :mod:`services.keys` the fleet's key expressions (``FleetKeys``);
 * :mod:`services.zconfig` ``--mode/--connect/--listen/--config`` -> ``zenoh.Config`` (multicast scouting off);
 * :mod:`services.imu`, :mod:`services.posetrack` IMU sources (sim, CSV, OpenROV serial) and pose interpolation;
 * :mod:`services.sources`, :mod:`services.simsource` frame sources (recorded dive, video, camera, simulator);
-* :mod:`services.rov`, :mod:`services.base` the ROV and base-station services;
+* :mod:`services.rov` the ROV service;
+* :mod:`services.base` the base station's Zenoh wiring, composed of :mod:`services.ledger` (robot records, the
+  state file, acknowledgements), :mod:`services.mapfeed` (the map queue, worker and publication) and
+  :mod:`services.calibbook` (the robots' calibrations, for clouds sent as stripe rows);
 * :mod:`services.testnet` the in-process test network; :mod:`services.demo` ``lrsensor demo``;
 * :mod:`services.signals` SIGINT/SIGTERM -> a stop event, so every session is closed;
 * issue 7 (faults, outbox, acknowledgements, secure profile): :mod:`services.outbox`,

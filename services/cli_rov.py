@@ -31,8 +31,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--imu",
         default=None,
-        help="poses: 'sim', 'csv:FILE' or 'serial:PORT[@BAUD]' (default: sim for --source sim, "
-        "else csv:<folder>/imu.csv when the folder has one)",
+        help="poses: 'sim', 'csv:FILE', 'serial:PORT[@BAUD]' (OpenROV) or 'mavlink:CONNECTION' (ArduSub, e.g. "
+        "mavlink:udpin:127.0.0.1:14551) (default: sim for --source sim, else csv:<folder>/imu.csv when the "
+        "folder has one)",
+    )
+    parser.add_argument(
+        "--imu-stale-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="mavlink: samples further apart than S seconds are not interpolated between, so frames in a silent "
+        "link's gap get no pose (default 1.0)",
     )
     parser.add_argument(
         "--calib", default=None, help="calibration JSON (default: the simulator's, or fetched from the base station)"
@@ -135,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         source, sim_imu, sim_calib = open_sim(
             n_frames=args.sim_frames, width=int(w), height=int(h), seed=args.sim_seed, robot=robot
         )
-        imu = sim_imu if args.imu in (None, "sim") else open_imu(args.imu)
+        imu = sim_imu if args.imu in (None, "sim") else open_imu(args.imu, args.imu_stale_s)
         calibration = calibration or sim_calib
     else:
         source = open_source(args.source, args.video_t0_ns)
@@ -143,9 +152,9 @@ def run(args: argparse.Namespace) -> int:
         if imu_spec is None and isinstance(source, FolderSource) and (source.folder / "imu.csv").is_file():
             imu_spec = f"csv:{source.folder / 'imu.csv'}"
         if imu_spec is None or imu_spec == "sim":
-            log.error("--imu sim needs --source sim; give --imu csv:FILE or serial:PORT")
+            log.error("--imu sim needs --source sim; give --imu csv:FILE, serial:PORT or mavlink:CONNECTION")
             return 2
-        imu = open_imu(imu_spec)
+        imu = open_imu(imu_spec, args.imu_stale_s)
         if isinstance(source, FolderSource) and (source.folder / "calib.json").is_file():
             dive_calib = Path(source.folder / "calib.json")
     with (

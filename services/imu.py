@@ -3,10 +3,15 @@
 Every source fills a :class:`~services.posetrack.PoseTrack` that the frame loop queries at each capture time.
 
 * ``sim``: the simulator's trajectory with IMU noise (built by the frame source, see :mod:`services.sources`).
-* ``csv:FILE``: header ``t_ns,roll_deg,pitch_deg,yaw_deg,north_m,east_m,down_m``, one sample per row.
+* ``csv:FILE``: header ``t_ns,roll_deg,pitch_deg,yaw_deg,north_m,east_m,down_m``, one sample per row;
+  ``north_m`` and ``east_m`` both empty: that sample has attitude and depth but no horizontal fix.
 * ``serial:PORT[@BAUD]``: a pyserial URL or device (``/dev/ttyUSB0``, ``loop://``, ``socket://...``) streaming
   OpenROV telemetry lines ``hdgd:<deg>;deep:<m>;pitc:<deg>;roll:<deg>;...``: heading is yaw, depth is down;
-  north/east stay 0 (OpenROV has no position fix). Samples are stamped with the host receive time.
+  no horizontal fix (OpenROV has none). Samples are stamped with the host receive time.
+* ``mavlink:CONNECTION``: an ArduSub autopilot over MAVLink (:mod:`services.imu_mavlink`).
+
+No source invents a horizontal position: where a sample has no fix the track knows none
+(:mod:`services.posetrack` says how a frame's position is then interpolated or left unknown).
 
 Malformed input is never fatal for a running source: each bad line is logged once with its reason and
 counted in ``rejected`` (issue 7 surfaces the counters); only an unusable file (no header, no valid row)
@@ -31,7 +36,7 @@ from typing import Any, Protocol
 from lrsensor.frames import Pose
 
 from .errors import ImuError
-from .posetrack import PoseTrack
+from .posetrack import PoseTrack, has_fix
 
 log = logging.getLogger(__name__)
 
@@ -137,10 +142,13 @@ class CsvImu(TrackImu):
     def _add_row(track: PoseTrack, row: list[str], col: dict[str, int]) -> str | None:
         try:
             t_ns = _parse_t_ns(row[col["t_ns"]])
-            v = {h: float(row[col[h]]) for h in CSV_HEADER[1:]}
+            empty = {h for h in ("north_m", "east_m") if not row[col[h]].strip()}
+            v = {h: math.nan if h in empty else float(row[col[h]]) for h in CSV_HEADER[1:]}
         except (ValueError, IndexError) as err:
             return f"malformed row {row!r}: {err}"
-        if not all(math.isfinite(x) for x in v.values()):
+        if len(empty) == 1:
+            return f"{empty.pop()} is empty but not the other horizontal coordinate in {row!r}"
+        if not all(math.isfinite(x) for h, x in v.items() if h not in empty):
             return f"non-finite value in {row!r}"
         if t_ns < 0:
             return f"t_ns must not be negative, got {t_ns}"
@@ -175,7 +183,8 @@ def _parse_t_ns(text: str) -> int:
 
 
 def write_csv(path: str | Path, t_ns: list[int], poses: list[Pose]) -> None:
-    """Write a navigation log in the format :class:`CsvImu` reads (degrees for angles)."""
+    """Write a navigation log in the format :class:`CsvImu` reads (degrees for angles; a pose without a
+    horizontal fix, NaN ``north_m``/``east_m``, leaves both empty)."""
     with Path(path).open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_HEADER)
@@ -186,8 +195,8 @@ def write_csv(path: str | Path, t_ns: list[int], poses: list[Pose]) -> None:
                     repr(math.degrees(p.roll_rad)),
                     repr(math.degrees(p.pitch_rad)),
                     repr(math.degrees(p.yaw_rad)),
-                    repr(p.north_m),
-                    repr(p.east_m),
+                    repr(p.north_m) if has_fix(p) else "",
+                    repr(p.east_m) if has_fix(p) else "",
                     repr(p.down_m),
                 ]
             )
@@ -204,8 +213,8 @@ class OpenRovReading:
     down_m: float
 
     def pose(self) -> Pose:
-        """As a pose at north = east = 0."""
-        return Pose(0.0, 0.0, self.down_m, self.roll_rad, self.pitch_rad, self.yaw_rad)
+        """As a pose without a horizontal fix (``north_m``/``east_m`` NaN: OpenROV has no position)."""
+        return Pose(math.nan, math.nan, self.down_m, self.roll_rad, self.pitch_rad, self.yaw_rad)
 
 
 _KEY_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
@@ -397,8 +406,9 @@ class SerialImu:
             self._serial.close()
 
 
-def open_imu(spec: str) -> ImuSource:
-    """An IMU source from its command-line spec: ``csv:FILE`` or ``serial:PORT[@BAUD]``.
+def open_imu(spec: str, stale_s: float | None = None) -> ImuSource:
+    """An IMU source from its command-line spec: ``csv:FILE``, ``serial:PORT[@BAUD]`` or
+    ``mavlink:CONNECTION`` (``stale_s``: its staleness limit, seconds; None: the default).
 
     ``sim`` is not handled here: the simulated IMU comes with the simulated frame source.
     """
@@ -408,5 +418,9 @@ def open_imu(spec: str) -> ImuSource:
     if kind == "serial" and arg:
         port, baud = parse_serial_spec(arg)
         return SerialImu(port, baud)
-    msg = f"unknown IMU {spec!r}: use sim, csv:FILE or serial:PORT[@BAUD]"
+    if kind == "mavlink" and arg:
+        from .imu_mavlink import DEFAULT_STALE_S, MavlinkImu
+
+        return MavlinkImu(arg, DEFAULT_STALE_S if stale_s is None else stale_s)
+    msg = f"unknown IMU {spec!r}: use sim, csv:FILE, serial:PORT[@BAUD] or mavlink:CONNECTION"
     raise ImuError(msg)

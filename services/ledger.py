@@ -4,12 +4,13 @@ Records: one :class:`RobotRecord` per robot name ever seen (also for payloads th
 sends only garbage is still listed, with its rejections). A record holds the sequence numbers received
 (``seqs``, a :class:`~services.seqset.SeqSet` of ranges, so a gap is a ``missed`` count and a repeat a
 ``duplicate``), those the map has taken in (``mapped``), those acknowledged (``acked``), counters, the
-liveliness state, the ROV's last self-report and the track of accepted poses.
+liveliness state, the ROV's last self-report and the track of accepted poses. A cloud whose pose has no
+horizontal fix (``north_m``/``east_m`` null) is counted as ``unplaced`` and left out of the track.
 
 State file: ``<state>/fleet.json``, written atomically (temporary file, fsync, rename)::
 
     {"format": "lrsensor-base-state", "version": 1, "saved_ns": ...,
-     "robots": {r: {"ranges", "acked", "rejected", "duplicates", "points", "last_t_ns"}}}
+     "robots": {r: {"ranges", "acked", "rejected", "duplicates", "points", "last_t_ns", "unplaced"}}}
 
 On a restart only the ``acked`` ranges are reloaded as received: they are the only ones known to be in the
 saved map too. Everything else is still in the robots' outboxes (a robot keeps every cloud until it is
@@ -49,6 +50,7 @@ from lrsensor.atomic import atomic_write
 from lrsensor.calibration import Calibration
 
 from .errors import ServiceError
+from .posetrack import has_fix
 from .seqset import SeqSet
 from .wire import CloudMsg, StatusMsg
 
@@ -77,6 +79,8 @@ class RobotRecord:
     acked: Ranges = field(default_factory=list)
     rejected: int = 0
     duplicates: int = 0
+    #: accepted clouds whose pose had no horizontal fix: the map cannot place them (see services.mapfeed)
+    unplaced: int = 0
     points: int = 0
     alive: bool = False
     joined_ns: int = 0
@@ -98,6 +102,7 @@ class RobotRecord:
             "rejected": self.rejected,
             "missed": self.seqs.missed(),
             "duplicates": self.duplicates,
+            "unplaced": self.unplaced,
             "alive": self.alive,
             "last_seq": self.seqs.highest,
             "acked": self.n_acked,
@@ -178,7 +183,9 @@ class Ledger:
             rec.points += len(msg)
             rec.last_t_ns = max(rec.last_t_ns, msg.t_ns)
             p = msg.pose
-            if len(rec.track) < MAX_TRACK_POINTS:
+            if not has_fix(p):
+                rec.unplaced += 1
+            elif len(rec.track) < MAX_TRACK_POINTS:
                 rec.track.append((msg.t_ns, p.north_m, p.east_m, p.down_m))
             self._dirty = True
             return True
@@ -266,6 +273,7 @@ class Ledger:
                     acked=SeqSet(acked).ranges(),
                     rejected=int(rec.get("rejected", 0)),
                     duplicates=int(rec.get("duplicates", 0)),
+                    unplaced=int(rec.get("unplaced", 0)),
                     points=int(rec.get("points", 0)),
                     last_t_ns=int(rec.get("last_t_ns", 0)),
                 )
@@ -320,6 +328,7 @@ class Ledger:
                         "acked": acked_now[r],
                         "rejected": rec.rejected,
                         "duplicates": rec.duplicates,
+                        "unplaced": rec.unplaced,
                         "points": rec.points,
                         "last_t_ns": rec.last_t_ns,
                     }

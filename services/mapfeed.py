@@ -19,6 +19,13 @@ Wire form of the updates (``<root>/map/updates``, JSON, one message per cloud th
 The builder returns typed :class:`mapping.MapChange` values; they become JSON only here, at the wire
 (:func:`change_json`), and only when the base publishes.
 
+Clouds the map cannot place: a cloud whose pose has no horizontal fix (``north_m``/``east_m`` null: a pose
+source with attitude and depth only) is not mapped, never placed at north = east = 0. Until laser-aided
+navigation estimates such a robot's position, :meth:`MapFeed.take` counts it (``map.unplaced`` here,
+``robots.<robot>.unplaced`` in the ledger), logs it once per robot at warning level, and reports it to the
+ledger as done with (acknowledgeable: it is held in the received counters, and the robot must not re-send it
+forever to a map that cannot take it).
+
 Also here: the end-to-end latency statistics (capture time to the moment a cloud is handed to the map) and
 the publication-to-base transit times (:class:`LatencyStats`), and :func:`load_map_builder`, which finds out
 whether the map can run on this install (Open3D lives behind the ``mapping`` import).
@@ -41,6 +48,7 @@ import numpy as np
 from lrsensor.frames import body_to_ned
 
 from .errors import MappingUnavailableError
+from .posetrack import has_fix
 from .wire import CloudMsg
 
 if TYPE_CHECKING:
@@ -148,6 +156,9 @@ class MapFeed:
         self.clouds = 0
         self.skipped = 0
         self.errors = 0
+        #: clouds left out because their pose has no horizontal fix, and the robots already warned about
+        self.unplaced = 0
+        self._unplaced_robots: set[str] = set()
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
         self._publish: Callable[[str], object] | None = None
         self._thread: threading.Thread | None = None
@@ -188,8 +199,11 @@ class MapFeed:
 
     # ------------------------------------------------------------------ input
     def take(self, msg: CloudMsg, recv_ns: int) -> None:
-        """Hand an accepted cloud, received at ``recv_ns``, to the map (blocks up to ``map_wait_s``)."""
-        if self.builder is not None and len(msg):
+        """Hand an accepted cloud, received at ``recv_ns``, to the map (blocks up to ``map_wait_s``); a cloud
+        without a horizontal fix is counted as unplaced instead (see the module docstring)."""
+        if not has_fix(msg.pose):
+            self._unplaced(msg)
+        elif self.builder is not None and len(msg):
             try:
                 # back-pressure while the map keeps up; a map stalled for map_wait_s loses the cloud (counted)
                 self._queue.put(msg, timeout=self.map_wait_s)
@@ -207,6 +221,20 @@ class MapFeed:
         else:
             self.on_mapped(msg.robot, msg.seq)
         self.latency.add(time.time_ns() - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
+
+    def _unplaced(self, msg: CloudMsg) -> None:
+        self.unplaced += 1
+        if msg.robot not in self._unplaced_robots:
+            self._unplaced_robots.add(msg.robot)
+            log.warning(
+                "cloud %s#%d has no horizontal position (its pose source gives attitude and depth only): clouds "
+                "of %s without a fix are not mapped, counted as robots.%s.unplaced",
+                msg.robot,
+                msg.seq,
+                msg.robot,
+                msg.robot,
+            )
+        self.on_mapped(msg.robot, msg.seq)  # done with: acknowledgeable, or the robot re-sends it forever
 
     def idle(self) -> bool:
         """Whether every cloud handed over has been through the map."""
@@ -282,6 +310,7 @@ class MapFeed:
             "enabled": self.builder is not None,
             "clouds": self.clouds,
             "skipped": self.skipped,
+            "unplaced": self.unplaced,
             "queued": self._queue.qsize(),
             "errors": self.errors,
         }

@@ -1,14 +1,19 @@
 """The ROV service: frames + IMU -> pose-tagged clouds published over Zenoh.
 
-Per frame: the pose at the frame's capture time is interpolated from the IMU track (frames outside the
-track's span are skipped and counted), the image goes through :meth:`lrsensor.Sensor.process`, and the scan
-is published with BLOCK congestion control (never dropped silently) as a compact
-:class:`~services.wire.StripeMsg` (cloud schema 2, the default: the stripe's pixels, triangulated at the base
-with the calibration whose fingerprint it carries) or, with ``cloud_schema=1``, as a
+Per frame: the pose at the frame's capture time is interpolated from the IMU track (frames it cannot pose,
+outside its span or in a silent link's gap, are skipped and counted, with a warning), the image goes
+through :meth:`lrsensor.Sensor.process`, and the scan is published with BLOCK congestion control (never
+dropped silently) as a compact :class:`~services.wire.StripeMsg` (cloud schema 2, the default: the stripe's
+pixels, triangulated at the base with the calibration whose fingerprint it carries) or, with ``cloud_schema=1``, as a
 :class:`~services.wire.CloudMsg` of float32 points. A scan that schema 2 cannot carry (columns that are not
 whole pixels, as the paper's Algorithm 1 measures) goes out as schema 1, with a warning the first time.
 While running the ROV holds its liveliness token ``<root>/<robot>/alive``, serves its calibration on
 ``<root>/<robot>/calib`` and publishes :class:`~services.wire.StatusMsg` counters on ``<root>/<robot>/status``.
+
+A frame whose pose has attitude and depth but no horizontal fix (see :mod:`services.posetrack`) is still
+processed and published, its pose's ``north_m``/``east_m`` null: the base station counts it as unplaced
+instead of mapping it at a made-up position. The ROV counts such clouds (``unplaced`` in its status and
+summary) and says so in its log once, then every 100th.
 
 This module does not import Open3D (the ROV install does not have it).
 """
@@ -33,13 +38,15 @@ from lrsensor.sensor import Sensor
 from .errors import CalibrationUnavailableError, WireError
 from .imu import ImuSource
 from .keys import FleetKeys, check_robot_name
+from .posetrack import has_fix
 from .sources import FrameSource
 from .wire import CLOUD_SCHEMAS, ENCODING, AnyCloud, CalibMsg, CloudMsg, StatusMsg, StripeMsg, calibration_fingerprint
 
 log = logging.getLogger(__name__)
 
-#: How long a live frame waits for the IMU to catch up with its capture time, seconds.
-LIVE_IMU_WAIT_S = 0.25
+#: How long a live frame waits for the IMU to catch up with its capture time, seconds: more than the period
+#: of a 4 Hz depth or position message (a silent source is not waited for: see PoseTrack.wait_covering).
+LIVE_IMU_WAIT_S = 0.5
 
 
 @dataclass
@@ -49,6 +56,7 @@ class RovCounters:
     frames: int = 0
     published: int = 0
     skipped: int = 0
+    unplaced: int = 0
     failed: int = 0
     first_seq: int = -1
     last_seq: int = -1
@@ -61,7 +69,7 @@ class RovCounters:
         d = {None: "unknown", True: "confirmed", False: "NOT confirmed"}[self.delivered]
         return (
             f"rov {robot}: frames {self.frames}, published {self.published}, skipped (no pose) {self.skipped}, "
-            f"failed {self.failed}, points {self.points}, delivery {d}"
+            f"no horizontal fix {self.unplaced}, failed {self.failed}, points {self.points}, delivery {d}"
         )
 
 
@@ -239,7 +247,15 @@ class RovService:
         c = self.counters
         with self._lock:
             return StatusMsg(
-                self.robot, time.time_ns(), self.state, c.frames, c.published, c.skipped, c.failed, c.last_seq
+                self.robot,
+                time.time_ns(),
+                self.state,
+                c.frames,
+                c.published,
+                c.skipped,
+                c.failed,
+                c.last_seq,
+                c.unplaced,
             )
 
     # ------------------------------------------------------------------ main loop
@@ -324,8 +340,10 @@ class RovService:
         if pose is None:
             with self._lock:
                 c.skipped += 1
-            span = self.imu.track.span
-            log.debug("rov %s: frame at %d outside the IMU span %s: skipped", self.robot, t_ns, span)
+                n = c.skipped
+            if n <= 3 or n % 100 == 0:
+                why = self.imu.track.why_no_pose(t_ns)
+                log.warning("rov %s: no pose for the frame at %d (%s): skipped (%d so far)", self.robot, t_ns, why, n)
             return
         try:
             options = dict(self.process_options)
@@ -344,12 +362,24 @@ class RovService:
             log.exception("rov %s: frame at %d failed unexpectedly: %s", self.robot, t_ns, err)
             return
         sink.send(msg)
+        fixed = has_fix(pose)
         with self._lock:
+            if not fixed:
+                c.unplaced += 1
             if c.first_seq < 0:
                 c.first_seq = self.seq
             c.last_seq = self.seq
             c.published += 1
             c.points += len(msg)
+            n_unplaced = c.unplaced
+        if not fixed and (n_unplaced == 1 or n_unplaced % 100 == 0):
+            log.warning(
+                "rov %s: %d clouds sent without a horizontal fix (north/east null; the base does not map them "
+                "until it can place them), the latest at %d",
+                self.robot,
+                n_unplaced,
+                t_ns,
+            )
         self.seq += 1
 
     def _message(self, t_ns: int, pose: Pose, scan: Scan) -> AnyCloud:

@@ -16,7 +16,7 @@ Messages:
   and the fingerprint of the calibration it was measured with; the base station triangulates it
   (:meth:`StripeMsg.to_cloud`). :func:`decode_cloud` reads either schema.
 * :class:`CalibMsg` a robot's calibration (the mapping of :meth:`lrsensor.Calibration.to_dict`, at top level).
-* :class:`StatusMsg` a robot's counters (frames, published, skipped), published while it runs.
+* :class:`StatusMsg` a robot's counters (frames, published, skipped, unplaced), published while it runs.
 
 Why the compact cloud carries the measurement, not quantized points (figures: ``benchmarks/results/wire.md``):
 a schema-1 cloud spends 12 bytes a point on float32 coordinates, 8 on float32 uv, 4 on quality and 1 on the
@@ -180,17 +180,51 @@ def _bytes_field(
     return v
 
 
-def pose_to_map(pose: Pose) -> dict[str, float]:
-    """A pose as a msgpack/JSON-ready map with named fields (metres, radians)."""
-    return {name: float(getattr(pose, name)) for name in _POSE_FIELDS}
+def pose_to_map(pose: Pose) -> dict[str, float | None]:
+    """A pose as a msgpack/JSON-ready map with named fields (metres, radians); a pose without a horizontal
+    fix (``north_m`` and ``east_m`` both NaN, see :mod:`services.posetrack`) has them None (null)."""
+    out: dict[str, float | None] = {name: float(getattr(pose, name)) for name in _POSE_FIELDS}
+    if math.isnan(pose.north_m) and math.isnan(pose.east_m):
+        out["north_m"] = out["east_m"] = None
+    return out
+
+
+def _checked_header(robot: str, seq: int, t_ns: int, sent_ns: int, pose: Pose) -> tuple[str, dict[str, Any]]:
+    """What every cloud schema encodes alike, checked: the robot's name, the counters within int64 and the pose
+    as its wire map; returns the message's name for error messages and that map."""
+    check_robot_name(robot)
+    where = f"cloud {robot}#{seq}"
+    for name, value in (("seq", seq), ("t_ns", t_ns), ("sent_ns", sent_ns)):
+        if not 0 <= int(value) <= _MAX_INT64:
+            msg = f"{where}: {name} = {value} is outside [0, 2^63)"
+            raise WireError(msg)
+    pose_map = pose_to_map(pose)
+    _check_pose_map(pose_map, where)
+    return where, pose_map
+
+
+def _check_pose_map(pose: Mapping[str, float | None], where: str) -> None:
+    """Refuse a pose map that :func:`pose_from_map` would refuse (non-finite, or only one of north/east)."""
+    if (pose["north_m"] is None) != (pose["east_m"] is None) or not all(
+        math.isfinite(v) for v in pose.values() if v is not None
+    ):
+        msg = f"{where}: pose is not finite (north_m and east_m may only be unknown together): {pose}"
+        raise WireError(msg)
 
 
 def pose_from_map(obj: Any, where: str) -> Pose:
-    """Validate and build a pose from :func:`pose_to_map`'s map; raises :class:`WireError`."""
+    """Validate and build a pose from :func:`pose_to_map`'s map; raises :class:`WireError`.
+
+    ``north_m`` and ``east_m`` both null: no horizontal fix, NaN in the pose; one of them null is refused.
+    """
     if not isinstance(obj, dict):
         msg = f"{where}: field 'pose' must be a map, got {type(obj).__name__}"
         raise WireError(msg)
-    values = [_float_field(obj, name, f"{where}: pose") for name in _POSE_FIELDS]
+    unknown = [name for name in ("north_m", "east_m") if name in obj and obj[name] is None]
+    if len(unknown) == 1:
+        msg = f"{where}: pose: field {unknown[0]!r} is null but not the other horizontal coordinate"
+        raise WireError(msg)
+    values = [math.nan if name in unknown else _float_field(obj, name, f"{where}: pose") for name in _POSE_FIELDS]
     return Pose(*values)
 
 
@@ -203,7 +237,8 @@ class CloudMsg:
         robot: robot name (the ``<robot>`` chunk of its keys).
         seq: sequence number, 0, 1, 2, ... per robot, never reused.
         t_ns: capture time of the frame, ns since the Unix epoch.
-        pose: vehicle pose in NED at ``t_ns`` (interpolated from the IMU).
+        pose: vehicle pose in NED at ``t_ns`` (interpolated from the IMU); ``north_m``/``east_m`` NaN (null on
+            the wire) when the pose source had no horizontal fix then.
         points_body: (N, 3) float32, body frame, metres.
         laser: (N,) uint8, laser index of each point.
         quality: (N,) float32, extractor confidence of each point.
@@ -270,16 +305,7 @@ class CloudMsg:
 
     def to_bytes(self) -> bytes:
         """Encode as msgpack (arrays as little-endian bytes)."""
-        check_robot_name(self.robot)
-        where = f"cloud {self.robot}#{self.seq}"
-        for name, value in (("seq", self.seq), ("t_ns", self.t_ns), ("sent_ns", self.sent_ns)):
-            if not 0 <= int(value) <= _MAX_INT64:
-                msg = f"{where}: {name} = {value} is outside [0, 2^63)"
-                raise WireError(msg)
-        pose = pose_to_map(self.pose)
-        if not all(math.isfinite(v) for v in pose.values()):
-            msg = f"{where}: pose is not finite: {pose}"
-            raise WireError(msg)
+        where, pose = _checked_header(self.robot, self.seq, self.t_ns, self.sent_ns, self.pose)
         if not (np.all(np.isfinite(self.points_body)) and np.all(np.isfinite(self.quality))):
             msg = f"{where}: points or quality hold non-finite values"
             raise WireError(msg)
@@ -386,7 +412,7 @@ class StripeMsg:
         robot: robot name (the ``<robot>`` chunk of its keys).
         seq: sequence number, 0, 1, 2, ... per robot, never reused.
         t_ns: capture time of the frame, ns since the Unix epoch.
-        pose: vehicle pose in NED at ``t_ns``.
+        pose: vehicle pose in NED at ``t_ns`` (``north_m``/``east_m`` NaN, null on the wire: no fix).
         calib_id: :func:`calibration_fingerprint` of the calibration the frame was measured with (8 bytes).
         laser: (N,) uint8, laser index of each point.
         column: (N,) uint16, pixel column ``u`` of each point.
@@ -505,16 +531,7 @@ class StripeMsg:
 
     def to_bytes(self) -> bytes:
         """Encode as msgpack: the runs and the per-point rows' changes and quality as little-endian bytes."""
-        check_robot_name(self.robot)
-        where = f"cloud {self.robot}#{self.seq}"
-        for name, value in (("seq", self.seq), ("t_ns", self.t_ns), ("sent_ns", self.sent_ns)):
-            if not 0 <= int(value) <= _MAX_INT64:
-                msg = f"{where}: {name} = {value} is outside [0, 2^63)"
-                raise WireError(msg)
-        pose = pose_to_map(self.pose)
-        if not all(math.isfinite(v) for v in pose.values()):
-            msg = f"{where}: pose is not finite: {pose}"
-            raise WireError(msg)
+        _, pose = _checked_header(self.robot, self.seq, self.t_ns, self.sent_ns, self.pose)
         starts, _ = self.runs()
         inner = np.ones(len(self), dtype=bool)
         inner[starts] = False
@@ -706,9 +723,11 @@ class StatusMsg:
         state: one of :data:`STATES`.
         frames: frames read from the source.
         published: clouds published.
-        skipped: frames skipped because their capture time is outside the IMU's span.
+        skipped: frames skipped because the pose source gave no pose at their capture time (outside its
+            span, or a silent link).
         failed: frames that could not be processed (bad image, extractor error).
         last_seq: sequence number of the last published cloud, -1 if none.
+        unplaced: clouds published whose pose had no horizontal fix (optional on the wire, 0 when absent).
     """
 
     robot: str
@@ -719,6 +738,7 @@ class StatusMsg:
     skipped: int = 0
     failed: int = 0
     last_seq: int = -1
+    unplaced: int = 0
 
     TYPE = "status"
     _COUNTERS = ("frames", "published", "skipped", "failed")
@@ -731,7 +751,7 @@ class StatusMsg:
             raise WireError(msg)
         obj: dict[str, Any] = {"v": SCHEMA_VERSION, "type": self.TYPE, "robot": self.robot, "t_ns": int(self.t_ns)}
         obj["state"] = self.state
-        for name in (*self._COUNTERS, "last_seq"):
+        for name in (*self._COUNTERS, "last_seq", "unplaced"):
             obj[name] = int(getattr(self, name))
         return _pack(obj)
 
@@ -748,7 +768,8 @@ class StatusMsg:
             raise WireError(msg)
         frames, published, skipped, failed = (_int_field(obj, name, where) for name in cls._COUNTERS)
         last_seq = _int_field(obj, "last_seq", where, minimum=-1)
-        return cls(robot, t_ns, state, frames, published, skipped, failed, last_seq)
+        unplaced = _int_field(obj, "unplaced", where) if "unplaced" in obj else 0
+        return cls(robot, t_ns, state, frames, published, skipped, failed, last_seq, unplaced)
 
     def to_json_dict(self) -> dict[str, Any]:
         """The counters as a JSON-ready mapping."""
@@ -760,4 +781,5 @@ class StatusMsg:
             "skipped": self.skipped,
             "failed": self.failed,
             "last_seq": self.last_seq,
+            "unplaced": self.unplaced,
         }

@@ -19,13 +19,13 @@ from services.mapfeed import LatencyStats, MapFeed, change_json
 from services.wire import CloudMsg
 
 
-def a_cloud(robot: str, seq: int, n: int = 10, sent_ns: int = 0) -> CloudMsg:
+def a_cloud(robot: str, seq: int, n: int = 10, sent_ns: int = 0, fix: bool = True) -> CloudMsg:
     rng = np.random.default_rng(seq)
     msg = CloudMsg(
         robot,
         seq,
         1_700_000_000_000_000_000 + seq,
-        Pose(1, 2, 3, 0, 0, 0.5),
+        Pose(1, 2, 3, 0, 0, 0.5) if fix else Pose(math.nan, math.nan, 3, 0, 0, 0.5),
         rng.normal(0, 1, (n, 3)).astype(np.float32),
         np.zeros(n, np.uint8),
         np.ones(n, np.float32),
@@ -80,9 +80,74 @@ def test_map_feed_without_a_map_reports_each_cloud_at_once() -> None:
     feed.take(a_cloud("rov1", 7, sent_ns=1_700_000_000_000_000_000), 1_700_000_000_002_000_000)
     assert mapped == [("rov1", 7)]
     assert feed.idle()
-    assert feed.status_json() == {"planes": 0, "enabled": False, "clouds": 0, "skipped": 0, "queued": 0, "errors": 0}
+    assert feed.status_json() == {
+        "planes": 0,
+        "enabled": False,
+        "clouds": 0,
+        "skipped": 0,
+        "unplaced": 0,
+        "queued": 0,
+        "errors": 0,
+    }
     assert feed.map_json() == {"planes": [], "enabled": False}
     assert feed.latency.percentiles_ms(transit=True) == {"p50": 2.0, "p99": 2.0}
+
+
+class FakeMap:
+    """Stands in for ``mapping.MapBuilder``: records what it is given."""
+
+    def __init__(self) -> None:
+        self.added: list[tuple[str, int, Pose]] = []
+        self.n_planes = 0
+
+    def add_cloud(self, robot: str, t_ns: int, points_ned: np.ndarray, pose: Pose) -> list[object]:
+        assert np.all(np.isfinite(points_ned))
+        self.added.append((robot, t_ns, pose))
+        return []
+
+    def flush(self) -> list[object]:
+        return []
+
+    def save(self) -> None:
+        return None
+
+
+def test_clouds_without_a_fix_are_counted_not_mapped(caplog: pytest.LogCaptureFixture) -> None:
+    ledger = Ledger(None)
+    fake = FakeMap()
+    feed = MapFeed(fake, ledger.mark_mapped)  # type: ignore[arg-type]
+    feed.start(None)
+    try:
+        for seq, fix in enumerate([True, False, False, True, False]):
+            msg = a_cloud("rov1", seq, fix=fix)
+            assert ledger.accept(msg)
+            feed.take(msg, msg.t_ns)
+        other = a_cloud("rov2", 0, fix=False)
+        assert ledger.accept(other)
+        feed.take(other, other.t_ns)
+        feed.flush()
+    finally:
+        feed.close(save=False)
+    assert [(robot, t_ns - 1_700_000_000_000_000_000) for robot, t_ns, _ in fake.added] == [("rov1", 0), ("rov1", 3)]
+    assert feed.status_json()["unplaced"] == 4
+    assert feed.status_json()["clouds"] == 2
+    robots = ledger.robots_json()
+    assert (robots["rov1"]["unplaced"], robots["rov2"]["unplaced"]) == (3, 1)
+    assert robots["rov1"]["received"] == 5
+    assert ledger.tracks()["rov1"].shape == (2, 4)  # no made-up position in the track either
+    assert np.all(np.isfinite(ledger.tracks()["rov1"]))
+    # every cloud is done with (acknowledgeable), and each robot is named once at warning level
+    assert ledger.records["rov1"].mapped.ranges() == [[0, 4]]
+    warned = [r.getMessage() for r in caplog.records if "no horizontal position" in r.getMessage()]
+    assert len(warned) == 2
+    assert all(r.levelname == "WARNING" for r in caplog.records if "no horizontal position" in r.getMessage())
+
+
+def test_unplaced_count_survives_a_restart(tmp_path: Path) -> None:
+    ledger = Ledger(tmp_path)
+    ledger.accept(a_cloud("rov1", 0, fix=False))
+    ledger.save_state()
+    assert Ledger(tmp_path).robots_json()["rov1"]["unplaced"] == 1
 
 
 def test_latency_percentiles_are_nan_when_empty() -> None:

@@ -125,7 +125,10 @@ def _check_cloud(msg: CloudMsg) -> None:
     assert msg.quality.shape == (n,)
     assert np.all(np.isfinite(msg.points_body))
     assert np.all(np.isfinite(msg.quality))
-    assert all(math.isfinite(getattr(msg.pose, f)) for f in ("north_m", "east_m", "down_m", "yaw_rad"))
+    assert all(math.isfinite(getattr(msg.pose, f)) for f in ("down_m", "roll_rad", "pitch_rad", "yaw_rad"))
+    # the horizontal position is either known (finite) or unknown as a whole (null on the wire: NaN)
+    ne = (msg.pose.north_m, msg.pose.east_m)
+    assert all(math.isfinite(v) for v in ne) or all(math.isnan(v) for v in ne)
     assert msg.seq >= 0
     assert msg.t_ns >= 0
 

@@ -16,7 +16,7 @@ from waiting import wait_until
 from lrsensor.frames import Pose, R_ned_from_body
 from services.errors import ImuError
 from services.imu import CsvImu, OpenRovParser, SerialImu, open_imu, parse_serial_spec, write_csv
-from services.posetrack import PoseTrack
+from services.posetrack import PoseTrack, has_fix
 
 WAIT_S = 5.0  # how long a test waits for the reader thread to parse what it wrote
 
@@ -89,6 +89,83 @@ def test_live_track_is_bounded_and_can_be_waited_on() -> None:
     assert track.wait_covering(20, timeout_s=5.0)
 
 
+NAN = math.nan
+
+
+def test_attitude_and_depth_come_from_every_sample_position_only_from_fixes() -> None:
+    # fixes at 0 and 1 s, attitude and depth only at 0.5 and 1.5 s
+    track = PoseTrack.from_arrays(
+        [0, 500_000_000, 1_000_000_000, 1_500_000_000],
+        [Pose(0, 0, 1, 0, 0, 0), Pose(NAN, NAN, 2, 0, 0, 0.2), Pose(2, -2, 3, 0, 0, 0.4), Pose(NAN, NAN, 4, 0, 0, 0.6)],
+    )
+    assert track.n_fixes == 2
+    p = track.pose_at(250_000_000)  # between two fixes 1 s apart: interpolated
+    assert p is not None
+    assert (p.north_m, p.east_m, p.down_m, p.yaw_rad) == pytest.approx((0.5, -0.5, 1.5, 0.1))
+    p = track.pose_at(1_250_000_000)  # after the last fix: attitude and depth, no position
+    assert p is not None
+    assert (p.down_m, p.yaw_rad) == pytest.approx((3.5, 0.5))
+    assert not has_fix(p)
+    assert math.isnan(p.north_m)
+    assert math.isnan(p.east_m)
+    fixed = track.pose_at(1_000_000_000)
+    assert fixed is not None
+    assert has_fix(fixed)
+
+
+def test_fixes_too_far_apart_are_not_interpolated() -> None:
+    times = [0, 1_000_000_000, 2_000_000_000, 3_000_000_000]
+    poses = [Pose(0, 0, 1, 0, 0, 0), Pose(NAN, NAN, 1, 0, 0, 0), Pose(NAN, NAN, 1, 0, 0, 0), Pose(3, 0, 1, 0, 0, 0)]
+    track = PoseTrack.from_arrays(times, poses)  # default: fixes more than 2 s apart are not interpolated
+    p = track.pose_at(1_500_000_000)
+    assert p is not None
+    assert not has_fix(p)
+    wide = PoseTrack(max_fix_gap_s=5.0)
+    wide.extend(np.array(times), np.array([[q.north_m, q.east_m, q.down_m, 0, 0, 0] for q in poses]))
+    p = wide.pose_at(1_500_000_000)
+    assert p is not None
+    assert p.north_m == pytest.approx(1.5)
+
+
+def test_a_sample_with_only_one_horizontal_coordinate_is_refused() -> None:
+    track = PoseTrack()
+    assert not track.append(1, Pose(NAN, 0, 0, 0, 0, 0))
+    assert not track.append(2, Pose(math.inf, 0, 0, 0, 0, 0))
+    assert not track.append(3, Pose(NAN, NAN, NAN, 0, 0, 0))
+    assert track.append(4, Pose(NAN, NAN, 1, 0, 0, 0))
+    assert track.rejected == 3
+
+
+def test_separate_series_and_a_silent_gap_give_no_pose() -> None:
+    track = PoseTrack(keep_s=60.0, max_gap_s=0.5)
+    for k in range(11):  # attitude at 10 Hz, depth at 5 Hz, over 1 s
+        track.add_attitude(k * 100_000_000, 0.0, 0.0, 0.01 * k)
+        if k % 2 == 0:
+            track.add_depth(k * 100_000_000, 1.0 + 0.1 * k)
+    p = track.pose_at(150_000_000)
+    assert p is not None
+    assert (p.yaw_rad, p.down_m) == pytest.approx((0.015, 1.15))
+    assert not has_fix(p)
+    # the link falls silent for 2 s, then resumes: the frames in the gap get no pose, not an old one
+    track.add_attitude(3_000_000_000, 0.0, 0.0, 0.3)
+    track.add_depth(3_000_000_000, 4.0)
+    assert track.pose_at(2_000_000_000) is None
+    assert "more than" in track.why_no_pose(2_000_000_000)
+    assert track.pose_at(3_000_000_000) is not None
+    # a frame after a silence longer than the gap is not waited for
+    assert not track.wait_covering(4_000_000_000, timeout_s=30.0)
+
+
+def test_live_track_keeps_at_least_its_time_window() -> None:
+    track = PoseTrack(keep_s=1.0)
+    for k in range(1000):  # 10 s at 100 Hz
+        track.append(k * 10_000_000, Pose(NAN, NAN, 1, 0, 0, 0))
+    span = track.span
+    assert span is not None
+    assert span[1] - span[0] >= 1_000_000_000
+    assert span[1] - span[0] <= 2_000_000_000
+
+
 # ----------------------------------------------------------------------------- CSV
 
 
@@ -102,6 +179,34 @@ def test_csv_round_trip(tmp_path: Path) -> None:
     p = imu.track.pose_at(times[2])
     assert p is not None
     assert (p.north_m, p.down_m, p.yaw_rad, p.pitch_rad) == pytest.approx((0.2, 3.0, 0.7, -0.04))
+
+
+def test_csv_rows_without_a_fix_have_attitude_and_depth(tmp_path: Path) -> None:
+    f = tmp_path / "imu.csv"
+    f.write_text(
+        "t_ns,roll_deg,pitch_deg,yaw_deg,north_m,east_m,down_m\n"
+        "1000000000,0,0,0,1.0,2.0,1\n"  # the launch fix
+        "1100000000,0,0,10,,,1.5\n"
+        "1200000000,0,0,20, , ,2\n"
+        "1300000000,0,0,20,,3.0,2\n"  # one coordinate only: refused
+        "1400000000,0,0,20,nan,nan,2\n"  # an explicit nan is not 'no fix': refused
+    )
+    imu = CsvImu(f)
+    assert imu.rejected == 2
+    assert len(imu.track) == 3
+    p = imu.track.pose_at(1_150_000_000)
+    assert p is not None
+    assert (p.down_m, p.yaw_rad) == pytest.approx((1.75, math.radians(15)))
+    assert not has_fix(p)
+    launch = imu.track.pose_at(1_000_000_000)
+    assert launch is not None
+    assert (launch.north_m, launch.east_m) == (1.0, 2.0)
+    # written back, a pose without a fix leaves both cells empty
+    times, poses = imu.track.samples()
+    write_csv(tmp_path / "back.csv", times, poses)
+    rows = (tmp_path / "back.csv").read_text().splitlines()
+    assert rows[2].split(",")[4:6] == ["", ""]
+    assert len(CsvImu(tmp_path / "back.csv").track) == 3
 
 
 def test_csv_bad_rows_are_skipped_and_counted(tmp_path: Path) -> None:
@@ -224,7 +329,10 @@ def test_serial_imu_over_pyserial_loop() -> None:
         t0, _ = imu.track.span  # type: ignore[misc]
         p = imu.track.pose_at(t0)
         assert p is not None
-        assert (p.down_m, p.yaw_rad, p.north_m) == pytest.approx((3.25, math.radians(45), 0.0))
+        assert (p.down_m, p.yaw_rad) == pytest.approx((3.25, math.radians(45)))
+        assert not has_fix(p)  # OpenROV has no position: none is invented
+        assert math.isnan(p.north_m)
+        assert math.isnan(p.east_m)
     port.close()
 
 
@@ -246,4 +354,16 @@ def test_serial_imu_over_a_pty() -> None:
 
 def test_serial_imu_unopenable_port_is_refused() -> None:
     with pytest.raises(ImuError, match="cannot open"), open_imu("serial:/dev/does-not-exist@9600"):
+        pass
+
+
+# ----------------------------------------------------------------------------- MAVLink without pymavlink
+
+
+def test_mavlink_without_pymavlink_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pymavlink", None)  # as if it were not installed
+    imu = open_imu("mavlink:udpin:127.0.0.1:14551")  # the import waits until the source opens
+    with pytest.raises(ImuError, match=r"pip install 'lrsensor\[mavlink\]'"), imu:
         pass

@@ -10,10 +10,13 @@ second. This module decides when that compile happens and where:
   compiles and writes the cache; it can be ended at any moment (numba writes each cache file by an atomic
   rename, so an unfinished compile leaves nothing half written), it dies with its parent (``PR_SET_PDEATHSIG``
   on Linux; at a normal exit :func:`atexit` ends it), and the caller only ever *loads* finished kernels.
-- **At LLVM's optimisation level 1** (``NUMBA_OPT=1`` in the child, unless the caller set ``NUMBA_OPT``): numba
-  optimises every kernel's whole call tree again each time it links a caller, so most of a compile is spent in
-  the optimiser; level 1 more than halves that at a few percent of the frame time (docs/performance.md,
-  ``python -m benchmarks.bench_compile``).
+- **Compile time.** Numba compiles a kernel's callees first and optimises the caller's whole call tree again
+  each time it links one; most of the rest is numba's own typing and lowering. Two settings cut it without
+  changing a point: the child compiles at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set
+  ``NUMBA_OPT``), and :func:`~lrsensor.extract.frame.process_candidates` is inlined into the frame call (one
+  whole-tree optimisation less); inlining the deeper stages too makes it slower (numba retypes inlined code).
+  ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
+  (docs/performance.md).
 - **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
   the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
   (the ROV, which must not stall its camera): the compile runs in the background and the extractor runs its
@@ -57,7 +60,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
-COMPILE_TIME_HINT = "about 20 s"
+COMPILE_TIME_HINT = "about a minute"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
 

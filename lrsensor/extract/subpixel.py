@@ -54,7 +54,6 @@ from . import Detections, reference
 from .compile import usable
 from .config import SubpixelConfig
 from .frame import extract_frame
-from .reference import _noise_dn as _noise_dn  # (lrsensor.sim.score reads it here)
 from .settings import frame_settings
 
 __all__ = ["USE_REFERENCE", "SubpixelConfig", "extract", "extract_points", "luma_as_green"]
