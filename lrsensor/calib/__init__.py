@@ -24,6 +24,7 @@ from .lasers import (
     wall_points,
 )
 from .planefit import Plane, fit_plane_lsq, fit_plane_through_point, ransac_plane, robust_plane_fit, wall_plane
+from .port import PortCalibrationError, PortCalibrationResult, calibrate_port
 
 __all__ = [
     "BoardPose",
@@ -37,9 +38,12 @@ __all__ = [
     "LaserCalibrationResult",
     "LaserFitReport",
     "Plane",
+    "PortCalibrationError",
+    "PortCalibrationResult",
     "WallImage",
     "calibrate_camera",
     "calibrate_lasers",
+    "calibrate_port",
     "estimate_board_pose",
     "find_board_corners",
     "fit_plane_lsq",

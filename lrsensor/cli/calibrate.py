@@ -1,7 +1,8 @@
-"""``lrsensor calibrate``: laser planes from wall images, camera intrinsics from checkerboard images.
+"""``lrsensor calibrate``: laser planes from wall images, camera intrinsics and the flat port from checkerboards.
 
 ``lrsensor calibrate lasers --calib IN.json --wall IMAGE=DIST_M [--wall IMAGE=DIST_M ...] --out OUT.json``
 ``lrsensor calibrate camera IMAGE... --board COLSxROWS --square-m S --out OUT.json [--calib IN.json]``
+``lrsensor calibrate port IMAGE... --board COLSxROWS --square-m S --calib IN.json --out OUT.json [--no-tilt]``
 
 A refused calibration exits with code 2, prints why, and writes no output file.
 """
@@ -209,11 +210,37 @@ def configure(parser: argparse.ArgumentParser) -> None:
     cam.add_argument("--max-rms-px", type=float, default=1.0, help="refuse above this RMS error (default 1.0 px)")
     cam.add_argument("--fix-k3", action="store_true", help="keep k3 at 0 (default: estimate k1, k2, p1, p2, k3)")
 
+    prt = sub.add_parser(
+        "port",
+        help="measure the flat port (distance_m, tilt) from checkerboard images taken in water",
+        description=(
+            "Measure the camera's flat port from images of a checkerboard in the water, in several poses: "
+            "distance_m and (unless --no-tilt) the tilt of its normal, with every board pose, by least squares "
+            "on the corners' exact projections through the port. --calib gives the in-air camera and a port "
+            "whose thickness and indices are known (its distance and normal are the first guess). Refuses (exit "
+            "2, no output) with fewer than --min-images boards, an RMS error above --max-rms-px, or a distance "
+            "the views do not fix to --max-sigma-mm."
+        ),
+    )
+    prt.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="checkerboard images taken in water")
+    prt.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x6")
+    prt.add_argument("--square-m", required=True, type=float, help="square size in metres")
+    prt.add_argument("--calib", required=True, type=Path, help="calibration with the in-air camera and a port")
+    prt.add_argument("--out", required=True, type=Path, help="output calibration file (JSON)")
+    prt.add_argument("--no-tilt", action="store_true", help="keep the input port's normal (fit distance_m only)")
+    prt.add_argument("--min-images", type=int, default=3, help="refuse with fewer boards found (default 3)")
+    prt.add_argument("--max-rms-px", type=float, default=1.0, help="refuse above this RMS error (default 1.0 px)")
+    prt.add_argument(
+        "--max-sigma-mm", type=float, default=0.5, help="refuse when distance_m's standard deviation exceeds this"
+    )
+
 
 def run(args: argparse.Namespace) -> int:
     """Run the sub-command; exit code 0 on success, 2 on a refusal."""
     if args.what == "lasers":
         return _run_lasers(args)
+    if args.what == "port":
+        return _run_port(args)
     return _run_camera(args)
 
 
@@ -345,5 +372,36 @@ def _run_camera(args: argparse.Namespace) -> int:
     if result.not_found:
         print("board not found in: " + ", ".join(result.not_found))
     cal.save(args.out)
+    print(f"calibration written to {args.out}")
+    return 0
+
+
+def _run_port(args: argparse.Namespace) -> int:
+    from ..calib.board import BoardSpec
+    from ..calib.camera import image_names
+    from ..calib.port import PortCalibrationError, calibrate_port
+    from ..calibration import Calibration
+
+    board = BoardSpec.parse(args.board, args.square_m)
+    calibration = Calibration.load(args.calib)
+    missing = [str(p) for p in args.images if not p.is_file()]
+    if missing:
+        return _err("images not found: " + ", ".join(missing))
+    try:
+        result = calibrate_port(
+            image_names(args.images),
+            board,
+            calibration,
+            fit_tilt=not args.no_tilt,
+            min_images=args.min_images,
+            max_rms_px=args.max_rms_px,
+            max_distance_sigma_m=1e-3 * args.max_sigma_mm,
+        )
+    except PortCalibrationError as err:
+        if err.not_found:
+            print("board not found in: " + ", ".join(err.not_found))
+        return _refused(str(err))
+    print(result.format_table())
+    result.calibration.save(args.out)
     print(f"calibration written to {args.out}")
     return 0
