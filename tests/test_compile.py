@@ -159,3 +159,23 @@ def test_a_first_use_compiles_once_with_a_message(frame: tuple[Path, Path], tmp_
     assert second.returncode == 0, second.stderr
     assert "compiling" not in second.stderr, second.stderr
     assert (tmp_path / "o.ply").read_bytes() == first_ply
+
+
+def test_a_cache_compiled_from_other_sources_is_cleared_not_loaded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Numba checks a cached kernel only against its own file: a frame call cached with the stages it linked in
+    would outlive a change to a stage's file. The stamp beside the cache says which sources it was built from."""
+    monkeypatch.setattr(kernels, "cache_dir", lambda: tmp_path)
+    ours = [tmp_path / "frame.extract_frame-258.py311.nbi", tmp_path / "fit_common.fit_columns_common-30.py311.1.nbc"]
+    theirs = tmp_path / "userlib.kernel-12.py311.nbi"  # another package's kernel in a shared NUMBA_CACHE_DIR
+    for path in (*ours, theirs):
+        path.write_bytes(b"cached")
+    (tmp_path / kernels.STAMP_NAME).write_text("0123456789abcdef\n")  # built from other sources
+    assert not kernels.cached()
+    kernels._clear_stale()
+    assert not any(path.exists() for path in ours)
+    assert theirs.exists()
+    kernels._write_stamp()
+    assert (tmp_path / kernels.STAMP_NAME).read_text().strip() == kernels.source_fingerprint()
+    assert kernels._stamp_current()

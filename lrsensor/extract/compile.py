@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import hashlib
 import logging
 import os
 import subprocess
@@ -41,6 +42,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..atomic import atomic_write
 from ._jit import HAVE_NUMBA
 
 __all__ = [
@@ -52,6 +54,7 @@ __all__ = [
     "cached",
     "ensure",
     "ready",
+    "source_fingerprint",
     "start",
     "usable",
     "warm_up",
@@ -179,8 +182,9 @@ def ready() -> bool:
 
 def cached() -> bool:
     """Whether numba's on-disk cache holds every entry point for the sources as they are now (then loading
-    takes about a second). Reads numba's own cache index, so an index left by older sources does not count."""
-    if not HAVE_NUMBA:
+    takes about a second): numba's own index for each entry point, and the stamp of every kernel module's
+    source beside it (:func:`source_fingerprint`)."""
+    if not HAVE_NUMBA or not _stamp_current():
         return False
     try:
         for kernel in entry_points():
@@ -190,6 +194,54 @@ def cached() -> bool:
     except Exception:  # numba's cache internals moved: assume nothing is cached, compile in a child
         return False
     return True
+
+
+def source_fingerprint() -> str:
+    """A hash of every module of this package (the kernels and what they call), hex.
+
+    Numba checks a cached kernel only against its own source file; a frame call cached with the stages it
+    linked in would outlive a change to one of those stages' files (after an upgrade or a ``git pull``). The
+    cache therefore holds this fingerprint beside it (:data:`STAMP_NAME`), and a cache stamped with another one
+    is cleared before the next compile."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:32]
+
+
+#: The file beside numba's cache files that holds the :func:`source_fingerprint` they were compiled from.
+STAMP_NAME = "lrsensor-kernels.stamp"
+
+
+def _stamp_current() -> bool:
+    directory = cache_dir()
+    if directory is None:
+        return False
+    try:
+        return (directory / STAMP_NAME).read_text().strip() == source_fingerprint()
+    except OSError:
+        return False
+
+
+def _clear_stale() -> None:
+    """Remove numba's cache files of this package's kernels (index ``.nbi`` and data ``.nbc``), so that nothing
+    compiled from other sources is loaded."""
+    directory = cache_dir()
+    if directory is None or not directory.is_dir():
+        return
+    stems = {path.stem for path in Path(__file__).parent.glob("*.py")}
+    for path in directory.iterdir():
+        if path.suffix in (".nbi", ".nbc") and path.name.split(".", 1)[0] in stems:
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+
+def _write_stamp() -> None:
+    directory = cache_dir()
+    if directory is not None and directory.is_dir():
+        with contextlib.suppress(OSError):
+            atomic_write(directory / STAMP_NAME, source_fingerprint() + "\n", fsync=False)
 
 
 def cache_dir() -> Path | None:
@@ -210,7 +262,12 @@ def warm_up() -> float:
     t0 = time.monotonic()
     with _STATE.lock:
         if not _STATE.loaded.is_set():
+            current = _stamp_current()
+            if not current:
+                _clear_stale()  # compiled from other sources (see source_fingerprint)
             _build()
+            if not current:
+                _write_stamp()
             _STATE.loaded.set()
             log.info("extractor: compiled kernels loaded in %.1f s", time.monotonic() - t0)
     return time.monotonic() - t0
