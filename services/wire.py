@@ -626,6 +626,7 @@ class StripeMsg:
         calibration, a pixel lies outside its image, or a pixel does not triangulate (ray parallel to the
         plane or meeting it behind the camera).
         """
+        from lrsensor.port import triangulate_through_port
         from lrsensor.triangulation import triangulate_plane
 
         where = f"cloud {self.robot}#{self.seq}"
@@ -644,10 +645,12 @@ class StripeMsg:
         if len(self) and (uv[:, 0].max() >= cam.width or uv[:, 1].min() < -1 or uv[:, 1].max() > cam.height):
             msg = f"{where}: a pixel lies outside the {cam.width}x{cam.height} image"
             raise WireError(msg)
+        # through the camera's flat port where the calibration has one (exact refraction, as the ROV's extractor)
+        triangulate = triangulate_plane if calibration.port is None else triangulate_through_port
         points = np.empty((len(self), 3), dtype=np.float64)
         for li in np.unique(self.laser):
             sel = self.laser == li
-            points[sel] = triangulate_plane(calibration, uv[sel], calibration.lasers[int(li)])
+            points[sel] = triangulate(calibration, uv[sel], calibration.lasers[int(li)])
         bad = ~np.all(np.isfinite(points), axis=1)
         if bad.any():
             msg = f"{where}: {int(bad.sum())} of {len(self)} pixels do not triangulate with the calibration"
