@@ -618,8 +618,9 @@ class StripeMsg:
     def to_cloud(self, calibration: Calibration) -> CloudMsg:
         """Triangulate with ``calibration`` (whose fingerprint must be ``calib_id``) into a schema-1 cloud.
 
-        Each laser's pixels go through :func:`lrsensor.triangulation.triangulate_plane` (numpy, float64: ray
-        of the pixel, met with the laser's plane), the same geometry the ROV's extractor triangulated with; the
+        Each laser's pixels go through :func:`lrsensor.triangulation.triangulate_plane` (numpy, float64: ray of
+        the pixel, met with the laser's plane) or, behind a flat port, :func:`lrsensor.port.triangulate_through_port`
+        (the refracted ray), the same geometry the ROV's extractor triangulated with; the
         points are then narrowed to float32 as schema 1 carries them.
 
         Raises :class:`WireError` when the fingerprint differs, a laser index names no laser of the
