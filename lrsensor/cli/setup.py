@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         except kernels.CompileError as err:
             print(f"lrsensor setup: {err}", file=sys.stderr)
             return 2
+        job.discard_log()
     compiled_s = job.elapsed_s if job is not None else 0.0
     load_s = kernels.warm_up()
     print(f"compiled in {compiled_s:.1f} s, loaded in {load_s:.1f} s (cache: {kernels.cache_dir()})")

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..atomic import atomic_write
+from ..errors import ExtractionError
 from ._jit import HAVE_NUMBA
 
 __all__ = [
@@ -68,7 +69,7 @@ COMPILE_TIME_HINT = "about a minute"
 CHILD_OPT_LEVEL = "1"
 
 
-class CompileError(RuntimeError):
+class CompileError(ExtractionError):
     """The kernels could not be compiled (the child's error output is in the message)."""
 
 
@@ -154,6 +155,12 @@ class CompileJob:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
+        self.discard_log()
+
+    def discard_log(self) -> None:
+        """Remove the child's output file (kept only while it can explain a failure)."""
+        with contextlib.suppress(OSError):
+            self.log_path.unlink()
 
     @property
     def elapsed_s(self) -> float:
@@ -307,6 +314,7 @@ def _finish(job: CompileJob) -> bool:
             _STATE.failed = str(err)
             log.error("extractor: %s\nthe numpy reference runs instead", err)
         return False
+    job.discard_log()
     warm_up()
     return True
 
