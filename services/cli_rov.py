@@ -7,6 +7,7 @@ import contextlib
 import logging
 import shutil
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--source",
         required=True,
-        help="frames: 'sim' (simulated tank dive), a folder of <t_ns>.png, a video file, or a camera index",
+        help="frames: 'sim' (simulated tank dive), a folder of <t_ns>.png, a video file, a camera index, or a "
+        "camera stream: udp://HOST:PORT (H.264 in MPEG-TS), rtsp://..., or FILE.sdp (RTP, e.g. a BlueROV2's "
+        "H.264 on port 5600); video files and streams are read on the luma channel unless --channel is given",
+    )
+    parser.add_argument(
+        "--stream-timeout-s",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="stream: fail when it sends nothing for S seconds at start; later, reopen it (with a backoff) "
+        "after S seconds without a frame (default 10)",
     )
     parser.add_argument(
         "--imu",
@@ -134,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
             connect_timeout_ms=int(max(args.calib_timeout_s, 5.0) * 1000),
         )
     calibration = Calibration.load(args.calib) if args.calib else None
+    stop = threading.Event()  # set by SIGINT/SIGTERM; a stream's wait for frames ends on it
     dive_calib: Path | None = None
     if args.source == "sim":
         from .simsource import open_sim
@@ -147,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         imu = sim_imu if args.imu in (None, "sim") else open_imu(args.imu, args.imu_stale_s)
         calibration = calibration or sim_calib
     else:
-        source = open_source(args.source, args.video_t0_ns)
+        source = open_source(args.source, args.video_t0_ns, stream_timeout_s=args.stream_timeout_s, stop=stop)
         imu_spec = args.imu
         if imu_spec is None and isinstance(source, FolderSource) and (source.folder / "imu.csv").is_file():
             imu_spec = f"csv:{source.folder / 'imu.csv'}"
@@ -158,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
         if isinstance(source, FolderSource) and (source.folder / "calib.json").is_file():
             dive_calib = Path(source.folder / "calib.json")
     with (
-        stop_on_signals() as stop,
+        stop_on_signals(stop),
         open_session(options, default_mode="client") as session,
         _open_delivery(args, session, keys, robot) as sink,
     ):
@@ -181,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             method=args.method,
             process_options=process_options,
-            ack_timeout_s=args.ack_timeout_s,
+            # only a finite source ends; a stream or camera stops on a signal, with nothing to wait for
+            ack_timeout_s=args.ack_timeout_s if source.finite else 0.0,
             seq_start=seq_start,
             sink=sink,
             cloud_schema=args.cloud_schema,

@@ -15,6 +15,9 @@ processed and published, its pose's ``north_m``/``east_m`` null: the base statio
 instead of mapping it at a made-up position. The ROV counts such clouds (``unplaced`` in its status and
 summary) and says so in its log once, then every 100th.
 
+The sub-pixel extractor reads a compressed source's frames (a video file, a camera stream: colour stored at half
+resolution) on the luma channel unless ``--channel`` was given (:func:`channel_choice`); the log says which.
+
 This module does not import Open3D (the ROV install does not have it).
 """
 
@@ -30,6 +33,7 @@ from typing import Any, Protocol
 
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
+from lrsensor.extract import DEFAULT_METHOD
 from lrsensor.extract.compile import ready as extractor_compiled
 from lrsensor.frames import Pose
 from lrsensor.scan import Scan
@@ -71,6 +75,22 @@ class RovCounters:
             f"rov {robot}: frames {self.frames}, published {self.published}, skipped (no pose) {self.skipped}, "
             f"no horizontal fix {self.unplaced}, failed {self.failed}, points {self.points}, delivery {d}"
         )
+
+
+def channel_choice(
+    source: object, method: str | None, process_options: Mapping[str, Any]
+) -> tuple[dict[str, Any], str]:
+    """The extractor options for ``source``'s frames and why: the sub-pixel extractor reads a ``compressed``
+    source (JPEG/H.264: colour at half resolution) on the luma channel unless the options already name one."""
+    options = dict(process_options)
+    if (method or DEFAULT_METHOD) != "subpixel":
+        return options, f"extractor {method} (no channel option)"
+    if "channel" in options:
+        return options, f"channel {options['channel']} (given with --channel)"
+    if getattr(source, "compressed", False):
+        options["channel"] = "luma"
+        return options, "channel luma (compressed frames store colour at half resolution; --channel green overrides)"
+    return options, "channel green (the default for uncompressed frames)"
 
 
 class CloudSink(Protocol):
@@ -219,7 +239,7 @@ class RovService:
         self.sensor = Sensor(calibration, wait_for_kernels=False)
         self.rate_hz = rate_hz
         self.method = method
-        self.process_options = dict(process_options or {})
+        self.process_options, self.channel_note = channel_choice(source, method, process_options or {})
         self.ack_timeout_s = ack_timeout_s
         self.status_period_s = status_period_s
         self.seq = seq_start
@@ -275,11 +295,12 @@ class RovService:
         # the token goes last: a robot seen alive already answers its calibration queryable
         token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
         log.info(
-            "rov %s: publishing on %s from %s; extractor: %s",
+            "rov %s: publishing on %s from %s; extractor: %s; %s",
             self.robot,
             self.keys.cloud(self.robot),
             self.source.name,
             "compiled" if extractor_compiled() else "numpy reference until the compiled kernels are built",
+            self.channel_note,
         )
         period_ns = int(1e9 / self.rate_hz) if self.rate_hz else 0
         next_ns = time.monotonic_ns()

@@ -1,13 +1,16 @@
 """Frame sources of an ROV: a recorded dive (folder of ``<t_ns>.png``), a video file, a camera, the simulator.
 
 Each source is a context manager and an iterator of :class:`Frame` (capture time in ns since the Unix epoch
-and a (H, W, 3) uint8 BGR image). ``finite`` sources end; ``live`` sources stamp frames with the host clock.
+and a (H, W, 3) uint8 BGR image). ``finite`` sources end; ``live`` sources stamp frames with the host clock;
+``compressed`` sources (a video file, a camera stream: :mod:`services.stream`) deliver decoded JPEG/H.264
+frames, whose colour is stored at half resolution (the ROV reads them on the luma channel).
 """
 
 from __future__ import annotations
 
 import logging
 import re
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -73,6 +76,7 @@ class FolderSource:
 
     finite = True
     live = False
+    compressed = False
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
@@ -112,6 +116,7 @@ class VideoSource:
 
     finite = True
     live = False
+    compressed = True
 
     def __init__(self, path: str | Path, t0_ns: int | None = None) -> None:
         self.path = Path(path)
@@ -165,6 +170,7 @@ class CameraSource:
 
     finite = False
     live = True
+    compressed = False  # a device may deliver MJPEG; give --channel luma then
 
     def __init__(self, index: int, width: int | None = None, height: int | None = None) -> None:
         self.index = index
@@ -211,11 +217,19 @@ class CameraSource:
             i += 1
 
 
-def open_source(spec: str, t0_ns: int | None = None) -> FrameSource:
-    """A frame source from its command-line spec: a folder, a video file or a camera index.
+def open_source(
+    spec: str, t0_ns: int | None = None, *, stream_timeout_s: float = 10.0, stop: threading.Event | None = None
+) -> FrameSource:
+    """A frame source from its command-line spec: a folder, a video file, a camera index or a stream URL
+    (``udp://``, ``rtsp://``, an ``.sdp`` file: :class:`services.stream.StreamSource`, with ``stream_timeout_s``
+    and the ``stop`` event that ends its wait for frames).
 
     ``sim`` is handled by :func:`services.simsource.open_sim` (it also provides the IMU).
     """
+    from .stream import StreamSource, is_stream
+
+    if is_stream(spec):
+        return StreamSource(spec, stream_timeout_s, stop)
     if spec.isdigit():
         return CameraSource(int(spec))
     if spec.startswith("camera:") and spec[7:].isdigit():
@@ -225,5 +239,8 @@ def open_source(spec: str, t0_ns: int | None = None) -> FrameSource:
         return FolderSource(p)
     if p.is_file():
         return VideoSource(p, t0_ns)
-    msg = f"unknown frame source {spec!r}: use sim, a folder of <t_ns>.png, a video file or a camera index"
+    msg = (
+        f"unknown frame source {spec!r}: use sim, a folder of <t_ns>.png, a video file, a camera index or a "
+        "stream (udp://HOST:PORT, rtsp://..., FILE.sdp)"
+    )
     raise SourceError(msg)
