@@ -325,7 +325,7 @@ class RovService:
                         last_status = now
                         status_pub.put(self.status().to_bytes())
                 else:
-                    ended = True
+                    ended = not stop.is_set()  # a live source that ends because we stop did not end
             if ended and self.ack_timeout_s > 0 and c.published > 0:
                 c.delivered = wait_delivered(
                     self.session, self.keys, self.robot, c.first_seq, c.last_seq, self.ack_timeout_s, stop
