@@ -74,7 +74,7 @@ MAX_HALF_PX = 30
 ITERATIONS = 4
 MAX_STEP_PX = 1.0
 #: The joint fit is kept within this distance of the common fit's centre, px.
-MAX_MOVE_PX = 2.5
+MAX_MOVE_PX = 4.0
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 #: Phi(x) = 1 - phi(x) t P(t), t = 1 / (1 + p x), x >= 0 (Abramowitz-Stegun 26.2.17, |error| < 7.5e-8).
@@ -118,10 +118,10 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 
 
 @njit
-def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig):  # type: ignore[no-untyped-def]
+def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
     centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none). Returns
-    ``(c, sigma, A, g, ok)``.
+    ``(c, sigma, A, g, ok)``. Samples at or above ``sat_dn`` (clipped) are left out.
 
     First the linear parameters alone at the start, then :data:`ITERATIONS` Gauss-Newton steps in all of them; each
     pass builds the normal equations row by row (one ``exp`` per row, two with a neighbour)."""
@@ -141,6 +141,8 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig):  # type: ignore[n
             for j in range(a, m_):
                 M[a, j] = 0.0
         for i in range(k_rows):
+            if y[i] >= sat_dn:
+                continue
             z = (q[i] - c) / sg
             gz = math.exp(-0.5 * z * z)
             u = side * z
@@ -182,15 +184,16 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig):  # type: ignore[n
 
 
 @njit
-def _neighbour(t, at, cols, laser, usable, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
-    """The nearest usable point of another laser in the column of point ``t`` whose stripe (centre ``v_nb``,
-    sigma ``s_nb``) reaches within ``reach`` rows of the point's centre ``v_nb[t]`` by 3 sigma; -1: none."""
+def _neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
+    """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
+    (centre ``v_nb``, sigma ``s_nb``) reaches within ``reach`` rows of the point's centre ``v_nb[t]`` by 3 sigma;
+    -1: none."""
     col = cols[t]
     nb = -1
     best = np.inf
     for li in range(at.shape[0]):
         j = at[li, col]
-        if li == laser[t] or j < 0 or not usable[j]:
+        if li == laser[t] or j < 0 or not nb_ok[j]:
             continue
         dj = abs(v_nb[j] - v_nb[t])
         if dj < reach + 3.0 * s_nb[j] and dj < best:
@@ -200,7 +203,7 @@ def _neighbour(t, at, cols, laser, usable, v_nb, s_nb, reach):  # type: ignore[n
 
 
 @njit
-def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig):  # type: ignore[no-untyped-def]
+def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
     """The joint stripe-and-glow fit of every point whose profile shows a glow (see the module's documentation).
 
     Args:
@@ -209,7 +212,8 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
             -1: smaller, 0: unknown, no fit).
         vv, amp, sig, sat, ok, lnoise: (N,) the common fit's centre rows, amplitudes (DN), sigmas (px), clipped,
             accepted and flank noise (DN); noise_l: (L,) the bands' noise, DN.
-        min_sig, max_sig: the accepted sigmas, px.
+        min_sig, max_sig: the accepted sigmas, px; sat_dn: green samples at or above it are clipped (left out of
+            the fits: a clipped stripe is fitted on its flanks).
 
     Returns:
         ``(centre_row, sigma, fitted)``: (N,) each; the common fit's centre and sigma where ``fitted`` is False.
@@ -225,13 +229,14 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
     # the points that can take the fit: window and trigger rows inside the image, the glow's side known
     usable = np.zeros(n, np.bool_)
     cand = np.zeros(n, np.bool_)
+    nb_ok = np.zeros(n, np.bool_)
     side = np.zeros(n)
     sg0 = np.ones(n)
     rc = np.zeros(n, np.int64)
     hw = np.zeros(n, np.int64)
     kt = np.zeros(n, np.int64)
     for t in range(n):
-        usable[t] = ok[t] and not sat[t] and math.isfinite(vv[t]) and math.isfinite(sig[t]) and sig[t] <= max_sig
+        usable[t] = ok[t] and math.isfinite(vv[t]) and math.isfinite(sig[t])
         if not usable[t]:
             continue
         side[t] = float(side_tab[laser[t], cols[t]])
@@ -240,6 +245,7 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
         hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
         kt[t] = int(math.ceil(TRIGGER_SIGMAS * sg0[t])) + 1  # noqa: RUF046
         reach = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
+        nb_ok[t] = not sat[t]
         cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
@@ -249,7 +255,7 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
     for t in range(n):
         if not cand[t]:
             continue
-        nb = _neighbour(t, at, cols, laser, usable, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
+        nb = _neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
         nb0[t] = nb
         d = 0.0
         for k0, wgt in ((kt[t], 2.0), (2 * kt[t] + 1, -1.0)):
@@ -272,8 +278,9 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
         for cc in range(lo_c, hi_c):
             j = at[laser[t], cc]
             cnt += j >= 0 and cand[j]
-        # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows
-        noise = max(lnoise[t], noise_l[laser[t]]) * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
+        # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows (of the band's
+        # pixel noise: the flanks' spread about the common fit's line holds the glow's own step)
+        noise = noise_l[laser[t]] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
         thr = max(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[t])
         above = 0
         for cc in range(lo_c, hi_c):
@@ -295,16 +302,18 @@ def glow_refit(image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, nois
             nb = (
                 nb0[t]
                 if rnd == 0
-                else _neighbour(t, at, cols, laser, usable, v1, s1, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
+                else _neighbour(t, at, cols, laser, nb_ok, v1, s1, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
             )
-            nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
             nb_s = 1.0 if nb < 0 else max(s1[nb], lo_sig)
+            nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
+            if not abs(nb_c) < hw[t] + 3.0 * nb_s:  # (also NaN) its stripe does not reach the fit's window
+                nb_c = np.nan
             k_rows = 2 * hw[t] + 1
             for i in range(k_rows):
                 y[i] = float(image[rc[t] - hw[t] + i, cols[t], 1])
                 q[i] = float(i - hw[t])
             c, sg, _a, _g, good = _fit_one(
-                y[:k_rows], q[:k_rows], side[t], vv[t] - rc[t], sg0[t], nb_c, nb_s, lo_sig, max_sig
+                y[:k_rows], q[:k_rows], side[t], vv[t] - rc[t], sg0[t], nb_c, nb_s, lo_sig, max_sig, sat_dn
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c

@@ -187,6 +187,7 @@ def extract_frame(
             noise,
             s.min_fwhm_px / FWHM_PER_SIGMA,
             s.max_sigma_px,
+            s.saturation_dn,
         )[0]
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)

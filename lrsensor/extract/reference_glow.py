@@ -61,12 +61,14 @@ def fit_profiles(
     nb_s: FloatArray,
     min_sig: float,
     max_sig: float,
+    sat_dn: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
-    """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask``
-    (n, K) is 0 left out), from centres ``c`` and sigmas ``sg`` (n,) (rows relative to the window's middle), glow
-    side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``, ``nb_s`` (n,) (NaN: none). Returns
-    ``(c, sigma, A, g, ok)``, (n,) each."""
+    """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
+    0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
+    relative to the window's middle), glow side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``,
+    ``nb_s`` (n,) (NaN: none). Returns ``(c, sigma, A, g, ok)``, (n,) each."""
     n, k_rows = Y.shape
+    mask = mask * (sat_dn > Y)  # clipped samples left out
     q = (np.arange(k_rows) - k_rows // 2).astype(np.float64)[None, :]
     has_nb = np.isfinite(nb_c)
     c = c.copy()
@@ -149,6 +151,7 @@ def glow_refit(
     noise_l: FloatArray,
     min_sig: float,
     max_sig: float,
+    sat_dn: float,
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
@@ -159,7 +162,8 @@ def glow_refit(
     at[laser, cols] = np.arange(n)
     lo_sig = max(min_sig, MIN_SIGMA_PX)
     with np.errstate(invalid="ignore"):
-        usable = ok & ~sat & np.isfinite(vv) & np.isfinite(sig) & (sig <= max_sig)
+        usable = ok & np.isfinite(vv) & np.isfinite(sig)
+    nb_ok = usable & ~sat  # neighbours: unclipped fits
     side = np.where(usable, side_tab[laser, cols], 0).astype(np.float64)
     sg0 = np.clip(np.where(usable, sig, 1.0), lo_sig, max_sig)
     rc = np.floor(np.where(usable, vv, 0.0) + 0.5).astype(np.int64)
@@ -170,7 +174,7 @@ def glow_refit(
     # does a glow show? the outer rows over the inner ones (another laser's stripe subtracted), pooled along
     idx = np.flatnonzero(cand)
     nb0 = np.full(n, -1, np.int64)
-    nb0[idx] = _neighbours(idx, at, cols, laser, usable, vv, sig, reach)
+    nb0[idx] = _neighbours(idx, at, cols, laser, nb_ok, vv, sig, reach)
     diff = np.zeros(n)
     nb = nb0[idx]
     have = nb >= 0
@@ -193,7 +197,7 @@ def glow_refit(
         use = (j >= 0) & cand[np.maximum(j, 0)]
         pool[:, k] = np.where(use, diff[np.maximum(j, 0)], np.nan)
     cnt = np.isfinite(pool).sum(axis=1)
-    noise = np.maximum(lnoise[idx], noise_l[laser[idx]]) * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
+    noise = noise_l[laser[idx]] * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
     thr = np.maximum(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[idx])
     with np.errstate(invalid="ignore"):
         above = (pool > thr[:, None]).sum(axis=1)
@@ -207,17 +211,21 @@ def glow_refit(
         idx = np.flatnonzero(glowing if rnd == 0 else glowing & (nb0 >= 0) & fitted)
         if idx.size == 0:
             continue
-        nb = nb0[idx] if rnd == 0 else _neighbours(idx, at, cols, laser, usable, v1, s1, reach)
+        nb = nb0[idx] if rnd == 0 else _neighbours(idx, at, cols, laser, nb_ok, v1, s1, reach)
         have = nb >= 0
         nbc = np.maximum(nb, 0)
-        nb_c = np.where(have, v1[nbc] - rc[idx], np.nan)
         nb_s = np.where(have, np.maximum(s1[nbc], lo_sig), 1.0)
+        nb_c = np.where(have, v1[nbc] - rc[idx], np.nan)
+        with np.errstate(invalid="ignore"):
+            nb_c = np.where(np.abs(nb_c) < hw[idx] + 3.0 * nb_s, nb_c, np.nan)  # it reaches the fit's window
         big = int(hw[idx].max())
         rel = np.arange(-big, big + 1)[None, :]
         mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
         rr = np.clip(rc[idx][:, None] + rel, 0, h - 1)
         Y = green[rr, cols[idx][:, None]].astype(np.float64)
-        c, sg, _a, _g, good = fit_profiles(Y, mask, side[idx], vv[idx] - rc[idx], sg0[idx], nb_c, nb_s, lo_sig, max_sig)
+        c, sg, _a, _g, good = fit_profiles(
+            Y, mask, side[idx], vv[idx] - rc[idx], sg0[idx], nb_c, nb_s, lo_sig, max_sig, sat_dn
+        )
         with np.errstate(invalid="ignore"):
             keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
         sel = idx[keep]
