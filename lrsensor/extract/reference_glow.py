@@ -37,10 +37,10 @@ _upper_tail: Any = getattr(glow.upper_tail, "py_func", glow.upper_tail)
 
 def _solve(M: FloatArray, b: FloatArray) -> tuple[FloatArray, BoolArray]:
     """Solve the systems ``M`` (n, k, k) ``x = b`` (n, k); ``(x, solved)``, the singular ones marked unsolved."""
-    ok = np.abs(np.linalg.det(M)) > 1e-300
+    ok: BoolArray = np.abs(np.linalg.det(M)) > 1e-300
     Ms = np.where(ok[:, None, None], M, np.eye(M.shape[1]))
     try:
-        x = np.linalg.solve(Ms, b[..., None])[..., 0]
+        x: FloatArray = np.asarray(np.linalg.solve(Ms, b[..., None])[..., 0], dtype=np.float64)
     except np.linalg.LinAlgError:  # pragma: no cover - det > 0 but numerically singular
         x = np.zeros_like(b)
         for i in range(M.shape[0]):
