@@ -255,7 +255,21 @@ def process_candidates(image, U, Vr, Ar, noise_l, s, geo, glow_side):  # type: i
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     if s.glow_fit:
         v_g, _s_g, _f_g = glow_refit(
-            image, cols, laser, glow_side, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sigma, sat_dn
+            image,
+            cols,
+            laser,
+            glow_side,
+            vv,
+            amp,
+            sig,
+            sat,
+            ok,
+            lnoise,
+            noise_l,
+            min_sig,
+            max_sigma,
+            sat_dn,
+            s.min_green_ratio,
         )
         for t in range(n):
             vv[t] = v_g[t]

@@ -188,6 +188,7 @@ def extract_frame(
             s.min_fwhm_px / FWHM_PER_SIGMA,
             s.max_sigma_px,
             s.saturation_dn,
+            s.min_green_ratio,
         )[0]
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)

@@ -152,6 +152,7 @@ def glow_refit(
     min_sig: float,
     max_sig: float,
     sat_dn: float,
+    green_ratio: float,
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
@@ -162,7 +163,7 @@ def glow_refit(
     at[laser, cols] = np.arange(n)
     lo_sig = max(min_sig, MIN_SIGMA_PX)
     with np.errstate(invalid="ignore"):
-        usable = ok & np.isfinite(vv) & np.isfinite(sig)
+        usable = ok & np.isfinite(vv) & (sat | (sig <= max_sig))
     nb_ok = usable & ~sat  # neighbours: unclipped fits
     side = np.where(usable, side_tab[laser, cols], 0).astype(np.float64)
     sg0 = np.clip(np.where(usable, sig, 1.0), lo_sig, max_sig)
@@ -175,7 +176,7 @@ def glow_refit(
     idx = np.flatnonzero(cand)
     nb0 = np.full(n, -1, np.int64)
     nb0[idx] = _neighbours(idx, at, cols, laser, nb_ok, vv, sig, reach)
-    diff = np.zeros(n)
+    diff = np.zeros((3, n))  # the step in green, red and blue: the glow has the laser's colour
     nb = nb0[idx]
     have = nb >= 0
     nbc = np.maximum(nb, 0)
@@ -187,22 +188,35 @@ def glow_refit(
             val = green[rr, cols[idx][:, None]].astype(np.float64)
             e = (rr - vv[nbc][:, None]) / np.maximum(sig[nbc], lo_sig)[:, None]
             val = val - np.where(have[:, None], amp[nbc][:, None] * np.exp(-0.5 * e * e), 0.0)
-            diff[idx] += wgt * sgn * val.sum(axis=1)
+            diff[0, idx] += wgt * sgn * val.sum(axis=1)
+            for row, ch in ((1, 2), (2, 0)):
+                diff[row, idx] += wgt * sgn * image[rr, cols[idx][:, None], ch].astype(np.float64).sum(axis=1)
     diff /= TRIGGER_ROWS
-    pool = np.full((idx.size, 2 * POOL_COLS + 1), np.nan)
+    pool = np.full((3, idx.size, 2 * POOL_COLS + 1), np.nan)
     for k, off in enumerate(range(-POOL_COLS, POOL_COLS + 1)):
         cc = cols[idx] + off
         inside = (cc >= 0) & (cc < w)
         j = np.where(inside, at[laser[idx], np.clip(cc, 0, w - 1)], -1)
         use = (j >= 0) & cand[np.maximum(j, 0)]
-        pool[:, k] = np.where(use, diff[np.maximum(j, 0)], np.nan)
-    cnt = np.isfinite(pool).sum(axis=1)
+        pool[:, :, k] = np.where(use, diff[:, np.maximum(j, 0)], np.nan)
+    cnt = np.isfinite(pool[0]).sum(axis=1)
     noise = noise_l[laser[idx]] * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
     thr = np.maximum(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[idx])
     with np.errstate(invalid="ignore"):
-        above = (pool > thr[:, None]).sum(axis=1)
+        above = (pool[0] > thr[:, None]).sum(axis=1)
+    sums = np.nansum(pool, axis=2)  # (3, n_idx): green, red, blue
     glowing = np.zeros(n, bool)
-    glowing[idx] = 2 * above > cnt  # the median step exceeds the threshold
+    # the median step exceeds the threshold, and the pooled step has the laser's colour
+    glowing[idx] = (2 * above > cnt) & (sums[0] > green_ratio * sums[1]) & (sums[0] > green_ratio * sums[2])
+    # and so does the majority of the points around
+    both = np.zeros(idx.size, np.int64)
+    for off in range(-POOL_COLS, POOL_COLS + 1):
+        cc = cols[idx] + off
+        inside = (cc >= 0) & (cc < w)
+        j = np.where(inside, at[laser[idx], np.clip(cc, 0, w - 1)], -1)
+        jc = np.maximum(j, 0)
+        both += (j >= 0) & cand[jc] & glowing[jc]
+    glowing[idx] &= 2 * both > cnt
     # the fits: round 1 with the neighbours of the common fit, round 2 (points with a neighbour) with round 1's
     v_out, s_out = vv.copy(), sig.copy()
     fitted = np.zeros(n, bool)
