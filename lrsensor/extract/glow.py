@@ -269,13 +269,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # within POOL_COLS columns
     nb0 = np.full(n, -1, np.int64)
     diff = np.zeros(n)
-    diff_rb = np.zeros((2, n))  # the same step in red and blue: the glow has the laser's colour
+    diff_rgb = np.zeros((3, n))  # the raw step in green, red and blue (nothing subtracted): the glow's colour
     for t in range(n):
         if not cand[t]:
             continue
         nb = _neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
         nb0[t] = nb
         d = 0.0
+        d_g = 0.0
         d_r = 0.0
         d_b = 0.0
         for k0, wgt in ((kt[t], 2.0), (2 * kt[t] + 1, -1.0)):
@@ -283,6 +284,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 for sgn in (1, -1):
                     rr = rc[t] + sgn * int(side[t]) * (k0 + i)
                     val = float(image[rr, cols[t], 1])
+                    d_g += wgt * sgn * val
                     if nb >= 0:
                         e = (rr - vv[nb]) / max(sig[nb], lo_sig)
                         val -= amp[nb] * math.exp(-0.5 * e * e)
@@ -290,8 +292,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
                     d_r += wgt * sgn * float(image[rr, cols[t], 2])
                     d_b += wgt * sgn * float(image[rr, cols[t], 0])
         diff[t] = d / TRIGGER_ROWS
-        diff_rb[0, t] = d_r / TRIGGER_ROWS
-        diff_rb[1, t] = d_b / TRIGGER_ROWS
+        diff_rgb[0, t] = d_g / TRIGGER_ROWS
+        diff_rgb[1, t] = d_r / TRIGGER_ROWS
+        diff_rgb[2, t] = d_b / TRIGGER_ROWS
     glowing = np.zeros(n, np.bool_)
     for t in range(n):
         if not cand[t]:
@@ -306,9 +309,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
             j = at[laser[t], cc]
             if j >= 0 and cand[j]:
                 cnt += 1
-                sum_g += diff[j]
-                sum_r += diff_rb[0, j]
-                sum_b += diff_rb[1, j]
+                sum_g += diff_rgb[0, j]
+                sum_r += diff_rgb[1, j]
+                sum_b += diff_rgb[2, j]
         # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows (of the band's
         # pixel noise: the flanks' spread about the common fit's line holds the glow's own step)
         noise = noise_l[laser[t]] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
@@ -317,8 +320,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         for cc in range(lo_c, hi_c):
             j = at[laser[t], cc]
             above += j >= 0 and cand[j] and diff[j] > thr
-        # the median step exceeds the threshold, and the pooled step is the laser's colour (green over red and blue
-        # as the stripe's colour test asks: a step of the wall's or the water's colour is not a glow)
+        # the median step exceeds the threshold, and the pooled raw step is the laser's colour (green over red and
+        # blue as the stripe's colour test asks: a step of the wall's or the water's colour is not a glow; raw, since
+        # a neighbour stripe close by is subtracted in green only, and it has the laser's colour too)
         glowing[t] = 2 * above > cnt and sum_g > green_ratio * sum_r and sum_g > green_ratio * sum_b
     # and so does the majority of the points around: a glow lies along the stripe, not at a few columns
     glow_run = np.zeros(n, np.bool_)

@@ -176,7 +176,7 @@ def glow_refit(
     idx = np.flatnonzero(cand)
     nb0 = np.full(n, -1, np.int64)
     nb0[idx] = _neighbours(idx, at, cols, laser, nb_ok, vv, sig, reach)
-    diff = np.zeros((3, n))  # the step in green, red and blue: the glow has the laser's colour
+    diff = np.zeros((4, n))  # the step in green (neighbour subtracted), and raw in green, red and blue
     nb = nb0[idx]
     have = nb >= 0
     nbc = np.maximum(nb, 0)
@@ -186,13 +186,14 @@ def glow_refit(
         for sgn in (1, -1):
             rr = rc[idx][:, None] + sgn * s_i * (k0[:, None] + i)
             val = green[rr, cols[idx][:, None]].astype(np.float64)
+            diff[1, idx] += wgt * sgn * val.sum(axis=1)
             e = (rr - vv[nbc][:, None]) / np.maximum(sig[nbc], lo_sig)[:, None]
             val = val - np.where(have[:, None], amp[nbc][:, None] * np.exp(-0.5 * e * e), 0.0)
             diff[0, idx] += wgt * sgn * val.sum(axis=1)
-            for row, ch in ((1, 2), (2, 0)):
+            for row, ch in ((2, 2), (3, 0)):
                 diff[row, idx] += wgt * sgn * image[rr, cols[idx][:, None], ch].astype(np.float64).sum(axis=1)
     diff /= TRIGGER_ROWS
-    pool = np.full((3, idx.size, 2 * POOL_COLS + 1), np.nan)
+    pool = np.full((4, idx.size, 2 * POOL_COLS + 1), np.nan)
     for k, off in enumerate(range(-POOL_COLS, POOL_COLS + 1)):
         cc = cols[idx] + off
         inside = (cc >= 0) & (cc < w)
@@ -204,9 +205,9 @@ def glow_refit(
     thr = np.maximum(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[idx])
     with np.errstate(invalid="ignore"):
         above = (pool[0] > thr[:, None]).sum(axis=1)
-    sums = np.nansum(pool, axis=2)  # (3, n_idx): green, red, blue
+    sums = np.nansum(pool[1:], axis=2)  # (3, n_idx): raw green, red, blue
     glowing = np.zeros(n, bool)
-    # the median step exceeds the threshold, and the pooled step has the laser's colour
+    # the median step exceeds the threshold, and the pooled raw step has the laser's colour
     glowing[idx] = (2 * above > cnt) & (sums[0] > green_ratio * sums[1]) & (sums[0] > green_ratio * sums[2])
     # and so does the majority of the points around
     both = np.zeros(idx.size, np.int64)
