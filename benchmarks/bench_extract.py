@@ -348,6 +348,7 @@ STAGES = {
         "refit_full",
     ),
     "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "refit_columns"),
+    "turbid water (glow test, joint stripe-and-glow fits)": ("glow_refit",),
     "pooled gates, smoothing, quality": ("finish_points",),
     "triangulation": ("triangulate_geo",),
 }

@@ -10,10 +10,12 @@ The default extractor (:mod:`.subpixel`) is a package of stage modules on one co
   :mod:`.bands`: where each laser's stripe can be;
 - the road (numba kernels): :mod:`.frame` (the one call per frame), :mod:`.detect`, :mod:`.chains`, the fits
   (:mod:`.fit_common`, :mod:`.fit_clipped`, :mod:`.fit_plain`, :mod:`.fit`, shared pieces in :mod:`.columns`),
-  :mod:`.refit`, :mod:`.finish`, :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and
+  :mod:`.refit`, :mod:`.glow` (turbid water: the stripe fitted jointly with the laser sheet's glow), :mod:`.finish`,
+  :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and
   :mod:`.compile` (loading or compiling the kernels);
-- the readable numpy reference of the whole frame: :mod:`.reference`, :mod:`.reference_finish` and
-  :mod:`.centre` (the vectorized profile fit); tests compare the road with it on whole frames.
+- the readable numpy reference of the whole frame: :mod:`.reference`, :mod:`.reference_finish`,
+  :mod:`.reference_glow` and :mod:`.centre` (the vectorized profile fit); tests compare the road with it on whole
+  frames.
 
 :mod:`.paper` is the paper's Algorithm 1, the baseline.
 """

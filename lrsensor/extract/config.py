@@ -62,6 +62,9 @@ class SubpixelConfig:
             the stripe by chroma sampled every other pixel; it costs about a millisecond more per 1920x1080
             frame, and on lossless frames a dim pure-green stripe loses about an eighth of its SNR to the red
             and blue noise it adds.
+        glow_fit: in turbid water, fit the centre of the stripes whose profile shows the laser sheet's glow
+            jointly with the glow's edge (:mod:`lrsensor.extract.glow`; False: the common fit everywhere, which
+            reads glowing walls short).
     """
 
     min_range_m: float = 0.2
@@ -80,6 +83,7 @@ class SubpixelConfig:
     max_sheet_mm: float = 20.0
     gate_pool_cols: int = 4
     channel: str = "green"
+    glow_fit: bool = True
 
     def __post_init__(self) -> None:
         if self.channel not in CHANNELS:

@@ -8,7 +8,8 @@
 3. frame statistics (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and
    the sub-pixel fits, column-parallel by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`), the rest by
    the full kernel (:mod:`.fit`);
-4. neighbour refits where two lasers' stripes come close (:mod:`.refit`);
+4. neighbour refits where two lasers' stripes come close (:mod:`.refit`), then the joint stripe-and-glow fits
+   where a profile shows the laser sheet's glow (turbid water, :mod:`.glow`);
 5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
    pinhole in the water at the camera centre would see the stripe's points);
 6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has one)
@@ -38,6 +39,7 @@ from .fit import flank_offset
 from .fit_clipped import core_peaks, fit_columns_clipped
 from .fit_common import fit_columns_common
 from .geometry import max_fwhm_at, triangulate_geo
+from .glow import glow_refit
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_full, refit_targets, rows_overlap
 
 
@@ -109,7 +111,7 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
 
 
 @stage
-def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-untyped-def]
+def process_candidates(image, U, Vr, Ar, noise_l, s, geo, glow_side):  # type: ignore[no-untyped-def]
     """Steps 2-5 of :func:`extract_frame` (chains, sub-pixel fits, neighbour refits, gates, smoothing, quality).
 
     Args:
@@ -252,6 +254,27 @@ def process_candidates(image, U, Vr, Ar, noise_l, s, geo):  # type: ignore[no-un
                     touched[cols[t]] = True
                 look = np.flatnonzero(touched)
                 touched[look] = False
+    # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
+    if s.glow_fit:
+        v_g, _s_g, _f_g = glow_refit(
+            image,
+            cols,
+            laser,
+            glow_side,
+            vv,
+            amp,
+            sig,
+            sat,
+            ok,
+            lnoise,
+            noise_l,
+            min_sig,
+            max_sigma,
+            sat_dn,
+            s.min_green_ratio,
+        )
+        for t in range(n):
+            vv[t] = v_g[t]
     # 5. gates, runs, smoothing, quality
     return finish_points(col_v, laser, res, chain, chain_len, noise_l, w, s, geo)
 
@@ -310,7 +333,7 @@ def extract_frame(image, bands, s, geo, triangulate):  # type: ignore[no-untyped
         Vr[k : k + m] = parts_v[j]
         Ar[k : k + m] = parts_a[j]
         k += m
-    u_o, v_o, l_o, q_o = process_candidates(image, U, Vr, Ar, noise, s, geo)
+    u_o, v_o, l_o, q_o = process_candidates(image, U, Vr, Ar, noise, s, geo, bands.glow_side)
     n = u_o.size
     if not triangulate:
         uv = np.empty((n, 2))

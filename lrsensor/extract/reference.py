@@ -19,9 +19,11 @@ step by step. Read it to learn what the kernels compute; read the kernels to lea
 4. refits the points with another laser's stripe close by, with its Gaussian subtracted
    (:func:`lrsensor.extract.reference_finish.neighbours`), the rounds and tolerances of
    :mod:`lrsensor.extract.refit`;
-5. pools the colour and signal-to-noise gates along the stripe, forms runs, smooths them and scores quality
+5. fits the stripes that show the laser sheet's glow (turbid water) jointly with its edge
+   (:func:`lrsensor.extract.reference_glow.glow_refit`);
+6. pools the colour and signal-to-noise gates along the stripe, forms runs, smooths them and scores quality
    (:mod:`lrsensor.extract.reference_finish`);
-6. with ``triangulate``, triangulates in numpy and applies the depth gate.
+7. with ``triangulate``, triangulates in numpy and applies the depth gate.
 
 Floating-point results agree with the compiled road to rounding (the kernels fuse multiplies and adds, and some
 fits run in float32); ties in the chain linking may be broken differently at a few columns.
@@ -38,7 +40,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..triangulation import triangulate as _triangulate
-from . import reference_finish, refit
+from . import reference_finish, reference_glow, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import noise_col_step
 from .fit import flank_offset
@@ -169,6 +171,25 @@ def extract_frame(
             for arr, new in zip((vv, amp, sig, _sat, ok, lnoise), res, strict=True):
                 arr[idx] = new
             rise[:, idx] = rise_i
+    # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
+    if s.glow_fit:
+        vv = reference_glow.glow_refit(
+            image,
+            cols,
+            laser,
+            bands.glow_side,
+            vv,
+            amp,
+            sig,
+            _sat,
+            ok,
+            lnoise,
+            noise,
+            s.min_fwhm_px / FWHM_PER_SIGMA,
+            s.max_sigma_px,
+            s.saturation_dn,
+            s.min_green_ratio,
+        )[0]
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..port import FlatPort
 from ..triangulation import _arrays
-from .bands import laser_bands
+from .bands import _column_extent, band_samples, laser_bands
 from .centre import WIDE_FWHM_PX
 from .config import ITERATIONS, SNR_FLOOR_FRAC, SubpixelConfig
 from .detect import AREA_NOISE
@@ -44,6 +44,10 @@ class Bands(NamedTuple):
     v_lo: IntArray
     #: (L, W) int64: the last row of each laser's band per column (below ``v_lo``: none in that column).
     v_hi: IntArray
+    #: (L, W) int64: the side of each laser's stripe on which the sheet's glow in turbid water lies, per column
+    #: (+1: larger rows, -1: smaller, 0: unknown): away from the plane's vanishing line, where nearer parts of
+    #: the sheet image (:mod:`lrsensor.extract.glow`).
+    glow_side: IntArray
 
 
 class Settings(NamedTuple):
@@ -92,6 +96,8 @@ class Settings(NamedTuple):
     #: Depth limits along the optical axis of the kept points, metres.
     min_range_m: float
     max_range_m: float
+    #: Fit the stripes that show a glow jointly with it (:mod:`lrsensor.extract.glow`).
+    glow_fit: bool
 
 
 class Port(NamedTuple):
@@ -148,6 +154,23 @@ class Geometry(NamedTuple):
     port: Port
 
 
+def glow_sides(calibration: Calibration, near_m: float, far_m: float) -> IntArray:
+    """(L, W) int64: per laser and column, the side of the stripe on which the laser sheet images nearer than
+    the stripe (its glow in turbid water): the sign of the row of the sheet at depth ``near_m`` less its row at
+    ``far_m`` (metres along the optical axis); 0 where the column sees neither."""
+    cam = calibration.camera
+    out = np.zeros((len(calibration.lasers), cam.width), np.int64)
+    for i in range(len(calibration.lasers)):
+        uv, z = band_samples(calibration, i, near_m, far_m, n_depths=2)
+        if uv.shape[0] == 0:
+            continue
+        v_near = _column_extent(uv[z <= near_m * 1.0001], cam.width)[0]
+        v_far = _column_extent(uv[z >= far_m * 0.9999], cam.width)[0]
+        with np.errstate(invalid="ignore"):
+            out[i] = np.where(np.isfinite(v_near) & np.isfinite(v_far), np.sign(v_near - v_far), 0).astype(np.int64)
+    return out
+
+
 @lru_cache(maxsize=16)
 def frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Bands, Settings, Geometry]:
     """The records of the compiled road (and the reference) for this calibration and configuration; cached (the
@@ -161,6 +184,7 @@ def frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Bands
         np.array([lb.row_range(i) for i in range(n_l)], np.int64).reshape(n_l, 2),
         np.ascontiguousarray(lb.v_lo, np.int64),
         np.ascontiguousarray(lb.v_hi, np.int64),
+        glow_sides(calibration, cfg.min_range_m, cfg.max_range_m),
     )
     k0 = cfg.smooth_half_cols
     scales = sorted({16 * k0, 4 * k0, k0, max(1, k0 // 4)}, reverse=True) if k0 >= 1 else []
@@ -187,6 +211,7 @@ def frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Bands
         smooth_scales=np.array(scales, np.int64),
         min_range_m=float(cfg.min_range_m),
         max_range_m=float(cfg.max_range_m),
+        glow_fit=bool(cfg.glow_fit),
     )
     cam, dist, R, origin, normals, points = _arrays(calibration)
     axis = calibration.rays_body(np.array([[calibration.camera.cx, calibration.camera.cy]], np.float64))[0]

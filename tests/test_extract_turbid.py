@@ -1,0 +1,144 @@
+"""The turbid-water stage (:mod:`lrsensor.extract.glow`): unbiased on the independent turbidity model, the same in the
+compiled road and the numpy reference, and absent in clear water."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks.turbid_model import Turbid, TurbidFrame, render
+from lrsensor import Calibration, Sensor
+from lrsensor.extract import centre, glow, reference_glow, subpixel
+from lrsensor.extract.compile import HAVE_NUMBA, warm_up
+from lrsensor.extract.settings import glow_sides
+
+#: No veil, particles or noise: the laser's layers alone.
+QUIET = {"veil_dn": 0.0, "particles_per_mpx": 0.0, "read_noise_dn": 0.0}
+#: Columns checked: the centre, both halves and near both edges.
+COLUMNS = (200, 400, 959, 1500, 1700)
+
+
+def _outward_shift(frame: TurbidFrame, **options: object) -> np.ndarray:
+    """Row errors of the default extractor's points towards the glow's side (px), both lasers."""
+    scan = Sensor(frame.calibration).process(frame.image, **options)
+    u = np.rint(scan.uv[:, 0]).astype(int)
+    side = np.where(scan.laser == 0, -1.0, 1.0)
+    return np.asarray(side * (scan.uv[:, 1] - frame.rows[scan.laser, u]))
+
+
+def test_glow_sides_are_away_from_the_vanishing_line() -> None:
+    """The paper's lasers are horizontal planes above and below the camera: the top stripe's glow lies above it
+    (smaller rows), the bottom one's below, in every column."""
+    sides = glow_sides(Calibration.paper(), 0.2, 5.0)
+    assert (sides[0] == -1).all()
+    assert (sides[1] == 1).all()
+
+
+@pytest.mark.parametrize(("attenuation_per_m", "tol_px"), [(0.0, 0.02), (0.3, 0.1)])
+def test_joint_fit_finds_the_centre_of_a_noise_free_glowing_profile(attenuation_per_m: float, tol_px: float) -> None:
+    """Glow step 0.5 of the stripe's peak, 4 px of forward-scatter blur, 1 m: the common fit reads the centre about
+    0.9 px outward; the joint fit within 0.02 px where the glow is flat along the rows (no attenuation: the model is
+    exact) and within 0.1 px where it brightens towards the camera (0.3 /m: the model has no ramp), and the
+    compiled fit gives the reference's centre."""
+    frame = render(Turbid(distance_m=1.0, glow_step=0.5, blur_px=4.0, attenuation_per_m=attenuation_per_m, **QUIET))
+    green = frame.layers["stripe"] + frame.layers["glow"]
+    for li, side in ((0, -1.0), (1, 1.0)):
+        for u in COLUMNS:
+            v_true = float(frame.rows[li, u])
+            rc = round(v_true)
+            sigma = math.hypot(4.0, 0.0015 * frame.calibration.camera.fy / float(frame.range_m[li, u]))
+            half = min(math.ceil(glow.WINDOW_SIGMAS * sigma) + 2, glow.MAX_HALF_PX)
+            y = green[rc - half : rc + half + 1, u].astype(np.float64)
+            common = centre.fit_profiles(y[None, :], sigma_hint=sigma)
+            c_common = rc - half + float(common.centre[0])
+            assert side * (c_common - v_true) > 0.8  # today's fit: pulled towards the glow
+            q = np.arange(-half, half + 1, dtype=np.float64)
+            ref = reference_glow.fit_profiles(
+                y[None, :],
+                np.ones((1, y.size)),
+                np.array([side]),
+                np.array([c_common - rc]),
+                np.array([sigma]),
+                np.array([np.nan]),
+                np.array([1.0]),
+                0.5,
+                5.0,
+                250.0,
+            )
+            assert ref[4][0]
+            assert rc + ref[0][0] == pytest.approx(v_true, abs=tol_px)
+            assert ref[3][0] / ref[2][0] == pytest.approx(0.5, abs=0.15)  # the glow's step over the stripe's peak
+            if HAVE_NUMBA:
+                c, _sg, _a, _g, ok = glow._fit_one(y, q, side, c_common - rc, sigma, np.nan, 1.0, 0.5, 5.0, 250.0)
+                assert ok
+                assert c == pytest.approx(ref[0][0], abs=1e-9)
+
+
+@pytest.mark.parametrize(("distance_m", "blur_px"), [(1.0, 4.0), (0.5, 1.5)])
+def test_glowing_walls_are_read_without_bias(distance_m: float, blur_px: float) -> None:
+    """On noisy frames of the turbidity model with a glow step of 0.5: the median row error is within 0.05 px of
+    the truth (the common fit alone: 0.5-1 px outward)."""
+    frame = render(Turbid(distance_m=distance_m, glow_step=0.5, blur_px=blur_px, seed=3))
+    old = _outward_shift(frame, glow_fit=False)
+    new = _outward_shift(frame)
+    assert np.median(old) > 0.5
+    assert abs(np.median(new)) < 0.05
+    assert new.size >= 0.95 * old.size
+
+
+def test_clear_water_is_untouched() -> None:
+    """Without glow the stage changes no point: a clear wall of the turbidity model and the simulator's wall at 1 m
+    give exactly the points of the common fit."""
+    sim = pytest.importorskip("lrsensor.sim")
+    frames = [render(Turbid(distance_m=1.0, glow_step=0.0, blur_px=1.5, seed=1))]
+    r = sim.named_scene("wall_1.0").render(seed=0)
+    for image, calibration in [(f.image, f.calibration) for f in frames] + [(r.image, r.calibration)]:
+        sensor = Sensor(calibration)
+        a = sensor.process(image)
+        b = sensor.process(image, glow_fit=False)
+        np.testing.assert_array_equal(a.uv, b.uv)
+        np.testing.assert_array_equal(a.points, b.points)
+
+
+@pytest.mark.parametrize(
+    "turbid",
+    [
+        Turbid(distance_m=3.0, glow_step=0.5, blur_px=1.5, seed=0),  # two stripes close: the neighbour in the fit
+        Turbid(distance_m=1.0, tilt_deg=30.0, glow_step=0.5, blur_px=4.0, seed=0),  # clipped and wide profiles
+    ],
+    ids=["3m-neighbours", "1m-tilt30-clipped"],
+)
+def test_compiled_glow_stage_equals_the_reference(monkeypatch: pytest.MonkeyPatch, turbid: Turbid) -> None:
+    """The kernel and the reference on the same inputs (the reference's own common fits), then on whole frames."""
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    warm_up()
+    frame = render(turbid)
+    captured: list[tuple[object, ...]] = []
+    real = reference_glow.glow_refit
+
+    def spy(*args: object) -> object:
+        captured.append(args)
+        return real(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(reference_glow, "glow_refit", spy)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", True)
+    slow = subpixel.extract(frame.image, frame.calibration)
+    (args,) = captured
+    v_ref, s_ref, f_ref = real(*args)  # type: ignore[arg-type]
+    v_road, s_road, f_road = glow.glow_refit(*args)
+    assert f_ref.sum() > 0.8 * np.count_nonzero(args[8])  # most points show the glow and take the joint fit
+    np.testing.assert_array_equal(f_road, f_ref)
+    np.testing.assert_allclose(v_road, v_ref, atol=1e-6)
+    np.testing.assert_allclose(s_road, s_ref, atol=1e-6)
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", False)
+    fast = subpixel.extract(frame.image, frame.calibration)
+    kf = fast.laser * 10_000 + np.rint(fast.uv[:, 0]).astype(int)
+    ks = slow.laser * 10_000 + np.rint(slow.uv[:, 0]).astype(int)
+    common, i_f, i_s = np.intersect1d(kf, ks, return_indices=True)
+    assert common.size >= 0.97 * max(kf.size, ks.size)
+    dv = np.abs(fast.uv[i_f, 1] - slow.uv[i_s, 1])
+    assert np.median(dv) < 0.01
+    assert np.percentile(dv, 90) < 0.06
