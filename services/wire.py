@@ -203,6 +203,18 @@ def _checked_header(robot: str, seq: int, t_ns: int, sent_ns: int, pose: Pose) -
     return where, pose_map
 
 
+def _header_from_map(obj: Mapping[str, Any]) -> tuple[str, int, str, int, int, Pose]:
+    """What every cloud schema decodes alike: ``(robot, seq, where, t_ns, sent_ns, pose)``, each checked;
+    ``where`` names the message in error messages (the twin of :func:`_checked_header`)."""
+    robot = _robot_field(obj, "cloud")
+    seq = _int_field(obj, "seq", f"cloud from {robot}")
+    where = f"cloud {robot}#{seq}"
+    t_ns = _int_field(obj, "t_ns", where)
+    sent_ns = _int_field(obj, "sent_ns", where) if "sent_ns" in obj else 0
+    pose = pose_from_map(_field(obj, "pose", where), where)
+    return robot, seq, where, t_ns, sent_ns, pose
+
+
 def _check_pose_map(pose: Mapping[str, float | None], where: str) -> None:
     """Refuse a pose map that :func:`pose_from_map` would refuse (non-finite, or only one of north/east)."""
     if (pose["north_m"] is None) != (pose["east_m"] is None) or not all(
@@ -333,12 +345,7 @@ class CloudMsg:
 
     @classmethod
     def _from_map(cls, obj: Mapping[str, Any]) -> CloudMsg:
-        robot = _robot_field(obj, "cloud")
-        seq = _int_field(obj, "seq", f"cloud from {robot}")
-        where = f"cloud {robot}#{seq}"
-        t_ns = _int_field(obj, "t_ns", where)
-        sent_ns = _int_field(obj, "sent_ns", where) if "sent_ns" in obj else 0
-        pose = pose_from_map(_field(obj, "pose", where), where)
+        robot, seq, where, t_ns, sent_ns, pose = _header_from_map(obj)
         n = _int_field(obj, "n", where, maximum=MAX_POINTS)
         points = np.frombuffer(_bytes_field(obj, "points", where, 12 * n), dtype="<f4").reshape(n, 3)
         laser = np.frombuffer(_bytes_field(obj, "laser", where, n), dtype="u1")
@@ -563,12 +570,7 @@ class StripeMsg:
 
     @classmethod
     def _from_map(cls, obj: Mapping[str, Any]) -> StripeMsg:
-        robot = _robot_field(obj, "cloud")
-        seq = _int_field(obj, "seq", f"cloud from {robot}")
-        where = f"cloud {robot}#{seq}"
-        t_ns = _int_field(obj, "t_ns", where)
-        sent_ns = _int_field(obj, "sent_ns", where) if "sent_ns" in obj else 0
-        pose = pose_from_map(_field(obj, "pose", where), where)
+        robot, seq, where, t_ns, sent_ns, pose = _header_from_map(obj)
         calib_id = _bytes_field(obj, "calib", where, FINGERPRINT_BYTES, what="a calibration fingerprint")
         n = _int_field(obj, "n", where, maximum=MAX_POINTS)
         n_runs = _int_field(obj, "runs", where, minimum=1 if n else 0, maximum=n)
