@@ -12,6 +12,7 @@ is the board's z = 0 plane, moved from the camera frame into the body frame.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,14 @@ from ..errors import CalibrationFitError
 from .planefit import Plane
 
 FloatArray = NDArray[np.float64]
+
+
+class BoardCalibrationError(CalibrationFitError):
+    """A calibration from checkerboard images was refused; ``not_found`` lists the images without a board."""
+
+    def __init__(self, message: str, not_found: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.not_found = list(not_found)
 
 
 @dataclass(frozen=True)

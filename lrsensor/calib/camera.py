@@ -18,18 +18,13 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..camera import Camera
-from ..errors import CalibrationFitError
-from .board import BoardSpec, corners_clear_of_stripes, find_board_corners
+from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners
 
 ImageLike = str | os.PathLike[str] | NDArray[np.uint8]
 
 
-class CameraCalibrationError(CalibrationFitError):
+class CameraCalibrationError(BoardCalibrationError):
     """The camera calibration was refused; ``not_found`` lists the images without a board."""
-
-    def __init__(self, message: str, not_found: Sequence[str] = ()) -> None:
-        super().__init__(message)
-        self.not_found = list(not_found)
 
 
 @dataclass(frozen=True)

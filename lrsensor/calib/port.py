@@ -31,9 +31,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
-from ..errors import CalibrationFitError, GeometryError
+from ..errors import GeometryError
 from ..port import FlatPort, project_pixels_through_port
-from .board import BoardSpec, corners_clear_of_stripes, find_board_corners
+from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners
 from .camera import ImageLike, _load
 
 FloatArray = NDArray[np.float64]
@@ -44,12 +44,8 @@ MAX_ITERATIONS = 60
 MISSING_RESIDUAL_PX = 1e3
 
 
-class PortCalibrationError(CalibrationFitError):
+class PortCalibrationError(BoardCalibrationError):
     """The port calibration was refused; ``not_found`` lists the images without a board."""
-
-    def __init__(self, message: str, not_found: Sequence[str] = ()) -> None:
-        super().__init__(message)
-        self.not_found = list(not_found)
 
 
 @dataclass(frozen=True)
