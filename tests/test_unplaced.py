@@ -55,6 +55,10 @@ def test_clouds_without_a_fix_are_published_null_and_counted_unplaced(depth_only
         assert h.result.unplaced == N_FRAMES
         assert "no horizontal fix 6" in h.result.summary("rov1")
         assert wait_until(lambda: base.status()["robots"].get("rov1", {}).get("unplaced") == N_FRAMES, WAIT_S)
+        # the ROV's own last status message reaches the base a moment after its last cloud
+        assert wait_until(
+            lambda: base.status()["robots"]["rov1"].get("reported", {}).get("unplaced") == N_FRAMES, WAIT_S
+        )
         base.flush_map()
         status = base.status()
         sub.undeclare()
