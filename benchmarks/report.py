@@ -95,7 +95,7 @@ SOURCES: tuple[Source, ...] = (
     Source("extract_cold_after_tank.md", "speed", f"{_EXTRACT} --cold-after tank"),
     Source("extract_cold_after_wall_0.3.md", "speed", f"{_EXTRACT} --cold-after wall_0.3 --repeats 30"),
     Source("extract_stages_wall_5.0.md", "speed", f"{_EXTRACT} --stages wall_5.0 --seeds 4"),
-    Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 2", note="the one-time compile"),
+    Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 1", note="the one-time compile"),
     Source("extract_foreign.md", "independent", _FOREIGN),
     Source("extract_foreign_integrate_first.md", "independent", f"{_FOREIGN} --integrate-first"),
     Source("extract_foreign_luma.md", "independent", f"{_FOREIGN} --channel luma"),
