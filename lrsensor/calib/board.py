@@ -34,6 +34,19 @@ class BoardCalibrationError(CalibrationFitError):
         self.not_found = list(not_found)
 
 
+def image_table_lines(per_image_rms_px: dict[str, float], not_found: Sequence[str]) -> list[str]:
+    """The per-image lines of a board calibration's report: a heading, each used image's RMS reprojection
+    error (pixels) and each image without a board, names cut to 40 characters."""
+    lines = [f"{'image':<40} {'RMS px':>8}"]
+    lines += [f"{_cut(n):<40} {e:>8.4f}" for n, e in per_image_rms_px.items()]
+    lines += [f"{_cut(n):<40} {'no board':>8}" for n in not_found]
+    return lines
+
+
+def _cut(name: str) -> str:
+    return name if len(name) <= 40 else "..." + name[-37:]
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """A checkerboard: ``cols`` x ``rows`` inner corners, squares of ``square_m`` metres."""

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..camera import Camera
-from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners
+from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners, image_table_lines
 
 ImageLike = str | os.PathLike[str] | NDArray[np.uint8]
 
@@ -56,10 +56,8 @@ class CameraCalibrationResult:
             "distortion [k1 k2 p1 p2 k3]: " + " ".join(f"{d:.6f}" for d in c.distortion),
             f"RMS reprojection error: {self.rms_px:.4f} px over {len(self.used)} images",
             "",
-            f"{'image':<40} {'RMS px':>8}",
         ]
-        lines += [f"{n if len(n) <= 40 else '...' + n[-37:]:<40} {e:>8.4f}" for n, e in self.per_image_rms_px.items()]
-        lines += [f"{n if len(n) <= 40 else '...' + n[-37:]:<40} {'no board':>8}" for n in self.not_found]
+        lines += image_table_lines(self.per_image_rms_px, self.not_found)
         return "\n".join(lines)
 
 

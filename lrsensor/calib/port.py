@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from ..calibration import Calibration
 from ..errors import GeometryError
 from ..port import FlatPort, project_pixels_through_port
-from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners
+from .board import BoardCalibrationError, BoardSpec, corners_clear_of_stripes, find_board_corners, image_table_lines
 from .camera import ImageLike, _load
 
 FloatArray = NDArray[np.float64]
@@ -82,10 +82,8 @@ class PortCalibrationResult:
             f"(tilt {self.tilt_deg:.3f} deg)",
             f"RMS reprojection error: {self.rms_px:.4f} px over {len(self.used)} images",
             "",
-            f"{'image':<40} {'RMS px':>8}",
         ]
-        lines += [f"{n if len(n) <= 40 else '...' + n[-37:]:<40} {e:>8.4f}" for n, e in self.per_image_rms_px.items()]
-        lines += [f"{n if len(n) <= 40 else '...' + n[-37:]:<40} {'no board':>8}" for n in self.not_found]
+        lines += image_table_lines(self.per_image_rms_px, self.not_found)
         return "\n".join(lines)
 
 
