@@ -206,8 +206,9 @@ def run(args: argparse.Namespace) -> int:
             st = sink.stats()
             o = st["outbox"]
             print(
-                f"rov {robot}: outbox {o['pending']} pending, {st['acked']} acknowledged, {st['resent']} re-sent, "
-                f"{o['dropped']} dropped (full), {st['unstored']} not stored",
+                f"rov {robot}: outbox {o['pending']} pending, {st['acked']} acknowledged, {st['resent']} re-sent "
+                f"({st['resent_bytes']} bytes), {o['dropped']} dropped (full), {st['unstored']} not stored, "
+                f"clouds {st['sent_bytes']} bytes",
                 flush=True,
             )
     print(counters.summary(robot), flush=True)

@@ -53,6 +53,8 @@ class DeliveryCounters:
         ack_polls: acknowledgement queries answered.
         base_seen: times the base station's subscriber (re)appeared.
         unstored: clouds published live but not kept in the outbox (disk write failed).
+        sent_bytes: bytes of the clouds published the first time (the clouds' own size).
+        resent_bytes: bytes re-published.
     """
 
     sent: int = 0
@@ -62,6 +64,8 @@ class DeliveryCounters:
     ack_polls: int = 0
     base_seen: int = 0
     unstored: int = 0
+    sent_bytes: int = 0
+    resent_bytes: int = 0
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -160,6 +164,7 @@ class OutboxSink:
             if not heard:
                 self._unheard.add(msg.seq)
             self.counters.sent += 1
+            self.counters.sent_bytes += len(payload)
         self._put(payload)
         try:
             dropped = self.outbox.append(msg.seq, payload)
@@ -282,6 +287,7 @@ class OutboxSink:
                 self._last_sent[seq] = time.monotonic()
                 self._unheard.discard(seq)
                 self.counters.resent += 1
+                self.counters.resent_bytes += len(payload)
 
     def wait_empty(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
         """Wait until every cloud is acknowledged (the outbox is empty); False on timeout or ``stop``."""
@@ -307,6 +313,8 @@ class OutboxSink:
                 "ack_polls": c.ack_polls,
                 "base_seen": c.base_seen,
                 "unstored": c.unstored,
+                "sent_bytes": c.sent_bytes,
+                "resent_bytes": c.resent_bytes,
             }
         out["outbox"] = self.outbox.stats().to_json_dict()
         return out

@@ -1,0 +1,141 @@
+"""Delivery over an impaired link: a base station and robots in two network namespaces (issue 30).
+
+    python -m benchmarks.bench_link [--frames 60] [--robots 3] [--rate 10] [--rows default] [--out link.md]
+
+Real processes (``lrsensor base`` and one ``lrsensor rov`` per robot replaying a simulated dive with its
+delivery path: disk outbox, acknowledgements, re-sends) across a veth pair built by ``tests/netlink.py``:
+``tc tbf`` for the rate, ``iptables`` random drops for the loss (each way), a delaying relay for the latency
+(each way), ``ip link set down`` for an outage; Zenoh's shared memory off so that every cloud crosses the link.
+Needs root (skips otherwise).
+
+Rows (``--rows``): ``default`` runs 10 Mbit/s, 10 % loss, 200 ms without and with a 30 s outage 2 s into the
+replay, and the same at 2 Mbit/s; ``flap5min`` runs the 5-minute outage.
+
+Reported per row: clouds delivered (distinct, held by the base) of those replayed; sent twice (re-sends / clouds,
+%); bytes the robots sent over the link (retransmissions included) / the clouds' own bytes; transit
+(publication to the base) p50 / p99 as the base station measures it; whether every outbox drained; the ROVs'
+exit codes; the wall time until the last ROV exited. Prints a markdown table and writes
+``benchmarks/results/<out>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from netlink import FleetRun, LinkSpec, netlink, run_fleet, unavailable  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+@dataclass(frozen=True)
+class Row:
+    """One benchmark row: a link and an optional outage."""
+
+    name: str
+    spec: LinkSpec
+    outage: tuple[float, float] | None = None
+
+
+ROWS: dict[str, tuple[Row, ...]] = {
+    "default": (
+        Row("10 Mbit/s, 10 % loss, 200 ms", LinkSpec(10.0, 0.10, 200.0)),
+        Row("same + 30 s outage at 2 s", LinkSpec(10.0, 0.10, 200.0), (2.0, 30.0)),
+        Row("2 Mbit/s, 10 % loss, 200 ms", LinkSpec(2.0, 0.10, 200.0)),
+    ),
+    "flap5min": (Row("10 Mbit/s, 10 % loss, 200 ms + 5 min outage at 2 s", LinkSpec(10.0, 0.10, 200.0), (2.0, 300.0)),),
+}
+
+
+def _fmt_ms(v: float | None) -> str:
+    return "-" if v is None else f"{v / 1000:.1f} s" if v >= 1000 else f"{v:.0f} ms"
+
+
+def table(rows: list[tuple[Row, FleetRun]]) -> str:
+    head = (
+        "| link | delivered | sent twice | link bytes / clouds' bytes | transit p50 / p99 | backlog drained "
+        "| ROV exit codes | wall |\n| --- | ---: | ---: | ---: | ---: | :---: | --- | ---: |"
+    )
+    lines = [head]
+    for row, run in rows:
+        drained = all(p == 0 for p in run.pending.values())
+        codes = ", ".join("killed" if c is None else str(c) for c in run.exit_codes.values())
+        lines.append(
+            f"| {row.name} | {run.delivered} of {run.expected} | {sum(run.resent.values())} "
+            f"({run.sent_twice_pct:.0f} %) | {run.link['up_bytes'] / 1e6:.1f} MB / "
+            f"{sum(run.cloud_bytes.values()) / 1e6:.1f} MB = {run.link_ratio:.2f}x | "
+            f"{_fmt_ms(run.transit_ms['p50'])} / {_fmt_ms(run.transit_ms['p99'])} | {'yes' if drained else 'no'} "
+            f"| {codes} | {run.wall_s:.0f} s |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=60, help="clouds each robot replays")
+    ap.add_argument("--robots", type=int, default=3)
+    ap.add_argument("--rate", type=float, default=10.0, help="replay rate, Hz")
+    ap.add_argument("--rows", choices=sorted(ROWS), default="default")
+    ap.add_argument("--schema", type=int, choices=(1, 2), default=2, help="the ROVs' --cloud-schema")
+    ap.add_argument("--size", default="640x360", help="simulated camera, WxH")
+    ap.add_argument("--ack-timeout-s", type=float, default=60.0, help="the ROVs' --ack-timeout-s")
+    ap.add_argument("--deadline-s", type=float, default=600.0, help="kill ROVs still running after this")
+    ap.add_argument("--out", default="link.md", help="results file name under benchmarks/results/")
+    ap.add_argument("--note", default="", help="a line said under the table (e.g. which code was measured)")
+    args = ap.parse_args(argv)
+    why = unavailable()
+    if why:
+        print(f"bench_link skipped: {why}")
+        return 0
+    from services.simsource import record_sim_dive
+
+    robots = tuple(f"rov{i + 1}" for i in range(args.robots))
+    measured: list[tuple[Row, FleetRun]] = []
+    with tempfile.TemporaryDirectory(prefix="lrs-bench-link-") as tmp:
+        w, _, h = args.size.partition("x")
+        dive = record_sim_dive(Path(tmp) / "dive", "rov1", n_frames=args.frames, width=int(w), height=int(h), seed=5)
+        for i, row in enumerate(ROWS[args.rows]):
+            t = time.monotonic()
+            with netlink(row.spec, Path(tmp) / f"row{i}") as link:
+                run = run_fleet(
+                    link,
+                    dive,
+                    robots=robots,
+                    frames=args.frames,
+                    rate_hz=args.rate,
+                    outage=row.outage,
+                    ack_timeout_s=args.ack_timeout_s,
+                    deadline_s=args.deadline_s,
+                    rov_args=("--cloud-schema", str(args.schema)),
+                )
+            measured.append((row, run))
+            print(f"{row.name}: {time.monotonic() - t:.0f} s", flush=True)
+            print(table([(row, run)]).splitlines()[-1], flush=True)
+    text = (
+        "# Delivery over an impaired link\n\n"
+        f"`python -m benchmarks.bench_link --frames {args.frames} --robots {args.robots} --rate {args.rate:g} "
+        f"--rows {args.rows} --ack-timeout-s {args.ack_timeout_s:g} --schema {args.schema} --size {args.size}`\n\n"
+        f"{args.robots} robots replaying {args.frames} simulated clouds each at {args.rate:g} Hz ({args.size} camera, "
+        f"cloud schema {args.schema}) "
+        "through a veth pair between two network namespaces (rate: tbf, loss: iptables, each way; latency: a "
+        "delaying relay, each way; shared memory off). Sent twice: re-sends / clouds. Link bytes: what the "
+        "robots' end of the veth pair sent, TCP retransmissions included.\n\n"
+        f"{table(measured)}\n"
+    )
+    if args.note:
+        text += f"\n{args.note}\n"
+    print(text)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / args.out).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
