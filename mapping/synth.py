@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -176,8 +177,9 @@ def trace(
 class DiveFrame:
     """One frame of a simulated dive: capture time, true and estimated (noisy IMU) pose, hits.
 
-    ``points_ned_est`` is what a base station computes: the true body-frame points placed with the estimated
-    pose, plus range noise.
+    ``points_body`` (N, 3) is what the robot measures (true points in the body frame plus range noise);
+    ``points_ned_est`` is what a base station computes when it trusts the pose: those points placed with the
+    estimated pose (NaN rows when the pose has no horizontal fix, ``navigation="depth-only"``).
     """
 
     robot: str
@@ -186,6 +188,7 @@ class DiveFrame:
     pose_est: Pose
     hits: Hits
     points_ned_est: FloatArray
+    points_body: FloatArray
 
 
 def _smooth_noise(rng: np.random.Generator, t: FloatArray, sigma: float, n_waves: int = 4) -> FloatArray:
@@ -246,6 +249,7 @@ def simulate_dive(
     bad_frame_fraction: float = 0.0,
     bad_frame_yaw_deg: float = 25.0,
     bad_frame_scale: float = 1.15,
+    navigation: str | dict[str, str] = "good",
 ) -> list[DiveFrame]:
     """Frames of all robots in capture-time order (robots interleaved as a base station would receive them).
 
@@ -258,12 +262,22 @@ def simulate_dive(
     near the tank's corners): all its body-frame points are turned about the vehicle's z axis by a random angle
     within +-``bad_frame_yaw_deg`` and scaled by a random factor in [1, ``bad_frame_scale``], so both stripes
     stay straight and parallel but land on a plane that is not there.
+
+    ``navigation`` (one mode, or a mode per robot name): ``good`` is the noise above; ``drift`` and
+    ``depth-only`` replace the estimated pose with :func:`lrsensor.sim.navigation.simulate_navigation`'s (DVL
+    dead reckoning; attitude and depth with a launch fix only), drawn from a generator of their own per robot.
     """
+    from lrsensor.sim.navigation import check_mode, simulate_navigation
+
+    modes = {
+        p.robot: check_mode(navigation if isinstance(navigation, str) else navigation.get(p.robot, "good"))
+        for p in plans
+    }
     rng = np.random.default_rng(seed)
     bad_rng = np.random.default_rng([seed, 1])
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
     frames: list[DiveFrame] = []
-    per_robot = []
+    per_robot: list[tuple[Any, ...]] = []
     for plan in plans:
         n, e, heading = _path(plan, t)
         w = 2 * np.pi / plan.sweep_period_s
@@ -277,18 +291,27 @@ def simulate_dive(
         walk = np.cumsum(rng.normal(0.0, position_walk_m_per_sqrt_s * math.sqrt(dt), size=(t.shape[0], 3)), axis=0)
         pos_err = rng.normal(0.0, position_noise_m, size=(t.shape[0], 3)) + walk
         att_err = rng.normal(0.0, math.radians(attitude_noise_deg), size=(t.shape[0], 3))
-        per_robot.append((plan, n, e, down, roll, pitch, yaw, pos_err, att_err))
+        nav = None
+        if modes[plan.robot] != "good":
+            truth = {"north_m": n, "east_m": e, "down_m": down, "roll_rad": roll, "pitch_rad": pitch, "yaw_rad": yaw}
+            nav_rng = np.random.default_rng([seed, 2, sum(plan.robot.encode()), len(per_robot)])
+            nav = simulate_navigation(modes[plan.robot], t, truth, nav_rng)
+        per_robot.append((plan, n, e, down, roll, pitch, yaw, pos_err, att_err, nav))
+    keys = ("north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
     for k in range(t.shape[0]):
-        for plan, n, e, down, roll, pitch, yaw, pos_err, att_err in per_robot:
+        for plan, n, e, down, roll, pitch, yaw, pos_err, att_err, nav in per_robot:
             true = Pose(float(n[k]), float(e[k]), float(down[k]), float(roll[k]), float(pitch[k]), float(yaw[k]))
-            est = Pose(
-                true.north_m + pos_err[k, 0],
-                true.east_m + pos_err[k, 1],
-                true.down_m + pos_err[k, 2],
-                true.roll_rad + att_err[k, 0],
-                true.pitch_rad + att_err[k, 1],
-                true.yaw_rad + att_err[k, 2],
-            )
+            if nav is not None:
+                est = Pose(*(float(nav[key][k]) for key in keys))
+            else:
+                est = Pose(
+                    true.north_m + pos_err[k, 0],
+                    true.east_m + pos_err[k, 1],
+                    true.down_m + pos_err[k, 2],
+                    true.roll_rad + att_err[k, 0],
+                    true.pitch_rad + att_err[k, 1],
+                    true.yaw_rad + att_err[k, 2],
+                )
             hits = trace(scene, true, n_rays=n_rays)
             pb = ned_to_body(hits.points_ned, true)
             rng_b = np.linalg.norm(pb, axis=1, keepdims=True)
@@ -297,7 +320,7 @@ def simulate_dive(
                 a = math.radians(bad_rng.uniform(-bad_frame_yaw_deg, bad_frame_yaw_deg))
                 turn = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
                 pb = bad_rng.uniform(1.0, bad_frame_scale) * pb @ turn.T
-            frames.append(DiveFrame(plan.robot, t0_ns + round(t[k] * 1e9), true, est, hits, body_to_ned(pb, est)))
+            frames.append(DiveFrame(plan.robot, t0_ns + round(t[k] * 1e9), true, est, hits, body_to_ned(pb, est), pb))
     return frames
 
 

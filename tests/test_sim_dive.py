@@ -13,6 +13,7 @@ import pytest
 
 from lrsensor.calibration import Calibration
 from lrsensor.cli import main
+from lrsensor.errors import SimulationError
 from lrsensor.frames import body_to_ned
 from lrsensor.sim import SCENES, tank_scene
 from lrsensor.sim.dive import (
@@ -77,6 +78,48 @@ def test_imu_noise_is_realistic_and_seeded() -> None:
     np.testing.assert_allclose(perfect.yaw_rad, b["yaw_rad"])
 
 
+def test_drift_navigation_dead_reckons_with_growing_error_and_a_compass_bias() -> None:
+    tr = tank_trajectories(1)[0]
+    t0 = tr.t0_ns
+    imu = simulate_imu(tr, t0, t0 + 120_000_000_000, rate_hz=50.0, seed=4, navigation="drift")
+    again = simulate_imu(tr, t0, t0 + 120_000_000_000, rate_hz=50.0, seed=4, navigation="drift")
+    np.testing.assert_array_equal(imu.north_m, again.north_m)
+    a = tr.arrays(imu.t_ns)
+    err = np.hypot(imu.north_m - a["north_m"], imu.east_m - a["east_m"])
+    assert err[0] < 0.02  # the launch point is known
+    assert err[:500].max() < 0.3  # smooth growth, not noise
+    assert err.max() > 0.5  # dead reckoning drifts past half a metre in two minutes
+    dyaw = np.degrees(np.angle(np.exp(1j * (imu.yaw_rad - a["yaw_rad"]))))
+    assert 0.5 < abs(np.median(dyaw)) < 2.5  # the compass is biased by 1-2 deg
+    assert 0.1 < np.ptp(np.convolve(dyaw, np.ones(500) / 500, mode="valid")) < 3.0  # and the bias wanders
+    ddown = imu.down_m - a["down_m"]
+    assert ddown.std() < 0.02
+
+
+def test_depth_only_navigation_has_a_launch_fix_only_and_round_trips_the_csv(tmp_path: Path) -> None:
+    tr = tank_trajectories(2)[1]
+    t0 = tr.t0_ns
+    imu = simulate_imu(tr, t0, t0 + 10_000_000_000, rate_hz=20.0, seed=2, navigation="depth-only")
+    assert np.isfinite(imu.north_m[0])
+    assert np.isfinite(imu.east_m[0])
+    assert np.all(np.isnan(imu.north_m[1:]))
+    assert np.all(np.isnan(imu.east_m[1:]))
+    assert np.all(np.isfinite(imu.yaw_rad))
+    assert np.all(np.isfinite(imu.down_m))
+    path = tmp_path / "imu.csv"
+    imu.write_csv(path)
+    rows = list(csv.reader(path.open()))
+    i_n, i_e = IMU_CSV_HEADER.index("north_m"), IMU_CSV_HEADER.index("east_m")
+    assert rows[1][i_n] != ""
+    assert rows[2][i_n] == ""
+    assert rows[2][i_e] == ""
+    back = ImuLog.read_csv(path)
+    assert np.isnan(back.north_m[5])
+    assert back.north_m[0] == pytest.approx(imu.north_m[0], abs=1e-5)
+    with pytest.raises(SimulationError, match="navigation"):
+        simulate_imu(tr, t0, t0 + 1_000_000_000, navigation="dvl")
+
+
 def test_trace_dive_clouds_are_true_points() -> None:
     tr = tank_trajectories(3)[1]
     clouds = list(trace_dive_clouds(tr, frame_times_ns(0.6, 5.0, tr.t0_ns)))
@@ -122,6 +165,7 @@ def test_record_dive_writes_the_recorded_dive_format(tmp_path: Path) -> None:
     assert (calib.camera.width, calib.camera.height) == (320, 180)
     truth = json.loads(rec.truth_json.read_text())
     assert truth["robot"] == "rov2"
+    assert truth["navigation"] == "good"
     assert [f["t_ns"] for f in truth["frames"]] == t_frames
     p = truth["frames"][2]["pose"]
     exp = rec.trajectory.pose_at(t_frames[2])

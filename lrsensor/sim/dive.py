@@ -5,7 +5,8 @@
 - :func:`tank_trajectories`: N distinct, mutually non-colliding trajectories in the :func:`tank_scene` that keep
   walls, pillars or the pipe 0.4-3 m in front of the camera most of the time.
 - :func:`simulate_imu`: IMU/navigation samples ``t_ns, roll, pitch, yaw, north, east, down`` with realistic
-  noise (attitude white noise, a yaw bias and drift, position noise and a slow position random walk).
+  noise (attitude white noise, a yaw bias and drift, position noise and a slow position random walk), or the
+  ``drift`` (DVL dead reckoning) and ``depth-only`` navigation of :mod:`lrsensor.sim.navigation`.
 - :func:`record_dive`: writes a recorded dive folder: ``<t_ns>.png`` frames, ``imu.csv``, ``calib.json``,
   ``truth.json``.
 - :func:`trace_dive_clouds`: per frame the TRUE laser points (body frame) and pose, without rendering.
@@ -29,6 +30,7 @@ from ..calibration import Calibration
 from ..errors import SimulationError
 from ..frames import Pose
 from .fan import LaserModel, fan_basis, trace_samples
+from .navigation import DriftNoise, check_mode, simulate_navigation
 from .render import render, trace_truth
 from .scene import Scene
 from .scenes import TANK_PILLARS, TANK_SIZE_M, paper_calibration, tank_scene
@@ -339,8 +341,13 @@ class ImuLog:
         return int(self.t_ns.size)
 
     def write_csv(self, path: str | os.PathLike[str]) -> None:
-        """Write ``t_ns,roll_deg,pitch_deg,yaw_deg,north_m,east_m,down_m`` (yaw wrapped to (-180, 180])."""
+        """Write ``t_ns,roll_deg,pitch_deg,yaw_deg,north_m,east_m,down_m`` (yaw wrapped to (-180, 180]); a
+        sample without a horizontal fix (NaN north/east) gets empty ``north_m`` and ``east_m`` fields."""
         yaw = np.degrees(np.angle(np.exp(1j * self.yaw_rad)))
+
+        def pos(x: float) -> str:
+            return f"{x:.5f}" if math.isfinite(x) else ""
+
         with Path(path).open("w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(IMU_CSV_HEADER)
@@ -351,21 +358,21 @@ class ImuLog:
                         f"{math.degrees(self.roll_rad[i]):.5f}",
                         f"{math.degrees(self.pitch_rad[i]):.5f}",
                         f"{yaw[i]:.5f}",
-                        f"{self.north_m[i]:.5f}",
-                        f"{self.east_m[i]:.5f}",
+                        pos(float(self.north_m[i])),
+                        pos(float(self.east_m[i])),
                         f"{self.down_m[i]:.5f}",
                     ]
                 )
 
     @classmethod
     def read_csv(cls, path: str | os.PathLike[str]) -> ImuLog:
-        """Read a CSV written by :meth:`write_csv`."""
+        """Read a CSV written by :meth:`write_csv` (empty north/east fields become NaN)."""
         with Path(path).open(encoding="utf-8") as fh:
             rows = list(csv.reader(fh))
         if not rows or tuple(rows[0]) != IMU_CSV_HEADER:
             msg = f"{path}: header must be {','.join(IMU_CSV_HEADER)}"
             raise SimulationError(msg)
-        data = np.array([[float(x) for x in r[1:]] for r in rows[1:]]).reshape(-1, 6)
+        data = np.array([[float(x) if x != "" else math.nan for x in r[1:]] for r in rows[1:]]).reshape(-1, 6)
         t = np.array([int(r[0]) for r in rows[1:]], dtype=np.int64)
         return cls(
             t,
@@ -386,14 +393,25 @@ def simulate_imu(
     rate_hz: float = 100.0,
     noise: ImuNoise | None = None,
     seed: int | np.random.Generator | None = 0,
+    navigation: str = "good",
+    drift: DriftNoise | None = None,
 ) -> ImuLog:
-    """IMU samples of ``trajectory`` from ``t_start_ns`` to ``t_end_ns`` (inclusive) at ``rate_hz``."""
+    """IMU samples of ``trajectory`` from ``t_start_ns`` to ``t_end_ns`` (inclusive) at ``rate_hz``.
+
+    ``navigation``: ``good`` (``noise``, an :class:`ImuNoise`), or ``drift`` / ``depth-only`` (``drift``, a
+    :class:`~lrsensor.sim.navigation.DriftNoise`; see :mod:`lrsensor.sim.navigation`). ``depth-only`` samples
+    have NaN north/east after the first (the launch fix).
+    """
+    check_mode(navigation)
     noise = noise or ImuNoise()
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     period_ns = round(1e9 / rate_hz)
     t = np.arange(t_start_ns, t_end_ns + 1, period_ns, dtype=np.int64)
     a = trajectory.arrays(t)
     m = t.size
+    if navigation != "good":
+        r = simulate_navigation(navigation, (t - t[0]) * 1e-9, a, rng, drift)
+        return ImuLog(t, r["roll_rad"], r["pitch_rad"], r["yaw_rad"], r["north_m"], r["east_m"], r["down_m"])
     dt = period_ns * 1e-9
 
     def walk(sigma_per_sqrt_s: float) -> FloatArray:
@@ -514,6 +532,7 @@ def record_dive(
     t0_ns: int = DEFAULT_T0_NS,
     seed: int = 0,
     progress: bool = False,
+    navigation: str = "good",
 ) -> DiveRecord:
     """Record a simulated dive in the tank into ``out_dir``.
 
@@ -528,6 +547,8 @@ def record_dive(
         duration_s, rate_hz: length of the dive and frame rate.
         width, height: image size (the paper's camera scaled).
         seed: seeds the images and the IMU noise (each robot should get its own).
+        navigation: what ``imu.csv`` knows: ``good``, ``drift`` or ``depth-only`` (see
+            :mod:`lrsensor.sim.navigation`; ``depth-only`` rows after the first have empty north/east).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -546,6 +567,7 @@ def record_dive(
         rate_hz=imu_rate_hz,
         noise=imu_noise,
         seed=rng,
+        navigation=navigation,
     )
     imu_path = out / "imu.csv"
     imu.write_csv(imu_path)
@@ -579,6 +601,7 @@ def record_dive(
         "scene": "tank",
         "frame_rate_hz": rate_hz,
         "imu_rate_hz": imu_rate_hz,
+        "navigation": navigation,
         "t0_ns": int(times[0]),
         "trajectory": trajectory.to_dict(),
         "surfaces_ned": scene.to_dicts(),
