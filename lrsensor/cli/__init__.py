@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "map": ("mapping.cli", "export or view the base station's shared map"),
     "base": ("services.cli_base", "run the base station (Zenoh router, fleet subscriber, map)"),
     "rov": ("services.cli_rov", "run one ROV: camera + IMU -> pose-tagged point clouds over Zenoh"),
+    "record": ("services.cli_record", "record a fleet's clouds, poses and map into an MCAP file (Foxglove)"),
+    "replay": ("services.cli_replay", "publish an MCAP recording back into a fleet (a base rebuilds the map)"),
     "demo": ("services.cli_demo", "run an in-process demo fleet of simulated ROVs and a base station"),
     "certs": (
         "services.cli_certs",

@@ -1,0 +1,136 @@
+"""What the fleet looks like in Foxglove's well-known schemas (``foxglove.messages``, foxglove-sdk).
+
+One place turns the fleet's values into the messages the recording (:mod:`services.record`) and the live view
+write, so both show the same scene:
+
+* a cloud -> ``foxglove.PointCloud`` in the robot's body frame ``<robot>/base_link`` (x, y, z float32,
+  metres; a ``laser`` uint8 field), stamped with the capture time;
+* a pose with a horizontal position -> ``foxglove.FrameTransform`` from ``ned`` (the fleet's NED frame: x north,
+  y east, z down) to ``<robot>/base_link``; a pose without one places nothing (never at north = east = 0);
+* the map's planes -> ``foxglove.SceneUpdate`` in ``ned``: one entity per plane id (``plane/<id>``), a
+  rectangle of the plane's extent drawn as two triangles; a removed or merged plane becomes a deletion.
+
+foxglove-sdk is imported lazily: the ROV-only install does not need it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+from lrsensor.frames import Pose, quat_from_R
+
+#: The frame id of the fleet's NED frame in Foxglove scenes.
+NED_FRAME = "ned"
+
+#: RGBA of the map's planes (translucent orange).
+PLANE_RGBA = (1.0, 0.55, 0.1, 0.45)
+
+
+def body_frame(robot: str) -> str:
+    """The Foxglove frame id of a robot's body frame (REP 105 style ``<robot>/base_link``)."""
+    return f"{robot}/base_link"
+
+
+def _stamp(t_ns: int) -> Any:
+    from foxglove.messages import Timestamp
+
+    return Timestamp(sec=int(t_ns // 1_000_000_000), nsec=int(t_ns % 1_000_000_000))
+
+
+def point_cloud(robot: str, t_ns: int, points_body: np.ndarray, laser: np.ndarray) -> Any:
+    """``foxglove.PointCloud`` of one cloud.
+
+    Args:
+        robot: the robot's name (frame ``<robot>/base_link``).
+        t_ns: capture time, ns since the Unix epoch.
+        points_body: (N, 3) points in the body frame, metres.
+        laser: (N,) laser index of each point (0 top, 1 bottom).
+    """
+    from foxglove.messages import (
+        PackedElementField,
+        PackedElementFieldNumericType,
+        PointCloud,
+        Quaternion,
+        Vector3,
+    )
+    from foxglove.messages import Pose as FgPose
+
+    n = int(points_body.shape[0])
+    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("laser", "u1")])
+    rec["x"], rec["y"], rec["z"] = (np.asarray(points_body, dtype=np.float32)[:, i] for i in range(3))
+    rec["laser"] = np.asarray(laser, dtype=np.uint8)
+    f32, u8 = PackedElementFieldNumericType.Float32, PackedElementFieldNumericType.Uint8
+    fields = [PackedElementField(name=c, offset=4 * i, type=f32) for i, c in enumerate("xyz")]
+    fields.append(PackedElementField(name="laser", offset=12, type=u8))
+    return PointCloud(
+        timestamp=_stamp(t_ns),
+        frame_id=body_frame(robot),
+        pose=FgPose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+        point_stride=rec.dtype.itemsize,
+        fields=fields,
+        data=rec.tobytes(),
+    )
+
+
+def has_fix(pose: Pose) -> bool:
+    """True when the pose has a horizontal position (north and east are numbers)."""
+    return math.isfinite(pose.north_m) and math.isfinite(pose.east_m)
+
+
+def robot_transform(robot: str, t_ns: int, pose: Pose) -> Any | None:
+    """``foxglove.FrameTransform`` ``ned`` -> ``<robot>/base_link`` at ``t_ns``; None without a horizontal fix."""
+    if not has_fix(pose):
+        return None
+    from foxglove.messages import FrameTransform, Quaternion, Vector3
+
+    w, x, y, z = (float(v) for v in quat_from_R(pose.R_ned_from_body))
+    return FrameTransform(
+        timestamp=_stamp(t_ns),
+        parent_frame_id=NED_FRAME,
+        child_frame_id=body_frame(robot),
+        translation=Vector3(x=float(pose.north_m), y=float(pose.east_m), z=float(pose.down_m)),
+        rotation=Quaternion(x=x, y=y, z=z, w=w),
+    )
+
+
+def plane_entity_id(plane_id: int) -> str:
+    """The scene entity id of a map plane."""
+    return f"plane/{int(plane_id)}"
+
+
+def map_scene(planes: Iterable[Mapping[str, Any]], t_ns: int) -> Any:
+    """``foxglove.SceneUpdate`` of map planes as served on the map keys (``PlaneRecord`` JSON or removals).
+
+    A plane dict with ``extent.corners`` (4 corners in NED, metres) becomes a rectangle entity; a dict with
+    ``"removed": True`` becomes a deletion of its entity.
+    """
+    from foxglove.messages import (
+        Color,
+        Point3,
+        SceneEntity,
+        SceneEntityDeletion,
+        SceneEntityDeletionType,
+        SceneUpdate,
+        TriangleListPrimitive,
+    )
+
+    r, g, b, a = PLANE_RGBA
+    entities, deletions = [], []
+    for plane in planes:
+        pid = plane_entity_id(int(plane["id"]))
+        if plane.get("removed"):
+            deletions.append(
+                SceneEntityDeletion(timestamp=_stamp(t_ns), type=SceneEntityDeletionType.MatchingId, id=pid)
+            )
+            continue
+        corners = plane.get("extent", {}).get("corners") or []
+        if len(corners) != 4:
+            continue
+        c = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in corners]
+        tri = TriangleListPrimitive(points=[c[0], c[1], c[2], c[0], c[2], c[3]], color=Color(r=r, g=g, b=b, a=a))
+        entities.append(SceneEntity(timestamp=_stamp(t_ns), frame_id=NED_FRAME, id=pid, triangles=[tri]))
+    return SceneUpdate(deletions=deletions, entities=entities)
