@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose
 
 from .errors import MapInputError, MappingError, MapStoreError
+from .navigation import PlaneLandmarks
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
@@ -92,6 +93,9 @@ class MapBuilder:
         self._counters = _Counters()
         self._last_save = time.monotonic()
         self._last_taken: dict[str, int] = {}
+        #: bumped whenever the planes change (the navigation's landmarks are cached per version)
+        self._version = 0
+        self._landmarks: tuple[int, int, PlaneLandmarks] | None = None
         if loaded is not None:
             self._load(*loaded)
 
@@ -249,6 +253,7 @@ class MapBuilder:
             with self._lock:
                 for rec in records:
                     changes.extend(self._map.add(rec))
+                self._version += 1 if records else 0
             n_obs = len(records)
         with self._lock:
             self._counters.extractions += 1
@@ -273,6 +278,18 @@ class MapBuilder:
             if include_tracks:
                 out["tracks"] = {r: [list(s) for s in tr] for r, tr in sorted(self._tracks.items())}
             return out
+
+    def landmarks(self, min_points: int = 0) -> PlaneLandmarks:
+        """Every plane (tentative ones too) with at least ``min_points`` points, as registration targets for
+        :mod:`mapping.navigation`; cached until the planes change."""
+        with self._lock:
+            cached = self._landmarks
+            if cached is not None and cached[0] == self._version and cached[1] == min_points:
+                return cached[2]
+            planes = [mp.to_json() for _, mp in sorted(self._map.planes.items())]
+            lm = PlaneLandmarks.from_planes(planes, min_points)
+            self._landmarks = (self._version, min_points, lm)
+            return lm
 
     @property
     def tracks(self) -> dict[str, list[tuple[int, float, float, float]]]:

@@ -443,3 +443,75 @@ def score_map(
         if best[3] + best[2] / 100.0 < fs.offset_m + fs.angle_deg / 100.0:
             fs.angle_deg, fs.offset_m = best[2], best[3]
     return MapScore(scores, spurious)
+
+
+def three_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePlan]:
+    """:func:`two_rov_plans` and a third robot on a tighter loop at 2.5 m, around the pillars."""
+    L, W = length_m, width_m
+    inner = ((2.0, 1.3), (L - 2.0, 1.3), (L - 2.0, W - 1.3), (2.0, W - 1.3))
+    return [*two_rov_plans(length_m, width_m), DivePlan("rov3", inner, 2.5, speed_mps=0.25, sweep_period_s=9.0)]
+
+
+@dataclass
+class DiveMap:
+    """A dive replayed into a map: the builder, and per robot the placed clouds' horizontal errors (m) and the
+    yaw errors (deg) of the poses they were placed with, the clouds left unplaced, and the navigation's cost per
+    cloud (s, empty when the poses were trusted)."""
+
+    builder: Any
+    position_error_m: dict[str, list[float]] = field(default_factory=dict)
+    yaw_error_deg: dict[str, list[float]] = field(default_factory=dict)
+    unplaced: dict[str, int] = field(default_factory=dict)
+    nav_cost_s: list[float] = field(default_factory=list)
+    estimates: dict[str, Any] = field(default_factory=dict)
+    frame: Any = None
+
+    def planes(self) -> list[dict[str, Any]]:
+        """The served map's planes (in NED: turned by the navigation's frame when there is one)."""
+        planes: list[dict[str, Any]] = self.builder.map_json()["planes"]
+        return planes if self.frame is None else [self.frame.plane_json(p) for p in planes]
+
+
+def replay_dive(frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cfg: Any = None) -> DiveMap:
+    """Feed a simulated dive into a :class:`mapping.MapBuilder` the way the base station does.
+
+    ``navigate`` False: trust the poses (clouds without a horizontal fix are left out, as ``unplaced``).
+    True: correct each cloud's pose with :class:`mapping.navigation.Navigator` against the map's planes first,
+    and place the cloud while the estimator says so.
+    """
+    import time
+
+    from .builder import MapBuilder
+    from .navigation import Navigator
+    from .types import MapConfig
+
+    b = MapBuilder(cfg or MapConfig())
+    nav = Navigator(nav_cfg) if navigate else None
+    out = DiveMap(b)
+    min_pts = nav.cfg.min_landmark_points if nav is not None else 0
+    for f in frames:
+        pose = f.pose_est
+        if nav is not None:
+            t0 = time.perf_counter()
+            est = nav.update(f.robot, f.t_ns, f.pose_est, f.points_body, b.landmarks(min_pts))
+            out.nav_cost_s.append(time.perf_counter() - t0)
+            out.estimates[f.robot] = est
+            if est.pose is None or not est.placed:
+                out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
+                continue
+            pose = est.pose
+            pts = body_to_ned(f.points_body, pose)
+        else:
+            if not (math.isfinite(pose.north_m) and math.isfinite(pose.east_m)):
+                out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
+                continue
+            pts = f.points_ned_est
+        b.add_cloud(f.robot, f.t_ns, pts, pose)
+        served = nav.frame().pose(pose) if nav is not None else pose
+        err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
+        out.position_error_m.setdefault(f.robot, []).append(err)
+        dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
+        out.yaw_error_deg.setdefault(f.robot, []).append(dyaw)
+    b.flush()
+    out.frame = nav.frame() if nav is not None else None
+    return out

@@ -1,0 +1,571 @@
+"""Laser-aided navigation: each robot's horizontal position and heading correction, estimated from its scans.
+
+Attitude (roll, pitch) and depth are measured well by every pose source; what a small ROV does not know is
+where it is horizontally (no fix at all, or dead reckoning that drifts) and its true heading (a compass near
+steel is off by degrees). So the estimator has five states per robot, in NED (metres, m/s, radians)::
+
+    x = [north, east, v_north, v_east, yaw_correction]
+
+and the corrected pose is ``(north, east, raw down, raw roll, raw pitch, raw yaw + yaw_correction)``.
+
+One step per cloud (:meth:`RobotNav.update`), a Kalman filter whose measurement update is a robust
+scan-to-map registration:
+
+1. **Predict.** With dead reckoning (the raw pose has a horizontal position, and had one at the previous
+   cloud), the raw position's increment, turned by the current yaw correction (the compass bias turned it
+   too), moves the position; its noise grows with the distance (``dr_scale_sigma``) and with time
+   (``dr_velocity_sigma_m_s``). Without a fix, a constant-velocity motion prior (``accel_sigma_m_s2``) moves it.
+   The yaw correction is a random walk (``yaw_walk_deg_per_sqrt_s``).
+2. **Fix.** A raw horizontal position is also a weak absolute measurement (``fix_sigma_m``, at most once per
+   ``fix_every_s``): dead reckoning's absolute error is unknown, so it only anchors a robot the scans cannot.
+3. **Register.** The cloud's points (sub-sampled) are placed with the predicted pose and associated with the
+   nearest map plane (:class:`PlaneLandmarks`) that faces the vehicle, whose extent (inflated) contains the
+   point and which lies within a gate set by the predicted uncertainty along its normal. The point-to-plane
+   residuals (Huber-weighted) over the three unknowns (north, east, yaw correction) and the prediction are
+   solved together by Gauss-Newton (a few re-associations): the MAP estimate of an iterated Kalman update.
+   Points of one scan share pose and map errors, so the registration counts at most
+   ``max_independent_points`` of them.
+4. **Report.** The registration's own information matrix ``H`` (3x3 over north, east, yaw) says what the scan
+   constrains: an axis whose standard deviation from ``H`` alone exceeds ``constrained_std_m`` /
+   ``constrained_std_deg`` is not constrained (one flat wall: the position along it). The posterior covariance
+   gives the ``*_std`` of the estimate; a cloud is *placed* (mapped) only while both horizontal standard
+   deviations stay below ``place_std_m``.
+
+The map (``mapping.MapBuilder``) owns the planes; the estimator only reads them (:meth:`MapBuilder.landmarks`).
+Everything here is numpy: the problem is three unknowns with a Kalman prior, solved in well under a millisecond
+(see docs/navigation.md for the choice against GTSAM, Open3D ICP and scipy).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose, R_ned_from_body
+
+from .errors import MapInputError
+
+FloatArray = NDArray[np.float64]
+
+#: The axes whose constraint is reported.
+AXES = ("north", "east", "yaw")
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """Tuning of :class:`Navigator` (metres, seconds, degrees where named ``_deg``).
+
+    Registration: ``max_points`` body points per scan (evenly sub-sampled) within ``max_range_m``;
+    ``point_sigma_m`` the noise of one point-to-plane residual, Huber-weighted beyond ``huber_m``; at most
+    ``max_independent_points`` count as independent; ``iterations`` re-associations; a point joins a plane within
+    ``gate_min_m`` .. ``gate_max_m`` (3 sigma of the predicted position along the plane's normal, + 5 cm) and
+    within its extent inflated by ``extent_margin_m`` horizontally and ``extent_margin_down_m`` in depth (faces
+    are mapped in horizontal bands); a registration needs ``min_inliers`` points; planes with fewer than
+    ``min_landmark_points`` points are not used.
+
+    Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (a velocity bias),
+    ``accel_sigma_m_s2`` (constant-velocity prior without a fix), ``yaw_walk_deg_per_sqrt_s``; ``fix_sigma_m`` and
+    ``fix_every_s`` (weak absolute fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
+    ``init_yaw_sigma_deg``.
+
+    Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
+    an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
+    exceeds it are not placed in the map), ``depth_std_m`` / ``attitude_std_deg`` (reported for the measured
+    axes); ``frame_min_scans``: a robot's yaw correction counts in :meth:`Navigator.frame` once that many scans
+    constrained its heading.
+    """
+
+    max_points: int = 300
+    max_range_m: float = 4.0
+    point_sigma_m: float = 0.02
+    huber_m: float = 0.02
+    max_independent_points: int = 50
+    iterations: int = 4
+    gate_min_m: float = 0.1
+    gate_max_m: float = 0.6
+    extent_margin_m: float = 0.25
+    extent_margin_down_m: float = 1.5
+    min_inliers: int = 20
+    min_landmark_points: int = 300
+    dr_scale_sigma: float = 0.03
+    dr_velocity_sigma_m_s: float = 0.02
+    accel_sigma_m_s2: float = 0.05
+    yaw_walk_deg_per_sqrt_s: float = 0.1
+    fix_sigma_m: float = 0.5
+    fix_every_s: float = 1.0
+    launch_sigma_m: float = 0.05
+    init_speed_sigma_m_s: float = 0.3
+    init_yaw_sigma_deg: float = 3.0
+    constrained_std_m: float = 0.05
+    constrained_std_deg: float = 1.0
+    place_std_m: float = 0.3
+    depth_std_m: float = 0.01
+    attitude_std_deg: float = 0.2
+    frame_min_scans: int = 20
+
+
+@dataclass(frozen=True)
+class PlaneLandmarks:
+    """The map's planes as registration targets (P planes; NED, metres).
+
+    Attributes:
+        ids: (P,) plane ids.
+        normal: (P, 3) unit normals toward the observing vehicles; ``d`` (P,) offsets: ``normal . p + d = 0``.
+        centroid: (P, 3); ``u``, ``v``: (P, 3) in-plane axes (``u`` horizontal); ``u_range``, ``v_range``: (P, 2)
+            the extent of the plane's points along them, relative to the centroid.
+    """
+
+    ids: NDArray[np.int64]
+    normal: FloatArray
+    d: FloatArray
+    centroid: FloatArray
+    u: FloatArray
+    v: FloatArray
+    u_range: FloatArray
+    v_range: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    @classmethod
+    def empty(cls) -> PlaneLandmarks:
+        """No planes."""
+        z3 = np.zeros((0, 3))
+        z2 = np.zeros((0, 2))
+        return cls(np.zeros(0, dtype=np.int64), z3, np.zeros(0), z3, z3, z3, z2, z2)
+
+    @classmethod
+    def from_planes(cls, planes: Iterable[Mapping[str, Any]], min_points: int = 0) -> PlaneLandmarks:
+        """From plane dicts as :meth:`mapping.MapBuilder.map_json` serves them (``normal``, ``d``, ``extent``)."""
+        rows = [p for p in planes if int(p.get("n_points", min_points)) >= min_points]
+        if not rows:
+            return cls.empty()
+
+        def arr(key: str) -> FloatArray:
+            return np.array([p["extent"][key] for p in rows], dtype=np.float64)
+
+        return cls(
+            np.array([int(p["id"]) for p in rows], dtype=np.int64),
+            np.array([p["normal"] for p in rows], dtype=np.float64),
+            np.array([p["d"] for p in rows], dtype=np.float64),
+            arr("centroid"),
+            arr("u"),
+            arr("v"),
+            arr("u_range_m"),
+            arr("v_range_m"),
+        )
+
+
+@dataclass(frozen=True)
+class NavEstimate:
+    """A robot's corrected pose at one cloud (what ``<root>/<robot>/nav`` publishes).
+
+    Attributes:
+        robot, t_ns: the robot and the cloud's capture time (ns since the epoch).
+        pose: the corrected pose (NED, radians); None when the robot's position is unknown (no fix ever).
+        std: standard deviations: ``north_m``, ``east_m``, ``down_m`` (m), ``roll_deg``, ``pitch_deg``,
+            ``yaw_deg`` (deg).
+        constrained: per axis of :data:`AXES`, whether this scan constrained it.
+        placed: whether the cloud may go into the map (position known well enough).
+        motion: how the position moved since the last cloud: ``dead-reckoning``, ``motion-prior`` or ``start``.
+        inliers: points associated with map planes (0: no registration).
+        planes: ids of the planes the scan was registered to.
+        correction: the yaw correction (deg) and, with a raw fix, the horizontal offset from it (m).
+    """
+
+    robot: str
+    t_ns: int
+    pose: Pose | None
+    std: dict[str, float]
+    constrained: dict[str, bool]
+    placed: bool
+    motion: str
+    inliers: int = 0
+    planes: tuple[int, ...] = ()
+    correction: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON of CONVENTIONS' ``<root>/<robot>/nav`` key (angles in degrees, null when unknown)."""
+        p = self.pose
+        out: dict[str, Any] = {
+            "robot": self.robot,
+            "t_ns": self.t_ns,
+            "north_m": p.north_m if p else None,
+            "east_m": p.east_m if p else None,
+            "down_m": p.down_m if p else None,
+            "roll_deg": math.degrees(p.roll_rad) if p else None,
+            "pitch_deg": math.degrees(p.pitch_rad) if p else None,
+            "yaw_deg": math.degrees(p.yaw_rad) if p else None,
+        }
+        for k, v in self.std.items():
+            out[f"{k}_std"] = v if math.isfinite(v) else None
+        out["constrained"] = [a for a in AXES if self.constrained.get(a)]
+        out["unconstrained"] = [a for a in AXES if not self.constrained.get(a)]
+        out.update(placed=self.placed, motion=self.motion, inliers=self.inliers, planes=list(self.planes))
+        out["correction"] = dict(self.correction)
+        return out
+
+
+def _rot2(a: float) -> FloatArray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+def subsample(points: FloatArray, n: int) -> FloatArray:
+    """At most ``n`` rows of ``points`` (M, 3), evenly spaced in their order (deterministic)."""
+    m = points.shape[0]
+    if m <= n:
+        return points
+    return points[np.linspace(0, m - 1, n).round().astype(np.int64)]
+
+
+def associate(
+    p_ned: FloatArray, veh: FloatArray, lm: PlaneLandmarks, gate_m: FloatArray, cfg: NavConfig
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """Nearest admissible plane per point: index into ``lm`` (-1: none) and the signed distance (M,).
+
+    Admissible: facing the vehicle (``normal . (vehicle - p) > 0``), within ``gate_m`` (P,) of the plane, and
+    inside its extent inflated by the configured margins.
+    """
+    dist = p_ned @ lm.normal.T + lm.d[None, :]  # (M, P)
+    rel = p_ned[:, None, :] - lm.centroid[None, :, :]
+    pu = np.einsum("mpk,pk->mp", rel, lm.u)
+    pv = np.einsum("mpk,pk->mp", rel, lm.v)
+    # v is the in-plane axis closest to down for vertical faces: its margin is the depth margin
+    ok = (np.abs(dist) <= gate_m[None, :]) & ((veh - p_ned) @ lm.normal.T > 0.0)
+    ok &= (pu >= lm.u_range[None, :, 0] - cfg.extent_margin_m) & (pu <= lm.u_range[None, :, 1] + cfg.extent_margin_m)
+    ok &= (pv >= lm.v_range[None, :, 0] - cfg.extent_margin_down_m) & (
+        pv <= lm.v_range[None, :, 1] + cfg.extent_margin_down_m
+    )
+    score = np.where(ok, np.abs(dist), np.inf)
+    k = np.argmin(score, axis=1)
+    rows = np.arange(p_ned.shape[0])
+    best = np.where(np.isfinite(score[rows, k]), k, -1)
+    return best.astype(np.int64), dist[rows, k]
+
+
+class RobotNav:
+    """The estimator of one robot (see the module docstring). Not thread-safe: one thread feeds it."""
+
+    def __init__(self, robot: str, cfg: NavConfig) -> None:
+        self.robot = robot
+        self.cfg = cfg
+        self.x = np.zeros(5)
+        self.P = np.eye(5)
+        self.t_ns: int | None = None
+        self.last_raw_ne: FloatArray | None = None
+        self.last_fix_ns: int | None = None
+        self.latest: NavEstimate | None = None
+        #: where the robot started (its first fix), and how many scans constrained its heading
+        self.start_ne = np.zeros(2)
+        self.yaw_scans = 0
+
+    @property
+    def started(self) -> bool:
+        """Whether the robot's position is known (it had a horizontal fix once)."""
+        return self.t_ns is not None
+
+    def _start(self, t_ns: int, raw_ne: FloatArray) -> None:
+        cfg = self.cfg
+        self.x = np.array([raw_ne[0], raw_ne[1], 0.0, 0.0, 0.0])
+        self.P = np.diag(
+            [
+                cfg.launch_sigma_m**2,
+                cfg.launch_sigma_m**2,
+                cfg.init_speed_sigma_m_s**2,
+                cfg.init_speed_sigma_m_s**2,
+                math.radians(cfg.init_yaw_sigma_deg) ** 2,
+            ]
+        )
+        self.t_ns = t_ns
+        self.last_fix_ns = t_ns
+        self.start_ne = raw_ne.copy()
+
+    def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
+        cfg = self.cfg
+        q = np.zeros((5, 5))
+        q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
+        if raw_ne is not None and self.last_raw_ne is not None:
+            step = _rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
+            f = np.eye(5)
+            # the increment turns with the yaw correction: d(step)/dc = ez x step
+            f[0:2, 4] = [-step[1], step[0]]
+            self.x[0:2] += step
+            if dt > 0:
+                self.x[2:4] = step / dt
+            self.P = f @ self.P @ f.T
+            var = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
+            q[0, 0] = q[1, 1] = var
+            motion = "dead-reckoning"
+        else:
+            f = np.eye(5)
+            f[0, 2] = f[1, 3] = dt
+            self.x = f @ self.x
+            self.P = f @ self.P @ f.T
+            a2 = cfg.accel_sigma_m_s2**2
+            for i in (0, 1):
+                q[i, i] = a2 * dt**4 / 4
+                q[i, i + 2] = q[i + 2, i] = a2 * dt**3 / 2
+                q[i + 2, i + 2] = a2 * dt**2
+            motion = "motion-prior"
+        self.P = self.P + q
+        return motion
+
+    def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
+        cfg = self.cfg
+        if self.last_fix_ns is not None and t_ns - self.last_fix_ns < cfg.fix_every_s * 1e9:
+            return
+        self.last_fix_ns = t_ns
+        h = np.zeros((2, 5))
+        h[0, 0] = h[1, 1] = 1.0
+        s = h @ self.P @ h.T + np.eye(2) * cfg.fix_sigma_m**2
+        k = self.P @ h.T @ np.linalg.inv(s)
+        self.x = self.x + k @ (raw_ne - self.x[0:2])
+        self.P = (np.eye(5) - k @ h) @ self.P
+
+    def _register(
+        self, raw: Pose, points_body: FloatArray, lm: PlaneLandmarks
+    ) -> tuple[FloatArray, int, tuple[int, ...]]:
+        """Gauss-Newton MAP update of ``x``/``P`` from point-to-plane residuals; returns the registration's own
+        information (3x3 over north, east, yaw correction), the inliers and the planes used."""
+        cfg = self.cfg
+        h3 = np.zeros((3, 3))
+        if len(lm) == 0 or points_body.shape[0] < cfg.min_inliers:
+            return h3, 0, ()
+        idx = [0, 1, 4]
+        x_pred = self.x.copy()
+        p_inv = np.linalg.inv(self.P)
+        x = x_pred.copy()
+        pos_cov = self.P[np.ix_([0, 1], [0, 1])]
+        nh = lm.normal[:, 0:2]
+        along = np.einsum("pi,ij,pj->p", nh, pos_cov, nh)
+        lever2 = 2.0**2 * self.P[4, 4]  # a point 2 m away moves by 2 m * yaw error
+        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
+        inliers = 0
+        used: tuple[int, ...] = ()
+        for it in range(cfg.iterations):
+            r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
+            veh = np.array([x[0], x[1], raw.down_m])
+            rel = points_body @ r_nb.T
+            p = rel + veh
+            k, dist = associate(p, veh, lm, gate, cfg)
+            sel = k >= 0
+            inliers = int(sel.sum())
+            if inliers < cfg.min_inliers:
+                return np.zeros((3, 3)), 0, ()
+            n = lm.normal[k[sel]]
+            r = dist[sel]
+            relh = rel[sel]
+            j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
+            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+            scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
+            h3 = scale * (j.T * w) @ j
+            g3 = scale * (j.T * w) @ r
+            hf = np.zeros((5, 5))
+            hf[np.ix_(idx, idx)] = h3
+            gf = np.zeros(5)
+            gf[idx] = g3
+            x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
+            if it >= 1:
+                # after the first pass the gate only needs to hold the residual noise and what is left
+                gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
+            used = tuple(int(i) for i in np.unique(lm.ids[k[sel]]))
+        hf = np.zeros((5, 5))
+        hf[np.ix_(idx, idx)] = h3
+        self.x = x
+        cov = np.linalg.inv(p_inv + hf)
+        self.P = 0.5 * (cov + cov.T)
+        return h3, inliers, used
+
+    def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
+        """One cloud: predict, apply a fix, register against ``landmarks``; returns the estimate.
+
+        Args:
+            t_ns: capture time, ns since the epoch.
+            raw: the pose the robot sent (north/east NaN where it has no horizontal fix).
+            points_body: (N, 3) the cloud in the body frame, metres.
+            landmarks: the map's planes.
+
+        A cloud older than the last one moves nothing: it is placed with the current correction.
+        """
+        cfg = self.cfg
+        t = int(t_ns)
+        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
+        pts = subsample(pts, cfg.max_points)
+        raw_ne = np.array([raw.north_m, raw.east_m]) if math.isfinite(raw.north_m + raw.east_m) else None
+        if not self.started:
+            if raw_ne is None:
+                est = self._estimate(t, raw, np.zeros((3, 3)), 0, (), "unknown", known=False)
+                self.latest = est
+                return est
+            self._start(t, raw_ne)
+            self.last_raw_ne = raw_ne
+            motion = "start"
+        elif self.t_ns is not None and t < self.t_ns:
+            return self._estimate(t, raw, np.zeros((3, 3)), 0, (), "late", known=True, keep=True)
+        else:
+            assert self.t_ns is not None
+            motion = self._predict((t - self.t_ns) * 1e-9, raw_ne)
+            self.t_ns = t
+            self.last_raw_ne = raw_ne
+            if raw_ne is not None:
+                self._fix(t, raw_ne)
+        h3, inliers, used = self._register(raw, pts, landmarks)
+        est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
+        self.yaw_scans += int(est.constrained["yaw"])
+        self.latest = est
+        return est
+
+    def _estimate(
+        self,
+        t: int,
+        raw: Pose,
+        h3: FloatArray,
+        inliers: int,
+        used: tuple[int, ...],
+        motion: str,
+        *,
+        known: bool,
+        keep: bool = False,
+    ) -> NavEstimate:
+        cfg = self.cfg
+        constrained = dict.fromkeys(AXES, False)
+        if inliers:
+            reg_cov = np.linalg.inv(h3 + np.eye(3) * 1.0)  # a 1 m / 1 rad prior: unconstrained reads as ~1
+            reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
+            limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
+            constrained = {a: bool(s <= lim) for a, s, lim in zip(AXES, reg_std, limits, strict=True)}
+        att = cfg.attitude_std_deg
+        if not known:
+            std = {"north_m": math.inf, "east_m": math.inf, "down_m": cfg.depth_std_m}
+            std.update(roll_deg=att, pitch_deg=att, yaw_deg=math.inf)
+            return NavEstimate(self.robot, t, None, std, constrained, False, motion)
+        sd = np.sqrt(np.maximum(np.diag(self.P), 0.0))
+        yaw_std = math.hypot(math.degrees(float(sd[4])), att)
+        std = {"north_m": float(sd[0]), "east_m": float(sd[1]), "down_m": cfg.depth_std_m}
+        std.update(roll_deg=att, pitch_deg=att, yaw_deg=yaw_std)
+        pose = Pose(
+            float(self.x[0]), float(self.x[1]), raw.down_m, raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(self.x[4])
+        )
+        if keep and self.last_raw_ne is not None and math.isfinite(raw.north_m + raw.east_m):
+            # a late cloud: the raw position plus the current offset
+            off = self.x[0:2] - self.last_raw_ne
+            pose = Pose(
+                raw.north_m + off[0], raw.east_m + off[1], pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad
+            )
+        corr = {"yaw_deg": math.degrees(float(self.x[4]))}
+        if math.isfinite(raw.north_m + raw.east_m):
+            corr.update(north_m=pose.north_m - raw.north_m, east_m=pose.east_m - raw.east_m)
+        placed = max(float(sd[0]), float(sd[1])) <= cfg.place_std_m
+        return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr)
+
+
+@dataclass(frozen=True)
+class NavFrame:
+    """From the frame the fleet builds its map in to NED: a turn by ``yaw_rad`` about ``pivot_ne`` (north, east).
+
+    Registration makes the robots agree with each other and with the map, but the map's heading is whatever the
+    compasses of its first observations said. Compass biases of independent robots average out; so the fleet's
+    mean heading correction is the map frame's own heading error, and the map and the poses are served turned
+    back by it (the map itself keeps its exact statistics in its own frame). See docs/navigation.md.
+    """
+
+    yaw_rad: float = 0.0
+    pivot_ne: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def identity(self) -> bool:
+        """Whether the frame changes nothing."""
+        return self.yaw_rad == 0.0
+
+    def _rot(self) -> FloatArray:
+        r = np.eye(3)
+        r[0:2, 0:2] = _rot2(-self.yaw_rad)
+        return r
+
+    def points(self, p: Any) -> FloatArray:
+        """Points (N, 3) from the map frame to NED."""
+        q = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        piv = np.array([self.pivot_ne[0], self.pivot_ne[1], 0.0])
+        return (q - piv) @ self._rot().T + piv
+
+    def vectors(self, v: Any) -> FloatArray:
+        """Directions (N, 3) from the map frame to NED."""
+        return np.asarray(v, dtype=np.float64).reshape(-1, 3) @ self._rot().T
+
+    def pose(self, pose: Pose) -> Pose:
+        """A pose from the map frame to NED."""
+        if self.identity:
+            return pose
+        p = self.points(pose.p_ned)[0]
+        return Pose(float(p[0]), float(p[1]), pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad - self.yaw_rad)
+
+    def plane_json(self, plane: dict[str, Any]) -> dict[str, Any]:
+        """A plane dict (:meth:`mapping.MapBuilder.map_json`) from the map frame to NED (removals unchanged)."""
+        if self.identity or "normal" not in plane:
+            return plane
+        out = dict(plane)
+        n = self.vectors(plane["normal"])[0]
+        ext = dict(plane["extent"])
+        c = self.points(ext["centroid"])[0]
+        out["normal"] = [float(x) for x in n]
+        out["d"] = float(-n @ c)
+        ext["centroid"] = [float(x) for x in c]
+        ext["u"] = [float(x) for x in self.vectors(ext["u"])[0]]
+        ext["v"] = [float(x) for x in self.vectors(ext["v"])[0]]
+        corners = self.points(ext["corners"])
+        ext["corners"] = [[float(x) for x in row] for row in corners]
+        lo, hi = np.asarray(ext["aabb_min"], dtype=float), np.asarray(ext["aabb_max"], dtype=float)
+        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        turned = self.points(box)
+        ext["aabb_min"] = [float(x) for x in turned.min(axis=0)]
+        ext["aabb_max"] = [float(x) for x in turned.max(axis=0)]
+        out["extent"] = ext
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"yaw_deg", "pivot_ne"}``."""
+        return {"yaw_deg": math.degrees(self.yaw_rad), "pivot_ne": list(self.pivot_ne)}
+
+
+class Navigator:
+    """The fleet's estimators, one :class:`RobotNav` per robot (created on its first cloud), and the fleet's
+    :class:`NavFrame`."""
+
+    def __init__(self, cfg: NavConfig | None = None) -> None:
+        self.cfg = cfg or NavConfig()
+        self.robots: dict[str, RobotNav] = {}
+        #: where the first robot started (the map frame's pivot)
+        self.origin_ne: tuple[float, float] | None = None
+
+    def frame(self) -> NavFrame:
+        """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
+        constrained at least ``frame_min_scans`` times, about the first robot's start."""
+        cs = [float(n.x[4]) for n in self.robots.values() if n.yaw_scans >= self.cfg.frame_min_scans]
+        if not cs or self.origin_ne is None:
+            return NavFrame()
+        return NavFrame(float(np.mean(cs)), self.origin_ne)
+
+    def update(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
+        """One cloud of ``robot`` (see :meth:`RobotNav.update`)."""
+        if not isinstance(raw, Pose):
+            msg = f"{robot}: pose must be a lrsensor.frames.Pose, got {type(raw).__name__}"
+            raise MapInputError(msg)
+        nav = self.robots.get(robot)
+        if nav is None:
+            nav = self.robots[robot] = RobotNav(robot, self.cfg)
+        est = nav.update(t_ns, raw, points_body, landmarks)
+        if self.origin_ne is None and nav.started:
+            self.origin_ne = (float(nav.start_ne[0]), float(nav.start_ne[1]))
+        return est
+
+    def latest(self) -> dict[str, NavEstimate]:
+        """Robot -> its latest estimate."""
+        return {r: n.latest for r, n in sorted(self.robots.items()) if n.latest is not None}
