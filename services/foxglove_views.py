@@ -134,3 +134,19 @@ def map_scene(planes: Iterable[Mapping[str, Any]], t_ns: int) -> Any:
         tri = TriangleListPrimitive(points=[c[0], c[1], c[2], c[0], c[2], c[3]], color=Color(r=r, g=g, b=b, a=a))
         entities.append(SceneEntity(timestamp=_stamp(t_ns), frame_id=NED_FRAME, id=pid, triangles=[tri]))
     return SceneUpdate(deletions=deletions, entities=entities)
+
+
+def track_scene(robot: str, positions_ned: np.ndarray, t_ns: int) -> Any:
+    """``foxglove.SceneUpdate`` with the entity ``track/<robot>``: a line through (N, 3) NED positions, metres."""
+    from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, Point3, SceneEntity, SceneUpdate
+
+    pts = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in np.asarray(positions_ned, dtype=float)]
+    line = LinePrimitive(
+        type=LinePrimitiveLineType.LineStrip,
+        thickness=2.0,
+        scale_invariant=True,
+        points=pts,
+        color=Color(r=0.2, g=0.7, b=1.0, a=1.0),
+    )
+    entity = SceneEntity(timestamp=_stamp(t_ns), frame_id=NED_FRAME, id=f"track/{robot}", lines=[line])
+    return SceneUpdate(entities=[entity])
