@@ -22,7 +22,9 @@ Served (queryables, each on its own key; a failure is answered with ``reply_err`
   or the JSON file with ``?format=json``);
 * ``<root>/base/acks/<robot>``: JSON ``{"robot", "ranges": [[lo, hi], ...]}`` of the sequence numbers held
   durably (counters and map saved: see :meth:`BaseStation.checkpoint`);
-* ``<root>/map``: the whole map as JSON.
+* ``<root>/map``: the whole map as JSON;
+* ``<root>/<robot>/nav``: the robot's latest corrected pose as JSON (``<root>/*/nav``: every robot's), also
+  published as it updates (see :mod:`services.mapfeed`, navigation).
 
 State (``--state DIR``, written atomically): ``fleet.json`` (sequence ranges and counters per robot, so that
 ``received`` survives restarts), ``calib/<robot>.json`` (fleet calibrations), ``map/`` (the map's own files).
@@ -87,6 +89,8 @@ class BaseStation:
         map_wait_s: how long an ingest worker waits for room in the map queue (back-pressure) before the
             cloud is counted as received but left out of the map (``map.skipped`` in the status).
         ack_period_s: how often a checkpoint (map and counters saved) acknowledges what arrived.
+        navigation: correct each robot's pose from its scans before its clouds go into the map
+            (``mapping.navigation``; needs the map). Off: the raw poses are trusted.
     """
 
     def __init__(
@@ -102,6 +106,7 @@ class BaseStation:
         save_period_s: float = 1.0,
         ack_period_s: float = 2.0,
         map_wait_s: float = 5.0,
+        navigation: bool = True,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -122,7 +127,9 @@ class BaseStation:
             save_period_s=save_period_s,
             ack_period_s=ack_period_s,
         )
-        self.feed = MapFeed(self.map, self.ledger.mark_mapped, queue_size=queue_size, map_wait_s=map_wait_s)
+        self.feed = MapFeed(
+            self.map, self.ledger.mark_mapped, queue_size=queue_size, map_wait_s=map_wait_s, navigation=navigation
+        )
         self.calibrations = CalibrationBook(self.ledger.calibration_path, self._fetch_robot_calibration)
 
     # ------------------------------------------------------------------ the parts, by their old names
@@ -182,7 +189,7 @@ class BaseStation:
             encoding=zenoh.Encoding("application/json"),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        self.feed.start(map_pub.put)
+        self.feed.start(map_pub.put, self._publish_nav)
         saver = threading.Thread(target=self.ledger.run_saver, args=(self._closing,), name="base-saver", daemon=True)
         saver.start()
         self._threads.append(saver)
@@ -195,6 +202,7 @@ class BaseStation:
             s.declare_queryable(self.keys.base_calib_all, self._on_calib_query),
             s.declare_queryable(self.keys.base_acks_all, self._on_acks_query),
             s.declare_queryable(self.keys.map, self._on_map_query),
+            s.declare_queryable(self.keys.all_nav, self._on_nav_query),
         ]
         log.info("base station of fleet %r up: subscribed to %s", self.keys.fleet, self.keys.all_clouds)
 
@@ -306,6 +314,25 @@ class BaseStation:
         except Exception as err:
             log.warning("map query failed: %s", err)
 
+    def _publish_nav(self, robot: str, payload: str) -> None:
+        self.session.put(self.keys.nav(robot), payload, encoding="application/json")
+
+    def _on_nav_query(self, query: Any) -> None:
+        try:
+            robot = self.keys.robot_of(str(query.key_expr))
+            robots = [robot] if robot is not None else self.feed.nav_robots()
+            answered = False
+            for r in robots:
+                js = self.feed.nav_json(r)
+                if js is not None:
+                    query.reply(self.keys.nav(r), json.dumps(js), encoding="application/json")
+                    answered = True
+            if not answered:
+                why = "navigation is off" if not self.feed.navigation else "no navigation estimate yet"
+                query.reply_err(f"{why}: {query.key_expr}")
+        except Exception as err:
+            log.warning("nav query failed: %s", err)
+
     # ------------------------------------------------------------------ the ingest loop
     def _worker(self) -> None:
         while True:
@@ -384,10 +411,16 @@ class BaseStation:
         map_status = self.feed.status_json()
         lat = self.latency.percentiles_ms()
         transit = self.latency.percentiles_ms(transit=True)
+        robots = self.ledger.robots_json(robot)
+        for name, rec in robots.items():
+            nav = self.feed.nav_status(name)
+            if nav is not None:
+                rec["nav"] = nav
+                rec["unplaced"] = nav["unplaced"]  # with navigation: clouds it could not place yet
         return {
             "fleet": self.keys.fleet,
             "t_ns": time.time_ns(),
-            "robots": self.ledger.robots_json(robot),
+            "robots": robots,
             "map": map_status,
             "ingest": {
                 "processed": self.processed,

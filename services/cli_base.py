@@ -23,6 +23,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--map", choices=("auto", "on", "off"), default="auto", help="build the shared map (needs Open3D; default auto)"
     )
+    parser.add_argument(
+        "--nav",
+        choices=("on", "off"),
+        default="on",
+        help="correct each robot's horizontal position and heading from its scans before mapping (default on)",
+    )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
     parser.add_argument(
@@ -47,7 +53,15 @@ def run(args: argparse.Namespace) -> int:
         options = type(options)(mode=options.mode, listen=(DEFAULT_LISTEN,))
     robots = [r.strip() for r in args.robots.split(",") if r.strip()] if args.robots else None
     with stop_on_signals() as stop, open_session(options, default_mode="router") as session:
-        station = BaseStation(session, keys, args.state, map_mode=args.map, robots=robots, workers=args.workers)
+        station = BaseStation(
+            session,
+            keys,
+            args.state,
+            map_mode=args.map,
+            robots=robots,
+            workers=args.workers,
+            navigation=args.nav == "on",
+        )
         with station:
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
             last = time.monotonic()
@@ -57,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
                     st = station.status()
                     parts = [
                         f"{r}: {v['received']} rx, {v['missed']} missed, {v['rejected']} rej"
+                        + (f", position {v['nav']['position']}" if "nav" in v else "")
                         + ("" if v["alive"] else " (gone)")
                         for r, v in st["robots"].items()
                     ]

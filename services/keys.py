@@ -6,6 +6,7 @@ Layout (prefix ``lrs`` by default)::
     <prefix>/<fleet>/<robot>/calib        queryable: the robot's calibration (CalibMsg)
     <prefix>/<fleet>/<robot>/alive        liveliness token while the robot is up
     <prefix>/<fleet>/<robot>/status       StatusMsg publications of the robot (counters)
+    <prefix>/<fleet>/<robot>/nav          the base's corrected pose of the robot (JSON; also a queryable)
     <prefix>/<fleet>/base/status          queryable: base-station counters as JSON
     <prefix>/<fleet>/base/calib/<robot>   queryable: the fleet's stored calibration of a robot (CalibMsg)
     <prefix>/<fleet>/base/acks/<robot>    queryable: JSON ranges of the sequence numbers the base holds
@@ -74,6 +75,15 @@ class FleetKeys:
     def rov_status(self, robot: str) -> str:
         """StatusMsg publications of one robot."""
         return f"{self.root}/{check_robot_name(robot)}/status"
+
+    def nav(self, robot: str) -> str:
+        """The robot's corrected pose as the base station's navigation estimates it (JSON)."""
+        return f"{self.root}/{check_robot_name(robot)}/nav"
+
+    @property
+    def all_nav(self) -> str:
+        """Every robot's corrected pose (the base's queryable)."""
+        return f"{self.root}/*/nav"
 
     @property
     def all_clouds(self) -> str:

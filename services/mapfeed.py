@@ -19,12 +19,21 @@ Wire form of the updates (``<root>/map/updates``, JSON, one message per cloud th
 The builder returns typed :class:`mapping.MapChange` values; they become JSON only here, at the wire
 (:func:`change_json`), and only when the base publishes.
 
-Clouds the map cannot place: a cloud whose pose has no horizontal fix (``north_m``/``east_m`` null: a pose
-source with attitude and depth only) is not mapped, never placed at north = east = 0. Until laser-aided
-navigation estimates such a robot's position, :meth:`MapFeed.take` counts it (``map.unplaced`` here,
-``robots.<robot>.unplaced`` in the ledger), logs it once per robot at warning level, and reports it to the
-ledger as done with (acknowledgeable: it is held in the received counters, and the robot must not re-send it
-forever to a map that cannot take it).
+Navigation (``mapping.navigation``; on by default in the base station): before a cloud goes into the map, the map
+thread corrects its pose. The robot's estimator registers the cloud against the map's planes and fuses that with
+the raw pose's dead reckoning, fixes or a motion prior; the cloud is placed with the corrected pose. The raw pose
+stays what the robot sent (the ledger's track, the wire). Each estimate is published on ``<root>/<robot>/nav``
+(JSON, at most every ``nav_publish_s`` of capture time per robot; the latest is also served by the base's
+queryable) and summarized per robot in the status (:meth:`MapFeed.nav_status`). The map and the poses are served in
+NED, turned by the fleet's frame (:class:`mapping.navigation.NavFrame`).
+
+Clouds the map cannot place: a cloud whose robot has no position yet (no horizontal fix ever, or, with
+navigation, an estimate too uncertain to place: ``NavConfig.place_std_m``), is not mapped, never placed at
+north = east = 0. Without navigation, every cloud without a horizontal fix (``north_m``/``east_m`` null: a
+pose source with attitude and depth only) is such a cloud. It is counted (``map.unplaced`` here, per robot in
+:meth:`MapFeed.nav_status`), logged once per robot at warning level, and reported to the ledger as done with
+(acknowledgeable: it is held in the received counters, and the robot must not re-send it forever to a map that
+cannot take it).
 
 Also here: the end-to-end latency statistics (capture time to the moment a cloud is handed to the map) and
 the publication-to-base transit times (:class:`LatencyStats`), and :func:`load_map_builder`, which finds out
@@ -53,6 +62,7 @@ from .wire import CloudMsg
 
 if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
+    from mapping.navigation import NavEstimate, NavFrame, Navigator
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +70,8 @@ log = logging.getLogger(__name__)
 CLOSE_TIMEOUT_S = 60.0
 #: Marker in the map queue: flush the map.
 _FLUSH: Any = object()
+#: Publish a robot's corrected pose at most this often (seconds of capture time).
+NAV_PUBLISH_S = 0.2
 
 
 class LatencyStats:
@@ -138,6 +150,9 @@ class MapFeed:
         queue_size: map queue capacity, clouds.
         map_wait_s: how long :meth:`take` waits for room in the map queue before the cloud is left out of
             the map (counted as ``skipped``).
+        navigation: correct the poses from the scans before mapping (needs the map; the base station turns it
+            on by default).
+        nav_publish_s: publish a robot's corrected pose at most this often (capture time, seconds).
     """
 
     def __init__(
@@ -147,6 +162,8 @@ class MapFeed:
         *,
         queue_size: int = 1024,
         map_wait_s: float = 5.0,
+        navigation: bool = False,
+        nav_publish_s: float = NAV_PUBLISH_S,
     ) -> None:
         self.builder = builder
         self.on_mapped = on_mapped
@@ -164,15 +181,37 @@ class MapFeed:
         self._thread: threading.Thread | None = None
         self._planes = 0
         self._planes_stale = True
+        self.navigator: Navigator | None = None
+        if builder is not None and navigation:
+            from mapping.navigation import NavFrame, Navigator
+
+            self.navigator = Navigator()
+            self._frame: NavFrame = NavFrame()
+        self.nav_publish_s = nav_publish_s
+        self._publish_nav: Callable[[str, str], object] | None = None
+        self._nav_lock = threading.Lock()
+        #: per robot: the latest estimate (turned to NED), clouds placed / not placed, last publication
+        self._nav_latest: dict[str, NavEstimate] = {}
+        self._nav_counts: dict[str, list[int]] = {}
+        self._nav_published: dict[str, int] = {}
+
+    @property
+    def navigation(self) -> bool:
+        """Whether the poses are corrected from the scans before mapping."""
+        return self.navigator is not None
 
     @property
     def enabled(self) -> bool:
         """Whether there is a map to feed."""
         return self.builder is not None
 
-    def start(self, publish: Callable[[str], object] | None) -> None:
-        """Start the map thread (when the map is on); ``publish`` puts one JSON update on the wire."""
+    def start(
+        self, publish: Callable[[str], object] | None, publish_nav: Callable[[str, str], object] | None = None
+    ) -> None:
+        """Start the map thread (when the map is on); ``publish`` puts one JSON map update on the wire,
+        ``publish_nav(robot, json)`` one corrected pose."""
         self._publish = publish
+        self._publish_nav = publish_nav
         if self.builder is not None:
             self._thread = threading.Thread(target=self._worker, name="base-map", daemon=True)
             self._thread.start()
@@ -180,6 +219,7 @@ class MapFeed:
     def close(self, save: bool) -> None:
         """Stop publishing, let the map thread finish its queue, flush the map, and save it when ``save``."""
         self._publish = None
+        self._publish_nav = None
         if self._thread is not None:
             self._queue.put(None)
             self._thread.join(timeout=CLOSE_TIMEOUT_S)
@@ -201,8 +241,9 @@ class MapFeed:
     def take(self, msg: CloudMsg, recv_ns: int) -> None:
         """Hand an accepted cloud, received at ``recv_ns``, to the map (blocks up to ``map_wait_s``); a cloud
         without a horizontal fix is counted as unplaced instead (see the module docstring)."""
-        if not has_fix(msg.pose):
-            self._unplaced(msg)
+        if not has_fix(msg.pose) and self.navigator is None:
+            self._count_unplaced(msg, "its pose source gives attitude and depth only")
+            self.on_mapped(msg.robot, msg.seq)  # done with: acknowledgeable, or the robot re-sends it forever
         elif self.builder is not None and len(msg):
             try:
                 # back-pressure while the map keeps up; a map stalled for map_wait_s loses the cloud (counted)
@@ -222,19 +263,20 @@ class MapFeed:
             self.on_mapped(msg.robot, msg.seq)
         self.latency.add(time.time_ns() - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
 
-    def _unplaced(self, msg: CloudMsg) -> None:
+    def _count_unplaced(self, msg: CloudMsg, why: str) -> None:
+        """Count a cloud the map cannot place (the caller reports it to the ledger)."""
         self.unplaced += 1
+        with self._nav_lock:
+            self._nav_counts.setdefault(msg.robot, [0, 0])[1] += 1
         if msg.robot not in self._unplaced_robots:
             self._unplaced_robots.add(msg.robot)
             log.warning(
-                "cloud %s#%d has no horizontal position (its pose source gives attitude and depth only): clouds "
-                "of %s without a fix are not mapped, counted as robots.%s.unplaced",
+                "cloud %s#%d has no horizontal position (%s): such clouds of %s are not mapped, counted as unplaced",
                 msg.robot,
                 msg.seq,
-                msg.robot,
+                why,
                 msg.robot,
             )
-        self.on_mapped(msg.robot, msg.seq)  # done with: acknowledgeable, or the robot re-sends it forever
 
     def idle(self) -> bool:
         """Whether every cloud handed over has been through the map."""
@@ -269,10 +311,43 @@ class MapFeed:
 
     def _map_one(self, msg: CloudMsg) -> None:
         assert self.builder is not None
-        points_ned = body_to_ned(msg.points_body.astype(np.float64), msg.pose)
-        changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, msg.pose)
+        points_body = msg.points_body.astype(np.float64)
+        pose = msg.pose
+        if self.navigator is not None:
+            lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
+            est = self.navigator.update(msg.robot, msg.t_ns, msg.pose, points_body, lm)
+            self._frame = self.navigator.frame()
+            self._nav_publish(est.turned(self._frame))
+            if est.pose is None or not est.placed:
+                self._count_unplaced(
+                    msg,
+                    "navigation has no position for it yet"
+                    if est.pose is None
+                    else "navigation's position is too uncertain",
+                )
+                return
+            pose = est.pose
+            with self._nav_lock:
+                self._nav_counts.setdefault(msg.robot, [0, 0])[0] += 1
+        points_ned = body_to_ned(points_body, pose)
+        changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, pose)
         self.clouds += 1
         self._publish_changes(msg, changes)
+
+    def _nav_publish(self, est: NavEstimate) -> None:
+        with self._nav_lock:
+            self._nav_latest[est.robot] = est
+            last = self._nav_published.get(est.robot)
+            due = last is None or not 0 <= est.t_ns - last < self.nav_publish_s * 1e9
+            if due:
+                self._nav_published[est.robot] = est.t_ns
+        publish = self._publish_nav
+        if not due or publish is None:
+            return
+        try:
+            publish(est.robot, json.dumps(est.to_json(), default=json_default))
+        except Exception as err:
+            log.debug("nav of %s not published: %s", est.robot, err)
 
     def _publish_changes(self, msg: CloudMsg | None, changes: list[MapChange]) -> None:
         if not changes:
@@ -281,7 +356,10 @@ class MapFeed:
         publish = self._publish
         if publish is None:
             return
-        update: dict[str, Any] = {"t_ns": time.time_ns(), "planes": [change_json(c) for c in changes]}
+        planes = [change_json(c) for c in changes]
+        if self.navigator is not None:
+            planes = [self._frame.plane_json(p) for p in planes]
+        update: dict[str, Any] = {"t_ns": time.time_ns(), "planes": planes}
         if msg is not None:
             update.update(t_ns=msg.t_ns, robot=msg.robot, seq=msg.seq)
         try:
@@ -295,6 +373,10 @@ class MapFeed:
         if self.builder is None:
             return {"planes": [], "enabled": False}
         data: dict[str, Any] = self.builder.map_json()
+        if self.navigator is not None:
+            frame = self._frame
+            data["planes"] = [frame.plane_json(p) for p in data.get("planes", [])]
+            data["nav_frame"] = frame.to_json()
         self._planes = len(data.get("planes", []))
         self._planes_stale = False
         out: dict[str, Any] = json.loads(json.dumps(data, default=json_default))
@@ -313,4 +395,42 @@ class MapFeed:
             "unplaced": self.unplaced,
             "queued": self._queue.qsize(),
             "errors": self.errors,
+        } | ({"navigation": self.navigator is not None} if self.builder is not None else {})
+
+    # ------------------------------------------------------------------ navigation views
+    def nav_json(self, robot: str) -> dict[str, Any] | None:
+        """The latest corrected pose of ``robot`` (the ``<root>/<robot>/nav`` JSON), or None."""
+        with self._nav_lock:
+            est = self._nav_latest.get(robot)
+        return est.to_json() if est is not None else None
+
+    def nav_robots(self) -> list[str]:
+        """Robots with a navigation estimate."""
+        with self._nav_lock:
+            return sorted(self._nav_latest)
+
+    def nav_status(self, robot: str) -> dict[str, Any] | None:
+        """What the status says of a robot's navigation: ``placed``/``unplaced`` clouds, the axes its scans
+        constrain now, ``position`` (``constrained``, ``partly`` (one horizontal axis), ``unconstrained``,
+        ``unknown``), the horizontal and heading standard deviations, how it moved (``motion``). None when
+        navigation is off or the robot sent nothing yet."""
+        with self._nav_lock:
+            est = self._nav_latest.get(robot)
+            counts = list(self._nav_counts.get(robot, [0, 0]))
+        if self.navigator is None or est is None:
+            return None
+        js = est.to_json()
+        n_axes = sum(1 for a in ("north", "east") if est.constrained.get(a))
+        position = "unknown" if est.pose is None else ("constrained", "partly", "unconstrained")[2 - n_axes]
+        return {
+            "placed": counts[0],
+            "unplaced": counts[1],
+            "position": position,
+            "constrained": js["constrained"],
+            "unconstrained": js["unconstrained"],
+            "north_m_std": js.get("north_m_std"),
+            "east_m_std": js.get("east_m_std"),
+            "yaw_deg_std": js.get("yaw_deg_std"),
+            "motion": est.motion,
+            "t_ns": est.t_ns,
         }

@@ -395,12 +395,13 @@ def simulate_imu(
     seed: int | np.random.Generator | None = 0,
     navigation: str = "good",
     drift: DriftNoise | None = None,
+    launch_fix_s: float = 0.0,
 ) -> ImuLog:
     """IMU samples of ``trajectory`` from ``t_start_ns`` to ``t_end_ns`` (inclusive) at ``rate_hz``.
 
     ``navigation``: ``good`` (``noise``, an :class:`ImuNoise`), or ``drift`` / ``depth-only`` (``drift``, a
     :class:`~lrsensor.sim.navigation.DriftNoise`; see :mod:`lrsensor.sim.navigation`). ``depth-only`` samples
-    have NaN north/east after the first (the launch fix).
+    have NaN north/east after the first, or after the first ``launch_fix_s`` (the launch fix).
     """
     check_mode(navigation)
     noise = noise or ImuNoise()
@@ -410,7 +411,7 @@ def simulate_imu(
     a = trajectory.arrays(t)
     m = t.size
     if navigation != "good":
-        r = simulate_navigation(navigation, (t - t[0]) * 1e-9, a, rng, drift)
+        r = simulate_navigation(navigation, (t - t[0]) * 1e-9, a, rng, drift, launch_fix_s)
         return ImuLog(t, r["roll_rad"], r["pitch_rad"], r["yaw_rad"], r["north_m"], r["east_m"], r["down_m"])
     dt = period_ns * 1e-9
 
@@ -548,7 +549,7 @@ def record_dive(
         width, height: image size (the paper's camera scaled).
         seed: seeds the images and the IMU noise (each robot should get its own).
         navigation: what ``imu.csv`` knows: ``good``, ``drift`` or ``depth-only`` (see
-            :mod:`lrsensor.sim.navigation`; ``depth-only`` rows after the first have empty north/east).
+            :mod:`lrsensor.sim.navigation`; ``depth-only`` rows after the first frame have empty north/east).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -568,6 +569,7 @@ def record_dive(
         noise=imu_noise,
         seed=rng,
         navigation=navigation,
+        launch_fix_s=0.5 + 2.0 / imu_rate_hz,  # the launch fix straddles the first frame
     )
     imu_path = out / "imu.csv"
     imu.write_csv(imu_path)

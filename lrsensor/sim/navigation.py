@@ -10,8 +10,8 @@ Three modes (``NAV_MODES``), selected wherever dives are simulated (:func:`lrsen
   integrated from the launch point. The horizontal position error grows past 0.5 m over a one- to two-minute
   dive. Attitude, heading (with the same compass bias) and depth are reported as measured.
 - ``depth-only``: attitude with the slowly varying compass bias, depth, and a horizontal fix at launch only
-  (the first sample); every later sample has no horizontal position (NaN here, an empty ``north_m``/``east_m``
-  in the CSV of CONVENTIONS "Pose sources").
+  (the first sample, or the first ``launch_fix_s``); every later sample has no horizontal position (NaN here,
+  an empty ``north_m``/``east_m`` in the CSV of CONVENTIONS "Pose sources").
 
 Everything is vectorized over the samples and seeded by the caller's generator. Angles in radians, SI units.
 """
@@ -128,6 +128,7 @@ def simulate_navigation(
     truth: dict[str, FloatArray],
     rng: np.random.Generator,
     noise: DriftNoise | None = None,
+    launch_fix_s: float = 0.0,
 ) -> dict[str, FloatArray]:
     """What a ``drift`` or ``depth-only`` pose source reports along a true track.
 
@@ -137,6 +138,9 @@ def simulate_navigation(
         truth: the true ``north_m``, ``east_m``, ``down_m``, ``roll_rad``, ``pitch_rad``, ``yaw_rad`` (M,) each.
         rng: the random generator (the caller's seed).
         noise: the error magnitudes (default :class:`DriftNoise`).
+        launch_fix_s: ``depth-only``: the samples within this time of the first keep the launch fix (the
+            robot sits at its known launch point until its dive starts; a recorded dive's first frame needs
+            fixes around it to be posed with one).
 
     Returns:
         The same six keys, as reported; ``north_m``/``east_m`` are NaN where the source has no horizontal fix
@@ -164,6 +168,8 @@ def simulate_navigation(
         out["north_m"] = np.full(m, np.nan)
         out["east_m"] = np.full(m, np.nan)
         if m:
-            out["north_m"][0] = truth["north_m"][0] + noise.position_sigma_m * rng.standard_normal()
-            out["east_m"][0] = truth["east_m"][0] + noise.position_sigma_m * rng.standard_normal()
+            launch = t - t[0] <= launch_fix_s
+            err = noise.position_sigma_m * rng.standard_normal(2)
+            out["north_m"][launch] = truth["north_m"][launch] + err[0]
+            out["east_m"][launch] = truth["east_m"][launch] + err[1]
     return out
