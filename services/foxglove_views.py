@@ -1,7 +1,8 @@
 """What the fleet looks like in Foxglove's well-known schemas (``foxglove.messages``, foxglove-sdk).
 
 One place turns the fleet's values into the messages the recording (:mod:`services.record`) and the live view
-write, so both show the same scene:
+(:mod:`services.liveview`) write, so both show the same scene (:class:`FoxgloveSink` logs them for a
+:class:`~services.fleet_tap.FleetTap`):
 
 * a cloud -> ``foxglove.PointCloud`` in the robot's body frame ``<robot>/base_link`` (x, y, z float32,
   metres; a ``laser`` uint8 field), stamped with the capture time;
@@ -21,7 +22,11 @@ from typing import Any
 
 import numpy as np
 
+from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose, quat_from_R
+
+from .errors import ServiceError
+from .wire import CloudMsg
 
 #: The frame id of the fleet's NED frame in Foxglove scenes.
 NED_FRAME = "ned"
@@ -150,3 +155,114 @@ def track_scene(robot: str, positions_ned: np.ndarray, t_ns: int) -> Any:
     )
     entity = SceneEntity(timestamp=_stamp(t_ns), frame_id=NED_FRAME, id=f"track/{robot}", lines=[line])
     return SceneUpdate(entities=[entity])
+
+
+#: Schema of the raw wire channels of a recording: msgpack, described in docs/conventions.md.
+RAW_SCHEMA_NAME = "lrsensor.cloud"
+RAW_SCHEMA_ENCODING = "lrsensor-msgpack"
+RAW_MESSAGE_ENCODING = "msgpack"
+#: The channel of frame transforms (Foxglove's convention).
+TF_TOPIC = "/tf"
+#: At most this many positions per robot track (older ones are thinned out).
+TRACK_POINTS = 2000
+
+
+class FoxgloveUnavailableError(ServiceError):
+    """foxglove-sdk is not installed."""
+
+
+def import_foxglove() -> Any:
+    """The ``foxglove`` module, or :class:`FoxgloveUnavailableError` naming the extra to install."""
+    try:
+        import foxglove
+    except ImportError as err:
+        msg = f"recording and the live view need foxglove-sdk (pip install 'lrsensor[record]'): {err}"
+        raise FoxgloveUnavailableError(msg) from err
+    return foxglove
+
+
+class FoxgloveSink:
+    """Logs what a :class:`~services.fleet_tap.FleetTap` sees on a foxglove ``Context`` (its sinks: an MCAP
+    file, a WebSocket server, or both).
+
+    Topics: ``/<root>/<robot>/points`` (``foxglove.PointCloud``), ``/tf`` (``foxglove.FrameTransform``),
+    ``/<root>/map`` (``foxglove.SceneUpdate``); with ``raw``: ``<root>/<robot>/cloud`` (wire payloads,
+    msgpack) and ``<root>/<robot>/calib`` (JSON); with ``tracks``: ``/<root>/tracks`` (``SceneUpdate``);
+    with ``status``: ``/<root>/status`` (JSON).
+
+    Args:
+        context: the ``foxglove.Context`` to log on.
+        root: the fleet's key root ``<prefix>/<fleet>``.
+        raw: log the wire payloads and calibrations (a replayable recording).
+        tracks: log the robots' tracks.
+        status: log the base station's status.
+    """
+
+    def __init__(self, context: Any, root: str, *, raw: bool, tracks: bool = False, status: bool = False) -> None:
+        foxglove = import_foxglove()
+        from foxglove.channels import FrameTransformChannel, SceneUpdateChannel
+
+        self._fg = foxglove
+        self._ctx = context
+        self.root = root
+        self.raw = raw
+        self._raw_schema = foxglove.Schema(
+            name=RAW_SCHEMA_NAME, encoding=RAW_SCHEMA_ENCODING, data=b"lrsensor cloud, docs/conventions.md"
+        )
+        self._tf = FrameTransformChannel(TF_TOPIC, context=context)
+        self._map = SceneUpdateChannel(f"/{root}/map", context=context)
+        self._tracks_channel = SceneUpdateChannel(f"/{root}/tracks", context=context) if tracks else None
+        self._status_channel = (
+            foxglove.Channel(f"/{root}/status", message_encoding="json", context=context) if status else None
+        )
+        self._tracks: dict[str, list[tuple[float, float, float]]] = {}
+        self._channels: dict[str, Any] = {}
+
+    def _channel(self, topic: str, kind: str) -> Any:
+        ch = self._channels.get(topic)
+        if ch is None:
+            if kind == "points":
+                from foxglove.channels import PointCloudChannel
+
+                ch = PointCloudChannel(topic, context=self._ctx)
+            elif kind == "json":
+                ch = self._fg.Channel(topic, message_encoding="json", context=self._ctx)
+            else:
+                ch = self._fg.Channel(
+                    topic, message_encoding=RAW_MESSAGE_ENCODING, schema=self._raw_schema, context=self._ctx
+                )
+            self._channels[topic] = ch
+        return ch
+
+    def raw_cloud(self, robot: str, payload: bytes, log_ns: int) -> None:
+        """Log the wire payload on ``<root>/<robot>/cloud`` (with ``raw``)."""
+        if self.raw:
+            self._channel(f"{self.root}/{robot}/cloud", "raw").log(payload, log_time=log_ns)
+
+    def calibration(self, robot: str, calibration: Calibration, log_ns: int) -> None:
+        """Log the calibration's file form on ``<root>/<robot>/calib`` (with ``raw``)."""
+        if self.raw:
+            self._channel(f"{self.root}/{robot}/calib", "json").log(calibration.to_dict(), log_time=log_ns)
+
+    def cloud(self, msg: CloudMsg, log_ns: int) -> None:
+        """Log the point cloud, the robot's transform (with a fix) and its track."""
+        pc = point_cloud(msg.robot, msg.t_ns, msg.points_body, msg.laser)
+        self._channel(f"/{self.root}/{msg.robot}/points", "points").log(pc, log_time=log_ns)
+        tf = robot_transform(msg.robot, msg.t_ns, msg.pose)
+        if tf is not None:
+            self._tf.log(tf, log_time=log_ns)
+        if self._tracks_channel is not None and has_fix(msg.pose):
+            track = self._tracks.setdefault(msg.robot, [])
+            track.append((msg.pose.north_m, msg.pose.east_m, msg.pose.down_m))
+            if len(track) > TRACK_POINTS:
+                del track[1::2]  # keep the whole dive's shape at half the resolution
+            self._tracks_channel.log(track_scene(msg.robot, np.asarray(track), msg.t_ns), log_time=log_ns)
+
+    def map_update(self, planes: list[dict[str, Any]], t_ns: int, log_ns: int) -> None:
+        """Log the planes as a scene update."""
+        self._map.log(map_scene(planes, t_ns), log_time=log_ns)
+
+    def status(self, data: dict[str, Any], log_ns: int) -> None:
+        """Log the base station's status (with ``status``)."""
+        if self._status_channel is not None:
+            self._status_channel.log(data, log_time=log_ns)

@@ -1,8 +1,8 @@
 """The base station's live view: the fleet in Foxglove over its WebSocket protocol (``lrsensor base --foxglove``).
 
-A :class:`~services.foxglove_tap.FleetTap` logs on a foxglove context whose one sink is foxglove-sdk's
-WebSocket server (protocol ``foxglove.sdk.v1``, protobuf messages). A Foxglove app connected to
-``ws://HOST:PORT`` sees:
+A :class:`~services.fleet_tap.FleetTap` with a :class:`~services.foxglove_views.FoxgloveSink` logs on a
+foxglove context whose one sink is foxglove-sdk's WebSocket server (protocol ``foxglove.sdk.v1``, protobuf
+messages). A Foxglove app connected to ``ws://HOST:PORT`` sees:
 
 * ``/<prefix>/<fleet>/<robot>/points``: each cloud in ``<robot>/base_link`` (set the 3D panel's decay time to
   keep the last seconds), placed in ``ned`` through ``/tf`` where the robot has a horizontal position;
@@ -20,7 +20,8 @@ from __future__ import annotations
 from typing import Any
 
 from .errors import ServiceError
-from .foxglove_tap import FleetTap, import_foxglove
+from .fleet_tap import FleetTap
+from .foxglove_views import FoxgloveSink, import_foxglove
 from .keys import FleetKeys
 
 #: The Foxglove live view's default port (Foxglove's own default).
@@ -71,15 +72,8 @@ class LiveView:
             msg = f"the Foxglove live view cannot listen on {host}:{port}: {err}"
             raise LiveViewError(msg) from err
         self.host = host
-        self.tap = FleetTap(
-            session,
-            keys,
-            context,
-            raw=False,
-            tracks=True,
-            map_refresh_s=map_refresh_s,
-            status_period_s=status_period_s,
-        )
+        sink = FoxgloveSink(context, keys.root, raw=False, tracks=True, status=True)
+        self.tap = FleetTap(session, keys, [sink], map_refresh_s=map_refresh_s, status_period_s=status_period_s)
 
     @property
     def port(self) -> int:
@@ -92,7 +86,7 @@ class LiveView:
         return f"ws://{self.host}:{self.port}"
 
     def stats(self) -> dict[str, Any]:
-        """What the view has sent (:class:`~services.foxglove_tap.TapCounters` as JSON)."""
+        """What the view has sent (:class:`~services.fleet_tap.TapCounters` as JSON)."""
         return self.tap.stats()
 
     def close(self) -> None:

@@ -1,10 +1,10 @@
 """Recording a fleet into an MCAP file (``lrsensor record``), readable by Foxglove and the ``mcap`` reader.
 
-The recorder is a :class:`~services.foxglove_tap.FleetTap` (a Zenoh subscriber like the base station) logging
-on a foxglove context whose one sink is foxglove-sdk's MCAP writer. The file holds the foxglove views (point
-clouds, transforms, the map's planes) and the raw wire payloads and calibrations that make it replayable
-(:mod:`services.replay`); see the tap's docstring and docs/recording.md for the topics. The file's metadata
-record ``lrsensor`` names the key prefix, the fleet and the start time.
+The recorder is a :class:`~services.fleet_tap.FleetTap` (a Zenoh subscriber like the base station) with a
+:class:`~services.foxglove_views.FoxgloveSink` logging on a foxglove context whose one sink is foxglove-sdk's
+MCAP writer. The file holds the foxglove views (point clouds, transforms, the map's planes) and the raw wire
+payloads and calibrations that make it replayable (:mod:`services.replay`); docs/recording.md lists the
+topics. The file's metadata record ``lrsensor`` names the key prefix, the fleet and the start time.
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from .errors import ServiceError
-from .foxglove_tap import RAW_SCHEMA_NAME, FleetTap, import_foxglove
+from .fleet_tap import FleetTap
+from .foxglove_views import RAW_SCHEMA_NAME, FoxgloveSink, import_foxglove
 from .keys import FleetKeys
 
 __all__ = ["RAW_SCHEMA_NAME", "RecordError", "Recorder"]
@@ -52,11 +53,11 @@ class Recorder:
         self._writer.write_metadata(
             "lrsensor", {"prefix": keys.prefix, "fleet": keys.fleet, "started_ns": str(time.time_ns())}
         )
-        self.tap = FleetTap(session, keys, context, raw=True)
+        self.tap = FleetTap(session, keys, [FoxgloveSink(context, keys.root, raw=True)])
         self._closed = False
 
     def stats(self) -> dict[str, Any]:
-        """What was written so far (:class:`~services.foxglove_tap.TapCounters` as JSON)."""
+        """What was written so far (:class:`~services.fleet_tap.TapCounters` as JSON)."""
         return self.tap.stats()
 
     def idle(self) -> bool:
