@@ -6,6 +6,7 @@ import argparse
 import logging
 import time
 
+from .base_views import add_view_args
 from .zconfig import add_network_args
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--status-every-s", type=float, default=10.0, help="log a status line this often (0: never; default 10)"
     )
+    add_view_args(parser)
     add_network_args(parser, default_mode="router")
     parser.epilog = f"Without --listen/--connect/--config the router listens on {DEFAULT_LISTEN}."
 
@@ -41,6 +43,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run until SIGINT/SIGTERM; returns 0 after a clean shutdown."""
     from .base import BaseStation
+    from .base_views import open_views
     from .keys import FleetKeys
     from .signals import stop_on_signals
     from .zconfig import open_session, options_from_args
@@ -62,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             workers=args.workers,
             navigation=args.nav == "on",
         )
-        with station:
+        with station, open_views(session, keys, args):
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
             last = time.monotonic()
             while not stop.wait(0.2):
