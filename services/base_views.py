@@ -1,4 +1,4 @@
-"""The base station's optional views for other tools: Foxglove live view, MCAP recording, ROS 2 topics.
+"""The base station's optional views: Foxglove live view, MCAP recording, ROS 2 topics, the status page.
 
 ``lrsensor base`` starts each view its flags ask for, on the base's own Zenoh session, and closes them (the
 recording finished, the server stopped, the ROS 2 tokens withdrawn) when the base stops:
@@ -6,10 +6,11 @@ recording finished, the server stopped, the ROS 2 tokens withdrawn) when the bas
 * ``--foxglove [HOST:]PORT``: :class:`~services.liveview.LiveView` (Foxglove WebSocket protocol);
 * ``--record FILE.mcap``: :class:`~services.record.Recorder`;
 * ``--ros2 [DOMAIN]``: a :class:`~services.fleet_tap.FleetTap` feeding
-  :class:`~services.ros2_views.Ros2FleetSink` (clouds and poses in ``map``, the planes as markers).
+  :class:`~services.ros2_views.Ros2FleetSink` (clouds and poses in ``map``, the planes as markers);
+* ``--http [HOST:]PORT``: :class:`~services.status_page.StatusPage` (the fleet table and a top view).
 
-Each view is a subscriber of the fleet like any other client, so it sees what the base sees without touching
-the base's ingest, ledger or map threads.
+The first three are subscribers of the fleet like any other client, so they see what the base sees without
+touching the base's ingest, ledger or map threads; the status page reads the base station's own status.
 """
 
 from __future__ import annotations
@@ -18,15 +19,19 @@ import argparse
 import contextlib
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from .errors import ServiceError
 from .keys import FleetKeys
+
+if TYPE_CHECKING:
+    from .base import BaseStation
 
 log = logging.getLogger(__name__)
 
 
 def add_view_args(parser: argparse.ArgumentParser) -> None:
-    """Add ``--foxglove``, ``--record`` and ``--ros2`` to ``lrsensor base``."""
+    """Add ``--foxglove``, ``--record``, ``--ros2`` and ``--http`` to ``lrsensor base``."""
     g = parser.add_argument_group("views for other tools")
     g.add_argument(
         "--foxglove",
@@ -44,10 +49,21 @@ def add_view_args(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="publish the fleet's clouds, poses and planes as ROS 2 topics over Zenoh (domain, default 0)",
     )
+    g.add_argument(
+        "--http",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="serve the status page (fleet table, top view of map and tracks) here, e.g. 8080",
+    )
 
 
-def open_views(session: Any, keys: FleetKeys, args: argparse.Namespace) -> contextlib.ExitStack:
-    """Start the views ``args`` ask for; closing the returned stack closes them (in reverse order)."""
+def open_views(
+    session: Any, keys: FleetKeys, args: argparse.Namespace, station: BaseStation | None = None
+) -> contextlib.ExitStack:
+    """Start the views ``args`` ask for; closing the returned stack closes them (in reverse order).
+
+    ``station`` is the running base station (needed by ``--http``).
+    """
     stack = contextlib.ExitStack()
     try:
         if args.record:
@@ -73,6 +89,16 @@ def open_views(session: Any, keys: FleetKeys, args: argparse.Namespace) -> conte
             print(
                 f"ROS 2 topics /{keys.root}/... on domain {args.ros2} (share this router with rmw_zenohd)", flush=True
             )
+        if args.http:
+            from .liveview import parse_host_port
+            from .status_page import StatusPage
+
+            if station is None:
+                msg = "--http needs the base station"
+                raise ServiceError(msg)
+            host, port = parse_host_port(args.http, "--http")
+            page = stack.enter_context(StatusPage(station.status, station.map_json, station.tracks, host, port))
+            print(f"status page on {page.url}", flush=True)
     except BaseException:
         stack.close()
         raise

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             workers=args.workers,
             navigation=args.nav == "on",
         )
-        with station, open_views(session, keys, args):
+        with station, open_views(session, keys, args, station):
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
             last = time.monotonic()
             while not stop.wait(0.2):

@@ -32,12 +32,12 @@ class LiveViewError(ServiceError):
     """The live view cannot start (a bad ``HOST:PORT``, the port is taken)."""
 
 
-def parse_host_port(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
-    """``"[HOST:]PORT"`` -> ``(host, port)``; a clear :class:`LiveViewError` otherwise."""
+def parse_host_port(text: str, flag: str = "--foxglove", default_host: str = "127.0.0.1") -> tuple[str, int]:
+    """``"[HOST:]PORT"`` -> ``(host, port)``; a clear :class:`LiveViewError` naming ``flag`` otherwise."""
     host, sep, port_s = text.rpartition(":")
     host = host if sep else default_host
     if not port_s.isdigit() or not 0 <= int(port_s) <= 65535 or (sep and not host):
-        msg = f"--foxglove takes [HOST:]PORT with a port 0-65535, got {text!r}"
+        msg = f"{flag} takes [HOST:]PORT with a port 0-65535, got {text!r}"
         raise LiveViewError(msg)
     return host, int(port_s)
 

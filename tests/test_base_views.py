@@ -1,12 +1,14 @@
-"""``lrsensor base --record --foxglove --ros2`` as a user runs it: one base process with every view, a ROV
+"""``lrsensor base --record --foxglove --ros2 --http`` as a user runs it: one base process with every view, a ROV
 process replaying a dive, then Ctrl-C: the recording is complete, the live view was served, the ROS 2 topics
-were published (issue 28)."""
+were published, the status page answered (issue 28)."""
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import time
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +46,7 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
     base = Proc(
         lrsensor_cmd(
             "base", "--fleet", FLEET, "--listen", f"tcp/127.0.0.1:{port}", "--map", "off",
-            "--record", str(mcap_path), "--foxglove", "127.0.0.1:0", "--ros2",
+            "--record", str(mcap_path), "--foxglove", "127.0.0.1:0", "--ros2", "--http", "127.0.0.1:0",
         ),
         tmp_path / "base.log",
     )  # fmt: skip
@@ -62,6 +64,10 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
         )  # fmt: skip
         procs.append(rov)
         assert rov.wait(120) == 0, rov.output()
+        url = re.search(r"status page on (http://\S+)", base.output())
+        assert url is not None, base.output()
+        with urllib.request.urlopen(url.group(1) + "status.json", timeout=10) as r:
+            assert json.loads(r.read())["robots"]["rov1"]["received"] == N_FRAMES
         assert wait_until(lambda: sum("points_map" in k for k in ros_keys) >= N_FRAMES, 20), ros_keys
         sub.undeclare()
     assert base.stop(signal.SIGINT) == 0, base.output()
