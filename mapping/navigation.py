@@ -14,7 +14,7 @@ scan-to-map registration:
 1. **Predict.** With dead reckoning (the raw pose has a horizontal position, and had one at the previous
    cloud), the raw position's increment, turned by the current yaw correction (the compass bias turned it
    too), moves the position; its noise grows with the distance (``dr_scale_sigma``) and with time
-   (``dr_velocity_sigma_m_s``). Without a fix, a constant-velocity motion prior (``accel_sigma_m_s2``) moves it.
+   (``dr_velocity_sigma_m_s``). Without a fix, the position is a random walk (``walk_speed_m_s``).
    The yaw correction is a random walk (``yaw_walk_deg_per_sqrt_s``).
 2. **Fix.** A raw horizontal position is also a weak absolute measurement (``fix_sigma_m``, at most once per
    ``fix_every_s``): dead reckoning's absolute error is unknown, so it only anchors a robot the scans cannot.
@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -69,8 +69,11 @@ class NavConfig:
     ``min_landmark_points`` points are not used.
 
     Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (a velocity bias),
-    ``accel_sigma_m_s2`` (constant-velocity prior without a fix), ``yaw_walk_deg_per_sqrt_s``; ``fix_sigma_m`` and
-    ``fix_every_s`` (weak absolute fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
+    ``walk_speed_m_s`` (the random walk of the position without a fix), ``yaw_walk_deg_per_sqrt_s``; fixes are absolute
+    measurements at most every ``fix_every_s``, their sigma 1.5 x the RMS of their disagreement with the estimate
+    over ``fix_quality_s`` (a drifting dead reckoning earns a weak one), within ``fix_min_sigma_m`` ..
+    ``fix_sigma_m``; the compass's bias is within ``compass_bias_deg`` (a pull of the yaw correction to 0, as
+    often as fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
     ``init_yaw_sigma_deg``.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
@@ -78,6 +81,11 @@ class NavConfig:
     exceeds it are not placed in the map), ``depth_std_m`` / ``attitude_std_deg`` (reported for the measured
     axes); ``frame_min_scans``: a robot's yaw correction counts in :meth:`Navigator.frame` once that many scans
     constrained its heading.
+
+    Scan-to-submap odometry: the robot's own placed scans of the last ``submap_s`` (``submap_points`` each) are
+    cut into ``local_cell_m`` cells; a cell with ``local_min_points`` points, thinner than
+    ``local_max_thickness_m`` and wider than ``local_min_width_m`` (not a single stripe) is a local plane that
+    the points of the new scan no map plane takes are registered to.
     """
 
     max_points: int = 300
@@ -87,26 +95,35 @@ class NavConfig:
     max_independent_points: int = 50
     iterations: int = 4
     gate_min_m: float = 0.1
-    gate_max_m: float = 0.6
+    gate_max_m: float = 0.3
     extent_margin_m: float = 0.25
     extent_margin_down_m: float = 1.5
     min_inliers: int = 20
     min_landmark_points: int = 300
     dr_scale_sigma: float = 0.03
     dr_velocity_sigma_m_s: float = 0.02
-    accel_sigma_m_s2: float = 0.05
+    walk_speed_m_s: float = 0.3
     yaw_walk_deg_per_sqrt_s: float = 0.1
     fix_sigma_m: float = 0.5
-    fix_every_s: float = 1.0
+    fix_min_sigma_m: float = 0.02
+    fix_quality_s: float = 20.0
+    fix_every_s: float = 0.2
     launch_sigma_m: float = 0.05
     init_speed_sigma_m_s: float = 0.3
     init_yaw_sigma_deg: float = 3.0
+    compass_bias_deg: float = 3.0
     constrained_std_m: float = 0.05
     constrained_std_deg: float = 1.0
     place_std_m: float = 0.3
     depth_std_m: float = 0.01
     attitude_std_deg: float = 0.2
     frame_min_scans: int = 20
+    submap_s: float = 2.0
+    submap_points: int = 150
+    local_cell_m: float = 0.25
+    local_min_points: int = 8
+    local_max_thickness_m: float = 0.01
+    local_min_width_m: float = 0.03
 
 
 @dataclass(frozen=True)
@@ -189,6 +206,12 @@ class NavEstimate:
     planes: tuple[int, ...] = ()
     correction: dict[str, float] = field(default_factory=dict)
 
+    def turned(self, frame: NavFrame) -> NavEstimate:
+        """This estimate with its pose turned from the map frame to NED (see :class:`NavFrame`)."""
+        if self.pose is None or frame.identity:
+            return self
+        return replace(self, pose=frame.pose(self.pose))
+
     def to_json(self) -> dict[str, Any]:
         """The JSON of CONVENTIONS' ``<root>/<robot>/nav`` key (angles in degrees, null when unknown)."""
         p = self.pose
@@ -264,6 +287,9 @@ class RobotNav:
         #: where the robot started (its first fix), and how many scans constrained its heading
         self.start_ne = np.zeros(2)
         self.yaw_scans = 0
+        #: running mean square of the fixes' disagreement with the estimate, per axis (m^2)
+        self.fix_err2 = 0.0
+        self.last_compass_ns: int | None = None
 
     @property
     def started(self) -> bool:
@@ -285,6 +311,7 @@ class RobotNav:
         self.t_ns = t_ns
         self.last_fix_ns = t_ns
         self.start_ne = raw_ne.copy()
+        self.fix_err2 = cfg.launch_sigma_m**2
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -303,27 +330,43 @@ class RobotNav:
             q[0, 0] = q[1, 1] = var
             motion = "dead-reckoning"
         else:
-            f = np.eye(5)
-            f[0, 2] = f[1, 3] = dt
-            self.x = f @ self.x
-            self.P = f @ self.P @ f.T
-            a2 = cfg.accel_sigma_m_s2**2
-            for i in (0, 1):
-                q[i, i] = a2 * dt**4 / 4
-                q[i, i + 2] = q[i + 2, i] = a2 * dt**3 / 2
-                q[i + 2, i + 2] = a2 * dt**2
+            # without dead reckoning the robot may be anywhere within its speed: a random walk. (A constant-
+            # velocity prior looked better on paper; along a single wall its velocity is unobservable, and a
+            # wrong one carried the robot metres away while the scans kept its std small across the wall.)
+            self.x[2:4] = 0.0
+            q[0, 0] = q[1, 1] = cfg.walk_speed_m_s**2 * dt
             motion = "motion-prior"
         self.P = self.P + q
         return motion
+
+    def _compass(self, t_ns: int) -> None:
+        """The compass's bias is bounded: a weak pull of the yaw correction toward zero, at most every
+        ``fix_every_s`` (it keeps a heading the scans cannot hold from running away)."""
+        cfg = self.cfg
+        if self.last_compass_ns is not None and t_ns - self.last_compass_ns < cfg.fix_every_s * 1e9:
+            return
+        self.last_compass_ns = t_ns
+        h = np.zeros((1, 5))
+        h[0, 4] = 1.0
+        s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
+        k = (self.P @ h.T) / s
+        self.x = self.x - (k * float(self.x[4])).ravel()
+        self.P = (np.eye(5) - k @ h) @ self.P
 
     def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
         if self.last_fix_ns is not None and t_ns - self.last_fix_ns < cfg.fix_every_s * 1e9:
             return
         self.last_fix_ns = t_ns
+        # how well the fixes agree with the estimate tells how good they are: a drifting dead reckoning drifts
+        # away from what the scans say, a USBL or a good DVL does not
+        innov = raw_ne - self.x[0:2]
+        a = min(1.0, cfg.fix_every_s / cfg.fix_quality_s) if cfg.fix_every_s > 0 else 0.05
+        self.fix_err2 = (1 - a) * self.fix_err2 + a * float(innov @ innov) / 2
+        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, 1.5 * math.sqrt(self.fix_err2)))
         h = np.zeros((2, 5))
         h[0, 0] = h[1, 1] = 1.0
-        s = h @ self.P @ h.T + np.eye(2) * cfg.fix_sigma_m**2
+        s = h @ self.P @ h.T + np.eye(2) * sigma**2
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(5) - k @ h) @ self.P
@@ -417,6 +460,7 @@ class RobotNav:
             self.last_raw_ne = raw_ne
             if raw_ne is not None:
                 self._fix(t, raw_ne)
+            self._compass(t)
         h3, inliers, used = self._register(raw, pts, landmarks)
         est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
         self.yaw_scans += int(est.constrained["yaw"])
@@ -464,6 +508,10 @@ class RobotNav:
         if math.isfinite(raw.north_m + raw.east_m):
             corr.update(north_m=pose.north_m - raw.north_m, east_m=pose.east_m - raw.east_m)
         placed = max(float(sd[0]), float(sd[1])) <= cfg.place_std_m
+        if not math.isfinite(raw.north_m + raw.east_m):
+            # without a fix only a scan that pins both horizontal axes to the map places its cloud: a motion
+            # prior's guess must not grow the map
+            placed = placed and constrained["north"] and constrained["east"]
         return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr)
 
 

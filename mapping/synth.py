@@ -250,6 +250,7 @@ def simulate_dive(
     bad_frame_yaw_deg: float = 25.0,
     bad_frame_scale: float = 1.15,
     navigation: str | dict[str, str] = "good",
+    launch_fix_s: float = 0.0,
 ) -> list[DiveFrame]:
     """Frames of all robots in capture-time order (robots interleaved as a base station would receive them).
 
@@ -265,7 +266,8 @@ def simulate_dive(
 
     ``navigation`` (one mode, or a mode per robot name): ``good`` is the noise above; ``drift`` and
     ``depth-only`` replace the estimated pose with :func:`lrsensor.sim.navigation.simulate_navigation`'s (DVL
-    dead reckoning; attitude and depth with a launch fix only), drawn from a generator of their own per robot.
+    dead reckoning; attitude and depth with a launch fix only, kept for the first ``launch_fix_s``), drawn from
+    a generator of their own per robot.
     """
     from lrsensor.sim.navigation import check_mode, simulate_navigation
 
@@ -295,7 +297,7 @@ def simulate_dive(
         if modes[plan.robot] != "good":
             truth = {"north_m": n, "east_m": e, "down_m": down, "roll_rad": roll, "pitch_rad": pitch, "yaw_rad": yaw}
             nav_rng = np.random.default_rng([seed, 2, sum(plan.robot.encode()), len(per_robot)])
-            nav = simulate_navigation(modes[plan.robot], t, truth, nav_rng)
+            nav = simulate_navigation(modes[plan.robot], t, truth, nav_rng, launch_fix_s=launch_fix_s)
         per_robot.append((plan, n, e, down, roll, pitch, yaw, pos_err, att_err, nav))
     keys = ("north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
     for k in range(t.shape[0]):
