@@ -288,6 +288,31 @@ def test_turbid_glow_and_attenuation() -> None:
     assert glow.truth.lasers[0].peak_dn.max() < 0.5 * clear.render(seed=0).truth.lasers[0].peak_dn.max()
 
 
+def test_physical_glow_ends_at_the_stripe_centre() -> None:
+    from lrsensor.sim.fan import LaserModel
+    from lrsensor.sim.lighting import _rays_of, _Sheet, laser_glow
+
+    setup = named_scene("turbid", *SMALL)
+    r = setup.with_(water=setup.water.with_(snow=0)).render(seed=0)
+    cal, body = r.calibration, r.truth.scene_body
+    h, w = cal.camera.height, cal.camera.width
+    gain = 0.2 * setup.water.backscatter * LaserModel().peak_dn_at_1m / 190.0
+    for laser, outward in ((0, -1), (1, +1)):  # the top sheet glows above its stripe, the bottom one below
+        g = laser_glow(body, cal, laser, LaserModel(), setup.water, (h, w)).astype(float)
+        sheet = _Sheet(body, cal, laser, LaserModel(), setup.water)
+        for c in (60, 240, 400):
+            v = r.truth.v_at_columns(laser, [float(c)])[0]
+            rows = np.arange(round(v) - 2.4995, round(v) + 2.5, 0.001)  # 1000 samples per pixel, 5 pixels
+            fine = sheet.radiance(*_rays_of(cal, np.stack([np.full(rows.shape, float(c)), rows], axis=1)))
+            lit = rows[fine > 0]
+            end = lit.max() if outward < 0 else lit.min()
+            assert abs(end - v) < 0.002, (laser, c, end, v)  # the sheet ends where it meets the wall
+            pixels = fine.reshape(5, 1000).mean(axis=1) * gain  # each pixel's glow, integrated finely
+            np.testing.assert_allclose(g[round(v) - 2 : round(v) + 3, c], pixels, rtol=0.03, atol=0.02)
+    with pytest.raises(SimulationError, match="glow_model"):
+        laser_glow(body, cal, 0, LaserModel(), setup.water.with_(glow_model="x"), (h, w))
+
+
 def test_checkerboard_is_found_at_the_true_corners() -> None:
     setup = checkerboard_wall_scene(0.9)
     r = setup.render(seed=2)

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..calibration import Calibration
+from ..errors import SimulationError
 from .fan import LaserModel, fan_basis
 from .scene import Rectangle, Scene
 from .water import LOW_RES_FACTOR, WaterModel, low_res_shape
@@ -38,66 +39,105 @@ FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 
-@functools.lru_cache(maxsize=8)
-def _low_res_rays(calib: Calibration, h: int, w: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Body-frame viewing rays in the water of the quarter-resolution pixel centres: origins ((3,) the camera
-    centre, or (M, 3) the exit points on the port), directions (M, 3) and their lengths (M,)."""
-    hl, wl = low_res_shape(h, w)
-    f = LOW_RES_FACTOR
+@functools.lru_cache(maxsize=4)  # a full-resolution 1080p entry holds about 100 MB
+def _grid_rays(calib: Calibration, h: int, w: int, factor: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Body-frame viewing rays in the water of the pixel centres of the image at 1/``factor`` resolution:
+    origins ((3,) the camera centre, or (M, 3) the exit points on the port), directions (M, 3) and their lengths
+    (M,)."""
+    hl, wl = low_res_shape(h, w) if factor == LOW_RES_FACTOR else (h, w)
+    f = factor
     ys, xs = np.mgrid[0:hl, 0:wl]
     uv = np.stack([xs.ravel() * f + (f - 1) / 2.0, ys.ravel() * f + (f - 1) / 2.0], axis=1).astype(float)
+    return _rays_of(calib, uv)
+
+
+def _rays_of(calib: Calibration, uv: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     origins, rays = calib.water_rays_body(uv)
-    for a in (origins, rays):
-        a.setflags(write=False)
     norm = np.linalg.norm(rays, axis=1)
-    norm.setflags(write=False)
+    for a in (origins, rays, norm):
+        a.setflags(write=False)
     return origins, rays, norm
+
+
+class _Sheet:
+    """The single-scatter radiance of one laser sheet along camera rays (see :func:`laser_glow`)."""
+
+    def __init__(self, scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel) -> None:
+        self.origin, self.a, self.b = fan_basis(calib, laser)
+        self.n = calib.lasers[laser].normal_body
+        self.half = model.fan_angle_rad / 2.0
+        # fan table: distance to the first hit per fan angle
+        self.theta_tab = np.linspace(-self.half, self.half, 721)
+        d = np.cos(self.theta_tab)[:, None] * self.a + np.sin(self.theta_tab)[:, None] * self.b
+        t_tab, _, _ = scene.raycast(self.origin, d)
+        self.c = water.attenuation_per_m
+        self.t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(self.c, 0.2)))
+
+    def radiance(self, C: FloatArray, rays: FloatArray, norm: FloatArray) -> FloatArray:
+        """Glow (arbitrary units) along rays from ``C`` (3,) or (M, 3), directions (M, 3) of lengths (M,)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            denom = rays @ self.n
+            tp = ((self.origin - C) @ self.n) / denom
+            p = C + tp[:, None] * rays
+            q = p - self.origin
+            s = np.linalg.norm(q, axis=1)
+            th = np.arctan2(q @ self.b, q @ self.a)
+            ok = np.isfinite(tp) & (tp > 0) & (np.abs(th) <= self.half)
+            ok &= s < np.interp(th, self.theta_tab, self.t_tab)
+            r_c = tp * norm
+            cos_a = np.abs(denom) / norm
+            val = np.exp(-self.c * (s + r_c)) / (np.maximum(s, 0.02) * np.maximum(cos_a, 0.02)) / (1.0 + s / 0.5)
+        return np.where(ok, val, 0.0)
+
+
+#: Sub-rows per pixel where the physical glow ends inside the pixel (its coverage is integrated there).
+EDGE_SUBROWS = 8
 
 
 def laser_glow(
     scene: Scene, calib: Calibration, laser: int, model: LaserModel, water: WaterModel, shape: tuple[int, int]
 ) -> F32:
-    """Backscatter glow of one laser sheet at quarter resolution (:func:`low_res_shape`), float32 DN.
+    """Backscatter glow of one laser sheet, float32 DN.
 
     Single-scattering radiance of the sheet seen along each camera ray: the ray crosses the laser plane at a
     point at distance ``s`` from the laser; if that point lies inside the fan and before the laser's first hit,
     it glows with ``exp(-c (s + r_cam)) / (s |cos a|)`` (sheet irradiance ~ 1/s, path through the sheet
     ~ 1/|cos a| for a ray at angle a to the sheet normal) times a phase factor ``1 / (1 + s / 0.5 m)`` that
-    makes it brighter near the camera. Computed at quarter resolution and blurred by ``water.glow_sigma_px``
-    (sheet thickness and multiple scattering); occlusion of the glow by objects between the camera and the
-    sheet is ignored.
+    makes it brighter near the camera; occlusion of the glow by objects between the camera and the sheet is
+    ignored.
+
+    ``water.glow_model == "physical"``: full resolution (H, W); the sheet ends where it meets the surface, so
+    the glow ends at the stripe's centre: pixels the end crosses are integrated over :data:`EDGE_SUBROWS`
+    sub-rows, and the only blur is the forward scatter the renderer applies to stripe and glow together.
+    ``"blurred"``: quarter resolution (:func:`low_res_shape`), blurred by ``water.glow_sigma_px`` (sheet
+    thickness and multiple scattering, the older model).
     """
+    if water.glow_model not in ("physical", "blurred"):
+        msg = f"water.glow_model must be 'physical' or 'blurred', got {water.glow_model!r}"
+        raise SimulationError(msg)
     h, w = shape
-    hl, wl = low_res_shape(h, w)
-    f = LOW_RES_FACTOR
-    origin, a, b = fan_basis(calib, laser)
-    n = calib.lasers[laser].normal_body
-    half = model.fan_angle_rad / 2.0
-    # fan table: distance to the first hit per fan angle
-    n_rays = 721
-    theta_tab = np.linspace(-half, half, n_rays)
-    d = np.cos(theta_tab)[:, None] * a + np.sin(theta_tab)[:, None] * b
-    t_tab, _, _ = scene.raycast(origin, d)
-    c = water.attenuation_per_m
-    t_tab = np.minimum(t_tab, min(model.max_range_m, 8.0 / max(c, 0.2)))
-    C, rays, norm = _low_res_rays(calib, h, w)  # C: the rays' origins (the camera centre without a port)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = rays @ n
-        tp = ((origin - C) @ n) / denom
-        p = C + tp[:, None] * rays
-        q = p - origin
-        s = np.linalg.norm(q, axis=1)
-        th = np.arctan2(q @ b, q @ a)
-        ok = np.isfinite(tp) & (tp > 0) & (np.abs(th) <= half)
-        ok &= s < np.interp(th, theta_tab, t_tab)
-        r_c = tp * norm
-        cos_a = np.abs(denom) / norm
-        val = np.exp(-c * (s + r_c)) / (np.maximum(s, 0.02) * np.maximum(cos_a, 0.02)) / (1.0 + s / 0.5)
-    val = np.where(ok, val, 0.0).reshape(hl, wl).astype(np.float32)
-    sig = max(water.glow_sigma_px * w / 1920.0 / f, 0.5)
-    val = np.asarray(cv2.GaussianBlur(val, (0, 0), sig), np.float32)
+    sheet = _Sheet(scene, calib, laser, model, water)
     # 0.2: a gain of 1 gives a faint band of a few DN with the default laser power
-    return val * np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)
+    gain = np.float32(0.2 * water.backscatter * model.peak_dn_at_1m / 190.0)
+    if water.glow_model == "blurred":
+        hl, wl = low_res_shape(h, w)
+        low = sheet.radiance(*_grid_rays(calib, h, w, LOW_RES_FACTOR)).reshape(hl, wl).astype(np.float32)
+        sig = max(water.glow_sigma_px * w / 1920.0 / LOW_RES_FACTOR, 0.5)
+        return np.asarray(cv2.GaussianBlur(low, (0, 0), sig), np.float32) * gain
+    val = sheet.radiance(*_grid_rays(calib, h, w, 1)).reshape(h, w)
+    lit = val > 0
+    edge = np.zeros_like(lit)
+    edge[:-1] |= lit[:-1] != lit[1:]
+    edge[1:] |= lit[1:] != lit[:-1]
+    rows, cols = np.nonzero(edge)
+    if rows.size:
+        k = (np.arange(EDGE_SUBROWS) + 0.5) / EDGE_SUBROWS - 0.5
+        uv = np.stack(
+            [np.repeat(cols.astype(float), EDGE_SUBROWS), (rows[:, None] + k[None, :]).ravel()], axis=1
+        )
+        sub = sheet.radiance(*_rays_of(calib, uv)).reshape(-1, EDGE_SUBROWS)
+        val[rows, cols] = sub.mean(axis=1)
+    return val.astype(np.float32) * gain
 
 
 def paint_ambient(scene: Scene, calib: Calibration, water: WaterModel, img: F32) -> None:

@@ -94,6 +94,11 @@ def trace_truth(
         s, seg = trace_fan(scene_body, calibration, i, model, theta_tol_rad=edge_tol_rad)
         peak, sigma = stripe_photometry(s, scene_body, calibration, i, model, water)
         raw.append((s, seg, peak, sigma))
+        # the truth describes the stripe as the camera sees it: forward scatter widens it and lowers its peak
+        scatter_px = water.forward_scatter_px * cam.width / 1920.0
+        if scatter_px > 0:
+            seen_sigma = np.hypot(sigma, scatter_px)
+            peak, sigma = peak * sigma / seen_sigma, seen_sigma
         with np.errstate(invalid="ignore"):
             vis = (
                 (seg >= 0)
@@ -160,10 +165,15 @@ def render(
     # smooth layers (glow, large blobs) are painted at quarter resolution
     low_extra = np.zeros((*low_res_shape(h, w), 3), np.float32)
     smooth = False
+    glow: F32 | None = None  # the physical glow, full resolution, added to the laser light below
     if water.backscatter > 0:
         for i in range(len(calibration.lasers)):
-            low_extra += laser_glow(scene_body, calibration, i, model, water, (h, w))[:, :, None] * colour
-        smooth = True
+            layer = laser_glow(scene_body, calibration, i, model, water, (h, w))
+            if water.glow_model == "blurred":
+                low_extra += layer[:, :, None] * colour
+                smooth = True
+            else:
+                glow = layer if glow is None else glow + layer
     blobs = draw_blobs(h, w, water, rng)
     big = [bl for bl in blobs if bl.s_across >= 2.0 * LOW_RES_FACTOR]
     small = [bl for bl in blobs if bl.s_across < 2.0 * LOW_RES_FACTOR]
@@ -197,9 +207,18 @@ def render(
         laser_full[r0 : r0 + band.shape[0]] = band
         layers["laser"] = laser_full
     if band.shape[0]:
-        speckle_band = band
-        apply_speckle(speckle_band, water, rng)
-        img[r0 : r0 + band.shape[0]] += speckle_band[:, :, None] * np.asarray(model.colour_bgr, np.float32)
+        apply_speckle(band, water, rng)
+    scatter_px = water.forward_scatter_px * w / 1920.0
+    if glow is None and scatter_px <= 0:
+        if band.shape[0]:
+            img[r0 : r0 + band.shape[0]] += band[:, :, None] * colour
+    else:
+        # stripe and glow travel to the camera through the same water: one forward-scatter blur for both
+        light = np.zeros((h, w), np.float32) if glow is None else glow
+        light[r0 : r0 + band.shape[0]] += band
+        if scatter_px > 0:
+            light = np.asarray(cv2.GaussianBlur(light, (0, 0), scatter_px), np.float32)
+        img += light[:, :, None] * colour
     add_snow(img, water, rng)
     image = finish(img, water, rng)
     return Render(image=image, calibration=calibration, truth=truth, layers=layers)

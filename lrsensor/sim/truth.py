@@ -54,8 +54,9 @@ class LaserTruth:
         surface_id: (N,) id of the surface hit (index into the scene's surfaces).
         segment: (N,) index of the continuous stripe piece each sample belongs to (pieces end at occlusion
             edges, shadows, surface changes and the image border).
-        peak_dn: (N,) peak of the stripe profile (green channel, before clipping), DN.
-        sigma_px: (N,) Gaussian sigma of the stripe profile across the stripe, pixels.
+        peak_dn: (N,) peak of the stripe profile (green channel, before clipping), DN, as the camera sees it
+            (after the water's forward scatter).
+        sigma_px: (N,) Gaussian sigma of the stripe profile across the stripe, pixels (after forward scatter).
         range_m: (N,) distance from the camera centre to the point, metres.
     """
 

@@ -27,7 +27,15 @@ class WaterModel:
         attenuation_per_m: beam attenuation coefficient c, 1/m; light over a path L is scaled by exp(-c L).
         backscatter: gain of the glow that the laser sheet scatters toward the camera (0 = none; 1 = a
             faint band of a few DN; 5-10 = turbid harbour water).
-        glow_sigma_px: blur of the glow band, pixels (at 1920 px width; scaled with the image).
+        glow_sigma_px: blur of the glow band in the ``"blurred"`` glow model, pixels (at 1920 px width; scaled
+            with the image).
+        glow_model: ``"physical"`` (default): the sheet's single-scatter glow drawn at full resolution, ending
+            exactly where the sheet meets the surface (at the stripe's centre), blurred only by the forward
+            scatter together with the stripe; ``"blurred"``: the glow at quarter resolution blurred by
+            ``glow_sigma_px`` on its own (the simulator's older model, whose blurred end is easy to tell apart
+            from the stripe).
+        forward_scatter_px: small-angle forward-scatter blur of the laser light (stripe and glow), Gaussian
+            sigma in pixels (at 1920 px width; scaled with the image); 0 = none.
         haze_dn: veiling light added everywhere, DN (water-coloured).
         ambient_dn: brightness of a white (albedo 1) surface under the ambient light, DN (0 = dark water, the
             scene is seen only where the lasers hit it). A checkerboard needs about 150-200.
@@ -48,6 +56,8 @@ class WaterModel:
     attenuation_per_m: float = 0.08
     backscatter: float = 0.0
     glow_sigma_px: float = 8.0
+    glow_model: str = "physical"
+    forward_scatter_px: float = 0.0
     haze_dn: float = 0.0
     ambient_dn: float = 0.0
     read_noise_dn: float = 1.5
@@ -83,6 +93,7 @@ class WaterModel:
             texture=0.3,
             attenuation_per_m=0.35,
             backscatter=6.0,
+            forward_scatter_px=2.0,
             haze_dn=14.0,
             read_noise_dn=2.5,
             shot_noise_gain=3.0,
