@@ -109,6 +109,12 @@ SOURCES: tuple[Source, ...] = (
     Source("sim.md", "simulator", "python benchmarks/bench_sim.py --repeat 3"),
     Source("mapping.md", "mapping", "python benchmarks/bench_mapping.py"),
     Source(
+        "nav.md",
+        "mapping",
+        "python -m benchmarks.bench_nav --seconds 90 --seed 1",
+        note="laser-aided navigation: trusted vs corrected poses (issue 27)",
+    ),
+    Source(
         "ingest.md",
         "ingest",
         "python benchmarks/bench_ingest.py --robots 1,5,10,20,30,40,60,90",

@@ -78,9 +78,10 @@ class NavConfig:
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
-    exceeds it are not placed in the map), ``depth_std_m`` / ``attitude_std_deg`` (reported for the measured
-    axes); ``frame_min_scans``: a robot's yaw correction counts in :meth:`Navigator.frame` once that many scans
-    constrained its heading.
+    exceeds it are not placed in the map), ``lost_std_m`` (without a fix, a robot whose predicted standard
+    deviation exceeds it is lost: its scans are not registered or placed until the next fix), ``depth_std_m`` /
+    ``attitude_std_deg`` (reported for the measured axes); ``frame_min_scans``: a robot's yaw correction counts
+    in :meth:`Navigator.frame` once that many scans constrained its heading.
 
     Scan-to-submap odometry: the robot's own placed scans of the last ``submap_s`` (``submap_points`` each) are
     cut into ``local_cell_m`` cells; a cell with ``local_min_points`` points, thinner than
@@ -115,6 +116,7 @@ class NavConfig:
     constrained_std_m: float = 0.05
     constrained_std_deg: float = 1.0
     place_std_m: float = 0.3
+    lost_std_m: float = 0.3
     depth_std_m: float = 0.01
     attitude_std_deg: float = 0.2
     frame_min_scans: int = 20
@@ -189,7 +191,8 @@ class NavEstimate:
             ``yaw_deg`` (deg).
         constrained: per axis of :data:`AXES`, whether this scan constrained it.
         placed: whether the cloud may go into the map (position known well enough).
-        motion: how the position moved since the last cloud: ``dead-reckoning``, ``motion-prior`` or ``start``.
+        motion: how the position moved since the last cloud: ``dead-reckoning``, ``motion-prior``, ``start``, or
+            ``lost`` (no fix, and too uncertain to trust a scan: see ``NavConfig.lost_std_m``).
         inliers: points associated with map planes (0: no registration).
         planes: ids of the planes the scan was registered to.
         correction: the yaw correction (deg) and, with a raw fix, the horizontal offset from it (m).
@@ -290,6 +293,8 @@ class RobotNav:
         #: running mean square of the fixes' disagreement with the estimate, per axis (m^2)
         self.fix_err2 = 0.0
         self.last_compass_ns: int | None = None
+        #: no fix and an uncertainty past ``lost_std_m``: the scans are not trusted until the next fix
+        self.lost = False
 
     @property
     def started(self) -> bool:
@@ -460,8 +465,18 @@ class RobotNav:
             self.last_raw_ne = raw_ne
             if raw_ne is not None:
                 self._fix(t, raw_ne)
+                self.lost = False
             self._compass(t)
-        h3, inliers, used = self._register(raw, pts, landmarks)
+        if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
+            # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no
+            # scan is trusted again until a fix comes
+            self.lost = True
+        used: tuple[int, ...] = ()
+        if self.lost:
+            h3, inliers = np.zeros((3, 3)), 0
+            motion = "lost"
+        else:
+            h3, inliers, used = self._register(raw, pts, landmarks)
         est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
         self.yaw_scans += int(est.constrained["yaw"])
         self.latest = est

@@ -457,8 +457,9 @@ def three_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePla
 @dataclass
 class DiveMap:
     """A dive replayed into a map: the builder, and per robot the placed clouds' horizontal errors (m) and the
-    yaw errors (deg) of the poses they were placed with, the clouds left unplaced, and the navigation's cost per
-    cloud (s, empty when the poses were trusted)."""
+    yaw errors (deg) of the poses they were placed with, the clouds left unplaced, the navigation's wall time per
+    cloud (s, empty when the poses were trusted), each robot's last estimate, the fleet frame, and the scans whose
+    registration constrained both horizontal axes."""
 
     builder: Any
     position_error_m: dict[str, list[float]] = field(default_factory=dict)
@@ -467,6 +468,7 @@ class DiveMap:
     nav_cost_s: list[float] = field(default_factory=list)
     estimates: dict[str, Any] = field(default_factory=dict)
     frame: Any = None
+    constrained_scans: int = 0
 
     def planes(self) -> list[dict[str, Any]]:
         """The served map's planes (in NED: turned by the navigation's frame when there is one)."""
@@ -498,6 +500,7 @@ def replay_dive(frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cf
             est = nav.update(f.robot, f.t_ns, f.pose_est, f.points_body, b.landmarks(min_pts))
             out.nav_cost_s.append(time.perf_counter() - t0)
             out.estimates[f.robot] = est
+            out.constrained_scans += int(est.constrained["north"] and est.constrained["east"])
             if est.pose is None or not est.placed:
                 out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
                 continue

@@ -412,8 +412,9 @@ class MapFeed:
     def nav_status(self, robot: str) -> dict[str, Any] | None:
         """What the status says of a robot's navigation: ``placed``/``unplaced`` clouds, the axes its scans
         constrain now, ``position`` (``constrained``, ``partly`` (one horizontal axis), ``unconstrained``,
-        ``unknown``), the horizontal and heading standard deviations, how it moved (``motion``). None when
-        navigation is off or the robot sent nothing yet."""
+        ``lost`` (no fix and too uncertain to trust its scans until the next fix), ``unknown``), the horizontal
+        and heading standard deviations, how it moved (``motion``). None when navigation is off or the robot sent
+        nothing yet."""
         with self._nav_lock:
             est = self._nav_latest.get(robot)
             counts = list(self._nav_counts.get(robot, [0, 0]))
@@ -422,6 +423,8 @@ class MapFeed:
         js = est.to_json()
         n_axes = sum(1 for a in ("north", "east") if est.constrained.get(a))
         position = "unknown" if est.pose is None else ("constrained", "partly", "unconstrained")[2 - n_axes]
+        if est.motion == "lost":
+            position = "lost"
         return {
             "placed": counts[0],
             "unplaced": counts[1],

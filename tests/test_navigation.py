@@ -84,10 +84,18 @@ def test_without_a_fix_the_position_is_unknown_and_not_placed() -> None:
     assert est.to_json()["north_m"] is None
     # a launch fix starts it; later samples without a fix follow the motion prior, uncertainty growing
     nav.update("rov9", 1, Pose(1.0, 2.0, 1.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), PlaneLandmarks.empty())
+    soon = nav.update("rov9", 300_000_000, raw, np.zeros((0, 3)), PlaneLandmarks.empty())
+    assert soon.pose is not None
+    assert soon.motion == "motion-prior"
+    assert 0.1 < soon.std["north_m"] < 0.3
+    assert not soon.placed  # no fix, and no scan pinned it to the map
     later = nav.update("rov9", 5_000_000_000, raw, np.zeros((0, 3)), PlaneLandmarks.empty())
-    assert later.pose is not None
-    assert later.motion == "motion-prior"
-    assert later.std["north_m"] > 0.1
+    assert later.motion == "lost"  # too uncertain to trust a scan until the next fix
+    assert later.std["north_m"] > 0.5
+    again = nav.update(
+        "rov9", 5_100_000_000, Pose(1.5, 2.0, 1.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), PlaneLandmarks.empty()
+    )
+    assert again.motion != "lost"
 
 
 def test_the_fleet_frame_turns_planes_and_poses_back_consistently() -> None:
