@@ -1,6 +1,6 @@
 """Benchmark of laser-aided navigation (issue 27): the map trusting the poses vs the map with corrected poses.
 
-    python -m benchmarks.bench_nav [--seconds 90] [--seed 1] [--out benchmarks/results/nav.md]
+    python benchmarks/bench_nav.py [--seconds 90] [--seed 1] [--out benchmarks/results/nav.md]
 
 A simulated 3-robot dive in the tank (``mapping.synth``: ``three_rov_plans``, both laser fans ray-traced at
 10 Hz, 400 rays per laser, 2 mm range noise) with each navigation of ``lrsensor.sim.navigation``:
@@ -171,7 +171,7 @@ def main() -> int:
             f"## Trusted vs corrected poses (3 robots, {args.seconds:g} s at 10 Hz, seed {args.seed}; "
             f"load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
             "",
-            f"`python -m benchmarks.bench_nav --seconds {args.seconds:g} --seed {args.seed}`",
+            f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}`",
             "",
             table(rows),
             "",

@@ -111,7 +111,7 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "nav.md",
         "mapping",
-        "python -m benchmarks.bench_nav --seconds 90 --seed 1",
+        "python benchmarks/bench_nav.py --seconds 90 --seed 1",
         note="laser-aided navigation: trusted vs corrected poses (issue 27)",
     ),
     Source(
