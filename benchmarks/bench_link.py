@@ -60,16 +60,17 @@ def _fmt_ms(v: float | None) -> str:
 
 def table(rows: list[tuple[Row, FleetRun]]) -> str:
     head = (
-        "| link | delivered | sent twice | link bytes / clouds' bytes | transit p50 / p99 | backlog drained "
-        "| ROV exit codes | wall |\n| --- | ---: | ---: | ---: | ---: | :---: | --- | ---: |"
+        "| link | delivered | sent twice | re-sent in all | duplicates at base | link bytes / clouds' bytes "
+        "| transit p50 / p99 | backlog drained | ROV exit codes | wall |\n"
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | :---: | --- | ---: |"
     )
     lines = [head]
     for row, run in rows:
         drained = all(p == 0 for p in run.pending.values())
         codes = ", ".join("killed" if c is None else str(c) for c in run.exit_codes.values())
         lines.append(
-            f"| {row.name} | {run.delivered} of {run.expected} | {sum(run.resent.values())} "
-            f"({run.sent_twice_pct:.0f} %) | {run.link['up_bytes'] / 1e6:.1f} MB / "
+            f"| {row.name} | {run.delivered} of {run.expected} | {run.sent_twice} ({run.sent_twice_pct:.0f} %) "
+            f"| {sum(run.resent.values())} | {sum(run.duplicates.values())} | {run.link['up_bytes'] / 1e6:.1f} MB / "
             f"{sum(run.cloud_bytes.values()) / 1e6:.1f} MB = {run.link_ratio:.2f}x | "
             f"{_fmt_ms(run.transit_ms['p50'])} / {_fmt_ms(run.transit_ms['p99'])} | {'yes' if drained else 'no'} "
             f"| {codes} | {run.wall_s:.0f} s |"
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots", type=int, default=3)
     ap.add_argument("--rate", type=float, default=10.0, help="replay rate, Hz")
     ap.add_argument("--rows", choices=sorted(ROWS), default="default")
+    ap.add_argument("--only", type=int, default=None, help="run only this row of --rows (0-based)")
     ap.add_argument("--schema", type=int, choices=(1, 2), default=2, help="the ROVs' --cloud-schema")
     ap.add_argument("--size", default="640x360", help="simulated camera, WxH")
     ap.add_argument("--ack-timeout-s", type=float, default=60.0, help="the ROVs' --ack-timeout-s")
@@ -102,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         w, _, h = args.size.partition("x")
         dive = record_sim_dive(Path(tmp) / "dive", "rov1", n_frames=args.frames, width=int(w), height=int(h), seed=5)
         for i, row in enumerate(ROWS[args.rows]):
+            if args.only is not None and i != args.only:
+                continue
             t = time.monotonic()
             with netlink(row.spec, Path(tmp) / f"row{i}") as link:
                 run = run_fleet(
@@ -125,8 +129,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.robots} robots replaying {args.frames} simulated clouds each at {args.rate:g} Hz ({args.size} camera, "
         f"cloud schema {args.schema}) "
         "through a veth pair between two network namespaces (rate: tbf, loss: iptables, each way; latency: a "
-        "delaying relay, each way; shared memory off). Sent twice: re-sends / clouds. Link bytes: what the "
-        "robots' end of the veth pair sent, TCP retransmissions included.\n\n"
+        "delaying relay, each way; shared memory off). Sent twice: re-sends of clouds whose earlier copy had "
+        "gone out on the link (a share of the clouds); re-sent in all adds the clouds published while the base "
+        "station was unreachable (zenoh sent nothing then), forwarded from the outbox once it is back. "
+        "Link bytes: what the robots' end of the veth pair sent, TCP retransmissions included. "
+        "Duplicates: copies the base station received of clouds it already held. "
+        "Exit code 3: the replay ended with clouds not acknowledged (kept in "
+        "the outbox).\n\n"
         f"{table(measured)}\n"
     )
     if args.note:

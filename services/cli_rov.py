@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import shutil
+import sys
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -17,6 +19,14 @@ from lrsensor.extract import CHANNELS, command_line_options
 from .zconfig import add_network_args
 
 log = logging.getLogger(__name__)
+
+#: Exit code of a finite run that ended with clouds the base station has not acknowledged.
+EXIT_UNDELIVERED = 3
+#: The ROV's TCP send buffer, KiB (Linux doubles it): a kernel queue of about a second for three robots sharing
+#: 2 Mbit/s, so that keep-alives stay well inside Zenoh's 10 s lease (a longer queue got links declared dead
+#: and re-opened, benchmarks/results/link.md); it caps one TCP connection at about 5 Mbit/s over a 400 ms round
+#: trip, so raise it for a fast link with a long round trip.
+DEFAULT_TCP_SEND_BUFFER_KIB = 128.0
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -82,7 +92,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--ack-timeout-s",
         type=float,
         default=15.0,
-        help="at the end of a finite source, wait this long for the base station to acknowledge every cloud",
+        help="at the end of a finite source, wait for the base station to acknowledge every cloud, giving up after "
+        "S seconds without an acknowledgement moving on; clouds still unacknowledged then make the exit code "
+        f"{EXIT_UNDELIVERED} and stay in the outbox, whose folder is printed (default 15)",
+        metavar="S",
     )
     parser.add_argument(
         "--cloud-schema",
@@ -109,6 +122,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-frames", type=int, default=60, help="frames of the simulated dive (--source sim)")
     parser.add_argument("--sim-size", default="640x360", help="image size of the simulated camera (WxH)")
     parser.add_argument("--sim-seed", type=int, default=0, help="seed of the simulated dive")
+    parser.add_argument(
+        "--tcp-send-buffer-kib",
+        type=float,
+        default=DEFAULT_TCP_SEND_BUFFER_KIB,
+        metavar="KIB",
+        help="kernel send buffer of the ROV's TCP links, KiB (0: the system's; ignored when --config sets "
+        "so_sndbuf): short, so that acknowledgement queries and keep-alives do not wait behind seconds of "
+        f"clouds already handed to the kernel on a slow link (default {DEFAULT_TCP_SEND_BUFFER_KIB:g}; Linux "
+        "doubles it)",
+    )
     add_network_args(parser, default_mode="client")
     parser.epilog = "Defaults to client mode connecting to tcp/127.0.0.1:7447 when no endpoint is given."
 
@@ -144,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
             config_file=options.config_file,
             connect_timeout_ms=int(max(args.calib_timeout_s, 5.0) * 1000),
         )
+    if args.tcp_send_buffer_kib > 0:
+        options = dataclasses.replace(options, tcp_send_buffer=int(args.tcp_send_buffer_kib * 1024))
     calibration = Calibration.load(args.calib) if args.calib else None
     stop = threading.Event()  # set by SIGINT/SIGTERM; a stream's wait for frames ends on it
     dive_calib: Path | None = None
@@ -200,18 +225,29 @@ def run(args: argparse.Namespace) -> int:
             cloud_schema=args.cloud_schema,
         )
         counters = service.run(stop)
+        undelivered = ""
         if sink is not None:
             if counters.delivered and len(sink.outbox):  # older clouds of a persistent outbox
-                sink.wait_empty(args.ack_timeout_s, stop)
+                sink.wait_empty(args.ack_timeout_s, stop, idle=True)
             st = sink.stats()
             o = st["outbox"]
             print(
                 f"rov {robot}: outbox {o['pending']} pending, {st['acked']} acknowledged, {st['resent']} re-sent "
-                f"({st['resent_bytes']} bytes), {o['dropped']} dropped (full), {st['unstored']} not stored, "
-                f"clouds {st['sent_bytes']} bytes",
+                f"({st['resent_bytes']} bytes, {st['resent_unheard']} never heard before), {o['dropped']} dropped "
+                f"(full), {st['unstored']} not stored, clouds {st['sent_bytes']} bytes",
                 flush=True,
             )
+            if service.state == "done" and o["pending"]:
+                undelivered = (
+                    f"rov {robot}: {o['pending']} clouds NOT acknowledged by the base station are kept in "
+                    f"{sink.outbox.directory}; run again with --outbox {sink.outbox.directory} to deliver them"
+                )
+        elif service.state == "done" and counters.delivered is False:
+            undelivered = f"rov {robot}: delivery NOT confirmed and --no-outbox keeps no copy"
     print(counters.summary(robot), flush=True)
+    if undelivered:
+        print(undelivered, file=sys.stderr, flush=True)
+        return EXIT_UNDELIVERED
     return 0
 
 

@@ -4,18 +4,31 @@ Protocol (chosen over zenoh-ext's advanced publisher/subscriber, whose history c
 publisher's memory: it is lost when the ROV restarts and knows nothing of what the base station has
 persisted):
 
-1. :meth:`OutboxSink.send` encodes the cloud, publishes it on ``<root>/<robot>/cloud`` with BLOCK
-   congestion control and appends it to the robot's disk-backed :class:`~services.outbox.Outbox`
+1. :meth:`OutboxSink.send` encodes the cloud, publishes it on ``<root>/<robot>/cloud`` (BLOCK congestion
+   control, priority ``DATA_LOW``) and appends it to the robot's disk-backed :class:`~services.outbox.Outbox`
    (fsync'ed by default) where it stays until acknowledged.
 2. The base station de-duplicates by sequence number and, once a cloud is persisted in its ``--state``,
    lists it in the JSON answered on ``<root>/base/acks/<robot>`` (``{"ranges": [[lo, hi], ...]}``).
-3. A background thread of the ROV asks that queryable every ``ack_period_s`` and removes the acknowledged
-   messages from the outbox. While the base station's cloud subscriber is present (the publisher's
-   ``matching_status``) it re-sends, oldest first and at most ``max_resend_per_cycle`` per cycle:
-   at once, every cloud published while no subscriber matched (router restart, tether cut, base
-   restarted: zenoh sent nothing); and every cloud unacknowledged for ``resend_after_s`` that is evidently
-   lost: a later cloud was acknowledged, or no acknowledgement moved on for ``stall_s``. A base station
-   that is only slow (saturated) keeps acknowledging in order and is not flooded with duplicates.
+3. A background thread of the ROV asks that queryable every ``ack_period_s`` (priority ``INTERACTIVE_HIGH``,
+   express: the question never waits behind queued clouds in Zenoh's transmission queues) and removes the
+   acknowledged messages from the outbox. While the base station's cloud subscriber is present (the
+   publisher's ``matching_status``) it re-sends, oldest first:
+
+   * every cloud published while no subscriber matched (router restart, tether cut, base restarted: zenoh
+     sent nothing), and every pending cloud reloaded from an earlier run;
+   * every cloud that is evidently lost: a cloud *sent after it* was acknowledged (the stream is ordered, so
+     its acknowledgement could have come back and did not). A cloud re-sent is not declared lost again until
+     something sent after the re-send is acknowledged: no re-send before its acknowledgement could be back;
+   * when no acknowledgement moved on for the retransmission timeout, one probe (the oldest cloud), and the
+     timeout doubles for the next probe (capped at :data:`MAX_BACKOFF_S`) until an acknowledgement moves on.
+
+   The timeout follows the measured acknowledgement round trip (:class:`AckClock`: send to the poll that
+   first lists a cloud sent once, smoothed as TCP does: ``srtt + 4 rttvar``, at least ``resend_after_s`` and
+   ``stall_s``). Re-sends are paced: they go out only while the bytes in flight (sent after the newest
+   acknowledged send, not yet timed out) stay under twice what the acknowledgements show the link delivers
+   per shortest round trip (at least :data:`MIN_WINDOW_BYTES`), so that a backlog after an outage drains at
+   the link's rate instead of filling the link with copies and keeping the acknowledgements behind them.
+   A base station that is only slow keeps acknowledging in order and gets no duplicates.
 
 Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
 :mod:`services.outbox`), and the base station shows them as ``missed``.
@@ -23,6 +36,7 @@ Nothing is lost silently: a full outbox drops its oldest messages and counts the
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import threading
@@ -36,9 +50,106 @@ from .wire import ENCODING, AnyCloud
 
 log = logging.getLogger(__name__)
 
-#: Re-sends per cycle while acknowledgements are stalled: a probe, not a flood (a base that never
-#: acknowledges must not receive the whole outbox every few seconds).
-STALL_PROBES = 10
+#: Longest retransmission timeout while acknowledgements stall (the probes' backoff stops doubling here), s.
+MAX_BACKOFF_S = 60.0
+#: Bytes that may always be in flight for re-sends, whatever the measured rate (a link's first round trips).
+MIN_WINDOW_BYTES = 256 * 1024
+#: The pacing window is this many times the bytes the link delivered per shortest round trip.
+WINDOW_GAIN = 2.0
+#: Acknowledged bytes are summed over this long (at least) to measure the link's delivery rate, s.
+RATE_WINDOW_S = 2.0
+#: The delivery rate used is the highest measured over this long (a quiet moment is not a slow link), s.
+RATE_MEMORY_S = 10.0
+#: An acknowledgement poll waits at least / at most this long for the answer, s.
+MIN_POLL_TIMEOUT_S = 2.0
+MAX_POLL_TIMEOUT_S = 20.0
+#: The shortest round trip is the minimum over this long, s.
+MIN_RTT_MEMORY_S = 30.0
+
+
+class AckClock:
+    """What the acknowledgements show of the link: round trip (smoothed, shortest), delivery rate, backoff.
+
+    Round-trip samples are the time from a cloud's only send to the ack poll that first lists it (Karn's rule:
+    a re-sent cloud gives no sample); they include the base station's checkpoint and the queues on the way,
+    which is what a re-send must wait for. Times are ``time.monotonic()`` seconds. Not thread-safe (the
+    caller holds its lock).
+
+    Args:
+        min_rto_s: the retransmission timeout is never shorter, seconds.
+    """
+
+    def __init__(self, min_rto_s: float) -> None:
+        self.min_rto_s = min_rto_s
+        self.srtt: float | None = None
+        self.rttvar = 0.0
+        self.backoff = 1.0
+        self._rtts: collections.deque[tuple[float, float]] = collections.deque()  # (t, sample)
+        self._acked: collections.deque[tuple[float, int]] = collections.deque()  # (t, bytes acknowledged)
+        self._rates: collections.deque[tuple[float, float]] = collections.deque()  # (t, bytes/s)
+
+    def rtt_sample(self, now: float, rtt_s: float) -> None:
+        """Fold one round-trip sample in (RFC 6298's smoothing)."""
+        rtt_s = max(rtt_s, 1e-3)
+        if self.srtt is None:
+            self.srtt, self.rttvar = rtt_s, rtt_s / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt_s)
+            self.srtt = 0.875 * self.srtt + 0.125 * rtt_s
+        self._rtts.append((now, rtt_s))
+        while self._rtts and now - self._rtts[0][0] > MIN_RTT_MEMORY_S:
+            self._rtts.popleft()
+
+    def acked_bytes(self, now: float, n_bytes: int) -> None:
+        """Note ``n_bytes`` newly acknowledged at ``now`` (0 for a poll that brought nothing new)."""
+        self._acked.append((now, n_bytes))
+        span = max(RATE_WINDOW_S, 2 * self.min_rtt())
+        while self._acked and now - self._acked[0][0] > span:
+            self._acked.popleft()
+        elapsed = max(now - self._acked[0][0], span / 2)
+        self._rates.append((now, sum(b for _, b in self._acked) / elapsed))
+        while self._rates and now - self._rates[0][0] > RATE_MEMORY_S:
+            self._rates.popleft()
+
+    def min_rtt(self) -> float:
+        """The shortest recent round trip, seconds (0 before any sample)."""
+        return min((r for _, r in self._rtts), default=0.0)
+
+    def rate(self) -> float:
+        """The link's recent delivery rate as the acknowledgements show it, bytes/s (0 before any)."""
+        return max((r for _, r in self._rates), default=0.0)
+
+    def rto(self) -> float:
+        """The retransmission timeout without backoff, seconds."""
+        if self.srtt is None:
+            return self.min_rto_s
+        return min(MAX_BACKOFF_S, max(self.min_rto_s, self.srtt + 4 * self.rttvar))
+
+    def timeout(self) -> float:
+        """The retransmission timeout with the current backoff, seconds."""
+        return min(MAX_BACKOFF_S, self.rto() * self.backoff)
+
+    def window(self) -> int:
+        """Bytes that may be in flight: twice the delivered bytes per shortest round trip, at least a floor."""
+        return int(max(MIN_WINDOW_BYTES, WINDOW_GAIN * self.rate() * self.min_rtt()))
+
+    def stalled(self) -> None:
+        """A timeout fired without progress: the next one waits twice as long (capped)."""
+        self.backoff = min(self.backoff * 2, MAX_BACKOFF_S / max(self.rto(), 1e-3))
+
+    def progressed(self) -> None:
+        """Acknowledgements moved on: back to the measured timeout."""
+        self.backoff = 1.0
+
+    def to_json(self) -> dict[str, Any]:
+        """The estimates, JSON-ready (seconds, bytes/s, bytes)."""
+        return {
+            "srtt_s": None if self.srtt is None else round(self.srtt, 3),
+            "min_rtt_s": round(self.min_rtt(), 3),
+            "timeout_s": round(self.timeout(), 3),
+            "rate_bps": round(self.rate() * 8),
+            "window_bytes": self.window(),
+        }
 
 
 @dataclass
@@ -55,6 +166,8 @@ class DeliveryCounters:
         unstored: clouds published live but not kept in the outbox (disk write failed).
         sent_bytes: bytes of the clouds published the first time (the clouds' own size).
         resent_bytes: bytes re-published.
+        resent_unheard: re-publications of clouds whose earlier copies reached no subscriber (published while
+            the base station was away, or reloaded from an earlier run): the first copy to go out on the link.
     """
 
     sent: int = 0
@@ -66,6 +179,7 @@ class DeliveryCounters:
     unstored: int = 0
     sent_bytes: int = 0
     resent_bytes: int = 0
+    resent_unheard: int = 0
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -99,12 +213,12 @@ class OutboxSink:
         session: an open Zenoh session (the caller owns it).
         keys: the fleet's key expressions.
         robot: this robot's name.
-        outbox: the robot's outbox (its ``next_seq`` is where the robot's numbering continues).
-        ack_period_s: how often the acknowledgements are fetched and overdue clouds re-sent, seconds.
-        resend_after_s: a pending cloud is sent again when it was last sent this long ago, seconds.
-        max_resend_per_cycle: at most this many re-sends per cycle (spreads a long backlog).
-        stall_s: when no acknowledgement moved on for this long while clouds are pending, overdue clouds are
-            re-sent even if no later cloud was acknowledged (the lost cloud was the last one), seconds.
+        outbox: the robot's outbox (its ``next_seq`` is where the robot's numbering continues; clouds pending
+            in it from an earlier run are sent again once the base station is present).
+        ack_period_s: how often the acknowledgements are fetched and lost clouds re-sent, seconds.
+        resend_after_s: the shortest retransmission timeout, seconds (the measured one is usually longer).
+        max_resend_per_cycle: at most this many re-sends per cycle (the pacing window usually stops earlier).
+        stall_s: no probe is sent before acknowledgements have stalled this long, seconds.
     """
 
     def __init__(
@@ -130,20 +244,31 @@ class OutboxSink:
         self.max_resend_per_cycle = max_resend_per_cycle
         self.stall_s = stall_s
         self.counters = DeliveryCounters()
+        self.clock = AckClock(resend_after_s)
+        self._ack_priority = zenoh.Priority.INTERACTIVE_HIGH
         self.publisher = session.declare_publisher(
             keys.cloud(self.robot),
             encoding=zenoh.Encoding(ENCODING),
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_LOW,  # below the ack queries and the ROV's status
         )
         self._lock = threading.Lock()
         self._pub_lock = threading.Lock()  # one put at a time: live sends and re-sends interleave cleanly
         self._last_sent: dict[int, float] = {}
-        self._unheard: set[int] = set()  # published while no subscriber matched
+        self._sends: dict[int, int] = {}  # how often each pending cloud went out (1: a round-trip sample)
+        self._sizes: dict[int, int] = {}
+        # published while no subscriber matched, or reloaded from an earlier run: sent once the base is present
+        self._unheard: set[int] = set(outbox.pending())
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._base_present = False
-        self._acked_high = -1  # highest sequence number the base station has acknowledged
+        self._acked_sent_t = 0.0  # the latest send time among the clouds acknowledged so far
+        # ... as of the poll before the last: a cloud sent before it and still not acknowledged one poll later
+        # is lost (the base station's workers may finish neighbouring clouds in either order)
+        self._lost_before = 0.0
+        self._poll_timeout = MIN_POLL_TIMEOUT_S  # how long an ack poll waits for the answer (adapts)
+        self._query_rtt: float | None = None  # smoothed time an ack poll took to be answered, s
         self._last_progress = time.monotonic()  # last time the acknowledgements moved on
         self._thread = threading.Thread(target=self._loop, name=f"delivery-{robot}", daemon=True)
         self._thread.start()
@@ -161,26 +286,35 @@ class OutboxSink:
         heard = self.base_present()  # no matching subscriber: zenoh sends nothing, re-send on reappearance
         with self._lock:
             self._last_sent[msg.seq] = time.monotonic()
+            self._sends[msg.seq] = 1
+            self._sizes[msg.seq] = len(payload)
             if not heard:
                 self._unheard.add(msg.seq)
             self.counters.sent += 1
             self.counters.sent_bytes += len(payload)
         self._put(payload)
+        with self._lock:
+            self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
         try:
             dropped = self.outbox.append(msg.seq, payload)
         except OutboxError as err:
             with self._lock:
                 self.counters.unstored += 1
-                self._last_sent.pop(msg.seq, None)
-                self._unheard.discard(msg.seq)
+                self._forget(msg.seq)
             log.error("rov %s: cloud #%d not kept for re-sending: %s", self.robot, msg.seq, err)
             return
         if dropped:
             with self._lock:
                 self.counters.dropped += len(dropped)
                 for d in dropped:
-                    self._last_sent.pop(d, None)
-                    self._unheard.discard(d)
+                    self._forget(d)
+
+    def _forget(self, seq: int) -> None:
+        """Drop the bookkeeping of ``seq`` (acknowledged, dropped or not stored); caller holds the lock."""
+        self._last_sent.pop(seq, None)
+        self._sends.pop(seq, None)
+        self._sizes.pop(seq, None)
+        self._unheard.discard(seq)
 
     def _put(self, payload: bytes) -> None:
         try:
@@ -206,10 +340,27 @@ class OutboxSink:
         except Exception:
             return False
 
-    def poll_acks(self, timeout_s: float = 1.0) -> int:
-        """Ask the base station what it holds and forget those clouds; returns how many were removed."""
+    def poll_acks(self, timeout_s: float | None = None) -> int:
+        """Ask the base station what it holds and forget those clouds; returns how many were removed.
+
+        ``timeout_s`` defaults to four times the query's recent round trip (at least :data:`MIN_POLL_TIMEOUT_S`),
+        doubled after a poll that got no answer (at most :data:`MAX_POLL_TIMEOUT_S`): on a slow link the
+        answer may take seconds, and a poll that always gives up too early would never learn that.
+        """
+        if timeout_s is None:
+            timeout_s = self._poll_timeout
         removed = 0
-        for reply in self.session.get(self.keys.base_acks(self.robot), timeout=timeout_s):
+        asked = time.monotonic()
+        answered = False
+        replies = self.session.get(
+            self.keys.base_acks(self.robot), timeout=timeout_s, priority=self._ack_priority, express=True
+        )
+        for reply in replies:
+            if not answered:
+                answered = True
+                took = time.monotonic() - asked
+                self._query_rtt = took if self._query_rtt is None else 0.75 * self._query_rtt + 0.25 * took
+                self._poll_timeout = min(MAX_POLL_TIMEOUT_S, max(MIN_POLL_TIMEOUT_S, 4 * self._query_rtt))
             if reply.ok is None:
                 continue
             try:
@@ -217,33 +368,44 @@ class OutboxSink:
             except ValueError as err:
                 log.warning("rov %s: ignored an ack answer: %s", self.robot, err)
                 continue
-            top = max((r[1] for r in ranges), default=-1)
+            now = time.monotonic()
             with self._lock:
-                if top > self._acked_high:
-                    self._acked_high = top
-                    self._last_progress = time.monotonic()
+                self._lost_before = self._acked_sent_t
             pending = self.outbox.pending()
             if not pending:
+                with self._lock:
+                    self.counters.ack_polls += 1
                 break
             lo, hi = pending[0], pending[-1]
             relevant = [r for r in ranges if r[1] >= lo and r[0] <= hi]
-            n = self.outbox.ack_ranges(relevant)
+            hit = [s for s in pending if any(a <= s <= b for a, b in relevant)] if relevant else []
+            n = self.outbox.ack_ranges(relevant) if relevant else 0
             removed += n
             with self._lock:
                 self.counters.ack_polls += 1
                 self.counters.acked += n
+                acked_bytes = 0
+                newest_single: float | None = None  # send time of the latest cloud acknowledged after one send
+                for s in hit:
+                    t = self._last_sent.get(s)
+                    if t is not None:
+                        self._acked_sent_t = max(self._acked_sent_t, t)
+                        if self._sends.get(s) == 1 and s not in self._unheard:
+                            newest_single = t if newest_single is None else max(newest_single, t)
+                    acked_bytes += self._sizes.get(s, 0)
+                    self._forget(s)
+                self.clock.acked_bytes(now, acked_bytes)
+                if newest_single is not None:
+                    self.clock.rtt_sample(now, now - newest_single)
                 if n:
-                    self._last_progress = time.monotonic()
-                    # forget what was acknowledged; numbers above ``hi`` may be published but not yet
-                    # appended (send publishes first), so they are kept
-                    held = set(self.outbox.pending())
-                    for s in [s for s in self._last_sent if s <= hi and s not in held]:
-                        del self._last_sent[s]
-                        self._unheard.discard(s)
+                    self._last_progress = now
+                    self.clock.progressed()
+        if not answered:
+            self._poll_timeout = min(MAX_POLL_TIMEOUT_S, 2 * self._poll_timeout)
         return removed
 
     def cycle(self) -> None:
-        """One round: fetch acks, re-send overdue clouds when the base station is present."""
+        """One round: fetch acks, then re-send what is unheard or lost, paced, when the base is present."""
         present = self.base_present()
         came_back = present and not self._base_present
         self._base_present = present
@@ -257,49 +419,102 @@ class OutboxSink:
             self.poll_acks()
         if not present or not len(self.outbox):
             return
-        now = time.monotonic()
-        budget = self.max_resend_per_cycle
-        probes = STALL_PROBES  # while acks are stalled, only a few of the oldest go (the base may not ack)
-        with self._lock:
-            acked_high = self._acked_high
-            stalled = now - self._last_progress >= self.stall_s
-        for seq in self.outbox.pending():
-            if budget <= 0 or self._stop.is_set():
+        for seq in self._choose_resends(time.monotonic()):
+            if self._stop.is_set():
                 break
-            with self._lock:
-                last = self._last_sent.get(seq, 0.0)
-                unheard = seq in self._unheard
-            # Re-send what was published while nobody listened, and what is overdue AND evidently lost: a
-            # later cloud was acknowledged, or acknowledgements stalled altogether. A base station that is
-            # merely slow keeps acknowledging in order, and gets no duplicates to make it slower still.
-            overdue = now - last >= self.resend_after_s
-            lost = overdue and seq < acked_high
-            if not unheard and not lost:
-                if not (overdue and stalled and probes > 0):
-                    continue
-                probes -= 1
             payload = self.outbox.get(seq)  # read from disk only what goes out
             if payload is None:  # acknowledged meanwhile
                 continue
+            with self._lock:
+                unheard = seq in self._unheard or seq not in self._sends
             self._put(payload)
-            budget -= 1
             with self._lock:
                 self._last_sent[seq] = time.monotonic()
+                self._sends[seq] = self._sends.get(seq, 0) + 1
+                self.counters.resent_unheard += int(unheard)
+                self._sizes[seq] = len(payload)
                 self._unheard.discard(seq)
                 self.counters.resent += 1
                 self.counters.resent_bytes += len(payload)
 
-    def wait_empty(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
-        """Wait until every cloud is acknowledged (the outbox is empty); False on timeout or ``stop``."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not len(self.outbox):
+    def _choose_resends(self, now: float) -> list[int]:
+        """The clouds to send again this cycle, oldest first, within the pacing window."""
+        pending = self.outbox.pending()
+        with self._lock:
+            timeout = self.clock.timeout()
+            window = self.clock.window()
+            acked_t = self._acked_sent_t
+            lost_before = self._lost_before
+            # in flight: sent after the newest acknowledged send and not yet timed out
+            in_flight = sum(
+                self._sizes.get(s, 0)
+                for s in pending
+                if (t := self._last_sent.get(s)) is not None and t > acked_t and now - t < timeout
+            )
+            chosen: list[int] = []
+            for seq in pending:
+                if len(chosen) >= self.max_resend_per_cycle:
+                    break
+                last = self._last_sent.get(seq)
+                # unheard (or never sent by this process) / sent before a cloud acknowledged a poll ago
+                if not (seq in self._unheard or last is None or last < lost_before):
+                    continue
+                size = self._sizes.get(seq, 0)
+                if chosen and in_flight + size > window:
+                    break
+                if not chosen and in_flight >= window:
+                    break
+                chosen.append(seq)
+                in_flight += size
+            if chosen:
+                return chosen
+            # nothing evidently lost; a probe when acknowledgements stalled for the (backed-off) timeout
+            stalled_for = now - self._last_progress
+            if pending and stalled_for >= max(self.stall_s, timeout):
+                oldest = pending[0]
+                last = self._last_sent.get(oldest, 0.0)
+                if now - last >= max(self.stall_s, timeout):
+                    self.clock.stalled()
+                    log.info(
+                        "rov %s: no acknowledgement for %.0f s; probing with #%d (next timeout %.1f s)",
+                        self.robot,
+                        stalled_for,
+                        oldest,
+                        self.clock.timeout(),
+                    )
+                    return [oldest]
+            return []
+
+    def wait_empty(self, timeout_s: float, stop: threading.Event | None = None, *, idle: bool = False) -> bool:
+        """Wait until every cloud is acknowledged (the outbox is empty); False on timeout or ``stop``.
+
+        With ``idle`` the timeout counts from the last time an acknowledgement moved on, so that a backlog
+        that is draining is not given up on.
+        """
+        return self._wait(lambda: not len(self.outbox), timeout_s, stop, idle)
+
+    def wait_acked(
+        self, first_seq: int, last_seq: int, timeout_s: float, stop: threading.Event | None = None, *, idle: bool = True
+    ) -> bool:
+        """Wait until no cloud numbered ``first_seq..last_seq`` is pending; ``idle`` as in :meth:`wait_empty`."""
+
+        def done() -> bool:
+            return not any(first_seq <= s <= last_seq for s in self.outbox.pending())
+
+        return self._wait(done, timeout_s, stop, idle)
+
+    def _wait(self, done: Any, timeout_s: float, stop: threading.Event | None, idle: bool) -> bool:
+        start = time.monotonic()
+        while True:
+            if done():
                 return True
-            if stop is not None and stop.is_set():
-                return False
+            now = time.monotonic()
+            with self._lock:
+                since = max(start, self._last_progress) if idle else start
+            if now - since >= timeout_s or (stop is not None and stop.is_set()):
+                return bool(done())
             self._wake.set()
             time.sleep(min(0.1, self.ack_period_s))
-        return not len(self.outbox)
 
     def stats(self) -> dict[str, Any]:
         """Delivery counters and the outbox's, JSON-ready."""
@@ -315,6 +530,8 @@ class OutboxSink:
                 "unstored": c.unstored,
                 "sent_bytes": c.sent_bytes,
                 "resent_bytes": c.resent_bytes,
+                "resent_unheard": c.resent_unheard,
+                "link": self.clock.to_json(),
             }
         out["outbox"] = self.outbox.stats().to_json_dict()
         return out

@@ -110,6 +110,7 @@ class ZenohCloudSink:
             encoding=zenoh.Encoding(ENCODING),
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_LOW,  # below status and queries (docs/reliability.md)
         )
 
     def send(self, msg: AnyCloud) -> None:
@@ -201,8 +202,9 @@ class RovService:
         calibration: the sensor's calibration (served on ``<root>/<robot>/calib``).
         rate_hz: process at most this many frames per second (None: as fast as they come).
         method: stripe extractor name for :meth:`Sensor.process`.
-        ack_timeout_s: at the end of a finite source, wait this long for the base station to acknowledge
-            every published cloud (0: do not wait).
+        ack_timeout_s: at the end of a finite source, wait for the base station to acknowledge every published
+            cloud; give up after this long without an acknowledgement (with an outbox sink: without one moving
+            on) (0: do not wait).
         seq_start: the first sequence number (a restarted robot continues its numbering).
         sink: where clouds go (default: a Zenoh publisher on ``<root>/<robot>/cloud``).
         cloud_schema: 2 (compact: pixels and the calibration's fingerprint, the default) or 1 (float32 points).
@@ -327,12 +329,16 @@ class RovService:
                 else:
                     ended = not stop.is_set()  # a live source that ends because we stop did not end
             if ended and self.ack_timeout_s > 0 and c.published > 0:
-                c.delivered = wait_delivered(
-                    self.session, self.keys, self.robot, c.first_seq, c.last_seq, self.ack_timeout_s, stop
-                )
+                waiter = getattr(sink, "wait_acked", None)
+                if waiter is not None:  # an outbox: wait while its acknowledgements keep moving on
+                    c.delivered = bool(waiter(c.first_seq, c.last_seq, self.ack_timeout_s, stop))
+                else:
+                    c.delivered = wait_delivered(
+                        self.session, self.keys, self.robot, c.first_seq, c.last_seq, self.ack_timeout_s, stop
+                    )
                 if not c.delivered:
                     log.warning(
-                        "rov %s: the base station did not acknowledge seq %d..%d within %.0f s",
+                        "rov %s: the base station did not acknowledge seq %d..%d (no progress for %.0f s)",
                         self.robot,
                         c.first_seq,
                         c.last_seq,

@@ -35,6 +35,10 @@ class NetworkOptions:
         listen: endpoints to listen on.
         config_file: a Zenoh JSON5 configuration file, read first.
         connect_timeout_ms: for client mode, how long opening waits for a router (-1 forever, 0 fail at once).
+        tcp_send_buffer: the kernel send buffer of each TCP link, bytes (``transport/link/tcp/so_sndbuf``; None:
+            the system's, which Linux grows to megabytes). Zenoh's priorities act in its own queues; what the
+            kernel already holds goes out first whatever its priority, so a ROV on a slow link keeps this short
+            (see docs/reliability.md). Not applied when the configuration file sets ``so_sndbuf``.
     """
 
     mode: str | None = None
@@ -42,6 +46,7 @@ class NetworkOptions:
     listen: tuple[str, ...] = ()
     config_file: str | None = None
     connect_timeout_ms: int | None = None
+    tcp_send_buffer: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -92,10 +97,12 @@ def make_config(options: NetworkOptions, default_mode: str = "peer") -> Any:
         except Exception as err:
             msg = f"{path}: invalid Zenoh configuration: {err}"
             raise NetworkConfigError(msg) from err
-        scouting_set = "multicast" in path.read_text(encoding="utf-8", errors="replace")
+        text = path.read_text(encoding="utf-8", errors="replace")
+        scouting_set = "multicast" in text
+        sndbuf_set = "so_sndbuf" in text
     else:
         conf = zenoh.Config()
-        scouting_set = False
+        scouting_set = sndbuf_set = False
     try:
         if options.mode is not None or not options.config_file:
             conf.insert_json5("mode", json.dumps(options.mode or default_mode))
@@ -105,6 +112,8 @@ def make_config(options: NetworkOptions, default_mode: str = "peer") -> Any:
             conf.insert_json5("listen/endpoints", json.dumps(list(options.listen)))
         if not scouting_set:
             conf.insert_json5("scouting/multicast/enabled", "false")
+        if options.tcp_send_buffer is not None and not sndbuf_set:
+            conf.insert_json5("transport/link/tcp/so_sndbuf", json.dumps(int(options.tcp_send_buffer)))
         if options.connect_timeout_ms is not None:
             conf.insert_json5("connect/timeout_ms", json.dumps(options.connect_timeout_ms))
         for key, value in options.extra.items():

@@ -307,6 +307,7 @@ class FleetRun:
         resent: per robot, re-sends the ROV reported.
         cloud_bytes: per robot, bytes of its clouds (each counted once).
         resent_bytes: per robot, bytes re-sent.
+        resent_unheard: per robot, re-sends of clouds whose earlier copies reached no subscriber.
         pending: per robot, clouds left in its outbox.
         link: :meth:`NetLink.link_bytes` at the end (minus the start).
         transit_ms: the base station's transit percentiles (``p50``, ``p99``), ms.
@@ -323,6 +324,7 @@ class FleetRun:
     resent: dict[str, int]
     cloud_bytes: dict[str, int]
     resent_bytes: dict[str, int]
+    resent_unheard: dict[str, int]
     pending: dict[str, int]
     link: dict[str, int]
     transit_ms: dict[str, float | None]
@@ -338,9 +340,14 @@ class FleetRun:
         return self.frames * len(self.robots)
 
     @property
+    def sent_twice(self) -> int:
+        """Re-sends of clouds whose earlier copy had gone out on the link."""
+        return sum(self.resent.values()) - sum(self.resent_unheard.values())
+
+    @property
     def sent_twice_pct(self) -> float:
-        """Re-sends as a share of the clouds, %."""
-        return 100.0 * sum(self.resent.values()) / max(1, self.expected)
+        """:attr:`sent_twice` as a share of the clouds, %."""
+        return 100.0 * self.sent_twice / max(1, self.expected)
 
     @property
     def link_ratio(self) -> float:
@@ -349,7 +356,8 @@ class FleetRun:
 
 
 _OUTBOX_LINE = re.compile(
-    r"rov (\S+): outbox (\d+) pending, (\d+) acknowledged, (\d+) re-sent(?: \((\d+) bytes\))?.*?"
+    r"rov (\S+): outbox (\d+) pending, (\d+) acknowledged, (\d+) re-sent"
+    r"(?: \((\d+) bytes(?:, (\d+) never heard before)?\))?.*?"
     r"(?:, clouds (\d+) bytes)?$",
     re.MULTILINE,
 )
@@ -440,6 +448,7 @@ def run_fleet(
     cloud_bytes: dict[str, int] = {}
     resent_bytes: dict[str, int] = {}
     pending: dict[str, int] = {}
+    unheard: dict[str, int] = {}
     for r in robots:
         found = list(_OUTBOX_LINE.finditer(logs[r]))
         m = found[-1] if found else None
@@ -447,9 +456,10 @@ def run_fleet(
             pending[r] = int(m.group(2))
             resent[r] = int(m.group(4))
             resent_bytes[r] = int(m.group(5) or 0)
-            cloud_bytes[r] = int(m.group(6) or 0)
+            cloud_bytes[r] = int(m.group(7) or 0)
+            unheard[r] = int(m.group(6) or 0)
         else:
-            pending[r], resent[r], resent_bytes[r], cloud_bytes[r] = -1, 0, 0, 0
+            pending[r], resent[r], resent_bytes[r], cloud_bytes[r], unheard[r] = -1, 0, 0, 0, 0
     transit = st.get("ingest", {}).get("transit_ms", {})
     return FleetRun(
         robots=tuple(robots),
@@ -461,6 +471,7 @@ def run_fleet(
         resent=resent,
         cloud_bytes=cloud_bytes,
         resent_bytes=resent_bytes,
+        resent_unheard=unheard,
         pending=pending,
         link={k: end_bytes[k] - start_bytes[k] for k in end_bytes},
         transit_ms={"p50": transit.get("p50"), "p99": transit.get("p99")},
