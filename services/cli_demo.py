@@ -17,6 +17,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--state", default=None, help="base-station state folder (default: a temporary one)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation")
     parser.add_argument("--no-progress", action="store_true", help="no live progress display")
+    parser.add_argument(
+        "--nav", choices=("on", "off"), default="on", help="correct the poses from the scans at the base (default on)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         state_dir=Path(args.state) if args.state else None,
         seed=args.seed,
         progress=not args.no_progress,
+        navigation=args.nav == "on",
     )
     print(
         f"lrsensor demo: {cfg.n_robots} simulated ROVs dive the tank for {cfg.duration_s:.0f} s "

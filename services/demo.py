@@ -60,6 +60,7 @@ class DemoConfig:
         state_dir: the base station's state (a temporary folder if None).
         seed: seed of rendering and IMU noise.
         progress: show a live progress display.
+        navigation: the base station corrects the poses from the scans (``lrsensor base --nav``).
     """
 
     n_robots: int = 3
@@ -72,6 +73,7 @@ class DemoConfig:
     state_dir: Path | None = None
     seed: int = 0
     progress: bool = True
+    navigation: bool = True
 
 
 class DeadlineSource:
@@ -146,9 +148,11 @@ def truth_faces() -> list[dict[str, Any]]:
 
 def score_map(planes: list[dict[str, Any]], angle_deg: float = 5.0, dist_m: float = 0.15) -> dict[str, Any]:
     """Match map planes to the tank's true faces: normals within ``angle_deg``, offset within ``dist_m``, and
-    the plane's centroid over the face (0.3 m margin). Returns matched faces, spurious planes and errors."""
+    the plane's centroid over the face (0.3 m margin). Returns matched faces (the best plane's errors), the
+    count of spurious planes, and ``duplicates``: face name -> planes matched to it, where more than one."""
     faces = truth_faces()
     matched: dict[str, dict[str, float]] = {}
+    per_face: dict[str, int] = {}
     spurious = 0
     cos_tol = math.cos(math.radians(angle_deg))
     for p in planes:
@@ -166,9 +170,12 @@ def score_map(planes: list[dict[str, Any]], angle_deg: float = 5.0, dist_m: floa
                     best = (f["name"], err)
         if best is None:
             spurious += 1
-        elif best[0] not in matched or best[1]["offset_m"] < matched[best[0]]["offset_m"]:
+            continue
+        per_face[best[0]] = per_face.get(best[0], 0) + 1
+        if best[0] not in matched or best[1]["offset_m"] < matched[best[0]]["offset_m"]:
             matched[best[0]] = best[1]
-    return {"faces": len(faces), "matched": matched, "spurious": spurious}
+    duplicates = {name: n for name, n in sorted(per_face.items()) if n > 1}
+    return {"faces": len(faces), "matched": matched, "spurious": spurious, "duplicates": duplicates}
 
 
 def _progress_line(handles: dict[str, RovHandle], status: dict[str, Any], left_s: float) -> str:
@@ -192,7 +199,7 @@ def run_demo(cfg: DemoConfig, stop: threading.Event | None = None) -> DemoResult
     robots = [f"rov{k + 1}" for k in range(cfg.n_robots)]
     max_frames = int(cfg.duration_s * 20) + 10  # more than the renderer can draw in duration_s
     with TestNetwork("demo") as net:
-        base = net.start_base(state, map_mode="auto")
+        base = net.start_base(state, map_mode="auto", navigation=cfg.navigation)
         sims = {}
         for robot in robots:
             sims[robot] = simulated_robot(robot, cfg, max_frames)
@@ -332,9 +339,17 @@ def format_summary(res: DemoResult, cfg: DemoConfig) -> str:
                 if errs
                 else ""
             )
+            dups = t.get("duplicates", {})
+            dup_text = (
+                f"{sum(n - 1 for n in dups.values())} duplicate planes ("
+                + ", ".join(f"{name} x{n}" for name, n in dups.items())
+                + ")"
+                if dups
+                else "no duplicate planes"
+            )
             lines.append(
                 f"vs truth: {len(t['matched'])} of the tank's {t['faces']} vertical faces mapped "
-                f"(within 5 deg and 15 cm){worst}; {t['spurious']} planes match no face"
+                f"(within 5 deg and 15 cm){worst}; {dup_text}; {t['spurious']} spurious planes (match no face)"
             )
     else:
         lines.append("map: disabled (the mapping package or Open3D is missing)")

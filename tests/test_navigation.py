@@ -145,3 +145,18 @@ def test_navigation_keeps_a_drifting_fleet_map_consistent(drift_dive: tuple[Scen
     for robot, err in corrected.position_error_m.items():
         assert err[-1] < 0.15, robot
         assert max(err) < max(trusted.position_error_m[robot]) + 0.05, robot
+
+
+def test_the_demo_summary_names_duplicates_and_spurious_planes() -> None:
+    from services.demo import score_map as demo_score
+    from services.demo import truth_faces
+
+    f = truth_faces()[0]
+    n = f["normal"]
+    plane = {"normal": list(n), "d": float(-n @ f["center"]), "extent": {"centroid": list(f["center"])}}
+    twice = {**plane, "d": plane["d"] + 0.086}  # the same wall again, 8.6 cm off (seen in ./run demo)
+    stray = {"normal": [0.0, 0.0, 1.0], "d": -1.0, "extent": {"centroid": [5.0, 4.0, 1.0]}}
+    s = demo_score([plane, twice, stray])
+    assert s["duplicates"] == {f["name"]: 2}
+    assert s["spurious"] == 1
+    assert demo_score([plane])["duplicates"] == {}
