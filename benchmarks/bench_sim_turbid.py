@@ -1,6 +1,6 @@
 """The simulator's turbid water, glow model by glow model: what the extractor makes of each (issue 26).
 
-    python -m benchmarks.bench_sim_turbid [--seeds 2] [--out benchmarks/results/sim_turbid.md]
+    python benchmarks/bench_sim_turbid.py [--seeds 2] [--out benchmarks/results/sim_turbid.md]
 
 The named scene ``turbid`` (a wall at 1.5 m, attenuation 0.35/m, backscatter 6, haze, snow, speckle; 1920x1080)
 rendered with the sheet's glow drawn four ways, processed as a user would (``Sensor(calibration).process``)
@@ -28,7 +28,7 @@ from lrsensor.extract import compile
 from lrsensor.sim import named_scene
 from lrsensor.sim.score import score_scan
 
-COMMAND = "python -m benchmarks.bench_sim_turbid"
+COMMAND = "python benchmarks/bench_sim_turbid.py"
 DEFAULT_OUT = Path(__file__).parent / "results" / "sim_turbid.md"
 VARIANTS: dict[str, dict[str, object]] = {
     "blurred (older model)": {"glow_model": "blurred", "forward_scatter_px": 0.0},

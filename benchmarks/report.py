@@ -107,6 +107,12 @@ SOURCES: tuple[Source, ...] = (
     Source("port.md", "port", "python benchmarks/bench_port.py"),
     Source("calib.md", "calibration", "python benchmarks/bench_calib.py"),
     Source("sim.md", "simulator", "python benchmarks/bench_sim.py --repeat 3"),
+    Source(
+        "sim_turbid.md",
+        "accuracy",
+        "python benchmarks/bench_sim_turbid.py --seeds 2",
+        note="the simulator's turbid water by glow model (issue 26)",
+    ),
     Source("mapping.md", "mapping", "python benchmarks/bench_mapping.py"),
     Source(
         "nav.md",
