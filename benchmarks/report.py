@@ -162,6 +162,12 @@ SOURCES: tuple[Source, ...] = (
         f"{_SOAK} --robots 20 --rate 30 --duration 600 --points 500 --map off "
         "--out benchmarks/results/soak_20x30_500pts_mapoff_10min.md",
     ),
+    Source(
+        "link.md",
+        "soak",
+        "python benchmarks/bench_link.py --frames 60 --schema 1 --size 1280x720 --ack-timeout-s 60",
+        note="delivery over an impaired link between network namespaces (issue 30)",
+    ),
     Source("wire.md", "wire", "python benchmarks/bench_wire.py"),
     Source("fuzz.md", "fuzz", "python benchmarks/fuzz_decoders.py --n 3000 --seed 1"),
 )

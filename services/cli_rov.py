@@ -234,7 +234,8 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"rov {robot}: outbox {o['pending']} pending, {st['acked']} acknowledged, {st['resent']} re-sent "
                 f"({st['resent_bytes']} bytes, {st['resent_unheard']} never heard before), {o['dropped']} dropped "
-                f"(full), {st['unstored']} not stored, clouds {st['sent_bytes']} bytes",
+                f"(full), {st['unstored']} not stored, {st['held']} held while the link was down, "
+                f"clouds {st['sent_bytes']} bytes",
                 flush=True,
             )
             if service.state == "done" and o["pending"]:

@@ -60,6 +60,9 @@ WINDOW_GAIN = 2.0
 RATE_WINDOW_S = 2.0
 #: The delivery rate used is the highest measured over this long (a quiet moment is not a slow link), s.
 RATE_MEMORY_S = 10.0
+#: Without an answer to the ack polls for this long (or 3 query round trips, if longer) while clouds are
+#: pending, the link is taken as down: new clouds go to the outbox only, forwarded once answers return, s.
+SUSPECT_S = 1.5
 #: An acknowledgement poll waits at least / at most this long for the answer, s.
 MIN_POLL_TIMEOUT_S = 2.0
 MAX_POLL_TIMEOUT_S = 20.0
@@ -168,6 +171,8 @@ class DeliveryCounters:
         resent_bytes: bytes re-published.
         resent_unheard: re-publications of clouds whose earlier copies reached no subscriber (published while
             the base station was away, or reloaded from an earlier run): the first copy to go out on the link.
+        held: clouds not published live because the ack polls went unanswered (the link looked down): kept
+            in the outbox and forwarded from there (counted in ``resent_unheard`` then).
     """
 
     sent: int = 0
@@ -180,6 +185,7 @@ class DeliveryCounters:
     sent_bytes: int = 0
     resent_bytes: int = 0
     resent_unheard: int = 0
+    held: int = 0
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -267,6 +273,8 @@ class OutboxSink:
         # ... as of the poll before the last: a cloud sent before it and still not acknowledged one poll later
         # is lost (the base station's workers may finish neighbouring clouds in either order)
         self._lost_before = 0.0
+        self._last_answer = time.monotonic()  # the last answer to an ack poll (or an empty outbox)
+        self._holding = False
         self._poll_timeout = MIN_POLL_TIMEOUT_S  # how long an ack poll waits for the answer (adapts)
         self._query_rtt: float | None = None  # smoothed time an ack poll took to be answered, s
         self._last_progress = time.monotonic()  # last time the acknowledgements moved on
@@ -284,15 +292,18 @@ class OutboxSink:
         """
         payload = msg.with_sent_ns(time.time_ns()).to_bytes()
         heard = self.base_present()  # no matching subscriber: zenoh sends nothing, re-send on reappearance
+        hold = heard and self.link_suspect()  # a link that looks down gets no live copy to lose
         with self._lock:
             self._last_sent[msg.seq] = time.monotonic()
             self._sends[msg.seq] = 1
             self._sizes[msg.seq] = len(payload)
-            if not heard:
+            if not heard or hold:
                 self._unheard.add(msg.seq)
             self.counters.sent += 1
             self.counters.sent_bytes += len(payload)
-        self._put(payload)
+            self.counters.held += int(hold)
+        if not hold:
+            self._put(payload)
         with self._lock:
             self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
         try:
@@ -340,6 +351,24 @@ class OutboxSink:
         except Exception:
             return False
 
+    def link_suspect(self) -> bool:
+        """True while the ack polls have gone unanswered for long (:data:`SUSPECT_S`): the link looks down."""
+        with self._lock:
+            silent = time.monotonic() - self._last_answer
+            suspect = silent > max(SUSPECT_S, 3 * (self._query_rtt or 0.0))
+            if suspect != self._holding:
+                self._holding = suspect
+                if suspect:
+                    log.warning(
+                        "rov %s: no answer from the base station for %.0f s; new clouds are kept in the outbox "
+                        "and forwarded once it answers",
+                        self.robot,
+                        silent,
+                    )
+                else:
+                    log.info("rov %s: the base station answers again", self.robot)
+            return suspect
+
     def poll_acks(self, timeout_s: float | None = None) -> int:
         """Ask the base station what it holds and forget those clouds; returns how many were removed.
 
@@ -356,13 +385,14 @@ class OutboxSink:
             self.keys.base_acks(self.robot), timeout=timeout_s, priority=self._ack_priority, express=True
         )
         for reply in replies:
+            if reply.ok is None:  # an error, or zenoh's reply that the query timed out: no answer
+                continue
             if not answered:
                 answered = True
+                self._last_answer = time.monotonic()
                 took = time.monotonic() - asked
                 self._query_rtt = took if self._query_rtt is None else 0.75 * self._query_rtt + 0.25 * took
                 self._poll_timeout = min(MAX_POLL_TIMEOUT_S, max(MIN_POLL_TIMEOUT_S, 4 * self._query_rtt))
-            if reply.ok is None:
-                continue
             try:
                 ranges = parse_ack_reply(reply.ok.payload.to_bytes(), self.robot)
             except ValueError as err:
@@ -414,6 +444,8 @@ class OutboxSink:
                 self.counters.base_seen += 1
             log.info("rov %s: base station present; %d clouds pending", self.robot, len(self.outbox))
         if not len(self.outbox):
+            with self._lock:
+                self._last_answer = time.monotonic()  # nothing to ask about: no reason to doubt the link
             return
         if present:
             self.poll_acks()
@@ -438,8 +470,10 @@ class OutboxSink:
                 self.counters.resent_bytes += len(payload)
 
     def _choose_resends(self, now: float) -> list[int]:
-        """The clouds to send again this cycle, oldest first, within the pacing window."""
+        """The clouds to send again this cycle, oldest first, within the pacing window (only a probe while the
+        link looks down)."""
         pending = self.outbox.pending()
+        suspect = self.link_suspect()
         with self._lock:
             timeout = self.clock.timeout()
             window = self.clock.window()
@@ -452,7 +486,7 @@ class OutboxSink:
                 if (t := self._last_sent.get(s)) is not None and t > acked_t and now - t < timeout
             )
             chosen: list[int] = []
-            for seq in pending:
+            for seq in [] if suspect else pending:
                 if len(chosen) >= self.max_resend_per_cycle:
                     break
                 last = self._last_sent.get(seq)
@@ -531,6 +565,7 @@ class OutboxSink:
                 "sent_bytes": c.sent_bytes,
                 "resent_bytes": c.resent_bytes,
                 "resent_unheard": c.resent_unheard,
+                "held": c.held,
                 "link": self.clock.to_json(),
             }
         out["outbox"] = self.outbox.stats().to_json_dict()

@@ -379,7 +379,8 @@ def run_fleet(
 ) -> FleetRun:
     """Run a base station and ``robots`` replaying ``dive`` at ``rate_hz`` over ``link``.
 
-    ``outage``: ``(after_s, for_s)`` takes the link down ``after_s`` after the robots start, for ``for_s``.
+    ``outage``: ``(after_s, for_s)`` takes the link down for ``for_s``, ``after_s`` after the base station
+    holds a first cloud of every robot (the robots' start-up takes seconds and must not hide the outage).
     Robots still running ``deadline_s`` after the start are killed (exit code None).
     """
     work = link.workdir
@@ -411,12 +412,17 @@ def run_fleet(
              "--outbox", str(outboxes / r), *rov_args],
         )  # fmt: skip
     down_at = up_at = None
-    if outage is not None:
-        down_at, up_at = t0 + outage[0], t0 + outage[0] + outage[1]
+    flowing = outage is None  # the outage clock starts once the base holds a cloud of every robot
     codes: dict[str, int | None] = {}
     last_exit = t0
     while len(codes) < len(robots):
         now = time.monotonic()
+        if not flowing and outage is not None:
+            got = (probe.status() or {}).get("robots", {})
+            if all(got.get(r, {}).get("received", 0) > 0 for r in robots):
+                flowing = True
+                down_at, up_at = now + outage[0], now + outage[0] + outage[1]
+            now = time.monotonic()
         if down_at is not None and now >= down_at:
             link.set_up(False)
             down_at = None

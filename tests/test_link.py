@@ -117,13 +117,17 @@ def test_three_robots_over_10_mbit_10_percent_loss_200_ms(dive: Path, tmp_path: 
 def test_a_20_s_link_flap_loses_nothing_and_floods_nothing(dive: Path, tmp_path: Path) -> None:
     with netlink(LOSSY, tmp_path) as link:
         run = run_fleet(
-            link, dive, robots=("rov1", "rov2"), frames=60, outage=(2.0, 20.0), ack_timeout_s=40, deadline_s=58
+            link, dive, robots=("rov1", "rov2"), frames=60, outage=(2.0, 20.0), ack_timeout_s=40, deadline_s=100
         )
     _assert_all_delivered(run)
     why = _explain(run)
     # the base station takes every cloud once; copies are only what the broken connection lost
     assert sum(run.duplicates.values()) <= 0.1 * run.expected, why
     assert run.link_ratio <= 1.5, why
+    # the clouds published in the second or two before the ROVs saw their ack polls go unanswered went into a
+    # connection that died: a large share of a 6 s replay (a small one of a long outage: the slow test below),
+    # far from a flood; the rest were kept in the outbox and forwarded once
+    assert run.sent_twice_pct <= 35.0, why
 
 
 @needs_netns
