@@ -112,8 +112,18 @@ class MapBuilder:
         Returns:
             The changes: planes updated (``change.plane.to_json()`` is the dict :meth:`map_json` lists) and
             planes removed (fused into ``change.merged_into``); empty unless this cloud triggered an extraction.
-            Clouds closer in time than 1 / ``max_cloud_rate_hz`` to the robot's last one taken only extend its
-            track.
+            With a per-robot cap (``max_cloud_rate_hz`` > 0), clouds closer in time than 1 / ``max_cloud_rate_hz``
+            to the robot's last one taken only extend its track (counted: :attr:`rate_skipped`).
+        """
+        records = self.observe_cloud(robot, t_ns, points_ned, pose)
+        changes = self.merge(records) if records else []
+        self._maybe_autosave()
+        return changes
+
+    def observe_cloud(self, robot: str, t_ns: int, points_ned: Any, pose: Pose) -> list[PlaneRecord] | None:
+        """The per-robot half of :meth:`add_cloud`: take the cloud into the robot's window and, when an extraction
+        is due, return its plane observations without merging them (a plane worker sends them to the merger,
+        which calls :meth:`merge`). None: no extraction ran (the cloud waits in the window, or the cap skipped it).
         """
         if not isinstance(robot, str) or not robot:
             msg = f"robot must be a non-empty string, got {robot!r}"
@@ -139,7 +149,7 @@ class MapBuilder:
                 and 0 <= t - last < 0.999e9 / self.cfg.max_cloud_rate_hz
             ):
                 self._counters.skipped += 1
-                return []
+                return None
             self._last_taken[robot] = t
         cloud = _Cloud(t, self._thin(p, veh), np.rint(veh / self.cfg.quantum_m).astype(np.int64))
         with self._lock:
@@ -149,9 +159,37 @@ class MapBuilder:
             win.new_points += cloud.points_q.shape[0]
             self._counters.points += cloud.points_q.shape[0]
             due = self._due(win)
-        changes = self._extract(robot) if due else []
-        self._maybe_autosave()
-        return changes
+        return self._observe(robot) if due else None
+
+    def merge(self, records: list[PlaneRecord]) -> list[MapChange]:
+        """Fuse plane observations (of :meth:`observe_cloud`, here or in a plane worker) into the map; returns
+        the changes. The merger's whole job: association and exact addition of statistics."""
+        changes: list[MapChange] = []
+        with self._lock:
+            for rec in records:
+                changes.extend(self._map.add(rec))
+            self._version += 1 if records else 0
+            self._counters.observations += len(records)
+        return _squash(changes)
+
+    def uncommitted(self, robot: str) -> int:
+        """Clouds of ``robot`` in its window that no extraction has committed yet (0 once they reached the map)."""
+        with self._lock:
+            win = self._windows.get(robot)
+            return win.n_new if win is not None else 0
+
+    def drop_robot(self, robot: str) -> None:
+        """Forget ``robot``'s window (a plane worker whose robot moved to another worker; its uncommitted clouds
+        are processed again there)."""
+        with self._lock:
+            self._windows.pop(robot, None)
+            self._last_taken.pop(robot, None)
+
+    @property
+    def rate_skipped(self) -> int:
+        """Clouds the per-robot cap (``max_cloud_rate_hz``) left out of the map (they only made the track)."""
+        with self._lock:
+            return self._counters.skipped
 
     def _thin(self, p: FloatArray, veh: FloatArray) -> NDArray[np.int32]:
         """Range-gate, quantize and thin one cloud: (K, 3) int32 quanta.
@@ -194,11 +232,18 @@ class MapBuilder:
         with self._lock:
             robots = sorted(r for r, w in self._windows.items() if w.n_new > 0)
         for robot in robots:
-            changes.extend(self._extract(robot))
+            changes.extend(self.merge(self._observe(robot)))
         return changes
 
+    def flush_observations(self) -> dict[str, list[PlaneRecord]]:
+        """Like :meth:`flush` without merging: robot -> the observations of its pending clouds (plane workers)."""
+        with self._lock:
+            robots = sorted(r for r, w in self._windows.items() if w.n_new > 0)
+        return {robot: self._observe(robot) for robot in robots}
+
     # ------------------------------------------------------------- extraction
-    def _extract(self, robot: str) -> list[MapChange]:
+    def _observe(self, robot: str) -> list[PlaneRecord]:
+        """Extract the robot's window; the observations of its new clouds (not merged)."""
         cfg = self.cfg
         q = cfg.quantum_m
         with self._lock:
@@ -227,8 +272,7 @@ class MapBuilder:
         veh_m = veh_q * q - origin_m
         seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
         ex = extract_planes(pts_m, veh_m, cfg, seed)
-        changes: list[MapChange] = []
-        n_obs = 0
+        records: list[PlaneRecord] = []
         n_curved = 0
         n_single = 0
         if ex.candidates:
@@ -237,7 +281,6 @@ class MapBuilder:
             claims = claim_points(pts_m, ex.grid, ex.candidates, ex.cell_keys, cfg, eligible)
             first_ns, last_ns = new[0].t_ns, new[-1].t_ns
             frame_of = np.repeat(np.arange(len(clouds), dtype=np.int64), lens)
-            records = []
             for cand, idx in zip(ex.candidates, claims, strict=True):
                 if idx.shape[0] < cfg.min_commit_points:
                     continue
@@ -250,18 +293,12 @@ class MapBuilder:
                     n_curved += 1
                     continue
                 records.append(PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg))
-            with self._lock:
-                for rec in records:
-                    changes.extend(self._map.add(rec))
-                self._version += 1 if records else 0
-            n_obs = len(records)
         with self._lock:
             self._counters.extractions += 1
-            self._counters.observations += n_obs
             self._counters.curved += n_curved
             self._counters.single_frame += n_single
             self._counters.extract_s += time.perf_counter() - t0
-        return _squash(changes)
+        return records
 
     # ----------------------------------------------------------------- output
     def map_json(self, include_tracks: bool = False, include_tentative: bool = False) -> dict[str, Any]:

@@ -344,3 +344,50 @@ class PlaneMap:
             for pid in sorted(self.planes)
             if include_tentative or self.planes[pid].record.n_obs >= self.cfg.min_obs_publish
         ]
+
+
+def record_to_wire(rec: PlaneRecord) -> dict[str, Any]:
+    """One observation as plain data for a plane worker's message (lossless: :func:`record_from_wire` gives
+    back an equal record, ``hint_normal`` included). The exact integer sums can outgrow 64 bits, so they travel
+    as decimal strings; the voxel arrays as little-endian int64 bytes."""
+    return {
+        "stats": [str(v) for v in rec.stats.to_list()],
+        "orient": [str(v) for v in rec.orient],
+        "aabb_min": list(rec.aabb_min),
+        "aabb_max": list(rec.aabb_max),
+        "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in rec.contributions.items()},
+        "vox_keys": rec.voxels.keys.astype("<i8").tobytes(),
+        "vox_counts": rec.voxels.counts.astype("<i8").tobytes(),
+        "vox_sums": rec.voxels.sums.astype("<i8").tobytes(),
+        "n_obs": rec.n_obs,
+        "hint": list(rec.hint_normal) if rec.hint_normal is not None else None,
+        "within": [str(v) for v in rec.within],
+    }
+
+
+def record_from_wire(data: dict[str, Any]) -> PlaneRecord:
+    """The observation :func:`record_to_wire` encoded (raises KeyError/ValueError/TypeError when malformed)."""
+    o = [int(v) for v in data["orient"]]
+    lo = [int(v) for v in data["aabb_min"]]
+    hi = [int(v) for v in data["aabb_max"]]
+    w = [int(v) for v in data["within"]]
+    hint = data.get("hint")
+    keys = np.frombuffer(data["vox_keys"], "<i8").astype(np.int64)
+    if len(o) != 3 or len(lo) != 3 or len(hi) != 3 or len(w) != 6:
+        msg = "observation: orient, aabb_min, aabb_max need 3 values, within 6"
+        raise ValueError(msg)
+    return PlaneRecord(
+        PlaneStats.from_list([int(v) for v in data["stats"]]),
+        (o[0], o[1], o[2]),
+        (lo[0], lo[1], lo[2]),
+        (hi[0], hi[1], hi[2]),
+        {str(k): Contribution(int(v[0]), int(v[1]), int(v[2])) for k, v in data["contributions"].items()},
+        VoxelSet(
+            keys,
+            np.frombuffer(data["vox_counts"], "<i8").astype(np.int64),
+            np.frombuffer(data["vox_sums"], "<i8").astype(np.int64).reshape(-1, 3),
+        ),
+        int(data["n_obs"]),
+        (float(hint[0]), float(hint[1]), float(hint[2])) if hint is not None else None,
+        (w[0], w[1], w[2], w[3], w[4], w[5]),
+    )

@@ -39,9 +39,10 @@ class MapConfig:
     """Configuration of the map builder. Lengths in metres, angles in degrees (``_deg``), times in seconds.
 
     Windows and rate:
-        max_cloud_rate_hz: per robot, the map takes at most this many clouds per second of capture time (0: all);
-            the others still make the robot's track. At 30 Hz consecutive clouds overlap almost entirely, and
-            this is what lets one map thread keep up with a large fleet (see benchmarks/results/mapping.md).
+        max_cloud_rate_hz: per robot, the map takes at most this many clouds per second of capture time (0, the
+            default: every cloud); the others still make the robot's track and are counted
+            (:attr:`~mapping.MapBuilder.rate_skipped`, ``map.rate_skipped`` in the base status). An operator option
+            for a map that cannot keep up; plane workers (docs/scaling.md) are the way to keep every cloud.
         window_clouds: clouds per robot kept as context for extraction (>= ``extract_every_clouds``).
         extract_every_clouds: run extraction for a robot after this many new clouds ...
         extract_every_points: ... or this many new points ...
@@ -100,7 +101,7 @@ class MapConfig:
         autosave_every_s: wall-clock seconds between automatic saves (0 disables; needs a state dir).
     """
 
-    max_cloud_rate_hz: float = 10.0
+    max_cloud_rate_hz: float = 0.0
     window_clouds: int = 10
     extract_every_clouds: int = 10
     extract_every_points: int = 40_000

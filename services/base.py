@@ -413,6 +413,8 @@ class BaseStation:
         transit = self.latency.percentiles_ms(transit=True)
         robots = self.ledger.robots_json(robot)
         for name, rec in robots.items():
+            if self.feed.enabled:
+                rec["mapped"] = self.feed.mapped(name)  # clouds whose planes reached the map
             nav = self.feed.nav_status(name)
             if nav is not None:
                 rec["nav"] = nav

@@ -6,10 +6,20 @@ builder, and publishes what changed. Each cloud is then reported to the ledger (
 the map, it is acknowledgeable at the next checkpoint. Without the map (``--map off``, or Open3D missing with
 ``--map auto``) :meth:`MapFeed.take` reports the cloud at once.
 
-Back-pressure, then loss that is counted: a full map queue blocks the ingest worker for up to ``map_wait_s``,
+Every cloud goes into the map by default (``MapConfig.max_cloud_rate_hz`` = 0). An operator who sets a per-robot
+cap gets it counted: ``map.rate_skipped`` in the status (those clouds only make the robot's track).
+
+The backlog policy (bounded, counted, shown): the map queue holds at most ``queue_size`` clouds (``map.backlog``
+and ``map.backlog_limit`` in the status). A full map queue blocks the ingest worker for up to ``map_wait_s``,
 which in turn fills the ingest queue and blocks the Zenoh callback, which pushes back on the robots' BLOCK
-publishers. A map stalled longer than that loses the cloud (``map.skipped`` in the status); the cloud is
+publishers: a map that falls behind slows the fleet's delivery (the robots' outboxes hold the clouds) instead of
+thinning. A map stalled longer than ``map_wait_s`` loses the cloud (``map.skipped``, logged); the cloud is
 still received and acknowledged, or the robot would re-send it forever to a map that cannot take it.
+
+A cloud *reaches the map* when the extraction of its robot's window commits it (``robots.<robot>.mapped`` counts
+those clouds; ``map.latency_ms.p50``/``p99`` is capture time to that moment, over the recent clouds; clouds
+waiting in a window for their extraction are ``map.pending``). With plane workers (:mod:`services.map_workers`)
+the same counters come from the workers' observations.
 
 Wire form of the updates (``<root>/map/updates``, JSON, one message per cloud that changed the map)::
 
@@ -176,7 +186,14 @@ class MapFeed:
         #: clouds left out because their pose has no horizontal fix, and the robots already warned about
         self.unplaced = 0
         self._unplaced_robots: set[str] = set()
+        self.queue_size = queue_size
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
+        #: capture time -> map update latencies of the clouds that reached the map
+        self.map_latency = LatencyStats()
+        #: per robot: clouds that reached the map; (seq, t_ns) of those waiting in the builder's window
+        self._mapped: dict[str, int] = {}
+        self._pending: dict[str, list[tuple[int, int]]] = {}
+        self._count_lock = threading.Lock()
         self._publish: Callable[[str], object] | None = None
         self._thread: threading.Thread | None = None
         self._planes = 0
@@ -299,6 +316,8 @@ class MapFeed:
                     return
                 if msg is _FLUSH:
                     self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
+                    for robot in list(self._pending):
+                        self._commit(robot)
                     continue
                 self._map_one(msg)
             except Exception as err:  # the map must never stop the ingest
@@ -330,9 +349,29 @@ class MapFeed:
             with self._nav_lock:
                 self._nav_counts.setdefault(msg.robot, [0, 0])[0] += 1
         points_ned = body_to_ned(points_body, pose)
+        skipped_before = self.builder.rate_skipped
         changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, pose)
         self.clouds += 1
+        if self.builder.rate_skipped == skipped_before:  # not left out by an operator's cap
+            with self._count_lock:
+                self._pending.setdefault(msg.robot, []).append((msg.seq, msg.t_ns))
+            if self.builder.uncommitted(msg.robot) == 0:
+                self._commit(msg.robot)
         self._publish_changes(msg, changes)
+
+    def _commit(self, robot: str) -> None:
+        """The robot's pending clouds reached the map (their window was extracted): count them, time them."""
+        now = time.time_ns()
+        with self._count_lock:
+            done = self._pending.pop(robot, [])
+            self._mapped[robot] = self._mapped.get(robot, 0) + len(done)
+        for _seq, t_ns in done:
+            self.map_latency.add(now - t_ns, None)
+
+    def mapped(self, robot: str) -> int:
+        """Clouds of ``robot`` that reached the map."""
+        with self._count_lock:
+            return self._mapped.get(robot, 0)
 
     def _nav_publish(self, est: NavEstimate) -> None:
         with self._nav_lock:
@@ -387,13 +426,23 @@ class MapFeed:
         if self.builder is not None and self._planes_stale:
             self._planes = self.builder.n_planes  # counted under the builder's lock, no JSON built
             self._planes_stale = False
+        with self._count_lock:
+            pending = sum(len(v) for v in self._pending.values())
+        lat = self.map_latency.percentiles_ms()
+        backlog = self._queue.qsize()
         return {
             "planes": self._planes,
             "enabled": self.builder is not None,
             "clouds": self.clouds,
             "skipped": self.skipped,
             "unplaced": self.unplaced,
-            "queued": self._queue.qsize(),
+            "queued": backlog,
+            "backlog": backlog,
+            "backlog_limit": self.queue_size,
+            "pending": pending,
+            "rate_skipped": self.builder.rate_skipped if self.builder is not None else 0,
+            "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
+            "workers": 0,
             "errors": self.errors,
         } | ({"navigation": self.navigator is not None} if self.builder is not None else {})
 

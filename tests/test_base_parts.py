@@ -87,6 +87,12 @@ def test_map_feed_without_a_map_reports_each_cloud_at_once() -> None:
         "skipped": 0,
         "unplaced": 0,
         "queued": 0,
+        "backlog": 0,
+        "backlog_limit": 1024,
+        "pending": 0,
+        "rate_skipped": 0,
+        "latency_ms": {"p50": None, "p99": None},
+        "workers": 0,
         "errors": 0,
     }
     assert feed.map_json() == {"planes": [], "enabled": False}
@@ -99,6 +105,10 @@ class FakeMap:
     def __init__(self) -> None:
         self.added: list[tuple[str, int, Pose]] = []
         self.n_planes = 0
+        self.rate_skipped = 0
+
+    def uncommitted(self, robot: str) -> int:
+        return 0
 
     def add_cloud(self, robot: str, t_ns: int, points_ned: np.ndarray, pose: Pose) -> list[object]:
         assert np.all(np.isfinite(points_ned))
@@ -169,3 +179,54 @@ def test_map_changes_go_on_the_wire_as_before() -> None:
     plane = MapPlane(4, rec, MapConfig())
     assert change_json(MapChange.updated(plane)) == plane.to_json()
     assert change_json(MapChange.removed(5, merged_into=4)) == {"id": 5, "removed": True, "merged_into": 4}
+
+
+def _dive(robot: str, n: int, rate_hz: float = 30.0) -> list[CloudMsg]:
+    """``n`` clouds of ``robot`` at ``rate_hz`` of capture time (random points: nothing to extract)."""
+    base = a_cloud(robot, 0, n=50)
+    step = round(1e9 / rate_hz)
+    return [
+        CloudMsg(robot, s, base.t_ns + s * step, base.pose, base.points_body, base.laser, base.quality)
+        for s in range(n)
+    ]
+
+
+@pytest.mark.parametrize("cap_hz", [0.0, 10.0])
+def test_every_cloud_reaches_the_map_by_default_and_a_cap_is_counted(cap_hz: float) -> None:
+    from mapping import MapBuilder, MapConfig
+
+    ledger = Ledger(None)
+    feed = MapFeed(MapBuilder(MapConfig(max_cloud_rate_hz=cap_hz)), ledger.mark_mapped)
+    feed.start(None)
+    try:
+        for robot in ("rov1", "rov2"):
+            for msg in _dive(robot, 45):  # 1.5 s at 30 Hz: windows of 10 extracted, then a partial one
+                assert ledger.accept(msg)
+                feed.take(msg, msg.t_ns)
+        feed.flush()
+    finally:
+        feed.close(save=False)
+    st = feed.status_json()
+    if cap_hz == 0:
+        assert (feed.mapped("rov1"), feed.mapped("rov2"), st["rate_skipped"]) == (45, 45, 0)
+    else:  # 10 of 30 clouds a second taken: the rest counted, not hidden
+        assert feed.mapped("rov1") == 15
+        assert st["rate_skipped"] == 60
+    assert st["backlog"] == 0
+    assert st["pending"] == 0
+    assert st["backlog_limit"] == 1024
+    assert st["latency_ms"]["p50"] is not None
+    assert st["latency_ms"]["p99"] >= st["latency_ms"]["p50"]
+    assert ledger.records["rov1"].mapped.ranges() == [[0, 44]]  # acknowledgeable either way
+
+
+def test_map_backlog_is_bounded_counted_and_shown() -> None:
+    ledger = Ledger(None)
+    fake = FakeMap()
+    feed = MapFeed(fake, ledger.mark_mapped, queue_size=3, map_wait_s=0.01)  # type: ignore[arg-type]
+    # the map thread is not started: the queue fills, then the map waits map_wait_s and counts what it leaves out
+    for msg in _dive("rov1", 5):
+        ledger.accept(msg)
+        feed.take(msg, msg.t_ns)
+    st = feed.status_json()
+    assert (st["backlog"], st["backlog_limit"], st["skipped"]) == (3, 3, 2)
