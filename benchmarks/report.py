@@ -168,6 +168,13 @@ SOURCES: tuple[Source, ...] = (
         "python benchmarks/bench_link.py --frames 60 --schema 1 --size 1280x720 --ack-timeout-s 60",
         note="delivery over an impaired link between network namespaces (issue 30)",
     ),
+    Source(
+        "link_flap5min.md",
+        "soak",
+        "python benchmarks/bench_link.py --rows flap5min --frames 3300 --schema 2 --size 640x360 --ack-timeout-s 120 "
+        "--deadline-s 1200 --out link_flap5min.md",
+        note="the link down for 5 minutes",
+    ),
     Source("wire.md", "wire", "python benchmarks/bench_wire.py"),
     Source("fuzz.md", "fuzz", "python benchmarks/fuzz_decoders.py --n 3000 --seed 1"),
 )
