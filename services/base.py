@@ -48,7 +48,7 @@ from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
 
 from .calibbook import CalibrationBook
-from .errors import WireError
+from .errors import ServiceError, WireError
 from .keys import FleetKeys
 from .ledger import MAX_TRACK_POINTS, STATE_FORMAT, STATE_VERSION, UNKNOWN_SENDER, Ledger, RobotRecord
 from .mapfeed import LatencyStats, MapFeed, load_map_builder
@@ -91,6 +91,11 @@ class BaseStation:
         ack_period_s: how often a checkpoint (map and counters saved) acknowledges what arrived.
         navigation: correct each robot's pose from its scans before its clouds go into the map
             (``mapping.navigation``; needs the map). Off: the raw poses are trusted.
+        map_workers: plane-worker processes to start on this machine (0: the map thread extracts in this
+            process, unless ``remote_workers``); they connect to ``worker_endpoint`` (see docs/scaling.md).
+        worker_endpoint: where local workers connect (the router's TCP endpoint, e.g. ``tcp/127.0.0.1:7447``).
+        remote_workers: send the per-robot work to plane workers (of any machine) even when none is started
+            here (:mod:`services.map_workers`); implied by ``map_workers`` > 0.
     """
 
     def __init__(
@@ -107,6 +112,9 @@ class BaseStation:
         ack_period_s: float = 2.0,
         map_wait_s: float = 5.0,
         navigation: bool = True,
+        map_workers: int = 0,
+        worker_endpoint: str | None = None,
+        remote_workers: bool = False,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -131,6 +139,13 @@ class BaseStation:
             self.map, self.ledger.mark_mapped, queue_size=queue_size, map_wait_s=map_wait_s, navigation=navigation
         )
         self.calibrations = CalibrationBook(self.ledger.calibration_path, self._fetch_robot_calibration)
+        self.n_map_workers = max(0, map_workers)
+        self.worker_endpoint = worker_endpoint
+        self.use_workers = self.map is not None and (self.n_map_workers > 0 or remote_workers)
+        if self.use_workers and self.n_map_workers > 0 and worker_endpoint is None:
+            msg = "map workers need the endpoint they connect to (worker_endpoint, a tcp/ listen endpoint)"
+            raise ServiceError(msg)
+        self._worker_procs: list[Any] = []
 
     # ------------------------------------------------------------------ the parts, by their old names
     @property
@@ -189,6 +204,16 @@ class BaseStation:
             encoding=zenoh.Encoding("application/json"),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
+        if self.use_workers:
+            from .map_worker_procs import start_local_workers
+            from .map_workers import WorkerPool
+
+            assert self.map is not None
+            pool = WorkerPool(s, self.keys, self.map, lambda robot, done: None, lambda changes: None)
+            self.feed.use_workers(pool)
+            pool.start()
+            if self.n_map_workers and self.worker_endpoint is not None:
+                self._worker_procs = start_local_workers(self.n_map_workers, self.keys, self.worker_endpoint)
         self.feed.start(map_pub.put, self._publish_nav)
         saver = threading.Thread(target=self.ledger.run_saver, args=(self._closing,), name="base-saver", daemon=True)
         saver.start()
@@ -231,6 +256,11 @@ class BaseStation:
             t.join(timeout=CLOSE_JOIN_S)
         self._threads.clear()
         self.feed.close(save=self.state_dir is not None)
+        if self._worker_procs:
+            from .map_worker_procs import stop_local_workers
+
+            stop_local_workers(self._worker_procs)
+            self._worker_procs = []
         self.checkpoint(save_map=False)
 
     # ------------------------------------------------------------------ callbacks (cheap, never block long)

@@ -33,6 +33,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
     parser.add_argument(
+        "--map-workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="plane-worker processes to start here (default: cores - 2, so 0 on 2 cores: the map runs in the base "
+        "process; see docs/scaling.md)",
+    )
+    parser.add_argument(
+        "--remote-map-workers",
+        action="store_true",
+        help="send the per-robot map work to plane workers (lrsensor map-worker) even with --map-workers 0",
+    )
+    parser.add_argument(
         "--status-every-s", type=float, default=10.0, help="log a status line this often (0: never; default 10)"
     )
     add_view_args(parser)
@@ -55,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
         options = options_from_args(args)
         options = type(options)(mode=options.mode, listen=(DEFAULT_LISTEN,))
     robots = [r.strip() for r in args.robots.split(",") if r.strip()] if args.robots else None
+    from .map_worker_procs import default_map_workers, local_endpoint
+
+    n_workers = args.map_workers if args.map_workers is not None else default_map_workers()
+    endpoint = local_endpoint(options.listen) or (options.connect[0] if options.connect else None)
     with stop_on_signals() as stop, open_session(options, default_mode="router") as session:
         station = BaseStation(
             session,
@@ -64,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
             robots=robots,
             workers=args.workers,
             navigation=args.nav == "on",
+            map_workers=n_workers if endpoint is not None else 0,
+            worker_endpoint=endpoint,
+            remote_workers=args.remote_map_workers,
         )
         with station, open_views(session, keys, args, station):
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)

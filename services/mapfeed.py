@@ -74,6 +74,8 @@ if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
     from mapping.navigation import NavEstimate, NavFrame, Navigator
 
+    from .map_workers import WorkerPool
+
 log = logging.getLogger(__name__)
 
 #: How long :meth:`MapFeed.close` waits for the map thread to finish its queue, seconds.
@@ -204,6 +206,8 @@ class MapFeed:
 
             self.navigator = Navigator()
             self._frame: NavFrame = NavFrame()
+        #: plane workers (None: the map thread extracts in this process)
+        self.pool: WorkerPool | None = None
         self.nav_publish_s = nav_publish_s
         self._publish_nav: Callable[[str, str], object] | None = None
         self._nav_lock = threading.Lock()
@@ -233,14 +237,25 @@ class MapFeed:
             self._thread = threading.Thread(target=self._worker, name="base-map", daemon=True)
             self._thread.start()
 
+    def use_workers(self, pool: WorkerPool) -> None:
+        """Send the per-robot work to plane workers (before :meth:`start`); the map thread then only navigates
+        and dispatches, and ``pool`` merges what the workers observe (see :mod:`services.map_workers`)."""
+        self.pool = pool
+        pool.on_commit = self._commit_done
+        pool.on_changes = lambda changes: self._publish_changes(None, changes)
+
     def close(self, save: bool) -> None:
         """Stop publishing, let the map thread finish its queue, flush the map, and save it when ``save``."""
-        self._publish = None
-        self._publish_nav = None
         if self._thread is not None:
             self._queue.put(None)
             self._thread.join(timeout=CLOSE_TIMEOUT_S)
             self._thread = None
+        if self.pool is not None:
+            if not self.pool.flush(CLOSE_TIMEOUT_S):
+                log.warning("map workers: %d clouds not committed at close (not acknowledged)", self.pool.in_flight)
+            self.pool.close()
+        self._publish = None
+        self._publish_nav = None
         if self.builder is not None:
             try:
                 self.builder.flush()
@@ -305,12 +320,15 @@ class MapFeed:
             return
         self._queue.put(_FLUSH)
         self._queue.join()
+        if self.pool is not None:
+            self.pool.flush(CLOSE_TIMEOUT_S)
 
     # ------------------------------------------------------------------ the map thread
     def _worker(self) -> None:
         """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
         while True:
             msg = self._queue.get()
+            deferred = False
             try:
                 if msg is None:
                     return
@@ -319,16 +337,18 @@ class MapFeed:
                     for robot in list(self._pending):
                         self._commit(robot)
                     continue
-                self._map_one(msg)
+                deferred = self._map_one(msg)
             except Exception as err:  # the map must never stop the ingest
                 self.errors += 1
                 log.exception("map update failed: %s", err)
             finally:
-                if isinstance(msg, CloudMsg):  # taken in (or refused by the map): acknowledgeable
+                # taken in (or refused by the map): acknowledgeable; with workers, once committed (_commit_done)
+                if isinstance(msg, CloudMsg) and not deferred:
                     self.on_mapped(msg.robot, msg.seq)
                 self._queue.task_done()
 
-    def _map_one(self, msg: CloudMsg) -> None:
+    def _map_one(self, msg: CloudMsg) -> bool:
+        """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
         assert self.builder is not None
         points_body = msg.points_body.astype(np.float64)
         pose = msg.pose
@@ -344,10 +364,14 @@ class MapFeed:
                     if est.pose is None
                     else "navigation's position is too uncertain",
                 )
-                return
+                return False
             pose = est.pose
             with self._nav_lock:
                 self._nav_counts.setdefault(msg.robot, [0, 0])[0] += 1
+        if self.pool is not None:
+            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, pose, msg.points_body)
+            self.clouds += 1
+            return True
         points_ned = body_to_ned(points_body, pose)
         skipped_before = self.builder.rate_skipped
         changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, pose)
@@ -358,6 +382,7 @@ class MapFeed:
             if self.builder.uncommitted(msg.robot) == 0:
                 self._commit(msg.robot)
         self._publish_changes(msg, changes)
+        return False
 
     def _commit(self, robot: str) -> None:
         """The robot's pending clouds reached the map (their window was extracted): count them, time them."""
@@ -367,6 +392,15 @@ class MapFeed:
             self._mapped[robot] = self._mapped.get(robot, 0) + len(done)
         for _seq, t_ns in done:
             self.map_latency.add(now - t_ns, None)
+
+    def _commit_done(self, robot: str, done: list[tuple[int, int]]) -> None:
+        """Plane workers committed these ``(seq, t_ns)`` clouds of ``robot``: count, time, acknowledge."""
+        now = time.time_ns()
+        with self._count_lock:
+            self._mapped[robot] = self._mapped.get(robot, 0) + len(done)
+        for seq, t_ns in done:
+            self.map_latency.add(now - t_ns, None)
+            self.on_mapped(robot, seq)
 
     def mapped(self, robot: str) -> int:
         """Clouds of ``robot`` that reached the map."""
@@ -430,21 +464,28 @@ class MapFeed:
             pending = sum(len(v) for v in self._pending.values())
         lat = self.map_latency.percentiles_ms()
         backlog = self._queue.qsize()
-        return {
-            "planes": self._planes,
-            "enabled": self.builder is not None,
-            "clouds": self.clouds,
-            "skipped": self.skipped,
-            "unplaced": self.unplaced,
-            "queued": backlog,
-            "backlog": backlog,
-            "backlog_limit": self.queue_size,
-            "pending": pending,
-            "rate_skipped": self.builder.rate_skipped if self.builder is not None else 0,
-            "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
-            "workers": 0,
-            "errors": self.errors,
-        } | ({"navigation": self.navigator is not None} if self.builder is not None else {})
+        pool = self.pool.status_json() if self.pool is not None else None
+        if pool is not None:
+            pending = pool["in_flight"]  # sent to a worker (or waiting for one), not committed yet
+        return (
+            {
+                "planes": self._planes,
+                "enabled": self.builder is not None,
+                "clouds": self.clouds,
+                "skipped": self.skipped,
+                "unplaced": self.unplaced,
+                "queued": backlog,
+                "backlog": backlog,
+                "backlog_limit": self.queue_size,
+                "pending": pending,
+                "rate_skipped": self.builder.rate_skipped if self.builder is not None else 0,
+                "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
+                "workers": len(pool["workers"]) if pool is not None else 0,
+                "errors": self.errors,
+            }
+            | ({"navigation": self.navigator is not None} if self.builder is not None else {})
+            | ({"worker_pool": pool} if pool is not None else {})
+        )
 
     # ------------------------------------------------------------------ navigation views
     def nav_json(self, robot: str) -> dict[str, Any] | None:

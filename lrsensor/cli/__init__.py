@@ -26,6 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "range": ("lrsensor.cli.range", "range theory of the paper (eq. 33-34): table and Fig. 9/10 plot"),
     "map": ("mapping.cli", "export or view the base station's shared map"),
     "base": ("services.cli_base", "run the base station (Zenoh router, fleet subscriber, map)"),
+    "map-worker": (
+        "services.cli_map_worker",
+        "run a plane worker: extract planes of the robots a base station assigns it",
+    ),
     "rov": ("services.cli_rov", "run one ROV: camera + IMU -> pose-tagged point clouds over Zenoh"),
     "record": ("services.cli_record", "record a fleet's clouds, poses and map into an MCAP file (Foxglove)"),
     "replay": ("services.cli_replay", "publish an MCAP recording back into a fleet (a base rebuilds the map)"),

@@ -1,0 +1,181 @@
+"""What the base station and its plane workers say to each other over Zenoh (msgpack, schema 1).
+
+Keys, under the fleet's root ``<prefix>/<fleet>``:
+
+* ``<root>/map/workers/<worker>``: a worker's liveliness token while it is up (the base's view of who is alive);
+* ``<root>/map/work/<worker>``: the base's jobs for that worker (:class:`MapJob`, :class:`MapControl`);
+* ``<root>/map/obs/<worker>``: the worker's plane observations (:class:`PlaneObservations`).
+
+A job is one accepted cloud of one robot with the pose to place it with (the navigation's, when it runs) and the
+robot's assignment *epoch*: the base bumps a robot's epoch each time the robot moves to another worker, and takes
+observations only of the current epoch from the current owner, so a slow or dying worker's late answer is never
+counted next to the new owner's (see :mod:`services.map_workers`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose
+
+from .errors import WireError
+from .keys import FleetKeys, check_name
+
+SCHEMA = 1
+
+
+def workers_key(keys: FleetKeys, worker: str = "*") -> str:
+    """``<root>/map/workers/<worker>``: liveliness tokens of the plane workers."""
+    return f"{keys.root}/map/workers/{worker}"
+
+
+def work_key(keys: FleetKeys, worker: str) -> str:
+    """``<root>/map/work/<worker>``: the jobs of one worker."""
+    return f"{keys.root}/map/work/{check_name(worker, 'worker name')}"
+
+
+def obs_key(keys: FleetKeys, worker: str = "*") -> str:
+    """``<root>/map/obs/<worker>``: plane observations of one worker (``*``: all)."""
+    return f"{keys.root}/map/obs/{worker}"
+
+
+@dataclass(frozen=True)
+class MapJob:
+    """One cloud to place and extract.
+
+    Attributes:
+        robot, seq, t_ns: the cloud's robot, sequence number and capture time (ns since the epoch).
+        epoch: the robot's assignment epoch at the base.
+        pose: the pose to place it with (NED; the navigation's corrected pose when it runs).
+        points_body: (N, 3) float32, body frame, metres.
+    """
+
+    robot: str
+    seq: int
+    t_ns: int
+    epoch: int
+    pose: Pose
+    points_body: NDArray[np.float32]
+
+    def to_bytes(self) -> bytes:
+        """Schema-1 msgpack."""
+        p = self.pose
+        return msgpack.packb(
+            {
+                "v": SCHEMA,
+                "type": "job",
+                "robot": self.robot,
+                "seq": self.seq,
+                "t_ns": self.t_ns,
+                "epoch": self.epoch,
+                "pose": [p.north_m, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad],
+                "points": np.ascontiguousarray(self.points_body, "<f4").tobytes(),
+            }
+        )
+
+
+@dataclass(frozen=True)
+class MapControl:
+    """A control message: ``flush`` (extract every pending window now) or ``drop`` (forget ``robot``'s window:
+    it moved to another worker at ``epoch``)."""
+
+    kind: str
+    robot: str = ""
+    epoch: int = 0
+
+    def to_bytes(self) -> bytes:
+        """Schema-1 msgpack."""
+        return msgpack.packb({"v": SCHEMA, "type": self.kind, "robot": self.robot, "epoch": self.epoch})
+
+
+@dataclass(frozen=True)
+class PlaneObservations:
+    """What one extraction of one robot's window gave: the plane observations (exact sufficient statistics, see
+    :func:`mapping.plane_map.record_to_wire`) and the sequence numbers of the clouds it committed.
+
+    Attributes:
+        worker: the worker that extracted it.
+        robot, epoch: the robot and its assignment epoch the clouds were sent under.
+        seqs: the clouds this extraction committed (each reaches the map with these observations).
+        records: the observations, wire form (merged by the base as they are: it only adds statistics).
+    """
+
+    worker: str
+    robot: str
+    epoch: int
+    seqs: tuple[int, ...]
+    records: tuple[dict[str, Any], ...]
+
+    def to_bytes(self) -> bytes:
+        """Schema-1 msgpack."""
+        return msgpack.packb(
+            {
+                "v": SCHEMA,
+                "type": "planeobs",
+                "worker": self.worker,
+                "robot": self.robot,
+                "epoch": self.epoch,
+                "seqs": list(self.seqs),
+                "records": list(self.records),
+            }
+        )
+
+    @classmethod
+    def from_bytes(cls, payload: bytes) -> PlaneObservations:
+        """Decode (raises :class:`~services.errors.WireError`)."""
+        d = _unpack(payload, "planeobs")
+        try:
+            return cls(
+                str(d["worker"]),
+                str(d["robot"]),
+                int(d["epoch"]),
+                tuple(int(s) for s in d["seqs"]),
+                tuple(dict(r) for r in d["records"]),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            msg = f"plane observations: malformed: {err!r}"
+            raise WireError(msg) from err
+
+
+def decode_work(payload: bytes) -> MapJob | MapControl:
+    """A worker's incoming message (raises :class:`~services.errors.WireError`)."""
+    d = _unpack(payload, None)
+    try:
+        kind = d["type"]
+        if kind == "job":
+            pts = np.frombuffer(d["points"], "<f4")
+            if pts.size % 3:
+                msg = f"job {d['robot']}#{d['seq']}: {pts.size} floats is not N x 3"
+                raise WireError(msg)
+            return MapJob(
+                str(d["robot"]),
+                int(d["seq"]),
+                int(d["t_ns"]),
+                int(d["epoch"]),
+                Pose(*(float(x) for x in d["pose"])),
+                pts.reshape(-1, 3),
+            )
+        if kind in ("flush", "drop"):
+            return MapControl(kind, str(d.get("robot", "")), int(d.get("epoch", 0)))
+    except (KeyError, TypeError, ValueError) as err:
+        msg = f"map work: malformed: {err!r}"
+        raise WireError(msg) from err
+    msg = f"map work: unknown type {kind!r}"
+    raise WireError(msg)
+
+
+def _unpack(payload: bytes, kind: str | None) -> dict[str, Any]:
+    try:
+        d = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except (ValueError, msgpack.UnpackException) as err:
+        msg = f"map worker message does not decode: {err!r}"
+        raise WireError(msg) from err
+    if not isinstance(d, dict) or d.get("v") != SCHEMA or (kind is not None and d.get("type") != kind):
+        msg = f"not a schema-{SCHEMA} map worker message{f' of type {kind}' if kind else ''}"
+        raise WireError(msg)
+    return d

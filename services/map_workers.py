@@ -1,0 +1,338 @@
+"""The base station's side of the plane workers: who is alive, which worker serves which robot, what is in
+flight, and the merge of what comes back.
+
+Assignment rule (rendezvous hashing, also called highest random weight): robot ``r`` is served by the live worker
+``w`` with the largest ``H(r, w)`` = the first 8 bytes of BLAKE2b(``r`` NUL ``w``) as an unsigned integer; ties are
+impossible in practice and broken by name. The live workers are those whose liveliness token
+``<root>/map/workers/<w>`` the base sees. Properties (tests/test_workers.py checks them): every base computes the
+same owner from the same set; robots spread evenly (each worker gets about 1/n of them); when a worker joins, only
+the robots it now wins move (to it); when a worker leaves or dies, only its robots move, each to its second choice.
+No coordinator state, nothing to hand over.
+
+In flight and exactly once: every cloud the base sends to a worker stays *in flight* (robot, seq, capture time,
+pose, points) until observations that commit it come back. When a robot moves (a join, a leave, a death: the
+token vanishes at once on a killed process's link), its epoch is bumped, the old owner is told to drop its window,
+and every in-flight cloud of the robot is sent again, in order, to the new owner. Observations are taken only of
+the robot's current epoch from its current owner, and a cloud leaves the in-flight table once: a late answer of
+the old owner is ignored (counted as ``stale``), so no cloud is counted twice and none is lost while one worker is
+alive. With no worker alive, clouds wait in flight (bounded: :meth:`WorkerPool.dispatch` blocks when
+``max_in_flight`` is reached, which pushes back through the map queue to the robots) until one joins.
+
+The merge: observations are decoded and merged on this module's thread (``MapBuilder.merge``: association and
+exact addition of statistics, nothing per robot), then the committed clouds are reported (``on_commit``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose
+
+from .errors import WireError
+from .keys import FleetKeys
+from .map_worker_wire import MapControl, MapJob, PlaneObservations, obs_key, work_key, workers_key
+
+if TYPE_CHECKING:
+    from mapping import MapBuilder, MapChange
+
+log = logging.getLogger(__name__)
+
+#: Clouds in flight (sent, not yet committed) before :meth:`WorkerPool.dispatch` waits.
+MAX_IN_FLIGHT = 2048
+
+
+def score(robot: str, worker: str) -> int:
+    """The rendezvous weight of ``worker`` for ``robot`` (see the module docstring)."""
+    return int.from_bytes(hashlib.blake2b(f"{robot}\0{worker}".encode(), digest_size=8).digest(), "big")
+
+
+def owner(robot: str, workers: Iterable[str]) -> str | None:
+    """The worker that serves ``robot`` among the live ``workers`` (None: none alive)."""
+    best: tuple[int, str] | None = None
+    for w in workers:
+        key = (score(robot, w), w)
+        if best is None or key > best:
+            best = key
+    return best[1] if best is not None else None
+
+
+@dataclass
+class _InFlight:
+    seq: int
+    t_ns: int
+    pose: Pose
+    points_body: NDArray[np.float32]
+
+
+class WorkerPool:
+    """Dispatch to the live plane workers and merge their observations (see the module docstring).
+
+    Args:
+        session: the base's open Zenoh session.
+        keys: the fleet's key expressions.
+        builder: the shared map (the merger's; only :meth:`~mapping.MapBuilder.merge` is used).
+        on_commit: called with ``(robot, [(seq, t_ns), ...])`` when clouds reached the map.
+        on_changes: called with the map changes of each merge (the feed publishes them).
+        max_in_flight: see the module docstring.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        keys: FleetKeys,
+        builder: MapBuilder,
+        on_commit: Callable[[str, list[tuple[int, int]]], None],
+        on_changes: Callable[[list[MapChange]], None],
+        max_in_flight: int = MAX_IN_FLIGHT,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.builder = builder
+        self.on_commit = on_commit
+        self.on_changes = on_changes
+        self.max_in_flight = max_in_flight
+        self._cond = threading.Condition()
+        self._workers: set[str] = set()
+        self._pubs: dict[str, Any] = {}
+        self._owner: dict[str, str | None] = {}
+        self._epoch: dict[str, int] = {}
+        self._in_flight: dict[str, dict[int, _InFlight]] = {}
+        self._n_in_flight = 0
+        self._events: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self._thread: threading.Thread | None = None
+        self._entities: list[Any] = []
+        #: observations merged, stale answers ignored, malformed ones, robots moved, clouds sent again
+        self.merged = 0
+        self.stale = 0
+        self.errors = 0
+        self.moves = 0
+        self.resent = 0
+        #: per worker: clouds committed by it
+        self.committed: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Subscribe to the observations and to the workers' liveliness (with history: workers already up)."""
+        self._thread = threading.Thread(target=self._run, name="base-merger", daemon=True)
+        self._thread.start()
+        s = self.session
+        self._entities += [
+            s.declare_subscriber(obs_key(self.keys), lambda sample: self._events.put(("obs", sample))),
+            s.liveliness().declare_subscriber(
+                workers_key(self.keys), lambda sample: self._events.put(("alive", sample)), history=True
+            ),
+        ]
+
+    def close(self) -> None:
+        """Stop listening and stop the merger thread (what is in flight stays uncommitted: not acknowledged)."""
+        for e in reversed(self._entities):
+            try:
+                e.undeclare()
+            except Exception as err:
+                log.debug("undeclare failed: %s", err)
+        self._entities.clear()
+        if self._thread is not None:
+            self._events.put(None)
+            self._thread.join(timeout=10.0)
+            self._thread = None
+        with self._cond:
+            for pub in self._pubs.values():
+                try:
+                    pub.undeclare()
+                except Exception as err:
+                    log.debug("undeclare failed: %s", err)
+            self._pubs.clear()
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ views
+    @property
+    def workers(self) -> list[str]:
+        """The live workers, sorted."""
+        with self._cond:
+            return sorted(self._workers)
+
+    @property
+    def in_flight(self) -> int:
+        """Clouds sent (or waiting for a worker) and not yet committed."""
+        with self._cond:
+            return self._n_in_flight
+
+    def assignment(self) -> dict[str, str | None]:
+        """Robot -> the worker serving it now (None: no worker alive)."""
+        with self._cond:
+            return dict(sorted(self._owner.items()))
+
+    def status_json(self) -> dict[str, Any]:
+        """Per worker: robots served, clouds committed; and the pool's counters."""
+        with self._cond:
+            per = {
+                w: {
+                    "robots": sorted(r for r, o in self._owner.items() if o == w),
+                    "committed": self.committed.get(w, 0),
+                }
+                for w in sorted(self._workers)
+            }
+            return {
+                "workers": per,
+                "in_flight": self._n_in_flight,
+                "stale": self.stale,
+                "moves": self.moves,
+                "resent": self.resent,
+            }
+
+    def wait_for_workers(self, n: int, timeout_s: float) -> bool:
+        """Wait until at least ``n`` workers are alive; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while len(self._workers) < n:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    # ------------------------------------------------------------------ input (the map thread)
+    def dispatch(self, robot: str, seq: int, t_ns: int, pose: Pose, points_body: NDArray[np.float32]) -> None:
+        """Send one cloud to its robot's worker (or hold it until one is alive); blocks while ``max_in_flight``
+        clouds are in flight."""
+        item = _InFlight(seq, t_ns, pose, np.ascontiguousarray(points_body, np.float32))
+        with self._cond:
+            while self._n_in_flight >= self.max_in_flight and self._thread is not None:
+                self._cond.wait(0.5)
+            table = self._in_flight.setdefault(robot, {})
+            if seq in table:
+                return  # already in flight (the ledger de-duplicates; this is a second guard)
+            table[seq] = item
+            self._n_in_flight += 1
+            if robot not in self._owner:
+                self._owner[robot] = owner(robot, self._workers)
+                self._epoch[robot] = 0
+            self._send(robot, [item])
+
+    def flush(self, timeout_s: float) -> bool:
+        """Ask every worker to extract its pending windows and wait until nothing is in flight; False on
+        timeout (e.g. no worker alive)."""
+        with self._cond:
+            for w in sorted(self._workers):
+                self._put(w, MapControl("flush").to_bytes())
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._n_in_flight > 0:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(min(left, 0.5))
+        return True
+
+    # ------------------------------------------------------------------ under the lock
+    def _put(self, worker: str, payload: bytes) -> None:
+        pub = self._pubs.get(worker)
+        if pub is None:
+            return
+        try:
+            pub.put(payload)
+        except Exception as err:  # the worker's liveliness decides; its clouds stay in flight
+            log.warning("job for map worker %s not sent: %s", worker, err)
+
+    def _send(self, robot: str, items: list[_InFlight]) -> None:
+        w = self._owner.get(robot)
+        if w is None:
+            return
+        epoch = self._epoch[robot]
+        for it in items:
+            self._put(w, MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body).to_bytes())
+
+    def _reassign(self) -> None:
+        """Move every robot whose rendezvous owner changed; re-send its in-flight clouds to the new owner."""
+        for robot, old in list(self._owner.items()):
+            new = owner(robot, self._workers)
+            if new == old:
+                continue
+            self._owner[robot] = new
+            self._epoch[robot] += 1
+            self.moves += 1
+            if old is not None and old in self._workers:
+                self._put(old, MapControl("drop", robot, self._epoch[robot]).to_bytes())
+            items = [self._in_flight[robot][s] for s in sorted(self._in_flight.get(robot, {}))]
+            self.resent += len(items) if new is not None else 0
+            self._send(robot, items)
+            log.info("robot %s moves from map worker %s to %s (%d clouds again)", robot, old, new, len(items))
+
+    # ------------------------------------------------------------------ the merger thread
+    def _run(self) -> None:
+        while True:
+            ev = self._events.get()
+            if ev is None:
+                return
+            kind, sample = ev
+            try:
+                if kind == "alive":
+                    self._on_alive(sample)
+                else:
+                    self._on_obs(sample.payload.to_bytes())
+            except Exception as err:  # the merger must not stop
+                self.errors += 1
+                log.exception("map merger: %s", err)
+
+    def _on_alive(self, sample: Any) -> None:
+        import zenoh
+
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                if name in self._workers:
+                    return
+                self._pubs[name] = self.session.declare_publisher(
+                    work_key(self.keys, name), congestion_control=zenoh.CongestionControl.BLOCK
+                )
+                self._workers.add(name)
+                log.info("map worker %s joined (%d alive)", name, len(self._workers))
+            else:
+                if name not in self._workers:
+                    return
+                self._workers.discard(name)
+                pub = self._pubs.pop(name, None)
+                if pub is not None:
+                    pub.undeclare()
+                log.warning("map worker %s left (%d alive): its robots move", name, len(self._workers))
+            self._reassign()
+            self._cond.notify_all()
+
+    def _on_obs(self, payload: bytes) -> None:
+        from mapping.plane_map import record_from_wire
+
+        try:
+            obs = PlaneObservations.from_bytes(payload)
+            records = [record_from_wire(r) for r in obs.records]
+        except (WireError, KeyError, TypeError, ValueError) as err:
+            self.errors += 1
+            log.warning("plane observations refused: %s", err)
+            return
+        with self._cond:
+            if self._owner.get(obs.robot) != obs.worker or self._epoch.get(obs.robot) != obs.epoch:
+                self.stale += 1
+                return
+            table = self._in_flight.get(obs.robot, {})
+            done = [(s, table.pop(s).t_ns) for s in obs.seqs if s in table]
+            self.committed[obs.worker] = self.committed.get(obs.worker, 0) + len(done)
+        try:
+            changes = self.builder.merge(records) if records else []
+            self.merged += len(records)
+            if changes:
+                self.on_changes(changes)
+            if done:
+                self.on_commit(obs.robot, done)
+        finally:  # counted out of flight only once merged and reported: flush() then sees them done
+            with self._cond:
+                self._n_in_flight -= len(done)
+                self._cond.notify_all()
