@@ -105,6 +105,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="cloud payload: 2 = the stripe's pixels, triangulated at the base with this robot's calibration "
         "(about 8x smaller, the default); 1 = float32 points (docs/conventions.md)",
     )
+    parser.add_argument(
+        "--ros2",
+        metavar="DOMAIN",
+        nargs="?",
+        const=0,
+        type=int,
+        default=None,
+        help="also publish each scan as a ROS 2 PointCloud2 over Zenoh, as rmw_zenoh does (domain, default 0; "
+        "docs/ros2.md)",
+    )
     parser.add_argument("--seq-start", type=int, default=0, help="first sequence number (continue after a restart)")
     g = parser.add_argument_group("store-and-forward outbox (every cloud is kept until the base acknowledges it)")
     g.add_argument(
@@ -200,6 +210,12 @@ def run(args: argparse.Namespace) -> int:
         _open_delivery(args, session, keys, robot) as sink,
     ):
         seq_start = args.seq_start if sink is None else max(args.seq_start, sink.outbox.next_seq)
+        ros2_view = None
+        if args.ros2 is not None:
+            from .ros2_views import Ros2ScanView
+
+            ros2_view = Ros2ScanView(session, keys.root, robot, args.ros2)
+            print(f"rov {robot}: ROS 2 PointCloud2 on {ros2_view.publisher.topic} (domain {args.ros2})", flush=True)
         if calibration is None:
             try:
                 calibration = fetch_calibration(session, keys, robot, args.calib_timeout_s, stop)
@@ -223,8 +239,13 @@ def run(args: argparse.Namespace) -> int:
             seq_start=seq_start,
             sink=sink,
             cloud_schema=args.cloud_schema,
+            on_scan=ros2_view.on_scan if ros2_view is not None else None,
         )
-        counters = service.run(stop)
+        try:
+            counters = service.run(stop)
+        finally:
+            if ros2_view is not None:
+                ros2_view.close()
         undelivered = ""
         if sink is not None:
             if counters.delivered and len(sink.outbox):  # older clouds of a persistent outbox

@@ -25,6 +25,7 @@ import numpy as np
 
 from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose, body_to_ned, quat_from_R
+from lrsensor.scan import Scan
 
 from .ros2 import Ros2Node
 from .wire import CloudMsg
@@ -178,6 +179,35 @@ class Ros2ScanPublisher:
         """Publish one scan: (N, 3) body points, metres, captured at ``t_ns``."""
         pts = body_to_base_link(points_body)
         self.publisher.publish(pointcloud2(self.node, pts, t_ns, base_link(self.robot)))
+
+
+class Ros2ScanView:
+    """``lrsensor rov --ros2``: the robot's own ROS 2 node (``lrsensor_<robot>``) publishing its scans.
+
+    Args:
+        session: the robot's Zenoh session.
+        root: the fleet's key root ``<prefix>/<fleet>``.
+        robot: the robot's name (its topic ``/<root>/<robot>/points`` must be a valid ROS 2 name).
+        domain: the ROS domain id.
+    """
+
+    def __init__(self, session: Any, root: str, robot: str, domain: int = 0) -> None:
+        safe = "".join(ch if ch.isalnum() else "_" for ch in robot)
+        self.node = Ros2Node(session, name=f"lrsensor_{safe}", domain=domain)
+        try:
+            self.scans = Ros2ScanPublisher(self.node, root, robot)
+        except Exception:
+            self.node.close()
+            raise
+        self.publisher = self.scans.publisher
+
+    def on_scan(self, t_ns: int, scan: Scan) -> None:
+        """Publish one scan (the ROV calls it after each cloud)."""
+        self.scans.publish(t_ns, scan.points)
+
+    def close(self) -> None:
+        """Withdraw the node and its publisher."""
+        self.node.close()
 
 
 class Ros2FleetSink:

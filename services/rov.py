@@ -27,7 +27,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -208,6 +208,7 @@ class RovService:
         seq_start: the first sequence number (a restarted robot continues its numbering).
         sink: where clouds go (default: a Zenoh publisher on ``<root>/<robot>/cloud``).
         cloud_schema: 2 (compact: pixels and the calibration's fingerprint, the default) or 1 (float32 points).
+        on_scan: called with ``(t_ns, scan)`` after each published cloud (the ROS 2 view); its errors are logged.
     """
 
     def __init__(
@@ -227,6 +228,7 @@ class RovService:
         seq_start: int = 0,
         sink: CloudSink | None = None,
         cloud_schema: int = 2,
+        on_scan: Callable[[int, Scan], None] | None = None,
     ) -> None:
         if cloud_schema not in CLOUD_SCHEMAS:
             msg = f"cloud schema {cloud_schema} is not one of {CLOUD_SCHEMAS}"
@@ -247,6 +249,7 @@ class RovService:
         self.seq = seq_start
         self.sink = sink
         self.cloud_schema = cloud_schema
+        self.on_scan = on_scan
         self.calib_id = calibration_fingerprint(calibration)
         self._warned_schema = False
         self.counters = RovCounters()
@@ -389,6 +392,11 @@ class RovService:
             log.exception("rov %s: frame at %d failed unexpectedly: %s", self.robot, t_ns, err)
             return
         sink.send(msg)
+        if self.on_scan is not None:
+            try:
+                self.on_scan(t_ns, scan)
+            except Exception as err:  # a view of the scan (ROS 2) must never stop the robot
+                log.warning("rov %s: scan view failed for the frame at %d: %s", self.robot, t_ns, err)
         fixed = has_fix(pose)
         with self._lock:
             if not fixed:

@@ -59,6 +59,7 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
             lrsensor_cmd(
                 "rov", "--fleet", FLEET, "--robot", "rov1", "--connect", f"tcp/127.0.0.1:{port}",
                 "--source", str(dive), "--imu", f"csv:{dive / 'imu.csv'}", "--calib", str(dive / "calib.json"),
+                "--ros2",
             ),
             tmp_path / "rov.log",
         )  # fmt: skip
@@ -69,6 +70,7 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
         with urllib.request.urlopen(url.group(1) + "status.json", timeout=10) as r:
             assert json.loads(r.read())["robots"]["rov1"]["received"] == N_FRAMES
         assert wait_until(lambda: sum("points_map" in k for k in ros_keys) >= N_FRAMES, 20), ros_keys
+        assert wait_until(lambda: sum("/rov1/points/" in k for k in ros_keys) >= N_FRAMES, 20), ros_keys
         sub.undeclare()
     assert base.stop(signal.SIGINT) == 0, base.output()
     out = base.output()
@@ -82,3 +84,9 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
     assert counts[f"/lrs/{FLEET}/rov1/points"] == N_FRAMES
     assert counts[f"lrs/{FLEET}/rov1/cloud"] == N_FRAMES
     assert {f"0/lrs/{FLEET}/rov1/points_map", f"0/lrs/{FLEET}/rov1/pose"} <= {k.rsplit("/", 2)[0] for k in ros_keys}
+    # the ROV's own scans (lrsensor rov --ros2), in its base_link
+    rov_scans = [
+        k for k in ros_keys if k.startswith(f"0/lrs/{FLEET}/rov1/points/sensor_msgs::msg::dds_::PointCloud2_/")
+    ]
+    assert len(rov_scans) == N_FRAMES
+    assert "ROS 2 PointCloud2 on /lrs/views/rov1/points (domain 0)" in rov.output()
