@@ -121,6 +121,12 @@ SOURCES: tuple[Source, ...] = (
         note="laser-aided navigation: trusted vs corrected poses (issue 27)",
     ),
     Source(
+        "workers.md",
+        "mapping",
+        "python benchmarks/bench_workers.py",
+        note="plane workers: clouds/s and map latency against worker processes (issue 31)",
+    ),
+    Source(
         "ingest.md",
         "ingest",
         "python benchmarks/bench_ingest.py --robots 1,5,10,20,30,40,60,90",

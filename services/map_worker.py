@@ -89,6 +89,9 @@ class MapWorker:
         once it sees the token, and by then the subscriber is ready)."""
         import zenoh
 
+        from mapping.planes import open3d
+
+        open3d()  # import it before taking robots: a first extraction would otherwise wait seconds for it
         self._thread = threading.Thread(target=self._run, name=f"map-worker-{self.name}", daemon=True)
         self._thread.start()
         self._pub = self.session.declare_publisher(

@@ -1,0 +1,214 @@
+"""Benchmark of the plane workers: a fleet replayed through a real base station with 0, 1, 2, 4 worker processes.
+
+    python benchmarks/bench_workers.py [--robots 20] [--seconds 4] [--workers 0,1,2,4] [--out ...]
+
+A synthetic tank dive (``mapping.synth``, ~3300 points per cloud, robot k replays base robot k % 2 shifted in
+time, as in bench_mapping) is published by a separate process over Zenoh (TCP loopback) to a base station (a
+router session in this process) whose map runs in its own thread (0 workers) or in N ``lrsensor map-worker``
+processes. Two runs per configuration, navigation on and off:
+
+* **flood**: every cloud published as fast as the BLOCK publisher lets it; clouds/s = clouds / (first received to
+  all committed, the final flush included): the throughput the base and its workers sustain.
+* **real time**: the fleet at its real rate (robots x 30 Hz, capture time = publication time); the map-update
+  latency p50/p99 (capture to commit, ``map.latency_ms``) and whether every cloud reached the map.
+
+Also: the planes of the flood run against those of the in-process map (the merge is order-sensitive: workers
+answer in another interleaving), largest angle and offset difference over the faces.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:  # run as a script: python benchmarks/bench_workers.py
+    sys.path.insert(0, str(ROOT))
+
+
+def _frames(robots: int, seconds: float) -> list[tuple[str, int, Any, Any]]:
+    """(robot, capture t_ns, points_body float32, pose) in capture-time order, robots interleaved."""
+    from mapping.synth import simulate_dive, tank, two_rov_plans
+
+    frames = simulate_dive(tank(), two_rov_plans(), duration_s=seconds, rate_hz=30.0, n_rays=1900, seed=3)
+    base = {r: [f for f in frames if f.robot == r] for r in ("rov1", "rov2")}
+    n = len(base["rov1"])
+    out = []
+    for i in range(n):
+        for k in range(robots):
+            src = base["rov1" if k % 2 == 0 else "rov2"][(i + 7 * k) % n]
+            out.append((f"r{k:02d}", base["rov1"][i].t_ns, src.points_body.astype(np.float32), src.pose_est))
+    return out
+
+
+def publish(endpoint: str, fleet: str, robots: int, seconds: float, paced: bool) -> int:
+    """The publisher process: every robot's clouds, flooded or at 30 Hz (capture time = publication time)."""
+    import zenoh
+
+    from services.keys import FleetKeys
+    from services.wire import CloudMsg
+    from services.zconfig import NetworkOptions, open_session
+
+    keys = FleetKeys(fleet)
+    stream = _frames(robots, seconds)
+    seqs: dict[str, int] = {}
+    with open_session(NetworkOptions(mode="client", connect=(endpoint,)), "client") as s:
+        names = sorted({r for r, *_ in stream})
+        pubs = {r: s.declare_publisher(keys.cloud(r), congestion_control=zenoh.CongestionControl.BLOCK) for r in names}
+        t0_cap = stream[0][1]
+        t0 = time.time_ns()
+        print("ready", flush=True)
+        sys.stdin.readline()
+        t0 = time.time_ns()
+        for robot, t_ns, pts, pose in stream:
+            if paced:
+                due = t0 + (t_ns - t0_cap)
+                wait = (due - time.time_ns()) / 1e9
+                if wait > 0:
+                    time.sleep(wait)
+                t_ns = time.time_ns()
+            seq = seqs.get(robot, 0)
+            seqs[robot] = seq + 1
+            n = len(pts)
+            msg = CloudMsg(robot, seq, t_ns, pose, pts, np.zeros(n, np.uint8), np.ones(n, np.float32))
+            pubs[robot].put(msg.to_bytes())
+        for p in pubs.values():
+            p.undeclare()
+    return 0
+
+
+def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float) -> dict[str, Any]:
+    """One configuration through a real base station; returns the figures."""
+    from services.testnet import TestNetwork
+
+    with TestNetwork("bench") as net:
+        base = net.start_base(
+            map_mode="on",
+            navigation=nav,
+            map_workers=n_workers,
+            worker_endpoint=net.endpoint if n_workers else None,
+            save_period_s=60.0,
+        )
+        if n_workers:
+            assert base.feed.pool is not None
+            if not base.feed.pool.wait_for_workers(n_workers, 120):
+                msg = "the worker processes did not come up"
+                raise RuntimeError(msg)
+        cmd = [sys.executable, __file__, "--publish", net.endpoint, "--fleet", "bench", "--robots", str(robots)]
+        cmd += ["--seconds", str(seconds)] + (["--paced"] if paced else [])
+        pub = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT)
+        assert pub.stdin is not None
+        assert pub.stdout is not None
+        pub.stdout.readline()  # ready: the frames are simulated
+        cpu0 = os.times()
+        pub.stdin.write(b"go\n")
+        pub.stdin.flush()
+        t_first = None
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline and pub.poll() is None:
+            if t_first is None and base.processed > 0:
+                t_first = time.perf_counter()
+            time.sleep(0.02)
+        pub.wait(60)
+        base.drain(600)
+        total = base.processed
+        base.flush_map(600)
+        t_end = time.perf_counter()
+        cpu1 = os.times()
+        st = base.status()
+        mapped = sum(v.get("mapped", 0) for v in st["robots"].values())
+        planes = base.map_json()["planes"]
+        unplaced = st["map"]["unplaced"]
+    wall = t_end - (t_first or t_end)
+    return {
+        "workers": n_workers,
+        "nav": nav,
+        "paced": paced,
+        "clouds": total,
+        "mapped": mapped,
+        "unplaced": unplaced,
+        "rate": total / wall if wall > 0 else float("nan"),
+        "p50": st["map"]["latency_ms"]["p50"],
+        "p99": st["map"]["latency_ms"]["p99"],
+        "base_cpu_s": (cpu1.user + cpu1.system) - (cpu0.user + cpu0.system),
+        "wall_s": wall,
+        "planes": planes,
+    }
+
+
+def plane_diff(a: list[dict[str, Any]], b: list[dict[str, Any]], min_points: int = 10_000) -> tuple[float, float]:
+    """Largest angle (deg) and offset (m) between each large plane of ``a`` and its nearest in ``b``."""
+    worst_a, worst_d = 0.0, 0.0
+    for p in (p for p in a if p["n_points"] >= min_points):
+        best = min(b, key=lambda q: abs(q["d"] - p["d"]) + 1 - float(np.dot(q["normal"], p["normal"])))
+        worst_a = max(worst_a, math.degrees(math.acos(min(1.0, float(np.dot(best["normal"], p["normal"]))))))
+        worst_d = max(worst_d, abs(best["d"] - p["d"]))
+    return worst_a, worst_d
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.0f}"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--robots", type=int, default=20)
+    ap.add_argument("--seconds", type=float, default=4.0, help="simulated dive length per robot")
+    ap.add_argument("--workers", default="0,1,2,4", help="worker process counts (0: the map in the base process)")
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "workers.md")
+    ap.add_argument("--publish", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--fleet", default="bench", help=argparse.SUPPRESS)
+    ap.add_argument("--paced", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.publish:
+        return publish(args.publish, args.fleet, args.robots, args.seconds, args.paced)
+    counts = [int(x) for x in args.workers.split(",")]
+    load0 = os.getloadavg()[0]
+    rows = []
+    for nav in (False, True):
+        for n in counts:
+            flood = run_one(n, nav, False, args.robots, args.seconds)
+            real = run_one(n, nav, True, args.robots, args.seconds)
+            rows.append((flood, real))
+            print(
+                f"workers {n} nav {nav}: {flood['rate']:.0f} clouds/s, real time p50 {real['p50']} p99 {real['p99']} "
+                f"ms, mapped {real['mapped']}/{real['clouds']}",
+                flush=True,
+            )
+    load1 = os.getloadavg()[0]
+    need = args.robots * 30
+    lines = [
+        f"## Plane workers ({args.robots} robots x 30 Hz, {args.seconds:g} s of dive = {rows[0][0]['clouds']} clouds "
+        f"of ~3300 points; load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
+        "",
+        f"| map workers | navigation | flood: clouds/s (needed {need}) | base CPU s (flood) | real time: map latency "
+        "p50 ms | p99 ms | real time: mapped / sent (unplaced) | planes vs in-process: max deg | max mm |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    ref = {nav: next(f for f, _ in rows if f["nav"] == nav and f["workers"] == 0) for nav in (False, True)}
+    for flood, real in rows:
+        da, dd = plane_diff(ref[flood["nav"]]["planes"], flood["planes"]) if flood["workers"] else (0.0, 0.0)
+        name = "0 (map thread in the base process)" if flood["workers"] == 0 else f"{flood['workers']} processes"
+        lines.append(
+            f"| {name} | {'on' if flood['nav'] else 'off'} | {flood['rate']:.0f} | {flood['base_cpu_s']:.1f} | "
+            f"{_ms(real['p50'])} | {_ms(real['p99'])} | {real['mapped']} / {real['clouds']} ({real['unplaced']}) | "
+            f"{da:.2f} | {dd * 1e3:.1f} |"
+        )
+    lines.append("")
+    text = "\n".join(lines)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
