@@ -223,3 +223,28 @@ def test_a_worker_joining_a_running_base_over_tcp_takes_robots(
     assert st["workers"]["wb"]["robots"]
     assert st["workers"]["wb"]["committed"] > 0
     _mapped_once(net, ROBOTS, 90)
+
+
+def test_base_cli_starts_and_stops_its_local_worker_processes(tmp_path: Path, procs: list[Proc]) -> None:
+    import json
+
+    from services.testnet import free_port
+    from services.zconfig import NetworkOptions, open_session
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    args = ["base", "--fleet", "cli", "--listen", ep, "--map", "on", "--map-workers", "1", "--status-every-s", "0"]
+    base = Proc(lrsensor_cmd(*args), tmp_path / "base.log")
+    procs.append(base)
+    keys = FleetKeys("cli")
+    _wait(lambda: "running" in base.output(), 60, "the base station to listen")
+    with open_session(NetworkOptions(mode="client", connect=(ep,)), "client") as s:
+
+        def workers() -> int:
+            for reply in s.get(keys.base_status, timeout=2.0):
+                if reply.ok is not None:
+                    return int(json.loads(reply.ok.payload.to_string())["map"]["workers"])
+            return -1
+
+        _wait(lambda: workers() == 1, 60, "the base's own worker process")
+    assert base.stop(timeout_s=30) == 0, base.output()
+    assert "map worker stopped" in base.output()  # the worker left with the base, no orphan
