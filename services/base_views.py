@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from .errors import ServiceError
 from .keys import FleetKeys
+from .ros2 import add_ros2_arg
 
 if TYPE_CHECKING:
     from .base import BaseStation
@@ -40,15 +41,7 @@ def add_view_args(parser: argparse.ArgumentParser) -> None:
         help="serve a Foxglove live view (WebSocket) here, e.g. 8765 (localhost) or 0.0.0.0:8765",
     )
     g.add_argument("--record", metavar="FILE.mcap", default=None, help="record the fleet into this MCAP file")
-    g.add_argument(
-        "--ros2",
-        metavar="DOMAIN",
-        nargs="?",
-        const=0,
-        type=int,
-        default=None,
-        help="publish the fleet's clouds, poses and planes as ROS 2 topics over Zenoh (domain, default 0)",
-    )
+    add_ros2_arg(g, "the fleet's clouds, poses and planes")
     g.add_argument(
         "--http",
         metavar="[HOST:]PORT",

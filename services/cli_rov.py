@@ -16,6 +16,7 @@ from typing import Any
 
 from lrsensor.extract import CHANNELS, command_line_options
 
+from .ros2 import add_ros2_arg
 from .zconfig import add_network_args
 
 log = logging.getLogger(__name__)
@@ -105,16 +106,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="cloud payload: 2 = the stripe's pixels, triangulated at the base with this robot's calibration "
         "(about 8x smaller, the default); 1 = float32 points (docs/conventions.md)",
     )
-    parser.add_argument(
-        "--ros2",
-        metavar="DOMAIN",
-        nargs="?",
-        const=0,
-        type=int,
-        default=None,
-        help="also publish each scan as a ROS 2 PointCloud2 over Zenoh, as rmw_zenoh does (domain, default 0; "
-        "docs/ros2.md)",
-    )
+    add_ros2_arg(parser, "each scan (PointCloud2 in <robot>/base_link)")
     parser.add_argument("--seq-start", type=int, default=0, help="first sequence number (continue after a restart)")
     g = parser.add_argument_group("store-and-forward outbox (every cloud is kept until the base acknowledges it)")
     g.add_argument(

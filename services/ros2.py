@@ -19,6 +19,7 @@ rmw_zenoh derives the GID from an XXH3-128 hash of the token; any constant 16 by
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import itertools
 import logging
@@ -40,6 +41,19 @@ DEFAULT_QOS = "1:2:1,10:,:,:,,"
 
 class Ros2Error(ServiceError):
     """A ROS 2 name or type is invalid, or rosbags is missing."""
+
+
+def add_ros2_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: str) -> None:
+    """Add ``--ros2 [DOMAIN]`` (off by default; the bare flag is domain 0) saying ``what`` it publishes."""
+    parser.add_argument(
+        "--ros2",
+        metavar="DOMAIN",
+        nargs="?",
+        const=0,
+        type=int,
+        default=None,
+        help=f"publish {what} as ROS 2 topics over Zenoh, as rmw_zenoh does (domain, default 0; docs/ros2.md)",
+    )
 
 
 def typestore() -> Any:

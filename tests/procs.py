@@ -6,7 +6,23 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
+from typing import Any
+
+
+def client_session(port: int, timeout_s: float = 30.0) -> Any:
+    """A Zenoh client session to a router on 127.0.0.1:``port``, retried until the router listens."""
+    from services.zconfig import NetworkOptions, open_session
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return open_session(NetworkOptions(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), "client")
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
 
 
 def lrsensor_cmd(*args: str) -> list[str]:

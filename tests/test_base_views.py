@@ -7,35 +7,21 @@ from __future__ import annotations
 import json
 import re
 import signal
-import time
 import urllib.request
 from pathlib import Path
-from typing import Any
 
 import pytest
-from procs import Proc, lrsensor_cmd
+from procs import Proc, client_session, lrsensor_cmd
 from waiting import wait_until
 
 from services.simsource import record_sim_dive
 from services.testnet import free_port
-from services.zconfig import NetworkOptions, open_session
 
 pytest.importorskip("foxglove")
 pytest.importorskip("rosbags")
 
 FLEET = "views"
 N_FRAMES = 8
-
-
-def client(port: int) -> Any:
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            return open_session(NetworkOptions(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), "client")
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
 
 
 def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
@@ -52,7 +38,7 @@ def test_base_with_every_view(tmp_path: Path, procs: list[Proc]) -> None:
     )  # fmt: skip
     procs.append(base)
     ros_keys: list[str] = []
-    with client(port) as session:
+    with client_session(port) as session:
         sub = session.declare_subscriber("0/**", lambda s: ros_keys.append(str(s.key_expr)))
         assert wait_until(lambda: "Foxglove live view on ws://127.0.0.1:" in base.output(), 30), base.output()
         rov = Proc(

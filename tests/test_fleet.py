@@ -16,14 +16,13 @@ from typing import Any
 
 import pytest
 import zenoh
-from procs import Proc, lrsensor_cmd
+from procs import Proc, client_session, lrsensor_cmd
 from waiting import wait_until
 
 from lrsensor.calibration import Calibration
 from services.simsource import record_sim_dive
 from services.testnet import free_port
 from services.wire import CalibMsg
-from services.zconfig import NetworkOptions, open_session
 
 pytestmark = pytest.mark.slow
 
@@ -36,18 +35,6 @@ WAIT_S = 20.0  # how long a test waits for a service or a message unless it says
 def dives(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fleet-dives")
     return {r: record_sim_dive(root / r, r, n_frames=N_FRAMES, seed=5) for r in ("rov1", "rov2")}
-
-
-def client_session(port: int) -> Any:
-    """A client session to the base's router, retried until the router listens."""
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            return open_session(NetworkOptions(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), "client")
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.1)
 
 
 def get_status(session: Any) -> dict[str, Any] | None:
