@@ -130,6 +130,7 @@ def test_a_20_s_link_flap_loses_nothing_and_floods_nothing(dive: Path, tmp_path:
 
 @needs_netns
 @pytest.mark.slow
+@pytest.mark.timeout(1500)  # a 5.5-minute replay, a 5-minute outage, the drain
 def test_a_5_minute_outage_delivers_every_cloud_once(tmp_path: Path) -> None:
     frames = 3300  # 5.5 minutes at 10 Hz: the replay runs through the whole outage
     dive = record_sim_dive(tmp_path / "dive", "rov1", n_frames=frames, seed=7)
