@@ -25,7 +25,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Replay; 0 when the base station acknowledged every cloud, 1 otherwise (the outboxes are named)."""
+    """Replay; 0 when the base station acknowledged every cloud, 3 otherwise (the outboxes are named)."""
     from .keys import FleetKeys
     from .replay import read_recording, replay
     from .signals import stop_on_signals
@@ -60,4 +60,4 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"lrsensor replay: {robot}: {n} clouds not acknowledged, kept in {res.outboxes[robot]}", file=sys.stderr
             )
-    return 1
+    return 3  # as `lrsensor rov` when clouds are left unacknowledged

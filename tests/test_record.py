@@ -191,7 +191,7 @@ def test_replay_cli_exits_non_zero_and_names_the_outbox_without_a_base(recorded:
             ],
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
-    assert proc.returncode == 1, proc.stderr
+    assert proc.returncode == 3, proc.stderr
     for r in ROBOTS:
         assert f"{r}: {N_FRAMES} clouds not acknowledged, kept in" in proc.stderr
     folder = proc.stderr.split("kept in ")[1].split()[0]
