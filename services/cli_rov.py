@@ -116,7 +116,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="persistent outbox folder: unacknowledged clouds survive a ROV restart and the numbering continues "
         "(default: a temporary folder for this run, which covers base restarts and link outages)",
     )
-    g.add_argument("--outbox-max-mb", type=float, default=1024.0, help="outbox bound, MiB (oldest dropped, counted)")
+    g.add_argument(
+        "--outbox-max-mb",
+        type=float,
+        default=1024.0,
+        help="the outbox's disk budget, MiB: every cloud not yet acknowledged is kept within it; when full the "
+        "oldest are dropped, logged and counted (dropped_budget) (default 1024)",
+    )
     g.add_argument("--outbox-max-messages", type=int, default=20_000, help="outbox bound, clouds")
     g.add_argument("--outbox-no-fsync", action="store_true", help="do not fsync each cloud (faster, not power-safe)")
     g.add_argument("--no-outbox", action="store_true", help="publish only (clouds sent during an outage are lost)")
@@ -249,6 +255,12 @@ def run(args: argparse.Namespace) -> int:
                 f"({st['resent_bytes']} bytes, {st['resent_unheard']} never heard before), {o['dropped']} dropped "
                 f"(full), {st['unstored']} not stored, {st['held']} held while the link was down, "
                 f"clouds {st['sent_bytes']} bytes",
+                flush=True,
+            )
+            print(
+                f"rov {robot}: link budget: published {st['sent']} + reloaded {st['reloaded']} = live {st['live']} "
+                f"+ forwarded {st['forwarded']} + queued {st['queued']} + dropped by the budget "
+                f"{st['dropped_budget']} ({st['thinned']} thinned from the live stream, {st['held']} held)",
                 flush=True,
             )
             if service.state == "done" and o["pending"]:

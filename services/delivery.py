@@ -30,6 +30,17 @@ persisted):
    the link's rate instead of filling the link with copies and keeping the acknowledgements behind them.
    A base station that is only slow keeps acknowledging in order and gets no duplicates.
 
+When the link is slower than the sensor (docs/reliability.md, "A link slower than the sensor"): every cloud
+is kept on disk within the outbox's budget (``--outbox-max-mb``, ``--outbox-max-messages``); a new cloud
+goes out live only while the bytes in flight leave room for it (:meth:`OutboxSink.live_room`: a generous
+window while nothing is queued, half the re-send window while a backlog is), otherwise it is **queued** on
+disk; the backlog is forwarded oldest first in the pacing window's room. Only the budget drops clouds (the
+oldest, logged and counted). Each cloud is counted once, in the category of its fate so far::
+
+    published + reloaded = live + forwarded + queued + dropped_budget
+    live + forwarded + queued = acked + pending + unstored
+
+(``pending``: in the outbox; ``unstored``: published live but not written to disk, counted under ``live``).
 Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
 :mod:`services.outbox`), and the base station shows them as ``missed``.
 """
@@ -68,6 +79,12 @@ MIN_POLL_TIMEOUT_S = 2.0
 MAX_POLL_TIMEOUT_S = 20.0
 #: The shortest round trip is the minimum over this long, s.
 MIN_RTT_MEMORY_S = 30.0
+#: While no backlog is queued, a new cloud goes out live while the bytes in flight stay under this many
+#: times what the link delivers per retransmission timeout (at least :data:`MIN_LIVE_WINDOW_BYTES`): a link
+#: that keeps up never holds more than one timeout's worth in flight, so the live stream is only thinned
+#: when the sensor offers more than the link carries.
+LIVE_GAIN = 2.0
+MIN_LIVE_WINDOW_BYTES = 512 * 1024
 
 
 class AckClock:
@@ -173,6 +190,21 @@ class DeliveryCounters:
             the base station was away, or reloaded from an earlier run): the first copy to go out on the link.
         held: clouds not published live because the ack polls went unanswered (the link looked down): kept
             in the outbox and forwarded from there (counted in ``resent_unheard`` then).
+        thinned: clouds not published live because the link was not keeping up (no room in the live window):
+            queued in the outbox and forwarded from there.
+
+    The link-budget counters count each cloud once, in the category of its fate so far (an identity holds:
+    ``sent + reloaded == live + forwarded + queued + dropped``, and ``live + forwarded + queued == acked +
+    pending + unstored``):
+
+    Attributes:
+        live: clouds whose first copy went out live (the one published by :meth:`OutboxSink.send`), not
+            dropped since; a cloud whose disk write failed is counted here.
+        queued: clouds in the outbox of which no copy went out yet (held, thinned, published while no
+            subscriber matched, or reloaded from an earlier run).
+        forwarded: clouds whose first copy went out later, from the outbox (a reloaded cloud the base station
+            acknowledges before it is sent again counts here: an earlier run forwarded it).
+        reloaded: clouds pending in the outbox when this sink started (counted in ``queued`` first).
     """
 
     sent: int = 0
@@ -186,6 +218,22 @@ class DeliveryCounters:
     resent_bytes: int = 0
     resent_unheard: int = 0
     held: int = 0
+    thinned: int = 0
+    live: int = 0
+    queued: int = 0
+    forwarded: int = 0
+    reloaded: int = 0
+
+    def budget(self) -> dict[str, int]:
+        """The link-budget counters (``dropped`` as ``dropped_budget``), as :class:`services.wire.StatusMsg`
+        carries them."""
+        return {
+            "live": self.live,
+            "queued": self.queued,
+            "forwarded": self.forwarded,
+            "dropped_budget": self.dropped,
+            "reloaded": self.reloaded,
+        }
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -266,6 +314,10 @@ class OutboxSink:
         self._sizes: dict[int, int] = {}
         # published while no subscriber matched, or reloaded from an earlier run: sent once the base is present
         self._unheard: set[int] = set(outbox.pending())
+        # each pending cloud's category: "live", "queued" or "forwarded" (DeliveryCounters)
+        self._fate: dict[int, str] = dict.fromkeys(self._unheard, "queued")
+        self._first_seq = outbox.next_seq  # clouds numbered below were reloaded from an earlier run
+        self.counters.reloaded = self.counters.queued = len(self._fate)
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._base_present = False
@@ -294,23 +346,43 @@ class OutboxSink:
         heard = self.base_present()  # no matching subscriber: zenoh sends nothing, re-send on reappearance
         hold = heard and self.link_suspect()  # a link that looks down gets no live copy to lose
         with self._lock:
+            thin = heard and not hold and not self.live_room(len(payload), time.monotonic())
             self._last_sent[msg.seq] = time.monotonic()
             self._sends[msg.seq] = 1
             self._sizes[msg.seq] = len(payload)
-            if not heard or hold:
+            live = heard and not hold and not thin
+            if not live:
                 self._unheard.add(msg.seq)
+            self._fate[msg.seq] = "live" if live else "queued"
+            if live:
+                self.counters.live += 1
+            else:
+                self.counters.queued += 1
             self.counters.sent += 1
             self.counters.sent_bytes += len(payload)
             self.counters.held += int(hold)
-        if not hold:
+            self.counters.thinned += int(thin)
+            if thin and (self.counters.thinned in (1, 10, 100) or self.counters.thinned % 1000 == 0):
+                log.info(
+                    "rov %s: the link does not carry every cloud live; %d clouds queued on disk so far, forwarded "
+                    "oldest first as it allows",
+                    self.robot,
+                    self.counters.thinned,
+                )
+        if not (hold or thin):
             self._put(payload)
         with self._lock:
             self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
         try:
             dropped = self.outbox.append(msg.seq, payload)
         except OutboxError as err:
+            if hold or thin:  # no copy went out: a live one is better than none
+                self._put(payload)
             with self._lock:
                 self.counters.unstored += 1
+                if self._fate.pop(msg.seq, None) == "queued":
+                    self.counters.queued -= 1
+                    self.counters.live += 1
                 self._forget(msg.seq)
             log.error("rov %s: cloud #%d not kept for re-sending: %s", self.robot, msg.seq, err)
             return
@@ -318,7 +390,43 @@ class OutboxSink:
             with self._lock:
                 self.counters.dropped += len(dropped)
                 for d in dropped:
+                    self._uncount(d)
                     self._forget(d)
+
+    def _uncount(self, seq: int) -> None:
+        """``seq`` was dropped by the budget: take it out of its category; caller holds the lock."""
+        fate = self._fate.pop(seq, None)
+        if fate == "live":
+            self.counters.live -= 1
+        elif fate == "queued":
+            self.counters.queued -= 1
+        elif fate == "forwarded":
+            self.counters.forwarded -= 1
+
+    def _in_flight(self, now: float, timeout: float) -> int:
+        """Bytes sent after the newest acknowledged send and not yet timed out; caller holds the lock."""
+        acked_t = self._acked_sent_t
+        return sum(
+            self._sizes.get(s, 0)
+            for s, t in self._last_sent.items()
+            if t > acked_t and now - t < timeout and s not in self._unheard
+        )
+
+    def live_room(self, size: int, now: float) -> bool:
+        """True when a new cloud of ``size`` bytes may go out live; caller holds the lock.
+
+        While nothing is queued: the bytes in flight stay under :data:`LIVE_GAIN` times what the link
+        delivers per retransmission timeout (at least :data:`MIN_LIVE_WINDOW_BYTES`), so a link that keeps up
+        is never thinned. While a backlog is queued: under half the re-send window, so that the other half
+        forwards the backlog (oldest first) and the live stream is thinned to what the link carries.
+        """
+        timeout = self.clock.timeout()
+        if self.counters.queued:
+            limit = self.clock.window() / 2
+        else:
+            limit = max(MIN_LIVE_WINDOW_BYTES, LIVE_GAIN * self.clock.rate() * timeout)
+        in_flight = self._in_flight(now, timeout)
+        return in_flight == 0 or in_flight + size <= limit
 
     def _forget(self, seq: int) -> None:
         """Drop the bookkeeping of ``seq`` (acknowledged, dropped or not stored); caller holds the lock."""
@@ -408,8 +516,8 @@ class OutboxSink:
                 break
             lo, hi = pending[0], pending[-1]
             relevant = [r for r in ranges if r[1] >= lo and r[0] <= hi]
-            hit = [s for s in pending if any(a <= s <= b for a, b in relevant)] if relevant else []
-            n = self.outbox.ack_ranges(relevant) if relevant else 0
+            hit = self.outbox.take_acked_ranges(relevant) if relevant else []  # exactly those removed
+            n = len(hit)
             removed += n
             with self._lock:
                 self.counters.ack_polls += 1
@@ -417,6 +525,12 @@ class OutboxSink:
                 acked_bytes = 0
                 newest_single: float | None = None  # send time of the latest cloud acknowledged after one send
                 for s in hit:
+                    if self._fate.pop(s, None) == "queued":  # acknowledged before this process sent it
+                        self.counters.queued -= 1
+                        if s < self._first_seq:  # an earlier run forwarded it
+                            self.counters.forwarded += 1
+                        else:  # published while no subscriber matched, and yet it arrived: live
+                            self.counters.live += 1
                     t = self._last_sent.get(s)
                     if t is not None:
                         self._acked_sent_t = max(self._acked_sent_t, t)
@@ -461,6 +575,10 @@ class OutboxSink:
                 unheard = seq in self._unheard or seq not in self._sends
             self._put(payload)
             with self._lock:
+                if self._fate.get(seq) == "queued":  # its first copy on the link: forwarded from the backlog
+                    self._fate[seq] = "forwarded"
+                    self.counters.queued -= 1
+                    self.counters.forwarded += 1
                 self._last_sent[seq] = time.monotonic()
                 self._sends[seq] = self._sends.get(seq, 0) + 1
                 self.counters.resent_unheard += int(unheard)
@@ -477,14 +595,8 @@ class OutboxSink:
         with self._lock:
             timeout = self.clock.timeout()
             window = self.clock.window()
-            acked_t = self._acked_sent_t
             lost_before = self._lost_before
-            # in flight: sent after the newest acknowledged send and not yet timed out
-            in_flight = sum(
-                self._sizes.get(s, 0)
-                for s in pending
-                if (t := self._last_sent.get(s)) is not None and t > acked_t and now - t < timeout
-            )
+            in_flight = self._in_flight(now, timeout)
             chosen: list[int] = []
             for seq in [] if suspect else pending:
                 if len(chosen) >= self.max_resend_per_cycle:
@@ -550,6 +662,11 @@ class OutboxSink:
             self._wake.set()
             time.sleep(min(0.1, self.ack_period_s))
 
+    def budget_counts(self) -> dict[str, int]:
+        """The link-budget counters (:meth:`DeliveryCounters.budget`), for the ROV's status."""
+        with self._lock:
+            return self.counters.budget()
+
     def stats(self) -> dict[str, Any]:
         """Delivery counters and the outbox's, JSON-ready."""
         with self._lock:
@@ -566,6 +683,8 @@ class OutboxSink:
                 "resent_bytes": c.resent_bytes,
                 "resent_unheard": c.resent_unheard,
                 "held": c.held,
+                "thinned": c.thinned,
+                **c.budget(),
                 "link": self.clock.to_json(),
             }
         out["outbox"] = self.outbox.stats().to_json_dict()

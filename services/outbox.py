@@ -269,7 +269,7 @@ class Outbox:
                     _merge_range(self._dropped_ranges, d, d)
                 del self._dropped_ranges[:-MAX_DROPPED_RANGES]
                 log.warning(
-                    "outbox %s full (%d messages, %d bytes max): dropped %d oldest (#%d..#%d)",
+                    "outbox %s full (%d messages, %d bytes max: the disk budget): dropped %d oldest (#%d..#%d)",
                     self.directory,
                     self.max_messages,
                     self.max_bytes,
@@ -338,24 +338,36 @@ class Outbox:
 
     def ack_ranges(self, ranges: Iterable[Sequence[int]]) -> int:
         """Remove every pending message inside any closed range ``[lo, hi]``; returns how many."""
+        return len(self.take_acked_ranges(ranges))
+
+    def ack_many(self, seqs: Iterable[int]) -> int:
+        """Remove the given messages (those pending); returns how many were removed."""
+        return len(self.take_acked(seqs))
+
+    def take_acked(self, seqs: Iterable[int]) -> list[int]:
+        """Remove the given messages (those pending); returns the numbers removed, increasing.
+
+        Exactly these were acknowledged: a message dropped by the bounds meanwhile is not among them, so a
+        caller that counts each message once (acknowledged or dropped) can rely on the two lists being disjoint.
+        """
+        with self._lock:
+            hit = sorted({s for s in seqs if s in self._sizes})
+            if not hit:
+                return []
+            self._acked += len(hit)
+            self._save_state()
+            self._remove(hit)
+            return hit
+
+    def take_acked_ranges(self, ranges: Iterable[Sequence[int]]) -> list[int]:
+        """:meth:`take_acked` of every pending message inside any closed range ``[lo, hi]``."""
         with self._lock:
             hit: list[int] = []
             for lo, hi in ranges:
                 i = bisect.bisect_left(self._seqs, int(lo))
                 j = bisect.bisect_right(self._seqs, int(hi))
                 hit.extend(self._seqs[i:j])
-            return self.ack_many(sorted(set(hit)))
-
-    def ack_many(self, seqs: Iterable[int]) -> int:
-        """Remove the given messages (those pending); returns how many were removed."""
-        with self._lock:
-            hit = [s for s in seqs if s in self._sizes]
-            if not hit:
-                return 0
-            self._acked += len(hit)
-            self._save_state()
-            self._remove(hit)
-            return len(hit)
+            return self.take_acked(hit)
 
     def stats(self) -> OutboxStats:
         """A snapshot of the counters."""

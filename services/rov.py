@@ -8,7 +8,8 @@ pixels, triangulated at the base with the calibration whose fingerprint it carri
 :class:`~services.wire.CloudMsg` of float32 points. A scan that schema 2 cannot carry (columns that are not
 whole pixels, as the paper's Algorithm 1 measures) goes out as schema 1, with a warning the first time.
 While running the ROV holds its liveliness token ``<root>/<robot>/alive``, serves its calibration on
-``<root>/<robot>/calib`` and publishes :class:`~services.wire.StatusMsg` counters on ``<root>/<robot>/status``.
+``<root>/<robot>/calib`` and publishes :class:`~services.wire.StatusMsg` counters on ``<root>/<robot>/status``
+(with an outbox sink, also its link-budget counters: live, queued, forwarded, dropped by the budget).
 
 A frame whose pose has attitude and depth but no horizontal fix (see :mod:`services.posetrack`) is still
 processed and published, its pose's ``north_m``/``east_m`` null: the base station counts it as unplaced
@@ -270,6 +271,8 @@ class RovService:
     def status(self) -> StatusMsg:
         """The current counters as a status message."""
         c = self.counters
+        budget = getattr(self.sink, "budget_counts", None)  # an outbox sink's live/queued/forwarded/dropped
+        delivery = budget() if callable(budget) else None
         with self._lock:
             return StatusMsg(
                 self.robot,
@@ -281,6 +284,7 @@ class RovService:
                 c.failed,
                 c.last_seq,
                 c.unplaced,
+                delivery,
             )
 
     # ------------------------------------------------------------------ main loop

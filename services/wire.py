@@ -734,6 +734,9 @@ class StatusMsg:
         failed: frames that could not be processed (bad image, extractor error).
         last_seq: sequence number of the last published cloud, -1 if none.
         unplaced: clouds published whose pose had no horizontal fix (optional on the wire, 0 when absent).
+        delivery: the outbox's link-budget counters (``live``, ``queued``, ``forwarded``, ``dropped_budget``,
+            ``reloaded``; see :class:`services.delivery.DeliveryCounters` and docs/reliability.md), optional on
+            the wire: None from a ROV without an outbox or from before the counters existed.
     """
 
     robot: str
@@ -745,9 +748,12 @@ class StatusMsg:
     failed: int = 0
     last_seq: int = -1
     unplaced: int = 0
+    delivery: Mapping[str, int] | None = None
 
     TYPE = "status"
     _COUNTERS = ("frames", "published", "skipped", "failed")
+    #: The optional delivery counters, each a non-negative integer; all or none are sent.
+    DELIVERY = ("live", "queued", "forwarded", "dropped_budget", "reloaded")
 
     def to_bytes(self) -> bytes:
         """Encode as msgpack."""
@@ -759,6 +765,8 @@ class StatusMsg:
         obj["state"] = self.state
         for name in (*self._COUNTERS, "last_seq", "unplaced"):
             obj[name] = int(getattr(self, name))
+        if self.delivery is not None:
+            obj["delivery"] = {name: int(self.delivery[name]) for name in self.DELIVERY}
         return _pack(obj)
 
     @classmethod
@@ -775,7 +783,14 @@ class StatusMsg:
         frames, published, skipped, failed = (_int_field(obj, name, where) for name in cls._COUNTERS)
         last_seq = _int_field(obj, "last_seq", where, minimum=-1)
         unplaced = _int_field(obj, "unplaced", where) if "unplaced" in obj else 0
-        return cls(robot, t_ns, state, frames, published, skipped, failed, last_seq, unplaced)
+        delivery: dict[str, int] | None = None
+        if "delivery" in obj:  # absent from a ROV without an outbox, or from before the counters
+            raw = obj["delivery"]
+            if not isinstance(raw, Mapping):
+                msg = f"{where}: 'delivery' is not a mapping"
+                raise WireError(msg)
+            delivery = {name: _int_field(raw, name, f"{where} delivery") for name in cls.DELIVERY}
+        return cls(robot, t_ns, state, frames, published, skipped, failed, last_seq, unplaced, delivery)
 
     def to_json_dict(self) -> dict[str, Any]:
         """The counters as a JSON-ready mapping."""
@@ -788,4 +803,5 @@ class StatusMsg:
             "failed": self.failed,
             "last_seq": self.last_seq,
             "unplaced": self.unplaced,
+            **({} if self.delivery is None else {name: int(self.delivery[name]) for name in self.DELIVERY}),
         }

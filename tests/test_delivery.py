@@ -242,3 +242,119 @@ def test_a_base_that_never_acknowledges_gets_probes_not_floods(net: tuple[Any, A
     assert 0 < resent <= 10 * cycles < 100 * 1.5 / 0.2  # a flood would re-send all 100 every 0.2 s
     assert min(base.arrivals) == 0  # the probes are the oldest
     base.sub.undeclare()
+
+
+# ------------------------------------------------------------------------------------- the link budget
+def _identity(sink: OutboxSink) -> None:
+    """Both identities of the link-budget counters (docs/reliability.md) hold."""
+    st = sink.stats()
+    assert st["sent"] + st["reloaded"] == st["live"] + st["forwarded"] + st["queued"] + st["dropped_budget"], st
+    assert st["live"] + st["forwarded"] + st["queued"] == st["acked"] + st["outbox"]["pending"] + st["unstored"], st
+    assert st["dropped_budget"] == st["dropped"]
+
+
+def test_every_cloud_is_counted_once_live(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router)
+    with OutboxSink(rov, KEYS, "rov1", Outbox(tmp_path / "outbox", fsync=False), ack_period_s=0.1) as sink:
+        assert wait_until(sink.base_present, WAIT_S)
+        for seq in range(20):
+            sink.send(_cloud(seq))
+            _identity(sink)
+        assert sink.wait_empty(15.0)
+        _identity(sink)
+        assert sink.budget_counts() == {"live": 20, "queued": 0, "forwarded": 0, "dropped_budget": 0, "reloaded": 0}
+    base.close()
+
+
+def test_only_the_budget_drops_and_the_rest_is_forwarded(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """No base station while 30 clouds are published into a budget of 10: the 20 oldest are dropped (counted),
+    the 10 newest queued and forwarded once it appears; the base lacks exactly the dropped ones."""
+    router, rov = net
+    box = Outbox(tmp_path / "outbox", max_messages=10, fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1) as sink:
+        for seq in range(30):
+            sink.send(_cloud(seq))
+            _identity(sink)
+        assert sink.budget_counts() == {"live": 0, "queued": 10, "forwarded": 0, "dropped_budget": 20, "reloaded": 0}
+        assert box.stats().dropped_ranges == ((0, 19),)
+        base = FakeBase(router)
+        assert sink.wait_empty(15.0)
+        _identity(sink)
+        assert sink.budget_counts() == {"live": 0, "queued": 0, "forwarded": 10, "dropped_budget": 20, "reloaded": 0}
+    assert base.seqs.ranges() == [[20, 29]]
+    base.close()
+
+
+def test_a_live_cloud_dropped_by_the_budget_leaves_its_category(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    base = FakeBase(router)
+    base.q.undeclare()  # receives, never acknowledges: the live copies stay pending until the budget drops them
+    box = Outbox(tmp_path / "outbox", max_messages=5, fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=30.0, stall_s=30.0) as sink:
+        assert wait_until(sink.base_present, WAIT_S)
+        for seq in range(12):
+            sink.send(_cloud(seq))
+            _identity(sink)
+        c = sink.budget_counts()
+        assert c["dropped_budget"] == 7
+        assert c["live"] + c["queued"] + c["forwarded"] == 5
+    base.sub.undeclare()
+
+
+def test_a_link_that_does_not_keep_up_thins_the_live_stream(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """Acknowledgements withheld while large clouds are published: once the live window is full the next
+    clouds are queued on disk (thinned), and when the acknowledgements come the backlog is forwarded; every
+    cloud arrives, each counted once."""
+    router, rov = net
+    base = FakeBase(router)
+    gate = threading.Event()
+
+    def gated_acks(query: Any) -> None:
+        with base.lock:
+            ranges = base.seqs.ranges() if gate.is_set() else []
+        query.reply(query.key_expr, json.dumps({"robot": "rov1", "ranges": ranges}))
+
+    base.q.undeclare()
+    base.q = router.declare_queryable(KEYS.base_acks_all, gated_acks)
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, resend_after_s=30.0, stall_s=30.0) as sink:
+        assert wait_until(sink.base_present, WAIT_S)
+        clouds = [_cloud(seq, n=10_000) for seq in range(12)]  # about 170 kB each: 3 fill the live window
+        for m in clouds:
+            sink.send(m)
+            _identity(sink)
+        st = sink.stats()
+        assert 1 <= st["live"] < 12, st
+        assert st["thinned"] == st["queued"] == 12 - st["live"], st
+        assert wait_until(lambda: len(base.seqs) == st["live"], 10.0)  # the queued ones are not on the link
+        time.sleep(0.5)
+        assert len(base.seqs) == st["live"]
+        gate.set()
+        assert sink.wait_empty(20.0)
+        _identity(sink)
+        c = sink.budget_counts()
+        assert c["queued"] == 0
+        assert c["forwarded"] + c["live"] == 12
+        assert c["forwarded"] >= 12 - st["live"]
+    assert base.seqs.ranges() == [[0, 11]]
+    assert all(n == 1 for n in base.arrivals.values())  # forwarded, not re-sent
+    base.close()
+
+
+def test_reloaded_clouds_are_counted_as_queued_then_forwarded(net: tuple[Any, Any], tmp_path: Path) -> None:
+    router, rov = net
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    for seq in range(6):
+        box.append(seq, _cloud(seq).to_bytes())
+    base = FakeBase(router)
+    with OutboxSink(rov, KEYS, "rov1", Outbox(tmp_path / "outbox", fsync=False), ack_period_s=0.1) as sink:
+        assert sink.budget_counts()["reloaded"] == sink.budget_counts()["queued"] == 6
+        _identity(sink)
+        assert wait_until(sink.base_present, WAIT_S)
+        sink.send(_cloud(6))
+        assert sink.wait_empty(15.0)
+        _identity(sink)
+        c = sink.budget_counts()
+        assert (c["forwarded"], c["queued"], c["live"]) == (6, 0, 1)
+    base.close()

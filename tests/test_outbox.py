@@ -268,3 +268,16 @@ def test_state_file_is_json(tmp_path: Path) -> None:
     assert state["dropped"] == 1
     assert state["dropped_ranges"] == [[0, 0]]
     assert state["next_seq"] == 2
+
+
+def test_take_acked_names_exactly_what_it_removed_never_what_the_budget_dropped(tmp_path: Path) -> None:
+    box = Outbox(tmp_path / "o", max_messages=4, fsync=False)
+    dropped: list[int] = []
+    for seq in range(6):
+        dropped += box.append(seq, _payload(seq))
+    assert dropped == [0, 1]  # the budget: the oldest, counted
+    assert box.take_acked_ranges([[0, 3]]) == [2, 3]  # 0 and 1 were dropped, not acknowledged
+    assert box.take_acked([5, 5, 9]) == [5]
+    s = box.stats()
+    assert (s.acked, s.dropped, s.pending) == (3, 2, 1)
+    assert s.appended == s.acked + s.dropped + s.pending

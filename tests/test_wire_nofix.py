@@ -70,3 +70,21 @@ def test_status_carries_unplaced_and_reads_older_status() -> None:
     obj = msgpack.unpackb(st.to_bytes(), raw=False)
     del obj["unplaced"]  # a status from a ROV before the counter existed
     assert StatusMsg.from_bytes(msgpack.packb(obj, use_bin_type=True)).unplaced == 0
+
+
+def test_status_carries_the_link_budget_counters_and_reads_older_status() -> None:
+    counts = {"live": 30, "queued": 4, "forwarded": 5, "dropped_budget": 1, "reloaded": 0}
+    st = StatusMsg("rov1", 5, "running", frames=40, published=40, last_seq=39, delivery=counts)
+    back = StatusMsg.from_bytes(st.to_bytes())
+    assert back == st
+    shown = back.to_json_dict()
+    assert {k: shown[k] for k in counts} == counts
+    obj = msgpack.unpackb(st.to_bytes(), raw=False)
+    del obj["delivery"]  # a ROV without an outbox, or from before the counters
+    old = StatusMsg.from_bytes(msgpack.packb(obj, use_bin_type=True))
+    assert old.delivery is None
+    assert "live" not in old.to_json_dict()
+    for bad in ({**counts, "live": -1}, {"live": 1}, [1, 2], {**counts, "queued": "x"}):
+        obj["delivery"] = bad
+        with pytest.raises(WireError):
+            StatusMsg.from_bytes(msgpack.packb(obj, use_bin_type=True))
