@@ -38,6 +38,7 @@ import queue
 import tempfile
 import threading
 import time
+import zlib
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -123,7 +124,12 @@ class BaseStation:
         self.n_workers = max(1, workers)
         self.processed = 0
         self._lock = threading.Lock()
-        self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
+        # One queue per ingest thread, a robot's clouds always to the same one (by its key): they reach the map in
+        # the order they arrived, so a robot's windows (and, with plane workers, the map) do not depend on which
+        # thread was quicker.
+        self._queues: list[queue.Queue[tuple[str, bytes, int] | None]] = [
+            queue.Queue(maxsize=max(1, queue_size // self.n_workers)) for _ in range(self.n_workers)
+        ]
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
@@ -196,7 +202,7 @@ class BaseStation:
 
         s = self.session
         for i in range(self.n_workers):
-            t = threading.Thread(target=self._worker, name=f"base-ingest-{i}", daemon=True)
+            t = threading.Thread(target=self._worker, args=(self._queues[i],), name=f"base-ingest-{i}", daemon=True)
             t.start()
             self._threads.append(t)
         map_pub = s.declare_publisher(
@@ -235,7 +241,7 @@ class BaseStation:
         """Wait until every queued cloud has been processed; False on timeout."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if self._queue.unfinished_tasks == 0 and self.feed.idle():
+            if all(q.unfinished_tasks == 0 for q in self._queues) and self.feed.idle():
                 return True
             time.sleep(0.01)
         return False
@@ -250,8 +256,8 @@ class BaseStation:
         self._entities.clear()
         self.drain(timeout_s=CLOSE_DRAIN_S)
         self._closing.set()
-        for _ in range(self.n_workers):
-            self._queue.put(None)
+        for q in self._queues:
+            q.put(None)
         for t in self._threads:
             t.join(timeout=CLOSE_JOIN_S)
         self._threads.clear()
@@ -265,10 +271,12 @@ class BaseStation:
 
     # ------------------------------------------------------------------ callbacks (cheap, never block long)
     def _on_cloud(self, sample: Any) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        key = str(sample.key_expr)
+        item = (key, sample.payload.to_bytes(), time.time_ns())
+        q = self._queues[zlib.crc32(key.encode()) % len(self._queues)]
         while not self._closing.is_set():
             try:
-                self._queue.put(item, timeout=0.5)
+                q.put(item, timeout=0.5)
                 return
             except queue.Full:
                 continue
@@ -364,9 +372,9 @@ class BaseStation:
             log.warning("nav query failed: %s", err)
 
     # ------------------------------------------------------------------ the ingest loop
-    def _worker(self) -> None:
+    def _worker(self, q: queue.Queue[tuple[str, bytes, int] | None]) -> None:
         while True:
-            item = self._queue.get()
+            item = q.get()
             try:
                 if item is None:
                     return
@@ -374,7 +382,7 @@ class BaseStation:
             except Exception as err:
                 log.exception("ingest failed: %s", err)
             finally:
-                self._queue.task_done()
+                q.task_done()
 
     def _ingest(self, key: str, payload: bytes, recv_ns: int) -> None:
         robot = self.keys.robot_of(key)
@@ -456,7 +464,7 @@ class BaseStation:
             "map": map_status,
             "ingest": {
                 "processed": self.processed,
-                "queued": self._queue.qsize(),
+                "queued": sum(q.qsize() for q in self._queues),
                 "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
                 "transit_ms": {k: (None if v != v else round(v, 3)) for k, v in transit.items()},
             },

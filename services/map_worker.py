@@ -36,7 +36,16 @@ from lrsensor.frames import body_to_ned
 
 from .errors import WireError
 from .keys import FleetKeys
-from .map_worker_wire import MapControl, MapJob, PlaneObservations, decode_work, obs_key, work_key, workers_key
+from .map_worker_wire import (
+    FLUSH_KEY,
+    MapControl,
+    MapJob,
+    PlaneObservations,
+    decode_work,
+    obs_key,
+    work_key,
+    workers_key,
+)
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +150,9 @@ class MapWorker:
         if isinstance(msg, MapControl):
             if msg.kind == "flush":
                 for robot, records in self.builder.flush_observations().items():
-                    out.append(self._observed(robot, records))
+                    out.append(self._observed(robot, records, FLUSH_KEY))
+                for robot in sorted(r for r, seqs in self._pending.items() if seqs):  # nothing left to extract
+                    out.append(self._observed(robot, [], FLUSH_KEY))
             elif msg.kind == "drop" and self._epoch.get(msg.robot, -1) < msg.epoch:
                 self._forget(msg.robot)
         else:
@@ -166,19 +177,24 @@ class MapWorker:
             self._forget(job.robot)
             self._epoch[job.robot] = job.epoch
         self.jobs += 1
-        pts = job.points_body.astype(np.float64)
-        records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, job.pose), job.pose)
         self._pending.setdefault(job.robot, []).append(job.seq)
+        try:
+            pts = job.points_body.astype(np.float64)
+            records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, job.pose), job.pose)
+        except Exception as err:  # done with, not stuck in flight at the base: commit what is pending, no planes
+            self.errors += 1
+            log.warning("map worker %s: cloud %s#%d not mapped: %s", self.name, job.robot, job.seq, err)
+            return [self._observed(job.robot, [], job.t_ns)]
         if records is None:
             if self.builder.uncommitted(job.robot) == 0:  # an operator's cap left it out: done with it
-                return [self._observed(job.robot, [])]
+                return [self._observed(job.robot, [], job.t_ns)]
             return []
-        return [self._observed(job.robot, records)]
+        return [self._observed(job.robot, records, job.t_ns)]
 
-    def _observed(self, robot: str, records: list[Any]) -> PlaneObservations:
+    def _observed(self, robot: str, records: list[Any], key_ns: int) -> PlaneObservations:
         from mapping.plane_map import record_to_wire
 
         seqs = tuple(self._pending.pop(robot, []))
         return PlaneObservations(
-            self.name, robot, self._epoch.get(robot, 0), seqs, tuple(record_to_wire(r) for r in records)
+            self.name, robot, self._epoch.get(robot, 0), seqs, tuple(record_to_wire(r) for r in records), key_ns
         )

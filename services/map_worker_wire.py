@@ -27,6 +27,8 @@ from .errors import WireError
 from .keys import FleetKeys, check_name
 
 SCHEMA = 1
+#: The merge key of a flush's observations: after every cloud's own (``PlaneObservations.key_ns``).
+FLUSH_KEY = 2**62
 
 
 def workers_key(keys: FleetKeys, worker: str = "*") -> str:
@@ -103,6 +105,8 @@ class PlaneObservations:
         robot, epoch: the robot and its assignment epoch the clouds were sent under.
         seqs: the clouds this extraction committed (each reaches the map with these observations).
         records: the observations, wire form (merged by the base as they are: it only adds statistics).
+        key_ns: where the base merges them in its canonical order: the capture time of the cloud that triggered
+            the extraction, or :data:`FLUSH_KEY` for the extraction of a flush (then by robot name).
     """
 
     worker: str
@@ -110,6 +114,7 @@ class PlaneObservations:
     epoch: int
     seqs: tuple[int, ...]
     records: tuple[dict[str, Any], ...]
+    key_ns: int = 0
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -122,6 +127,7 @@ class PlaneObservations:
                 "epoch": self.epoch,
                 "seqs": list(self.seqs),
                 "records": list(self.records),
+                "key_ns": self.key_ns,
             }
         )
 
@@ -136,6 +142,7 @@ class PlaneObservations:
                 int(d["epoch"]),
                 tuple(int(s) for s in d["seqs"]),
                 tuple(dict(r) for r in d["records"]),
+                int(d["key_ns"]),
             )
         except (KeyError, TypeError, ValueError) as err:
             msg = f"plane observations: malformed: {err!r}"

@@ -19,12 +19,18 @@ alive. With no worker alive, clouds wait in flight (bounded: :meth:`WorkerPool.d
 ``max_in_flight`` is reached, which pushes back through the map queue to the robots) until one joins.
 
 The merge: observations are decoded and merged on this module's thread (``MapBuilder.merge``: association and
-exact addition of statistics, nothing per robot), then the committed clouds are reported (``on_commit``).
+exact addition of statistics, nothing per robot), then the committed clouds are reported (``on_commit``). The
+merge is order-sensitive (which plane an observation joins depends on what the map holds), so the merger does not
+merge in the order the workers happen to answer: each observation carries the capture time of the cloud that
+triggered its extraction (``key_ns``), and it is held until no cloud still in flight is older; held observations
+are merged by (key, robot): the order one map thread fed in capture order merges them in, whatever the number of
+workers. The price is latency: an observation may wait up to one window period for the other robots' windows.
 """
 
 from __future__ import annotations
 
 import hashlib
+import heapq
 import logging
 import queue
 import threading
@@ -64,6 +70,14 @@ def owner(robot: str, workers: Iterable[str]) -> str | None:
         if best is None or key > best:
             best = key
     return best[1] if best is not None else None
+
+
+#: Longest an observation is held for the canonical order, seconds: a robot that went silent with clouds in its
+#: worker's window (extracted only at the next flush) must not stall the others' merge.
+MAX_HOLD_S = 2.0
+
+#: An observation held for the canonical merge order: (key_ns, robot, arrival number, records, [(seq, t_ns)]).
+_Held = tuple[int, str, int, list[Any], list[tuple[int, int]]]
 
 
 @dataclass
@@ -108,6 +122,9 @@ class WorkerPool:
         self._epoch: dict[str, int] = {}
         self._in_flight: dict[str, dict[int, _InFlight]] = {}
         self._n_in_flight = 0
+        self._held: list[_Held] = []
+        self._held_since: dict[int, float] = {}
+        self._seq = 0
         self._events: queue.Queue[tuple[str, Any] | None] = queue.Queue()
         self._thread: threading.Thread | None = None
         self._entities: list[Any] = []
@@ -230,6 +247,8 @@ class WorkerPool:
             while self._n_in_flight > 0:
                 left = deadline - time.monotonic()
                 if left <= 0:
+                    stuck = {r: (self._owner.get(r), sorted(t)[:5], len(t)) for r, t in self._in_flight.items() if t}
+                    log.warning("map workers: flush timed out; in flight (owner, first seqs, n): %s", stuck)
                     return False
                 self._cond.wait(min(left, 0.5))
         return True
@@ -271,7 +290,13 @@ class WorkerPool:
     # ------------------------------------------------------------------ the merger thread
     def _run(self) -> None:
         while True:
-            ev = self._events.get()
+            try:
+                ev = self._events.get(timeout=0.25)
+            except queue.Empty:
+                with self._cond:
+                    ready = self._ready() if self._held else []
+                self._merge(ready)
+                continue
             if ev is None:
                 return
             kind, sample = ev
@@ -325,14 +350,34 @@ class WorkerPool:
             table = self._in_flight.get(obs.robot, {})
             done = [(s, table.pop(s).t_ns) for s in obs.seqs if s in table]
             self.committed[obs.worker] = self.committed.get(obs.worker, 0) + len(done)
-        try:
-            changes = self.builder.merge(records) if records else []
-            self.merged += len(records)
-            if changes:
-                self.on_changes(changes)
-            if done:
-                self.on_commit(obs.robot, done)
-        finally:  # counted out of flight only once merged and reported: flush() then sees them done
-            with self._cond:
-                self._n_in_flight -= len(done)
-                self._cond.notify_all()
+            self._seq += 1
+            self._held_since[self._seq] = time.monotonic()
+            heapq.heappush(self._held, (obs.key_ns, obs.robot, self._seq, records, done))
+            ready = self._ready()
+        self._merge(ready)
+
+    def _ready(self) -> list[_Held]:
+        """Under the lock: the held observations that no cloud still in flight can precede (canonical order)."""
+        firsts = [next(iter(t.values())).t_ns for t in self._in_flight.values() if t]
+        mark = min(firsts) if firsts else None
+        out = []
+        oldest = time.monotonic() - MAX_HOLD_S
+        while self._held and (mark is None or self._held[0][0] < mark or min(self._held_since.values()) < oldest):
+            item = heapq.heappop(self._held)
+            self._held_since.pop(item[2], None)
+            out.append(item)
+        return out
+
+    def _merge(self, ready: list[_Held]) -> None:
+        for _key, robot, _n, records, done in ready:
+            try:
+                changes = self.builder.merge(records) if records else []
+                self.merged += len(records)
+                if changes:
+                    self.on_changes(changes)
+                if done:
+                    self.on_commit(robot, done)
+            finally:  # counted out of flight only once merged and reported: flush() then sees them done
+                with self._cond:
+                    self._n_in_flight -= len(done)
+                    self._cond.notify_all()
