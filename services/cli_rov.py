@@ -260,7 +260,8 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"rov {robot}: link budget: published {st['sent']} + reloaded {st['reloaded']} = live {st['live']} "
                 f"+ forwarded {st['forwarded']} + queued {st['queued']} + dropped by the budget "
-                f"{st['dropped_budget']} ({st['thinned']} thinned from the live stream, {st['held']} held)",
+                f"{st['dropped_budget']} ({st['released']} sent and released by the budget before their "
+                f"acknowledgement, {st['thinned']} thinned from the live stream, {st['held']} held)",
                 flush=True,
             )
             if service.state == "done" and o["pending"]:

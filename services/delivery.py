@@ -34,11 +34,13 @@ When the link is slower than the sensor (docs/reliability.md, "A link slower tha
 is kept on disk within the outbox's budget (``--outbox-max-mb``, ``--outbox-max-messages``); a new cloud
 goes out live only while the bytes in flight leave room for it (:meth:`OutboxSink.live_room`: a generous
 window while nothing is queued, half the re-send window while a backlog is), otherwise it is **queued** on
-disk; the backlog is forwarded oldest first in the pacing window's room. Only the budget drops clouds (the
-oldest, logged and counted). Each cloud is counted once, in the category of its fate so far::
+disk; the backlog is forwarded oldest first in the pacing window's room. Only the budget drops clouds,
+logged and counted: first the oldest whose copy already went out (``released``: it arrives unless that copy
+is lost), then the oldest never sent (``dropped_budget``: lost, the base station shows it as ``missed``).
+Each cloud is counted once, in the category of its first copy (or of its loss)::
 
     published + reloaded = live + forwarded + queued + dropped_budget
-    live + forwarded + queued = acked + pending + unstored
+    live + forwarded + queued = acked + pending + released + unstored
 
 (``pending``: in the outbox; ``unstored``: published live but not written to disk, counted under ``live``).
 Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
@@ -193,18 +195,21 @@ class DeliveryCounters:
         thinned: clouds not published live because the link was not keeping up (no room in the live window):
             queued in the outbox and forwarded from there.
 
-    The link-budget counters count each cloud once, in the category of its fate so far (an identity holds:
-    ``sent + reloaded == live + forwarded + queued + dropped``, and ``live + forwarded + queued == acked +
-    pending + unstored``):
+    The link-budget counters count each cloud once, in the category of its first copy (identities:
+    ``sent + reloaded == live + forwarded + queued + dropped_budget`` and ``live + forwarded + queued ==
+    acked + pending + released + unstored``, ``pending`` being the outbox's):
 
     Attributes:
-        live: clouds whose first copy went out live (the one published by :meth:`OutboxSink.send`), not
-            dropped since; a cloud whose disk write failed is counted here.
+        live: clouds whose first copy went out live (the one published by :meth:`OutboxSink.send`); a cloud
+            whose disk write failed is counted here.
         queued: clouds in the outbox of which no copy went out yet (held, thinned, published while no
             subscriber matched, or reloaded from an earlier run).
         forwarded: clouds whose first copy went out later, from the outbox (a reloaded cloud the base station
             acknowledges before it is sent again counts here: an earlier run forwarded it).
         reloaded: clouds pending in the outbox when this sink started (counted in ``queued`` first).
+        dropped_budget: clouds the disk budget dropped before any copy went out (lost; part of ``dropped``).
+        released: clouds the disk budget dropped after a copy went out, before their acknowledgement (they
+            arrive unless that copy is lost; part of ``dropped``).
     """
 
     sent: int = 0
@@ -223,15 +228,17 @@ class DeliveryCounters:
     queued: int = 0
     forwarded: int = 0
     reloaded: int = 0
+    dropped_budget: int = 0
+    released: int = 0
 
     def budget(self) -> dict[str, int]:
-        """The link-budget counters (``dropped`` as ``dropped_budget``), as :class:`services.wire.StatusMsg`
-        carries them."""
+        """The link-budget counters, as :class:`services.wire.StatusMsg` carries them."""
         return {
             "live": self.live,
             "queued": self.queued,
             "forwarded": self.forwarded,
-            "dropped_budget": self.dropped,
+            "dropped_budget": self.dropped_budget,
+            "released": self.released,
             "reloaded": self.reloaded,
         }
 
@@ -374,7 +381,7 @@ class OutboxSink:
         with self._lock:
             self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
         try:
-            dropped = self.outbox.append(msg.seq, payload)
+            dropped = self.outbox.append(msg.seq, payload, self._expendable)
         except OutboxError as err:
             if hold or thin:  # no copy went out: a live one is better than none
                 self._put(payload)
@@ -393,15 +400,19 @@ class OutboxSink:
                     self._uncount(d)
                     self._forget(d)
 
+    def _expendable(self, seq: int) -> bool:
+        """True when a copy of pending ``seq`` went out (the budget drops those first); called by the outbox
+        under its lock, so it reads without taking this sink's (a dict lookup is atomic)."""
+        return self._fate.get(seq, "queued") != "queued"
+
     def _uncount(self, seq: int) -> None:
-        """``seq`` was dropped by the budget: take it out of its category; caller holds the lock."""
+        """``seq`` was dropped by the budget: lost if no copy went out, else released; caller holds the lock."""
         fate = self._fate.pop(seq, None)
-        if fate == "live":
-            self.counters.live -= 1
-        elif fate == "queued":
+        if fate == "queued":
             self.counters.queued -= 1
-        elif fate == "forwarded":
-            self.counters.forwarded -= 1
+            self.counters.dropped_budget += 1
+        elif fate is not None:
+            self.counters.released += 1
 
     def _in_flight(self, now: float, timeout: float) -> int:
         """Bytes sent after the newest acknowledged send and not yet timed out; caller holds the lock."""

@@ -10,12 +10,14 @@ A message file is ``MAGIC (8 bytes) | seq (u64 LE) | length (u64 LE) | crc32 (u3
 every ``*.msg`` file is checked (magic, name, length, CRC); a damaged one (a crash can only leave a
 ``.tmp`` file, but a disk can do worse) is moved to ``DIR/corrupt/`` and counted, never silently skipped.
 
-Policy when full: the outbox holds at most ``max_messages`` messages and ``max_bytes`` payload bytes. An
-append that would exceed either bound first drops the **oldest** pending messages (lowest sequence numbers)
-until the new one fits; every dropped sequence number is counted (``dropped``) and kept as ranges
-(``dropped_ranges``) in ``state.json``, logged at WARNING, and returned to the caller so it can report them.
-The newest data wins because a ROV that lost its link for long still wants its latest view of the world, and
-the base station sees the dropped numbers as open gaps (``missed``) in its counters: loss is never silent.
+Policy when full (the disk budget): the outbox holds at most ``max_messages`` messages and ``max_bytes``
+payload bytes. An append that would exceed either bound first drops pending messages until the new one
+fits: the oldest of those the caller names **expendable** (a copy already went out on the link, so it
+arrives unless that copy is lost), then the **oldest** of the rest (lowest sequence numbers); every dropped
+sequence number is counted (``dropped``) and kept as ranges (``dropped_ranges``) in ``state.json``, logged at
+WARNING, and returned to the caller so it can report them. Among messages never sent the newest win because
+a ROV that lost its link for long still wants its latest view of the world, and the base station sees the
+dropped numbers as open gaps (``missed``) in its counters: loss is never silent.
 
 Durability: with ``fsync=True`` (default) each message is on disk before :meth:`Outbox.append` returns, so
 it survives a power cut; with ``fsync=False`` it survives a crash of the process but not of the machine.
@@ -34,7 +36,7 @@ import os
 import struct
 import threading
 import zlib
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,12 +101,20 @@ class OutboxStats:
         }
 
 
-def _merge_range(ranges: list[list[int]], lo: int, hi: int) -> None:
-    """Append ``[lo, hi]`` to increasing, disjoint ``ranges`` (``lo`` above every range held), merging."""
-    if ranges and lo <= ranges[-1][1] + 1:
-        ranges[-1][1] = max(ranges[-1][1], hi)
+def _add_range(ranges: list[list[int]], seq: int) -> None:
+    """Add ``seq`` to increasing, disjoint ``ranges`` (anywhere, merging neighbours); the list stays short in
+    practice, as drops come in runs."""
+    lo = bisect.bisect_right([r[0] for r in ranges], seq) - 1
+    if lo >= 0 and ranges[lo][0] <= seq <= ranges[lo][1]:
+        return
+    if lo >= 0 and ranges[lo][1] + 1 == seq:
+        ranges[lo][1] = seq
     else:
-        ranges.append([lo, hi])
+        lo += 1
+        ranges.insert(lo, [seq, seq])
+    if lo + 1 < len(ranges) and ranges[lo][1] + 1 >= ranges[lo + 1][0]:
+        ranges[lo][1] = max(ranges[lo][1], ranges[lo + 1][1])
+        del ranges[lo + 1]
 
 
 class Outbox:
@@ -239,8 +249,10 @@ class Outbox:
         with self._lock:
             return self._next_seq
 
-    def append(self, seq: int, payload: bytes) -> list[int]:
-        """Store ``payload`` under ``seq``; returns the sequence numbers dropped to make room (oldest first).
+    def append(self, seq: int, payload: bytes, expendable: Callable[[int], bool] | None = None) -> list[int]:
+        """Store ``payload`` under ``seq``; returns the sequence numbers dropped to make room, in the order
+        dropped: the oldest ``expendable`` ones first (a predicate on a pending number; it must not call the
+        outbox), then the oldest of the rest.
 
         Raises:
             OutboxError: ``seq`` is not above every number appended before, the payload alone is larger
@@ -258,24 +270,30 @@ class Outbox:
                 msg = f"outbox {self.directory}: message #{seq} of {len(data)} bytes exceeds max_bytes={self.max_bytes}"
                 raise OutboxError(msg)
             dropped: list[int] = []
+            first = 0  # the expendable ones are searched from here (those below are not)
             while self._seqs and (len(self._seqs) + 1 > self.max_messages or self._bytes + len(data) > self.max_bytes):
-                dropped.append(self._seqs.pop(0))
+                i = len(self._seqs)
+                if expendable is not None:
+                    while first < len(self._seqs) and not expendable(self._seqs[first]):
+                        first += 1
+                    i = first
+                dropped.append(self._seqs.pop(i if i < len(self._seqs) else 0))
                 self._bytes -= self._sizes.pop(dropped[-1])
             header = _HEADER.pack(MAGIC, seq, len(data), zlib.crc32(data))
             self._next_seq = seq + 1
             if dropped:
                 self._dropped += len(dropped)
-                for d in dropped:
-                    _merge_range(self._dropped_ranges, d, d)
+                for d in sorted(dropped):
+                    _add_range(self._dropped_ranges, d)
                 del self._dropped_ranges[:-MAX_DROPPED_RANGES]
                 log.warning(
-                    "outbox %s full (%d messages, %d bytes max: the disk budget): dropped %d oldest (#%d..#%d)",
+                    "outbox %s full (%d messages, %d bytes max: the disk budget): dropped %d (#%d..#%d)",
                     self.directory,
                     self.max_messages,
                     self.max_bytes,
                     len(dropped),
-                    dropped[0],
-                    dropped[-1],
+                    min(dropped),
+                    max(dropped),
                 )
                 self._save_state()  # next_seq and the drop are durable before any file goes
                 for d in dropped:

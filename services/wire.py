@@ -735,8 +735,9 @@ class StatusMsg:
         last_seq: sequence number of the last published cloud, -1 if none.
         unplaced: clouds published whose pose had no horizontal fix (optional on the wire, 0 when absent).
         delivery: the outbox's link-budget counters (``live``, ``queued``, ``forwarded``, ``dropped_budget``,
-            ``reloaded``; see :class:`services.delivery.DeliveryCounters` and docs/reliability.md), optional on
-            the wire: None from a ROV without an outbox or from before the counters existed.
+            ``released``, ``reloaded``; see :class:`services.delivery.DeliveryCounters` and
+            docs/reliability.md), optional on the wire: None from a ROV without an outbox or from before the
+            counters existed.
     """
 
     robot: str
@@ -753,7 +754,7 @@ class StatusMsg:
     TYPE = "status"
     _COUNTERS = ("frames", "published", "skipped", "failed")
     #: The optional delivery counters, each a non-negative integer; all or none are sent.
-    DELIVERY = ("live", "queued", "forwarded", "dropped_budget", "reloaded")
+    DELIVERY = ("live", "queued", "forwarded", "dropped_budget", "released", "reloaded")
 
     def to_bytes(self) -> bytes:
         """Encode as msgpack."""

@@ -44,7 +44,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -313,6 +313,12 @@ class FleetRun:
         transit_ms: the base station's transit percentiles (``p50``, ``p99``), ms.
         wall_s: from the robots' start to the last exit.
         logs: per robot, its output.
+        budget: per robot, the link-budget counters of its summary line (``published``, ``reloaded``,
+            ``live``, ``forwarded``, ``queued``, ``dropped_budget``, ``released``, ``thinned``, ``held``; empty
+            if none).
+        reported: per robot, the base station's ``robots.<robot>.reported`` (the ROV's last status).
+        held_ranges: per robot, the sequence ranges the base station holds (its ``fleet.json``).
+        dropped_ranges: per robot, the ranges its outbox dropped by the budget (its ``state.json``).
     """
 
     robots: tuple[str, ...]
@@ -330,6 +336,10 @@ class FleetRun:
     transit_ms: dict[str, float | None]
     wall_s: float
     logs: dict[str, str]
+    budget: dict[str, dict[str, int]] = field(default_factory=dict)
+    reported: dict[str, dict[str, Any]] = field(default_factory=dict)
+    held_ranges: dict[str, list[list[int]]] = field(default_factory=dict)
+    dropped_ranges: dict[str, list[list[int]]] = field(default_factory=dict)
 
     @property
     def delivered(self) -> int:
@@ -361,6 +371,23 @@ _OUTBOX_LINE = re.compile(
     r"(?:, clouds (\d+) bytes)?$",
     re.MULTILINE,
 )
+
+_BUDGET_LINE = re.compile(
+    r"rov (\S+): link budget: published (\d+) \+ reloaded (\d+) = live (\d+) \+ forwarded (\d+) \+ queued (\d+) "
+    r"\+ dropped by the budget (\d+) \((\d+) sent and released by the budget before their acknowledgement, "
+    r"(\d+) thinned from the live stream, (\d+) held\)",
+)
+_BUDGET_KEYS = (
+    "published", "reloaded", "live", "forwarded", "queued", "dropped_budget", "released", "thinned", "held"
+)
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def run_fleet(
@@ -467,6 +494,11 @@ def run_fleet(
         else:
             pending[r], resent[r], resent_bytes[r], cloud_bytes[r], unheard[r] = -1, 0, 0, 0, 0
     transit = st.get("ingest", {}).get("transit_ms", {})
+    budget: dict[str, dict[str, int]] = {}
+    for r in robots:
+        found_b = [b for b in _BUDGET_LINE.finditer(logs[r]) if b.group(1) == r]
+        budget[r] = dict(zip(_BUDGET_KEYS, (int(v) for v in found_b[-1].groups()[1:]), strict=True)) if found_b else {}
+    fleet_state = _read_json(state / "fleet.json").get("robots", {})
     return FleetRun(
         robots=tuple(robots),
         frames=frames,
@@ -483,6 +515,10 @@ def run_fleet(
         transit_ms={"p50": transit.get("p50"), "p99": transit.get("p99")},
         wall_s=wall,
         logs=logs,
+        budget=budget,
+        reported={r: dict(rob.get(r, {}).get("reported", {})) for r in robots},
+        held_ranges={r: list(fleet_state.get(r, {}).get("ranges", [])) for r in robots},
+        dropped_ranges={r: list(_read_json(outboxes / r / "state.json").get("dropped_ranges", [])) for r in robots},
     )
 
 

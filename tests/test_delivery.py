@@ -249,8 +249,10 @@ def _identity(sink: OutboxSink) -> None:
     """Both identities of the link-budget counters (docs/reliability.md) hold."""
     st = sink.stats()
     assert st["sent"] + st["reloaded"] == st["live"] + st["forwarded"] + st["queued"] + st["dropped_budget"], st
-    assert st["live"] + st["forwarded"] + st["queued"] == st["acked"] + st["outbox"]["pending"] + st["unstored"], st
-    assert st["dropped_budget"] == st["dropped"]
+    assert st["live"] + st["forwarded"] + st["queued"] == (
+        st["acked"] + st["outbox"]["pending"] + st["released"] + st["unstored"]
+    ), st
+    assert st["dropped_budget"] + st["released"] == st["dropped"]
 
 
 def test_every_cloud_is_counted_once_live(net: tuple[Any, Any], tmp_path: Path) -> None:
@@ -263,7 +265,9 @@ def test_every_cloud_is_counted_once_live(net: tuple[Any, Any], tmp_path: Path) 
             _identity(sink)
         assert sink.wait_empty(15.0)
         _identity(sink)
-        assert sink.budget_counts() == {"live": 20, "queued": 0, "forwarded": 0, "dropped_budget": 0, "reloaded": 0}
+        assert sink.budget_counts() == {
+            "live": 20, "queued": 0, "forwarded": 0, "dropped_budget": 0, "released": 0, "reloaded": 0
+        }
     base.close()
 
 
@@ -276,17 +280,24 @@ def test_only_the_budget_drops_and_the_rest_is_forwarded(net: tuple[Any, Any], t
         for seq in range(30):
             sink.send(_cloud(seq))
             _identity(sink)
-        assert sink.budget_counts() == {"live": 0, "queued": 10, "forwarded": 0, "dropped_budget": 20, "reloaded": 0}
+        assert sink.budget_counts() == {
+            "live": 0, "queued": 10, "forwarded": 0, "dropped_budget": 20, "released": 0, "reloaded": 0
+        }
         assert box.stats().dropped_ranges == ((0, 19),)
         base = FakeBase(router)
         assert sink.wait_empty(15.0)
         _identity(sink)
-        assert sink.budget_counts() == {"live": 0, "queued": 0, "forwarded": 10, "dropped_budget": 20, "reloaded": 0}
+        assert sink.budget_counts() == {
+            "live": 0, "queued": 0, "forwarded": 10, "dropped_budget": 20, "released": 0, "reloaded": 0
+        }
     assert base.seqs.ranges() == [[20, 29]]
     base.close()
 
 
-def test_a_live_cloud_dropped_by_the_budget_leaves_its_category(net: tuple[Any, Any], tmp_path: Path) -> None:
+def test_the_budget_drops_sent_clouds_before_unsent_ones(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """A base that receives and never acknowledges, a budget of 5: the 12 live clouds' disk copies go oldest
+    first (released, not lost: they arrived); once the base looks away (no subscriber), the clouds kept
+    unsent outlive the sent ones."""
     router, rov = net
     base = FakeBase(router)
     base.q.undeclare()  # receives, never acknowledges: the live copies stay pending until the budget drops them
@@ -297,9 +308,21 @@ def test_a_live_cloud_dropped_by_the_budget_leaves_its_category(net: tuple[Any, 
             sink.send(_cloud(seq))
             _identity(sink)
         c = sink.budget_counts()
-        assert c["dropped_budget"] == 7
-        assert c["live"] + c["queued"] + c["forwarded"] == 5
-    base.sub.undeclare()
+        assert (c["live"], c["released"], c["dropped_budget"]) == (12, 7, 0)
+        assert box.pending() == list(range(7, 12))
+        base.sub.undeclare()
+        assert wait_until(lambda: not sink.base_present(), WAIT_S)
+        for seq in range(12, 15):  # unsent: they push out the three oldest sent ones, not each other
+            sink.send(_cloud(seq))
+            _identity(sink)
+        assert box.pending() == [10, 11, 12, 13, 14]
+        for seq in range(15, 18):  # only unsent ones left to drop but the two sent: those go first
+            sink.send(_cloud(seq))
+            _identity(sink)
+        assert box.pending() == [13, 14, 15, 16, 17]
+        c = sink.budget_counts()
+        assert (c["live"], c["queued"], c["released"], c["dropped_budget"]) == (12, 5, 12, 1)
+    assert base.arrivals.keys() == set(range(12))
 
 
 def test_a_link_that_does_not_keep_up_thins_the_live_stream(net: tuple[Any, Any], tmp_path: Path) -> None:

@@ -281,3 +281,16 @@ def test_take_acked_names_exactly_what_it_removed_never_what_the_budget_dropped(
     s = box.stats()
     assert (s.acked, s.dropped, s.pending) == (3, 2, 1)
     assert s.appended == s.acked + s.dropped + s.pending
+
+
+def test_the_budget_drops_expendable_messages_first_then_the_oldest(tmp_path: Path) -> None:
+    box = Outbox(tmp_path / "o", max_messages=4, fsync=False)
+    sent = {1, 2}
+    for seq in range(4):
+        assert box.append(seq, _payload(seq), sent.__contains__) == []
+    assert box.append(4, _payload(4), sent.__contains__) == [1]  # the oldest sent one, not #0
+    assert box.append(5, _payload(5), sent.__contains__) == [2]
+    assert box.append(6, _payload(6), sent.__contains__) == [0]  # none sent left: the oldest
+    assert box.pending() == [3, 4, 5, 6]
+    assert box.stats().dropped_ranges == ((0, 2),)
+    assert Outbox(tmp_path / "o").stats().dropped == 3

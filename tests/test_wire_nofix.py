@@ -73,7 +73,7 @@ def test_status_carries_unplaced_and_reads_older_status() -> None:
 
 
 def test_status_carries_the_link_budget_counters_and_reads_older_status() -> None:
-    counts = {"live": 30, "queued": 4, "forwarded": 5, "dropped_budget": 1, "reloaded": 0}
+    counts = {"live": 30, "queued": 4, "forwarded": 5, "dropped_budget": 1, "released": 2, "reloaded": 0}
     st = StatusMsg("rov1", 5, "running", frames=40, published=40, last_seq=39, delivery=counts)
     back = StatusMsg.from_bytes(st.to_bytes())
     assert back == st
