@@ -24,10 +24,11 @@ def default_map_workers(cores: int | None = None) -> int:
     """Local worker processes by default: the cores minus two (0 on a 2-core machine: one map thread in the
     base process).
 
-    The base process keeps about one core busy at a fleet's full rate on its own (Zenoh, decoding, the ledger,
-    navigation, the merge), and the workers' extraction needs about another at 20 robots x 30 Hz; below three
-    cores, worker processes only add serialization and context switches to the same cores
-    (benchmarks/results/workers.md), above it each worker adds a core of extraction.
+    The base process keeps about one core busy at a fleet's full rate on its own with navigation (Zenoh,
+    decoding, the ledger, navigation, the merge). On two cores worker processes do raise throughput without
+    navigation (benchmarks/results/workers.md), but they compete with the base's navigation and with everything
+    else on the machine, and they delay acknowledgements until a window is committed: an operator opts in with
+    ``--map-workers N``. From three cores on, each worker has a core of extraction to itself.
     """
     n = cores if cores is not None else (os.cpu_count() or 1)
     return max(0, n - 2)
