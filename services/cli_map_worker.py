@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from .zconfig import add_network_args
 
@@ -12,6 +13,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fleet", required=True, help="fleet name (the <fleet> chunk of every key)")
     parser.add_argument("--prefix", default="lrs", help="key prefix (default: lrs)")
     parser.add_argument("--name", default=None, help="worker name (default: <host>-<pid>-<random>)")
+    parser.add_argument("--parent-pid", type=int, default=None, help=argparse.SUPPRESS)  # stop when the base dies
     add_network_args(parser, default_mode="client")
     parser.epilog = "Connect to the base station's router: --connect tcp/BASE-HOST:7447 (see docs/scaling.md)."
 
@@ -31,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
     ):
         print(f"map worker {worker.name} of fleet {keys.fleet!r} running; Ctrl-C to stop", flush=True)
         while not stop.wait(0.2):
-            pass
+            if args.parent_pid is not None and os.getppid() != args.parent_pid:
+                break  # the base that started this worker is gone
     print(f"map worker stopped: {worker.jobs} clouds, {worker.published} observations", flush=True)
     return 0

@@ -38,9 +38,12 @@ def start_local_workers(n: int, keys: FleetKeys, endpoint: str, verbose: int = 0
     """Start ``n`` worker processes connecting to ``endpoint`` (``tcp/host:port`` of the base's router)."""
     cmd = [sys.executable, "-m", "lrsensor", *(["-v"] * verbose), "map-worker"]
     cmd += ["--fleet", keys.fleet, "--prefix", keys.prefix, "--mode", "client", "--connect", endpoint]
+    cmd += ["--parent-pid", str(os.getpid())]
     procs = []
     for _ in range(n):
-        procs.append(subprocess.Popen(cmd))
+        # a session of their own: a Ctrl-C in the base's terminal reaches the base only, which flushes the
+        # workers' windows before it stops them
+        procs.append(subprocess.Popen(cmd, start_new_session=True))
     log.info("started %d local map worker processes (%s)", n, endpoint)
     return procs
 

@@ -238,7 +238,7 @@ class WorkerPool:
 
     def flush(self, timeout_s: float) -> bool:
         """Ask every worker to extract its pending windows and wait until nothing is in flight; False on
-        timeout (e.g. no worker alive)."""
+        timeout or at once when no worker is alive."""
         with self._cond:
             for w in sorted(self._workers):
                 self._put(w, MapControl("flush").to_bytes())
@@ -246,7 +246,7 @@ class WorkerPool:
         with self._cond:
             while self._n_in_flight > 0:
                 left = deadline - time.monotonic()
-                if left <= 0:
+                if left <= 0 or not self._workers:  # nobody to flush: what is in flight stays unacknowledged
                     stuck = {r: (self._owner.get(r), sorted(t)[:5], len(t)) for r, t in self._in_flight.items() if t}
                     log.warning("map workers: flush timed out; in flight (owner, first seqs, n): %s", stuck)
                     return False
