@@ -90,7 +90,8 @@ def test_observations_survive_the_wire_and_merge_like_the_builders_own() -> None
 
 # ---------------------------------------------------------------------- through Zenoh
 def _publish(net: TestNetwork, frames: list[DiveFrame], robots: list[str], start: int, stop: int) -> int:
-    """Publish frames ``start:stop`` of each robot (robot k replays base robot k % 2); returns clouds sent."""
+    """Publish frames ``start:stop`` of each robot (robot k replays base robot k % 2) and wait until the base
+    accepted them (a flush must not overtake the last ones); returns clouds sent."""
     import zenoh
 
     s = net.session()
@@ -106,6 +107,9 @@ def _publish(net: TestNetwork, frames: list[DiveFrame], robots: list[str], start
             n += 1
     for p in pubs.values():
         p.undeclare()
+    base = net.base
+    assert base is not None
+    _wait(lambda: base.processed >= len(robots) * stop, 60, "the base to accept every cloud")
     return n
 
 
