@@ -9,7 +9,10 @@ delivery path: disk outbox, acknowledgements, re-sends) across a veth pair built
 Needs root (skips otherwise).
 
 Rows (``--rows``): ``default`` runs 10 Mbit/s, 10 % loss, 200 ms without and with a 30 s outage 2 s into the
-replay, and the same at 2 Mbit/s; ``flap5min`` runs the 5-minute outage.
+replay, the same at 2 Mbit/s, and 2 Mbit/s with a 1 MiB outbox budget per robot (``--outbox-max-mb 1``), for
+which it adds a table of the link-budget counters (live, forwarded, queued, dropped by the budget, released;
+docs/reliability.md), whether the identity ``published = live + forwarded + queued + dropped_budget`` holds,
+and whether every cloud the base station lacks was dropped by the budget.
 
 Reported per row: clouds delivered (distinct, held by the base) of those replayed; sent twice (re-sends / clouds,
 %); bytes the robots sent over the link (retransmissions included) / the clouds' own bytes; transit
@@ -42,6 +45,7 @@ class Row:
     name: str
     spec: LinkSpec
     outage: tuple[float, float] | None = None
+    rov_args: tuple[str, ...] = ()
 
 
 ROWS: dict[str, tuple[Row, ...]] = {
@@ -49,6 +53,7 @@ ROWS: dict[str, tuple[Row, ...]] = {
         Row("10 Mbit/s, 10 % loss, 200 ms", LinkSpec(10.0, 0.10, 200.0)),
         Row("same + 30 s outage 2 s into the stream", LinkSpec(10.0, 0.10, 200.0), (2.0, 30.0)),
         Row("2 Mbit/s, 10 % loss, 200 ms", LinkSpec(2.0, 0.10, 200.0)),
+        Row("2 Mbit/s, 10 % loss, 200 ms, 1 MiB budget", LinkSpec(2.0, 0.10, 200.0), None, ("--outbox-max-mb", "1")),
     ),
     "flap5min": (
         Row(
@@ -78,6 +83,35 @@ def table(rows: list[tuple[Row, FleetRun]]) -> str:
             f"{sum(run.cloud_bytes.values()) / 1e6:.1f} MB = {run.link_ratio:.2f}x | "
             f"{_fmt_ms(run.transit_ms['p50'])} / {_fmt_ms(run.transit_ms['p99'])} | {'yes' if drained else 'no'} "
             f"| {codes} | {run.wall_s:.0f} s |"
+        )
+    return "\n".join(lines)
+
+
+def budget_table(rows: list[tuple[Row, FleetRun]]) -> str:
+    """The link-budget counters summed over the robots, and whether they add up."""
+    head = (
+        "| link | published | live | forwarded | queued | dropped by the budget | released | thinned / held "
+        "| identity holds | base lacks only dropped ones | delivered |\n"
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | :---: | ---: |"
+    )
+    lines = [head]
+    for row, run in rows:
+        tot = {k: sum(b.get(k, 0) for b in run.budget.values()) for k in next(iter(run.budget.values()), {})}
+        if not tot:
+            continue
+        adds_up = all(
+            b and b["published"] + b["reloaded"] == b["live"] + b["forwarded"] + b["queued"] + b["dropped_budget"]
+            for b in run.budget.values()
+        )
+        only_budget = all(
+            set(range(run.frames)) - {s for lo, hi in run.held_ranges[r] for s in range(lo, hi + 1)}
+            <= {s for lo, hi in run.dropped_ranges[r] for s in range(lo, hi + 1)}
+            for r in run.robots
+        )
+        lines.append(
+            f"| {row.name} | {tot['published']} | {tot['live']} | {tot['forwarded']} | {tot['queued']} "
+            f"| {tot['dropped_budget']} | {tot['released']} | {tot['thinned']} / {tot['held']} "
+            f"| {'yes' if adds_up else 'NO'} | {'yes' if only_budget else 'NO'} | {run.delivered} of {run.expected} |"
         )
     return "\n".join(lines)
 
@@ -121,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                     outage=row.outage,
                     ack_timeout_s=args.ack_timeout_s,
                     deadline_s=args.deadline_s,
-                    rov_args=("--cloud-schema", str(args.schema)),
+                    rov_args=("--cloud-schema", str(args.schema), *row.rov_args),
                 )
             measured.append((row, run))
             print(f"{row.name}: {time.monotonic() - t:.0f} s", flush=True)
@@ -142,6 +176,13 @@ def main(argv: list[str] | None = None) -> int:
         "the outbox).\n\n"
         f"{table(measured)}\n"
     )
+    if any(row.rov_args and any(run.budget.values()) for row, run in measured):
+        text += (
+            "\nThe link-budget counters (summed over the robots; dropped by the budget: never sent, lost; "
+            "released: sent, disk copy dropped before the acknowledgement; thinned / held: not sent live because "
+            "the window was full / the acknowledgements were late):\n\n"
+            f"{budget_table([(r, run) for r, run in measured if r.rov_args])}\n"
+        )
     if args.note:
         text += f"\n{args.note}\n"
     print(text)

@@ -348,6 +348,9 @@ class OutboxSink:
         acknowledgement that arrives before the append finishes is applied at the next poll (the base
         station's answer always lists everything it holds). A failed disk write is logged and counted
         (``unstored``), never raised: the robot keeps running and the live copy is on its way.
+
+        No live copy goes out while the ack polls go unanswered (``held``) or the live window is full
+        (``thinned``, :meth:`live_room`): the cloud is queued in the outbox and forwarded from there.
         """
         payload = msg.with_sent_ns(time.time_ns()).to_bytes()
         heard = self.base_present()  # no matching subscriber: zenoh sends nothing, re-send on reappearance
