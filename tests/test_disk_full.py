@@ -26,7 +26,7 @@ from services.sources import FolderSource
 from services.testnet import TestNetwork
 
 N_FRAMES = 10
-FULL_S = 8.0  # several checkpoint periods (2 s) with the disk full
+FULL_S = 8.0  # several checkpoint periods (2 s) with the disk full; the long version holds it a minute
 
 
 @pytest.fixture
@@ -65,7 +65,12 @@ def acked(net: TestNetwork, robot: str) -> list[list[int]]:
     return []
 
 
-def test_a_full_disk_acknowledges_nothing_unstored_and_loses_nothing(small_disk: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "full_s", [pytest.param(FULL_S, id="8s"), pytest.param(60.0, id="1min", marks=pytest.mark.long)]
+)
+def test_a_full_disk_acknowledges_nothing_unstored_and_loses_nothing(
+    small_disk: Path, tmp_path: Path, full_s: float
+) -> None:
     dive = record_sim_dive(tmp_path / "rov1", "rov1", n_frames=N_FRAMES, seed=7, clean_water=True)
     state = small_disk / "state"
     with TestNetwork("full") as net:
@@ -78,7 +83,7 @@ def test_a_full_disk_acknowledges_nothing_unstored_and_loses_nothing(small_disk:
         assert wait_until(lambda: base.status()["robots"].get("rov1", {}).get("received") == N_FRAMES, 30.0)
         t_full = time.monotonic()
         seen: list[Any] = []
-        while time.monotonic() - t_full < FULL_S:  # the base serves, and acknowledges nothing it could not store
+        while time.monotonic() - t_full < full_s:  # the base serves, and acknowledges nothing it could not store
             seen.append(acked(net, "rov1"))
             assert base.status()["robots"]["rov1"]["received"] == N_FRAMES
             time.sleep(0.5)

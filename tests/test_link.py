@@ -2,7 +2,8 @@
 
 The harness is ``tests/netlink.py`` (veth pair, tbf rate, iptables loss, a delaying relay, ``ip link down``
 outages, Zenoh shared memory off, bytes counted on the link). These tests need root and ``iptables`` and skip
-with the reason otherwise. The short cases run in CI (under a minute each); the 5-minute outage is ``slow``.
+with the reason otherwise. The short cases run in CI (under a minute each); the 5-minute outage is ``long``
+(``pytest -m long``).
 Also here, on loopback: a finite replay that ends with unacknowledged clouds exits non-zero, says where they
 are, and the next run with that ``--outbox`` delivers them.
 """
@@ -129,7 +130,7 @@ def test_a_20_s_link_flap_loses_nothing_and_floods_nothing(dive: Path, tmp_path:
 
 
 @needs_netns
-@pytest.mark.slow
+@pytest.mark.long  # about 8 minutes: pytest -m long (the CI keeps the 30 s outage above)
 @pytest.mark.timeout(1500)  # a 5.5-minute replay, a 5-minute outage, the drain
 def test_a_5_minute_outage_delivers_every_cloud_once(tmp_path: Path) -> None:
     frames = 3300  # 5.5 minutes at 10 Hz: the replay runs through the whole outage
