@@ -203,7 +203,7 @@ NEIGHBOUR_FLANK_TAIL = 5e-2
 LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
 
 
-#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.process_candidates`).
+#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.refine_and_finish`).
 NEIGHBOUR_REFITS = 4
 
 
@@ -229,7 +229,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 @njit
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
-    :func:`lrsensor.extract.frame.process_candidates` are one per laser and column)."""
+    :func:`lrsensor.extract.frame.locate_and_fit` are one per laser and column)."""
     at = np.full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
