@@ -12,10 +12,11 @@ second. This module decides when that compile happens and where:
   on Linux; at a normal exit :func:`atexit` ends the child), and the caller only ever *loads* finished kernels.
 - **Compile time.** Numba compiles each kernel into a library of its own, callees first, and optimises and
   generates machine code again for a caller's whole call tree each time it links one; the rest is numba's own
-  typing and lowering, which does not run in parallel within a process. So the frame is two compiled calls of
-  about equal compile time (:func:`~lrsensor.extract.frame.locate_and_fit` and
-  :func:`~lrsensor.extract.frame.refine_and_finish`, :data:`PARTS`), and the child compiles the first while a
-  helper process of its own compiles the second, on two cores about half the time of one. The child and its
+  typing and lowering, which does not run in parallel within a process. So the frame is three compiled calls
+  (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
+  compiles the first while a helper process of its own compiles the second, on two cores about half the time
+  of one; the second half of the frame leaves the triangulation to the third call, so that only the first
+  part compiles it (but for the port's, which its smoothing needs). The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
   bring numpy's broadcasting and its messages; a median beside a sort). ``python -m benchmarks.bench_compile``
@@ -77,16 +78,17 @@ class CompileError(ExtractionError):
 
 
 def entry_points() -> tuple[object, ...]:
-    """The kernels the Python side calls (each loaded from the cache on its own): the two halves of the frame
-    call and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
-    from .frame import locate_and_fit, refine_and_finish
+    """The kernels the Python side calls (each loaded from the cache on its own): the three calls of the frame
+    and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
+    from .frame import locate_and_fit, place_points, refine_and_finish
     from .geometry import triangulate_points, triangulate_points_port
 
-    return (locate_and_fit, refine_and_finish, triangulate_points, triangulate_points_port)
+    return (locate_and_fit, refine_and_finish, place_points, triangulate_points, triangulate_points_port)
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the two halves of the frame call, of about equal compile time; the triangulation comes with both.
+#: the frame's first half with its last step and the triangulation, and its second half, of about equal compile
+#: time.
 PARTS = ("locate", "finish")
 
 
@@ -106,19 +108,20 @@ def _build(part: str | None = None) -> None:
 
     from ..calibration import Calibration
     from .config import SubpixelConfig
-    from .frame import locate_and_fit, no_points, refine_and_finish
+    from .frame import locate_and_fit, no_points, place_points, refine_and_finish
     from .geometry import triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
     image = np.zeros((48, 64, 3), np.uint8)
+    f64 = np.zeros(4)
     if part in (None, "locate"):
         locate_and_fit(image, bands, settings, g)
+        place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
     if part in (None, "finish"):
         located = no_points(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        refine_and_finish(image, located, bands.glow_side, settings, g, True)
+        refine_and_finish(image, located, bands.glow_side, settings, g)
     if part is None:  # (the parts compile them as callees)
-        f64 = np.zeros(4)
         triangulate_points(
             f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,

@@ -1,14 +1,15 @@
-"""The compiled road: two calls that extract (and triangulate) the stripes of one frame.
+"""The compiled road: three calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in two compiled calls:
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in three compiled calls:
 
 - :func:`locate_and_fit`:
 
   1. detection per laser in its band (:func:`.detect.detect_band`), the candidates of all lasers numbered as
      one row of virtual columns ``laser * width_d + column_d``;
   2. continuity (:func:`.chains.select_candidates`, :func:`.chains.expand_half`): one candidate per column;
-  3. frame statistics (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window)
-     and the column-parallel sub-pixel fits by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`);
+  3. the width limit of every point (:func:`.geometry.max_fwhm_at`), frame statistics
+     (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and the
+     column-parallel sub-pixel fits by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`);
 
 - :func:`refine_and_finish`:
 
@@ -17,6 +18,9 @@
      sheet's glow (turbid water, :mod:`.glow`);
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
+
+- :func:`place_points`:
+
   6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
      one) and the range-limit gate on camera depth.
 
@@ -24,11 +28,11 @@ Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records bu
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
 body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
 
-Why two calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
+Why three calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
-stage twice over; two halves of about equal compile time compile side by side in two processes
-(:mod:`lrsensor.extract.compile`), and the one hand-over between them (:class:`Located`) costs microseconds in
-a frame of about a millisecond, where a Python call per stage would cost as much again. The numpy reference
+stage twice over; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`), and
+their hand-overs (:class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
+Python call per stage would cost as much again. The numpy reference
 (:mod:`lrsensor.extract.reference`) implements the same algorithm readably for tests and for machines without
 numba.
 """
@@ -80,8 +84,7 @@ class Located(NamedTuple):
     ok: NDArray[np.bool_]
     local_noise: NDArray[np.float64]
     rise: NDArray[np.float64]
-    #: (N,) the widest profile the laser sheet allows at each point, px (NaN: not computed yet, see
-    #: :func:`.geometry.max_fwhm_at`).
+    #: (N,) the widest profile the laser sheet allows at each point, px (:func:`.geometry.max_fwhm_at`).
     max_fwhm: NDArray[np.float64]
     #: (R,) int64 the points whose profile only the full kernel fits (flat tops).
     flat: NDArray[np.int64]
@@ -274,8 +277,8 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
     # 3. frame statistics (window length), common fits, clipped fits
-    floor = FWHM_PER_SIGMA * max_sigma
-    mfw = np.full(n, np.nan)
+    # the width limit of every point (the refits need any of them; as cheap as triangulating the points)
+    mfw = max_fwhm_at(cols, rows, laser, FWHM_PER_SIGMA * max_sigma, sheet_mm, geo)
     m_sub = min(n, 48)
     sub = np.empty(m_sub, np.int64)
     if m_sub == 1:
@@ -285,10 +288,7 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
         for i in range(m_sub):
             sub[i] = int(i * step)
         sub[m_sub - 1] = n - 1
-    mf = max_fwhm_at(cols[sub], rows[sub], laser[sub], floor, sheet_mm, geo)
-    for i in range(m_sub):
-        mfw[sub[i]] = mf[i]
-    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mf)
+    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mfw[sub])
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     min_sig = min_fwhm / FWHM_PER_SIGMA
     # each column's integer peak among the 2 e + 1 rows around its candidate; those with a clipped sample there
@@ -367,35 +367,33 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
 
 
 @njit
-def refine_and_finish(image, p, glow_side, s, geo, triangulate):  # type: ignore[no-untyped-def]
-    """Steps 4-6 of :func:`extract_frame` (full fits of the flat tops, neighbour refits, glow fits, gates,
-    smoothing, quality, triangulation and depth gate).
+def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-def]
+    """Steps 4-5 of :func:`extract_frame` (full fits of the flat tops, neighbour refits, glow fits, gates,
+    smoothing, quality).
 
     Args:
         image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`locate_and_fit`;
-            glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo, triangulate: as
-            :func:`extract_frame`.
+            glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`.
 
     Returns:
-        As :func:`extract_frame`.
+        ``(u, v, laser, quality)``: (M,) each, the points' pixel columns and rows, laser and quality in [0, 1].
     """
     w = image.shape[1]
     n_l = p.noise.size
     n = p.cols.size
     if n == 0:
-        return np.empty((0, 2)), np.empty(0, np.int64), np.empty(0), np.empty((0, 3)), p.noise
+        return np.empty(0), np.empty(0), np.empty(0, np.int64), np.empty(0)
     cols, rows, laser, half, sig_med = p.cols, p.rows, p.laser, p.half, p.sigma_px
     sat_dn, max_sigma, wide_fwhm = s.saturation_dn, s.max_sigma_px, s.wide_fwhm_px
     min_sig = s.min_fwhm_px / FWHM_PER_SIGMA
-    # the fit's settings, the width limits and the per-column results that the refits update in place
+    # the fit's settings and the per-column results that the refits update in place
     fit = (half, sig_med, sat_dn, min_sig, max_sigma, s.iterations, wide_fwhm)
-    limits = (p.max_fwhm, FWHM_PER_SIGMA * max_sigma, s.max_sheet_mm)
     res = (p.centre, p.amplitude, p.sigma, p.saturated, p.ok, p.local_noise, p.rise)
     vv, amp, sig, sat, ok = p.centre, p.amplitude, p.sigma, p.saturated, p.ok
     # 4. flat tops, which only the full kernel fits
     if p.flat.size:
         nan = np.full(p.flat.size, np.nan)
-        refit_full(image, cols, rows, laser, p.flat, nan, nan, nan, fit, limits, geo, res)
+        refit_full(image, cols, rows, p.flat, nan, nan, nan, fit, p.max_fwhm, res)
     # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
     if n_l > 1:
         max_d = half + 3.0 * sig_med + 2.0
@@ -414,7 +412,7 @@ def refine_and_finish(image, p, glow_side, s, geo, triangulate):  # type: ignore
                 idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
                 if idx.size == 0:
                     break
-                refit_columns(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res)
+                refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, p.max_fwhm, res)
                 for i in range(idx.size):
                     t = idx[i]
                     good[t] = ok[t] and not sat[t]
@@ -443,16 +441,26 @@ def refine_and_finish(image, p, glow_side, s, geo, triangulate):  # type: ignore
         for t in range(n):
             vv[t] = v_g[t]
     # 5. gates, runs, smoothing, quality
-    u_o, v_o, l_o, q_o = finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo)
-    # 6. triangulation and depth gate
-    m = u_o.size
+    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo)
+
+
+@njit
+def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-untyped-def]
+    """Step 6 of :func:`extract_frame`: with ``triangulate`` the body-frame points of the pixels ``(u, v)`` (M,) of
+    ``laser`` (M,) and the range-limit gate on camera depth (NaN points dropped), else the pixels as they are.
+
+    Returns:
+        ``(uv, laser, quality, xyz)``: the kept points' pixel coordinates (K, 2), laser (K,), quality (K,) and
+        body-frame points (K, 3), metres ((0, 3) without ``triangulate``).
+    """
+    m = u.size
     if not triangulate:
         uv = np.empty((m, 2))
         for t in range(m):
-            uv[t, 0] = u_o[t]
-            uv[t, 1] = v_o[t]
-        return uv, l_o, q_o, np.empty((0, 3)), p.noise
-    xyz = triangulate_geo(u_o, v_o, l_o, geo)
+            uv[t, 0] = u[t]
+            uv[t, 1] = v[t]
+        return uv, laser, quality, np.empty((0, 3))
+    xyz = triangulate_geo(u, v, laser, geo)
     r_z = geo.R_cam_body[2]
     keep = np.empty(m, np.bool_)
     kept = 0
@@ -463,14 +471,14 @@ def refine_and_finish(image, p, glow_side, s, geo, triangulate):  # type: ignore
     uv = np.empty((kept, 2))
     if kept == m:
         for t in range(m):
-            uv[t, 0] = u_o[t]
-            uv[t, 1] = v_o[t]
-        return uv, l_o, q_o, xyz, p.noise
+            uv[t, 0] = u[t]
+            uv[t, 1] = v[t]
+        return uv, laser, quality, xyz
     idx = np.flatnonzero(keep)
     for j in range(kept):
-        uv[j, 0] = u_o[idx[j]]
-        uv[j, 1] = v_o[idx[j]]
-    return uv, l_o[idx], q_o[idx], xyz[idx], p.noise
+        uv[j, 0] = u[idx[j]]
+        uv[j, 1] = v[idx[j]]
+    return uv, laser[idx], quality[idx], xyz[idx]
 
 
 FloatArray = NDArray[np.float64]
@@ -480,7 +488,7 @@ IntArray = NDArray[np.int64]
 def extract_frame(
     image: NDArray[np.uint8], bands: Bands, s: Settings, geo: Geometry, triangulate: bool
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray, FloatArray]:
-    """The whole default extractor on one frame in two compiled calls (see the module documentation).
+    """The whole default extractor on one frame in three compiled calls (see the module documentation).
 
     Args:
         image: (H, W, 3) uint8 BGR, C-contiguous.
@@ -494,4 +502,6 @@ def extract_frame(
         and body-frame points (M, 3), metres ((0, 3) without ``triangulate``), and the band noise (L,), DN.
     """
     located = locate_and_fit(image, bands, s, geo)
-    return refine_and_finish(image, located, bands.glow_side, s, geo, triangulate)  # type: ignore[no-any-return]
+    u, v, laser, quality = refine_and_finish(image, located, bands.glow_side, s, geo)
+    uv, laser, quality, xyz = place_points(u, v, laser, quality, s, geo, triangulate)
+    return uv, laser, quality, xyz, located.noise
