@@ -22,7 +22,9 @@ try:  # pragma: no cover - depends on the platform
     HAVE_NUMBA = True
     #: Compile a kernel (cached on disk, no GIL, numpy's error model, multiplies and adds may be fused).
     njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-    #: Compile a small helper inlined into its callers.
+    #: Compile a small helper, or a thin stage that mostly calls kernels, into its callers (numba inlines it before
+    #: typing, and it takes its callers' options): one library less, whose call tree LLVM would otherwise optimise
+    #: and compile once more (:mod:`lrsensor.extract.compile`).
     inline: Any = numba.njit(inline="always", error_model="numpy")
     trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover

@@ -16,7 +16,10 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one; the second half of the frame leaves the triangulation to the third call, so that only the first
-  part compiles it (but for the port's, which its smoothing needs). The child and its
+  part compiles it (but for the port's, which its smoothing needs); and the thin stages that mostly call
+  kernels (:func:`~lrsensor.extract.fit_common.fit_columns_common`, :func:`~lrsensor.extract.refit.refit_full`,
+  ...) are inlined into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The
+  larger stages stay kernels of their own: numba types an inlined body again at every call site. The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
   bring numpy's broadcasting and its messages; a median beside a sort). ``python -m benchmarks.bench_compile``

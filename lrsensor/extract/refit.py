@@ -318,7 +318,7 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     return idx[:k], nb_v[:k], nb_a[:k], nb_s[:k]
 
 
-@njit
+@inline
 def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
     """Fit the columns ``idx`` again with the other laser's stripe subtracted (neighbour model ``nb_*``, NaN rows =
     none) and store the results in place: column-parallel (:func:`fit_columns_neighbour`) where no sample is
@@ -344,7 +344,7 @@ def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):
         refit_full(image, cols, rows, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, max_fwhm, res)
 
 
-@njit
+@inline
 def refit_full(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
     """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
     results in place.
