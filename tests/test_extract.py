@@ -718,3 +718,22 @@ def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int,
     for a, b in zip(fast[:3], slow[:3], strict=True):
         np.testing.assert_array_equal(a, b)
     assert fast[3] == slow[3]
+
+
+def test_real_frames_compile_nothing_beyond_the_cached_halves() -> None:
+    """The compile calls the frame's second half with the :class:`~lrsensor.extract.frame.Located` points of a
+    blank frame; real frames (stripes, clipped tops, close stripes, glow) hand over points of exactly the same
+    types, so they run the cached machine code and never compile that half again."""
+    from lrsensor.extract import compile as kernels
+    from lrsensor.extract.frame import locate_and_fit, refine_and_finish
+    from lrsensor.sim import named_scene, scenes
+
+    if not kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    kernels.warm_up()
+    close_stripes = scenes.wall_scene(5.0, width=1920, height=1080)  # the neighbour refits run
+    for setup in [named_scene(name) for name in ("paper_box", "wall_0.3", "turbid")] + [close_stripes]:
+        Sensor(setup.calibration).process(setup.render(0).image)
+        subpixel_extract(setup.render(1).image, setup.calibration)
+    assert len(locate_and_fit.signatures) == 1
+    assert len(refine_and_finish.signatures) == 1

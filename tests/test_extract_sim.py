@@ -122,7 +122,7 @@ def test_compiled_road_and_reference_agree(monkeypatch: pytest.MonkeyPatch, scen
 
 
 def test_triangulating_call_equals_extract_then_triangulate() -> None:
-    """``Sensor.process`` (one compiled call: detection to quality, triangulation, depth gate) gives exactly the
+    """``Sensor.process`` (three compiled calls: detection to quality, triangulation, depth gate) gives exactly the
     points of ``subpixel.extract`` (the same call without triangulation), then ``triangulate`` and the range-limit
     gate."""
     from lrsensor.extract import subpixel

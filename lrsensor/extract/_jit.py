@@ -2,9 +2,8 @@
 
 Every kernel of :mod:`lrsensor.extract` is decorated with :data:`njit` (compiled once, cached on disk in
 ``__pycache__``, no GIL held, numpy's error model: a division by zero gives inf or NaN, never an exception),
-:data:`inline` (small helpers inlined into their callers) or :data:`stage` (a large stage inlined into its one
-caller). Multiplies and adds may be fused (``fastmath={"contract"}``: one rounding instead of two, nothing else
-of fast-math), so floating-point results
+:data:`inline` (small helpers inlined into their callers). Multiplies and adds may be fused
+(``fastmath={"contract"}``: one rounding instead of two, nothing else of fast-math), so floating-point results
 agree with the numpy reference (:mod:`lrsensor.extract.reference`) to rounding, not bit for bit; the detection is
 integer arithmetic and stays bit for bit.
 
@@ -23,11 +22,10 @@ try:  # pragma: no cover - depends on the platform
     HAVE_NUMBA = True
     #: Compile a kernel (cached on disk, no GIL, numpy's error model, multiplies and adds may be fused).
     njit: Any = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-    #: Compile a small helper inlined into its callers.
+    #: Compile a small helper, or a thin stage that mostly calls kernels, into its callers (numba inlines it before
+    #: typing, and it takes its callers' options): one library less, whose call tree LLVM would otherwise optimise
+    #: and compile once more (:mod:`lrsensor.extract.compile`).
     inline: Any = numba.njit(inline="always", error_model="numpy")
-    #: Compile a large stage that has one caller into that caller (numba inlines it before typing): one library
-    #: less, whose whole call tree LLVM would otherwise optimise once more (:mod:`lrsensor.extract.compile`).
-    stage: Any = numba.njit(inline="always", nogil=True, error_model="numpy", fastmath={"contract"})
     trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
@@ -36,7 +34,6 @@ except ImportError:  # pragma: no cover
         return f
 
     inline = njit
-    stage = njit
 
     def _trailing_zeros_py(x: Any) -> int:
         """The number of trailing zero bits of a positive integer."""

@@ -6,17 +6,24 @@ second. This module decides when that compile happens and where:
 
 - **In a child process, never in a thread of the caller.** A compile still running when its process ends (a
   background thread at interpreter shutdown) crashes inside LLVM (SIGSEGV or SIGABRT), and a compile interrupted
-  in the caller's own thread leaves LLVM's state half built. A child (:func:`child_command`)
-  compiles and writes the cache; it can be ended at any moment (numba writes each cache file by an atomic
-  rename, so an unfinished compile leaves nothing half written), it dies with its parent (``PR_SET_PDEATHSIG``
-  on Linux; at a normal exit :func:`atexit` ends it), and the caller only ever *loads* finished kernels.
-- **Compile time.** Numba compiles a kernel's callees first and optimises the caller's whole call tree again
-  each time it links one; most of the rest is numba's own typing and lowering. Two settings cut it without
-  changing a point: the child compiles at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set
-  ``NUMBA_OPT``), and :func:`~lrsensor.extract.frame.process_candidates` is inlined into the frame call (one
-  whole-tree optimisation less); inlining the deeper stages too makes it slower (numba retypes inlined code).
-  ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
-  (docs/performance.md).
+  in the caller's own thread leaves LLVM's state half built. A child (:func:`child_command`) and its helper
+  compile and write the cache; they can be ended at any moment (numba writes each cache file by an atomic
+  rename, so an unfinished compile leaves nothing half written), each dies with its parent (``PR_SET_PDEATHSIG``
+  on Linux; at a normal exit :func:`atexit` ends the child), and the caller only ever *loads* finished kernels.
+- **Compile time.** Numba compiles each kernel into a library of its own, callees first, and optimises and
+  generates machine code again for a caller's whole call tree each time it links one; the rest is numba's own
+  typing and lowering, which does not run in parallel within a process. So the frame is three compiled calls
+  (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
+  compiles the first while a helper process of its own compiles the second, on two cores about half the time
+  of one; the second half of the frame leaves the triangulation to the third call, so that only the first
+  part compiles it (but for the port's, which its smoothing needs); and the thin stages that mostly call
+  kernels (:func:`~lrsensor.extract.fit_common.fit_columns_common`, :func:`~lrsensor.extract.refit.refit_full`,
+  ...) are inlined into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The
+  larger stages stay kernels of their own: numba types an inlined body again at every call site. The child and its
+  helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
+  kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
+  bring numpy's broadcasting and its messages; a median beside a sort). ``python -m benchmarks.bench_compile``
+  measures the compile and what its level costs a frame (docs/performance.md).
 - **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
   the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
   (the ROV, which must not stall its camera): the compile runs in the background and the extractor runs its
@@ -64,7 +71,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
-COMPILE_TIME_HINT = "about a minute"
+COMPILE_TIME_HINT = "about half a minute"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
 
@@ -74,43 +81,58 @@ class CompileError(ExtractionError):
 
 
 def entry_points() -> tuple[object, ...]:
-    """The kernels the Python side calls (each loaded from the cache on its own): the frame call and the
-    triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
-    from .frame import extract_frame
+    """The kernels the Python side calls (each loaded from the cache on its own): the three calls of the frame
+    and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
+    from .frame import locate_and_fit, place_points, refine_and_finish
     from .geometry import triangulate_points, triangulate_points_port
 
-    return (extract_frame, triangulate_points, triangulate_points_port)
+    return (locate_and_fit, refine_and_finish, place_points, triangulate_points, triangulate_points_port)
 
 
-def child_command() -> list[str]:
-    """The command line of the compiling child (this interpreter; ``main(["--child"])``)."""
-    return [sys.executable, "-c", "from lrsensor.extract.compile import main; raise SystemExit(main(['--child']))"]
+#: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
+#: the frame's first half with its last step and the triangulation, and its second half, of about equal compile
+#: time.
+PARTS = ("locate", "finish")
 
 
-def _build() -> None:
-    """Load every entry point from the cache, or compile it here (the child's job; the caller's only where a
-    finished child left no cache behind), by calling each with arguments of the exact types of a real call: the
-    records :func:`~lrsensor.extract.settings.frame_settings` builds, for a small calibration."""
+def child_command(part: str | None = None) -> list[str]:
+    """The command line of the compiling child (this interpreter; ``main(["--child"])``), or of its helper that
+    compiles one ``part`` of :data:`PARTS`."""
+    args = ["--child"] if part is None else ["--child", "--part", part]
+    return [sys.executable, "-c", f"from lrsensor.extract.compile import main; raise SystemExit(main({args!r}))"]
+
+
+def _build(part: str | None = None) -> None:
+    """Load the entry points from the cache, or compile them here (by the child and its helper, a ``part``
+    each; in the caller only where a finished child left no cache behind), by calling each with arguments of the
+    exact types of a real call: the records :func:`~lrsensor.extract.settings.frame_settings` builds, for a
+    small calibration, and the :class:`~lrsensor.extract.frame.Located` points of a frame without stripes."""
     import numpy as np
 
     from ..calibration import Calibration
     from .config import SubpixelConfig
-    from .frame import extract_frame
+    from .frame import locate_and_fit, no_points, place_points, refine_and_finish
     from .geometry import triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
-    bands, settings, geometry = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
-    extract_frame(np.zeros((48, 64, 3), np.uint8), bands, settings, geometry, True)
+    bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
+    image = np.zeros((48, 64, 3), np.uint8)
     f64 = np.zeros(4)
-    g = geometry
-    triangulate_points(
-        f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
-        g.points_body,
-    )  # fmt: skip
-    triangulate_points_port(
-        f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
-        g.points_body, g.port,
-    )  # fmt: skip
+    if part in (None, "locate"):
+        locate_and_fit(image, bands, settings, g)
+        place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
+    if part in (None, "finish"):
+        located = no_points(np.ones(bands.rows.shape[0]), settings.window_half_px)
+        refine_and_finish(image, located, bands.glow_side, settings, g)
+    if part is None:  # (the parts compile them as callees)
+        triangulate_points(
+            f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+            g.points_body,
+        )  # fmt: skip
+        triangulate_points_port(
+            f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+            g.points_body, g.port,
+        )  # fmt: skip
 
 
 @dataclass
@@ -414,14 +436,38 @@ def _die_with_parent() -> None:
         pass
 
 
+def _compile_parts() -> int:
+    """The compiling child's work: :data:`PARTS` side by side, the first here, the second in a helper process
+    that dies with this one; then the stamp of the sources they were compiled from. Returns the exit code."""
+    if not _stamp_current():
+        _clear_stale()  # compiled from other sources (see source_fingerprint)
+    t0 = time.monotonic()
+    helper = subprocess.Popen(child_command(PARTS[1]), stdin=subprocess.DEVNULL)  # its output goes to ours
+    try:
+        _build(PARTS[0])
+    except BaseException:
+        helper.terminate()
+        helper.wait()
+        raise
+    code = helper.wait()
+    if code != 0:
+        print(f"compiling the part {PARTS[1]!r} failed (exit code {code})", file=sys.stderr)
+        return 1
+    _write_stamp()
+    print(f"compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    """The compiling child (:func:`child_command`): compile every entry point into numba's cache."""
+    """The compiling child (:func:`child_command`): compile every entry point into numba's cache, its
+    :data:`PARTS` side by side; with ``--part`` the helper that compiles one of them."""
     args = sys.argv[1:] if argv is None else argv
     if "--child" in args:
         _die_with_parent()
     if not HAVE_NUMBA:
         print("numba is not installed: nothing to compile", file=sys.stderr)
         return 1
-    seconds = warm_up()
-    print(f"compiled in {seconds:.1f} s", file=sys.stderr)
-    return 0
+    if "--part" in args:
+        _build(args[args.index("--part") + 1])
+        return 0
+    return _compile_parts()

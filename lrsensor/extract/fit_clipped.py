@@ -299,7 +299,8 @@ def fit_columns_clipped(  # type: ignore[no-untyped-def]
         return out
     Wk = np.empty((m, n_p), np.uint8)
     for q in range(m):
-        Wk[q] = Wp[q, :n_p]
+        for i in range(n_p):
+            Wk[q, i] = Wp[q, i]  # (a loop: an array assignment compiles numpy's broadcasting and its messages)
     a0 = np.empty(n_p)
     for i in range(n_p):
         a0[i] = out[1][ip[i]]

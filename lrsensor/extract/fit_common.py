@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import inline, njit
 from .columns import clip_level, fit_results, gather_green, half_crossings, store_chunk
 from .fit import flank_offset
 
@@ -232,7 +232,7 @@ def _fit_common_chunk(  # type: ignore[no-untyped-def]
     store_chunk(out, t0, image, cols, peaks, half, c, ok, a0, sigma, no_sat, noise, special, g_lo, g_pk, g_hi)
 
 
-@njit
+@inline
 def fit_columns_common(  # type: ignore[no-untyped-def]
     image, cols, peaks, half, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, wide_fwhm
 ):

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import inline, njit
 from .columns import half_crossings
 
 
@@ -94,7 +94,7 @@ def plain_fit64(B, a0, c, sg, sigma_hint, min_sig, max_sig, wide_fwhm, iteration
     return c, sg, ok, done
 
 
-@njit
+@inline
 def plain_fit(W, a0, bl, slope, xl, sigma_hint, min_sig, max_sig, wide_fwhm, iterations):  # type: ignore[no-untyped-def]
     """The unclipped branch of :func:`fit_columns` for the windows ``W`` (m, n) uint8 (peak at the middle row) less
     their linear backgrounds (``bl + slope (q - xl)``, (n,) each; ``a0`` (n,) the background-free peak):

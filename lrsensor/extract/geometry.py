@@ -209,7 +209,7 @@ def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, 
     return out
 
 
-@njit
+@inline
 def triangulate_geo(u, v, laser, geo):  # type: ignore[no-untyped-def]
     """Pixels (N,) ``u, v`` of lasers ``laser`` (N,) to body-frame points (N, 3), metres, with the
     :class:`~lrsensor.extract.settings.Geometry` ``geo``: through its port when it has one

@@ -23,7 +23,6 @@ from ._jit import inline, njit
 from .columns import colour_rises, fit_results, gather_green, put_fit
 from .fit import fit_columns, flank_offset
 from .fit_plain import plain_fit_profiles
-from .geometry import max_fwhm_at
 
 
 @njit
@@ -203,7 +202,7 @@ NEIGHBOUR_FLANK_TAIL = 5e-2
 LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
 
 
-#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.process_candidates`).
+#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.refine_and_finish`).
 NEIGHBOUR_REFITS = 4
 
 
@@ -229,7 +228,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 @njit
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
-    :func:`lrsensor.extract.frame.process_candidates` are one per laser and column)."""
+    :func:`lrsensor.extract.frame.locate_and_fit` are one per laser and column)."""
     at = np.full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
@@ -319,8 +318,8 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     return idx[:k], nb_v[:k], nb_a[:k], nb_s[:k]
 
 
-@njit
-def refit_columns(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+@inline
+def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
     """Fit the columns ``idx`` again with the other laser's stripe subtracted (neighbour model ``nb_*``, NaN rows =
     none) and store the results in place: column-parallel (:func:`fit_columns_neighbour`) where no sample is
     clipped and the profile is not flat-topped, the rest by :func:`refit_full`. Arguments as :func:`refit_full`.
@@ -342,33 +341,20 @@ def refit_columns(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, 
             n_rest += 1
     if n_rest:
         rest = rest[:n_rest]
-        refit_full(image, cols, rows, laser, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, limits, geo, res)
+        refit_full(image, cols, rows, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, max_fwhm, res)
 
 
-@njit
-def refit_full(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo, res):  # type: ignore[no-untyped-def]
+@inline
+def refit_full(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
     """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
     results in place.
 
     ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
-    ``limits``: ``(max_fwhm, floor, sheet_mm)``, the width limits (N,) (computed here where still NaN, see
-    :func:`max_fwhm_at`); ``geo``: as :func:`max_fwhm_at`; ``res``: ``(centre, amplitude, sigma, saturated,
-    ok, local_noise, rise)`` of every column, updated at ``idx``.
+    ``max_fwhm``: the width limit of every column (N,) (:func:`.geometry.max_fwhm_at`); ``res``: ``(centre,
+    amplitude, sigma, saturated, ok, local_noise, rise)`` of every column, updated at ``idx``.
     """
     half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
-    mfw, floor, sheet_mm = limits
     m = idx.size
-    need = np.empty(m, np.int64)
-    nn = 0
-    for i in range(m):
-        if math.isnan(mfw[idx[i]]):
-            need[nn] = idx[i]
-            nn += 1
-    if nn:
-        nd = need[:nn]
-        mf = max_fwhm_at(cols[nd], rows[nd], laser[nd], floor, sheet_mm, geo)
-        for i in range(nn):
-            mfw[nd[i]] = mf[i]
     new = fit_columns(
         image,
         cols[idx],
@@ -384,7 +370,7 @@ def refit_full(image, cols, rows, laser, idx, nb_v, nb_a, nb_s, fit, limits, geo
         nb_v,
         nb_a,
         nb_s,
-        mfw[idx],
+        max_fwhm[idx],
         wide_fwhm,
     )
     for i in range(m):
