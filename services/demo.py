@@ -73,7 +73,7 @@ class DemoConfig:
     state_dir: Path | None = None
     seed: int = 0
     progress: bool = True
-    navigation: bool = True
+    navigation: bool = False
 
 
 class DeadlineSource:
