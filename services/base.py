@@ -54,6 +54,7 @@ from .keys import FleetKeys
 from .ledger import MAX_TRACK_POINTS, STATE_FORMAT, STATE_VERSION, UNKNOWN_SENDER, Ledger, RobotRecord
 from .mapfeed import LatencyStats, MapFeed, load_map_builder
 from .wire import ENCODING, CalibMsg, StatusMsg, StripeMsg, decode_cloud
+from .zconfig import undeclare_all
 
 __all__ = [
     "MAX_TRACK_POINTS",
@@ -248,11 +249,7 @@ class BaseStation:
 
     def close(self) -> None:
         """Undeclare everything, finish the queued clouds, flush and save map and counters."""
-        for e in reversed(self._entities):
-            try:
-                e.undeclare()
-            except Exception as err:
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(reversed(self._entities), "base station")
         self._entities.clear()
         self.drain(timeout_s=CLOSE_DRAIN_S)
         self._closing.set()

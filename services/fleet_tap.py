@@ -37,6 +37,7 @@ from .errors import WireError
 from .keys import FleetKeys
 from .seqset import SeqSet
 from .wire import CalibMsg, CloudMsg, StripeMsg, calibration_fingerprint, decode_cloud
+from .zconfig import undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -270,11 +271,7 @@ class FleetTap:
             return self.stats()
         self._closed = True
         self._stop.set()
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception as err:
-                log.debug("fleet tap: undeclare failed: %s", err)
+        undeclare_all(self._subs, "fleet tap")
         for t in self._pollers:
             t.join(timeout=QUERY_TIMEOUT_S + 1.0)
         self._queue.put(None)

@@ -46,6 +46,7 @@ from .map_worker_wire import (
     work_key,
     workers_key,
 )
+from .zconfig import undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -115,11 +116,7 @@ class MapWorker:
 
     def close(self) -> None:
         """Withdraw the token (the base moves the robots), stop the thread."""
-        for e in reversed(self._entities):
-            try:
-                e.undeclare()
-            except Exception as err:
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(reversed(self._entities), f"map worker {self.name}")
         self._entities.clear()
         if self._thread is not None:
             self._queue.put(None)

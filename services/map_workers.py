@@ -47,6 +47,7 @@ from lrsensor.frames import Pose
 from .errors import WireError
 from .keys import FleetKeys
 from .map_worker_wire import MapControl, MapJob, PlaneObservations, obs_key, work_key, workers_key
+from .zconfig import undeclare_all
 
 if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
@@ -152,22 +153,14 @@ class WorkerPool:
 
     def close(self) -> None:
         """Stop listening and stop the merger thread (what is in flight stays uncommitted: not acknowledged)."""
-        for e in reversed(self._entities):
-            try:
-                e.undeclare()
-            except Exception as err:
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(reversed(self._entities), "map workers")
         self._entities.clear()
         if self._thread is not None:
             self._events.put(None)
             self._thread.join(timeout=10.0)
             self._thread = None
         with self._cond:
-            for pub in self._pubs.values():
-                try:
-                    pub.undeclare()
-                except Exception as err:
-                    log.debug("undeclare failed: %s", err)
+            undeclare_all(self._pubs.values(), "map workers")
             self._pubs.clear()
             self._cond.notify_all()
 

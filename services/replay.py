@@ -33,6 +33,7 @@ from .errors import ServiceError, WireError
 from .keys import FleetKeys
 from .record import RAW_SCHEMA_NAME
 from .wire import CalibMsg, CloudMsg, StripeMsg, decode_cloud
+from .zconfig import undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -169,11 +170,7 @@ class _RobotPlayer:
 
     def close(self) -> None:
         self.sink.close()
-        for entity in (self.token, self.queryable):
-            try:
-                entity.undeclare()
-            except Exception as err:
-                log.debug("replay: undeclare failed: %s", err)
+        undeclare_all((self.token, self.queryable), f"replay of {self.robot}")
 
 
 def _schedule(clouds: list[tuple[int, str, bytes]], rate: float) -> Iterator[tuple[float, str, bytes]]:

@@ -29,6 +29,7 @@ import time
 from typing import Any
 
 from .errors import ServiceError
+from .zconfig import undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -163,10 +164,7 @@ class Ros2Node:
         """Undeclare the publishers and the node's token."""
         for pub in self.publishers:
             pub.close()
-        try:
-            self._token.undeclare()
-        except Exception as err:
-            log.debug("ros2 node token undeclare failed: %s", err)
+        undeclare_all((self._token,), f"ros2 node {self.name}")
 
 
 class Ros2Publisher:
@@ -216,8 +214,4 @@ class Ros2Publisher:
 
     def close(self) -> None:
         """Undeclare the publisher and its token."""
-        for entity in (self._token, self._pub):
-            try:
-                entity.undeclare()
-            except Exception as err:
-                log.debug("ros2 publisher undeclare failed: %s", err)
+        undeclare_all((self._token, self._pub), f"ros2 publisher {self.topic}")

@@ -12,7 +12,7 @@ import argparse
 import json
 import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -140,3 +140,16 @@ def open_session(options: NetworkOptions, default_mode: str = "peer") -> Any:
 def endpoints(host: str, ports: Sequence[int]) -> list[str]:
     """``tcp/<host>:<port>`` for each port."""
     return [f"tcp/{host}:{p}" for p in ports]
+
+
+def undeclare_all(entities: Iterable[Any], where: str) -> None:
+    """Undeclare Zenoh entities (publishers, subscribers, queryables, tokens), in the given order.
+
+    A failure (the session already closed, the router gone) is logged at debug level and the others are still
+    undeclared: closing must not fail half way.
+    """
+    for entity in entities:
+        try:
+            entity.undeclare()
+        except Exception as err:
+            log.debug("%s: undeclare failed: %s", where, err)
