@@ -25,6 +25,25 @@ def client_session(port: int, timeout_s: float = 30.0) -> Any:
             time.sleep(0.1)
 
 
+#: A bare Zenoh router on 127.0.0.1:<argv[1]> (scouting off) that ends cleanly on SIGTERM.
+_ROUTER_SCRIPT = """
+import json, signal, sys, threading, zenoh
+port = int(sys.argv[1])
+conf = {"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *_: stop.set())
+with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))):
+    print("router up", flush=True)
+    stop.wait()
+"""
+
+
+def router_cmd(port: int) -> list[str]:
+    """The command line of a bare router on 127.0.0.1:``port`` (prints "router up" once it listens)."""
+    return [sys.executable, "-c", _ROUTER_SCRIPT, str(port)]
+
+
 def lrsensor_cmd(*args: str) -> list[str]:
     """The command line of ``lrsensor -v ARGS`` with this interpreter."""
     return [sys.executable, "-m", "lrsensor", "-v", *args]

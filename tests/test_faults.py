@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from procs import Proc, lrsensor_cmd  # noqa: E402
+from procs import Proc, lrsensor_cmd, router_cmd  # noqa: E402
 from waiting import wait_until  # noqa: E402
 
 from lrsensor.frames import Pose  # noqa: E402
@@ -37,18 +36,6 @@ pytestmark = pytest.mark.slow
 
 N_FRAMES = 40
 WAIT_S = 30.0  # how long a test waits for a service or a state unless it says otherwise
-
-ROUTER_SCRIPT = """
-import json, signal, sys, threading, zenoh
-port = int(sys.argv[1])
-conf = {"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
-stop = threading.Event()
-signal.signal(signal.SIGTERM, lambda *_: stop.set())
-with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))):
-    print("router up", flush=True)
-    stop.wait()
-"""
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +138,7 @@ def test_base_sigkill_mid_dive_loses_nothing(dive: Path, tmp_path: Path, procs: 
 
 def test_router_outage_of_10_s_during_a_replay(dive: Path, tmp_path: Path, procs: list[Proc]) -> None:
     fleet, port = "fo", free_port()
-    router = Proc([sys.executable, "-c", ROUTER_SCRIPT, str(port)], tmp_path / "router.log")
+    router = Proc(router_cmd(port), tmp_path / "router.log")
     procs.append(router)
     assert wait_until(lambda: "router up" in router.output(), WAIT_S), router.output()
     connect = ("--mode", "client", "--connect", f"tcp/127.0.0.1:{port}")
@@ -171,7 +158,7 @@ def test_router_outage_of_10_s_during_a_replay(dive: Path, tmp_path: Path, procs
     t_down = time.monotonic()
     time.sleep(10.0)
     assert rov.p.poll() is None, "the replay must still be running when the router comes back"
-    router2 = Proc([sys.executable, "-c", ROUTER_SCRIPT, str(port)], tmp_path / "router.log")
+    router2 = Proc(router_cmd(port), tmp_path / "router.log")
     procs.append(router2)
     assert wait_until(lambda: router2.output().count("router up") == 2, WAIT_S), router2.output()
     assert time.monotonic() - t_down >= 10.0

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from netlink import FleetRun, LinkSpec, netlink, run_fleet, unavailable  # noqa: E402
-from procs import Proc, lrsensor_cmd  # noqa: E402
+from procs import Proc, lrsensor_cmd, router_cmd  # noqa: E402
 from waiting import wait_until  # noqa: E402
 
 from services.cli_rov import EXIT_UNDELIVERED  # noqa: E402
@@ -146,16 +145,6 @@ def test_a_5_minute_outage_delivers_every_cloud_once(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ loopback
-ROUTER = """
-import json, signal, sys, threading, zenoh
-conf = {"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{sys.argv[1]}"]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
-stop = threading.Event()
-signal.signal(signal.SIGTERM, lambda *_: stop.set())
-with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))):
-    print("router up", flush=True)
-    stop.wait()
-"""
 
 
 def _base_received(port: int, fleet: str, robot: str) -> int:
@@ -187,7 +176,7 @@ def test_an_undelivered_replay_exits_non_zero_and_the_next_run_delivers_it(
         *("--source", str(dive), "--imu", f"csv:{dive / 'imu.csv'}", "--calib", str(dive / "calib.json")),
         *("--rate", "20", "--ack-timeout-s", "2", "--outbox", str(outbox)),
     ]
-    router = Proc([sys.executable, "-c", ROUTER, str(port)], tmp_path / "router.log")
+    router = Proc(router_cmd(port), tmp_path / "router.log")
     procs.append(router)
     assert wait_until(lambda: "router up" in router.output(), 20), router.output()
     first = Proc(rov, tmp_path / "rov-1.log")
