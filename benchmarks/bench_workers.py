@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:  # run as a script: python benchmarks/bench_worker
     sys.path.insert(0, str(ROOT))
 
 
-def _frames(robots: int, seconds: float) -> list[tuple[str, int, Any, Any]]:
+def fleet_frames(robots: int, seconds: float) -> list[tuple[str, int, Any, Any]]:
     """(robot, capture t_ns, points_body float32, pose) in capture-time order, robots interleaved."""
     from mapping.synth import simulate_dive, tank, two_rov_plans
 
@@ -58,7 +58,7 @@ def publish(endpoint: str, fleet: str, robots: int, seconds: float, paced: bool)
     from services.zconfig import NetworkOptions, open_session
 
     keys = FleetKeys(fleet)
-    stream = _frames(robots, seconds)
+    stream = fleet_frames(robots, seconds)
     seqs: dict[str, int] = {}
     with open_session(NetworkOptions(mode="client", connect=(endpoint,)), "client") as s:
         names = sorted({r for r, *_ in stream})
@@ -91,7 +91,7 @@ def reference_planes(robots: int, seconds: float) -> list[dict[str, Any]]:
     from mapping import MapBuilder, MapConfig
 
     b = MapBuilder(MapConfig())
-    for robot, t_ns, pts, pose in _frames(robots, seconds):
+    for robot, t_ns, pts, pose in fleet_frames(robots, seconds):
         b.add_cloud_body(robot, t_ns, pts.astype(np.float64), pose)
     b.flush()
     planes: list[dict[str, Any]] = b.map_json()["planes"]

@@ -233,13 +233,81 @@ def rms_distance(fa: PlaneFit, fb: PlaneFit) -> float:
     return math.sqrt(off * off + max(float(fb.normal @ fa.cov @ fb.normal), 0.0))
 
 
+class _Boxes:
+    """The map planes' bounding boxes (quanta) as arrays: one vectorized overlap test against every plane.
+
+    Association tests a new observation against every plane whose box it touches; a map of a fleet spread over
+    a harbour holds hundreds of planes, and a Python loop over all of them would bound the merger. Rows of
+    removed planes stay (id -1, an empty box) until the arrays are rebuilt.
+    """
+
+    def __init__(self) -> None:
+        self.ids = np.full(0, -1, np.int64)
+        self.lo = np.zeros((0, 3), np.float64)
+        self.hi = np.zeros((0, 3), np.float64)
+        self.row: dict[int, int] = {}
+        self.used = 0
+
+    def put(self, pid: int, rec: PlaneRecord) -> None:
+        r = self.row.get(pid)
+        if r is None:
+            if self.used == len(self.ids):
+                grow = max(16, len(self.ids))
+                self.ids = np.concatenate([self.ids, np.full(grow, -1, np.int64)])
+                self.lo = np.concatenate([self.lo, np.full((grow, 3), np.inf)])
+                self.hi = np.concatenate([self.hi, np.full((grow, 3), -np.inf)])
+            r = self.row[pid] = self.used
+            self.used += 1
+            self.ids[r] = pid
+        self.lo[r] = rec.aabb_min
+        self.hi[r] = rec.aabb_max
+
+    def drop(self, pid: int) -> None:
+        r = self.row.pop(pid)
+        self.ids[r] = -1
+        self.lo[r] = np.inf
+        self.hi[r] = -np.inf
+
+    def touching(self, rec: PlaneRecord, gaps: FloatArray) -> list[int]:
+        """Ids (ascending) of the planes whose boxes come within ``gaps`` (quanta per axis) of ``rec``'s: the test
+        of :meth:`PlaneMap._touch`, for all planes at once (the same float comparisons, so the same answers)."""
+        lo = np.asarray(rec.aabb_min, np.float64)
+        hi = np.asarray(rec.aabb_max, np.float64)
+        n = self.used
+        near = np.all((lo - gaps <= self.hi[:n]) & (self.lo[:n] - gaps <= hi), axis=1)
+        return sorted(int(i) for i in self.ids[:n][near])
+
+
 class PlaneMap:
-    """Planes by id; :meth:`add` associates and fuses one observation. Not thread-safe (the builder locks)."""
+    """Planes by id; :meth:`add` associates and fuses one observation. Not thread-safe (the builder locks).
+
+    ``planes`` may be filled directly only while the map is being built (loading a saved map): the box index
+    follows :meth:`add`'s own changes and is rebuilt when the number of planes disagrees with it.
+    """
 
     def __init__(self, cfg: MapConfig) -> None:
         self.cfg = cfg
         self.planes: dict[int, MapPlane] = {}
         self.next_id = 1
+        self._boxes = _Boxes()
+        q = cfg.quantum_m
+        self._gaps = np.array([cfg.merge_gap_m / q, cfg.merge_gap_m / q, cfg.merge_gap_down_m / q])
+
+    def _touching(self, rec: PlaneRecord) -> list[int]:
+        """Ids (ascending) of the planes :meth:`_touch` accepts against ``rec``."""
+        if len(self._boxes.row) != len(self.planes):
+            self._boxes = _Boxes()
+            for pid in sorted(self.planes):
+                self._boxes.put(pid, self.planes[pid].record)
+        return self._boxes.touching(rec, self._gaps)
+
+    def _put(self, plane: MapPlane) -> None:
+        self.planes[plane.id] = plane
+        self._boxes.put(plane.id, plane.record)
+
+    def _pop(self, pid: int) -> PlaneRecord:
+        self._boxes.drop(pid)
+        return self.planes.pop(pid).record
 
     def __len__(self) -> int:
         return len(self.planes)
@@ -299,7 +367,7 @@ class PlaneMap:
         hint = np.array(obs.hint_normal) if obs.hint_normal is not None else None
         hits = [
             pid
-            for pid in sorted(self.planes)
+            for pid in self._touching(obs)
             if self.matches(obs, f_obs, self.planes[pid].record, self.planes[pid].fit, hint)
         ]
         if not hits:
@@ -307,13 +375,13 @@ class PlaneMap:
                 return []
             pid = self.next_id
             self.next_id += 1
-            self.planes[pid] = MapPlane(pid, replace(obs, hint_normal=None), cfg)
+            self._put(MapPlane(pid, replace(obs, hint_normal=None), cfg))
             return [MapChange.updated(self.planes[pid])] if self._published(obs) else []
         keep = hits[0]
         rec = self.planes[keep].record + obs
         removed: list[int] = []
         for pid in hits[1:]:
-            gone = self.planes.pop(pid).record
+            gone = self._pop(pid)
             rec = rec + gone
             if self._published(gone):
                 removed.append(pid)
@@ -322,17 +390,17 @@ class PlaneMap:
             grown = MapPlane(keep, rec, cfg)
             more = [
                 pid
-                for pid in sorted(self.planes)
+                for pid in self._touching(rec)
                 if pid != keep and self.matches(rec, grown.fit, self.planes[pid].record, self.planes[pid].fit)
             ]
             if not more:
                 break
             for pid in more:
-                gone = self.planes.pop(pid).record
+                gone = self._pop(pid)
                 rec = rec + gone
                 if self._published(gone):
                     removed.append(pid)
-        self.planes[keep] = MapPlane(keep, rec, cfg)
+        self._put(MapPlane(keep, rec, cfg))
         changes = [MapChange.updated(self.planes[keep])] if self._published(rec) else []
         changes.extend(MapChange.removed(pid, keep) for pid in removed)
         return changes
