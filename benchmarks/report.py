@@ -127,6 +127,12 @@ SOURCES: tuple[Source, ...] = (
         note="plane workers: clouds/s and map latency against worker processes (issue 31)",
     ),
     Source(
+        "merger.md",
+        "mapping",
+        "python benchmarks/bench_merger.py",
+        note="the merger's ceiling: plane observations/s one base fuses, per fleet size (issue 31)",
+    ),
+    Source(
         "ingest.md",
         "ingest",
         "python benchmarks/bench_ingest.py --robots 1,5,10,20,30,40,60,90",
