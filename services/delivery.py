@@ -4,9 +4,10 @@ Protocol (chosen over zenoh-ext's advanced publisher/subscriber, whose history c
 publisher's memory: it is lost when the ROV restarts and knows nothing of what the base station has
 persisted):
 
-1. :meth:`OutboxSink.send` encodes the cloud, publishes it on ``<root>/<robot>/cloud`` (BLOCK congestion
-   control, priority ``DATA_LOW``) and appends it to the robot's disk-backed :class:`~services.outbox.Outbox`
-   (fsync'ed by default) where it stays until acknowledged.
+1. :meth:`OutboxSink.send` encodes the cloud, appends it to the robot's disk-backed
+   :class:`~services.outbox.Outbox` (written before the publication, so that a killed ROV never gives its
+   number to another cloud; fsync'ed after it, by default), where it stays until acknowledged, and publishes
+   it on ``<root>/<robot>/cloud`` (BLOCK congestion control, priority ``DATA_LOW``).
 2. The base station de-duplicates by sequence number and, once a cloud is persisted in its ``--state``,
    lists it in the JSON answered on ``<root>/base/acks/<robot>`` (``{"ranges": [[lo, hi], ...]}``).
 3. A background thread of the ROV asks that queryable every ``ack_period_s`` (priority ``INTERACTIVE_HIGH``,
@@ -344,10 +345,10 @@ class OutboxSink:
     def send(self, msg: AnyCloud) -> None:
         """Publish ``msg`` and store it in the outbox (durably) until the base station acknowledges it.
 
-        The live copy goes first so that the disk write (fsync) adds nothing to the live latency; an
-        acknowledgement that arrives before the append finishes is applied at the next poll (the base
-        station's answer always lists everything it holds). A failed disk write is logged and counted
-        (``unstored``), never raised: the robot keeps running and the live copy is on its way.
+        The cloud is written to the outbox (not yet flushed) before its live copy goes, so that a ROV killed at
+        any moment restarts with its number used (numbers are never given twice); the flush to disk (fsync)
+        follows the put, so it adds nothing to the live latency. A failed disk write is logged and counted
+        (``unstored``), never raised: the robot keeps running and a live copy goes out.
 
         No live copy goes out while the ack polls go unanswered (``held``) or the live window is full
         (``thinned``, :meth:`live_room`): the cloud is queued in the outbox and forwarded from there.
@@ -379,15 +380,12 @@ class OutboxSink:
                     self.robot,
                     self.counters.thinned,
                 )
-        if not (hold or thin):
-            self._put(payload)
-        with self._lock:
-            self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
+        # On disk before any copy leaves: a ROV killed right after the put would otherwise restart without
+        # knowing this number and give it to another cloud, which the base station, holding the first one,
+        # would take for a duplicate and drop. Flushed to disk after the put (the live copy never waits for it).
         try:
-            dropped = self.outbox.append(msg.seq, payload, self._expendable)
+            dropped = self.outbox.append(msg.seq, payload, self._expendable, sync=False)
         except OutboxError as err:
-            if hold or thin:  # no copy went out: a live one is better than none
-                self._put(payload)
             with self._lock:
                 self.counters.unstored += 1
                 if self._fate.pop(msg.seq, None) == "queued":
@@ -395,7 +393,17 @@ class OutboxSink:
                     self.counters.live += 1
                 self._forget(msg.seq)
             log.error("rov %s: cloud #%d not kept for re-sending: %s", self.robot, msg.seq, err)
+            self._put(payload)  # no copy on disk: a live one is better than none
             return
+        if not (hold or thin):
+            self._put(payload)
+            with self._lock:
+                if msg.seq in self._sends:  # not acknowledged or dropped meanwhile
+                    self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
+        try:
+            self.outbox.sync(msg.seq)
+        except OutboxError as err:  # the file is written: a crash of the process keeps it, a power cut may not
+            log.error("rov %s: %s", self.robot, err)
         if dropped:
             with self._lock:
                 self.counters.dropped += len(dropped)

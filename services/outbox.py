@@ -249,10 +249,16 @@ class Outbox:
         with self._lock:
             return self._next_seq
 
-    def append(self, seq: int, payload: bytes, expendable: Callable[[int], bool] | None = None) -> list[int]:
+    def append(
+        self, seq: int, payload: bytes, expendable: Callable[[int], bool] | None = None, *, sync: bool = True
+    ) -> list[int]:
         """Store ``payload`` under ``seq``; returns the sequence numbers dropped to make room, in the order
         dropped: the oldest ``expendable`` ones first (a predicate on a pending number; it must not call the
         outbox), then the oldest of the rest.
+
+        With ``sync=False`` the file is written and renamed but not flushed to disk: it survives a crash of
+        the process at once, and a power cut only after :meth:`sync` (a caller that must not wait for the disk
+        before doing something else, such as publishing the cloud, calls :meth:`sync` after it).
 
         Raises:
             OutboxError: ``seq`` is not above every number appended before, the payload alone is larger
@@ -299,7 +305,7 @@ class Outbox:
                 for d in dropped:
                     self._path(d).unlink(missing_ok=True)
             try:
-                atomic_write(self._path(seq), header + data, fsync=self.fsync)
+                atomic_write(self._path(seq), header + data, fsync=self.fsync and sync)
             except OSError as err:
                 msg = f"outbox {self.directory}: cannot write message #{seq}: {err}"
                 raise OutboxError(msg) from err
@@ -308,6 +314,32 @@ class Outbox:
             self._bytes += len(data)
             self._appended += 1
             return dropped
+
+    def sync(self, seq: int) -> None:
+        """Flush message ``seq`` (appended with ``sync=False``) and the folder entry to disk; a no-op without
+        ``fsync`` or when it is no longer pending.
+
+        Raises:
+            OutboxError: the flush failed.
+        """
+        if not self.fsync or seq not in self:
+            return
+        try:
+            fd = os.open(self._path(seq), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            dfd = os.open(self.directory, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except FileNotFoundError:  # acknowledged (removed) meanwhile
+            return
+        except OSError as err:
+            msg = f"outbox {self.directory}: cannot flush message #{seq}: {err}"
+            raise OutboxError(msg) from err
 
     def pending(self) -> list[int]:
         """The pending sequence numbers, increasing."""

@@ -266,7 +266,12 @@ def test_every_cloud_is_counted_once_live(net: tuple[Any, Any], tmp_path: Path) 
         assert sink.wait_empty(15.0)
         _identity(sink)
         assert sink.budget_counts() == {
-            "live": 20, "queued": 0, "forwarded": 0, "dropped_budget": 0, "released": 0, "reloaded": 0
+            "live": 20,
+            "queued": 0,
+            "forwarded": 0,
+            "dropped_budget": 0,
+            "released": 0,
+            "reloaded": 0,
         }
     base.close()
 
@@ -281,14 +286,24 @@ def test_only_the_budget_drops_and_the_rest_is_forwarded(net: tuple[Any, Any], t
             sink.send(_cloud(seq))
             _identity(sink)
         assert sink.budget_counts() == {
-            "live": 0, "queued": 10, "forwarded": 0, "dropped_budget": 20, "released": 0, "reloaded": 0
+            "live": 0,
+            "queued": 10,
+            "forwarded": 0,
+            "dropped_budget": 20,
+            "released": 0,
+            "reloaded": 0,
         }
         assert box.stats().dropped_ranges == ((0, 19),)
         base = FakeBase(router)
         assert sink.wait_empty(15.0)
         _identity(sink)
         assert sink.budget_counts() == {
-            "live": 0, "queued": 0, "forwarded": 10, "dropped_budget": 20, "released": 0, "reloaded": 0
+            "live": 0,
+            "queued": 0,
+            "forwarded": 10,
+            "dropped_budget": 20,
+            "released": 0,
+            "reloaded": 0,
         }
     assert base.seqs.ranges() == [[20, 29]]
     base.close()
@@ -310,6 +325,7 @@ def test_the_budget_drops_sent_clouds_before_unsent_ones(net: tuple[Any, Any], t
         c = sink.budget_counts()
         assert (c["live"], c["released"], c["dropped_budget"]) == (12, 7, 0)
         assert box.pending() == list(range(7, 12))
+        assert wait_until(lambda: len(base.arrivals) == 12, WAIT_S)  # the live copies arrived before it looks away
         base.sub.undeclare()
         assert wait_until(lambda: not sink.base_present(), WAIT_S)
         for seq in range(12, 15):  # unsent: they push out the three oldest sent ones, not each other
@@ -380,4 +396,53 @@ def test_reloaded_clouds_are_counted_as_queued_then_forwarded(net: tuple[Any, An
         _identity(sink)
         c = sink.budget_counts()
         assert (c["forwarded"], c["queued"], c["live"]) == (6, 0, 1)
+    base.close()
+
+
+def _next_seq_on_disk(folder: Path) -> int:
+    """The number a new :class:`Outbox` on ``folder`` would continue from (read only: ``state.json`` and the
+    message files, as its reload does)."""
+    n = 0
+    if (folder / "state.json").exists():
+        n = int(json.loads((folder / "state.json").read_text())["next_seq"])
+    return max([n] + [int(p.name[:-4]) + 1 for p in folder.glob("*.msg")])
+
+
+class _RecordingPublisher:
+    """Stands in for the sink's publisher: notes, at each put, the number a ROV restarted at that moment would
+    continue from (a new :class:`Outbox` on the same folder: what a SIGKILL right after the put leaves)."""
+
+    def __init__(self, inner: Any, folder: Path) -> None:
+        self.inner = inner
+        self.folder = folder
+        self.seen: list[tuple[int, int]] = []  # (seq put, the restarted outbox's next_seq)
+
+    def put(self, payload: bytes) -> None:
+        seq = CloudMsg.from_bytes(payload).seq
+        self.seen.append((seq, _next_seq_on_disk(self.folder)))
+        self.inner.put(payload)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def test_a_rov_killed_after_a_put_never_reuses_the_number(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """Found by the chaos soak's robot kills: the live copy went out before the outbox append, so a ROV killed
+    between the two restarted with that number unused and gave it to its next cloud, which the base station
+    (holding the first) dropped as a duplicate and acknowledged: a cloud lost without a trace."""
+    router, rov = net
+    base = FakeBase(router)
+    folder = tmp_path / "outbox"
+    box = Outbox(folder, fsync=True)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1) as sink:
+        assert wait_until(sink.base_present, WAIT_S)
+        recorder = _RecordingPublisher(sink.publisher, folder)
+        sink.publisher = recorder
+        for seq in range(20):
+            sink.send(_cloud(seq))
+        assert sink.wait_empty(15.0)
+    live = [(seq, nxt) for seq, nxt in recorder.seen if seq >= 0]
+    assert [s for s, _ in live][:20] == list(range(20))
+    assert all(nxt > seq for seq, nxt in live), live  # every number put was already on disk
+    assert len(base.seqs) == 20
     base.close()

@@ -294,3 +294,13 @@ def test_the_budget_drops_expendable_messages_first_then_the_oldest(tmp_path: Pa
     assert box.pending() == [3, 4, 5, 6]
     assert box.stats().dropped_ranges == ((0, 2),)
     assert Outbox(tmp_path / "o").stats().dropped == 3
+
+
+def test_an_append_without_sync_is_on_disk_for_a_restart_and_sync_flushes_it(tmp_path: Path) -> None:
+    box = Outbox(tmp_path / "ob", fsync=True)
+    box.append(0, b"a", sync=False)
+    assert Outbox(tmp_path / "ob").next_seq == 1  # renamed at once: a process killed now restarts after it
+    box.sync(0)
+    assert box.ack(0)
+    box.sync(0)  # no longer pending: nothing to flush
+    assert box.get(0) is None
