@@ -124,6 +124,9 @@ class BaseStation:
         self.allowed = frozenset(robots) if robots is not None else None
         self.n_workers = max(1, workers)
         self.processed = 0
+        self._latency = LatencyStats()
+        #: latency figures left out because they were negative (a robot's clock ahead, its offset not yet known)
+        self.clock_suspect = 0
         self._lock = threading.Lock()
         # One queue per ingest thread, a robot's clouds always to the same one (by its key): they reach the map in
         # the order they arrived, so a robot's windows (and, with plane workers, the map) do not depend on which
@@ -167,8 +170,9 @@ class BaseStation:
 
     @property
     def latency(self) -> LatencyStats:
-        """Capture-to-base latencies and publication-to-base transit times of the recent clouds."""
-        return self.feed.latency
+        """Capture-to-base latencies and publication-to-base transit times of the recent clouds, on the base
+        station's clock (a robot whose clock is off has its times shifted by its measured offset)."""
+        return self._latency
 
     def _record(self, robot: str) -> RobotRecord:
         return self.ledger.record(robot)
@@ -279,6 +283,7 @@ class BaseStation:
                 continue
 
     def _on_rov_status(self, sample: Any) -> None:
+        recv_ns = time.time_ns()
         robot = self.keys.robot_of(str(sample.key_expr))
         try:
             msg = StatusMsg.from_bytes(sample.payload.to_bytes())
@@ -288,7 +293,7 @@ class BaseStation:
         if robot is None or msg.robot != robot:
             self.ledger.reject(robot or UNKNOWN_SENDER, f"status of {msg.robot!r} published under {sample.key_expr}")
             return
-        self.ledger.set_reported(robot, msg)
+        self.ledger.set_reported(robot, msg, recv_ns)
 
     def _on_alive(self, sample: Any) -> None:
         import zenoh
@@ -412,8 +417,23 @@ class BaseStation:
         if not self.ledger.accept(msg):
             return  # a duplicate, counted
         self.feed.take(msg, recv_ns)
+        self._time(msg, recv_ns)
         with self._lock:
             self.processed += 1
+
+    def _time(self, msg: Any, recv_ns: int) -> None:
+        """Note the cloud's latency and transit on the base station's clock (docs/reliability.md, "A robot whose
+        clock is off"): the robot's times shifted by its measured clock offset when it is beyond
+        :data:`~services.ledger.CLOCK_OFFSET_MIN_S`; a figure still negative (clocks a second or so apart) is
+        impossible, left out and counted."""
+        shift = self.ledger.clock_correction_ns(msg.robot, recv_ns - msg.sent_ns if msg.sent_ns else None)
+        latency = time.time_ns() - (msg.t_ns - shift)
+        transit = recv_ns - (msg.sent_ns - shift) if msg.sent_ns else None
+        if latency < 0 or (transit is not None and transit < 0):
+            with self._lock:
+                self.clock_suspect += 1
+            return
+        self._latency.add(latency, transit)
 
     def _fetch_robot_calibration(self, robot: str) -> Calibration | None:
         """The calibration ``robot`` serves on ``<root>/<robot>/calib`` (None: no valid answer in time)."""
@@ -464,6 +484,7 @@ class BaseStation:
                 "queued": sum(q.qsize() for q in self._queues),
                 "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
                 "transit_ms": {k: (None if v != v else round(v, 3)) for k, v in transit.items()},
+                "clock_suspect": self.clock_suspect,
             },
         }
 

@@ -64,6 +64,13 @@ UNKNOWN_SENDER = "?"
 MAX_TRACK_POINTS = 20_000
 #: Shortest interval between two acknowledgement-driven saves of the counters (no map), seconds.
 ACK_SAVE_MIN_INTERVAL_S = 0.2
+#: A robot's clock offset is estimated from the arrival of its latest status messages (one a second: a minute)
+#: and of its latest clouds.
+CLOCK_SAMPLES = 60
+CLOUD_CLOCK_SAMPLES = 600
+#: Beyond this offset a robot's clock is taken as off: its times are put on the base station's clock for the
+#: latency figures (below it, the link's own transit is as large as the error of the estimate), seconds.
+CLOCK_OFFSET_MIN_S = 2.0
 
 Ranges = list[list[int]]
 
@@ -89,6 +96,28 @@ class RobotRecord:
     reported: StatusMsg | None = None
     rejected_reasons: collections.Counter[str] = field(default_factory=collections.Counter)
     track: list[tuple[int, float, float, float]] = field(default_factory=list)
+    #: arrival (base clock) minus the robot's own ``t_ns`` of its latest status messages, ns
+    clock_lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=CLOCK_SAMPLES))
+    #: the same of its latest clouds (arrival minus publication time, ``sent_ns``), ns
+    cloud_lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=CLOUD_CLOCK_SAMPLES))
+
+    def clock_offset_ns(self) -> int | None:
+        """The robot's wall clock minus the base station's, ns (None before anything stamped arrived).
+
+        A status message or a cloud is stamped by the robot as it is published, so its arrival time minus its
+        stamp is its transit plus the base's clock minus the robot's. The smallest such lag over the latest
+        status messages (:data:`CLOCK_SAMPLES`; never re-sent: one arrives every second whatever the backlog)
+        and clouds (:data:`CLOUD_CLOCK_SAMPLES`) is minus the offset up to the fastest transit: a late or re-sent
+        one only makes it larger, and a cloud's own transit on the base's clock is never negative.
+        """
+        lags = [min(d) for d in (self.clock_lags, self.cloud_lags) if d]
+        return -min(lags) if lags else None
+
+    def clock_correction_ns(self) -> int:
+        """What to subtract from the robot's times to put them on the base station's clock: its offset when
+        beyond :data:`CLOCK_OFFSET_MIN_S`, else 0."""
+        off = self.clock_offset_ns()
+        return off if off is not None and abs(off) > CLOCK_OFFSET_MIN_S * 1e9 else 0
 
     @property
     def n_acked(self) -> int:
@@ -113,6 +142,10 @@ class RobotRecord:
             out["rejected_reasons"] = dict(self.rejected_reasons.most_common(8))
         if self.reported is not None:
             out["reported"] = self.reported.to_json_dict()
+        offset = self.clock_offset_ns()
+        if offset is not None:
+            out["clock_offset_s"] = round(offset / 1e9, 3)
+            out["clock_corrected"] = self.clock_correction_ns() != 0
         return out
 
 
@@ -196,10 +229,23 @@ class Ledger:
         with self.lock:
             self.record(robot).mapped.add(seq)
 
-    def set_reported(self, robot: str, msg: StatusMsg) -> None:
-        """Keep the ROV's latest self-report (shown as ``reported`` in the status)."""
+    def set_reported(self, robot: str, msg: StatusMsg, recv_ns: int | None = None) -> None:
+        """Keep the ROV's latest self-report (shown as ``reported`` in the status); ``recv_ns``, its arrival on
+        the base station's clock, is a sample of the robot's clock offset (:meth:`RobotRecord.clock_offset_ns`)."""
         with self.lock:
-            self.record(robot).reported = msg
+            rec = self.record(robot)
+            rec.reported = msg
+            if recv_ns is not None:
+                rec.clock_lags.append(recv_ns - msg.t_ns)
+
+    def clock_correction_ns(self, robot: str, cloud_lag_ns: int | None = None) -> int:
+        """See :meth:`RobotRecord.clock_correction_ns`, after noting a cloud's arrival minus its publication
+        time, ``cloud_lag_ns`` (when given)."""
+        with self.lock:
+            rec = self.record(robot)
+            if cloud_lag_ns is not None:
+                rec.cloud_lags.append(cloud_lag_ns)
+            return rec.clock_correction_ns()
 
     def set_alive(self, robot: str, alive: bool, t_ns: int) -> None:
         """Note that ``robot`` joined (``alive``) or left the fleet at ``t_ns``."""

@@ -40,6 +40,7 @@ from lrsensor.frames import Pose
 from lrsensor.scan import Scan
 from lrsensor.sensor import Sensor
 
+from .delivery import wall_clock_ns
 from .errors import CalibrationUnavailableError, WireError
 from .imu import ImuSource
 from .keys import FleetKeys, check_robot_name
@@ -116,7 +117,7 @@ class ZenohCloudSink:
 
     def send(self, msg: AnyCloud) -> None:
         """Publish one cloud (stamped with its publication time)."""
-        self.publisher.put(msg.with_sent_ns(time.time_ns()).to_bytes())
+        self.publisher.put(msg.with_sent_ns(wall_clock_ns()).to_bytes())
 
 
 def fetch_calibration(
@@ -276,7 +277,7 @@ class RovService:
         with self._lock:
             return StatusMsg(
                 self.robot,
-                time.time_ns(),
+                wall_clock_ns(),
                 self.state,
                 c.frames,
                 c.published,
@@ -311,6 +312,10 @@ class RovService:
             "compiled" if extractor_compiled() else "numpy reference until the compiled kernels are built",
             self.channel_note,
         )
+        try:  # a first status before any cloud: the base station learns this robot's clock offset from it
+            status_pub.put(self.status().to_bytes())
+        except Exception as err:
+            log.debug("first status not published: %s", err)
         period_ns = int(1e9 / self.rate_hz) if self.rate_hz else 0
         next_ns = time.monotonic_ns()
         last_status = 0.0
