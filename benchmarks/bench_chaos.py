@@ -1,7 +1,7 @@
 """Chaos soak: random kills and restarts of the base station, the router and the robots, link flaps; then the
 accounting (issue 30, item 5).
 
-    python -m benchmarks.bench_chaos [--minutes 30] [--seed 1] [--robots 3] [--rate 5] [--dive-frames 300]
+    python benchmarks/bench_chaos.py [--minutes 30] [--seed 1] [--robots 3] [--rate 5] [--dive-frames 300]
 
 Topology (what a deployment has: ROVs on a tether to a surface router, the base station behind it)::
 
@@ -761,7 +761,7 @@ def main(argv: list[str] | None = None) -> int:
         loopback=args.loopback,
     )
     command = (
-        f"python -m benchmarks.bench_chaos --minutes {args.minutes:g} --seed {args.seed} --robots {args.robots} "
+        f"python benchmarks/bench_chaos.py --minutes {args.minutes:g} --seed {args.seed} --robots {args.robots} "
         f"--rate {args.rate:g} --dive-frames {args.dive_frames} --fault-every-s {args.fault_every_s:g}"
         + (" --loopback" if args.loopback else "")
     )

@@ -187,6 +187,13 @@ SOURCES: tuple[Source, ...] = (
         "--deadline-s 1200 --out link_flap5min.md",
         note="the link down for 5 minutes",
     ),
+    Source(
+        "chaos.md",
+        "soak",
+        "python benchmarks/bench_chaos.py --minutes 30 --seed 1 --robots 3 --rate 5 --dive-frames 300 "
+        "--fault-every-s 45",
+        note="random kills and restarts of base, router and robots with link flaps (issue 30)",
+    ),
     Source("wire.md", "wire", "python benchmarks/bench_wire.py"),
     Source("fuzz.md", "fuzz", "python benchmarks/fuzz_decoders.py --n 3000 --seed 1"),
 )

@@ -10,7 +10,7 @@ horizontal fix (``north_m``/``east_m`` null) is counted as ``unplaced`` and left
 State file: ``<state>/fleet.json``, written atomically (temporary file, fsync, rename)::
 
     {"format": "lrsensor-base-state", "version": 1, "saved_ns": ...,
-     "robots": {r: {"ranges", "acked", "rejected", "duplicates", "points", "last_t_ns", "unplaced"}}}
+     "robots": {r: {"ranges", "acked", "rejected", "duplicates", "reused", "points", "last_t_ns", "unplaced"}}}
 
 On a restart only the ``acked`` ranges are reloaded as received: they are the only ones known to be in the
 saved map too. Everything else is still in the robots' outboxes (a robot keeps every cloud until it is
@@ -68,6 +68,8 @@ ACK_SAVE_MIN_INTERVAL_S = 0.2
 #: and of its latest clouds.
 CLOCK_SAMPLES = 60
 CLOUD_CLOCK_SAMPLES = 600
+#: Capture times kept per robot to tell a re-sent cloud from a number given twice (the latest clouds taken).
+RECENT_CAPTURES = 10_000
 #: Beyond this offset a robot's clock is taken as off: its times are put on the base station's clock for the
 #: latency figures (below it, the link's own transit is as large as the error of the estimate), seconds.
 CLOCK_OFFSET_MIN_S = 2.0
@@ -86,6 +88,11 @@ class RobotRecord:
     acked: Ranges = field(default_factory=list)
     rejected: int = 0
     duplicates: int = 0
+    #: duplicates whose capture time differs from the held cloud's: the robot gave a number twice (restarted
+    #: without its outbox?); dropped like any duplicate, but counted and logged
+    reused: int = 0
+    #: capture times of the latest :data:`RECENT_CAPTURES` clouds taken, by sequence number
+    captures: collections.OrderedDict[int, int] = field(default_factory=collections.OrderedDict)
     #: accepted clouds whose pose had no horizontal fix: the map cannot place them (see services.mapfeed)
     unplaced: int = 0
     points: int = 0
@@ -131,6 +138,7 @@ class RobotRecord:
             "rejected": self.rejected,
             "missed": self.seqs.missed(),
             "duplicates": self.duplicates,
+            "reused": self.reused,
             "unplaced": self.unplaced,
             "alive": self.alive,
             "last_seq": self.seqs.highest,
@@ -212,7 +220,24 @@ class Ledger:
             rec = self.record(msg.robot)
             if not rec.seqs.add(msg.seq):
                 rec.duplicates += 1
+                held_t = rec.captures.get(msg.seq)
+                if held_t is not None and held_t != msg.t_ns:
+                    rec.reused += 1
+                    n = rec.reused
+                    if n <= 5 or n % 100 == 0:
+                        log.warning(
+                            "%s sent cloud #%d again with another capture time (%d, held %d): it gives numbers "
+                            "twice (restarted without its outbox?); the new cloud is dropped (%d so far)",
+                            msg.robot,
+                            msg.seq,
+                            msg.t_ns,
+                            held_t,
+                            n,
+                        )
                 return False
+            rec.captures[msg.seq] = msg.t_ns
+            if len(rec.captures) > RECENT_CAPTURES:
+                rec.captures.popitem(last=False)
             rec.points += len(msg)
             rec.last_t_ns = max(rec.last_t_ns, msg.t_ns)
             p = msg.pose
@@ -319,6 +344,7 @@ class Ledger:
                     acked=SeqSet(acked).ranges(),
                     rejected=int(rec.get("rejected", 0)),
                     duplicates=int(rec.get("duplicates", 0)),
+                    reused=int(rec.get("reused", 0)),
                     unplaced=int(rec.get("unplaced", 0)),
                     points=int(rec.get("points", 0)),
                     last_t_ns=int(rec.get("last_t_ns", 0)),
@@ -374,6 +400,7 @@ class Ledger:
                         "acked": acked_now[r],
                         "rejected": rec.rejected,
                         "duplicates": rec.duplicates,
+                        "reused": rec.reused,
                         "unplaced": rec.unplaced,
                         "points": rec.points,
                         "last_t_ns": rec.last_t_ns,

@@ -10,15 +10,15 @@ table in docs/reliability.md.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("zenoh")
 
 from benchmarks.bench_chaos import KINDS, ChaosConfig, ChaosResult, Loopback, run_chaos
-
-pytestmark = pytest.mark.slow
 
 
 def _check(res: ChaosResult) -> None:
@@ -35,6 +35,7 @@ def _check(res: ChaosResult) -> None:
     assert res.ok, why
 
 
+@pytest.mark.slow
 def test_short_chaos_soak_delivers_every_cloud_once(tmp_path: Path) -> None:
     cfg = ChaosConfig(fault_s=50, dive_frames=60, fault_every_s=6, flap_s=(10, 15), heal_s=120, ack_timeout_s=30)
     res = run_chaos(cfg, tmp_path, echo=False)
@@ -44,6 +45,7 @@ def test_short_chaos_soak_delivers_every_cloud_once(tmp_path: Path) -> None:
     assert sum(sum(c.values()) for c in res.robot_runs.values()) >= 2 * cfg.robots, res.explain()  # restarts
 
 
+@pytest.mark.slow
 @pytest.mark.long  # 10 minutes of faults: pytest -m long
 @pytest.mark.timeout(1800)
 def test_ten_minute_chaos_soak_delivers_every_cloud_once_in_bounded_memory(tmp_path: Path) -> None:
@@ -64,3 +66,27 @@ def test_loopback_stands_in_without_namespaces(tmp_path: Path) -> None:
         assert net.link_bytes()["up_bytes"] == 0
     finally:
         net.close()
+
+
+def test_a_number_given_twice_is_dropped_but_counted_and_said(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A re-sent cloud (same number, same capture time) is a plain duplicate; a robot that gives a number to
+    another cloud (restarted without its outbox: its numbering starts again at 0) cannot be told from it by
+    the number alone: the base station drops it too, but counts it as ``reused`` and says so."""
+    from lrsensor.frames import Pose
+    from services.ledger import Ledger
+    from services.wire import CloudMsg
+
+    def cloud(seq: int, t_ns: int) -> CloudMsg:
+        pts = np.ones((3, 3), np.float32)
+        return CloudMsg("rov1", seq, t_ns, Pose(0, 0, 1, 0, 0, 0), pts, np.zeros(3, np.uint8), np.ones(3, np.float32))
+
+    ledger = Ledger(tmp_path / "state")
+    assert ledger.accept(cloud(0, 1_000))
+    assert not ledger.accept(cloud(0, 1_000))  # re-sent
+    with caplog.at_level(logging.WARNING, logger="services.ledger"):
+        assert not ledger.accept(cloud(0, 2_000))  # the same number, another cloud
+    st = ledger.robots_json()["rov1"]
+    assert (st["received"], st["duplicates"], st["reused"]) == (1, 2, 1)
+    assert "gives numbers twice" in caplog.text
+    ledger.save_state()
+    assert Ledger(tmp_path / "state").robots_json()["rov1"]["reused"] == 1  # kept across a restart
