@@ -36,6 +36,7 @@ from .navigation import PlaneLandmarks
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
+from .replace import Placement, move_placement, rebuild
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapChange, MapConfig, PlaneStats
@@ -96,6 +97,12 @@ class MapBuilder:
         #: bumped whenever the planes change (the navigation's landmarks are cached per version)
         self._version = 0
         self._landmarks: tuple[int, int, PlaneLandmarks] | None = None
+        #: keep every merged observation's points (:class:`mapping.replace.Placement`) so that clouds can be
+        #: re-placed when a smoother revises their poses (:meth:`replace_poses`); only for one-process use
+        #: (observations merged in the order this builder extracted them)
+        self.keep_placements = False
+        self._placements: list[Placement] = []
+        self._pending: dict[int, Placement] = {}
         if loaded is not None:
             self._load(*loaded)
 
@@ -167,6 +174,9 @@ class MapBuilder:
         changes: list[MapChange] = []
         with self._lock:
             for rec in records:
+                pl = self._pending.pop(id(rec), None)
+                if pl is not None:
+                    self._placements.append(pl)
                 changes.extend(self._map.add(rec))
             self._version += 1 if records else 0
             self._counters.observations += len(records)
@@ -292,13 +302,49 @@ class MapBuilder:
                 if bulge > cfg.max_frame_sagitta_m:
                     n_curved += 1
                     continue
-                records.append(PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg))
+                rec = PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg)
+                records.append(rec)
+                if self.keep_placements:
+                    cloud_t = np.array([c.t_ns for c in clouds], dtype=np.int64)[frame_of[idx]]
+                    pl = Placement(robot, pts_q[idx], cloud_t, np.asarray(cand.normal, float), first_ns, last_ns, rec)
+                    with self._lock:
+                        self._pending[id(rec)] = pl
         with self._lock:
             self._counters.extractions += 1
             self._counters.curved += n_curved
             self._counters.single_frame += n_single
             self._counters.extract_s += time.perf_counter() - t0
         return records
+
+    def replace_poses(self, robot: str, old: dict[int, Pose], new: dict[int, Pose]) -> int:
+        """Move ``robot``'s kept observations (``keep_placements``) from the cloud poses ``old`` to ``new``
+        (t_ns -> Pose) without touching the map; returns how many moved. :meth:`rebuild` makes the map follow."""
+        with self._lock:
+            n = 0
+            for pl in self._placements:
+                if pl.robot == robot and move_placement(pl, old, new, self.cfg):
+                    n += 1
+            return n
+
+    def rebuild(self) -> list[MapChange]:
+        """Fuse every kept observation again (after :meth:`replace_poses`); returns the changes from the map
+        before: every plane of the new map as updated, and every old id the new map lacks as removed (into the
+        new plane nearest to it)."""
+        with self._lock:
+            old = self._map
+            new = rebuild(self._placements, self.cfg)
+            self._map = new
+            self._version += 1
+            changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]
+            gone = sorted(set(old.planes) - set(new.planes))
+            if gone and new.planes:
+                ids = np.array(sorted(new.planes))
+                cents = np.array([new.planes[int(i)].fit.centroid for i in ids])
+                for pid in gone:
+                    c = old.planes[pid].fit.centroid
+                    into = int(ids[np.argmin(np.linalg.norm(cents - c, axis=1))])
+                    changes.append(MapChange.removed(pid, into))
+            return changes
 
     # ----------------------------------------------------------------- output
     def map_json(self, include_tracks: bool = False, include_tentative: bool = False) -> dict[str, Any]:

@@ -106,6 +106,7 @@ class NavConfig:
     walk_speed_m_s: float = 0.3
     yaw_walk_deg_per_sqrt_s: float = 0.1
     fix_sigma_m: float = 0.5
+    fix_quality_factor: float = 1.5
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2
@@ -120,6 +121,7 @@ class NavConfig:
     depth_std_m: float = 0.01
     attitude_std_deg: float = 0.2
     frame_min_scans: int = 20
+    frame_min_baseline_m: float = 2.0
     submap_s: float = 2.0
     submap_points: int = 150
     local_cell_m: float = 0.25
@@ -295,6 +297,26 @@ class RobotNav:
         self.last_compass_ns: int | None = None
         #: no fix and an uncertainty past ``lost_std_m``: the scans are not trusted until the next fix
         self.lost = False
+        #: the last update's prediction (state, covariance) and transition from the previous state (5x5): what a
+        #: smoother (:mod:`mapping.smoother`) needs to run backward; None after a start
+        self.prior: tuple[FloatArray, FloatArray] | None = None
+        self.transition: FloatArray | None = None
+
+    _STATE = ("t_ns", "last_raw_ne", "last_fix_ns", "start_ne", "yaw_scans", "fix_err2", "last_compass_ns", "lost")
+
+    def snapshot(self) -> dict[str, Any]:
+        """The estimator's whole state (a smoother restarts it from here to re-run later scans)."""
+        out: dict[str, Any] = {k: getattr(self, k) for k in self._STATE}
+        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest)
+        return out
+
+    def restore(self, snap: dict[str, Any]) -> None:
+        """Back to a :meth:`snapshot`."""
+        for k in self._STATE:
+            setattr(self, k, snap[k])
+        self.x = snap["x"].copy()
+        self.P = snap["P"].copy()
+        self.latest = snap["latest"]
 
     @property
     def started(self) -> bool:
@@ -330,6 +352,7 @@ class RobotNav:
             self.x[0:2] += step
             if dt > 0:
                 self.x[2:4] = step / dt
+            self.transition = f
             self.P = f @ self.P @ f.T
             var = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
             q[0, 0] = q[1, 1] = var
@@ -339,6 +362,7 @@ class RobotNav:
             # velocity prior looked better on paper; along a single wall its velocity is unobservable, and a
             # wrong one carried the robot metres away while the scans kept its std small across the wall.)
             self.x[2:4] = 0.0
+            self.transition = np.eye(5)
             q[0, 0] = q[1, 1] = cfg.walk_speed_m_s**2 * dt
             motion = "motion-prior"
         self.P = self.P + q
@@ -368,7 +392,7 @@ class RobotNav:
         innov = raw_ne - self.x[0:2]
         a = min(1.0, cfg.fix_every_s / cfg.fix_quality_s) if cfg.fix_every_s > 0 else 0.05
         self.fix_err2 = (1 - a) * self.fix_err2 + a * float(innov @ innov) / 2
-        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, 1.5 * math.sqrt(self.fix_err2)))
+        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(self.fix_err2)))
         h = np.zeros((2, 5))
         h[0, 0] = h[1, 1] = 1.0
         s = h @ self.P @ h.T + np.eye(2) * sigma**2
@@ -448,6 +472,7 @@ class RobotNav:
         pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
         pts = subsample(pts, cfg.max_points)
         raw_ne = np.array([raw.north_m, raw.east_m]) if math.isfinite(raw.north_m + raw.east_m) else None
+        self.prior = self.transition = None
         if not self.started:
             if raw_ne is None:
                 est = self._estimate(t, raw, np.zeros((3, 3)), 0, (), "unknown", known=False)
@@ -461,6 +486,7 @@ class RobotNav:
         else:
             assert self.t_ns is not None
             motion = self._predict((t - self.t_ns) * 1e-9, raw_ne)
+            self.prior = (self.x.copy(), self.P.copy())
             self.t_ns = t
             self.last_raw_ne = raw_ne
             if raw_ne is not None:
@@ -542,11 +568,13 @@ class NavFrame:
 
     yaw_rad: float = 0.0
     pivot_ne: tuple[float, float] = (0.0, 0.0)
+    #: then moved by this (north, east), metres
+    shift_ne: tuple[float, float] = (0.0, 0.0)
 
     @property
     def identity(self) -> bool:
         """Whether the frame changes nothing."""
-        return self.yaw_rad == 0.0
+        return self.yaw_rad == 0.0 and self.shift_ne == (0.0, 0.0)
 
     def _rot(self) -> FloatArray:
         r = np.eye(3)
@@ -557,7 +585,7 @@ class NavFrame:
         """Points (N, 3) from the map frame to NED."""
         q = np.asarray(p, dtype=np.float64).reshape(-1, 3)
         piv = np.array([self.pivot_ne[0], self.pivot_ne[1], 0.0])
-        return (q - piv) @ self._rot().T + piv
+        return (q - piv) @ self._rot().T + piv + np.array([self.shift_ne[0], self.shift_ne[1], 0.0])
 
     def vectors(self, v: Any) -> FloatArray:
         """Directions (N, 3) from the map frame to NED."""
@@ -594,27 +622,55 @@ class NavFrame:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        """``{"yaw_deg", "pivot_ne"}``."""
-        return {"yaw_deg": math.degrees(self.yaw_rad), "pivot_ne": list(self.pivot_ne)}
+        """``{"yaw_deg", "pivot_ne", "shift_ne"}``."""
+        return {"yaw_deg": math.degrees(self.yaw_rad), "pivot_ne": list(self.pivot_ne), "shift_ne": list(self.shift_ne)}
 
 
 class Navigator:
     """The fleet's estimators, one :class:`RobotNav` per robot (created on its first cloud), and the fleet's
     :class:`NavFrame`."""
 
-    def __init__(self, cfg: NavConfig | None = None) -> None:
+    def __init__(self, cfg: NavConfig | None = None, smoother: Any = None) -> None:
         self.cfg = cfg or NavConfig()
         self.robots: dict[str, RobotNav] = {}
+        #: with a :class:`mapping.smoother.SmootherConfig`: one :class:`mapping.smoother.RobotSmoother` per robot
+        #: (its ``nav`` is the robot's entry in :attr:`robots`)
+        self.smoother_cfg = smoother
+        self.smoothers: dict[str, Any] = {}
         #: where the first robot started (the map frame's pivot)
         self.origin_ne: tuple[float, float] | None = None
 
     def frame(self) -> NavFrame:
         """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
         constrained at least ``frame_min_scans`` times, about the first robot's start."""
+        if self.smoothers:
+            return self._launch_frame()
         cs = [float(n.x[4]) for n in self.robots.values() if n.yaw_scans >= self.cfg.frame_min_scans]
         if not cs or self.origin_ne is None:
             return NavFrame()
         return NavFrame(float(np.mean(cs)), self.origin_ne)
+
+    def _launch_frame(self) -> NavFrame:
+        """With smoothing: the rigid turn and shift that best carries the robots' launch points as the map now
+        places them (each robot's smoothed first pose) onto their launch fixes, which are absolute. Two launch
+        points ``frame_min_baseline_m`` apart or more fix the heading; with fewer, the heading is the mean
+        heading correction (the compasses' mean, as without smoothing) and the shift the mean offset."""
+        pairs = [(sm.start_map_ne, sm.nav.start_ne) for sm in self.smoothers.values() if sm.start_map_ne is not None]
+        if not pairs:
+            return NavFrame()
+        a = np.array([p[0] for p in pairs])
+        b = np.array([p[1] for p in pairs])
+        ca, cb = a.mean(axis=0), b.mean(axis=0)
+        spread = float(np.linalg.norm(a - ca, axis=1).max())
+        if len(pairs) >= 2 and spread >= 0.5 * self.cfg.frame_min_baseline_m:
+            h = (a - ca).T @ (b - cb)
+            ang = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])  # the turn carrying a onto b
+            yaw = -ang
+        else:
+            cs = [float(n.x[4]) for n in self.robots.values() if n.yaw_scans >= self.cfg.frame_min_scans]
+            yaw = float(np.mean(cs)) if cs else 0.0
+        shift = cb - ca
+        return NavFrame(yaw, (float(ca[0]), float(ca[1])), (float(shift[0]), float(shift[1])))
 
     def update(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
         """One cloud of ``robot`` (see :meth:`RobotNav.update`)."""
@@ -623,8 +679,18 @@ class Navigator:
             raise MapInputError(msg)
         nav = self.robots.get(robot)
         if nav is None:
-            nav = self.robots[robot] = RobotNav(robot, self.cfg)
-        est = nav.update(t_ns, raw, points_body, landmarks)
+            if self.smoother_cfg is not None:
+                from .smoother import RobotSmoother
+
+                new = self.smoothers[robot] = RobotSmoother(robot, self.cfg, self.smoother_cfg)
+                nav = self.robots[robot] = new.nav
+            else:
+                nav = self.robots[robot] = RobotNav(robot, self.cfg)
+        sm = self.smoothers.get(robot)
+        if sm is not None:
+            est: NavEstimate = sm.update(t_ns, raw, points_body, landmarks)
+        else:
+            est = nav.update(t_ns, raw, points_body, landmarks)
         if self.origin_ne is None and nav.started:
             self.origin_ne = (float(nav.start_ne[0]), float(nav.start_ne[1]))
         return est

@@ -469,6 +469,10 @@ class DiveMap:
     estimates: dict[str, Any] = field(default_factory=dict)
     frame: Any = None
     constrained_scans: int = 0
+    smooth_cost_s: list[float] = field(default_factory=list)
+    rebuild_cost_s: list[float] = field(default_factory=list)
+    final_error_m: dict[str, list[float]] = field(default_factory=dict)
+    placed: dict[str, dict[int, Pose]] = field(default_factory=dict)
 
     def planes(self) -> list[dict[str, Any]]:
         """The served map's planes (in NED: turned by the navigation's frame when there is one)."""
@@ -476,7 +480,9 @@ class DiveMap:
         return planes if self.frame is None else [self.frame.plane_json(p) for p in planes]
 
 
-def replay_dive(frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cfg: Any = None) -> DiveMap:
+def replay_dive(
+    frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cfg: Any = None, smoother: Any = None
+) -> DiveMap:
     """Feed a simulated dive into a :class:`mapping.MapBuilder` the way the base station does.
 
     ``navigate`` False: trust the poses (clouds without a horizontal fix are left out, as ``unplaced``).
@@ -490,10 +496,38 @@ def replay_dive(frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cf
     from .types import MapConfig
 
     b = MapBuilder(cfg or MapConfig())
-    nav = Navigator(nav_cfg) if navigate else None
+    nav = Navigator(nav_cfg, smoother) if navigate else None
+    b.keep_placements = smoother is not None
     out = DiveMap(b)
     min_pts = nav.cfg.min_landmark_points if nav is not None else 0
+    placed: dict[str, dict[int, Pose]] = {}
+    truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
+
+    def smooth_all() -> None:
+        # every robot's window against the map as it is, then one rebuild for all of them
+        assert nav is not None
+        t0 = time.perf_counter()
+        lm = b.landmarks(min_pts)
+        moved = 0
+        rebuild_s = 0.0
+        for robot, sm in sorted(nav.smoothers.items()):
+            revised = sm.smooth(lm)
+            mine = placed.get(robot, {})
+            new = {t: p for t, p in revised.items() if t in mine}
+            t1 = time.perf_counter()
+            moved += b.replace_poses(robot, mine, new)
+            rebuild_s += time.perf_counter() - t1
+            mine.update(new)
+        t1 = time.perf_counter()
+        if moved:
+            b.rebuild()
+        out.smooth_cost_s.append(time.perf_counter() - t0)
+        out.rebuild_cost_s.append(rebuild_s + time.perf_counter() - t1)
+
     for f in frames:
+        sm = nav.smoothers.get(f.robot) if nav is not None else None
+        if sm is not None and sm.due(f.t_ns):
+            smooth_all()
         pose = f.pose_est
         if nav is not None:
             t0 = time.perf_counter()
@@ -512,11 +546,24 @@ def replay_dive(frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cf
                 continue
             pts = f.points_ned_est
         b.add_cloud(f.robot, f.t_ns, pts, pose)
+        placed.setdefault(f.robot, {})[f.t_ns] = pose
         served = nav.frame().pose(pose) if nav is not None else pose
         err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
         out.position_error_m.setdefault(f.robot, []).append(err)
         dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
         out.yaw_error_deg.setdefault(f.robot, []).append(dyaw)
     b.flush()
+    if nav is not None and nav.smoothers:
+        smooth_all()  # the end of the dive: the map as the last smoothing leaves it
     out.frame = nav.frame() if nav is not None else None
+    # the poses each cloud is in the map with now (after any smoothing), against the truth
+    out.final_error_m = {}
+    for robot, poses in placed.items():
+        errs = []
+        for t, p in poses.items():
+            served = out.frame.pose(p) if out.frame is not None else p
+            tp = truth[(robot, t)]
+            errs.append(math.hypot(served.north_m - tp.north_m, served.east_m - tp.east_m))
+        out.final_error_m[robot] = errs
+    out.placed = placed
     return out

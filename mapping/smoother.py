@@ -1,0 +1,189 @@
+"""Letting past poses move: a per-robot fixed-window smoother over :class:`mapping.navigation.RobotNav`.
+
+The filter of :mod:`mapping.navigation` places each cloud once, with the pose it had then; a robot's early,
+drifted placements would stay in the map forever (duplicates, offsets). The smoother keeps each robot's recent
+scans (the registration's sub-sample, body frame, float32) and the filter's state before each, and on
+:meth:`RobotSmoother.smooth`:
+
+1. **Re-filter.** From the filter's state just before the window (the last ``window_s`` of capture time), the
+   window's scans are run through the same Kalman filter again, now registered against the map as it is (its
+   planes placed from better poses than when the scans first came).
+2. **Smooth.** A Rauch-Tung-Striebel backward pass over the window's (north, east, yaw correction) uses every
+   later scan for each earlier pose: the exact fixed-interval smoother of the filter's linearization (dead
+   reckoning's increment turned by the yaw correction is the only coupling; the velocity states are unused).
+3. **Report.** The revised poses of the window's scans (robot, t_ns -> Pose); the map re-places the clouds whose
+   pose moved (:mod:`mapping.replace`). The live filter continues from the re-filtered state.
+
+Per robot the interface is: input the robot's clouds and the map's planes (:class:`PlaneLandmarks`); output the
+corrected poses and the revised placements. Nothing here knows about other robots or Zenoh, so a map worker
+can run it for the robots it owns.
+
+Cost: a re-filter registers each window scan again (``rerun_points`` points each), so smoothing every
+``every_s`` a window of ``window_s`` costs about ``window_s / every_s`` registrations per scan.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose
+
+from .navigation import NavConfig, NavEstimate, PlaneLandmarks, RobotNav, subsample
+
+FloatArray = NDArray[np.float64]
+
+#: The smoothed sub-state of RobotNav's five: north, east, yaw correction.
+_SUB = [0, 1, 4]
+
+
+@dataclass(frozen=True)
+class SmootherConfig:
+    """Tuning of :class:`RobotSmoother`.
+
+    Re-filter and smooth the last ``window_s`` of capture time every ``every_s`` or ``every_fraction`` of the
+    window's length, whichever is longer (so a growing window costs about ``1 + 1 / every_fraction``
+    registrations per scan, not one per smoothing); the re-filter registers ``rerun_points`` points per scan; a
+    pose counts as moved (its cloud is re-placed) beyond ``move_m`` or ``move_deg``.
+    """
+
+    window_s: float = 120.0
+    every_s: float = 10.0
+    every_fraction: float = 0.5
+    rerun_points: int = 200
+    move_m: float = 0.003
+    move_deg: float = 0.05
+
+
+@dataclass
+class _Scan:
+    t_ns: int
+    raw: Pose
+    points: NDArray[np.float32]
+    #: the filter's state before this scan (to restart the filter here)
+    before: dict[str, Any]
+    #: after the update: the prediction (3,), (3, 3), the transition from the previous scan (3, 3), the
+    #: posterior (3,), (3, 3); None where the scan did not move the filter (start, unknown, late)
+    prior_x: FloatArray | None = None
+    prior_p: FloatArray | None = None
+    trans: FloatArray | None = None
+    post_x: FloatArray | None = None
+    post_p: FloatArray | None = None
+    est: NavEstimate | None = None
+
+
+class RobotSmoother:
+    """One robot's filter and its fixed-window smoother (see the module docstring). One thread feeds it."""
+
+    def __init__(self, robot: str, cfg: NavConfig, scfg: SmootherConfig | None = None) -> None:
+        self.robot = robot
+        self.nav = RobotNav(robot, cfg)
+        self.scfg = scfg or SmootherConfig()
+        self.scans: deque[_Scan] = deque()
+        self.last_smooth_ns: int | None = None
+        #: where the map now places the robot's launch (its first scan's smoothed position), north/east
+        self.start_map_ne: tuple[float, float] | None = None
+        self._first_ns: int | None = None
+
+    def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
+        """One cloud through the filter (:meth:`RobotNav.update`), remembered for the smoother."""
+        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+        keep = subsample(pts[np.all(np.isfinite(pts), axis=1)], self.scfg.rerun_points).astype(np.float32)
+        scan = _Scan(int(t_ns), raw, keep, self.nav.snapshot())
+        est = self.nav.update(t_ns, raw, pts, landmarks)
+        self._record(scan, est)
+        if est.motion == "start":
+            self._first_ns = scan.t_ns
+            self.start_map_ne = (float(self.nav.x[0]), float(self.nav.x[1]))
+        if est.motion != "late":
+            self.scans.append(scan)
+            self._trim()
+        return est
+
+    def _record(self, scan: _Scan, est: NavEstimate) -> None:
+        nav = self.nav
+        scan.est = est
+        if nav.prior is None or nav.transition is None or est.pose is None:
+            scan.prior_x = scan.prior_p = scan.trans = scan.post_x = scan.post_p = None
+            if est.pose is not None:
+                scan.post_x = nav.x[_SUB].copy()
+                scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+            return
+        scan.prior_x = nav.prior[0][_SUB].copy()
+        scan.prior_p = nav.prior[1][np.ix_(_SUB, _SUB)].copy()
+        scan.trans = nav.transition[np.ix_(_SUB, _SUB)].copy()
+        scan.post_x = nav.x[_SUB].copy()
+        scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+
+    def _trim(self) -> None:
+        newest = self.scans[-1].t_ns
+        while self.scans and newest - self.scans[0].t_ns > self.scfg.window_s * 1e9:
+            self.scans.popleft()
+
+    def due(self, t_ns: int) -> bool:
+        """Whether ``every_s`` of capture time passed since the last smoothing."""
+        if self.last_smooth_ns is None:
+            self.last_smooth_ns = int(t_ns)
+            return False
+        span = (self.scans[-1].t_ns - self.scans[0].t_ns) * 1e-9 if self.scans else 0.0
+        every = max(self.scfg.every_s, self.scfg.every_fraction * span)
+        return t_ns - self.last_smooth_ns >= every * 1e9
+
+    def smooth(self, landmarks: PlaneLandmarks) -> dict[int, Pose]:
+        """Re-filter the window against ``landmarks`` and smooth it; returns t_ns -> the revised pose of each
+        window scan that has one (placed or not: the caller decides what to re-place)."""
+        if not self.scans:
+            return {}
+        self.last_smooth_ns = self.scans[-1].t_ns
+        scans = list(self.scans)
+        self.nav.restore(scans[0].before)
+        for s in scans:
+            s.before = self.nav.snapshot()
+            est = self.nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
+            self._record(s, est)
+        xs = self._rts(scans)
+        out: dict[int, Pose] = {}
+        for s, x in zip(scans, xs, strict=True):
+            if x is None or s.est is None or s.est.pose is None:
+                continue
+            r = s.raw
+            out[s.t_ns] = Pose(float(x[0]), float(x[1]), r.down_m, r.roll_rad, r.pitch_rad, r.yaw_rad + float(x[2]))
+            if s.t_ns == self._first_ns:
+                self.start_map_ne = (float(x[0]), float(x[1]))
+        return out
+
+    @staticmethod
+    def _rts(scans: list[_Scan]) -> list[FloatArray | None]:
+        """Rauch-Tung-Striebel over the scans' recorded filter steps: the smoothed (north, east, yaw correction)
+        per scan (None where the filter had no state). A scan without a transition (a restart) ends the pass."""
+        n = len(scans)
+        xs: list[FloatArray | None] = [None] * n
+        nxt: FloatArray | None = None
+        for k in range(n - 1, -1, -1):
+            s = scans[k]
+            if s.post_x is None or s.post_p is None:
+                nxt = None
+                continue
+            if nxt is None:
+                xs[k] = s.post_x.copy()
+            else:
+                after = scans[k + 1]
+                assert after.trans is not None
+                assert after.prior_x is not None
+                assert after.prior_p is not None
+                c = s.post_p @ after.trans.T @ np.linalg.inv(after.prior_p)
+                xs[k] = s.post_x + c @ (nxt - after.prior_x)
+            nxt = xs[k] if s.trans is not None else None
+        return xs
+
+
+def moved(a: Pose, b: Pose, scfg: SmootherConfig) -> bool:
+    """Whether two poses of one cloud differ enough to re-place it."""
+    d = math.hypot(a.north_m - b.north_m, a.east_m - b.east_m)
+    dyaw = abs(math.degrees(math.remainder(a.yaw_rad - b.yaw_rad, 2 * math.pi)))
+    return d > scfg.move_m or dyaw > scfg.move_deg

@@ -1,0 +1,115 @@
+"""Letting past poses move (issue 27): the smoother over a robot's filter, re-placing clouds in the map, and the
+launch-point fleet frame."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from test_navigation import scene_landmarks
+
+from lrsensor.frames import Pose
+from mapping.builder import MapBuilder
+from mapping.navigation import NavConfig, Navigator
+from mapping.smoother import RobotSmoother, SmootherConfig
+from mapping.synth import Scene, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
+
+
+@pytest.fixture(scope="module")
+def drift_dive() -> tuple[Scene, list[Any]]:
+    scene = tank()
+    frames = simulate_dive(
+        scene, three_rov_plans(), duration_s=40.0, rate_hz=10.0, n_rays=300, seed=2, navigation="drift"
+    )
+    return scene, frames
+
+
+def _mean_error(run: Any) -> float:
+    return float(np.mean([e for v in run.final_error_m.values() for e in v]))
+
+
+def test_smoothing_moves_past_poses_and_the_map_follows(drift_dive: tuple[Scene, list[Any]]) -> None:
+    scene, frames = drift_dive
+    hits = hit_faces(scene, frames)
+    cfg = NavConfig(fix_quality_factor=5.0)
+    filtered = replay_dive(frames, navigate=True, nav_cfg=cfg)
+    smoothed = replay_dive(frames, navigate=True, nav_cfg=cfg, smoother=SmootherConfig())
+    assert smoothed.smooth_cost_s, "the smoother never ran"
+    s_f = score_map(filtered.planes(), scene, hits)
+    s_s = score_map(smoothed.planes(), scene, hits)
+    # the poses the clouds are in the map with end up closer to the truth, and the map is at least as good
+    assert _mean_error(smoothed) < _mean_error(filtered)
+    assert len(s_s.spurious) <= 1, s_s.table()
+    assert len(s_s.missing()) <= len(s_f.missing()), s_s.table()
+
+
+def test_rebuilding_with_unchanged_poses_gives_the_same_map(drift_dive: tuple[Scene, list[Any]]) -> None:
+    _, frames = drift_dive
+    b = MapBuilder()
+    b.keep_placements = True
+    poses: dict[int, Pose] = {}
+    for f in frames[:300]:
+        if f.robot == "rov1":
+            b.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est)
+            poses[f.t_ns] = f.pose_est
+    b.flush()
+    before = b.map_json()["planes"]
+    assert before
+    assert b.replace_poses("rov1", poses, dict(poses)) == 0
+    b.rebuild()
+    assert b.map_json()["planes"] == before
+    # moving every pose 10 cm north moves every plane with it
+    moved = {t: Pose(p.north_m + 0.1, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad) for t, p in poses.items()}
+    assert b.replace_poses("rov1", poses, moved) > 0
+    changes = b.rebuild()
+    assert changes
+    after = b.map_json()["planes"]
+    assert len(after) == len(before)
+    for p0, p1 in zip(before, after, strict=True):
+        shift = np.asarray(p1["extent"]["centroid"]) - np.asarray(p0["extent"]["centroid"])
+        assert shift == pytest.approx([0.1, 0.0, 0.0], abs=2e-3)
+
+
+def test_the_smoother_uses_later_scans_for_earlier_poses() -> None:
+    """A robot whose first scans see nothing and later scans see the tank: the smoothed early poses follow."""
+    scene = tank()
+    lm = scene_landmarks(scene)
+    sm = RobotSmoother("r", NavConfig(), SmootherConfig(every_s=1.0, every_fraction=0.0))
+    frames = simulate_dive(scene, three_rov_plans()[:1], duration_s=6.0, rate_hz=10.0, n_rays=300, seed=3)
+    empty = type(lm).empty()
+    bias = math.radians(1.0)
+    for i, f in enumerate(frames):
+        # dead reckoning 8 cm off from the second scan on, with a biased compass
+        raw = Pose(
+            f.pose_true.north_m + (0.08 if i else 0.0),
+            f.pose_true.east_m,
+            f.pose_true.down_m,
+            f.pose_true.roll_rad,
+            f.pose_true.pitch_rad,
+            f.pose_true.yaw_rad + bias,
+        )
+        sm.update(f.t_ns, raw, f.points_body, empty if i < 30 else lm)
+    revised = sm.smooth(lm)
+    early = list(frames[5:25])
+    err = [abs(revised[f.t_ns].north_m - f.pose_true.north_m) for f in early]
+    assert float(np.mean(err)) < 0.04
+
+
+def test_the_fleet_frame_carries_the_map_launch_points_onto_the_launch_fixes() -> None:
+    nav = Navigator(NavConfig(), SmootherConfig())
+    lm = scene_landmarks(tank())
+    for i, (n, e) in enumerate([(1.0, 1.0), (6.0, 1.0), (3.0, 4.0)]):
+        nav.update(f"r{i}", 1_000, Pose(n, e, 2.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), lm)
+    # the map places the launches turned by 1 deg about (0, 0) and 2 cm east: the frame undoes both
+    a = math.radians(1.0)
+    for sm in nav.smoothers.values():
+        n, e = sm.nav.start_ne
+        sm.start_map_ne = (math.cos(a) * n - math.sin(a) * e, math.sin(a) * n + math.cos(a) * e + 0.02)
+    frame = nav.frame()
+    for sm in nav.smoothers.values():
+        assert sm.start_map_ne is not None
+        p = frame.points([sm.start_map_ne[0], sm.start_map_ne[1], 0.0])[0]
+        assert p[:2] == pytest.approx(sm.nav.start_ne, abs=1e-9)
+    assert math.degrees(frame.yaw_rad) == pytest.approx(1.0, abs=1e-6)
