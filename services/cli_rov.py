@@ -301,7 +301,7 @@ def _open_delivery(args: argparse.Namespace, session: Any, keys: Any, robot: str
     )
     if len(outbox):
         log.warning("rov %s: %d clouds from an earlier run are pending in %s", robot, len(outbox), folder)
-    sink = OutboxSink(session, keys, robot, outbox)
+    sink = OutboxSink(session, keys, robot, outbox, forward_now=False)  # RovService.run starts forwarding
     try:
         yield sink
     finally:

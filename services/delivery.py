@@ -309,6 +309,10 @@ class OutboxSink:
         resend_after_s: the shortest retransmission timeout, seconds (the measured one is usually longer).
         max_resend_per_cycle: at most this many re-sends per cycle (the pacing window usually stops earlier).
         stall_s: no probe is sent before acknowledgements have stalled this long, seconds.
+        forward_now: re-send and forward from the outbox at once; False waits for :meth:`start_forwarding`
+            (a ROV calls it once it serves its calibration: a base station that has just restarted triangulates
+            the compact clouds of the backlog only with the calibration the robot serves, and refuses them
+            until then).
     """
 
     def __init__(
@@ -322,6 +326,7 @@ class OutboxSink:
         resend_after_s: float = 3.0,
         max_resend_per_cycle: int = 300,
         stall_s: float = 10.0,
+        forward_now: bool = True,
     ) -> None:
         import zenoh
 
@@ -355,6 +360,9 @@ class OutboxSink:
         self._first_seq = outbox.next_seq  # clouds numbered below were reloaded from an earlier run
         self.counters.reloaded = self.counters.queued = len(self._fate)
         self._stop = threading.Event()
+        self._forwarding = threading.Event()
+        if forward_now:
+            self._forwarding.set()
         self._wake = threading.Event()
         self._base_present = False
         self._acked_sent_t = 0.0  # the latest send time among the clouds acknowledged so far
@@ -613,7 +621,7 @@ class OutboxSink:
             return
         if present:
             self.poll_acks()
-        if not present or not len(self.outbox):
+        if not present or not len(self.outbox) or not self._forwarding.is_set():
             return
         for seq in self._choose_resends(time.monotonic()):
             if self._stop.is_set():
@@ -680,6 +688,11 @@ class OutboxSink:
                     )
                     return [oldest]
             return []
+
+    def start_forwarding(self) -> None:
+        """Start re-sending and forwarding from the outbox (see ``forward_now``)."""
+        self._forwarding.set()
+        self._wake.set()
 
     def wait_empty(self, timeout_s: float, stop: threading.Event | None = None, *, idle: bool = False) -> bool:
         """Wait until every cloud is acknowledged (the outbox is empty); False on timeout or ``stop``.

@@ -302,6 +302,9 @@ class RovService:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         sink = self.sink or ZenohCloudSink(self.session, self.keys.cloud(self.robot))
+        start_forwarding = getattr(sink, "start_forwarding", None)
+        if callable(start_forwarding):  # the calibration is served now: a base can triangulate the backlog
+            start_forwarding()
         # the token goes last: a robot seen alive already answers its calibration queryable
         token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
         log.info(

@@ -446,3 +446,21 @@ def test_a_rov_killed_after_a_put_never_reuses_the_number(net: tuple[Any, Any], 
     assert all(nxt > seq for seq, nxt in live), live  # every number put was already on disk
     assert len(base.seqs) == 20
     base.close()
+
+
+def test_the_backlog_waits_for_start_forwarding(net: tuple[Any, Any], tmp_path: Path) -> None:
+    """Found by the chaos soak: a restarted ROV forwarded its backlog before it served its calibration, and a
+    base station restarted meanwhile refused the compact clouds (no calibration yet): 92 re-sends."""
+    router, rov = net
+    box = Outbox(tmp_path / "outbox", fsync=False)
+    for seq in range(5):  # pending from an earlier run
+        box.append(seq, _cloud(seq).to_bytes())
+    base = FakeBase(router)
+    with OutboxSink(rov, KEYS, "rov1", box, ack_period_s=0.1, forward_now=False) as sink:
+        assert wait_until(sink.base_present, WAIT_S)
+        time.sleep(1.0)
+        assert len(base.arrivals) == 0  # held back
+        sink.start_forwarding()
+        assert sink.wait_empty(15.0)
+    assert base.seqs.ranges() == [[0, 4]]
+    base.close()
