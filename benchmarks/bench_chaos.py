@@ -261,6 +261,8 @@ class ChaosResult:
     pending: dict[str, int]
     dropped: dict[str, int]
     duplicates: dict[str, int]
+    rejected: dict[str, int]
+    reused: dict[str, int]
     faults: Counter[str]
     flap_down_s: float
     robot_runs: dict[str, Counter[str]]
@@ -297,6 +299,7 @@ class ChaosResult:
             and not any(self.unacked.values())
             and not any(self.pending.values())
             and not any(self.dropped.values())
+            and not any(self.reused.values())
             and not self.crashes
             and self.total_produced > 0
         )
@@ -331,6 +334,8 @@ class ChaosResult:
                 "unacked": self.unacked,
                 "pending": self.pending,
                 "dropped": self.dropped,
+                "rejected": self.rejected,
+                "reused": self.reused,
                 "faults": dict(self.faults),
                 "robot_runs": {r: dict(c) for r, c in self.robot_runs.items()},
                 "crashes": self.crashes,
@@ -589,6 +594,8 @@ class Chaos:
         except (OSError, ValueError):
             fleet = {}
         produced, held, missing, extra, unacked, pending, dropped, dups = {}, {}, {}, {}, {}, {}, {}, {}
+        rejected: dict[str, int] = {}
+        reused: dict[str, int] = {}
         for r in self.robots:
             box = self.outboxes / r
             made = set(range(outbox_next_seq(box)))
@@ -604,6 +611,8 @@ class Chaos:
             except (OSError, ValueError):
                 dropped[r] = 0
             dups[r] = int(fleet.get(r, {}).get("duplicates", 0))
+            rejected[r] = int(fleet.get(r, {}).get("rejected", 0))
+            reused[r] = int(fleet.get(r, {}).get("reused", 0))
         resent = unheard = clean = clouds_clean = 0
         for r in self.robots:
             for text in logs[r]:
@@ -627,6 +636,8 @@ class Chaos:
             pending=pending,
             dropped=dropped,
             duplicates=dups,
+            rejected=rejected,
+            reused=reused,
             faults=self.faults,
             flap_down_s=self.flap_down_s,
             robot_runs={r: s.exits for r, s in self.rovs.items()},
@@ -672,13 +683,14 @@ def tables(res: ChaosResult) -> str:
     twice_pct = 100 * res.sent_twice / max(1, res.clouds_in_clean_runs)
     acct = (
         "| faults for | robots | clouds produced | held by the base | missing / extra | unacknowledged "
-        "| left in outboxes / dropped | duplicates received at base | sent twice (clean runs) "
+        "| left in outboxes / dropped | duplicates / rejected / numbers reused at base | sent twice (clean runs) "
         "| re-sent in all (clean runs) | healed in "
         "| every cloud once |\n"
         "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: |\n"
         f"| {cfg.fault_s / 60:.0f} min | {cfg.robots} x {cfg.rate_hz:g} Hz | {n} | {held} | {miss} / {extra} "
         f"| {sum(res.unacked.values())} | {sum(res.pending.values())} / {sum(res.dropped.values())} "
-        f"| {sum(res.duplicates.values())} | {res.sent_twice} ({twice_pct:.1f} %) "
+        f"| {sum(res.duplicates.values())} / {sum(res.rejected.values())} / {sum(res.reused.values())} "
+        f"| {res.sent_twice} ({twice_pct:.1f} %) "
         f"| {res.resent} | {res.heal_s:.0f} s | {yes} |"
     )
     fault_rows = "\n".join(f"| {k} | {res.faults.get(k, 0)} |" for k in KINDS)
@@ -725,7 +737,9 @@ def report(res: ChaosResult, command: str) -> str:
         "files are read. Clouds produced: per robot the numbers 0 .. next_seq - 1 of its outbox (a restarted "
         "robot replays its dive from the first frame under new numbers). Held: the ranges in the base "
         "station's `fleet.json`. Duplicates: copies of clouds the base already held (a lower bound: a SIGKILLed "
-        "base loses the count since its last save). Sent twice / re-sent: from the summary lines of the robot "
+        "base loses the count since its last save); rejected: clouds the base refused (and did not acknowledge); "
+        "numbers reused: duplicates with another capture time (a number given twice). Sent twice / re-sent: "
+        "from the summary lines of the robot "
         f"runs that ended cleanly ({res.clean_runs} of {res.all_runs}, {res.clouds_in_clean_runs} clouds); "
         "sent twice as a share of those runs' clouds. "
         f"Link: {res.link.get('up_bytes', 0) / 1e6:.1f} MB up, {res.link.get('down_bytes', 0) / 1e6:.1f} MB down. "
