@@ -11,15 +11,18 @@ A simulated 3-robot dive in the tank (``mapping.synth``: ``three_rov_plans``, bo
 - ``depth-only``: attitude with the compass bias and depth, a horizontal fix at launch only;
 - ``mixed``: one robot of each (rov1 good, rov2 drift, rov3 depth-only).
 
-Each dive is replayed into ``mapping.MapBuilder`` twice, as the base station does it (``mapping.synth.replay_dive``):
-trusting the poses (``lrsensor base --nav off``: clouds without a fix are left out) and correcting them first
-(``mapping.navigation``, the default). The served map is scored against the tank's faces
+Each dive is replayed into ``mapping.MapBuilder`` three times, as the base station does it
+(``mapping.synth.replay_dive``): trusting the poses (``lrsensor base --nav off``: clouds without a fix are left
+out), correcting them first with the filter (``mapping.navigation``, the base's default), and with the smoother
+(``mapping.smoother``: past poses re-estimated and their clouds re-placed in the map, a last smoothing at the end of
+the dive; fixes weighted by ``SMOOTHED_NAV``). The served map is scored against the tank's faces
 (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames where both lasers hit it;
 *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered, the worst angle and
 offset over the seen faces that have a plane (a seen face without one is counted in "missing"), duplicates,
-spurious planes, the clouds left unplaced, the robots' horizontal position error (largest over the dive and at
-its end; with navigation, of the pose the map was served with), the share of scans whose registration
-constrained both horizontal axes, and the navigation's CPU cost per scan on this machine.
+spurious planes, the clouds left unplaced, the robots' horizontal position error (of the poses the clouds are in
+the map with at the end, served in NED: largest, and the robots' last estimates), the share of scans whose
+registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
+smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from mapping.planes import open3d
+from mapping.smoother import SMOOTHED_NAV, SmootherConfig
 from mapping.synth import DiveMap, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
 
 MODES: dict[str, str | dict[str, str]] = {
@@ -66,6 +70,8 @@ class Row:
     cost_ms_mean: float
     cost_ms_p99: float
     wall_s: float
+    smooth_ms: float = math.nan
+    smooth_max_s: float = math.nan
 
 
 def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
@@ -94,19 +100,24 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     )
     hits = hit_faces(scene, frames)
     rows = []
-    for navigate in (False, True):
+    for way in ("trusted", "corrected", "smoothed"):
+        navigate = way != "trusted"
+        kw: dict[str, Any] = {}
+        if way == "smoothed":
+            kw = {"nav_cfg": SMOOTHED_NAV, "smoother": SmootherConfig()}
         t0 = time.perf_counter()
-        run = replay_dive(frames, navigate=navigate)
+        run = replay_dive(frames, navigate=navigate, **kw)
         wall = time.perf_counter() - t0
         score = score_map(run.planes(), scene, hits)
         seen = [f for f in score.faces if f.hit]
         with_plane = [f for f in seen if f.plane_ids]
-        errs = [e for v in run.position_error_m.values() for e in v]
+        # the poses the clouds are in the map with at the end (smoothing revises them), served in NED
+        errs = [e for v in run.final_error_m.values() for e in v]
         cost = np.array(run.nav_cost_s) * 1e3 if run.nav_cost_s else np.zeros(1)
         rows.append(
             Row(
                 mode=mode,
-                way="corrected" if navigate else "trusted",
+                way=way,
                 seen=len(seen),
                 recovered=len(seen) - len(score.missing()),
                 missing=len(seen) - len(with_plane),
@@ -122,6 +133,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
                 cost_ms_mean=float(cost.mean()) if navigate else math.nan,
                 cost_ms_p99=float(np.percentile(cost, 99)) if navigate else math.nan,
                 wall_s=wall,
+                smooth_ms=1e3 * sum(run.smooth_cost_s) / len(frames) if run.smooth_cost_s else math.nan,
+                smooth_max_s=max(run.smooth_cost_s, default=math.nan),
             )
         )
         print(rows[-1], flush=True)
@@ -137,8 +150,8 @@ def table(rows: list[Row]) -> str:
     lines = [
         "| navigation | poses | faces seen / recovered (2 deg, 5 cm) | seen without a plane | worst angle (deg) | "
         "worst offset (cm) | duplicates | spurious planes | unplaced clouds | position error max / final (m) | "
-        "scans constraining N and E | nav wall ms/scan mean / p99 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "scans constraining N and E | nav wall ms/scan mean / p99 | smoother ms/scan / longest run (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
@@ -146,7 +159,8 @@ def table(rows: list[Row]) -> str:
             f"{_f(r.worst_offset_cm, '.1f')} | {r.duplicates} | {r.spurious} | {r.unplaced} of {r.clouds} | "
             f"{_f(r.max_error_m, '.2f')} / {_f(r.final_error_m, '.2f')} | "
             f"{'-' if not math.isfinite(r.constrained) else f'{100 * r.constrained:.0f} %'} | "
-            f"{_f(r.cost_ms_mean, '.2f')} / {_f(r.cost_ms_p99, '.1f')} |"
+            f"{_f(r.cost_ms_mean, '.2f')} / {_f(r.cost_ms_p99, '.1f')} | "
+            f"{_f(r.smooth_ms, '.2f')} / {_f(r.smooth_max_s, '.2f')} |"
         )
     return "\n".join(lines)
 
@@ -164,7 +178,7 @@ def main() -> int:
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         rows += run_mode(mode, args.seconds, args.seed)
     load1 = os.getloadavg()[0]
-    corrected = [r for r in rows if r.way == "corrected" and math.isfinite(r.cost_ms_mean)]
+    corrected = [r for r in rows if r.way != "trusted" and math.isfinite(r.cost_ms_mean)]
     cost = max((r.cost_ms_mean for r in corrected), default=math.nan)
     text = "\n".join(
         [
@@ -176,9 +190,10 @@ def main() -> int:
             table(rows),
             "",
             "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
-            "5 cm is seen but not recovered. Position errors are of the poses the clouds were placed with (with "
-            "navigation: served in NED, turned by the fleet frame); final: each robot's last pose, the worst robot "
-            "(- where a robot's position is unknown).",
+            "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
+            "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "
+            "worst robot (- where a robot's position is unknown). Smoother: its wall time over the dive (re-filter, "
+            "smoothing, re-placing and rebuilding the map) per scan, and its longest single run (all robots).",
             "",
             f"Navigation cost: at most {cost:.2f} ms (wall, mean) per scan (one thread, this machine), i.e. one map "
             f"thread corrects about {1e3 / cost:.0f} scans/s"

@@ -69,11 +69,11 @@ class NavConfig:
     ``min_landmark_points`` points are not used.
 
     Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (a velocity bias),
-    ``walk_speed_m_s`` (the random walk of the position without a fix), ``yaw_walk_deg_per_sqrt_s``; fixes are absolute
-    measurements at most every ``fix_every_s``, their sigma 1.5 x the RMS of their disagreement with the estimate
-    over ``fix_quality_s`` (a drifting dead reckoning earns a weak one), within ``fix_min_sigma_m`` ..
-    ``fix_sigma_m``; the compass's bias is within ``compass_bias_deg`` (a pull of the yaw correction to 0, as
-    often as fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
+    ``walk_speed_m_s`` (the random walk of the position without a fix), ``yaw_walk_deg_per_sqrt_s``; fixes are
+    absolute measurements at most every ``fix_every_s``, their sigma ``fix_quality_factor`` x the RMS of their
+    disagreement with the estimate over ``fix_quality_s`` (a drifting dead reckoning earns a weak one), within
+    ``fix_min_sigma_m`` .. ``fix_sigma_m``; the compass's bias is within ``compass_bias_deg`` (a pull of the yaw
+    correction to 0, as often as fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
     ``init_yaw_sigma_deg``.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
@@ -81,12 +81,14 @@ class NavConfig:
     exceeds it are not placed in the map), ``lost_std_m`` (without a fix, a robot whose predicted standard
     deviation exceeds it is lost: its scans are not registered or placed until the next fix), ``depth_std_m`` /
     ``attitude_std_deg`` (reported for the measured axes); ``frame_min_scans``: a robot's yaw correction counts
-    in :meth:`Navigator.frame` once that many scans constrained its heading.
+    in :meth:`Navigator.frame` once that many scans constrained its heading; with smoothing, launch points
+    ``frame_min_baseline_m`` apart fix the frame's heading instead.
 
-    Scan-to-submap odometry: the robot's own placed scans of the last ``submap_s`` (``submap_points`` each) are
-    cut into ``local_cell_m`` cells; a cell with ``local_min_points`` points, thinner than
-    ``local_max_thickness_m`` and wider than ``local_min_width_m`` (not a single stripe) is a local plane that
-    the points of the new scan no map plane takes are registered to.
+    Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
+    without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before) replaces the walk
+    where the two scans observe it. A cloud without a fix is placed when its scan pinned both horizontal axes to
+    the map, or, with scan odometry, while the robot's horizontal standard deviation is within
+    ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
     """
 
     max_points: int = 300
@@ -122,12 +124,9 @@ class NavConfig:
     attitude_std_deg: float = 0.2
     frame_min_scans: int = 20
     frame_min_baseline_m: float = 2.0
-    submap_s: float = 2.0
-    submap_points: int = 150
-    local_cell_m: float = 0.25
-    local_min_points: int = 8
-    local_max_thickness_m: float = 0.01
-    local_min_width_m: float = 0.03
+    scan_odometry: bool = False
+    odometry_max_dt_s: float = 0.5
+    bootstrap_std_m: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -301,8 +300,21 @@ class RobotNav:
         #: smoother (:mod:`mapping.smoother`) needs to run backward; None after a start
         self.prior: tuple[FloatArray, FloatArray] | None = None
         self.transition: FloatArray | None = None
+        #: the previous scan for scan odometry: points relative to the vehicle (NED axes), and its depth
+        self._prev_scan: tuple[FloatArray, float] | None = None
+        self.odometry_pairs = 0
 
-    _STATE = ("t_ns", "last_raw_ne", "last_fix_ns", "start_ne", "yaw_scans", "fix_err2", "last_compass_ns", "lost")
+    _STATE = (
+        "t_ns",
+        "last_raw_ne",
+        "last_fix_ns",
+        "start_ne",
+        "yaw_scans",
+        "fix_err2",
+        "last_compass_ns",
+        "lost",
+        "_prev_scan",
+    )
 
     def snapshot(self) -> dict[str, Any]:
         """The estimator's whole state (a smoother restarts it from here to re-run later scans)."""
@@ -340,7 +352,9 @@ class RobotNav:
         self.start_ne = raw_ne.copy()
         self.fix_err2 = cfg.launch_sigma_m**2
 
-    def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
+    def _predict(
+        self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
+    ) -> str:
         cfg = self.cfg
         q = np.zeros((5, 5))
         q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
@@ -361,12 +375,42 @@ class RobotNav:
             # without dead reckoning the robot may be anywhere within its speed: a random walk. (A constant-
             # velocity prior looked better on paper; along a single wall its velocity is unobservable, and a
             # wrong one carried the robot metres away while the scans kept its std small across the wall.)
+            # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
+            # relative measurement, so its covariance adds to the position's like dead reckoning's.
             self.x[2:4] = 0.0
             self.transition = np.eye(5)
-            q[0, 0] = q[1, 1] = cfg.walk_speed_m_s**2 * dt
+            walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
+            if odo is not None and cfg.scan_odometry:
+                delta, cov, pairs = odo
+                if pairs:
+                    # like dead reckoning's, the increment was turned by the yaw correction (the scans were
+                    # placed with it): its uncertainty grows the position's with the distance
+                    f = np.eye(5)
+                    f[0:2, 4] = [-delta[1], delta[0]]
+                    self.transition = f
+                    self.P = f @ self.P @ f.T
+                    self.x[0:2] += delta
+                    walk = cov
+                    motion = "scan-odometry"
+            q[0:2, 0:2] = walk
         self.P = self.P + q
         return motion
+
+    def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
+        """Scan-to-scan increment (:mod:`mapping.odometry`) from the previous scan to ``pts`` (body, (M, 3)):
+        (move (2,), covariance (2, 2), pairs), or None without a previous scan."""
+        from .odometry import OdometryConfig, increment
+
+        prev = self._prev_scan
+        r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(self.x[4]))
+        rel = pts @ r_nb.T
+        self._prev_scan = (rel, raw.down_m)
+        if prev is None or dt <= 0 or dt > self.cfg.odometry_max_dt_s:
+            return None
+        new_rel = rel + np.array([0.0, 0.0, raw.down_m - prev[1]])
+        prior = np.eye(2) * self.cfg.walk_speed_m_s**2 * dt
+        return increment(prev[0], new_rel, prior, OdometryConfig())
 
     def _compass(self, t_ns: int) -> None:
         """The compass's bias is bounded: a weak pull of the yaw correction toward zero, at most every
@@ -480,12 +524,19 @@ class RobotNav:
                 return est
             self._start(t, raw_ne)
             self.last_raw_ne = raw_ne
+            if cfg.scan_odometry:
+                self._odometry(raw, pts, 0.0)  # keeps the scan for the next increment
             motion = "start"
         elif self.t_ns is not None and t < self.t_ns:
             return self._estimate(t, raw, np.zeros((3, 3)), 0, (), "late", known=True, keep=True)
         else:
             assert self.t_ns is not None
-            motion = self._predict((t - self.t_ns) * 1e-9, raw_ne)
+            dt = (t - self.t_ns) * 1e-9
+            odo = self._odometry(raw, pts, dt) if self.cfg.scan_odometry else None
+            if raw_ne is not None:
+                odo = None  # dead reckoning moves the prediction; the scan is only kept for the next increment
+            motion = self._predict(dt, raw_ne, odo)
+            self.odometry_pairs = odo[2] if odo is not None else 0
             self.prior = (self.x.copy(), self.P.copy())
             self.t_ns = t
             self.last_raw_ne = raw_ne
@@ -551,8 +602,11 @@ class RobotNav:
         placed = max(float(sd[0]), float(sd[1])) <= cfg.place_std_m
         if not math.isfinite(raw.north_m + raw.east_m):
             # without a fix only a scan that pins both horizontal axes to the map places its cloud: a motion
-            # prior's guess must not grow the map
-            placed = placed and constrained["north"] and constrained["east"]
+            # prior's guess must not grow the map; but while scan odometry keeps the launch fix's position
+            # within bootstrap_std_m, the robot's own scans make the map (nobody else may have one)
+            pinned = constrained["north"] and constrained["east"]
+            boot = motion in ("scan-odometry", "start") and max(float(sd[0]), float(sd[1])) <= cfg.bootstrap_std_m
+            placed = placed and (pinned or boot)
         return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr)
 
 

@@ -458,8 +458,10 @@ def three_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePla
 class DiveMap:
     """A dive replayed into a map: the builder, and per robot the placed clouds' horizontal errors (m) and the
     yaw errors (deg) of the poses they were placed with, the clouds left unplaced, the navigation's wall time per
-    cloud (s, empty when the poses were trusted), each robot's last estimate, the fleet frame, and the scans whose
-    registration constrained both horizontal axes."""
+    cloud (s, empty when the poses were trusted), each robot's last estimate, the fleet frame, the scans whose
+    registration constrained both horizontal axes; with smoothing, each smoothing run's wall time (s); and per
+    robot the poses its clouds are in the map with at the end (t_ns -> Pose, map frame) and their horizontal
+    errors (m, served in NED)."""
 
     builder: Any
     position_error_m: dict[str, list[float]] = field(default_factory=dict)
@@ -470,7 +472,6 @@ class DiveMap:
     frame: Any = None
     constrained_scans: int = 0
     smooth_cost_s: list[float] = field(default_factory=list)
-    rebuild_cost_s: list[float] = field(default_factory=list)
     final_error_m: dict[str, list[float]] = field(default_factory=dict)
     placed: dict[str, dict[int, Pose]] = field(default_factory=dict)
 
@@ -493,41 +494,19 @@ def replay_dive(
 
     from .builder import MapBuilder
     from .navigation import Navigator
+    from .smoother import FleetPlacements
     from .types import MapConfig
 
     b = MapBuilder(cfg or MapConfig())
     nav = Navigator(nav_cfg, smoother) if navigate else None
-    b.keep_placements = smoother is not None
     out = DiveMap(b)
     min_pts = nav.cfg.min_landmark_points if nav is not None else 0
     placed: dict[str, dict[int, Pose]] = {}
     truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
-
-    def smooth_all() -> None:
-        # every robot's window against the map as it is, then one rebuild for all of them
-        assert nav is not None
-        t0 = time.perf_counter()
-        lm = b.landmarks(min_pts)
-        moved = 0
-        rebuild_s = 0.0
-        for robot, sm in sorted(nav.smoothers.items()):
-            revised = sm.smooth(lm)
-            mine = placed.get(robot, {})
-            new = {t: p for t, p in revised.items() if t in mine}
-            t1 = time.perf_counter()
-            moved += b.replace_poses(robot, mine, new)
-            rebuild_s += time.perf_counter() - t1
-            mine.update(new)
-        t1 = time.perf_counter()
-        if moved:
-            b.rebuild()
-        out.smooth_cost_s.append(time.perf_counter() - t0)
-        out.rebuild_cost_s.append(rebuild_s + time.perf_counter() - t1)
-
+    fleet = FleetPlacements(nav, b) if nav is not None and smoother is not None else None
     for f in frames:
-        sm = nav.smoothers.get(f.robot) if nav is not None else None
-        if sm is not None and sm.due(f.t_ns):
-            smooth_all()
+        if fleet is not None:
+            fleet.step(f.robot, f.t_ns)
         pose = f.pose_est
         if nav is not None:
             t0 = time.perf_counter()
@@ -546,15 +525,20 @@ def replay_dive(
                 continue
             pts = f.points_ned_est
         b.add_cloud(f.robot, f.t_ns, pts, pose)
-        placed.setdefault(f.robot, {})[f.t_ns] = pose
+        if fleet is not None:
+            fleet.placed(f.robot, f.t_ns, pose)
+        else:
+            placed.setdefault(f.robot, {})[f.t_ns] = pose
         served = nav.frame().pose(pose) if nav is not None else pose
         err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
         out.position_error_m.setdefault(f.robot, []).append(err)
         dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
         out.yaw_error_deg.setdefault(f.robot, []).append(dyaw)
     b.flush()
-    if nav is not None and nav.smoothers:
-        smooth_all()  # the end of the dive: the map as the last smoothing leaves it
+    if fleet is not None:
+        fleet.step("", 0, force=True)  # the end of the dive: the map as the last smoothing leaves it
+        out.smooth_cost_s = fleet.runs_s
+    placed = fleet.poses if fleet is not None else placed
     out.frame = nav.frame() if nav is not None else None
     # the poses each cloud is in the map with now (after any smoothing), against the truth
     out.final_error_m = {}

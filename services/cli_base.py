@@ -26,9 +26,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--nav",
-        choices=("on", "off"),
+        choices=("on", "filter", "off"),
         default="on",
-        help="correct each robot's horizontal position and heading from its scans before mapping (default on)",
+        help="correct each robot's horizontal position and heading from its scans before mapping; on (default): "
+        "also smooth past poses and re-place their clouds; filter: correct each cloud once; off: trust the poses",
     )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
@@ -80,11 +81,13 @@ def run(args: argparse.Namespace) -> int:
             map_mode=args.map,
             robots=robots,
             workers=args.workers,
-            navigation=args.nav == "on",
+            navigation=args.nav != "off",
             map_workers=n_workers if endpoint is not None else 0,
             worker_endpoint=endpoint,
             remote_workers=args.remote_map_workers,
         )
+        if args.nav == "filter":
+            station.feed.set_smoothing(False)
         with station, open_views(session, keys, args, station):
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
             last = time.monotonic()

@@ -73,6 +73,7 @@ from .wire import CloudMsg
 if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
     from mapping.navigation import NavEstimate, NavFrame, Navigator
+    from mapping.smoother import FleetPlacements
 
     from .map_workers import WorkerPool
 
@@ -201,11 +202,14 @@ class MapFeed:
         self._planes = 0
         self._planes_stale = True
         self.navigator: Navigator | None = None
-        if builder is not None and navigation:
-            from mapping.navigation import NavFrame, Navigator
+        #: with navigation, the smoothers' bookkeeping (past poses re-estimated, their clouds re-placed)
+        self.fleet: FleetPlacements | None = None
+        self._nav_on = builder is not None and navigation
+        if self._nav_on:
+            from mapping.navigation import NavFrame
 
-            self.navigator = Navigator()
             self._frame: NavFrame = NavFrame()
+            self.set_smoothing(True)
         #: plane workers (None: the map thread extracts in this process)
         self.pool: WorkerPool | None = None
         self.nav_publish_s = nav_publish_s
@@ -215,6 +219,30 @@ class MapFeed:
         self._nav_latest: dict[str, NavEstimate] = {}
         self._nav_counts: dict[str, list[int]] = {}
         self._nav_published: dict[str, int] = {}
+
+    def set_smoothing(self, on: bool) -> None:
+        """With navigation (before :meth:`start`): smooth each robot's past poses and re-place its clouds
+        (``mapping.smoother``, the default), or correct each cloud once with the filter alone. Plane workers
+        (:meth:`use_workers`) turn it off: the re-placement needs the observations in this process."""
+        if not self._nav_on:
+            return
+        from mapping.navigation import Navigator
+        from mapping.smoother import SMOOTHED_NAV, FleetPlacements, SmootherConfig
+
+        if on:
+            self.navigator = Navigator(SMOOTHED_NAV, SmootherConfig())
+            assert self.builder is not None
+            self.fleet = FleetPlacements(self.navigator, self.builder)
+        else:
+            self.navigator = Navigator()
+            self.fleet = None
+            if self.builder is not None:
+                self.builder.keep_placements = False
+
+    @property
+    def smoothing(self) -> bool:
+        """Whether past poses are smoothed and their clouds re-placed."""
+        return self.fleet is not None
 
     @property
     def navigation(self) -> bool:
@@ -241,6 +269,8 @@ class MapFeed:
         """Send the per-robot work to plane workers (before :meth:`start`); the map thread then only navigates
         and dispatches, and ``pool`` merges what the workers observe (see :mod:`services.map_workers`)."""
         self.pool = pool
+        if self.fleet is not None:
+            self.set_smoothing(False)
         pool.on_commit = self._commit_done
         pool.on_changes = lambda changes: self._publish_changes(None, changes)
 
@@ -334,6 +364,10 @@ class MapFeed:
                     return
                 if msg is _FLUSH:
                     self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
+                    if self.fleet is not None:  # the end of a dive: the map as the last smoothing leaves it
+                        self._publish_changes(None, self.fleet.step("", 0, force=True))
+                        assert self.navigator is not None
+                        self._frame = self.navigator.frame()
                     for robot in list(self._pending):
                         self._commit(robot)
                     continue
@@ -352,6 +386,9 @@ class MapFeed:
         assert self.builder is not None
         points_body = msg.points_body.astype(np.float64)
         pose = msg.pose
+        if self.fleet is not None:
+            # when the robot's smoother is due: past poses re-estimated, their clouds re-placed, the map rebuilt
+            self._publish_changes(None, self.fleet.step(msg.robot, msg.t_ns))
         if self.navigator is not None:
             lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
             est = self.navigator.update(msg.robot, msg.t_ns, msg.pose, points_body, lm)
@@ -375,6 +412,8 @@ class MapFeed:
         points_ned = body_to_ned(points_body, pose)
         skipped_before = self.builder.rate_skipped
         changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, pose)
+        if self.fleet is not None:
+            self.fleet.placed(msg.robot, msg.t_ns, pose)
         self.clouds += 1
         if self.builder.rate_skipped == skipped_before:  # not left out by an operator's cap
             with self._count_lock:

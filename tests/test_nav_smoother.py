@@ -113,3 +113,22 @@ def test_the_fleet_frame_carries_the_map_launch_points_onto_the_launch_fixes() -
         p = frame.points([sm.start_map_ne[0], sm.start_map_ne[1], 0.0])[0]
         assert p[:2] == pytest.approx(sm.nav.start_ne, abs=1e-9)
     assert math.degrees(frame.yaw_rad) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_scan_odometry_recovers_the_move_between_two_scans_of_a_corner() -> None:
+    from mapping.odometry import OdometryConfig, increment
+
+    # two walls meeting at a corner, sampled along a stripe (in order), seen from the origin
+    a = np.stack([np.full(60, 1.5), np.linspace(-1.0, 0.5, 60), np.zeros(60)], axis=1)
+    b = np.stack([np.linspace(1.5, 0.0, 60), np.full(60, 0.5), np.zeros(60)], axis=1)
+    prev = np.concatenate([a, b])
+    move = np.array([0.03, -0.02])
+    new = prev - np.array([move[0], move[1], 0.0])  # the same points seen from 3 cm north, 2 cm west
+    delta, cov, pairs = increment(prev, new, np.eye(2) * 0.01, OdometryConfig())
+    assert pairs >= 20
+    assert delta == pytest.approx(move, abs=2e-3)
+    assert np.sqrt(np.diag(cov)).max() < 0.01
+    # one flat wall: the move along it is not observed, its variance stays the prior's
+    delta, cov, pairs = increment(a, a - np.array([move[0], move[1], 0.0]), np.eye(2) * 0.01, OdometryConfig())
+    assert delta[0] == pytest.approx(move[0], abs=2e-3)
+    assert cov[1, 1] > 0.5 * 0.01
