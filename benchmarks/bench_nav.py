@@ -1,6 +1,6 @@
 """Benchmark of laser-aided navigation (issue 27): the map trusting the poses vs the map with corrected poses.
 
-    python benchmarks/bench_nav.py [--seconds 90] [--seed 1] [--out benchmarks/results/nav.md]
+    python benchmarks/bench_nav.py [--seconds 90] [--seed 1] [--acceptance 24] [--out benchmarks/results/nav.md]
 
 A simulated 3-robot dive in the tank (``mapping.synth``: ``three_rov_plans``, both laser fans ray-traced at
 10 Hz, 400 rays per laser, 2 mm range noise) with each navigation of ``lrsensor.sim.navigation``:
@@ -141,6 +141,162 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     return rows
 
 
+#: The acceptance run's robots and their navigation (independent dives, one of each).
+ACCEPTANCE = {"rov1": "good", "rov2": "drift", "rov3": "depth-only"}
+
+
+@dataclass
+class Acceptance:
+    """What the acceptance run through processes gives: the served map scored against the tank's faces."""
+
+    faces: int
+    matched: int
+    matched_loose: int
+    worst_angle_deg: float
+    worst_offset_cm: float
+    duplicates: int
+    spurious: int
+    clouds: int
+    placed: int
+    positions: dict[str, str]
+    wall_s: float
+    map_json: dict[str, Any]
+    status: dict[str, Any]
+
+
+def run_acceptance(
+    work: Path, seconds: float = 12.0, rate_hz: float = 5.0, seed: int = 1, nav: str = "on", size: str = "640x360"
+) -> Acceptance:
+    """``lrsensor base`` and one ``lrsensor rov --imu csv:FILE`` per robot of :data:`ACCEPTANCE` as processes on
+    loopback, each replaying its own recorded dive (``lrsensor.sim.dive.record_dive``: rendered images, the
+    navigation's ``imu.csv``); the map served on ``lrs/<fleet>/map`` once every cloud is acknowledged, scored
+    against the tank's true faces (``services.demo.score_map``: matched within 2 deg and 5 cm, and within the
+    demo's 5 deg and 15 cm)."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    import zenoh
+
+    from lrsensor.sim.dive import record_dive
+    from services.demo import score_map as score_served
+    from services.testnet import free_port
+
+    width, height = (int(x) for x in size.split("x"))
+    dives = {}
+    for i, (robot, mode) in enumerate(ACCEPTANCE.items()):
+        dives[robot] = work / "dives" / robot
+        record_dive(
+            dives[robot],
+            robot=robot,
+            robot_index=i,
+            n_robots=len(ACCEPTANCE),
+            duration_s=seconds,
+            rate_hz=rate_hz,
+            width=width,
+            height=height,
+            seed=seed * 100 + i,
+            navigation=mode,
+        )
+    fleet, port = "acc", free_port()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    lrs = [sys.executable, "-m", "lrsensor"]
+    t0 = time.perf_counter()
+    logs = {name: (work / f"{name}.log").open("wb") for name in ("base", *ACCEPTANCE)}
+    base = subprocess.Popen(
+        [*lrs, "base", "--fleet", fleet, "--listen", f"tcp/127.0.0.1:{port}", "--state", str(work / "state"),
+         "--map", "on", "--nav", nav, "--status-every-s", "0"],
+        stdout=logs["base"], stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    rovs: dict[str, subprocess.Popen[bytes]] = {}
+    conf = {
+        "mode": "client",
+        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": 30000},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+    }
+    try:
+        with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))) as session:
+
+            def get(key: str) -> dict[str, Any] | None:
+                for reply in session.get(key, timeout=5.0):
+                    if reply.ok is not None:
+                        out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                        return out
+                return None
+
+            deadline = time.monotonic() + 60
+            while get(f"lrs/{fleet}/base/status") is None:
+                if time.monotonic() > deadline or base.poll() is not None:
+                    msg = "the base station did not come up: " + (work / "base.log").read_text(errors="replace")
+                    raise RuntimeError(msg)
+                time.sleep(0.2)
+            for robot, d in dives.items():
+                rovs[robot] = subprocess.Popen(
+                    [*lrs, "rov", "--fleet", fleet, "--robot", robot, "--connect", f"tcp/127.0.0.1:{port}",
+                     "--source", str(d), "--imu", f"csv:{d / 'imu.csv'}", "--calib", str(d / "calib.json"),
+                     "--rate", str(rate_hz), "--ack-timeout-s", "60", "--outbox", str(work / f"outbox-{robot}")],
+                    stdout=logs[robot], stderr=subprocess.STDOUT, env=env,
+                )  # fmt: skip
+            for robot, p in rovs.items():
+                if p.wait(timeout=240) != 0:
+                    msg = f"{robot} failed: " + (work / f"{robot}.log").read_text(errors="replace")
+                    raise RuntimeError(msg)
+            # every cloud acknowledged: the map thread has taken them all; let its queue drain
+            time.sleep(2.0)
+            status = get(f"lrs/{fleet}/base/status") or {}
+            served = get(f"lrs/{fleet}/map") or {}
+    finally:
+        for p in (*rovs.values(), base):
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in (*rovs.values(), base):
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for fh in logs.values():
+            fh.close()
+    wall = time.perf_counter() - t0
+    planes = served.get("planes", [])
+    strict = score_served(planes, angle_deg=2.0, dist_m=0.05)
+    loose = score_served(planes)
+    errs = list(strict["matched"].values())
+    robots = status.get("robots", {})
+    return Acceptance(
+        faces=int(strict["faces"]),
+        matched=len(strict["matched"]),
+        matched_loose=len(loose["matched"]),
+        worst_angle_deg=max((e["angle_deg"] for e in errs), default=math.nan),
+        worst_offset_cm=100 * max((e["offset_m"] for e in errs), default=math.nan),
+        duplicates=sum(n - 1 for n in strict["duplicates"].values()),
+        spurious=int(strict["spurious"]),
+        clouds=sum(int(r.get("received", 0)) for r in robots.values()),
+        placed=sum(int(r.get("nav", {}).get("placed", 0)) for r in robots.values()),
+        positions={name: str(r.get("nav", {}).get("position", "-")) for name, r in sorted(robots.items())},
+        wall_s=wall,
+        map_json=served,
+        status=status,
+    )
+
+
+def acceptance_table(rows: list[tuple[str, Acceptance]]) -> str:
+    """The markdown table of acceptance runs."""
+    lines = [
+        "| base | faces matched 2 deg, 5 cm / 5 deg, 15 cm (of the tank's) | worst angle (deg) | worst offset (cm) | "
+        "duplicates | spurious (2 deg, 5 cm) | clouds received / placed | position at the end | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for nav, a in rows:
+        pos = ", ".join(f"{r} {p}" for r, p in a.positions.items())
+        lines.append(
+            f"| `--nav {nav}` | {a.matched} / {a.matched_loose} (of {a.faces}) | {_f(a.worst_angle_deg, '.2f')} | "
+            f"{_f(a.worst_offset_cm, '.1f')} | {a.duplicates} | {a.spurious} | {a.clouds} / {a.placed} | {pos} | "
+            f"{a.wall_s:.0f} |"
+        )
+    return "\n".join(lines)
+
+
 def _f(x: float, fmt: str) -> str:
     return "-" if not math.isfinite(x) else format(x, fmt)
 
@@ -171,12 +327,27 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--modes", default=",".join(MODES), help="comma-separated navigation modes")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "nav.md")
+    ap.add_argument(
+        "--acceptance",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="also run the acceptance check through processes (S-second dives; lrsensor base --nav off/filter/on)",
+    )
     args = ap.parse_args()
     open3d()  # import once, outside the timings
     load0 = os.getloadavg()[0]
     rows: list[Row] = []
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         rows += run_mode(mode, args.seconds, args.seed)
+    accepted: list[tuple[str, Acceptance]] = []
+    if args.acceptance > 0:
+        import tempfile
+
+        for nav in ("off", "filter", "on"):
+            with tempfile.TemporaryDirectory(prefix="nav-acceptance-") as tmp:
+                accepted.append((nav, run_acceptance(Path(tmp), seconds=args.acceptance, seed=args.seed, nav=nav)))
+            print(acceptance_table(accepted[-1:]), flush=True)
     load1 = os.getloadavg()[0]
     corrected = [r for r in rows if r.way != "trusted" and math.isfinite(r.cost_ms_mean)]
     cost = max((r.cost_ms_mean for r in corrected), default=math.nan)
@@ -201,6 +372,21 @@ def main() -> int:
             else "",
             "",
         ]
+        + (
+            [
+                f"### Acceptance through processes ({args.acceptance:g} s dives at 5 Hz, 640x360 rendered images)",
+                "",
+                f"`python -m benchmarks.bench_nav --acceptance {args.acceptance:g}`: `lrsensor base` and one "
+                "`lrsensor rov --imu csv:FILE` per robot (rov1 good, rov2 drift, rov3 depth-only), each replaying "
+                "its own recorded dive; the map served on `lrs/<fleet>/map` once every cloud is acknowledged, "
+                "scored against all 12 faces of the tank (a short dive sees a few).",
+                "",
+                acceptance_table(accepted),
+                "",
+            ]
+            if accepted
+            else []
+        )
     )
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -523,8 +523,22 @@ class MapFeed:
                 "errors": self.errors,
             }
             | ({"navigation": self.navigator is not None} if self.builder is not None else {})
+            | ({"smoothing": self._smoothing_json()} if self.fleet is not None else {})
             | ({"worker_pool": pool} if pool is not None else {})
         )
+
+    def _smoothing_json(self) -> dict[str, Any]:
+        """The smoother's runs, the longest and last run's wall time (ms), and the clouds' observations re-placed."""
+        fleet = self.fleet
+        if fleet is None:
+            return {}
+        runs = list(fleet.runs_s)
+        return {
+            "runs": len(runs),
+            "last_ms": round(1e3 * runs[-1], 1) if runs else None,
+            "max_ms": round(1e3 * max(runs), 1) if runs else None,
+            "replaced": fleet.replaced,
+        }
 
     # ------------------------------------------------------------------ navigation views
     def nav_json(self, robot: str) -> dict[str, Any] | None:
