@@ -356,7 +356,9 @@ def main() -> int:
             f"## Trusted vs corrected poses (3 robots, {args.seconds:g} s at 10 Hz, seed {args.seed}; "
             f"load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
             "",
-            f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}`",
+            f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
+            + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
+            + "`",
             "",
             table(rows),
             "",
@@ -376,7 +378,7 @@ def main() -> int:
             [
                 f"### Acceptance through processes ({args.acceptance:g} s dives at 5 Hz, 640x360 rendered images)",
                 "",
-                f"`python -m benchmarks.bench_nav --acceptance {args.acceptance:g}`: `lrsensor base` and one "
+                "`lrsensor base` and one "
                 "`lrsensor rov --imu csv:FILE` per robot (rov1 good, rov2 drift, rov3 depth-only), each replaying "
                 "its own recorded dive; the map served on `lrs/<fleet>/map` once every cloud is acknowledged, "
                 "scored against all 12 faces of the tank (a short dive sees a few).",

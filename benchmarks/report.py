@@ -117,8 +117,9 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "nav.md",
         "mapping",
-        "python benchmarks/bench_nav.py --seconds 90 --seed 1",
-        note="laser-aided navigation: trusted vs corrected poses (issue 27)",
+        "python benchmarks/bench_nav.py --seconds 90 --seed 1 --acceptance 24",
+        note="laser-aided navigation: trusted, filtered and smoothed poses; the acceptance run through processes "
+        "(issue 27)",
     ),
     Source(
         "workers.md",
