@@ -103,6 +103,8 @@ class MapBuilder:
         self.keep_placements = False
         self._placements: list[Placement] = []
         self._pending: dict[int, Placement] = {}
+        #: the observations no smoother moves any more, fused once (:meth:`freeze`)
+        self._frozen: PlaneMap | None = None
         if loaded is not None:
             self._load(*loaded)
 
@@ -326,13 +328,31 @@ class MapBuilder:
                     n += 1
             return n
 
+    def freeze(self, before_ns: dict[str, int]) -> int:
+        """Fuse for good the kept observations of each robot whose clouds are all older than ``before_ns[robot]``
+        (its smoothing window's start) and drop their points; returns how many were frozen."""
+        with self._lock:
+            keep: list[Placement] = []
+            frozen = 0
+            for pl in self._placements:
+                cut = before_ns.get(pl.robot)
+                if cut is not None and pl.cloud_t.size and int(pl.cloud_t.max()) < cut:
+                    if self._frozen is None:
+                        self._frozen = PlaneMap(self.cfg)
+                    self._frozen.add(pl.record)
+                    frozen += 1
+                else:
+                    keep.append(pl)
+            self._placements = keep
+            return frozen
+
     def rebuild(self) -> list[MapChange]:
         """Fuse every kept observation again (after :meth:`replace_poses`); returns the changes from the map
         before: every plane of the new map as updated, and every old id the new map lacks as removed (into the
         new plane nearest to it)."""
         with self._lock:
             old = self._map
-            new = rebuild(self._placements, self.cfg)
+            new = rebuild(self._placements, self.cfg, self._frozen)
             self._map = new
             self._version += 1
             changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]

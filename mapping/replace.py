@@ -10,7 +10,10 @@ within one extraction window (about a second) the poses barely move relative to 
 
 Points rather than moments: a plane's statistics alone would transform exactly (``sum p -> R sum p + n t``), but
 its bounding box and export voxels, which association and extents use, need the points. They are the thinned
-points already in the map (one per 1 cm voxel of a cloud), held as int32.
+points already in the map (one per 1 cm voxel of a cloud), held as int32, and only while a smoother may still
+move them: an observation whose clouds are all older than its robot's smoothing window is frozen (fused once
+into a base map that every rebuild starts from, its points dropped), so memory and a rebuild's cost follow the
+window, not the dive.
 """
 
 from __future__ import annotations
@@ -87,10 +90,13 @@ def move_placement(pl: Placement, old: dict[int, Pose], new: dict[int, Pose], cf
     return True
 
 
-def rebuild(placements: list[Placement], cfg: MapConfig) -> PlaneMap:
-    """A new map from every observation fused again in order (where the association decides as before, the
-    planes keep their ids)."""
+def rebuild(placements: list[Placement], cfg: MapConfig, frozen: PlaneMap | None = None) -> PlaneMap:
+    """A new map: the ``frozen`` map (observations no smoother moves any more, fused once) and every other
+    observation fused again on top, in order (where the association decides as before, planes keep their ids)."""
     m = PlaneMap(cfg)
+    if frozen is not None:
+        m.planes = dict(frozen.planes)  # MapPlanes are never edited: sharing them is safe
+        m.next_id = frozen.next_id
     for pl in placements:
         m.add(pl.record)
     return m

@@ -211,6 +211,7 @@ class FleetPlacements:
         #: wall time of each smoothing run (s), and the clouds it re-placed
         self.runs_s: list[float] = []
         self.replaced = 0
+        self.frozen = 0
 
     def placed(self, robot: str, t_ns: int, pose: Pose) -> None:
         """``robot``'s cloud of ``t_ns`` went into the map with ``pose``."""
@@ -234,5 +235,12 @@ class FleetPlacements:
             mine.update(new)
         changes: list[Any] = self.builder.rebuild() if moved else []
         self.replaced += moved
+        # what left every window will not move again: fuse it once, forget its points and poses
+        cut = {name: sm.scans[0].t_ns for name, sm in self.nav.smoothers.items() if sm.scans}
+        self.frozen += self.builder.freeze(cut)
+        for name, t0_ns in cut.items():
+            poses = self.poses.get(name)
+            if poses:
+                self.poses[name] = {t: p for t, p in poses.items() if t >= t0_ns}
         self.runs_s.append(time.perf_counter() - t0)
         return changes

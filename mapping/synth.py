@@ -504,9 +504,19 @@ def replay_dive(
     placed: dict[str, dict[int, Pose]] = {}
     truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
     fleet = FleetPlacements(nav, b) if nav is not None and smoother is not None else None
+
+    def follow() -> None:
+        # the smoother's revisions of the poses still in its windows (older ones no longer move)
+        assert fleet is not None
+        for robot, poses in fleet.poses.items():
+            placed.setdefault(robot, {}).update(poses)
+
     for f in frames:
         if fleet is not None:
+            runs = len(fleet.runs_s)
             fleet.step(f.robot, f.t_ns)
+            if len(fleet.runs_s) > runs:
+                follow()
         pose = f.pose_est
         if nav is not None:
             t0 = time.perf_counter()
@@ -527,8 +537,7 @@ def replay_dive(
         b.add_cloud(f.robot, f.t_ns, pts, pose)
         if fleet is not None:
             fleet.placed(f.robot, f.t_ns, pose)
-        else:
-            placed.setdefault(f.robot, {})[f.t_ns] = pose
+        placed.setdefault(f.robot, {})[f.t_ns] = pose
         served = nav.frame().pose(pose) if nav is not None else pose
         err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
         out.position_error_m.setdefault(f.robot, []).append(err)
@@ -537,8 +546,8 @@ def replay_dive(
     b.flush()
     if fleet is not None:
         fleet.step("", 0, force=True)  # the end of the dive: the map as the last smoothing leaves it
+        follow()
         out.smooth_cost_s = fleet.runs_s
-    placed = fleet.poses if fleet is not None else placed
     out.frame = nav.frame() if nav is not None else None
     # the poses each cloud is in the map with now (after any smoothing), against the truth
     out.final_error_m = {}

@@ -132,3 +132,19 @@ def test_scan_odometry_recovers_the_move_between_two_scans_of_a_corner() -> None
     delta, cov, pairs = increment(a, a - np.array([move[0], move[1], 0.0]), np.eye(2) * 0.01, OdometryConfig())
     assert delta[0] == pytest.approx(move[0], abs=2e-3)
     assert cov[1, 1] > 0.5 * 0.01
+
+
+def test_what_leaves_the_window_is_frozen_and_the_map_stays(drift_dive: tuple[Scene, list[Any]]) -> None:
+    scene, frames = drift_dive
+    hits = hit_faces(scene, frames)
+    scfg = SmootherConfig(window_s=10.0, every_s=5.0, every_fraction=0.0)
+    run = replay_dive(frames, navigate=True, nav_cfg=NavConfig(fix_quality_factor=5.0), smoother=scfg)
+    b = run.builder
+    assert b._frozen is not None
+    assert len(b._frozen.planes) > 0
+    # only the observations of the last window keep their points
+    newest = max(f.t_ns for f in frames)
+    assert all(int(pl.cloud_t.max()) >= newest - 11e9 for pl in b._placements)
+    s = score_map(run.planes(), scene, hits)
+    assert len(s.spurious) <= 2, s.table()
+    assert sum(1 for f in s.faces if f.hit and f.plane_ids) >= len([f for f in s.faces if f.hit]) - 1, s.table()
