@@ -148,3 +148,26 @@ def test_what_leaves_the_window_is_frozen_and_the_map_stays(drift_dive: tuple[Sc
     s = score_map(run.planes(), scene, hits)
     assert len(s.spurious) <= 2, s.table()
     assert sum(1 for f in s.faces if f.hit and f.plane_ids) >= len([f for f in s.faces if f.hit]) - 1, s.table()
+
+
+def test_the_base_smooths_by_default_and_not_with_plane_workers() -> None:
+    from types import SimpleNamespace
+
+    from services.mapfeed import MapFeed
+
+    feed = MapFeed(MapBuilder(), lambda robot, seq: None, navigation=True)
+    assert feed.smoothing
+    assert feed.builder is not None
+    assert feed.builder.keep_placements
+    assert "smoothing" in feed.status_json()
+    feed.set_smoothing(False)  # lrsensor base --nav filter
+    assert not feed.smoothing
+    assert feed.navigation
+    feed.set_smoothing(True)
+    feed.use_workers(SimpleNamespace())  # type: ignore[arg-type]
+    assert not feed.smoothing
+    assert not feed.builder.keep_placements
+    off = MapFeed(MapBuilder(), lambda robot, seq: None, navigation=False)
+    off.set_smoothing(True)
+    assert not off.smoothing
+    assert not off.navigation
