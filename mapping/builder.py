@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose
 
 from .errors import MapInputError, MappingError, MapStoreError
-from .navigation import PlaneLandmarks
+from .landmarks import PlaneLandmarks
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys

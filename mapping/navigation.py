@@ -39,7 +39,6 @@ Everything here is numpy: the problem is three unknowns with a Kalman prior, sol
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -49,6 +48,20 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .errors import MapInputError
+from .landmarks import PlaneLandmarks, associate, subsample
+from .nav_frame import NavFrame, rot2
+
+__all__ = [
+    "AXES",
+    "NavConfig",
+    "NavEstimate",
+    "NavFrame",
+    "Navigator",
+    "PlaneLandmarks",
+    "RobotNav",
+    "associate",
+    "subsample",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -130,58 +143,6 @@ class NavConfig:
 
 
 @dataclass(frozen=True)
-class PlaneLandmarks:
-    """The map's planes as registration targets (P planes; NED, metres).
-
-    Attributes:
-        ids: (P,) plane ids.
-        normal: (P, 3) unit normals toward the observing vehicles; ``d`` (P,) offsets: ``normal . p + d = 0``.
-        centroid: (P, 3); ``u``, ``v``: (P, 3) in-plane axes (``u`` horizontal); ``u_range``, ``v_range``: (P, 2)
-            the extent of the plane's points along them, relative to the centroid.
-    """
-
-    ids: NDArray[np.int64]
-    normal: FloatArray
-    d: FloatArray
-    centroid: FloatArray
-    u: FloatArray
-    v: FloatArray
-    u_range: FloatArray
-    v_range: FloatArray
-
-    def __len__(self) -> int:
-        return int(self.ids.size)
-
-    @classmethod
-    def empty(cls) -> PlaneLandmarks:
-        """No planes."""
-        z3 = np.zeros((0, 3))
-        z2 = np.zeros((0, 2))
-        return cls(np.zeros(0, dtype=np.int64), z3, np.zeros(0), z3, z3, z3, z2, z2)
-
-    @classmethod
-    def from_planes(cls, planes: Iterable[Mapping[str, Any]], min_points: int = 0) -> PlaneLandmarks:
-        """From plane dicts as :meth:`mapping.MapBuilder.map_json` serves them (``normal``, ``d``, ``extent``)."""
-        rows = [p for p in planes if int(p.get("n_points", min_points)) >= min_points]
-        if not rows:
-            return cls.empty()
-
-        def arr(key: str) -> FloatArray:
-            return np.array([p["extent"][key] for p in rows], dtype=np.float64)
-
-        return cls(
-            np.array([int(p["id"]) for p in rows], dtype=np.int64),
-            np.array([p["normal"] for p in rows], dtype=np.float64),
-            np.array([p["d"] for p in rows], dtype=np.float64),
-            arr("centroid"),
-            arr("u"),
-            arr("v"),
-            arr("u_range_m"),
-            arr("v_range_m"),
-        )
-
-
-@dataclass(frozen=True)
 class NavEstimate:
     """A robot's corrected pose at one cloud (what ``<root>/<robot>/nav`` publishes).
 
@@ -236,44 +197,6 @@ class NavEstimate:
         out.update(placed=self.placed, motion=self.motion, inliers=self.inliers, planes=list(self.planes))
         out["correction"] = dict(self.correction)
         return out
-
-
-def _rot2(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
-
-
-def subsample(points: FloatArray, n: int) -> FloatArray:
-    """At most ``n`` rows of ``points`` (M, 3), evenly spaced in their order (deterministic)."""
-    m = points.shape[0]
-    if m <= n:
-        return points
-    return points[np.linspace(0, m - 1, n).round().astype(np.int64)]
-
-
-def associate(
-    p_ned: FloatArray, veh: FloatArray, lm: PlaneLandmarks, gate_m: FloatArray, cfg: NavConfig
-) -> tuple[NDArray[np.int64], FloatArray]:
-    """Nearest admissible plane per point: index into ``lm`` (-1: none) and the signed distance (M,).
-
-    Admissible: facing the vehicle (``normal . (vehicle - p) > 0``), within ``gate_m`` (P,) of the plane, and
-    inside its extent inflated by the configured margins.
-    """
-    dist = p_ned @ lm.normal.T + lm.d[None, :]  # (M, P)
-    rel = p_ned[:, None, :] - lm.centroid[None, :, :]
-    pu = np.einsum("mpk,pk->mp", rel, lm.u)
-    pv = np.einsum("mpk,pk->mp", rel, lm.v)
-    # v is the in-plane axis closest to down for vertical faces: its margin is the depth margin
-    ok = (np.abs(dist) <= gate_m[None, :]) & ((veh - p_ned) @ lm.normal.T > 0.0)
-    ok &= (pu >= lm.u_range[None, :, 0] - cfg.extent_margin_m) & (pu <= lm.u_range[None, :, 1] + cfg.extent_margin_m)
-    ok &= (pv >= lm.v_range[None, :, 0] - cfg.extent_margin_down_m) & (
-        pv <= lm.v_range[None, :, 1] + cfg.extent_margin_down_m
-    )
-    score = np.where(ok, np.abs(dist), np.inf)
-    k = np.argmin(score, axis=1)
-    rows = np.arange(p_ned.shape[0])
-    best = np.where(np.isfinite(score[rows, k]), k, -1)
-    return best.astype(np.int64), dist[rows, k]
 
 
 class RobotNav:
@@ -359,7 +282,7 @@ class RobotNav:
         q = np.zeros((5, 5))
         q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
         if raw_ne is not None and self.last_raw_ne is not None:
-            step = _rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
+            step = rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
             f = np.eye(5)
             # the increment turns with the yaw correction: d(step)/dc = ez x step
             f[0:2, 4] = [-step[1], step[0]]
@@ -608,76 +531,6 @@ class RobotNav:
             boot = motion in ("scan-odometry", "start") and max(float(sd[0]), float(sd[1])) <= cfg.bootstrap_std_m
             placed = placed and (pinned or boot)
         return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr)
-
-
-@dataclass(frozen=True)
-class NavFrame:
-    """From the frame the fleet builds its map in to NED: a turn by ``yaw_rad`` about ``pivot_ne`` (north, east).
-
-    Registration makes the robots agree with each other and with the map, but the map's heading is whatever the
-    compasses of its first observations said. Compass biases of independent robots average out; so the fleet's
-    mean heading correction is the map frame's own heading error, and the map and the poses are served turned
-    back by it (the map itself keeps its exact statistics in its own frame). See docs/navigation.md.
-    """
-
-    yaw_rad: float = 0.0
-    pivot_ne: tuple[float, float] = (0.0, 0.0)
-    #: then moved by this (north, east), metres
-    shift_ne: tuple[float, float] = (0.0, 0.0)
-
-    @property
-    def identity(self) -> bool:
-        """Whether the frame changes nothing."""
-        return self.yaw_rad == 0.0 and self.shift_ne == (0.0, 0.0)
-
-    def _rot(self) -> FloatArray:
-        r = np.eye(3)
-        r[0:2, 0:2] = _rot2(-self.yaw_rad)
-        return r
-
-    def points(self, p: Any) -> FloatArray:
-        """Points (N, 3) from the map frame to NED."""
-        q = np.asarray(p, dtype=np.float64).reshape(-1, 3)
-        piv = np.array([self.pivot_ne[0], self.pivot_ne[1], 0.0])
-        return (q - piv) @ self._rot().T + piv + np.array([self.shift_ne[0], self.shift_ne[1], 0.0])
-
-    def vectors(self, v: Any) -> FloatArray:
-        """Directions (N, 3) from the map frame to NED."""
-        return np.asarray(v, dtype=np.float64).reshape(-1, 3) @ self._rot().T
-
-    def pose(self, pose: Pose) -> Pose:
-        """A pose from the map frame to NED."""
-        if self.identity:
-            return pose
-        p = self.points(pose.p_ned)[0]
-        return Pose(float(p[0]), float(p[1]), pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad - self.yaw_rad)
-
-    def plane_json(self, plane: dict[str, Any]) -> dict[str, Any]:
-        """A plane dict (:meth:`mapping.MapBuilder.map_json`) from the map frame to NED (removals unchanged)."""
-        if self.identity or "normal" not in plane:
-            return plane
-        out = dict(plane)
-        n = self.vectors(plane["normal"])[0]
-        ext = dict(plane["extent"])
-        c = self.points(ext["centroid"])[0]
-        out["normal"] = [float(x) for x in n]
-        out["d"] = float(-n @ c)
-        ext["centroid"] = [float(x) for x in c]
-        ext["u"] = [float(x) for x in self.vectors(ext["u"])[0]]
-        ext["v"] = [float(x) for x in self.vectors(ext["v"])[0]]
-        corners = self.points(ext["corners"])
-        ext["corners"] = [[float(x) for x in row] for row in corners]
-        lo, hi = np.asarray(ext["aabb_min"], dtype=float), np.asarray(ext["aabb_max"], dtype=float)
-        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        turned = self.points(box)
-        ext["aabb_min"] = [float(x) for x in turned.min(axis=0)]
-        ext["aabb_max"] = [float(x) for x in turned.max(axis=0)]
-        out["extent"] = ext
-        return out
-
-    def to_json(self) -> dict[str, Any]:
-        """``{"yaw_deg", "pivot_ne", "shift_ne"}``."""
-        return {"yaw_deg": math.degrees(self.yaw_rad), "pivot_ne": list(self.pivot_ne), "shift_ne": list(self.shift_ne)}
 
 
 class Navigator:

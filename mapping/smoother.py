@@ -24,7 +24,6 @@ Cost: a re-filter registers each window scan again (``rerun_points`` points each
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -34,7 +33,8 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose
 
-from .navigation import NavConfig, NavEstimate, PlaneLandmarks, RobotNav, subsample
+from .landmarks import PlaneLandmarks, subsample
+from .navigation import NavConfig, NavEstimate, RobotNav
 
 FloatArray = NDArray[np.float64]
 
@@ -53,16 +53,13 @@ class SmootherConfig:
 
     Re-filter and smooth the last ``window_s`` of capture time every ``every_s`` or ``every_fraction`` of the
     window's length, whichever is longer (so a growing window costs about ``1 + 1 / every_fraction``
-    registrations per scan, not one per smoothing); the re-filter registers ``rerun_points`` points per scan; a
-    pose counts as moved (its cloud is re-placed) beyond ``move_m`` or ``move_deg``.
+    registrations per scan, not one per smoothing); the re-filter registers ``rerun_points`` points per scan.
     """
 
     window_s: float = 120.0
     every_s: float = 10.0
     every_fraction: float = 0.5
     rerun_points: int = 200
-    move_m: float = 0.003
-    move_deg: float = 0.05
 
 
 @dataclass
@@ -185,13 +182,6 @@ class RobotSmoother:
                 xs[k] = s.post_x + c @ (nxt - after.prior_x)
             nxt = xs[k] if s.trans is not None else None
         return xs
-
-
-def moved(a: Pose, b: Pose, scfg: SmootherConfig) -> bool:
-    """Whether two poses of one cloud differ enough to re-place it."""
-    d = math.hypot(a.north_m - b.north_m, a.east_m - b.east_m)
-    dyaw = abs(math.degrees(math.remainder(a.yaw_rad - b.yaw_rad, 2 * math.pi)))
-    return d > scfg.move_m or dyaw > scfg.move_deg
 
 
 class FleetPlacements:
