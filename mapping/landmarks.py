@@ -35,6 +35,9 @@ class PlaneLandmarks:
     v: FloatArray
     u_range: FloatArray
     v_range: FloatArray
+    #: per plane, robot -> (points it contributed, capture time of its first contribution, ns); empty when
+    #: unknown (planes built from JSON without ``contributions``)
+    contrib: tuple[Mapping[str, tuple[int, int]], ...] = ()
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -65,6 +68,10 @@ class PlaneLandmarks:
             arr("v"),
             arr("u_range_m"),
             arr("v_range_m"),
+            tuple(
+                {r: (int(c["n_points"]), int(c["first_ns"])) for r, c in p.get("contributions", {}).items()}
+                for p in rows
+            ),
         )
 
 

@@ -97,6 +97,18 @@ class NavConfig:
     in :meth:`Navigator.frame` once that many scans constrained its heading; with smoothing, launch points
     ``frame_min_baseline_m`` apart fix the frame's heading instead.
 
+    Heading: with ``yaw_bias_tau_s`` > 0 the yaw correction is the negative of a compass bias that wanders as an
+    Ornstein-Uhlenbeck process (stationary standard deviation ``yaw_bias_std_deg``, correlation time
+    ``yaw_bias_tau_s``): bounded and mean-reverting, so no run of registrations can carry it far past what a
+    compass does (the random walk and ``compass_bias_deg`` pulls are then off). ``yaw_bias_tau_s`` 0 restores the
+    walk.
+
+    Evidence: a plane only this robot contributed to, first seen by it less than ``own_recent_s`` before the scan,
+    holds the robot's own recent poses and so no absolute information; its residuals count ``own_recent_weight``
+    of their information. A registration whose correction lies beyond the prediction's error model (squared
+    Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong association, not drift: it is
+    rejected and counted (:attr:`RobotNav.gated`).
+
     Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
     without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before) replaces the walk
     where the two scans observe it. A cloud without a fix is placed when its scan pinned both horizontal axes to
@@ -140,6 +152,11 @@ class NavConfig:
     scan_odometry: bool = False
     odometry_max_dt_s: float = 0.5
     bootstrap_std_m: float = 0.1
+    yaw_bias_std_deg: float = 2.0
+    yaw_bias_tau_s: float = 0.0
+    own_recent_s: float = 10.0
+    own_recent_weight: float = 0.1
+    gate_chi2: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -226,9 +243,12 @@ class RobotNav:
         #: the previous scan for scan odometry: points relative to the vehicle (NED axes), and its depth
         self._prev_scan: tuple[FloatArray, float] | None = None
         self.odometry_pairs = 0
+        #: registrations rejected as beyond the motion model's error (see ``NavConfig.gate_chi2``)
+        self.gated = 0
 
     _STATE = (
         "t_ns",
+        "gated",
         "last_raw_ne",
         "last_fix_ns",
         "start_ne",
@@ -280,7 +300,17 @@ class RobotNav:
     ) -> str:
         cfg = self.cfg
         q = np.zeros((5, 5))
-        q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
+        ou = np.eye(5)
+        if cfg.yaw_bias_tau_s > 0:
+            # the compass bias is bounded and mean-reverting (Ornstein-Uhlenbeck): the correction decays toward 0
+            # and its variance toward yaw_bias_std_deg^2
+            a = math.exp(-max(dt, 0.0) / cfg.yaw_bias_tau_s)
+            ou[4, 4] = a
+            self.x[4] *= a
+            self.P = ou @ self.P @ ou.T
+            q[4, 4] = math.radians(cfg.yaw_bias_std_deg) ** 2 * (1.0 - a * a)
+        else:
+            q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
         if raw_ne is not None and self.last_raw_ne is not None:
             step = rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
             f = np.eye(5)
@@ -289,7 +319,7 @@ class RobotNav:
             self.x[0:2] += step
             if dt > 0:
                 self.x[2:4] = step / dt
-            self.transition = f
+            self.transition = f @ ou
             self.P = f @ self.P @ f.T
             var = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
             q[0, 0] = q[1, 1] = var
@@ -301,7 +331,7 @@ class RobotNav:
             # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
             # relative measurement, so its covariance adds to the position's like dead reckoning's.
             self.x[2:4] = 0.0
-            self.transition = np.eye(5)
+            self.transition = ou
             walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
             if odo is not None and cfg.scan_odometry:
@@ -339,6 +369,8 @@ class RobotNav:
         """The compass's bias is bounded: a weak pull of the yaw correction toward zero, at most every
         ``fix_every_s`` (it keeps a heading the scans cannot hold from running away)."""
         cfg = self.cfg
+        if cfg.yaw_bias_tau_s > 0:
+            return  # the Ornstein-Uhlenbeck prediction bounds the correction already
         if self.last_compass_ns is not None and t_ns - self.last_compass_ns < cfg.fix_every_s * 1e9:
             return
         self.last_compass_ns = t_ns
@@ -367,8 +399,22 @@ class RobotNav:
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(5) - k @ h) @ self.P
 
+    def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> FloatArray:
+        """(P,) information weight per plane: ``own_recent_weight`` for a plane only this robot made, first seen by
+        it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise."""
+        cfg = self.cfg
+        w = np.ones(len(lm))
+        if not lm.contrib or cfg.own_recent_weight >= 1.0:
+            return w
+        horizon = t_ns - int(cfg.own_recent_s * 1e9)
+        for i, c in enumerate(lm.contrib):
+            mine = c.get(self.robot)
+            if mine is not None and len(c) == 1 and mine[1] >= horizon:
+                w[i] = cfg.own_recent_weight
+        return w
+
     def _register(
-        self, raw: Pose, points_body: FloatArray, lm: PlaneLandmarks
+        self, raw: Pose, points_body: FloatArray, lm: PlaneLandmarks, t_ns: int = 0
     ) -> tuple[FloatArray, int, tuple[int, ...]]:
         """Gauss-Newton MAP update of ``x``/``P`` from point-to-plane residuals; returns the registration's own
         information (3x3 over north, east, yaw correction), the inliers and the planes used."""
@@ -387,6 +433,7 @@ class RobotNav:
         gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
         inliers = 0
         used: tuple[int, ...] = ()
+        plane_w = self._plane_weights(t_ns, lm)
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -401,7 +448,7 @@ class RobotNav:
             r = dist[sel]
             relh = rel[sel]
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
-            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * plane_w[k[sel]]
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
             h3 = scale * (j.T * w) @ j
             g3 = scale * (j.T * w) @ r
@@ -416,6 +463,12 @@ class RobotNav:
             used = tuple(int(i) for i in np.unique(lm.ids[k[sel]]))
         hf = np.zeros((5, 5))
         hf[np.ix_(idx, idx)] = h3
+        dx = (x - x_pred)[idx]
+        p3 = self.P[np.ix_(idx, idx)]
+        if cfg.gate_chi2 > 0 and float(dx @ np.linalg.solve(p3, dx)) > cfg.gate_chi2:
+            # a correction the motion model's error cannot explain: a wrong association, not drift
+            self.gated += 1
+            return np.zeros((3, 3)), 0, ()
         self.x = x
         cov = np.linalg.inv(p_inv + hf)
         self.P = 0.5 * (cov + cov.T)
@@ -476,7 +529,7 @@ class RobotNav:
             h3, inliers = np.zeros((3, 3)), 0
             motion = "lost"
         else:
-            h3, inliers, used = self._register(raw, pts, landmarks)
+            h3, inliers, used = self._register(raw, pts, landmarks, t)
         est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
         self.yaw_scans += int(est.constrained["yaw"])
         self.latest = est
@@ -562,7 +615,16 @@ class Navigator:
         places them (each robot's smoothed first pose) onto their launch fixes, which are absolute. Two launch
         points ``frame_min_baseline_m`` apart or more fix the heading; with fewer, the heading is the mean
         heading correction (the compasses' mean, as without smoothing) and the shift the mean offset."""
-        pairs = [(sm.start_map_ne, sm.nav.start_ne) for sm in self.smoothers.values() if sm.start_map_ne is not None]
+        # a lost robot's smoothed launch carries nothing, and a launch moved beyond what its fix allows (3 sigma)
+        # is a bad association, not evidence on the frame
+        lim = 3.0 * self.cfg.launch_sigma_m
+        pairs = [
+            (sm.start_map_ne, sm.nav.start_ne)
+            for sm in self.smoothers.values()
+            if sm.start_map_ne is not None
+            and not sm.nav.lost
+            and float(np.hypot(*(np.asarray(sm.start_map_ne) - sm.nav.start_ne))) <= lim
+        ]
         if not pairs:
             return NavFrame()
         a = np.array([p[0] for p in pairs])

@@ -27,9 +27,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nav",
         choices=("on", "filter", "off"),
-        default="on",
-        help="correct each robot's horizontal position and heading from its scans before mapping; on (default): "
-        "also smooth past poses and re-place their clouds; filter: correct each cloud once; off: trust the poses",
+        default="off",
+        help="correct each robot's horizontal position and heading from its scans before mapping; off (default): "
+        "trust the poses (clouds without a horizontal fix are unplaced); filter: correct each cloud once; on: also "
+        "smooth past poses and re-place their clouds. On short dives whose robots see different parts of the "
+        "site, filter and on served fewer faces within 2 deg/5 cm than off (docs/navigation.md); use on for long "
+        "dives with drifting dead reckoning, where it recovers the walls off cannot",
     )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
