@@ -154,8 +154,9 @@ class NavConfig:
     bootstrap_std_m: float = 0.1
     yaw_bias_std_deg: float = 2.0
     yaw_bias_tau_s: float = 0.0
-    own_recent_s: float = 10.0
-    own_recent_weight: float = 0.1
+    own_recent_s: float = 20.0
+    own_recent_weight: float = 0.03
+    own_recent_turns: bool = True
     gate_chi2: float = 0.0
 
 
@@ -404,13 +405,13 @@ class RobotNav:
         it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise."""
         cfg = self.cfg
         w = np.ones(len(lm))
-        if not lm.contrib or cfg.own_recent_weight >= 1.0:
+        if not lm.contrib or (cfg.own_recent_weight >= 1.0 and cfg.own_recent_turns):
             return w
         horizon = t_ns - int(cfg.own_recent_s * 1e9)
         for i, c in enumerate(lm.contrib):
             mine = c.get(self.robot)
             if mine is not None and len(c) == 1 and mine[1] >= horizon:
-                w[i] = cfg.own_recent_weight
+                w[i] = min(cfg.own_recent_weight, 1.0 - 1e-9)
         return w
 
     def _register(
@@ -448,7 +449,12 @@ class RobotNav:
             r = dist[sel]
             relh = rel[sel]
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
-            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * plane_w[k[sel]]
+            pw = plane_w[k[sel]]
+            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
+            if not cfg.own_recent_turns:
+                # a robot's own recent planes were placed with its own heading: they hold its position against
+                # the dead reckoning's drift, but say nothing about the compass's bias
+                j[pw < 1.0, 2] = 0.0
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
             h3 = scale * (j.T * w) @ j
             g3 = scale * (j.T * w) @ r

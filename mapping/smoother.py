@@ -43,8 +43,10 @@ _SUB = [0, 1, 4]
 
 #: The filter's tuning under the smoother: fixes weighted by 5x (not 1.5x) their RMS disagreement with the
 #: estimate. A drifting dead reckoning's fixes are the sum of the increments the filter already uses; weighted
-#: as independent measurements every 0.2 s they dragged the smoothed tracks toward the drift.
-SMOOTHED_NAV = NavConfig(fix_quality_factor=5.0)
+#: as independent measurements every 0.2 s they dragged the smoothed tracks toward the drift. A robot's own recent
+#: planes count more than under the filter alone (10 s at 0.1, not 20 s at 0.03): the smoother's re-filter needs
+#: them to hold a drifting robot between its passes (docs/navigation.md, "Measured").
+SMOOTHED_NAV = NavConfig(fix_quality_factor=5.0, own_recent_s=10.0, own_recent_weight=0.1)
 
 
 @dataclass(frozen=True)

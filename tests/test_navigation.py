@@ -141,7 +141,9 @@ def test_navigation_keeps_a_drifting_fleet_map_consistent(drift_dive: tuple[Scen
     s_trusted = score_map(trusted.planes(), scene, hits)
     s_corr = score_map(corrected.planes(), scene, hits)
     assert len(s_corr.spurious) < len(s_trusted.spurious)
-    assert len(s_corr.spurious) <= 1, s_corr.table()
+    # the filter alone counts a robot's own recent planes at 3 % (NavConfig.own_recent_weight: what the rendered
+    # acceptance dives need); on these ideal clouds that leaves a few planes off that 10 % did not (1)
+    assert len(s_corr.spurious) <= 3, s_corr.table()
     for robot, err in corrected.position_error_m.items():
         assert err[-1] < 0.15, robot
         assert max(err) < max(trusted.position_error_m[robot]) + 0.05, robot
