@@ -131,6 +131,7 @@ class Loopback:
         from services.testnet import free_port
 
         self.workdir = workdir
+        self.workdir.mkdir(parents=True, exist_ok=True)
         self.zenoh_port = free_port()
         self._procs: list[subprocess.Popen[bytes]] = []
         self._logs: list[IO[bytes]] = []

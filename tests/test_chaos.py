@@ -59,8 +59,13 @@ def test_ten_minute_chaos_soak_delivers_every_cloud_once_in_bounded_memory(tmp_p
 
 
 def test_loopback_stands_in_without_namespaces(tmp_path: Path) -> None:
-    net = Loopback(tmp_path)
+    import sys
+
+    net = Loopback(tmp_path / "net")  # its folder is made (the soak's first loopback run failed without it)
     try:
+        p = net.start("hello", net.ns_base, [sys.executable, "-c", "print('hello')"])
+        assert p.wait(30) == 0
+        assert net.log("hello").strip() == "hello"
         assert net.rov_endpoint().startswith("tcp/127.0.0.1:")
         net.set_up(False)  # no link to flap: a no-op
         assert net.link_bytes()["up_bytes"] == 0
