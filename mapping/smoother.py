@@ -56,7 +56,10 @@ class SmootherConfig:
     Re-filter and smooth the last ``window_s`` of capture time every ``every_s`` or ``every_fraction`` of the
     window's length, whichever is longer (so a growing window costs about ``1 + 1 / every_fraction``
     registrations per scan, not one per smoothing); the re-filter registers ``rerun_points`` points per scan with
-    ``rerun_iterations`` re-associations (the re-filter is most of the smoother's cost).
+    ``rerun_iterations`` re-associations (the re-filter is most of the smoother's cost). With
+    ``refilter_overlap_s`` set, a run re-filters only the scans since the previous run's newest minus that
+    overlap and keeps the older scans' filter steps from earlier runs (the backward pass still covers the whole
+    window): a run's cost stops growing with the window. None re-filters the whole window every run.
     """
 
     window_s: float = 120.0
@@ -64,6 +67,7 @@ class SmootherConfig:
     every_fraction: float = 0.5
     rerun_points: int = 200
     rerun_iterations: int = 4
+    refilter_overlap_s: float | None = None
 
 
 @dataclass
@@ -95,6 +99,10 @@ class RobotSmoother:
         #: where the map now places the robot's launch (its first scan's smoothed position), north/east
         self.start_map_ne: tuple[float, float] | None = None
         self._first_ns: int | None = None
+        #: the newest scan the last run re-filtered (None: no run yet)
+        self._refiltered_ns: int | None = None
+        #: scans re-filtered by the runs so far (the smoother's cost is mostly these)
+        self.refiltered = 0
 
     def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
         """One cloud through the filter (:meth:`RobotNav.update`), remembered for the smoother."""
@@ -147,11 +155,20 @@ class RobotSmoother:
             return {}
         self.last_smooth_ns = self.scans[-1].t_ns
         scans = list(self.scans)
-        self.nav.restore(scans[0].before)
+        start = 0
+        overlap = self.scfg.refilter_overlap_s
+        if overlap is not None and self._refiltered_ns is not None:
+            # the older scans keep the filter steps of earlier runs: only what came since (and a short overlap,
+            # whose registrations may now see planes made after them) is re-registered against the map as it is
+            lim = self._refiltered_ns - int(overlap * 1e9)
+            start = next((i for i, s in enumerate(scans) if s.t_ns >= lim), len(scans) - 1)
+        self._refiltered_ns = scans[-1].t_ns
+        self.nav.restore(scans[start].before)
         live_cfg = self.nav.cfg
         self.nav.cfg = replace(live_cfg, iterations=self.scfg.rerun_iterations)
+        self.refiltered += len(scans) - start
         try:
-            for s in scans:
+            for s in scans[start:]:
                 s.before = self.nav.snapshot()
                 est = self.nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
                 self._record(s, est)
