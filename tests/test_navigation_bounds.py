@@ -96,3 +96,22 @@ def test_launch_frame_leaves_lost_robots_out() -> None:
     sm3.nav.lost = False
     sm3.start_map_ne = (0.0, 3.1)  # within 3 sigma of its fix: it counts
     assert not np.allclose(nav.frame().to_json()["shift_ne"], [0.0, 0.0], atol=1e-3)
+
+
+def test_own_recent_planes_can_be_kept_from_turning_the_heading() -> None:
+    import dataclasses
+
+    from tests.test_navigation import scene_landmarks
+
+    scene = tank()
+    true = Pose(2.0, 1.5, 1.0, 0.02, -0.03, math.radians(200.0))
+    points = ned_to_body(trace(scene, true, n_rays=400).points_ned, true)
+    lm = scene_landmarks(scene)
+    mine = dataclasses.replace(lm, contrib=tuple({"rov1": (1000, 0)} for _ in lm.ids))  # all rov1's, just made
+    raw = Pose(true.north_m + 0.05, true.east_m - 0.05, true.down_m, true.roll_rad, true.pitch_rad,
+               true.yaw_rad + math.radians(2.0))  # fmt: skip
+    turns = RobotNav("rov1", NavConfig(own_recent_weight=1.0)).update(0, raw, points, mine)
+    fixed = RobotNav("rov1", NavConfig(own_recent_weight=1.0, own_recent_turns=False)).update(0, raw, points, mine)
+    assert abs(turns.correction["yaw_deg"]) > 1.0
+    assert fixed.correction["yaw_deg"] == 0.0
+    assert fixed.inliers > 0
