@@ -113,8 +113,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--outbox",
         metavar="DIR",
         default=None,
-        help="persistent outbox folder: unacknowledged clouds survive a ROV restart and the numbering continues "
-        "(default: a temporary folder for this run, which covers base restarts and link outages)",
+        help="outbox folder: unacknowledged clouds survive a ROV restart and the numbering continues; one "
+        "process per folder (default: $XDG_STATE_HOME/lrsensor/outbox/<fleet>/<robot>, i.e. "
+        "~/.local/state/lrsensor/outbox/<fleet>/<robot>; a temporary folder, with a warning, where that is "
+        "not writable)",
     )
     g.add_argument(
         "--outbox-max-mb",
@@ -145,23 +147,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error."""
-    from pathlib import Path
-
-    from lrsensor.calibration import Calibration
-
-    from .errors import CalibrationUnavailableError
-    from .imu import ImuSource, open_imu
+    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error (2: among them an outbox in use)."""
     from .keys import FleetKeys, check_robot_name
-    from .rov import RovService, fetch_calibration
-    from .signals import stop_on_signals
-    from .sources import FolderSource, FrameSource, open_source
-    from .zconfig import NetworkOptions, open_session, options_from_args
 
     # (--channel with another method is refused here, before the network)
     process_options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)
     keys = FleetKeys(args.fleet, args.prefix)
     robot = check_robot_name(args.robot)
+    # The outbox (its lock) comes first: a second ROV of the same robot stops here, before it opens the
+    # camera, the IMU's serial port or a session that would disturb the first one.
+    with _open_outbox(args, keys.fleet, robot) as (outbox, temporary):
+        return _run(args, process_options, keys, robot, outbox, temporary)
+
+
+def _run(args: argparse.Namespace, process_options: Any, keys: Any, robot: str, outbox: Any, temporary: bool) -> int:
+    """:func:`run` once the outbox (None with ``--no-outbox``; ``temporary``: a folder of this run) is held."""
+    from lrsensor.calibration import Calibration
+
+    from .errors import CalibrationUnavailableError
+    from .imu import ImuSource, open_imu
+    from .rov import RovService, fetch_calibration
+    from .signals import stop_on_signals
+    from .sources import FolderSource, FrameSource, open_source
+    from .zconfig import NetworkOptions, open_session, options_from_args
+
     options = options_from_args(args)
     mode = args.mode or "client"
     if not (options.connect or options.listen or options.config_file):
@@ -205,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
     with (
         stop_on_signals(stop),
         open_session(options, default_mode="client") as session,
-        _open_delivery(args, session, keys, robot) as sink,
+        _open_delivery(session, keys, robot, outbox) as sink,
     ):
         seq_start = args.seq_start if sink is None else max(args.seq_start, sink.outbox.next_seq)
         ros2_view = None
@@ -265,9 +274,14 @@ def run(args: argparse.Namespace) -> int:
                 flush=True,
             )
             if service.state == "done" and o["pending"]:
+                again = (
+                    f"--outbox {sink.outbox.directory}"
+                    if args.outbox is not None or temporary
+                    else "the same --fleet and --robot (its default outbox)"
+                )
                 undelivered = (
                     f"rov {robot}: {o['pending']} clouds NOT acknowledged by the base station are kept in "
-                    f"{sink.outbox.directory}; run again with --outbox {sink.outbox.directory} to deliver them"
+                    f"{sink.outbox.directory}; run again with {again} to deliver them"
                 )
         elif service.state == "done" and counters.delivered is False:
             undelivered = f"rov {robot}: delivery NOT confirmed and --no-outbox keeps no copy"
@@ -278,35 +292,83 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-@contextlib.contextmanager
-def _open_delivery(args: argparse.Namespace, session: Any, keys: Any, robot: str) -> Iterator[Any]:
-    """The robot's :class:`~services.delivery.OutboxSink` (None with ``--no-outbox``), closed at the end.
+def _default_folder(fleet: str, robot: str) -> Path | None:
+    """The robot's folder in the user's state directory, created; None when it cannot be written."""
+    from .outbox import OutboxError, default_outbox_dir
 
-    A temporary outbox is removed at the end when empty; when clouds are still pending its folder is kept
-    and named, so that a later ``lrsensor rov --outbox DIR`` can deliver them.
+    try:
+        folder = default_outbox_dir(fleet, robot)
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):  # writable? (a read-only mount passes the mkdir)
+            pass
+    except (OSError, OutboxError) as err:
+        log.warning(
+            "rov %s: no writable state directory for the outbox (%s): using a temporary folder, so a restart "
+            "of this ROV numbers its clouds from 0 again and the base station drops them as reused; set "
+            "XDG_STATE_HOME or give --outbox DIR",
+            robot,
+            err,
+        )
+        return None
+    return folder
+
+
+@contextlib.contextmanager
+def _open_outbox(args: argparse.Namespace, fleet: str, robot: str) -> Iterator[tuple[Any, bool]]:
+    """The robot's :class:`~services.outbox.Outbox` (None with ``--no-outbox``), locked until the end, and
+    whether its folder is a temporary one of this run.
+
+    ``--outbox DIR``, else the robot's folder in the user's state directory (a restart continues the
+    numbering and forwards what is pending), else a temporary folder, removed at the end when empty; when
+    clouds are still pending it is kept and named, so that a later ``lrsensor rov --outbox DIR`` delivers them.
+
+    Raises:
+        OutboxError: the folder is held by another process (one process per outbox), or unusable.
     """
     if args.no_outbox:
+        yield None, False
+        return
+    from .outbox import Outbox, OutboxError, OutboxInUseError
+
+    folder = Path(args.outbox) if args.outbox is not None else _default_folder(fleet, robot)
+    temporary = folder is None
+    if folder is None:
+        folder = Path(tempfile.mkdtemp(prefix=f"lrs-outbox-{robot}-"))
+    try:
+        outbox = Outbox(
+            folder,
+            max_messages=args.outbox_max_messages,
+            max_bytes=int(args.outbox_max_mb * 1024 * 1024),
+            fsync=not args.outbox_no_fsync,
+        )
+    except OutboxInUseError as err:
+        who = "with this --outbox" if args.outbox is not None else f"of robot {robot!r} in fleet {fleet!r}"
+        msg = f"{err} (another lrsensor rov {who} on this machine?); stop it first, or give this one another --outbox"
+        raise OutboxError(msg) from err
+    try:
+        if len(outbox):
+            log.warning("rov %s: %d clouds from an earlier run are pending in %s", robot, len(outbox), folder)
+        else:
+            log.info("rov %s: outbox %s, numbering from %d", robot, folder, outbox.next_seq)
+        yield outbox, temporary
+    finally:
+        outbox.close()
+        if len(outbox):
+            log.warning("rov %s: %d clouds not acknowledged are kept in %s", robot, len(outbox), folder)
+        elif temporary:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _open_delivery(session: Any, keys: Any, robot: str, outbox: Any) -> Iterator[Any]:
+    """The robot's :class:`~services.delivery.OutboxSink` on ``outbox`` (None without one), closed at the end."""
+    if outbox is None:
         yield None
         return
     from .delivery import OutboxSink
-    from .outbox import Outbox
 
-    temporary = args.outbox is None
-    folder = Path(tempfile.mkdtemp(prefix=f"lrs-outbox-{robot}-")) if temporary else Path(args.outbox)
-    outbox = Outbox(
-        folder,
-        max_messages=args.outbox_max_messages,
-        max_bytes=int(args.outbox_max_mb * 1024 * 1024),
-        fsync=not args.outbox_no_fsync,
-    )
-    if len(outbox):
-        log.warning("rov %s: %d clouds from an earlier run are pending in %s", robot, len(outbox), folder)
     sink = OutboxSink(session, keys, robot, outbox, forward_now=False)  # RovService.run starts forwarding
     try:
         yield sink
     finally:
         sink.close()
-        if len(outbox):
-            log.warning("rov %s: %d clouds not acknowledged are kept in %s", robot, len(outbox), folder)
-        elif temporary:
-            shutil.rmtree(folder, ignore_errors=True)

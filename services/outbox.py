@@ -5,6 +5,7 @@ Layout of the outbox directory::
     DIR/<seq:020d>.msg      one message per file, written atomically (temporary file, fsync, rename)
     DIR/state.json          counters that must survive a restart (written atomically): highest sequence
                             number ever appended, acked and dropped counts, the dropped sequence ranges
+    DIR/lock                the pid of the process that holds the folder (an advisory ``flock``)
 
 A message file is ``MAGIC (8 bytes) | seq (u64 LE) | length (u64 LE) | crc32 (u32 LE) | payload``. On reload
 every ``*.msg`` file is checked (magic, name, length, CRC); a damaged one (a crash can only leave a
@@ -24,19 +25,33 @@ it survives a power cut; with ``fsync=False`` it survives a crash of the process
 
 Sequence numbers are strictly increasing and never reused, also across restarts: :attr:`Outbox.next_seq`
 is one past the highest number ever appended (kept in ``state.json`` before any file is removed).
-The class is thread-safe (one lock).
+
+One process per outbox: an :class:`Outbox` holds an exclusive ``flock`` on ``DIR/lock`` from its creation to
+:meth:`Outbox.close` (or its collection), so a second process opening the folder fails at once with
+:class:`OutboxInUseError`, naming the holder's pid, instead of two writers numbering from the same
+``next_seq``. The kernel releases the lock when the process ends, however (SIGKILL included): a stale lock
+file never blocks a restart. Outboxes of one process on one folder share the lock (the tests reopen a folder
+to play a restart); keeping them apart is the caller's business. The lock is advisory: it orders processes
+that use this class, nothing else.
+
+:func:`default_outbox_dir` is where ``lrsensor rov`` keeps a robot's outbox when no ``--outbox`` is given:
+``$XDG_STATE_HOME/lrsensor/outbox/<fleet>/<robot>`` (``~/.local/state/...`` by default), so that a plain
+restart continues the numbering. The class is thread-safe (one lock).
 """
 
 from __future__ import annotations
 
 import bisect
+import fcntl
 import json
 import logging
 import os
+import pwd
 import struct
 import threading
+import weakref
 import zlib
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +66,7 @@ MAGIC = b"LRSOBX1\n"
 _HEADER = struct.Struct("<8sQQI")
 STATE_FILE = "state.json"
 SUFFIX = ".msg"
+LOCK_FILE = "lock"
 #: Default bounds: 20k messages or 1 GiB, whichever comes first (about 11 min of 30 Hz clouds).
 DEFAULT_MAX_MESSAGES = 20_000
 DEFAULT_MAX_BYTES = 1 << 30
@@ -60,6 +76,111 @@ MAX_DROPPED_RANGES = 1000
 
 class OutboxError(ServiceError):
     """The outbox directory cannot be used, or an append breaks its rules (sequence order, size)."""
+
+
+class OutboxInUseError(OutboxError):
+    """Another process holds the outbox folder (one process per outbox).
+
+    Attributes:
+        directory: the outbox folder.
+        pid: the holder's process id as it wrote it in ``DIR/lock`` (None if not readable yet).
+    """
+
+    def __init__(self, directory: Path, pid: int | None) -> None:
+        self.directory = directory
+        self.pid = pid
+        holder = f"process {pid}" if pid is not None else "another process (its pid not written yet)"
+        super().__init__(f"outbox {directory} is in use by {holder}: one process per outbox")
+
+
+def default_outbox_dir(fleet: str, robot: str, environ: Mapping[str, str] | None = None) -> Path:
+    """The persistent outbox folder of ``robot`` in ``fleet`` in the user's state directory.
+
+    ``$XDG_STATE_HOME/lrsensor/outbox/<fleet>/<robot>``; ``XDG_STATE_HOME`` unset, empty or relative (the XDG
+    base directory rules) means ``~/.local/state``. The names are the checked fleet and robot names (no
+    separators). Nothing is created here.
+
+    Raises:
+        OutboxError: no usable state directory (``XDG_STATE_HOME`` not set and no home directory).
+    """
+    env = os.environ if environ is None else environ
+    state = env.get("XDG_STATE_HOME", "")
+    if state and Path(state).is_absolute():
+        base = Path(state)
+    else:
+        home = Path(env.get("HOME", ""))
+        if not home.is_absolute():  # unset: the password database's, as a login shell would set it
+            try:
+                home = Path(pwd.getpwuid(os.getuid()).pw_dir)
+            except KeyError as err:
+                msg = f"no state directory: XDG_STATE_HOME and HOME are not set and uid {os.getuid()} has no home"
+                raise OutboxError(msg) from err
+        base = home / ".local" / "state"
+    return base / "lrsensor" / "outbox" / fleet / robot
+
+
+#: Folder locks this process holds: (st_dev, st_ino) of a lock file -> [its descriptor, how many outboxes].
+_HELD: dict[tuple[int, int], list[int]] = {}
+_HELD_GUARD = threading.Lock()
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        return int(os.pread(fd, 32, 0).decode("ascii", "replace").strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _lock_folder(directory: Path) -> tuple[int, int]:
+    """Take (or share, within this process) the exclusive lock of ``directory``; returns its key.
+
+    Raises:
+        OutboxInUseError: another process holds it.
+        OutboxError: the lock file cannot be opened or locked.
+    """
+    path = directory / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        msg = f"cannot open the outbox lock {path}: {err}"
+        raise OutboxError(msg) from err
+    with _HELD_GUARD:
+        st = os.fstat(fd)
+        key = (st.st_dev, st.st_ino)
+        held = _HELD.get(key)
+        if held is not None:
+            os.close(fd)  # flock belongs to the first descriptor; closing another one leaves it held
+            held[1] += 1
+            return key
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = _read_pid(fd)
+            os.close(fd)
+            raise OutboxInUseError(directory, pid) from None
+        except OSError as err:
+            os.close(fd)
+            msg = f"cannot lock the outbox {path}: {err}"
+            raise OutboxError(msg) from err
+        try:  # who holds it, for the message of the next one that tries (the lock does not depend on it)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as err:
+            log.debug("outbox %s: cannot write the pid into the lock file: %s", directory, err)
+        _HELD[key] = [fd, 1]
+        return key
+
+
+def _unlock_folder(key: tuple[int, int]) -> None:
+    """Drop one outbox's share of a folder lock; the last one closes the descriptor, which releases it."""
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] <= 0:
+            del _HELD[key]
+            os.close(held[0])
 
 
 @dataclass(frozen=True)
@@ -120,11 +241,17 @@ def _add_range(ranges: list[list[int]], seq: int) -> None:
 class Outbox:
     """A bounded, crash-safe queue of encoded messages keyed by sequence number.
 
+    Holds the folder's lock (one process per outbox) until :meth:`close`; usable as a context manager.
+
     Args:
         directory: the outbox folder (created; one outbox per robot).
         max_messages: at most this many messages pending (>= 1).
         max_bytes: at most this many payload bytes pending (>= 1).
         fsync: flush every message to disk before :meth:`append` returns.
+
+    Raises:
+        OutboxInUseError: another process holds the folder.
+        OutboxError: the folder cannot be created or locked, its state is unreadable, or a bound is not positive.
     """
 
     def __init__(
@@ -152,12 +279,31 @@ class Outbox:
         self._dropped = 0
         self._corrupt = 0
         self._dropped_ranges: list[list[int]] = []
+        self._closed = False
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             msg = f"cannot create the outbox folder {self.directory}: {err}"
             raise OutboxError(msg) from err
-        self._reload()
+        key = _lock_folder(self.directory)  # before reading anything: the state is the holder's
+        self._release = weakref.finalize(self, _unlock_folder, key)  # also when dropped without close()
+        try:
+            self._reload()
+        except BaseException:
+            self._release()
+            raise
+
+    def close(self) -> None:
+        """Release the folder's lock (idempotent); the outbox must not be appended to afterwards."""
+        with self._lock:
+            self._closed = True
+            self._release()
+
+    def __enter__(self) -> Outbox:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # ----------------------------------------------------------------------------------------- persistence
     def _path(self, seq: int) -> Path:
@@ -262,13 +408,16 @@ class Outbox:
 
         Raises:
             OutboxError: ``seq`` is not above every number appended before, the payload alone is larger
-                than ``max_bytes``, or the disk write failed.
+                than ``max_bytes``, the disk write failed, or the outbox is closed.
         """
         if not isinstance(payload, bytes | bytearray | memoryview):
             msg = f"outbox payload must be bytes, got {type(payload).__name__}"
             raise OutboxError(msg)
         data = bytes(payload)
         with self._lock:
+            if self._closed:
+                msg = f"outbox {self.directory} is closed (its lock released)"
+                raise OutboxError(msg)
             if seq < self._next_seq:
                 msg = f"outbox {self.directory}: sequence number {seq} is not above {self._next_seq - 1}"
                 raise OutboxError(msg)

@@ -152,7 +152,12 @@ class _RobotPlayer:
             log.warning("replay: %s measured with %d calibrations; serving the last one", robot, len(calibs))
         self.outbox_dir = outbox_dir
         self.queryable = session.declare_queryable(keys.calib(robot), self._on_calib)
-        self.sink = OutboxSink(session, keys, robot, Outbox(outbox_dir, fsync=False))
+        # A folder of this replay (``lrsensor replay`` makes a temporary one), not the robot's persistent outbox
+        # of ``lrsensor rov``: the clouds keep their recorded numbers, which a robot's outbox has used already
+        # (an outbox takes only numbers above its next_seq), and a replay into another fleet must not mix
+        # with what the real robot still has to deliver. What is left unacknowledged is named at the end.
+        self.outbox = Outbox(outbox_dir, fsync=False)
+        self.sink = OutboxSink(session, keys, robot, self.outbox)
         self.token = session.liveliness().declare_token(keys.alive(robot))
         self.sent = 0
 
@@ -170,6 +175,7 @@ class _RobotPlayer:
 
     def close(self) -> None:
         self.sink.close()
+        self.outbox.close()  # its lock
         undeclare_all((self.token, self.queryable), f"replay of {self.robot}")
 
 
