@@ -340,15 +340,12 @@ def cold_after_table(name: str, repeats: int) -> list[str]:
 STAGES = {
     "detection (noise, 2x2 average, response, local maxima)": ("detect_band",),
     "candidate chains": ("select_candidates", "expand_half"),
-    "sub-pixel fits (frame statistics, width limits, clipped and flat-topped profiles)": (
+    "sub-pixel fits (frame statistics, width limits, the fit of every point)": (
         "max_fwhm_at",
         "frame_profile_stats",
-        "fit_columns_common",
-        "core_peaks",
-        "fit_columns_clipped",
-        "refit_full",
+        "fit_columns",
     ),
-    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "refit_columns"),
+    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_neighbours",),
     "turbid water (glow test, joint stripe-and-glow fits)": ("glow_refit",),
     "pooled gates, smoothing, quality": ("finish_points",),
     "triangulation": ("triangulate_geo",),

@@ -167,7 +167,7 @@ def test_a_cache_compiled_from_other_sources_is_cleared_not_loaded(
     """Numba checks a cached kernel only against its own file: a frame call cached with the stages it linked in
     would outlive a change to a stage's file. The stamp beside the cache says which sources it was built from."""
     monkeypatch.setattr(kernels, "cache_dir", lambda: tmp_path)
-    ours = [tmp_path / "frame.extract_frame-258.py311.nbi", tmp_path / "fit_common.fit_columns_common-30.py311.1.nbc"]
+    ours = [tmp_path / "frame.extract_frame-258.py311.nbi", tmp_path / "fit.fit_columns-30.py311.1.nbc"]
     theirs = tmp_path / "userlib.kernel-12.py311.nbi"  # another package's kernel in a shared NUMBA_CACHE_DIR
     for path in (*ours, theirs):
         path.write_bytes(b"cached")

@@ -15,11 +15,13 @@ second. This module decides when that compile happens and where:
   typing and lowering, which does not run in parallel within a process. So the frame is three compiled calls
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
-  of one; the second half of the frame leaves the triangulation to the third call, so that only the first
-  part compiles it (but for the port's, which its smoothing needs); and the thin stages that mostly call
-  kernels (:func:`~lrsensor.extract.fit_common.fit_columns_common`, :func:`~lrsensor.extract.refit.refit_full`,
-  ...) are inlined into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The
-  larger stages stay kernels of their own: numba types an inlined body again at every call site. The child and its
+  of one: the first part is the first call (detection, chains, the fit and the neighbour refits: the one
+  column-parallel fit of :mod:`lrsensor.extract.fit` compiles in this part only), the second the other two
+  (glow, gates, smoothing; triangulation); and the thin stages that mostly call kernels
+  (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
+  into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
+  kernels of their own (inlined, they make their callers' functions so large that LLVM takes longer over them
+  than over the libraries they would save). The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
   bring numpy's broadcasting and its messages; a median beside a sort). ``python -m benchmarks.bench_compile``
@@ -90,8 +92,7 @@ def entry_points() -> tuple[object, ...]:
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the frame's first half with its last step and the triangulation, and its second half, of about equal compile
-#: time.
+#: the frame's first call, and its second and third calls with the triangulation, of about equal compile time.
 PARTS = ("locate", "finish")
 
 
@@ -120,10 +121,10 @@ def _build(part: str | None = None) -> None:
     f64 = np.zeros(4)
     if part in (None, "locate"):
         locate_and_fit(image, bands, settings, g)
-        place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
     if part in (None, "finish"):
         located = no_points(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
+        place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
     if part is None:  # (the parts compile them as callees)
         triangulate_points(
             f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,

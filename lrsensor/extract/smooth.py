@@ -111,7 +111,7 @@ def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, va
         acc_c[ci] = acc
 
 
-@njit
+@inline
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`):
     :func:`smooth_runs_at` with the columns' own indices as their coordinates."""

@@ -13,7 +13,7 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    a row step (small gaps bridged); linked chains are stripe pieces. Per column the candidate on the strongest
    chain wins; chains shorter than ``min_run_cols`` (speckle, marine snow, small blobs) are dropped.
 4. **Sub-pixel centre** of the chosen candidate on the raw full-resolution green profile of its column
-   (:mod:`lrsensor.extract.fit_common` and the other fits; in the reference
+   (:mod:`lrsensor.extract.fit`; in the reference
    :func:`lrsensor.extract.centre.fit_profiles`): re-centred on the integer peak (the
    middle of a clipped run), local linear background from two flanks, width check (too narrow = speckle or a
    hot pixel, too wide = glow/haze/blob), Gaussian-weighted centroid with a Newton step (saturated: symmetric
