@@ -61,7 +61,7 @@ def gather_green(image, cols, top, out):  # type: ignore[no-untyped-def]
         k += 1
 
 
-@njit
+@inline
 def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no-untyped-def]
     """The rise of the ``channels`` (of 0, 1, 2: blue, green, red) at each column's peak row over the mean of the
     rows ``half`` above and below (clamped to the image): into their rows of ``rise`` (3, N), for the colour test

@@ -121,8 +121,8 @@ def _build(part: str | None = None) -> None:
     f64 = np.zeros(4)
     if part in (None, "locate"):
         locate_and_fit(image, bands, settings, g)
-    if part in (None, "finish"):
-        located = no_points(np.ones(bands.rows.shape[0]), settings.window_half_px)
+    if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
+        located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
         place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
     if part is None:  # (the parts compile them as callees)

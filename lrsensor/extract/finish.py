@@ -10,8 +10,8 @@ amplitude (DN), sigma (px), saturated, ok, local noise (DN), chain and chain len
    stripe, nor keep one of a white blob;
 2. runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
    flat-topped, whose candidate rows wander on the top and split the chains) and within ``max_jump`` rows;
-3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs`; through a port on the rows a
-   pinhole in the water would see, :func:`smooth_through_port`);
+3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs_at`; through a port on the rows a
+   pinhole in the water would see, :func:`port_view`);
 4. quality in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
 Returns the accepted points ``(u, v, laser, quality)``: columns and rows (px), laser index, quality; (M,) each.
@@ -25,7 +25,7 @@ import numpy as np
 
 from ._jit import inline, njit
 from .geometry import central_view
-from .smooth import smooth_runs, smooth_runs_at
+from .smooth import smooth_runs_at
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -38,7 +38,7 @@ SORT9 = np.array(
 )
 
 
-@njit
+@inline
 def sorting_network(n):  # type: ignore[no-untyped-def]
     """Compare-exchange pairs (P, 2) that sort ``n`` values: :data:`SORT9` for 9, else odd-even transposition."""
     if n == 9:
@@ -177,14 +177,19 @@ def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
     return med
 
 
-@njit
-def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
-    """:func:`.smooth.smooth_runs` of the rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none)
-    seen through the port of ``geo``: the line fits run where a pinhole in the water at the camera centre would
-    see the points (:func:`.geometry.central_view`), where a stripe on a flat surface is straight (the port
-    curves it, and line fits would pull a curved stripe towards its chords), and their corrections go back to
-    image rows through the local derivative (the corrections are below a pixel: the first order is exact to far
-    below 1e-3 px). Rows whose ray misses their laser's plane are left as they are."""
+@inline
+def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
+    """The rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none) and their run labels ``run`` (N,)
+    seen through the port of ``geo`` where a pinhole in the water at the camera centre would see the points
+    (:func:`.geometry.central_view`): there a stripe on a flat surface is straight (the port curves it, and line
+    fits would pull a curved stripe towards its chords). Rows whose ray misses their laser's plane leave their
+    run (label -1).
+
+    Returns:
+        ``(yw, x, run_w, idx, rows, slope)``: the rows seen (N,), the columns' coordinates (N,) (the view's where
+        seen, interpolated by the index between them), the runs (N,); the measured columns (M,), their rows in
+        the view and its derivative by the image row (M,), for :func:`from_port_view`.
+    """
     idx = np.flatnonzero(np.isfinite(y))
     cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
     yw = np.full(y.size, np.nan)
@@ -195,13 +200,19 @@ def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
             yw[idx[j]] = rows[j]
         else:
             run_w[idx[j]] = -1
-    # the columns' coordinates: the water pinhole's where seen, interpolated (by the index) between them
     index = np.arange(y.size).astype(np.float64)
     x = index
     if np.any(seen):
         known = idx[seen]
         x = np.interp(index, index[known], cols[seen])
-    sw = smooth_runs_at(yw, x, run_w, scales)
+    return yw, x, run_w, idx, rows, slope
+
+
+@inline
+def from_port_view(y, sw, idx, rows, slope):  # type: ignore[no-untyped-def]
+    """The smoothed rows ``sw`` (N,) of :func:`port_view` back in the image: each measured row ``y`` moved by its
+    correction in the view over the view's derivative (the corrections are below a pixel: the first order is
+    exact to far below 1e-3 px)."""
     out = y.copy()
     for j in range(idx.size):
         step = (sw[idx[j]] - rows[j]) / slope[j]
@@ -210,7 +221,7 @@ def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@inline
 def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # type: ignore[no-untyped-def]
     """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality of the fitted points.
 
@@ -233,7 +244,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
             :class:`~lrsensor.extract.settings.Settings` (``green_ratio`` above is its ``min_green_ratio``, ``pool``
             its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``);
             geo: the :class:`~lrsensor.extract.settings.Geometry` (through a port the line fits run on the rows a
-            pinhole in the water would see, :func:`smooth_through_port`).
+            pinhole in the water would see, :func:`port_view`).
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
@@ -377,12 +388,16 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
             y[col_v[t]] = vv[t]
             run[col_v[t]] = ri
             m += 1
-    if scales.size == 0:
-        ys = y
-    elif geo.port.present:
-        ys = smooth_through_port(y, run, scales, w, geo)
-    else:
-        ys = smooth_runs(y, run, scales)
+    ys = y
+    if scales.size:  # through a port the line fits run in its central view (port_view)
+        if geo.port.present:
+            yw, x, run_w, idx, rows_w, slope_w = port_view(y, run, w, geo)
+        else:
+            yw, x, run_w = y, np.arange(n_cols).astype(np.float64), run
+            idx, rows_w, slope_w = np.empty(0, np.int64), np.empty(0), np.empty(0)
+        ys = smooth_runs_at(yw, x, run_w, scales)
+        if geo.port.present:
+            ys = from_port_view(y, ys, idx, rows_w, slope_w)
     u_out = np.empty(m)
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)

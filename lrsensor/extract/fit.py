@@ -331,7 +331,7 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     return Fits(centre, amp, sigma, saturated, ok, noise, rise)
 
 
-@njit
+@inline
 def _subtract_lines(P, line, A):  # type: ignore[no-untyped-def]
     """``A = P - (bl + slope (q - xl))`` for the profiles ``P`` (m, n) and their lines ``line`` (3, n)."""
     m, n = P.shape

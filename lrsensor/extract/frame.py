@@ -158,7 +158,7 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
     return sigma, plateau, wide
 
 
-@njit
+@inline
 def no_points(noise, half):  # type: ignore[no-untyped-def]
     """The :class:`Located` of a frame without candidates."""
     e_i = np.empty(0, np.int64)

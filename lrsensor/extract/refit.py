@@ -23,7 +23,7 @@ from .columns import put_fit
 from .fit import fit_columns
 
 
-@njit
+@inline
 def rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
     """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
     has an other-laser neighbour for :func:`refit_targets`: a cheap test that spares its dense arrays)."""
@@ -96,7 +96,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
     return min(far, 1.0 + math.ceil(3.0 * max(sig, 1.1))), min(far, 1.0 + near)
 
 
-@njit
+@inline
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
     :func:`lrsensor.extract.frame.locate_and_fit` are one per laser and column)."""
