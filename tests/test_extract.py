@@ -468,6 +468,17 @@ def _assert_fit_matches_reference(
     np.testing.assert_allclose(fast.sigma[fin], sigma[fin], rtol=1e-3)
 
 
+def test_frame_statistics_sort_as_numpy_does() -> None:
+    """The frame statistics' short sort (an insertion sort) orders values as ``np.sort`` does, NaN last."""
+    from lrsensor.extract.frame import _sorted
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 7, 48):
+        a = rng.normal(size=n).round(1)
+        a[rng.random(n) < 0.2] = np.nan
+        np.testing.assert_array_equal(_sorted(a), np.sort(a))
+
+
 def test_fit_equals_the_reference_for_every_kind_of_profile() -> None:
     """``fit.fit_columns`` (one column-parallel fit, float64) gives the reference's fit (``reference._fit``,
     float32): unclipped narrow profiles, single clipped samples, saturated profiles (flat tops of several widths
