@@ -716,12 +716,13 @@ def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int,
     assert fast[3] == slow[3]
 
 
-def test_real_frames_compile_nothing_beyond_the_cached_halves() -> None:
-    """The compile calls the frame's second half with the :class:`~lrsensor.extract.frame.Located` points of a
-    blank frame; real frames (stripes, clipped tops, close stripes, glow) hand over points of exactly the same
-    types, so they run the cached machine code and never compile that half again."""
+def test_real_frames_compile_nothing_beyond_the_cached_calls() -> None:
+    """The compile calls the frame's calls with the :class:`~lrsensor.extract.frame.Picked` candidates and
+    :class:`~lrsensor.extract.frame.Located` points of a blank frame; real frames (stripes, clipped tops, close
+    stripes, glow) hand over records of exactly the same types, so they run the cached machine code and never
+    compile a call again."""
     from lrsensor.extract import compile as kernels
-    from lrsensor.extract.frame import locate_and_fit, refine_and_finish
+    from lrsensor.extract.frame import fit_points, locate_candidates, refine_and_finish
     from lrsensor.sim import named_scene, scenes
 
     if not kernels.HAVE_NUMBA:
@@ -731,5 +732,5 @@ def test_real_frames_compile_nothing_beyond_the_cached_halves() -> None:
     for setup in [named_scene(name) for name in ("paper_box", "wall_0.3", "turbid")] + [close_stripes]:
         Sensor(setup.calibration).process(setup.render(0).image)
         subpixel_extract(setup.render(1).image, setup.calibration)
-    assert len(locate_and_fit.signatures) == 1
-    assert len(refine_and_finish.signatures) == 1
+    for kernel in (locate_candidates, fit_points, refine_and_finish):
+        assert len(kernel.signatures) == 1, kernel

@@ -200,11 +200,22 @@ def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
             yw[idx[j]] = rows[j]
         else:
             run_w[idx[j]] = -1
-    index = np.arange(y.size).astype(np.float64)
-    x = index
-    if np.any(seen):
-        known = idx[seen]
-        x = np.interp(index, index[known], cols[seen])
+    # the columns' coordinates: the view's where seen, linear in the index between them and constant beyond the
+    # first and the last (np.interp's arithmetic, in a loop that compiles in a fraction of its time)
+    x = np.arange(y.size).astype(np.float64)
+    known = idx[seen]
+    fk = cols[seen]
+    if known.size:
+        for q in range(known[0]):
+            x[q] = fk[0]
+        for i in range(known.size - 1):
+            k0 = known[i]
+            x[k0] = fk[i]
+            sl = (fk[i + 1] - fk[i]) / (known[i + 1] - k0)
+            for q in range(k0 + 1, known[i + 1]):
+                x[q] = sl * (q - k0) + fk[i]
+        for q in range(known[-1], y.size):
+            x[q] = fk[-1]
     return yw, x, run_w, idx, rows, slope
 
 

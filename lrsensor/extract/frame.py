@@ -1,16 +1,20 @@
-"""The compiled road: three calls that extract (and triangulate) the stripes of one frame.
+"""The compiled road: five calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in three compiled calls:
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in five compiled calls:
 
-- :func:`locate_and_fit`:
+- :func:`locate_candidates`:
 
   1. detection per laser in its band (:func:`.detect.detect_band`), the candidates of all lasers numbered as
      one row of virtual columns ``laser * width_d + column_d``;
   2. continuity (:func:`.chains.select_candidates`, :func:`.chains.expand_half`): one candidate per column;
-  3. the width limit of every point (:func:`.geometry.max_fwhm_at`), frame statistics
-     (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and the sub-pixel
-     fit of every point, one column-parallel fit for every kind of profile (:mod:`.fit`), then the neighbour
-     refits where two lasers' stripes come close (:mod:`.refit`);
+
+- :func:`.geometry.max_fwhm_at`: the width limit of every point (the laser sheet's thickness at its depth);
+
+- :func:`fit_points`:
+
+  3. frame statistics (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and
+     the sub-pixel fit of every point, one column-parallel fit for every kind of profile (:mod:`.fit`), then the
+     neighbour refits where two lasers' stripes come close (:mod:`.refit`);
 
 - :func:`refine_and_finish`:
 
@@ -27,10 +31,11 @@ Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records bu
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
 body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
 
-Why three calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
+Why five calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
-stage twice over; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`), and
-their hand-overs (:class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
+stage again; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`: the
+triangulation, which the width limits and the points both need, in one of them only), and their hand-overs
+(:class:`Picked`, :class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
 Python call per stage would cost as much again. The numpy reference
 (:mod:`lrsensor.extract.reference`) implements the same algorithm readably for tests and for machines without
 numba.
@@ -59,7 +64,7 @@ FWHM_PER_SIGMA = 2.3548200450309493
 
 
 class Located(NamedTuple):
-    """What :func:`locate_and_fit` hands to :func:`refine_and_finish`: the frame's ``N`` picked candidates (one
+    """What :func:`fit_points` hands to :func:`refine_and_finish`: the frame's ``N`` picked candidates (one
     per laser and column, sorted by virtual column) and their fits so far. Every array is C-contiguous and
     freshly allocated (the second call is compiled once, for exactly these types)."""
 
@@ -78,6 +83,22 @@ class Located(NamedTuple):
     #: Half-length of the fit window, px, and the frame's typical Gaussian sigma, px (:func:`frame_profile_stats`).
     half: int
     sigma_px: float
+    #: (L,) the band noise of each laser, DN.
+    noise: NDArray[np.float64]
+
+
+class Picked(NamedTuple):
+    """What :func:`locate_candidates` hands on: the frame's ``N`` picked candidates, one per laser and column,
+    sorted by virtual column (C-contiguous, freshly allocated: the calls after it are compiled for these types)."""
+
+    #: (N,) int64 virtual columns ``laser * W + column``, the laser and the image column of each point.
+    col_v: NDArray[np.int64]
+    laser: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    #: (N,) int64 the candidate row of each point; its chain and the chain's length (:mod:`.chains`).
+    rows: NDArray[np.int64]
+    chain: NDArray[np.int64]
+    chain_len: NDArray[np.int64]
     #: (L,) the band noise of each laser, DN.
     noise: NDArray[np.float64]
 
@@ -226,16 +247,23 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
         touched[look] = False
 
 
+@inline
+def _no_candidates(noise):  # type: ignore[no-untyped-def]
+    """The :class:`Picked` of a frame without candidates."""
+    e_i = np.empty(0, np.int64)
+    return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise)
+
+
 @njit
-def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
-    """Steps 1-3 of :func:`extract_frame` (detection, chains, frame statistics, fits, neighbour refits).
+def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
+    """Steps 1-2 of :func:`extract_frame` (detection, chains).
 
     Args:
-        image: (H, W, 3) uint8 C-contiguous; bands, s, geo: the :class:`~lrsensor.extract.settings.Bands`,
-            :class:`~lrsensor.extract.settings.Settings` and :class:`~lrsensor.extract.settings.Geometry`.
+        image: (H, W, 3) uint8 C-contiguous; bands, s: the :class:`~lrsensor.extract.settings.Bands` and
+            :class:`~lrsensor.extract.settings.Settings`.
 
     Returns:
-        :class:`Located` (no points where the frame has no candidates).
+        :class:`Picked` (none where the frame has no candidates).
     """
     n_l = bands.rows.shape[0]
     w = image.shape[1]
@@ -278,10 +306,9 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
             Ar[k] = parts_a[j][t]
             k += 1
     if total == 0:
-        return no_points(noise, s.window_half_px)
+        return _no_candidates(noise)
     # 2. chains
-    max_cand, min_run_cols, half0 = s.max_candidates, s.min_run_cols, s.window_half_px
-    sat_dn, max_sigma, sheet_mm = s.saturation_dn, s.max_sigma_px, s.max_sheet_mm
+    max_cand, min_run_cols = s.max_candidates, s.min_run_cols
     n_cols_d = n_l * wd
     jump = s.max_jump_px * 1.5
     min_run = max(2, (min_run_cols + 1) // 2)
@@ -293,7 +320,7 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
     k = min(max_cand, kk)
     col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
     if col_d.size == 0:
-        return no_points(noise, half0)
+        return _no_candidates(noise)
     col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
     n = col_v.size
     laser = sorted_blocks(col_v, w)
@@ -302,9 +329,28 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
-    # 3. frame statistics (window length), then the fit of every point
-    # the width limit of every point (the refits need any of them; as cheap as triangulating the points)
-    mfw = max_fwhm_at(cols, rows, laser, FWHM_PER_SIGMA * max_sigma, sheet_mm, geo)
+    return Picked(col_v=col_v, laser=laser, cols=cols, rows=rows, chain=chain, chain_len=chain_len, noise=noise)
+
+
+@njit
+def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
+    """Step 3 of :func:`extract_frame` (frame statistics, the fit of every point, neighbour refits).
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Picked` candidates of :func:`locate_candidates`;
+            mfw: (N,) their width limits (:func:`.geometry.max_fwhm_at`), px; s: the
+            :class:`~lrsensor.extract.settings.Settings`.
+
+    Returns:
+        :class:`Located` (no points where the frame has no candidates).
+    """
+    n_l = p.noise.size
+    n = p.cols.size
+    half0, sat_dn, max_sigma = s.window_half_px, s.saturation_dn, s.max_sigma_px
+    if n == 0:
+        return no_points(p.noise, half0)
+    col_v, laser, cols, rows, chain, chain_len, noise = p.col_v, p.laser, p.cols, p.rows, p.chain, p.chain_len, p.noise
+    # frame statistics (window length), then the fit of every point
     m_sub = min(n, 48)
     sub = np.empty(m_sub, np.int64)
     if m_sub == 1:
@@ -345,7 +391,7 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
     """Steps 4-5 of :func:`extract_frame` (glow fits, gates, smoothing, quality).
 
     Args:
-        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`locate_and_fit`;
+        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`fit_points`;
             glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`.
 
     Returns:
@@ -427,7 +473,7 @@ IntArray = NDArray[np.int64]
 def extract_frame(
     image: NDArray[np.uint8], bands: Bands, s: Settings, geo: Geometry, triangulate: bool
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray, FloatArray]:
-    """The whole default extractor on one frame in three compiled calls (see the module documentation).
+    """The whole default extractor on one frame in five compiled calls (see the module documentation).
 
     Args:
         image: (H, W, 3) uint8 BGR, C-contiguous.
@@ -440,7 +486,10 @@ def extract_frame(
         ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
         and body-frame points (M, 3), metres ((0, 3) without ``triangulate``), and the band noise (L,), DN.
     """
-    located = locate_and_fit(image, bands, s, geo)
+    picked = locate_candidates(image, bands, s)
+    # the width limit of every point (the refits need any of them), compiled beside the triangulation
+    mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
+    located = fit_points(image, picked, mfw, s)
     u, v, laser, quality = refine_and_finish(image, located, bands.glow_side, s, geo)
     uv, laser, quality, xyz = place_points(u, v, laser, quality, s, geo, triangulate)
     return uv, laser, quality, xyz, located.noise

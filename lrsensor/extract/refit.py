@@ -99,7 +99,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 @inline
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
-    :func:`lrsensor.extract.frame.locate_and_fit` are one per laser and column)."""
+    :func:`lrsensor.extract.frame.locate_candidates` are one per laser and column)."""
     at = np.full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
