@@ -468,15 +468,18 @@ def _assert_fit_matches_reference(
     np.testing.assert_allclose(fast.sigma[fin], sigma[fin], rtol=1e-3)
 
 
-def test_frame_statistics_sort_as_numpy_does() -> None:
-    """The frame statistics' short sort (an insertion sort) orders values as ``np.sort`` does, NaN last."""
-    from lrsensor.extract.frame import _sorted
+def test_kernels_sort_and_take_medians_as_numpy_does() -> None:
+    """The kernels' shell sort orders values as ``np.sort`` does, NaN last, and their median is numba's
+    ``np.median`` (on values without NaN, numpy's) to the bit."""
+    from lrsensor.extract.sorting import median, sorted_copy
 
     rng = np.random.default_rng(2)
-    for n in (1, 2, 7, 48):
+    for n in (1, 2, 7, 48, 1000, 5001):
         a = rng.normal(size=n).round(1)
+        np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
+        assert median(a) == np.median(a)
         a[rng.random(n) < 0.2] = np.nan
-        np.testing.assert_array_equal(_sorted(a), np.sort(a))
+        np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
 
 
 def test_fit_equals_the_reference_for_every_kind_of_profile() -> None:

@@ -58,6 +58,7 @@ from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
+from .sorting import median, sorted_copy
 
 #: Sigma of a Gaussian per full width at half maximum.
 FWHM_PER_SIGMA = 2.3548200450309493
@@ -101,29 +102,6 @@ class Picked(NamedTuple):
     chain_len: NDArray[np.int64]
     #: (L,) the band noise of each laser, DN.
     noise: NDArray[np.float64]
-
-
-@inline
-def _sorted(a):  # type: ignore[no-untyped-def]
-    """A sorted copy of the short array ``a`` (the frame statistics sort at most 48 values: an insertion sort, which
-    compiles in a fraction of numpy's sort), NaN last as ``np.sort`` orders them."""
-    out = a.copy()
-    for i in range(1, out.size):
-        x = out[i]
-        j = i - 1
-        while j >= 0 and (out[j] > x or (out[j] != out[j] and x == x)):
-            out[j + 1] = out[j]
-            j -= 1
-        out[j + 1] = x
-    return out
-
-
-@inline
-def _median(a):  # type: ignore[no-untyped-def]
-    """``np.median`` of a short non-empty ``a`` as numba computes it (NaN ordered last), from :func:`_sorted`."""
-    srt = _sorted(a)
-    h = srt.size // 2
-    return srt[h] if srt.size % 2 else (srt[h - 1] + srt[h]) / 2
 
 
 @njit
@@ -182,13 +160,13 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
         xr = right - (half_level - X[right]) / max(X[right - 1] - X[right], 1e-9)
         widths[nw] = xr - xl
         nw += 1
-    wide = _median(max_fwhm) if max_fwhm.size > 0 else 0.0
+    wide = median(max_fwhm) if max_fwhm.size > 0 else 0.0
     sigma = 1.0
     if nw > 0:
-        sg = _median(widths[:nw]) / 2.3548200450309493
+        sg = median(widths[:nw]) / 2.3548200450309493
         if math.isfinite(sg):
             sigma = min(max(sg, 0.6), max(max_sigma, wide / 2.3548200450309493))
-    srt = _sorted(n_sat)
+    srt = sorted_copy(n_sat)
     plateau = srt[int(0.9 * (n - 1))] if n > 0 else 0.0
     return sigma, plateau, wide
 
