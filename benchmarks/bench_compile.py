@@ -120,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`python -m benchmarks.bench_compile --repeats {args.repeats}`: wall seconds of a compile into an empty "
         f"cache (median of {args.repeats}; the two parts of the frame's calls side by side, in the child and its "
-        "helper), the child's own part of it (the first call: when it is shorter, the helper's part set the wall "
-        "time), the CPU seconds of both processes together, the 1-minute load average after it (2.0: two "
+        "helper), the child's own part of it (detection and fits: when it is shorter, the helper's part set the "
+        "wall time), the CPU seconds of both processes together, the 1-minute load average after it (2.0: two "
         "busy cores), wall seconds of a new process loading the kernels from the cache, and CPU ms per 1920x1080 "
         "frame with those kernels (warm, median of 60). `lrsensor setup` and a first use compile at level 1.",
         "",
