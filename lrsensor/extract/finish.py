@@ -5,8 +5,8 @@ amplitude (DN), sigma (px), saturated, ok, local noise (DN), chain and chain len
 
 1. the colour test (green must rise ``min_green_ratio`` times more than red and blue) and the signal-to-noise
    ratio, pooled over the fitted columns of the same chain within ``pool`` columns: rises summed, the ratio the
-   median of the neighbours' (:func:`pooled_median9`, a sorting network in registers for the default window of
-   9), at most ``1 / snr_floor_frac`` times the column's own. One noisy pixel then cannot drop a column of a dim
+   median of the neighbours' (:func:`pooled_median`, a sorting network over all columns at once), at most
+   ``1 / snr_floor_frac`` times the column's own. One noisy pixel then cannot drop a column of a dim
    stripe, nor keep one of a white blob;
 2. runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
    flat-topped, whose candidate rows wander on the top and split the chains) and within ``max_jump`` rows;
@@ -55,8 +55,11 @@ def sorting_network(n):  # type: ignore[no-untyped-def]
 
 @njit
 def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
-    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: as
-    :func:`pooled_median9`, each compare-exchange a pass over all columns. Returns (nd,) float64."""
+    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: each column's window
+    sorted by branch-free compare-exchanges, each a pass over all columns. ``ch``, ``ds``:
+    (nd + nw - 1,) the padded chains and passing ratios (NaN: none); ``own`` (nd,) each column's chain. Returns
+    the median of each column's window over the values of its own piece (NaN and other pieces left out), as
+    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64."""
     # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
     # branch-free odd-even transposition compare-exchanges that run over all columns at once
     vals = np.empty((nw, nd), np.float32)
@@ -83,97 +86,6 @@ def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
     for q in range(nd):
         k = cnt_d[q]
         med[q] = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
-    return med
-
-
-@inline
-def _pooled_value(ch, ds, uq, j, o, inf):  # type: ignore[no-untyped-def]
-    """Value ``j`` of the window at ``uq`` for :func:`pooled_median9`: ``(value, used)``, +inf when it is not of
-    the piece ``o`` or not passing (NaN)."""
-    i = uq + np.uint64(j)
-    x = ds[i]
-    u = (ch[i] == o) & (x == x)
-    return (x if u else inf), u
-
-
-@inline
-def _exchange(a, b):  # type: ignore[no-untyped-def]
-    """One compare-exchange: ``(min, max)``."""
-    return min(a, b), max(a, b)
-
-
-@njit
-def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
-    """The pooled signal-to-noise medians of :func:`finish_points` for windows of 9 columns (``pool`` 4), each
-    column's window sorted in registers by the compare-exchanges of :data:`SORT9` (the same operations, in the
-    same order, as its pass-per-exchange twin over rows of ``vals``), so only the median is stored.
-
-    ``ch``, ``ds``: (nd + 8,) the padded chains and passing ratios (NaN: none). Returns the median of each
-    column's window over the values of its own piece (NaN and other pieces left out), as
-    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64.
-    """
-    med = np.empty(nd)
-    inf32 = np.float32(np.inf)
-    for q in range(nd):
-        uq = np.uint64(q)
-        o = ch[uq + np.uint64(4)]
-        v0, u0 = _pooled_value(ch, ds, uq, 0, o, inf32)
-        v1, u1 = _pooled_value(ch, ds, uq, 1, o, inf32)
-        v2, u2 = _pooled_value(ch, ds, uq, 2, o, inf32)
-        v3, u3 = _pooled_value(ch, ds, uq, 3, o, inf32)
-        v4, u4 = _pooled_value(ch, ds, uq, 4, o, inf32)
-        v5, u5 = _pooled_value(ch, ds, uq, 5, o, inf32)
-        v6, u6 = _pooled_value(ch, ds, uq, 6, o, inf32)
-        v7, u7 = _pooled_value(ch, ds, uq, 7, o, inf32)
-        v8, u8 = _pooled_value(ch, ds, uq, 8, o, inf32)
-        k = np.int32(u0) + np.int32(u1) + np.int32(u2) + np.int32(u3) + np.int32(u4)
-        k += np.int32(u5) + np.int32(u6) + np.int32(u7) + np.int32(u8)
-        # SORT9, written out
-        v0, v1 = _exchange(v0, v1)
-        v3, v4 = _exchange(v3, v4)
-        v6, v7 = _exchange(v6, v7)
-        v1, v2 = _exchange(v1, v2)
-        v4, v5 = _exchange(v4, v5)
-        v7, v8 = _exchange(v7, v8)
-        v0, v1 = _exchange(v0, v1)
-        v3, v4 = _exchange(v3, v4)
-        v6, v7 = _exchange(v6, v7)
-        v0, v3 = _exchange(v0, v3)
-        v3, v6 = _exchange(v3, v6)
-        v0, v3 = _exchange(v0, v3)
-        v1, v4 = _exchange(v1, v4)
-        v4, v7 = _exchange(v4, v7)
-        v1, v4 = _exchange(v1, v4)
-        v2, v5 = _exchange(v2, v5)
-        v5, v8 = _exchange(v5, v8)
-        v2, v5 = _exchange(v2, v5)
-        v1, v3 = _exchange(v1, v3)
-        v5, v7 = _exchange(v5, v7)
-        v2, v6 = _exchange(v2, v6)
-        v4, v6 = _exchange(v4, v6)
-        v2, v4 = _exchange(v2, v4)
-        v2, v3 = _exchange(v2, v3)
-        v5, v6 = _exchange(v5, v6)
-        h = k // 2
-        a = v0
-        a = v1 if h == 1 else a
-        a = v2 if h == 2 else a
-        a = v3 if h == 3 else a
-        a = v4 if h == 4 else a
-        a = v5 if h == 5 else a
-        a = v6 if h == 6 else a
-        a = v7 if h == 7 else a
-        a = v8 if h == 8 else a
-        b = v8  # index h - 1 = -1 (no value: wraps to the last, as the row view does)
-        b = v0 if h == 1 else b
-        b = v1 if h == 2 else b
-        b = v2 if h == 3 else b
-        b = v3 if h == 4 else b
-        b = v4 if h == 5 else b
-        b = v5 if h == 6 else b
-        b = v6 if h == 7 else b
-        b = v7 if h == 8 else b
-        med[uq] = float(a) if k % 2 else 0.5 * (float(b) + float(a))
     return med
 
 
@@ -345,10 +257,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
         good[t] = g
         ds[qc + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
     keep = np.empty(n, np.bool_)
-    if nw == 9:  # the default pool: each window sorted in registers
-        medv = pooled_median9(ch, ds, nd)
-    else:
-        medv = pooled_median(ch, ds, own, nw, nd)
+    medv = pooled_median(ch, ds, own, nw, nd)
     e_arg = np.empty(n, np.float32)
     for t in range(n):  # branch-free: the pooled ratio of the points that pass the colour gate, and the gates
         g = good[t]
