@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import faulthandler
 import logging
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -145,7 +147,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error."""
+    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error.
+
+    SIGUSR1 writes the stack of every thread to stderr and the ROV runs on (a stop that does not end shows
+    where it waits)."""
     from pathlib import Path
 
     from lrsensor.calibration import Calibration
@@ -157,6 +162,9 @@ def run(args: argparse.Namespace) -> int:
     from .signals import stop_on_signals
     from .sources import FolderSource, FrameSource, open_source
     from .zconfig import NetworkOptions, open_session, options_from_args
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     # (--channel with another method is refused here, before the network)
     process_options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)
