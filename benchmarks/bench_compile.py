@@ -82,7 +82,7 @@ def measure(opt: str, repeats: int) -> dict[str, float]:
                 text=True,
             )
             compiles.append(time.monotonic() - t0)
-            found = re.search(r"compiled in [0-9.]+ s \(\w+ ([0-9.]+) s\)", child.stderr)
+            found = re.search(r"compiled in [0-9.]+ s \(\w+ ([0-9.]+) s", child.stderr)
             firsts.append(float(found.group(1)) if found else math.nan)
             after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the child and its helper, both waited for
             cpus.append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)

@@ -478,6 +478,9 @@ def main(argv: list[str] | None = None) -> int:
         print("numba is not installed: nothing to compile", file=sys.stderr)
         return 1
     if "--part" in args:
-        _build(args[args.index("--part") + 1])
+        t0 = time.monotonic()
+        part = args[args.index("--part") + 1]
+        _build(part)
+        print(f"part {part} compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
         return 0
     return _compile_parts()
