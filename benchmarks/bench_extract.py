@@ -335,20 +335,17 @@ def cold_after_table(name: str, repeats: int) -> list[str]:
     return lines
 
 
-#: The stages of ``Sensor.process`` (default method): the compiled kernels that the two halves of
-#: ``extract_frame`` call.
+#: The stages of ``Sensor.process`` (default method): the compiled kernels that ``extract_frame`` and its
+#: calls call.
 STAGES = {
     "detection (noise, 2x2 average, response, local maxima)": ("detect_band",),
     "candidate chains": ("select_candidates", "expand_half"),
-    "sub-pixel fits (frame statistics, width limits, clipped and flat-topped profiles)": (
+    "sub-pixel fits (frame statistics, width limits, the fit of every point)": (
         "max_fwhm_at",
         "frame_profile_stats",
-        "fit_columns_common",
-        "core_peaks",
-        "fit_columns_clipped",
-        "refit_full",
+        "fit_columns",
     ),
-    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_targets", "refit_columns"),
+    "neighbour refits (stripes of two lasers close together: targets and fits)": ("refit_neighbours",),
     "turbid water (glow test, joint stripe-and-glow fits)": ("glow_refit",),
     "pooled gates, smoothing, quality": ("finish_points",),
     "triangulation": ("triangulate_geo",),
@@ -361,7 +358,9 @@ def _stage_clock(totals: dict[str, float]) -> Iterator[Callable[..., object]]:
     clock: the per-thread CPU time spent in each of :data:`STAGES` adds up in ``totals`` (s)."""
     names = vars(frame_module)
     saved = {name: names[name] for stage in STAGES.values() for name in stage}
-    halves = {name: names[name] for name in ("locate_and_fit", "refine_and_finish", "place_points")}
+    halves = {
+        name: names[name] for name in ("locate_candidates", "fit_points", "refine_and_finish", "place_points")
+    }
     for stage, stage_names in STAGES.items():
         for name in stage_names:
             f = saved[name]

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import faulthandler
 import logging
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -147,8 +149,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error (2: among them an outbox in use)."""
+    """Run until the source ends (0), SIGINT/SIGTERM (0) or an error (2: among them an outbox in use).
+
+    SIGUSR1 writes the stack of every thread to stderr and the ROV runs on (a stop that does not end shows
+    where it waits)."""
     from .keys import FleetKeys, check_robot_name
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     # (--channel with another method is refused here, before the network)
     process_options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)

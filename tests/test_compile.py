@@ -126,7 +126,15 @@ def test_ending_a_first_use_at_any_moment_exits_cleanly(
         assert wait_until(lambda: bool(_compiles_of_cache(cache)) or p.poll() is not None, 120.0)
         time.sleep(after_s)
         p.send_signal(sig)
-        out, _ = p.communicate(timeout=60)
+        try:
+            out, _ = p.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            if command == "rov":  # the stacks of its threads (lrsensor rov dumps them on SIGUSR1)
+                p.send_signal(signal.SIGUSR1)
+                time.sleep(2.0)
+            p.kill()
+            out, _ = p.communicate()
+            pytest.fail(f"no exit within 60 s of the signal:\n{out[-6000:]}")
     finally:
         if p.poll() is None:
             p.kill()
@@ -136,6 +144,32 @@ def test_ending_a_first_use_at_any_moment_exits_cleanly(
     assert not any(text in out for text in CRASH_TEXT), out
     assert "compiling the kernels once" in out or "numpy reference" in out, out
     assert wait_until(lambda: not _compiles_of_cache(cache), 10.0), "a compile outlived its process"
+
+
+def test_a_rov_dumps_its_threads_on_sigusr1_and_runs_on(tmp_path: Path) -> None:
+    """SIGUSR1 makes ``lrsensor rov`` write every thread's stack to stderr (what a stop that does not end waits
+    for); it runs on and still stops cleanly on SIGTERM."""
+    cache = tmp_path / "cache"
+    args = lrsensor_cmd(
+        "rov", "--fleet", "cx", "--robot", "r1", "--mode", "peer", "--listen", f"tcp/127.0.0.1:{_free_port()}",
+        "--source", "sim", "--sim-frames", "100000", "--sim-size", "320x180", "--rate", "5", "--no-outbox",
+    )  # fmt: skip
+    p = subprocess.Popen(args, env=_env(cache), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert wait_until(lambda: bool(_compiles_of_cache(cache)) or p.poll() is not None, 120.0)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        assert p.poll() is None
+        p.send_signal(signal.SIGTERM)
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0, out
+    assert "Current thread" in out, out  # faulthandler's dump
+    assert "Thread 0x" in out, out
 
 
 def _free_port() -> int:
@@ -167,7 +201,7 @@ def test_a_cache_compiled_from_other_sources_is_cleared_not_loaded(
     """Numba checks a cached kernel only against its own file: a frame call cached with the stages it linked in
     would outlive a change to a stage's file. The stamp beside the cache says which sources it was built from."""
     monkeypatch.setattr(kernels, "cache_dir", lambda: tmp_path)
-    ours = [tmp_path / "frame.extract_frame-258.py311.nbi", tmp_path / "fit_common.fit_columns_common-30.py311.1.nbc"]
+    ours = [tmp_path / "frame.extract_frame-258.py311.nbi", tmp_path / "fit.fit_columns-30.py311.1.nbc"]
     theirs = tmp_path / "userlib.kernel-12.py311.nbi"  # another package's kernel in a shared NUMBA_CACHE_DIR
     for path in (*ours, theirs):
         path.write_bytes(b"cached")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -196,11 +197,11 @@ def test_pooled_median_sorting_network_sorts_every_input(n: int) -> None:
     np.testing.assert_array_equal(a.T, np.sort(bits, axis=1))
 
 
-def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
-    """The default pool's medians (9-column windows sorted in registers) equal the generic kernel's (one pass over
-    all columns per compare-exchange) bit for bit, and the median of each window of its own piece's passing
-    values: windows with holes (NaN), piece changes, even and odd counts and columns without any value."""
-    from lrsensor.extract.finish import pooled_median, pooled_median9
+def test_pooled_median_is_the_median_of_each_window() -> None:
+    """The pooled medians (9-column windows, one pass over all columns per compare-exchange) are the median of
+    each window of its own piece's passing values: windows with holes (NaN), piece changes, even and odd counts
+    and columns without any value."""
+    from lrsensor.extract.finish import pooled_median
 
     rng = np.random.default_rng(5)
     nd = 700
@@ -209,8 +210,7 @@ def test_pooled_median_in_registers_equals_the_pass_per_exchange_twin() -> None:
     ds = (rng.random(nd + 8) * 20).astype(np.float32)
     ds[rng.random(nd + 8) < 0.3] = np.nan
     own = ch[4 : 4 + nd]
-    fast = pooled_median9(ch, ds, nd)
-    np.testing.assert_array_equal(fast, pooled_median(ch, ds, own, 9, nd))
+    fast = pooled_median(ch, ds, own, 9, nd)
     for q in range(nd):
         win = ds[q : q + 9][(ch[q : q + 9] == own[q]) & np.isfinite(ds[q : q + 9])]
         if win.size:
@@ -423,100 +423,110 @@ def _profiles_image() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, n
     return img, cols, rows, rows_c, sigma, flat
 
 
-def test_column_parallel_fits_equal_the_full_kernel() -> None:
-    """``fit_columns_clipped`` (column-parallel) takes the columns of its kinds and gives them ``fit_columns``'s
-    centre, amplitude, sigma, noise, acceptance and colour rises: saturated profiles (flat tops of several widths
-    and sub-pixel phases on a sloped background; centres on the true ones) and unclipped and singly clipped narrow
-    ones, and leaves the flat-topped wide ones to the full kernel; windows cut by the image border included."""
+def _fit_settings(iterations: int) -> Any:
+    """The settings records of the fit tests: saturation 250 DN, sigma 0.3-5 px, wide above 4.7 px."""
+    from lrsensor.extract.settings import frame_settings
+
+    s = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())[1]
+    return s._replace(
+        saturation_dn=250.0, min_fwhm_px=0.3 * 2.3548200450309493, max_sigma_px=5.0, wide_fwhm_px=4.7,
+        iterations=iterations,
+    )  # fmt: skip
+
+
+def _assert_fit_matches_reference(
+    fast: Any, ref: tuple[np.ndarray, ...], kinds: dict[str, np.ndarray], inside: np.ndarray
+) -> None:
+    """The compiled fit (float64) against the reference's (float32): the same acceptance and saturation for all
+    but a few columns (a float32 width at a limit), colour rises equal, amplitudes and noise to float32
+    rounding; centres within 2e-4 px of each other in the median of every kind of profile, and within 0.02 px
+    for every column whose window lies ``inside`` the image (a clipped top's window centroid moves by its steps'
+    float32 rounding; where a window is cut by the border, the reference's Gaussian weights reach the repeated
+    border rows beyond the compiled fit's reach). Two kinds agree less (both roads read them as they did before
+    the fits became one): a single clipped sample (a log-parabola start off the Gaussian's: a few columns end
+    up tenths of a pixel apart) and flat tops (the plateau's window centroid: most within 0.02 px, all within a
+    row)."""
+    centre, amp, sigma, sat, ok, noise, rise = ref
+    np.testing.assert_array_equal(fast.saturated, sat)
+    np.testing.assert_array_equal(fast.rise, rise)
+    assert (fast.ok != ok).mean() < 0.01
+    both = fast.ok & ok
+    d = np.abs(fast.centre - centre)
+    for kind, sel in kinds.items():
+        assert (sel & both).sum() >= 5, kind
+        if kind == "flat tops":
+            assert np.mean(d[sel & both] < 0.02) > 0.5
+            assert np.max(d[sel & both]) < 1.01
+            continue
+        assert np.median(d[sel & both]) < 2e-4, kind
+        if kind != "one clipped sample":
+            assert np.max(d[sel & both & inside], initial=0.0) < 0.02, kind
+    np.testing.assert_allclose(fast.amplitude[both], amp[both], rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(fast.local_noise, noise, rtol=1e-3, atol=1e-3)
+    fin = both & np.isfinite(sigma)
+    np.testing.assert_allclose(fast.sigma[fin], sigma[fin], rtol=1e-3)
+
+
+def test_kernels_sort_and_take_medians_as_numpy_does() -> None:
+    """The kernels' shell sort orders values as ``np.sort`` does, NaN last, and their median is numba's
+    ``np.median`` (on values without NaN, numpy's) to the bit."""
+    from lrsensor.extract.sorting import median, sorted_copy
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 7, 48, 1000, 5001):
+        a = rng.normal(size=n).round(1)
+        np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
+        assert median(a) == np.median(a)
+        a[rng.random(n) < 0.2] = np.nan
+        np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
+
+
+def test_fit_equals_the_reference_for_every_kind_of_profile() -> None:
+    """``fit.fit_columns`` (one column-parallel fit, float64) gives the reference's fit (``reference._fit``,
+    float32): unclipped narrow profiles, single clipped samples, saturated profiles (flat tops of several widths
+    and sub-pixel phases on a sloped background), flat-topped wide ones (thick sheets), windows cut by the image
+    border; clipped Gaussians whose top the window holds are read within a few hundredths of a pixel."""
+    from lrsensor.extract import reference
     from lrsensor.extract.compile import HAVE_NUMBA
     from lrsensor.extract.fit import fit_columns
-    from lrsensor.extract.fit_clipped import core_peaks, fit_columns_clipped
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
-    img, cols, rows, rows_c, sigma, flat = _profiles_image()
-    w = cols.size
+    img, cols, rows, rows_c, _sigma, flat = _profiles_image()
+    h, w = img.shape[:2]
     nan = np.full(w, np.nan)
-    # 90: windows too long for byte row arithmetic; 130: more rows than a byte counts
+    max_fwhm = nan * 0 + 20.0
     for half, it in ((8, 2), (12, 3), (90, 2), (130, 2)):
-        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
-        sat = full[3]
-        peaks = core_peaks(img, cols, rows, 3, 250.0)[0]
-        fast = fit_columns_clipped(img, cols, peaks, half, 1.2, 250.0, 3, it, 0.3, 5.0, 4.7)
-        done = fast[7]
-        # every saturated profile, the unsaturated narrow peaks; most flat tops (wider than the limit at half
-        # level) left to the full kernel
-        np.testing.assert_array_equal(done & sat, sat)
-        assert (flat & ~done).sum() > 0.5 * flat.sum()
-        narrow = ~flat & ~sat & (2.3548200450309493 * sigma < 4.0)
-        assert done[narrow].mean() > 0.95
-        assert (done & sat).sum() > 50
-        assert (done & ~sat).sum() > 50
-        # the saturated centroid sums in float32: their centres within 1e-5 px; the rest in the same float64
-        for i, (a, b) in enumerate(zip(fast[:6], full[:6], strict=True)):
-            tol = np.where(sat, 1e-5, 1e-9) if i == 0 else 1e-9
-            diff = np.abs(np.asarray(a, float) - np.asarray(b, float))
-            same_nan = np.isnan(np.asarray(a, float)) == np.isnan(np.asarray(b, float))
-            assert same_nan[done].all()
-            assert (np.nan_to_num(diff) <= tol)[done].all()
-        np.testing.assert_array_equal(fast[6][:, done], full[6][:, done])
+        s = _fit_settings(it)
+        fast = fit_columns(img, cols, rows, half, 1.2, s, nan, nan, nan, max_fwhm)
+        ref = reference._fit(img, cols, rows, half, 1.2, s, (nan, nan, nan), max_fwhm)
+        win = np.clip(rows[None, :] + np.arange(-half, half + 1)[:, None], 0, h - 1)
+        n_clip = (img[win, cols[None, :], 1] >= 250).sum(axis=0)
+        kinds = {"unclipped": (n_clip == 0) & ~flat, "saturated": fast.saturated}
+        if half < 90:  # (a long window holds more than one clipped sample)
+            kinds["one clipped sample"] = n_clip == 1
+            kinds["flat tops"] = flat
+        _assert_fit_matches_reference(fast, ref, kinds, (rows - half - 3 >= 0) & (rows + half + 3 < h))
         if half == 12:  # clipped Gaussians (whose top the window holds): from the middle of the clipped run to
             # the true centre
-            inside = sat & (rows_c > half + 3)
-            err = np.abs(fast[0][inside] - rows_c[inside])
+            inside = fast.saturated & (rows_c > half + 3)
+            err = np.abs(fast.centre[inside] - rows_c[inside])
             assert np.isfinite(err).all()
             assert np.median(err) < 0.05
             assert np.percentile(err, 95) < 0.15
 
 
-def test_common_fit_agrees_with_the_full_kernel_and_flags_the_rest() -> None:
-    """``fit_columns_common`` (float32, column-parallel) flags every column with two or more clipped samples in
-    its window (and the wide flat tops) for the other fits, and gives the rest ``fit_columns``'s results: within
-    2e-4 px where nothing is clipped, within 0.05 px where a single sample is (its flanks then sit up to one row
-    closer than the full kernel's), with the same acceptance and colour rises."""
+def test_fit_with_a_neighbour_equals_the_reference() -> None:
+    """With another laser's stripe close by (either side, near and far; a tenth of the columns not told of it),
+    ``fit.fit_columns`` subtracts its Gaussian as the reference does, and the subtraction matters: without it the
+    centres move."""
+    from lrsensor.extract import reference
     from lrsensor.extract.compile import HAVE_NUMBA
     from lrsensor.extract.fit import fit_columns
-    from lrsensor.extract.fit_clipped import core_peaks
-    from lrsensor.extract.fit_common import fit_columns_common
 
     if not HAVE_NUMBA:
         pytest.skip("numba is not installed")
-    img, cols, rows, _rows_c, _sigma, flat = _profiles_image()
-    h, w = img.shape[:2]
-    nan = np.full(w, np.nan)
-    peaks, clip = core_peaks(img, cols, rows, 3, 250.0)
-    assert not core_peaks(img, cols, rows, 3, 256.0)[1].any()  # above the byte range: nothing is clipped
-    for half, it in ((8, 2), (12, 3)):
-        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, nan + 20.0, 4.7)
-        fast = fit_columns_common(img, cols, peaks, half, 1.2, 250.0, 0.3, 5.0, 3, it, 4.7)
-        special = fast[7]
-        win = np.clip(peaks[None, :] + np.arange(-half, half + 1)[:, None], 0, h - 1)
-        n_clip = (img[win, cols[None, :], 1] >= 250).sum(axis=0)
-        assert (special | (n_clip < 2)).all()
-        assert not (clip & ~special).any()
-        assert (flat & special).sum() > 0.5 * flat.sum()
-        for kind, sel, tol in (("unclipped", n_clip == 0, 2e-4), ("one clipped sample", n_clip == 1, 0.05)):
-            sel = sel & ~special
-            assert sel.sum() >= 10, kind
-            np.testing.assert_array_equal(fast[4][sel], full[4][sel])
-            np.testing.assert_allclose(fast[0][sel], full[0][sel], rtol=0, atol=tol, equal_nan=True)
-            np.testing.assert_array_equal(fast[6][:, sel], full[6][:, sel])
-        sel = (n_clip == 0) & ~special
-        for i in (1, 2, 5):  # amplitude, sigma, local noise: float32 rounding
-            np.testing.assert_allclose(fast[i][sel], full[i][sel], rtol=1e-5, atol=1e-4)
-
-
-def test_neighbour_refit_equals_the_full_kernel() -> None:
-    """``fit_columns_neighbour`` (column-parallel) gives ``fit_columns``'s results, with the other laser's Gaussian
-    subtracted, for every column it takes (all unclipped narrow ones, neighbours on either side, near and far, and
-    without a neighbour), and leaves the clipped and flat-topped ones to the full kernel."""
-    from lrsensor.extract.compile import HAVE_NUMBA
-    from lrsensor.extract.fit import fit_columns
-    from lrsensor.extract.refit import fit_columns_neighbour
-
-    if not HAVE_NUMBA:
-        pytest.skip("numba is not installed")
-    img, cols, rows, rows_c, sigma, flat = _profiles_image()
+    img, cols, rows, rows_c, _sigma, flat = _profiles_image()
     w = cols.size
     rng = np.random.default_rng(5)
     # a second stripe 4-14 rows away, of 10-60 DN and sigma 0.6-2.5 px, drawn into the image; a tenth without
@@ -529,32 +539,20 @@ def test_neighbour_refit_equals_the_full_kernel() -> None:
     img[:, :, 1] = np.clip(np.round(g), 0, 255)
     none = rng.random(w) < 0.1
     nb_v[none] = np.nan
+    max_fwhm = np.full(w, 20.0)
     for half, it in ((7, 2), (12, 3)):
-        full = fit_columns(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nb_v, nb_a, nb_s, nb_v * 0 + 20, 4.7)
-        fast = fit_columns_neighbour(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nb_v, nb_a, nb_s, 4.7)
-        done = fast[7]
-        # a clipped sample in the profile less the neighbour: the full kernel (every saturated one among them)
-        win = rows[None, :] + np.arange(-half - 3, half + 4)[:, None]
-        sub = img[np.clip(win, 0, img.shape[0] - 1), cols[None, :], 1] - np.nan_to_num(
-            nb_a * np.exp(-0.5 * ((win - nb_v) / nb_s) ** 2)
-        )
-        clipped = (sub >= 250).any(axis=0)
-        assert not (done & full[3]).any()
-        narrow = ~flat & ~clipped & (2.3548200450309493 * sigma < 4.0)
-        assert done[narrow].mean() > 0.9
-        assert (flat & ~done).sum() > 0.5 * flat.sum()
-        assert (done & none).sum() >= 5
-        assert (done & ~none).sum() > 50
-        for i in range(6):
-            np.testing.assert_allclose(
-                np.asarray(fast[i][done], float), np.asarray(full[i][done], float), rtol=0, atol=1e-9, equal_nan=True
-            )
-        np.testing.assert_array_equal(fast[6][:, done], full[6][:, done])
-        # the subtraction matters: without it the centres move
+        s = _fit_settings(it)
+        fast = fit_columns(img, cols, rows, half, 1.2, s, nb_v, nb_a, nb_s, max_fwhm)
+        ref = reference._fit(img, cols, rows, half, 1.2, s, (nb_v, nb_a, nb_s), max_fwhm)
+        win = np.clip(rows[None, :] + np.arange(-half, half + 1)[:, None], 0, img.shape[0] - 1)
+        unclipped = (img[win, cols[None, :], 1] < 250).all(axis=0)
+        kinds = {"with a neighbour": ~none & ~flat & unclipped}
+        h = img.shape[0]
+        _assert_fit_matches_reference(fast, ref, kinds, (rows - half - 3 >= 0) & (rows + half + 3 < h))
         nan = np.full(w, np.nan)
-        plain = fit_columns_neighbour(img, cols, rows, half, 3, 1.2, 250.0, 0.3, 5.0, 3, it, nan, nan, nan, 4.7)
-        both = done & plain[7] & ~none & np.isfinite(plain[0]) & np.isfinite(fast[0])
-        assert np.max(np.abs(plain[0][both] - fast[0][both])) > 0.1
+        plain = fit_columns(img, cols, rows, half, 1.2, s, nan, nan, nan, max_fwhm)
+        both = ~none & np.isfinite(plain.centre) & np.isfinite(fast.centre)
+        assert np.max(np.abs(plain.centre[both] - fast.centre[both])) > 0.1
 
 
 def test_neighbour_refits_only_where_the_neighbour_moved() -> None:
@@ -720,12 +718,13 @@ def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int,
     assert fast[3] == slow[3]
 
 
-def test_real_frames_compile_nothing_beyond_the_cached_halves() -> None:
-    """The compile calls the frame's second half with the :class:`~lrsensor.extract.frame.Located` points of a
-    blank frame; real frames (stripes, clipped tops, close stripes, glow) hand over points of exactly the same
-    types, so they run the cached machine code and never compile that half again."""
+def test_real_frames_compile_nothing_beyond_the_cached_calls() -> None:
+    """The compile calls the frame's calls with the :class:`~lrsensor.extract.frame.Picked` candidates and
+    :class:`~lrsensor.extract.frame.Located` points of a blank frame; real frames (stripes, clipped tops, close
+    stripes, glow) hand over records of exactly the same types, so they run the cached machine code and never
+    compile a call again."""
     from lrsensor.extract import compile as kernels
-    from lrsensor.extract.frame import locate_and_fit, refine_and_finish
+    from lrsensor.extract.frame import fit_points, locate_candidates, refine_and_finish
     from lrsensor.sim import named_scene, scenes
 
     if not kernels.HAVE_NUMBA:
@@ -735,5 +734,5 @@ def test_real_frames_compile_nothing_beyond_the_cached_halves() -> None:
     for setup in [named_scene(name) for name in ("paper_box", "wall_0.3", "turbid")] + [close_stripes]:
         Sensor(setup.calibration).process(setup.render(0).image)
         subpixel_extract(setup.render(1).image, setup.calibration)
-    assert len(locate_and_fit.signatures) == 1
-    assert len(refine_and_finish.signatures) == 1
+    for kernel in (locate_candidates, fit_points, refine_and_finish):
+        assert len(kernel.signatures) == 1, kernel

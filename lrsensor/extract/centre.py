@@ -130,8 +130,10 @@ def fit_profiles(
     sat = np.float32(saturation_dn) <= P
     n_sat = sat.sum(axis=0)
     saturated = sat[R] & (n_sat >= 2)
-    # 1. linear background through two flank windows at +-off (beyond the stripe and its plateau)
-    off = np.minimum(np.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), R - flank_px + 1).astype(np.int64)
+    # 1. linear background through two flank windows at +-off (beyond the stripe and its plateau; a single clipped
+    # sample is a peak just reaching the top of the range, not a plateau)
+    n_run = np.where(n_sat >= 2, n_sat, 0)
+    off = np.minimum(np.ceil(3.0 * sigma_hint + 0.5 * n_run + 1.0), R - flank_px + 1).astype(np.int64)
     bl, slope, xl = _flank_line(P, R, off, flank_px)
     ss = np.zeros(n, np.float32)
     for k in range(flank_px):

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import inline, njit
 
 
 @njit
@@ -227,7 +227,7 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     return cols[:out], rows[:out], chain[:out], clen[:out]
 
 
-@njit
+@inline
 def sorted_blocks(col_v, width):  # type: ignore[no-untyped-def]
     """The block ``col_v // width`` of each sorted virtual column (N,) int64, without a division per element
     (block ``l`` holds ``[l width, (l + 1) width)``: a laser's columns, at full or detection resolution)."""
@@ -241,7 +241,7 @@ def sorted_blocks(col_v, width):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@inline
 def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-untyped-def]
     """Picks of half-resolution detection columns to full columns: column c stands for 2c and 2c + 1.
 

@@ -1,17 +1,13 @@
-"""Shared pieces of the column-parallel fits: gathering windows, colour rises, clipped runs, results.
+"""Pieces of the column-parallel fit (:mod:`.fit`): gathering windows, colour rises, half-level crossings.
 
-The column-parallel fits (:mod:`.fit_common`, :mod:`.fit_clipped`, :mod:`.fit_plain`, :mod:`.refit`) lay their
-profiles out as (rows, columns) arrays so that every inner loop runs over columns and vectorizes: a window of
-``m = 2 half + 1`` rows of ``n`` columns is (m, n). This module gathers those windows from the image
+The fit lays its profiles out as (rows, columns) arrays so that every inner loop runs over columns and vectorizes:
+a window of ``m = 2 half + 1`` rows of ``n`` columns is (m, n). This module gathers those windows from the image
 (:func:`gather_green`), reads the colour rises at the peaks (:func:`colour_rises`, for the colour test pooled along
-the stripe in :mod:`.finish`), finds half-level crossings and clipped runs column by column with selects, and
-holds the results record of a fit: :func:`fit_results` ``(centre_row, amplitude, sigma, saturated, ok,
-local_noise, rise, flag)``, (n,) each and rise (3, n) in B, G, R; rows in pixels, amplitudes and noise in DN.
+the stripe in :mod:`.finish`), finds half-level crossings column by column with selects (:func:`half_crossings`)
+and stores one point's fit into a frame's (:func:`put_fit`).
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
@@ -65,7 +61,7 @@ def gather_green(image, cols, top, out):  # type: ignore[no-untyped-def]
         k += 1
 
 
-@njit
+@inline
 def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no-untyped-def]
     """The rise of the ``channels`` (of 0, 1, 2: blue, green, red) at each column's peak row over the mean of the
     rows ``half`` above and below (clamped to the image): into their rows of ``rise`` (3, N), for the colour test
@@ -96,7 +92,7 @@ def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no
 @njit
 def half_crossings(B, level):  # type: ignore[no-untyped-def]
     """The first crossings below ``level`` (n,) left and right of the middle row of profiles ``B`` (m, n), float32
-    or float64, linearly interpolated as :func:`_level_crossings` does column by column (-1 where there is
+    or float64, linearly interpolated as :func:`.fit._level_width` does for one profile (-1 where there is
     none): ``(xa, xb)``, (n,) each of ``B``'s type. The row below the level, its value and its inner neighbour's
     are found by selects, four rows per pass over the columns; then one division per column."""
     m, n = B.shape
@@ -175,99 +171,14 @@ def half_crossings(B, level):  # type: ignore[no-untyped-def]
     return xa, xb
 
 
-@njit
-def store_chunk(out, t0, image, cols, peaks, half, c, good, a0, sigma, sat, noise, flag, g_lo, g_pk, g_hi):  # type: ignore[no-untyped-def]
-    """Store the fits of one chunk of ``n`` columns into ``out`` (as :func:`fit_results`) from column ``t0`` on:
-    the centre row ``peaks - half + c`` where ``good`` (else NaN), ``good`` as ok, and ``a0``, ``sigma``, ``sat``,
-    ``noise`` and ``flag`` (n,) each as they are; the green rise from the window's first, middle and last rows
-    (``g_lo``, ``g_pk``, ``g_hi``, (n,) each), blue and red read at the same rows (:func:`colour_rises`)."""
-    n = cols.size
-    o_c, o_a, o_sg, o_sat, o_ok, o_no, o_ri, o_fl = out
-    nan = np.nan
-    for t in range(n):
-        u = np.uint64(t0 + t)
-        o_c[u] = peaks[t] - half + c[t] if good[t] else nan
-        o_ok[u] = good[t]
-    for t in range(n):
-        u = np.uint64(t0 + t)
-        o_a[u] = a0[t]
-        o_sg[u] = sigma[t]
-        o_sat[u] = sat[t]
-        o_no[u] = noise[t]
-        o_fl[u] = flag[t]
-    r_g = o_ri[1]
-    for t in range(n):
-        r_g[np.uint64(t0 + t)] = float(g_pk[t]) - 0.5 * (float(g_lo[t]) + float(g_hi[t]))
-    colour_rises(image, cols, peaks, half, (0, 2), o_ri[:, t0 : t0 + n])  # blue and red at the same rows
-
-
-@njit
-def fit_results(n):  # type: ignore[no-untyped-def]
-    """Empty results of the chunked column-parallel fits for ``n`` columns: ``(centre_row, amplitude, sigma,
-    saturated, ok, local_noise, rise, flag)``, (n,) each and rise (3, n)."""
-    return (
-        np.empty(n),
-        np.empty(n),
-        np.empty(n),
-        np.empty(n, np.bool_),
-        np.empty(n, np.bool_),
-        np.empty(n),
-        np.empty((3, n)),
-        np.empty(n, np.bool_),
-    )
-
-
 @inline
 def put_fit(res, r, i, t):  # type: ignore[no-untyped-def]
-    """Store result ``i`` of a column-parallel fit ``r`` (as :func:`fit_results`) as column ``t`` of the
-    per-column results ``res = (centre, amplitude, sigma, saturated, ok, local_noise, rise)``."""
-    res[0][t] = r[0][i]
-    res[1][t] = r[1][i]
-    res[2][t] = r[2][i]
-    res[3][t] = r[3][i]
-    res[4][t] = r[4][i]
-    res[5][t] = r[5][i]
+    """Store fit ``i`` of ``r`` as point ``t`` of ``res`` (both :class:`~lrsensor.extract.fit.Fits`)."""
+    res.centre[t] = r.centre[i]
+    res.amplitude[t] = r.amplitude[i]
+    res.sigma[t] = r.sigma[i]
+    res.saturated[t] = r.saturated[i]
+    res.ok[t] = r.ok[i]
+    res.local_noise[t] = r.local_noise[i]
     for c in range(3):
-        res[6][c, t] = r[6][c, i]
-
-
-@inline
-def clip_level(sat_dn):  # type: ignore[no-untyped-def]
-    """The level from which a byte sample counts as clipped (at least ``sat_dn``), uint16: 256 (nothing clipped)
-    for a level above 255."""
-    return np.uint16(min(max(math.ceil(sat_dn), 0), 256))
-
-
-@njit
-def clipped_runs(W, sat_dn):  # type: ignore[no-untyped-def]
-    """Per column of ``W`` (m, n) uint8: how many samples are clipped (at least ``sat_dn``) and the rows of the
-    first and the last of them: (n,) uint16 each (first 65535 and last 0 where none; 32 lanes; a level above 255
-    clips nothing)."""
-    m, n = W.shape
-    s16 = clip_level(sat_dn)
-    cnt = np.zeros(n, np.uint16)
-    first = np.full(n, np.uint16(65535))
-    last = np.zeros(n, np.uint16)
-    for q in range(m):
-        wq = W[q]
-        uq = np.uint16(q)
-        for t in range(n):
-            sq = np.uint16(wq[t]) >= s16
-            cnt[t] += np.uint16(sq)
-            first[t] = min(first[t], uq) if sq else first[t]
-            last[t] = uq if sq else last[t]
-    return cnt, first, last
-
-
-@njit
-def take_columns(W, idx):  # type: ignore[no-untyped-def]
-    """The columns ``idx`` (k,) of ``W`` (m, n): (m, k), C-contiguous."""
-    m = W.shape[0]
-    k = idx.size
-    out = np.empty((m, k), W.dtype)
-    for q in range(m):
-        wq = W[q]
-        oq = out[q]
-        for i in range(k):
-            oq[i] = wq[idx[i]]
-    return out
+        res.rise[c, t] = r.rise[c, i]

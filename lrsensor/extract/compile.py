@@ -12,14 +12,17 @@ second. This module decides when that compile happens and where:
   on Linux; at a normal exit :func:`atexit` ends the child), and the caller only ever *loads* finished kernels.
 - **Compile time.** Numba compiles each kernel into a library of its own, callees first, and optimises and
   generates machine code again for a caller's whole call tree each time it links one; the rest is numba's own
-  typing and lowering, which does not run in parallel within a process. So the frame is three compiled calls
+  typing and lowering, which does not run in parallel within a process. So the frame is five compiled calls
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
-  of one; the second half of the frame leaves the triangulation to the third call, so that only the first
-  part compiles it (but for the port's, which its smoothing needs); and the thin stages that mostly call
-  kernels (:func:`~lrsensor.extract.fit_common.fit_columns_common`, :func:`~lrsensor.extract.refit.refit_full`,
-  ...) are inlined into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The
-  larger stages stay kernels of their own: numba types an inlined body again at every call site. The child and its
+  of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the second the glow, gates, smoothing and all
+  of the triangulation (the width limits the fit needs are a call of their own, so that the first part compiles
+  no triangulation); and the thin stages that mostly call kernels
+  (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
+  into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
+  kernels of their own (inlined, they make their callers' functions so large that LLVM takes longer over them
+  than over the libraries they would save). The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
   bring numpy's broadcasting and its messages; a median beside a sort). ``python -m benchmarks.bench_compile``
@@ -81,17 +84,19 @@ class CompileError(ExtractionError):
 
 
 def entry_points() -> tuple[object, ...]:
-    """The kernels the Python side calls (each loaded from the cache on its own): the three calls of the frame
+    """The kernels the Python side calls (each loaded from the cache on its own): the five calls of the frame
     and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
-    from .frame import locate_and_fit, place_points, refine_and_finish
-    from .geometry import triangulate_points, triangulate_points_port
+    from .frame import fit_points, locate_candidates, place_points, refine_and_finish
+    from .geometry import max_fwhm_at, triangulate_points, triangulate_points_port
 
-    return (locate_and_fit, refine_and_finish, place_points, triangulate_points, triangulate_points_port)
+    return (
+        locate_candidates, max_fwhm_at, fit_points, refine_and_finish, place_points, triangulate_points,
+        triangulate_points_port,
+    )  # fmt: skip
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the frame's first half with its last step and the triangulation, and its second half, of about equal compile
-#: time.
+#: the frame's detection and fits, and its finish and triangulation, of about equal compile time.
 PARTS = ("locate", "finish")
 
 
@@ -111,26 +116,29 @@ def _build(part: str | None = None) -> None:
 
     from ..calibration import Calibration
     from .config import SubpixelConfig
-    from .frame import locate_and_fit, no_points, place_points, refine_and_finish
-    from .geometry import triangulate_points, triangulate_points_port
+    from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
+    from .geometry import max_fwhm_at, triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
     image = np.zeros((48, 64, 3), np.uint8)
     f64 = np.zeros(4)
+    i64 = np.zeros(4, np.int64)
     if part in (None, "locate"):
-        locate_and_fit(image, bands, settings, g)
-        place_points(f64, f64, np.zeros(4, np.int64), f64, settings, g, True)
-    if part in (None, "finish"):
-        located = no_points(np.ones(bands.rows.shape[0]), settings.window_half_px)
+        picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
+        fit_points(image, picked, np.zeros(0), settings)
+    if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
+        max_fwhm_at(i64, i64, i64, 1.0, 1.0, g)
+        located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
+        place_points(f64, f64, i64, f64, settings, g, True)
     if part is None:  # (the parts compile them as callees)
         triangulate_points(
-            f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+            f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
         triangulate_points_port(
-            f64, f64, np.zeros(4, np.int64), g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+            f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body, g.port,
         )  # fmt: skip
 
@@ -449,12 +457,14 @@ def _compile_parts() -> int:
         helper.terminate()
         helper.wait()
         raise
+    own_s = time.monotonic() - t0
     code = helper.wait()
     if code != 0:
         print(f"compiling the part {PARTS[1]!r} failed (exit code {code})", file=sys.stderr)
         return 1
     _write_stamp()
-    print(f"compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    # (benchmarks.bench_compile reads the parts' times)
+    print(f"compiled in {time.monotonic() - t0:.1f} s ({PARTS[0]} {own_s:.1f} s)", file=sys.stderr)
     return 0
 
 
@@ -468,6 +478,9 @@ def main(argv: list[str] | None = None) -> int:
         print("numba is not installed: nothing to compile", file=sys.stderr)
         return 1
     if "--part" in args:
-        _build(args[args.index("--part") + 1])
+        t0 = time.monotonic()
+        part = args[args.index("--part") + 1]
+        _build(part)
+        print(f"part {part} compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
         return 0
     return _compile_parts()

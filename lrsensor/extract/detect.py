@@ -24,20 +24,20 @@ import math
 
 import numpy as np
 
-from ._jit import njit, trailing_zeros
+from ._jit import inline, njit, trailing_zeros
 
 #: Noise of the detection response over the pixel noise: 2x2 average (1/2), then a 3-column box (1/sqrt(3)).
 AREA_NOISE = 0.5 / math.sqrt(3.0)
 
 
-@njit
+@inline
 def noise_col_step(n_triples, cols):  # type: ignore[no-untyped-def]
     """Column step (even, 2 to 8) of the noise samples of a band of ``n_triples`` row triples and ``cols``
     columns: about 6000 samples or more, every 2nd column in small images."""
     return 2 * max(1, min(4, (n_triples * cols) // 12000))
 
 
-@njit
+@inline
 def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
     """:func:`noise_dn` of the green rows ``src`` (R,) of an image given as ``flat``, the (H * W * 3,) view of a
     C-contiguous BGR image of ``width`` columns, evened (as the band of :func:`detect_band`, whose extra column
@@ -69,7 +69,7 @@ def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type:
     return _noise_from_histograms(h4)
 
 
-@njit
+@inline
 def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
     integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.reference._noise_dn`)."""

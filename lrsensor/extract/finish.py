@@ -5,13 +5,13 @@ amplitude (DN), sigma (px), saturated, ok, local noise (DN), chain and chain len
 
 1. the colour test (green must rise ``min_green_ratio`` times more than red and blue) and the signal-to-noise
    ratio, pooled over the fitted columns of the same chain within ``pool`` columns: rises summed, the ratio the
-   median of the neighbours' (:func:`pooled_median9`, a sorting network in registers for the default window of
-   9), at most ``1 / snr_floor_frac`` times the column's own. One noisy pixel then cannot drop a column of a dim
+   median of the neighbours' (:func:`pooled_median`, a sorting network over all columns at once), at most
+   ``1 / snr_floor_frac`` times the column's own. One noisy pixel then cannot drop a column of a dim
    stripe, nor keep one of a white blob;
 2. runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
    flat-topped, whose candidate rows wander on the top and split the chains) and within ``max_jump`` rows;
-3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs`; through a port on the rows a
-   pinhole in the water would see, :func:`smooth_through_port`);
+3. along-stripe smoothing of each run long enough (:func:`.smooth.smooth_runs_at`; through a port on the rows a
+   pinhole in the water would see, :func:`port_view`);
 4. quality in [0, 1] from the signal-to-noise ratio, the width and the chain length.
 
 Returns the accepted points ``(u, v, laser, quality)``: columns and rows (px), laser index, quality; (M,) each.
@@ -25,7 +25,7 @@ import numpy as np
 
 from ._jit import inline, njit
 from .geometry import central_view
-from .smooth import smooth_runs, smooth_runs_at
+from .smooth import smooth_runs_at
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -38,7 +38,7 @@ SORT9 = np.array(
 )
 
 
-@njit
+@inline
 def sorting_network(n):  # type: ignore[no-untyped-def]
     """Compare-exchange pairs (P, 2) that sort ``n`` values: :data:`SORT9` for 9, else odd-even transposition."""
     if n == 9:
@@ -55,8 +55,11 @@ def sorting_network(n):  # type: ignore[no-untyped-def]
 
 @njit
 def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
-    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: as
-    :func:`pooled_median9`, each compare-exchange a pass over all columns. Returns (nd,) float64."""
+    """The pooled signal-to-noise medians of :func:`finish_points` for any window ``nw``: each column's window
+    sorted by branch-free compare-exchanges, each a pass over all columns. ``ch``, ``ds``:
+    (nd + nw - 1,) the padded chains and passing ratios (NaN: none); ``own`` (nd,) each column's chain. Returns
+    the median of each column's window over the values of its own piece (NaN and other pieces left out), as
+    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64."""
     # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
     # branch-free odd-even transposition compare-exchanges that run over all columns at once
     vals = np.empty((nw, nd), np.float32)
@@ -87,104 +90,18 @@ def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
 
 
 @inline
-def _pooled_value(ch, ds, uq, j, o, inf):  # type: ignore[no-untyped-def]
-    """Value ``j`` of the window at ``uq`` for :func:`pooled_median9`: ``(value, used)``, +inf when it is not of
-    the piece ``o`` or not passing (NaN)."""
-    i = uq + np.uint64(j)
-    x = ds[i]
-    u = (ch[i] == o) & (x == x)
-    return (x if u else inf), u
+def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
+    """The rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none) and their run labels ``run`` (N,)
+    seen through the port of ``geo`` where a pinhole in the water at the camera centre would see the points
+    (:func:`.geometry.central_view`): there a stripe on a flat surface is straight (the port curves it, and line
+    fits would pull a curved stripe towards its chords). Rows whose ray misses their laser's plane leave their
+    run (label -1).
 
-
-@inline
-def _exchange(a, b):  # type: ignore[no-untyped-def]
-    """One compare-exchange: ``(min, max)``."""
-    return min(a, b), max(a, b)
-
-
-@njit
-def pooled_median9(ch, ds, nd):  # type: ignore[no-untyped-def]
-    """The pooled signal-to-noise medians of :func:`finish_points` for windows of 9 columns (``pool`` 4), each
-    column's window sorted in registers by the compare-exchanges of :data:`SORT9` (the same operations, in the
-    same order, as its pass-per-exchange twin over rows of ``vals``), so only the median is stored.
-
-    ``ch``, ``ds``: (nd + 8,) the padded chains and passing ratios (NaN: none). Returns the median of each
-    column's window over the values of its own piece (NaN and other pieces left out), as
-    ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64.
+    Returns:
+        ``(yw, x, run_w, idx, rows, slope)``: the rows seen (N,), the columns' coordinates (N,) (the view's where
+        seen, interpolated by the index between them), the runs (N,); the measured columns (M,), their rows in
+        the view and its derivative by the image row (M,), for :func:`from_port_view`.
     """
-    med = np.empty(nd)
-    inf32 = np.float32(np.inf)
-    for q in range(nd):
-        uq = np.uint64(q)
-        o = ch[uq + np.uint64(4)]
-        v0, u0 = _pooled_value(ch, ds, uq, 0, o, inf32)
-        v1, u1 = _pooled_value(ch, ds, uq, 1, o, inf32)
-        v2, u2 = _pooled_value(ch, ds, uq, 2, o, inf32)
-        v3, u3 = _pooled_value(ch, ds, uq, 3, o, inf32)
-        v4, u4 = _pooled_value(ch, ds, uq, 4, o, inf32)
-        v5, u5 = _pooled_value(ch, ds, uq, 5, o, inf32)
-        v6, u6 = _pooled_value(ch, ds, uq, 6, o, inf32)
-        v7, u7 = _pooled_value(ch, ds, uq, 7, o, inf32)
-        v8, u8 = _pooled_value(ch, ds, uq, 8, o, inf32)
-        k = np.int32(u0) + np.int32(u1) + np.int32(u2) + np.int32(u3) + np.int32(u4)
-        k += np.int32(u5) + np.int32(u6) + np.int32(u7) + np.int32(u8)
-        # SORT9, written out
-        v0, v1 = _exchange(v0, v1)
-        v3, v4 = _exchange(v3, v4)
-        v6, v7 = _exchange(v6, v7)
-        v1, v2 = _exchange(v1, v2)
-        v4, v5 = _exchange(v4, v5)
-        v7, v8 = _exchange(v7, v8)
-        v0, v1 = _exchange(v0, v1)
-        v3, v4 = _exchange(v3, v4)
-        v6, v7 = _exchange(v6, v7)
-        v0, v3 = _exchange(v0, v3)
-        v3, v6 = _exchange(v3, v6)
-        v0, v3 = _exchange(v0, v3)
-        v1, v4 = _exchange(v1, v4)
-        v4, v7 = _exchange(v4, v7)
-        v1, v4 = _exchange(v1, v4)
-        v2, v5 = _exchange(v2, v5)
-        v5, v8 = _exchange(v5, v8)
-        v2, v5 = _exchange(v2, v5)
-        v1, v3 = _exchange(v1, v3)
-        v5, v7 = _exchange(v5, v7)
-        v2, v6 = _exchange(v2, v6)
-        v4, v6 = _exchange(v4, v6)
-        v2, v4 = _exchange(v2, v4)
-        v2, v3 = _exchange(v2, v3)
-        v5, v6 = _exchange(v5, v6)
-        h = k // 2
-        a = v0
-        a = v1 if h == 1 else a
-        a = v2 if h == 2 else a
-        a = v3 if h == 3 else a
-        a = v4 if h == 4 else a
-        a = v5 if h == 5 else a
-        a = v6 if h == 6 else a
-        a = v7 if h == 7 else a
-        a = v8 if h == 8 else a
-        b = v8  # index h - 1 = -1 (no value: wraps to the last, as the row view does)
-        b = v0 if h == 1 else b
-        b = v1 if h == 2 else b
-        b = v2 if h == 3 else b
-        b = v3 if h == 4 else b
-        b = v4 if h == 5 else b
-        b = v5 if h == 6 else b
-        b = v6 if h == 7 else b
-        b = v7 if h == 8 else b
-        med[uq] = float(a) if k % 2 else 0.5 * (float(b) + float(a))
-    return med
-
-
-@njit
-def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
-    """:func:`.smooth.smooth_runs` of the rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none)
-    seen through the port of ``geo``: the line fits run where a pinhole in the water at the camera centre would
-    see the points (:func:`.geometry.central_view`), where a stripe on a flat surface is straight (the port
-    curves it, and line fits would pull a curved stripe towards its chords), and their corrections go back to
-    image rows through the local derivative (the corrections are below a pixel: the first order is exact to far
-    below 1e-3 px). Rows whose ray misses their laser's plane are left as they are."""
     idx = np.flatnonzero(np.isfinite(y))
     cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
     yw = np.full(y.size, np.nan)
@@ -195,13 +112,30 @@ def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
             yw[idx[j]] = rows[j]
         else:
             run_w[idx[j]] = -1
-    # the columns' coordinates: the water pinhole's where seen, interpolated (by the index) between them
-    index = np.arange(y.size).astype(np.float64)
-    x = index
-    if np.any(seen):
-        known = idx[seen]
-        x = np.interp(index, index[known], cols[seen])
-    sw = smooth_runs_at(yw, x, run_w, scales)
+    # the columns' coordinates: the view's where seen, linear in the index between them and constant beyond the
+    # first and the last (np.interp's arithmetic, in a loop that compiles in a fraction of its time)
+    x = np.arange(y.size).astype(np.float64)
+    known = idx[seen]
+    fk = cols[seen]
+    if known.size:
+        for q in range(known[0]):
+            x[q] = fk[0]
+        for i in range(known.size - 1):
+            k0 = known[i]
+            x[k0] = fk[i]
+            sl = (fk[i + 1] - fk[i]) / (known[i + 1] - k0)
+            for q in range(k0 + 1, known[i + 1]):
+                x[q] = sl * (q - k0) + fk[i]
+        for q in range(known[-1], y.size):
+            x[q] = fk[-1]
+    return yw, x, run_w, idx, rows, slope
+
+
+@inline
+def from_port_view(y, sw, idx, rows, slope):  # type: ignore[no-untyped-def]
+    """The smoothed rows ``sw`` (N,) of :func:`port_view` back in the image: each measured row ``y`` moved by its
+    correction in the view over the view's derivative (the corrections are below a pixel: the first order is
+    exact to far below 1e-3 px)."""
     out = y.copy()
     for j in range(idx.size):
         step = (sw[idx[j]] - rows[j]) / slope[j]
@@ -210,7 +144,7 @@ def smooth_through_port(y, run, scales, w, geo):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@inline
 def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # type: ignore[no-untyped-def]
     """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality of the fitted points.
 
@@ -233,7 +167,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
             :class:`~lrsensor.extract.settings.Settings` (``green_ratio`` above is its ``min_green_ratio``, ``pool``
             its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``);
             geo: the :class:`~lrsensor.extract.settings.Geometry` (through a port the line fits run on the rows a
-            pinhole in the water would see, :func:`smooth_through_port`).
+            pinhole in the water would see, :func:`port_view`).
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
@@ -323,10 +257,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
         good[t] = g
         ds[qc + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
     keep = np.empty(n, np.bool_)
-    if nw == 9:  # the default pool: each window sorted in registers
-        medv = pooled_median9(ch, ds, nd)
-    else:
-        medv = pooled_median(ch, ds, own, nw, nd)
+    medv = pooled_median(ch, ds, own, nw, nd)
     e_arg = np.empty(n, np.float32)
     for t in range(n):  # branch-free: the pooled ratio of the points that pass the colour gate, and the gates
         g = good[t]
@@ -377,12 +308,16 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
             y[col_v[t]] = vv[t]
             run[col_v[t]] = ri
             m += 1
-    if scales.size == 0:
-        ys = y
-    elif geo.port.present:
-        ys = smooth_through_port(y, run, scales, w, geo)
-    else:
-        ys = smooth_runs(y, run, scales)
+    ys = y
+    if scales.size:  # through a port the line fits run in its central view (port_view)
+        if geo.port.present:
+            yw, x, run_w, idx, rows_w, slope_w = port_view(y, run, w, geo)
+        else:
+            yw, x, run_w = y, np.arange(n_cols).astype(np.float64), run
+            idx, rows_w, slope_w = np.empty(0, np.int64), np.empty(0), np.empty(0)
+        ys = smooth_runs_at(yw, x, run_w, scales)
+        if geo.port.present:
+            ys = from_port_view(y, ys, idx, rows_w, slope_w)
     u_out = np.empty(m)
     v_out = np.empty(m)
     l_out = np.empty(m, np.int64)

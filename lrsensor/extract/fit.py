@@ -1,327 +1,397 @@
-"""The full sub-pixel fit of one column at a time (:func:`fit_columns`): every kind of profile.
+"""The sub-pixel fit of the stripe's profile in each picked column: one fit for every kind of profile.
 
-For each picked (column, row) the green profile ``row +- (half + e)`` is cut from the image, re-centred on its
-integer peak (the middle of a clipped run), and fitted: linear background from two flank windows of ``flank``
-rows (murk gradients and the glow beside the stripe cancel), a three-point log-parabola start (Gaussian through
-the peak and its neighbours), then a Gaussian-weighted centroid with the Newton gain of a Gaussian profile
-(unbiased for any symmetric profile, noise close to the Cramer-Rao bound). Saturated profiles (clipped tops) take
-the symmetric-window centroid from the middle of the clipped samples; flat-topped wide profiles (thick sheets
-close to the wall, wider than ``wide_fwhm`` at half level) take it from the midpoint of their half-level
-crossings, with the background flanks moved beyond the top. Another laser's stripe close by (``nb_v, nb_a,
-nb_s``) is subtracted first as a Gaussian.
+:func:`fit_columns` takes the picked (column, row) points of a frame and, for all of them at once (the inner
+loops run over columns and vectorize), fits the green profile of each:
 
-It is the slowest fit (a column at a time, branches) and the most general: the column-parallel fits
-(:mod:`.fit_common`, :mod:`.fit_clipped`, :mod:`.refit`) take the common kinds of profile with the same results
-and leave it the rest (flat tops, clipped profiles with a neighbour). Its vectorized twin in numpy is
-:func:`lrsensor.extract.centre.fit_profiles` (the reference's fit).
+1. the profile ``row +- (half + RECENTRE_PX)``, another laser's stripe close by subtracted first as a Gaussian
+   (the neighbour refits, :mod:`.refit`), re-centred on its integer peak (the middle of a clipped run, else the
+   first maximum within ``RECENTRE_PX`` rows of the row);
+2. a linear background through two flank windows of :data:`FLANK_PX` rows beyond the stripe (murk gradients and
+   the glow beside the stripe cancel) and beyond half of a clipped run (:func:`flank_offset`);
+3. the start: a three-point log-parabola (a Gaussian through the peak and its neighbours); saturated profiles
+   (clipped tops) start from the middle of their clipped samples; flat-topped wide profiles (thick sheets close to
+   the wall, wider than ``wide_fwhm_px`` at half level, steep edges) from the midpoint of their half-level
+   crossings, with the background flanks moved beyond the top;
+4. centroid iterations: a Gaussian-weighted centroid with the Newton gain of a Gaussian profile (unbiased for any
+   symmetric profile, noise close to the Cramer-Rao bound); for saturated and flat-topped profiles the plain
+   centroid in a window symmetric about the current estimate (the plateau carries no noise);
+5. acceptance (a peak, a width within the limits, the centre near the peak) and the colour rises at the peak
+   over the window ends, for the colour test pooled along the stripe (:mod:`.finish`).
+
+The numpy reference is :func:`lrsensor.extract.reference._fit` with
+:func:`lrsensor.extract.centre.fit_profiles` (the same steps in float32).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._jit import inline, njit
+from .columns import colour_rises, gather_green, half_crossings
 
+#: Rows either side of the picked row within which a profile is re-centred on its integer peak.
+RECENTRE_PX = 3
+#: Rows per background flank.
+FLANK_PX = 3
 #: Half-width (rows) of the box smoothing of a profile before its flat-top test.
 FLAT_SMOOTH = 2
+#: Sigma of a Gaussian per full width at half maximum.
+FWHM_PER_SIGMA = 2.3548200450309493
 
 
-@njit
-def _level_crossings(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
-    """First crossings below ``level`` left and right of ``R`` of a profile (window ``P[o:o + m]`` minus the line
-    ``bl + slope (q - xl)``), linearly interpolated: ``(xa, xb)``, -1 where there is none."""
-    xa = -1.0
-    for q in range(R - 1, -1, -1):
-        aq = P[o + q] - (bl + slope * (q - xl))
-        if aq < level:
-            an = P[o + q + 1] - (bl + slope * (q + 1 - xl))
-            xa = q + (level - aq) / (an - aq)
-            break
-    xb = -1.0
-    for q in range(R + 1, m):
-        aq = P[o + q] - (bl + slope * (q - xl))
-        if aq < level:
-            an = P[o + q - 1] - (bl + slope * (q - 1 - xl))
-            xb = q - (level - aq) / (an - aq)
-            break
-    return xa, xb
+class Fits(NamedTuple):
+    """The fits of ``N`` points, (N,) each; rows in pixels, amplitudes and noise in DN."""
 
-
-@njit
-def _level_width(P, o, R, m, bl, slope, xl, level):  # type: ignore[no-untyped-def]
-    """Width at ``level`` between :func:`_level_crossings`; inf when one is missing."""
-    xa, xb = _level_crossings(P, o, R, m, bl, slope, xl, level)
-    return xb - xa if (xa >= 0 and xb >= 0) else np.inf
-
-
-@njit
-def _flank_line(P, o, R, off, flank):  # type: ignore[no-untyped-def]
-    """Background line through the means of the two flank windows ``R -+ (off .. off + flank - 1)`` of the profile
-    window ``P[o:]``: ``(bl, slope, xl)``, the line being ``bl + slope (q - xl)``."""
-    bl = 0.0
-    br = 0.0
-    for q in range(flank):
-        bl += P[o + R - off - q]
-        br += P[o + R + off + q]
-    bl /= flank
-    br /= flank
-    xl = R - off - 0.5 * (flank - 1)
-    return bl, (br - bl) / (2.0 * off + flank - 1), xl
+    #: Centre row (NaN where not accepted).
+    centre: NDArray[np.float64]
+    #: Peak height above the local background.
+    amplitude: NDArray[np.float64]
+    #: Gaussian-equivalent width (saturated: of the clipped run; flat tops: of the half-level width), px.
+    sigma: NDArray[np.float64]
+    #: Clipped top (at least two clipped samples, the peak one among them).
+    saturated: NDArray[np.bool_]
+    #: Accepted.
+    ok: NDArray[np.bool_]
+    #: Spread of the flank samples about the background line.
+    local_noise: NDArray[np.float64]
+    #: (3, N) the rises of blue, green and red at the peak row over the mean of the window's ends.
+    rise: NDArray[np.float64]
 
 
 @inline
 def flank_offset(sigma_hint, n_sat, half, flank):  # type: ignore[no-untyped-def]
     """Rows from the peak to the inner row of each background flank of ``flank`` rows: beyond 3 ``sigma_hint`` and
-    half of ``n_sat`` clipped samples, inside the window of ``half`` rows either side (every fit places its flanks
-    so; :func:`read_reach` takes them as the rows a fit reads)."""
+    half of a clipped run of ``n_sat`` samples, inside the window of ``half`` rows either side (every fit places
+    its flanks so; :func:`.refit.read_reach` takes them as the rows a fit reads)."""
     return int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), half - flank + 1))
 
 
 @njit
-def _subtract_gaussian(P, mu, a, sigma):  # type: ignore[no-untyped-def]
-    """``P[q] -= a exp(-(q - mu)^2 / (2 sigma^2))`` for every sample of the profile ``P`` (K,), in place.
+def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-untyped-def]
+    """The green profiles of rows ``top ... top + k_rows - 1`` (clamped to the image) of columns ``cols`` less the
+    Gaussian ``amp exp(-(row - mu)^2 inv)`` of each column (``g2 = exp(-2 inv)``; (N,) each; ``amp`` 0: none):
+    (k_rows, N) float64.
 
-    Four ``exp`` in all: the weights by recurrence outward from the sample nearest ``mu``, where each step
-    multiplies by a ratio that itself shrinks by ``exp(-1 / sigma^2)`` (so they only fall: no overflow, and an
-    underflow to zero is the true value's)."""
-    k = P.size
-    inv = 0.5 / (sigma * sigma)
-    g2 = math.exp(-2.0 * inv)
-    qc = min(max(int(math.floor(mu + 0.5)), 0), k - 1)  # noqa: RUF046 (numba: floor of a float is a float)
-    d = qc - mu
-    w0 = a * math.exp(-(d * d) * inv)
-    w = w0
-    ratio = math.exp(-(2.0 * d + 1.0) * inv)  # w(d + 1) / w(d)
-    for q in range(qc, k):
-        P[q] -= w
-        w *= ratio
-        ratio *= g2
-    w = w0
-    ratio = math.exp((2.0 * d - 1.0) * inv)  # w(d - 1) / w(d)
-    for q in range(qc - 1, -1, -1):
-        w *= ratio
-        ratio *= g2
-        P[q] -= w
+    Three ``exp`` per column: each column's Gaussian by recurrence from the first row where it exceeds ``e^-30``
+    of its peak (a start further out could underflow to zero and stay there)."""
+    n = cols.size
+    W = np.empty((k_rows, n), np.uint8)
+    gather_green(image, cols, top, W)
+    qs = np.empty(n, np.int64)
+    ex = np.empty(2 * n)
+    for t in range(n):
+        r30 = math.sqrt(30.0 / inv[t])
+        q0 = min(max(int(math.ceil(mu[t] - r30 - top[t])), 0), k_rows) if amp[t] != 0.0 else k_rows  # noqa: RUF046
+        qs[t] = q0
+        d = top[t] + q0 - mu[t] if q0 < k_rows else 0.0
+        ex[t] = -(d * d) * inv[t]
+        ex[n + t] = -(2.0 * d + 1.0) * inv[t]
+    ex = np.exp(ex)
+    w = ex[:n].copy()
+    ratio = ex[n:].copy()
+    P = np.empty((k_rows, n))
+    for q in range(k_rows):
+        wq = W[q]
+        pq = P[q]
+        for t in range(n):
+            on = q >= qs[t]
+            pq[t] = wq[t] - (amp[t] * w[t] if on else 0.0)
+            w[t] = w[t] * ratio[t] if on else w[t]
+            ratio[t] = ratio[t] * g2[t] if on else ratio[t]
+    return P
 
 
 @njit
-def fit_columns(  # type: ignore[no-untyped-def]
-    image,
-    cols,
-    rows,
-    half,
-    e,
-    sigma_hint,
-    sat_dn,
-    min_sig,
-    max_sig,
-    flank,
-    iterations,
-    nb_v,
-    nb_a,
-    nb_s,
-    max_fwhm,
-    wide_fwhm,
-):
-    """Sub-pixel centre per column (the reference's vectorized fit is :func:`lrsensor.extract.centre.fit_profiles`).
+def _clipped_runs(P, sat_dn):  # type: ignore[no-untyped-def]
+    """Per column of the profiles ``P`` (k, n): how many samples are clipped (at least ``sat_dn``) and the rows of
+    the first and the last of them, (n,) int64 each (first ``k`` and last -1 where none)."""
+    k, n = P.shape
+    cnt = np.zeros(n, np.int64)
+    first = np.full(n, k)
+    last = np.full(n, -1)
+    for q in range(k):
+        pq = P[q]
+        for t in range(n):
+            c = pq[t] >= sat_dn
+            cnt[t] += c
+            first[t] = min(first[t], q) if c else first[t]
+            last[t] = q if c else last[t]
+    return cnt, first, last
 
-    For each (column, integer row) the green profile ``rows +- (half + e)`` is cut from ``image`` (H, W, 3)
-    uint8, re-centred on its integer peak (the middle of a clipped run), and fitted: linear background from two
-    flank windows, three-point log-parabola start, Gaussian-weighted centroid with the Newton gain (saturated:
-    symmetric-window centroid from the middle of the clipped samples, accepted anywhere on the clipped top). The
-    rises of blue, green and red at the peak over the window ends are returned for the colour test, which is
-    pooled along the stripe (:func:`finish_points`).
-    ``nb_v, nb_a, nb_s`` (N,): row, amplitude and sigma of another laser's stripe close by in the same column
-    (NaN row = none); its Gaussian is subtracted from the profile first (stripes overlapping at long range).
-    Profiles whose half-level width exceeds ``wide_fwhm`` (flat-topped thick sheets close to the wall) take the
-    symmetric-window centroid from the midpoint of their half-level crossings, with the background flanks moved
-    beyond them; they pass while that width is at most ``max_fwhm`` (N,) (the physical limit at that row).
+
+@inline
+def _flank_line(p, o, flank):  # type: ignore[no-untyped-def]
+    """The background line of the profile ``p`` (m,) through the means of its two flank windows
+    ``R -+ (o .. o + flank - 1)``: ``(bl, slope, xl, noise)``, the line being ``bl + slope (q - xl)`` and ``noise``
+    the spread of the flank samples about it."""
+    R = p.size // 2
+    a = 0.0
+    b = 0.0
+    for q in range(flank):
+        a += p[R - o - q]
+        b += p[R + o + q]
+    a /= flank
+    b /= flank
+    slope = (b - a) / (2.0 * o + flank - 1)
+    xl = R - o - 0.5 * (flank - 1)
+    ss = 0.0
+    for q in range(flank):
+        r1 = p[R - o - q] - (a + slope * (R - o - q - xl))
+        r2 = p[R + o + q] - (a + slope * (R + o + q - xl))
+        ss += r1 * r1 + r2 * r2
+    return a, slope, xl, math.sqrt(ss / max(2 * flank - 2, 1))
+
+
+@inline
+def _level_width(S, level):  # type: ignore[no-untyped-def]
+    """Width at ``level`` of the profile ``S`` (m,) between its first crossings below it left and right of the
+    middle sample, linearly interpolated; inf where one is missing."""
+    m = S.size
+    R = m // 2
+    xa = -1.0
+    for q in range(R - 1, -1, -1):
+        if S[q] < level:
+            xa = q + (level - S[q]) / (S[q + 1] - S[q])
+            break
+    xb = -1.0
+    for q in range(R + 1, m):
+        if S[q] < level:
+            xb = q - (level - S[q]) / (S[q - 1] - S[q])
+            break
+    return xb - xa if (xa >= 0 and xb >= 0) else np.inf
+
+
+@inline
+def _is_flat(a, a0, fw):  # type: ignore[no-untyped-def]
+    """Whether the background-free profile ``a`` (m,) of peak ``a0`` and half-level width ``fw`` is flat-topped
+    (a thick sheet): steep edges, its widths at 1/4 and 3/4 of the peak differ by at most half the half-level
+    width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that), measured on the profile
+    box-smoothed over ``2 FLAT_SMOOTH + 1`` rows (noise on a plateau must not decide)."""
+    m = a.size
+    k = FLAT_SMOOTH
+    S = np.empty(m)
+    for q in range(m):
+        acc = 0.0
+        for j in range(max(q - k, 0), min(q + k, m - 1) + 1):
+            acc += a[j]
+        S[q] = acc / (2 * k + 1)
+    a0s = max(S[m // 2], 0.5 * a0)
+    return _level_width(S, 0.25 * a0s) - _level_width(S, 0.75 * a0s) <= 0.5 * fw + k
+
+
+@njit
+def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fwhm):  # type: ignore[no-untyped-def]
+    """The sub-pixel fit of the green profile at each (column, row) (see the module documentation).
+
+    Args:
+        image: (H, W, 3) uint8 BGR, C-contiguous; cols, rows: (N,) int64 the picked columns and rows.
+        half: the window's half-length, rows; sigma_hint: the frame's typical sigma, px (the log-parabola's
+            spacing, the flanks' offset and the saturated profiles' window).
+        s: the :class:`~lrsensor.extract.settings.Settings` (saturation, widths, iterations).
+        nb_v, nb_a, nb_s: (N,) row, amplitude (DN) and sigma (px) of another laser's stripe close by in the same
+            column, subtracted first (NaN row: none).
+        max_fwhm: (N,) the widest half-level width the laser sheet allows at each point, px (flat tops pass
+            while theirs is at most that).
 
     Returns:
-        ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise)``: (N,) each, and rise (3, N) in B, G, R.
+        :class:`Fits`.
     """
-    h = image.shape[0]
     n = cols.size
     m = 2 * half + 1
     R = half
-    centre = np.full(n, np.nan)
-    amp_out = np.zeros(n)
-    sig_out = np.full(n, np.nan)
-    sat_out = np.zeros(n, np.bool_)
-    ok_out = np.zeros(n, np.bool_)
-    noise_out = np.zeros(n)
-    rise = np.zeros((3, n))
-    P = np.empty(m + 2 * e)
-    B = np.empty(m)
-    S = np.empty(m)
+    e = RECENTRE_PX
+    flank = FLANK_PX
+    sat_dn = s.saturation_dn
+    min_sig = s.min_fwhm_px / FWHM_PER_SIGMA
+    max_sig = s.max_sigma_px
+    wide_fwhm = s.wide_fwhm_px
+    # the neighbour's Gaussian: amplitude, 1 / (2 sigma^2) and exp(-2 / (2 sigma^2)) per column (amplitude 0: none)
+    amp_nb = np.empty(n)
+    inv_nb = np.empty(n)
+    g2_nb = np.empty(n)
     for t in range(n):
-        col = cols[t]
-        r0 = rows[t] - half - e
-        for q in range(m + 2 * e):
-            rr = min(max(r0 + q, 0), h - 1)
-            P[q] = image[rr, col, 1]
-        if math.isfinite(nb_v[t]):
-            _subtract_gaussian(P, nb_v[t] - r0, nb_a[t], nb_s[t])
-        # re-centre on the integer peak within +-e
-        bq = e + R
-        bv = -1.0
-        nsat_core = 0
-        first = -1
-        last = -1
-        for q in range(R, R + 2 * e + 1):
-            if P[q] > bv:
-                bv = P[q]
-                bq = q
-            if P[q] >= sat_dn:
-                nsat_core += 1
-                if first < 0:
-                    first = q
-                last = q
-        if nsat_core > 0:
-            bq = (first + last) // 2
-        shift = bq - (e + R)
-        o = e + shift  # window start in P
-        pk_row = rows[t] + shift
-        # saturation
-        n_sat = 0
-        q_first = m
-        q_last = -1
-        for q in range(m):
-            if P[o + q] >= sat_dn:
-                n_sat += 1
-                q_first = min(q_first, q)
-                q_last = q
-        saturated = P[o + R] >= sat_dn and n_sat >= 2
-        # 1. linear background
-        off = flank_offset(sigma_hint, n_sat, R, flank)
-        bl, slope, xl = _flank_line(P, o, R, off, flank)
-        ss = 0.0
-        for q in range(flank):
-            r1 = P[o + R - off - q] - (bl + slope * (R - off - q - xl))
-            r2 = P[o + R + off + q] - (bl + slope * (R + off + q - xl))
-            ss += r1 * r1 + r2 * r2
-        noise_out[t] = math.sqrt(ss / max(2 * flank - 2, 1))
-        # 2. log-parabola start
-        s = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
-        am = P[o + R - s] - (bl + slope * (R - s - xl))
-        a0 = P[o + R] - (bl + slope * (R - xl))
-        ap = P[o + R + s] - (bl + slope * (R + s - xl))
-        ym = math.log(max(am, 0.5))
-        y0 = math.log(max(a0, 0.5))
-        yp = math.log(max(ap, 0.5))
+        has = math.isfinite(nb_v[t])
+        amp_nb[t] = nb_a[t] if has else 0.0
+        inv_nb[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
+        g2_nb[t] = -2.0 * inv_nb[t]
+    g2_nb = np.exp(g2_nb)
+    # 1. re-centre on the integer peak of rows - e ... rows + e: the middle of its clipped run, else the first
+    # maximum
+    top = np.empty(n, np.int64)
+    for t in range(n):
+        top[t] = rows[t] - e
+    C = _profiles(image, cols, top, 2 * e + 1, nb_v, amp_nb, inv_nb, g2_nb)
+    bv = np.full(n, -1.0)
+    arg = np.full(n, e)  # (nothing above -1, as can happen less a neighbour: the picked row)
+    for q in range(2 * e + 1):
+        cq = C[q]
+        for t in range(n):
+            up = cq[t] > bv[t]
+            bv[t] = cq[t] if up else bv[t]
+            arg[t] = q if up else arg[t]
+    _, c_first, c_last = _clipped_runs(C, sat_dn)
+    pk = np.empty(n, np.int64)
+    for t in range(n):
+        mid = (c_first[t] + c_last[t]) // 2 if c_first[t] <= c_last[t] else arg[t]
+        pk[t] = rows[t] - e + mid
+        top[t] = pk[t] - half
+    P = _profiles(image, cols, top, m, nb_v, amp_nb, inv_nb, g2_nb)
+    # 2. saturation and the background line (beyond half of a clipped run: a single clipped sample is a peak
+    # just reaching the top of the range, not a run)
+    n_sat, q_first, q_last = _clipped_runs(P, sat_dn)
+    saturated = np.empty(n, np.bool_)
+    off = np.empty(n, np.int64)
+    for t in range(n):
+        saturated[t] = P[R, t] >= sat_dn and n_sat[t] >= 2
+        off[t] = flank_offset(sigma_hint, n_sat[t] if n_sat[t] >= 2 else 0, R, flank)
+    line = np.empty((3, n))
+    noise = np.empty(n)
+    for t in range(n):
+        line[0, t], line[1, t], line[2, t], noise[t] = _flank_line(P[:, t], off[t], flank)
+    A = np.empty((m, n))
+    _subtract_lines(P, line, A)
+    # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
+    sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
+    lv = np.empty(3 * n)
+    for t in range(n):
+        lv[t] = max(A[R - sp, t], 0.5)
+        lv[n + t] = max(A[R, t], 0.5)
+        lv[2 * n + t] = max(A[R + sp, t], 0.5)
+    lv = np.log(lv)
+    c = np.empty(n)
+    sigma = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    for t in range(n):
+        ym = lv[t]
+        y0 = lv[n + t]
+        yp = lv[2 * n + t]
         den = ym - 2.0 * y0 + yp
         curved = den < -1e-6
-        if curved:
-            delta = min(max(0.5 * s * (ym - yp) / den, -1.0), 1.0)
-            sigma = s / math.sqrt(-den)
-        else:
-            delta = 0.0
-            sigma = np.inf
-        c = R + delta
-        if saturated:  # start from the middle of the clipped samples (the log-parabola sees a flat top)
-            c = 0.5 * (q_first + q_last)
-            sigma = max(0.5 * n_sat / 1.1774, sigma_hint)
-        ok = saturated or (curved and sigma >= min_sig and sigma <= max_sig)
-        sig_p = sigma if math.isfinite(sigma) else sigma_hint
-        sig_p = min(max(sig_p, min_sig), max_sig)
-        sig_w = max(sig_p, 1.1)
-        inv2 = 0.5 / (sig_w * sig_w)
-        gain = 1.0 if saturated else 1.0 + sig_p * sig_p * 2.0 * inv2
-        hs = 0.5 * n_sat + 2.5 * sigma_hint + 1.0
-        # half-level width and midpoint (flat tops: the log-parabola sees no curvature there)
-        wide = False
-        fw = np.inf
-        if not saturated and a0 > 0:
-            xa, xb = _level_crossings(P, o, R, m, bl, slope, xl, 0.5 * a0)
-            fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
-            # flat-topped (a thick sheet): steep edges, the widths at 1/4 and 3/4 of the peak differ by at most
-            # half the half-level width (a Gaussian: 0.77 of it; glow and haze ridges are smooth like that)
-            flat = False
-            if fw > wide_fwhm:  # (only then does the shape matter)
-                # on the profile box-smoothed over 2 FLAT_SMOOTH + 1 rows (noise on a plateau must not decide)
-                k = FLAT_SMOOTH
-                for q in range(m):
-                    acc = 0.0
-                    for j in range(max(q - k, 0), min(q + k, m - 1) + 1):
-                        acc += P[o + j] - (bl + slope * (j - xl))
-                    S[q] = acc / (2 * k + 1)
-                a0s = max(S[R], 0.5 * a0)
-                w25 = _level_width(S, 0, R, m, 0.0, 0.0, 0.0, 0.25 * a0s)
-                w75 = _level_width(S, 0, R, m, 0.0, 0.0, 0.0, 0.75 * a0s)
-                flat = w25 - w75 <= 0.5 * fw + k
-            if fw > wide_fwhm and math.isfinite(fw):
-                c = 0.5 * (xa + xb)  # wide: the peak sample may be anywhere on the top; start from the middle
-            if fw > wide_fwhm and flat:
-                wide = True
-                ok = fw <= max_fwhm[t]
-                if math.isfinite(fw):
-                    c = 0.5 * (xa + xb)
-                    sigma = fw / 2.3548200450309493
-                    # background flanks beyond the flat top and its edges
-                    off = int(min(max(off, math.ceil(0.5 * fw + 4.0)), R - flank + 1))
-                    bl, slope, xl = _flank_line(P, o, R, off, flank)
-                    hs = min(0.5 * fw + 3.0, off - 1.0) + 0.5
-                    a0 = P[o + R] - (bl + slope * (R - xl))
-        # 3. centroid iterations on the background-free profile B
+        c[t] = R + (min(max(0.5 * sp * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        sigma[t] = sp / math.sqrt(-den) if curved else np.inf
+        ok[t] = curved and sigma[t] >= min_sig and sigma[t] <= max_sig
+        if saturated[t]:
+            c[t] = 0.5 * (q_first[t] + q_last[t])
+            sigma[t] = max(0.5 * n_sat[t] / 1.1774, sigma_hint)
+            ok[t] = True
+    # half-level widths (not saturated): wide profiles start from the middle of their crossings; flat-topped ones
+    # (few) also take the window centroid, their flanks beyond the top
+    window = saturated.copy()  # the columns of the window centroid (else Gaussian weights)
+    hs = np.empty(n)  # its half-width
+    lim_c = np.empty(n)  # the largest accepted distance of the centre from the peak row
+    lvl = np.empty(n)
+    for t in range(n):
+        hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
+        lim_c[t] = 0.5 * n_sat[t] + 1.0 if saturated[t] else 2.0
+        lvl[t] = 0.5 * A[R, t]
+    xa, xb = half_crossings(A, lvl)
+    for t in range(n):
+        fw = xb[t] - xa[t] if (xa[t] >= 0 and xb[t] >= 0) else np.inf
+        if saturated[t] or not A[R, t] > 0 or not fw > wide_fwhm:
+            continue
+        if math.isfinite(fw):  # the peak sample may be anywhere on the top
+            c[t] = 0.5 * (xa[t] + xb[t])
+            lim_c[t] = 0.5 * fw + 1.0
+        if not _is_flat(A[:, t].copy(), A[R, t], fw):
+            continue
+        window[t] = True
+        ok[t] = fw <= max_fwhm[t]
+        if math.isfinite(fw):
+            sigma[t] = fw / FWHM_PER_SIGMA
+            o = int(min(max(off[t], math.ceil(0.5 * fw + 4.0)), R - flank + 1))
+            hs[t] = min(0.5 * fw + 3.0, o - 1.0) + 0.5
+            bl, slope, xl, _noise = _flank_line(P[:, t], o, flank)
+            for q in range(m):
+                A[q, t] = P[q, t] - (bl + slope * (q - xl))
+    # 4. centroid iterations
+    inv2 = np.empty(n)
+    gain = np.empty(n)
+    reach = np.empty(n)
+    for t in range(n):
+        sig_p = min(max(sigma[t] if math.isfinite(sigma[t]) else sigma_hint, min_sig), max_sig)
+        sig_w = max(sig_p, 1.1)  # narrower Gaussian weights alias on the pixel grid (a biased first moment)
+        inv2[t] = 0.5 / (sig_w * sig_w)
+        gain[t] = 1.0 if window[t] else 1.0 + sig_p * sig_p * 2.0 * inv2[t]
+        reach[t] = 4.0 * sig_w + 1.0  # Gaussian weights beyond are below exp(-8)
+    _centroids(A, c, window, hs, inv2, gain, reach, s.iterations)
+    # 5. acceptance and the results
+    centre = np.empty(n)
+    amp = np.empty(n)
+    for t in range(n):
+        amp[t] = A[R, t]
+        good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= lim_c[t] and amp[t] > 0
+        ok[t] = good
+        centre[t] = pk[t] - half + c[t] if good else np.nan
+    rise = np.empty((3, n))
+    colour_rises(image, cols, pk, half, (0, 1, 2), rise)
+    return Fits(centre, amp, sigma, saturated, ok, noise, rise)
+
+
+@inline
+def _subtract_lines(P, line, A):  # type: ignore[no-untyped-def]
+    """``A = P - (bl + slope (q - xl))`` for the profiles ``P`` (m, n) and their lines ``line`` (3, n)."""
+    m, n = P.shape
+    bl = line[0]
+    slope = line[1]
+    xl = line[2]
+    for q in range(m):
+        pq = P[q]
+        aq = A[q]
+        for t in range(n):
+            aq[t] = pq[t] - (bl[t] + slope[t] * (q - xl[t]))
+
+
+@njit
+def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore[no-untyped-def]
+    """Centroid iterations on the background-free profiles ``A`` (m, n) from the centres ``c`` (n,) (window
+    rows, updated in place): where ``window``, the plain centroid with weights 1 within ``hs - 1`` rows of the
+    centre, 0 beyond ``hs`` and linear between; elsewhere Gaussian weights ``exp(-d^2 inv2)`` out to ``reach``
+    rows (by recurrence: two ``exp`` per column and iteration), the step times ``gain``. A step is at most a row;
+    a column whose centre is not finite stays so."""
+    m, n = A.shape
+    q0 = np.empty(n, np.int64)
+    q1 = np.empty(n, np.int64)
+    w = np.empty(n)
+    ratio = np.empty(n)
+    g2 = np.empty(n)
+    s0 = np.empty(n)
+    s1 = np.empty(n)
+    ex = np.empty(2 * n)
+    for t in range(n):
+        g2[t] = -2.0 * inv2[t]
+    g2 = np.exp(g2)
+    for _ in range(iterations):
+        for t in range(n):
+            s0[t] = 0.0
+            s1[t] = 0.0
+            fin = math.isfinite(c[t])
+            gauss = fin and not window[t]
+            q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
+            q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
+            d0 = q0[t] - c[t] if gauss else 0.0
+            ex[t] = -(d0 * d0) * inv2[t]
+            ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
+        ex = np.exp(ex)
+        for t in range(n):
+            w[t] = ex[t]
+            ratio[t] = ex[n + t]
         for q in range(m):
-            B[q] = P[o + q] - (bl + slope * (q - xl))
-        if saturated or wide:
-            for _ in range(iterations):
-                s0 = 0.0
-                s1 = 0.0
-                for q in range(m):
-                    d = q - c
-                    wa = min(max(hs - abs(d), 0.0), 1.0) * B[q]
-                    s0 += wa
-                    s1 += wa * d
-                if s0 != 0.0:
-                    step = s1 / s0
-                    if math.isfinite(step):
-                        c += min(max(step, -1.0), 1.0)
-        else:
-            g2 = math.exp(-2.0 * inv2)
-            reach = 4.0 * sig_w + 1.0  # weights beyond are below exp(-8)
-            for _ in range(iterations):
-                if not math.isfinite(c):
-                    break
-                q0 = max(int(math.floor(c - reach)), 0)  # noqa: RUF046 (numba: floor of a float is a float)
-                q1 = min(int(math.ceil(c + reach)) + 1, m)  # noqa: RUF046
-                s0 = 0.0
-                s1 = 0.0
-                # Gaussian weights by recurrence: w(q+1) = w(q) r(q), r(q+1) = r(q) exp(-2 inv2) (two exp per column)
-                d0 = q0 - c
-                w = math.exp(-(d0 * d0) * inv2)
-                ratio = math.exp(-(2.0 * d0 + 1.0) * inv2)
-                for q in range(q0, q1):
-                    wa = w * B[q]
-                    s0 += wa
-                    s1 += wa * (q - c)
-                    w *= ratio
-                    ratio *= g2
-                if s0 != 0.0:
-                    step = gain * s1 / s0
-                    if math.isfinite(step):
-                        c += min(max(step, -1.0), 1.0)
-        if saturated:
-            amp = P[o + R] - (bl + slope * (R - xl))
-        else:
-            amp = a0
-        lim_c = 0.5 * fw + 1.0 if (fw > wide_fwhm and math.isfinite(fw)) else 2.0
-        if saturated:  # anywhere on the clipped top
-            lim_c = 0.5 * n_sat + 1.0
-        ok = ok and math.isfinite(c) and abs(c - R) <= lim_c and amp > 0
-        # colour: the rises of blue, green and red at the peak over the window ends (judged along the stripe later)
-        rp = min(max(pk_row, 0), h - 1)
-        rl = min(max(pk_row - half, 0), h - 1)
-        rh = min(max(pk_row + half, 0), h - 1)
-        for ch in range(3):
-            rise[ch, t] = image[rp, col, ch] - 0.5 * (float(image[rl, col, ch]) + image[rh, col, ch])
-        if ok:
-            centre[t] = pk_row - half + c
-        amp_out[t] = amp
-        sig_out[t] = sigma
-        sat_out[t] = saturated
-        ok_out[t] = ok
-    return centre, amp_out, sig_out, sat_out, ok_out, noise_out, rise
+            aq = A[q]
+            for t in range(n):
+                inr = (q >= q0[t]) & (q < q1[t])
+                d = q - c[t]
+                wt = min(max(hs[t] - abs(d), 0.0), 1.0) if window[t] else w[t]
+                wa = wt * aq[t]
+                s0[t] += wa if inr else 0.0
+                s1[t] += wa * d if inr else 0.0
+                w[t] = w[t] * ratio[t] if inr else w[t]
+                ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
+        for t in range(n):
+            if s0[t] != 0.0:
+                step = gain[t] * s1[t] / s0[t]
+                if math.isfinite(step):
+                    c[t] += min(max(step, -1.0), 1.0)

@@ -1,21 +1,24 @@
-"""The compiled road: three calls that extract (and triangulate) the stripes of one frame.
+"""The compiled road: five calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in three compiled calls:
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in five compiled calls:
 
-- :func:`locate_and_fit`:
+- :func:`locate_candidates`:
 
   1. detection per laser in its band (:func:`.detect.detect_band`), the candidates of all lasers numbered as
      one row of virtual columns ``laser * width_d + column_d``;
   2. continuity (:func:`.chains.select_candidates`, :func:`.chains.expand_half`): one candidate per column;
-  3. the width limit of every point (:func:`.geometry.max_fwhm_at`), frame statistics
-     (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and the
-     column-parallel sub-pixel fits by kind of profile (:mod:`.fit_common`, :mod:`.fit_clipped`);
+
+- :func:`.geometry.max_fwhm_at`: the width limit of every point (the laser sheet's thickness at its depth);
+
+- :func:`fit_points`:
+
+  3. frame statistics (:func:`frame_profile_stats`: the typical sigma and clipped run, hence the fit window) and
+     the sub-pixel fit of every point, one column-parallel fit for every kind of profile (:mod:`.fit`), then the
+     neighbour refits where two lasers' stripes come close (:mod:`.refit`);
 
 - :func:`refine_and_finish`:
 
-  4. the profiles left (flat tops) by the full kernel (:mod:`.fit`), neighbour refits where two lasers'
-     stripes come close (:mod:`.refit`), then the joint stripe-and-glow fits where a profile shows the laser
-     sheet's glow (turbid water, :mod:`.glow`);
+  4. the joint stripe-and-glow fits where a profile shows the laser sheet's glow (turbid water, :mod:`.glow`);
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
 
@@ -28,10 +31,11 @@ Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records bu
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
 body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
 
-Why three calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
+Why five calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
-stage twice over; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`), and
-their hand-overs (:class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
+stage again; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`: the
+triangulation, which the width limits and the points both need, in one of them only), and their hand-overs
+(:class:`Picked`, :class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
 Python call per stage would cost as much again. The numpy reference
 (:mod:`lrsensor.extract.reference`) implements the same algorithm readably for tests and for machines without
 numba.
@@ -47,23 +51,21 @@ from numpy.typing import NDArray
 
 from ._jit import inline, njit
 from .chains import expand_half, select_candidates, sorted_blocks
-from .columns import put_fit
 from .detect import detect_band
 from .finish import finish_points
-from .fit import flank_offset
-from .fit_clipped import core_peaks, fit_columns_clipped
-from .fit_common import fit_columns_common
+from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit
-from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_full, refit_targets, rows_overlap
+from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
+from .sorting import median, sorted_copy
 
 #: Sigma of a Gaussian per full width at half maximum.
 FWHM_PER_SIGMA = 2.3548200450309493
 
 
 class Located(NamedTuple):
-    """What :func:`locate_and_fit` hands to :func:`refine_and_finish`: the frame's ``N`` picked candidates (one
+    """What :func:`fit_points` hands to :func:`refine_and_finish`: the frame's ``N`` picked candidates (one
     per laser and column, sorted by virtual column) and their fits so far. Every array is C-contiguous and
     freshly allocated (the second call is compiled once, for exactly these types)."""
 
@@ -75,19 +77,10 @@ class Located(NamedTuple):
     rows: NDArray[np.int64]
     chain: NDArray[np.int64]
     chain_len: NDArray[np.int64]
-    #: The fits so far, (N,) each: centre row, amplitude (DN), sigma (px), saturated, ok, local noise (DN), and
-    #: the colour rises (3, N) in B, G, R (:func:`.columns.fit_results`).
-    centre: NDArray[np.float64]
-    amplitude: NDArray[np.float64]
-    sigma: NDArray[np.float64]
-    saturated: NDArray[np.bool_]
-    ok: NDArray[np.bool_]
-    local_noise: NDArray[np.float64]
-    rise: NDArray[np.float64]
+    #: The fits of the points (:func:`.fit.fit_columns`).
+    fits: Fits
     #: (N,) the widest profile the laser sheet allows at each point, px (:func:`.geometry.max_fwhm_at`).
     max_fwhm: NDArray[np.float64]
-    #: (R,) int64 the points whose profile only the full kernel fits (flat tops).
-    flat: NDArray[np.int64]
     #: Half-length of the fit window, px, and the frame's typical Gaussian sigma, px (:func:`frame_profile_stats`).
     half: int
     sigma_px: float
@@ -95,13 +88,20 @@ class Located(NamedTuple):
     noise: NDArray[np.float64]
 
 
-@inline
-def _median(a):  # type: ignore[no-untyped-def]
-    """``np.median`` of a non-empty ``a`` as numba computes it (NaN ordered last), from a sort: the frame
-    statistics sort anyway, and one sort compiles in half the time of a sort and numba's selection."""
-    srt = np.sort(a)
-    h = srt.size // 2
-    return srt[h] if srt.size % 2 else (srt[h - 1] + srt[h]) / 2
+class Picked(NamedTuple):
+    """What :func:`locate_candidates` hands on: the frame's ``N`` picked candidates, one per laser and column,
+    sorted by virtual column (C-contiguous, freshly allocated: the calls after it are compiled for these types)."""
+
+    #: (N,) int64 virtual columns ``laser * W + column``, the laser and the image column of each point.
+    col_v: NDArray[np.int64]
+    laser: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    #: (N,) int64 the candidate row of each point; its chain and the chain's length (:mod:`.chains`).
+    rows: NDArray[np.int64]
+    chain: NDArray[np.int64]
+    chain_len: NDArray[np.int64]
+    #: (L,) the band noise of each laser, DN.
+    noise: NDArray[np.float64]
 
 
 @njit
@@ -160,18 +160,18 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
         xr = right - (half_level - X[right]) / max(X[right - 1] - X[right], 1e-9)
         widths[nw] = xr - xl
         nw += 1
-    wide = _median(max_fwhm) if max_fwhm.size > 0 else 0.0
+    wide = median(max_fwhm) if max_fwhm.size > 0 else 0.0
     sigma = 1.0
     if nw > 0:
-        sg = _median(widths[:nw]) / 2.3548200450309493
+        sg = median(widths[:nw]) / 2.3548200450309493
         if math.isfinite(sg):
             sigma = min(max(sg, 0.6), max(max_sigma, wide / 2.3548200450309493))
-    srt = np.sort(n_sat)
+    srt = sorted_copy(n_sat)
     plateau = srt[int(0.9 * (n - 1))] if n > 0 else 0.0
     return sigma, plateau, wide
 
 
-@njit
+@inline
 def no_points(noise, half):  # type: ignore[no-untyped-def]
     """The :class:`Located` of a frame without candidates."""
     e_i = np.empty(0, np.int64)
@@ -184,31 +184,64 @@ def no_points(noise, half):  # type: ignore[no-untyped-def]
         rows=e_i,
         chain=e_i,
         chain_len=e_i,
-        centre=e_f,
-        amplitude=e_f,
-        sigma=e_f,
-        saturated=e_b,
-        ok=e_b,
-        local_noise=e_f,
-        rise=np.empty((3, 0)),
+        fits=Fits(e_f, e_f, e_f, e_b, e_b, e_f, np.empty((3, 0))),
         max_fwhm=e_f,
-        flat=e_i,
         half=half,
         sigma_px=1.0,
         noise=noise,
     )
 
 
+@inline
+def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, s, max_fwhm, res):  # type: ignore[no-untyped-def]
+    """Where two lasers' stripes come close (long range), refit the points of each with the other's Gaussian
+    within ``max_d`` rows subtracted, a few rounds (:mod:`.refit`; ``n_l`` lasers); ``res``, the
+    :class:`~lrsensor.extract.fit.Fits` of every point, is updated in place, and so is ``good`` (N,), whether
+    each point can be a neighbour (accepted, not saturated)."""
+    w = image.shape[1]
+    n = cols.size
+    vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
+    # the rows the fits read: background flanks (as the fits place them without a clipped sample) and the whole
+    # window
+    read = (
+        float(flank_offset(sig_med, 0, half, FLANK_PX) + FLANK_PX - 1),
+        half + 1.0,
+        s.wide_fwhm_px / FWHM_PER_SIGMA,
+    )
+    last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
+    at = point_table(laser, cols, n_l, w)
+    look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
+    touched = np.zeros(w, np.bool_)
+    for _ in range(NEIGHBOUR_REFITS):
+        idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
+        if idx.size == 0:
+            break
+        refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, half, sig_med, s, max_fwhm, res)
+        for i in range(idx.size):
+            t = idx[i]
+            good[t] = ok[t] and not sat[t]
+            touched[cols[t]] = True
+        look = np.flatnonzero(touched)
+        touched[look] = False
+
+
+@inline
+def _no_candidates(noise):  # type: ignore[no-untyped-def]
+    """The :class:`Picked` of a frame without candidates."""
+    e_i = np.empty(0, np.int64)
+    return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise)
+
+
 @njit
-def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
-    """Steps 1-3 of :func:`extract_frame` (detection, chains, frame statistics, column-parallel fits).
+def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
+    """Steps 1-2 of :func:`extract_frame` (detection, chains).
 
     Args:
-        image: (H, W, 3) uint8 C-contiguous; bands, s, geo: the :class:`~lrsensor.extract.settings.Bands`,
-            :class:`~lrsensor.extract.settings.Settings` and :class:`~lrsensor.extract.settings.Geometry`.
+        image: (H, W, 3) uint8 C-contiguous; bands, s: the :class:`~lrsensor.extract.settings.Bands` and
+            :class:`~lrsensor.extract.settings.Settings`.
 
     Returns:
-        :class:`Located` (no points where the frame has no candidates).
+        :class:`Picked` (none where the frame has no candidates).
     """
     n_l = bands.rows.shape[0]
     w = image.shape[1]
@@ -251,11 +284,9 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
             Ar[k] = parts_a[j][t]
             k += 1
     if total == 0:
-        return no_points(noise, s.window_half_px)
+        return _no_candidates(noise)
     # 2. chains
-    max_cand, min_run_cols, half0, iterations = s.max_candidates, s.min_run_cols, s.window_half_px, s.iterations
-    sat_dn, min_fwhm, max_sigma, sheet_mm = s.saturation_dn, s.min_fwhm_px, s.max_sigma_px, s.max_sheet_mm
-    wide_fwhm = s.wide_fwhm_px
+    max_cand, min_run_cols = s.max_candidates, s.min_run_cols
     n_cols_d = n_l * wd
     jump = s.max_jump_px * 1.5
     min_run = max(2, (min_run_cols + 1) // 2)
@@ -267,7 +298,7 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
     k = min(max_cand, kk)
     col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
     if col_d.size == 0:
-        return no_points(noise, half0)
+        return _no_candidates(noise)
     col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
     n = col_v.size
     laser = sorted_blocks(col_v, w)
@@ -276,9 +307,28 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
-    # 3. frame statistics (window length), common fits, clipped fits
-    # the width limit of every point (the refits need any of them; as cheap as triangulating the points)
-    mfw = max_fwhm_at(cols, rows, laser, FWHM_PER_SIGMA * max_sigma, sheet_mm, geo)
+    return Picked(col_v=col_v, laser=laser, cols=cols, rows=rows, chain=chain, chain_len=chain_len, noise=noise)
+
+
+@njit
+def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
+    """Step 3 of :func:`extract_frame` (frame statistics, the fit of every point, neighbour refits).
+
+    Args:
+        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Picked` candidates of :func:`locate_candidates`;
+            mfw: (N,) their width limits (:func:`.geometry.max_fwhm_at`), px; s: the
+            :class:`~lrsensor.extract.settings.Settings`.
+
+    Returns:
+        :class:`Located` (no points where the frame has no candidates).
+    """
+    n_l = p.noise.size
+    n = p.cols.size
+    half0, sat_dn, max_sigma = s.window_half_px, s.saturation_dn, s.max_sigma_px
+    if n == 0:
+        return no_points(p.noise, half0)
+    col_v, laser, cols, rows, chain, chain_len, noise = p.col_v, p.laser, p.cols, p.rows, p.chain, p.chain_len, p.noise
+    # frame statistics (window length), then the fit of every point
     m_sub = min(n, 48)
     sub = np.empty(m_sub, np.int64)
     if m_sub == 1:
@@ -290,60 +340,15 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
         sub[m_sub - 1] = n - 1
     sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mfw[sub])
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
-    min_sig = min_fwhm / FWHM_PER_SIGMA
-    # each column's integer peak among the 2 e + 1 rows around its candidate; those with a clipped sample there
-    # are special (the common fit's window holds that sample): where they are many (close to the wall), they skip
-    # the common fit
-    peaks, clip = core_peaks(image, cols, rows, 3, sat_dn)
-    n_clip = 0
-    for t in range(n):
-        n_clip += clip[t]
-    if 4 * n_clip <= n:
-        r_c = fit_columns_common(
-            image, cols, peaks, half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
-        )
-        res = (r_c[0], r_c[1], r_c[2], r_c[3], r_c[4], r_c[5], r_c[6])
-        special = r_c[7]
+    nan = np.full(n, np.nan)
+    fits = fit_columns(image, cols, rows, half, sig_med, s, nan, nan, nan, mfw)
+    if n_l > 1:  # stripes of two lasers close together (long range): refit each with the other subtracted
+        max_d = half + 3.0 * sig_med + 2.0
+        good = np.empty(n, np.bool_)  # the points that can be a neighbour
         for t in range(n):
-            special[t] |= clip[t]
-    else:
-        res = (
-            np.full(n, np.nan),
-            np.zeros(n),
-            np.full(n, np.nan),
-            np.zeros(n, np.bool_),
-            np.zeros(n, np.bool_),
-            np.zeros(n),
-            np.zeros((3, n)),
-        )
-        special = clip.copy()
-        keep = np.flatnonzero(~clip)
-        if keep.size:
-            r_c = fit_columns_common(
-                image, cols[keep], peaks[keep], half, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, wide_fwhm
-            )
-            for i in range(keep.size):
-                put_fit(res, r_c, i, keep[i])
-                special[keep[i]] = r_c[7][i]
-    n_sp = 0
-    for t in range(n):
-        n_sp += special[t]
-    flat = np.empty(0, np.int64)
-    if n_sp:  # clipped peaks (close to the wall), then the unclipped narrow ones, column-parallel; the rest
-        # (flat tops) by the full kernel (refine_and_finish)
-        rest = np.flatnonzero(special)
-        r_s = fit_columns_clipped(
-            image, cols[rest], peaks[rest], half, sig_med, sat_dn, 3, iterations, min_sig, max_sigma, wide_fwhm
-        )
-        n_rest = 0
-        for i in range(rest.size):
-            t = rest[i]
-            if r_s[7][i]:
-                put_fit(res, r_s, i, t)
-            else:
-                rest[n_rest] = t
-                n_rest += 1
-        flat = rest[:n_rest].copy()
+            good[t] = fits.ok[t] and not fits.saturated[t]
+        if rows_overlap(laser, fits.centre, good, n_l, max_d):  # else the common case: stripes far apart
+            refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, s, mfw, fits)
     return Located(
         col_v=col_v,
         laser=laser,
@@ -351,15 +356,8 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
         rows=rows,
         chain=chain,
         chain_len=chain_len,
-        centre=res[0],
-        amplitude=res[1],
-        sigma=res[2],
-        saturated=res[3],
-        ok=res[4],
-        local_noise=res[5],
-        rise=res[6],
+        fits=fits,
         max_fwhm=mfw,
-        flat=flat,
         half=half,
         sigma_px=sig_med,
         noise=noise,
@@ -368,58 +366,23 @@ def locate_and_fit(image, bands, s, geo):  # type: ignore[no-untyped-def]
 
 @njit
 def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-def]
-    """Steps 4-5 of :func:`extract_frame` (full fits of the flat tops, neighbour refits, glow fits, gates,
-    smoothing, quality).
+    """Steps 4-5 of :func:`extract_frame` (glow fits, gates, smoothing, quality).
 
     Args:
-        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`locate_and_fit`;
+        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`fit_points`;
             glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`.
 
     Returns:
         ``(u, v, laser, quality)``: (M,) each, the points' pixel columns and rows, laser and quality in [0, 1].
     """
     w = image.shape[1]
-    n_l = p.noise.size
     n = p.cols.size
     if n == 0:
         return np.empty(0), np.empty(0), np.empty(0, np.int64), np.empty(0)
-    cols, rows, laser, half, sig_med = p.cols, p.rows, p.laser, p.half, p.sigma_px
-    sat_dn, max_sigma, wide_fwhm = s.saturation_dn, s.max_sigma_px, s.wide_fwhm_px
-    min_sig = s.min_fwhm_px / FWHM_PER_SIGMA
-    # the fit's settings and the per-column results that the refits update in place
-    fit = (half, sig_med, sat_dn, min_sig, max_sigma, s.iterations, wide_fwhm)
-    res = (p.centre, p.amplitude, p.sigma, p.saturated, p.ok, p.local_noise, p.rise)
-    vv, amp, sig, sat, ok = p.centre, p.amplitude, p.sigma, p.saturated, p.ok
-    # 4. flat tops, which only the full kernel fits
-    if p.flat.size:
-        nan = np.full(p.flat.size, np.nan)
-        refit_full(image, cols, rows, p.flat, nan, nan, nan, fit, p.max_fwhm, res)
-    # stripes of two lasers close together: refit each with the other's Gaussian subtracted, a few times
-    if n_l > 1:
-        max_d = half + 3.0 * sig_med + 2.0
-        good = np.empty(n, np.bool_)  # the points that can be a neighbour (updated where refitted)
-        for t in range(n):
-            good[t] = ok[t] and not sat[t]
-        if rows_overlap(laser, vv, good, n_l, max_d):  # else the common case: stripes far apart
-            # the rows the fits read: background flanks of 3 rows (as the fits take them; no clipped sample) and
-            # the whole window
-            read = (float(flank_offset(sig_med, 0, half, 3) + 2), half + 1.0, s.wide_fwhm_px / FWHM_PER_SIGMA)
-            last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
-            at = point_table(laser, cols, n_l, w)
-            look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
-            touched = np.zeros(w, np.bool_)
-            for _ in range(NEIGHBOUR_REFITS):
-                idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
-                if idx.size == 0:
-                    break
-                refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, p.max_fwhm, res)
-                for i in range(idx.size):
-                    t = idx[i]
-                    good[t] = ok[t] and not sat[t]
-                    touched[cols[t]] = True
-                look = np.flatnonzero(touched)
-                touched[look] = False
-    # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
+    cols, laser = p.cols, p.laser
+    res = p.fits
+    vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
+    # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     if s.glow_fit:
         v_g, _s_g, _f_g = glow_refit(
             image,
@@ -431,16 +394,16 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
             sig,
             sat,
             ok,
-            p.local_noise,
+            res.local_noise,
             p.noise,
-            min_sig,
-            max_sigma,
-            sat_dn,
+            s.min_fwhm_px / FWHM_PER_SIGMA,
+            s.max_sigma_px,
+            s.saturation_dn,
             s.min_green_ratio,
         )
         for t in range(n):
             vv[t] = v_g[t]
-    # 5. gates, runs, smoothing, quality
+    # gates, runs, smoothing, quality
     return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo)
 
 
@@ -488,7 +451,7 @@ IntArray = NDArray[np.int64]
 def extract_frame(
     image: NDArray[np.uint8], bands: Bands, s: Settings, geo: Geometry, triangulate: bool
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray, FloatArray]:
-    """The whole default extractor on one frame in three compiled calls (see the module documentation).
+    """The whole default extractor on one frame in five compiled calls (see the module documentation).
 
     Args:
         image: (H, W, 3) uint8 BGR, C-contiguous.
@@ -501,7 +464,10 @@ def extract_frame(
         ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
         and body-frame points (M, 3), metres ((0, 3) without ``triangulate``), and the band noise (L,), DN.
     """
-    located = locate_and_fit(image, bands, s, geo)
+    picked = locate_candidates(image, bands, s)
+    # the width limit of every point (the refits need any of them), compiled beside the triangulation
+    mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
+    located = fit_points(image, picked, mfw, s)
     u, v, laser, quality = refine_and_finish(image, located, bands.glow_side, s, geo)
     uv, laser, quality, xyz = place_points(u, v, laser, quality, s, geo, triangulate)
     return uv, laser, quality, xyz, located.noise

@@ -251,7 +251,8 @@ def smooth_through_port(
     """:func:`smooth` of rows ``y`` (N,) (virtual columns ``laser * w + column``, NaN = none) seen through the
     calibration's flat port: the line fits run where a pinhole in the water at the camera centre would see the
     points (:func:`lrsensor.port.central_view`), where a stripe on a flat surface is straight, and the
-    corrections go back to image rows through the local derivative (``finish.smooth_through_port`` is the
+    corrections go back to image rows through the local derivative (``finish.port_view`` and
+    ``from_port_view`` are the
     compiled twin). Rows whose ray misses their laser's plane are left as they are."""
     idx = np.flatnonzero(np.isfinite(y))
     uv = np.stack([(idx % w).astype(np.float64), y[idx]], axis=1)

@@ -5,9 +5,8 @@ pulls the other's centre. The points whose column holds another laser's good poi
 refitted with that point's Gaussian subtracted, a few rounds (:data:`NEIGHBOUR_REFITS`), each round only where the
 neighbour moved by more than :data:`NEIGHBOUR_TOL` since the point's last refit (:func:`refit_targets`), and only
 where the neighbour's tail reaches :data:`NEIGHBOUR_TAIL` of the point's amplitude in the rows its centroid reads
-or :data:`NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`read_reach`). The refits are column-parallel
-(:func:`fit_columns_neighbour`) where nothing is clipped and the profile is narrow, else the full kernel
-(:func:`refit_full`).
+or :data:`NEIGHBOUR_FLANK_TAIL` in its background flanks (:func:`read_reach`). The refits are the frame's fit
+(:func:`.fit.fit_columns`) of those points with the neighbour's Gaussian subtracted (:func:`refit_columns`).
 
 The constants here are the one definition that the compiled road and the reference
 (:mod:`lrsensor.extract.reference`) both read.
@@ -20,139 +19,11 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
-from .columns import colour_rises, fit_results, gather_green, put_fit
-from .fit import fit_columns, flank_offset
-from .fit_plain import plain_fit_profiles
+from .columns import put_fit
+from .fit import fit_columns
 
 
-@njit
-def _neighbour_profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-untyped-def]
-    """The green profiles of rows ``top ... top + k_rows - 1`` (clamped to the image) of columns ``cols`` less the
-    Gaussian ``amp exp(-(row - mu)^2 inv)`` of each column (``g2 = exp(-2 inv)``; (N,) each): (k_rows, N) float64.
-
-    Column-parallel, three ``exp`` per column: each column's Gaussian by recurrence from the first row where it
-    exceeds ``e^-30`` of its peak (a start further out could underflow to zero and stay there)."""
-    n = cols.size
-    W = np.empty((k_rows, n), np.uint8)
-    gather_green(image, cols, top, W)
-    qs = np.empty(n, np.int64)
-    ex = np.empty(2 * n)
-    for t in range(n):
-        r30 = math.sqrt(30.0 / inv[t])
-        q0 = min(max(int(math.ceil(mu[t] - r30 - top[t])), 0), k_rows) if amp[t] != 0.0 else k_rows  # noqa: RUF046
-        qs[t] = q0
-        d = top[t] + q0 - mu[t] if q0 < k_rows else 0.0
-        ex[t] = -(d * d) * inv[t]
-        ex[n + t] = -(2.0 * d + 1.0) * inv[t]
-    ex = np.exp(ex)
-    w = ex[:n].copy()
-    ratio = ex[n:].copy()
-    P = np.empty((k_rows, n))
-    for q in range(k_rows):
-        wq = W[q]
-        pq = P[q]
-        for t in range(n):
-            on = q >= qs[t]
-            pq[t] = wq[t] - (amp[t] * w[t] if on else 0.0)
-            w[t] = w[t] * ratio[t] if on else w[t]
-            ratio[t] = ratio[t] * g2[t] if on else ratio[t]
-    return P
-
-
-@njit
-def fit_columns_neighbour(  # type: ignore[no-untyped-def]
-    image, cols, rows, half, e, sigma_hint, sat_dn, min_sig, max_sig, flank, iterations, nb_v, nb_a, nb_s, wide_fwhm
-):
-    """:func:`fit_columns` column-parallel (the inner loops run over columns) for the columns without a clipped
-    sample: with the same arguments but the width limits, the same results up to rounding.
-
-    The stripes of two lasers close together at long range take this path: there the columns of both that the
-    other's Gaussian reaches are refitted with it subtracted, a few rounds, and :func:`fit_columns` costs about ten
-    times more per column. Returns ``(centre_row, amplitude, sigma, saturated, ok, local_noise, rise, done)`` as
-    :func:`fit_results`: ``done`` (N,) False marks the columns to fit with :func:`fit_columns` instead (a clipped
-    sample in the core or the window, or a profile wider than ``wide_fwhm`` at half level).
-    """
-    n = cols.size
-    m = 2 * half + 1
-    R = half
-    out = fit_results(n)
-    # the neighbour's Gaussian: amplitude, 1 / (2 sigma^2) and exp(-2 / (2 sigma^2)) per column (0: none)
-    amp_nb = np.empty(n)
-    inv = np.empty(n)
-    g2 = np.empty(n)
-    for t in range(n):
-        has = math.isfinite(nb_v[t])
-        amp_nb[t] = nb_a[t] if has else 0.0
-        inv[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
-        g2[t] = -2.0 * inv[t]
-    g2 = np.exp(g2)
-    # re-centre on the integer peak of the core rows - e ... rows + e (the first of equal ones); a clipped core
-    # sample: not here
-    top = np.empty(n, np.int64)
-    for t in range(n):
-        top[t] = rows[t] - e
-    Pc = _neighbour_profiles(image, cols, top, 2 * e + 1, nb_v, amp_nb, inv, g2)
-    bv = np.full(n, -1.0)
-    o = np.zeros(n, np.int64)
-    done = out[7]
-    done[:] = True
-    for q in range(2 * e + 1):
-        pq = Pc[q]
-        for t in range(n):
-            x = pq[t]
-            up = x > bv[t]
-            bv[t] = x if up else bv[t]
-            o[t] = q if up else o[t]
-            done[t] &= x < sat_dn
-    pk = np.empty(n, np.int64)
-    for t in range(n):
-        pk[t] = rows[t] + (o[t] if bv[t] != -1.0 else e) - e  # nothing above -1: the candidate row
-        top[t] = pk[t] - half
-    # the window pk - half ... pk + half, clipped samples anywhere in it: not here
-    off = flank_offset(sigma_hint, 0, R, flank)
-    xl = R - off - 0.5 * (flank - 1)
-    Wn = _neighbour_profiles(image, cols, top, m, nb_v, amp_nb, inv, g2)
-    for q in range(m):
-        wq = Wn[q]
-        for t in range(n):
-            done[t] &= wq[t] < sat_dn
-    # 1. linear background from the two flanks, and the noise of the flanks
-    bl = np.zeros(n)
-    br = np.zeros(n)
-    for q in range(flank):
-        for t in range(n):
-            bl[t] += Wn[R - off - q, t]
-            br[t] += Wn[R + off + q, t]
-    slope = np.empty(n)
-    for t in range(n):
-        bl[t] /= flank
-        br[t] /= flank
-        slope[t] = (br[t] - bl[t]) / (2.0 * off + flank - 1)
-    B = np.empty((m, n))
-    for q in range(m):
-        for t in range(n):
-            B[q, t] = Wn[q, t] - (bl[t] + slope[t] * (q - xl))
-    ss = np.zeros(n)
-    for q in range(flank):
-        for t in range(n):
-            ss[t] += B[R - off - q, t] ** 2 + B[R + off + q, t] ** 2
-    # 2. log-parabola start, 3. Gaussian-weighted centroid (the unclipped branch of fit_columns)
-    a0 = B[R].copy()
-    c, sigma, okp, plain = plain_fit_profiles(B, a0, sigma_hint, min_sig, max_sig, wide_fwhm, iterations)
-    for t in range(n):
-        good = okp[t] and math.isfinite(c[t]) and abs(c[t] - R) <= 2.0 and a0[t] > 0
-        out[0][t] = pk[t] - half + c[t] if good else np.nan
-        out[1][t] = a0[t]
-        out[2][t] = sigma[t]
-        out[3][t] = False
-        out[4][t] = good
-        out[5][t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
-        done[t] &= plain[t]
-    colour_rises(image, cols, pk, half, (0, 1, 2), out[6])  # from the image, as fit_columns takes them
-    return out
-
-
-@njit
+@inline
 def rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
     """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
     has an other-laser neighbour for :func:`refit_targets`: a cheap test that spares its dense arrays)."""
@@ -225,10 +96,10 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
     return min(far, 1.0 + math.ceil(3.0 * max(sig, 1.1))), min(far, 1.0 + near)
 
 
-@njit
+@inline
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
-    :func:`lrsensor.extract.frame.locate_and_fit` are one per laser and column)."""
+    :func:`lrsensor.extract.frame.locate_candidates` are one per laser and column)."""
     at = np.full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
@@ -319,59 +190,11 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
 
 
 @inline
-def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
-    """Fit the columns ``idx`` again with the other laser's stripe subtracted (neighbour model ``nb_*``, NaN rows =
-    none) and store the results in place: column-parallel (:func:`fit_columns_neighbour`) where no sample is
-    clipped and the profile is not flat-topped, the rest by :func:`refit_full`. Arguments as :func:`refit_full`.
-    """
-    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
-    m = idx.size
-    cols_i = cols[idx]
-    rows_i = rows[idx]
-    par = fit_columns_neighbour(
-        image, cols_i, rows_i, half, 3, sig_med, sat_dn, min_sig, max_sigma, 3, iterations, nb_v, nb_a, nb_s, wide_fwhm
-    )
-    n_rest = 0
-    rest = np.empty(m, np.int64)
-    for i in range(m):
-        if par[7][i]:
-            put_fit(res, par, i, idx[i])
-        else:
-            rest[n_rest] = i
-            n_rest += 1
-    if n_rest:
-        rest = rest[:n_rest]
-        refit_full(image, cols, rows, idx[rest], nb_v[rest], nb_a[rest], nb_s[rest], fit, max_fwhm, res)
-
-
-@inline
-def refit_full(image, cols, rows, idx, nb_v, nb_a, nb_s, fit, max_fwhm, res):  # type: ignore[no-untyped-def]
-    """Fit the columns ``idx`` again with the full kernel (neighbour model ``nb_*``, NaN rows = none) and store the
-    results in place.
-
-    ``fit``: ``(half, sigma_hint, sat_dn, min_sig, max_sig, iterations, wide_fwhm)`` of :func:`fit_columns`;
-    ``max_fwhm``: the width limit of every column (N,) (:func:`.geometry.max_fwhm_at`); ``res``: ``(centre,
-    amplitude, sigma, saturated, ok, local_noise, rise)`` of every column, updated at ``idx``.
-    """
-    half, sig_med, sat_dn, min_sig, max_sigma, iterations, wide_fwhm = fit
-    m = idx.size
-    new = fit_columns(
-        image,
-        cols[idx],
-        rows[idx],
-        half,
-        3,
-        sig_med,
-        sat_dn,
-        min_sig,
-        max_sigma,
-        3,
-        iterations,
-        nb_v,
-        nb_a,
-        nb_s,
-        max_fwhm[idx],
-        wide_fwhm,
-    )
-    for i in range(m):
+def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, half, sigma_hint, s, max_fwhm, res):  # type: ignore[no-untyped-def]
+    """Fit the points ``idx`` (M,) again with the other laser's stripe subtracted (its row, amplitude and sigma
+    ``nb_v, nb_a, nb_s`` (M,)) and store the results in place into ``res``, the
+    :class:`~lrsensor.extract.fit.Fits` of every point (``cols``, ``rows``, ``max_fwhm`` (N,) as for
+    :func:`~lrsensor.extract.fit.fit_columns`, with its ``half``, ``sigma_hint`` and settings ``s``)."""
+    new = fit_columns(image, cols[idx], rows[idx], half, sigma_hint, s, nb_v, nb_a, nb_s, max_fwhm[idx])
+    for i in range(idx.size):
         put_fit(res, new, i, idx[i])

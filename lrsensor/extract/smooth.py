@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
+from .sorting import median
 
 #: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
 #: near one end of a long window is diluted in the whole window's residual, not in its quarter's).
@@ -111,7 +112,7 @@ def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, va
         acc_c[ci] = acc
 
 
-@njit
+@inline
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`):
     :func:`smooth_runs_at` with the columns' own indices as their coordinates."""
@@ -242,7 +243,7 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
                         if cnt2[q] > 0.0:
                             vals[m] = d2[q]
                             m += 1
-                    var_all = np.median(vals[:m]) / (6.0 * 0.4549) + 1e-8
+                    var_all = median(vals[:m]) / (6.0 * 0.4549) + 1e-8
             _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c)
             left -= _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y[f], x, out)
     return out

@@ -13,7 +13,7 @@ Pipeline (per laser, only inside the image band the laser can reach for the conf
    a row step (small gaps bridged); linked chains are stripe pieces. Per column the candidate on the strongest
    chain wins; chains shorter than ``min_run_cols`` (speckle, marine snow, small blobs) are dropped.
 4. **Sub-pixel centre** of the chosen candidate on the raw full-resolution green profile of its column
-   (:mod:`lrsensor.extract.fit_common` and the other fits; in the reference
+   (:mod:`lrsensor.extract.fit`; in the reference
    :func:`lrsensor.extract.centre.fit_profiles`): re-centred on the integer peak (the
    middle of a clipped run), local linear background from two flanks, width check (too narrow = speckle or a
    hot pixel, too wide = glow/haze/blob), Gaussian-weighted centroid with a Newton step (saturated: symmetric
@@ -32,7 +32,7 @@ Compressed frames (JPEG, MJPEG, H.264: colour stored at half resolution) take ``
 then reads, in place of green, the full-resolution luma on green's scale (:func:`luma_as_green`).
 
 One road: with numba installed the whole pipeline, and for :class:`lrsensor.sensor.Sensor` the triangulation
-(eq. 29 with the calibration's distortion) and the range-limit gate, runs as three compiled calls
+(eq. 29 with the calibration's distortion) and the range-limit gate, runs as five compiled calls
 (:func:`lrsensor.extract.frame.extract_frame`; the stages are the modules of this package, see the package
 documentation). The numpy and OpenCV reference (:mod:`lrsensor.extract.reference`) runs the same algorithm where
 the compiled road cannot: without numba, while the kernels compile in the background (a ROV's first use, said in
