@@ -5,26 +5,47 @@ back to the camera. The sheet between the camera and the wall images on the side
 plane's vanishing line (above the top laser's stripe, below the bottom one's) and ENDS at the stripe, where the
 sheet meets the wall; the wall cuts the sheet along the sheet's own thickness profile, so the glow's edge is a
 step whose 50 % point is the stripe's centre, and forward scatter blurs stripe and edge alike. A column's profile
-is then, with ``z = (v - c) / sigma`` and ``s`` the glow's side (+1: the glow at larger rows)::
+is then, with ``z = (v - c) / sigma``, ``u = s z`` and ``s`` the glow's side (+1: the glow at larger rows)::
 
-    y(v) = b0 + b1 (v - v0) + A exp(-z^2 / 2) + g Phi(s z)          [+ a N(v): another laser's stripe close by]
+    y(v) = b0 + b1 (v - v0) + A exp(-z^2 / 2) + g Phi(u) + g1 sigma R1(u) + g2 sigma^2 R2(u)
+           [+ a N(v) + a_g Phi(s' d): another laser's stripe close by, and its own glow's edge]
 
 The stripe (a Gaussian) and the glow's edge (a blurred step) share their centre ``c`` and their width ``sigma``
-(a sheet of Gaussian thickness blurred by a Gaussian: both widths are ``sqrt(sigma_sheet^2 + blur^2)``).
+(a sheet of Gaussian thickness blurred by a Gaussian: both widths are ``sqrt(sigma_sheet^2 + blur^2)``). The glow
+is not flat beyond its edge: it brightens outward (the sheet seen there is nearer the camera: shorter paths through
+the water, and at far walls the rows outward of the stripe span ranges from the wall nearly to the port). Its
+growth over the window, to second order, is ``g1 x + g2 x^2`` (``x = s (v - c)`` px outward); cut by the same edge
+and blurred by the same Gaussian, ``x`` and ``x^2`` become ``sigma R1(u)`` and ``sigma^2 R2(u)`` exactly, with
+``R1 = u Phi(u) + phi(u)`` and ``R2 = (u^2 + 1) Phi(u) + u phi(u)`` (the first two moments of a Gaussian cut at
+zero). Both stay linear parameters.
 
 Why the common fit fails there. Its linear background through two flank windows takes the step as a slope; what
 the line leaves of the step is odd about the centre and pulls the Gaussian-weighted centroid towards the glow,
 0.1-1.1 px on the independent turbidity model (``benchmarks/turbid_model.py``), which reads walls 0.2-10 % short.
+A stripe of another laser close by (far walls: at 3 m the two stripes of the paper's lasers are 18 px apart) lies
+in the common fit's inner flank; with 4 px of forward-scatter blur its subtracted Gaussian leaves enough there to
+move the centre 0.15 px outward (walls at 3 m read 1.7 % short without any glow).
 
-What this stage does. Where a point's profile shows a glow, the model above is fitted by least squares on the rows
-``c -+ (4.5 sigma + 2)`` (at most :data:`MAX_HALF_PX`): the linear parameters ``b0, b1, A, g`` (and ``a``, with the
-neighbour's centre and width held) solved exactly at the common fit's centre and width, then :data:`ITERATIONS`
-Gauss-Newton steps in all of them. Points with another laser's fitted stripe
-close by are fitted twice, the second time with that stripe where its own fit put it. The fit is kept where it
-converges to a stripe and a glow (``A > 0``, ``g > 0.05 A``) within :data:`MAX_MOVE_PX` of the common fit (a second
-round that fails keeps the first round's); elsewhere, and wherever no glow shows (clear water), the common fit
-stands untouched. Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left
-alone unless clipped: the model has no flat top.
+What this stage does. It fits the model above by least squares on the rows ``c -+ (4.5 sigma + 2)`` (at most
+:data:`MAX_HALF_PX`) where a point's profile shows a glow, and also, without the glow's terms, where another laser's
+stripe overlaps this one (centres closer than :data:`PAIR_SIGMAS` times the sum of their sigmas, both at least
+:data:`PAIR_MIN_SIGMA`: blurred stripes at long range): the linear parameters solved exactly at the common
+fit's centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and
+width held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free).
+:data:`ROUNDS` rounds: the first with the other stripes where the common fit put them, each next one (points with
+another stripe in the fit) where the previous round's fit put them, so that two close stripes converge to their
+joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one shows: the glow two
+sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit; elsewhere, and wherever
+no glow shows and no stripe is close (clear water), the common fit stands untouched. Profiles taken as flat tops
+(thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless clipped: the model has no flat
+top.
+
+Which glow: the fits run without the ramp (``g1 = g2 = 0``: a step) and with it, and a point takes the fit with the
+ramp where, pooled over its stripe's glowing points within :data:`POOL_COLS` columns either side that both fits
+kept, (a) the F statistic of the ramp's two parameters (the drop of the residual sum of squares per parameter over
+the residual variance with the ramp) exceeds :data:`F_SELECT`: the profiles ask for it beyond their noise, and (b)
+the glow's step is at least :data:`RAMP_MIN_STEP` of the stripe's peak: a weak glow's ramp trades off with the
+stripe's own shape. Otherwise the step model's fit stands.
 
 Where a glow shows: the step at each point is estimated from the green rows beyond its flanks, outer less inner, at
 ``2.5 sigma + 1`` rows from the centre and at twice that (``2 D_near - D_far``: a linear background cancels, a glow
@@ -33,27 +54,33 @@ its median over the stripe's points within :data:`POOL_COLS` columns either side
 column does not decide) must exceed 3.5x its noise and 5 % of the stripe's amplitude (more than half of those
 steps exceed that threshold), and the step summed over them must have the laser's colour: green over red and blue
 by ``min_green_ratio``, as the stripe's colour test asks (a step in the wall's shade or the ambient light is not a
-glow); and most of those points must pass the test too (a glow lies along the stripe, not at a few columns).
+glow); and most of the stripe's points within :data:`POOL_COLS` columns must pass that test too: a glow lies along
+the stripe, not at a few columns.
 
-Why this estimator, measured on the turbidity model (glow step 0.5 of the peak unless said):
+Why this estimator, measured on the turbidity model (``python benchmarks/bench_turbid.py``; the results and the
+Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water.md):
 
-- Single columns before the along-stripe smoothing: the joint fit's median row shift is within 0.03 px of zero at
+- Single columns before the along-stripe smoothing: the step model's median row shift is within 0.03 px of zero at
   0.5-2 m for 1.5 and 4 px of blur (the common fit: +0.46 to +1.03 px).
 - A background from the inner flank alone cannot work: the glow's edge is half way up at the centre, so even the
   stripe's inner half carries a quarter of the stripe's peak of glow.
 - The window must be long (4.5 sigma): at 3 sigma the background's slope, the step and the centre trade off and
-  the noise doubles (p5-p95 of single columns +-1.4 px against +-0.7 px at 4 px of blur).
-- The glow brightens away from the wall (shorter paths through the water). On noise-free profiles the step model
-  leaves 0.01-0.02 px where the glow is flat and 0.05-0.1 px inward where it brightens (0.3 /m at 1-2 m); a glow
-  that grows exponentially with a free rate halves that at 1-2 m, is worse at 3 m, and on noisy frames moves no
-  median by more than 0.03 px, for an eighth parameter: left out.
-- The joint fit is about twice as noisy as the common fit, and costs 3-8 us a column (4 px of blur: 41 rows) where
-  the common fit costs about 0.1 us: it runs only where a glow shows. The test costs about 0.3 ms a frame; on the
-  simulator's named scenes (clear water, its own turbid scene with a glow blurred by 8 px, clutter) and on the
-  independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame,
-  and no median moves by more than 0.001 percentage points. Without the colour test and the majority along the
-  stripe, steps in the background's shade (the same in every channel) were taken for glow: up to 360 columns of
-  a frame, medians up to 0.0075 points off.
+  the noise doubles (p5-p95 of single columns +-1.4 px against +-0.7 px at 4 px of blur); on noisy frames the
+  medians of the short window's fits move by up to 0.4 px.
+- The ramp. On noise-free profiles (attenuation 0.3 /m, glow step 0.5) the step model leaves 0.03-0.09 px inward at
+  1-3 m where the glow brightens, 0.3-0.65 px at 3 m with 4 px of blur; with the ramp 0.00-0.02 px at 0.5-3 m
+  (1.5 px) and 0.5-2 m (4 px). A linear ramp alone is worse than none over this window (0.1-1.5 px: the glow's
+  growth is curved). With the ramp everywhere the per-column noise grows 2-3x and medians at 1-2 m with 4 px of
+  blur grow by a half; by the selection it is taken where the glow's growth shows (far walls, sharp stripes):
+  3 m, step 0.5, 1.5 px of blur: median 0.65 % -> 0.16 %. At 3 m with 4 px of blur the window spans ranges from
+  3 m to 1 m, where no second-order ramp holds (0.1 px left at 4.5 sigma).
+- The other stripe close by: in the fit, 3 m without glow, 4 px of blur: median 1.7 % -> 0.25 %.
+- The fits cost 3-8 us a column (4 px of blur: 41 rows; twice, with and without the ramp) where the common fit
+  costs about 0.1 us: they run only where a glow shows or a blurred stripe is close. The test costs about 0.3 ms
+  a frame; on the simulator's named scenes (clear water, its own turbid scene with a glow blurred by 8 px, clutter)
+  and on the independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a
+  frame. Without the colour test and the majority along the stripe, steps in the background's shade (the same in
+  every channel) were taken for glow: up to 360 columns of a frame, medians up to 0.0075 points off.
 
 The compiled kernel is :func:`glow_refit`; the reference's is :func:`lrsensor.extract.reference_glow.glow_refit`
 (numpy, vectorized over the points). Both read the constants here.
@@ -87,8 +114,24 @@ MAX_HALF_PX = 30
 #: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
 ITERATIONS = 4
 MAX_STEP_PX = 1.0
+#: A stripe is fitted together with another laser's where their centres are closer than this many times the sum
+#: of their sigmas (4 px of blur at 3 m: 18 px apart, sigmas of 4 px; sharp stripes of 1.5 px: from 4.6 m on).
+PAIR_SIGMAS = 4.0
+#: ... and both are blurred: sigmas of at least this, px. Sharp stripes close together (clear water, far walls) keep
+#: the common fit with the other's Gaussian subtracted (:mod:`lrsensor.extract.refit`), which is right for them.
+PAIR_MIN_SIGMA = 2.0
+#: Rounds of the fits: the first with the common fit's neighbours, each next one with the previous round's.
+ROUNDS = 4
+#: The glow's ramp (its linear and quadratic growth outward) is taken where the F statistic of its two parameters,
+#: pooled over the stripe's points within POOL_COLS columns either side, exceeds this.
+F_SELECT = 4.0
+#: ... and where the glow's step, pooled the same way, is at least this share of the stripe's peak (a weaker glow's
+#: ramp trades off with the stripe's own shape: on the turbidity model a step of 0.1 read walls at 3 m 1-2 % long).
+RAMP_MIN_STEP = 0.2
 #: The joint fit is kept within this distance of the common fit's centre, px.
 MAX_MOVE_PX = 4.0
+#: Linear parameters of the joint fit: background level and slope, stripe, glow step, glow ramp, neighbour.
+N_LIN = 8
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 #: Phi(x) = 1 - phi(x) t P(t), t = 1 / (1 + p x), x >= 0 (Abramowitz-Stegun 26.2.17, |error| < 7.5e-8).
@@ -132,24 +175,34 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 
 
 @njit
-def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
+def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
-    centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none). Returns
-    ``(c, sigma, A, g, ok)``. Samples at or above ``sat_dn`` (clipped) are left out.
+    centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
+    the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
+    another one, no glow); ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c,
+    sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares and degrees of freedom. Samples at or above
+    ``sat_dn`` (clipped) are left out.
 
     First the linear parameters alone at the start, then :data:`ITERATIONS` Gauss-Newton steps in all of them; each
-    pass builds the normal equations row by row (one ``exp`` per row, two with a neighbour)."""
+    pass builds the normal equations row by row. Parameters a profile's model leaves out keep an identity row."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
-    k = 5 if has_nb else 4
-    kk = k + 2
+    active = np.ones(N_LIN, np.bool_)
+    active[3] = glow_on
+    active[4] = active[5] = glow_on and ramp
+    active[6] = has_nb
+    active[7] = has_nb and nb_side != 0.0
+    kk = N_LIN + 2
     M = np.empty((kk, kk))
     b = np.empty(kk)
-    xr = np.empty(kk)
-    lin = np.zeros(k)
+    xr = np.zeros(kk)
+    lin = np.zeros(N_LIN)
+    n_par = 2
+    for a in range(N_LIN):
+        n_par += active[a]
     for it in range(ITERATIONS + 1):
         full = it > 0
-        m_ = kk if full else k
+        m_ = kk if full else N_LIN
         for a in range(m_):
             b[a] = 0.0
             for j in range(a, m_):
@@ -161,20 +214,33 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig, sat_dn):  # type: 
             gz = math.exp(-0.5 * z * z)
             u = side * z
             tail = upper_tail(abs(u), gz)
+            f = 1.0 - tail if u >= 0.0 else tail
+            ph = gz * _INV_SQRT_2PI
+            rmp = sg * (u * f + ph)
             xr[0] = 1.0
             xr[1] = q[i]
             xr[2] = gz
-            xr[3] = 1.0 - tail if u >= 0.0 else tail
+            if glow_on:
+                xr[3] = f
+                if ramp:
+                    xr[4] = rmp
+                    xr[5] = sg * sg * ((u * u + 1.0) * f + u * ph)
             if has_nb:
                 d = (q[i] - nb_c) / nb_s
-                xr[4] = math.exp(-0.5 * d * d)
+                gd = math.exp(-0.5 * d * d)
+                xr[6] = gd
+                if nb_side != 0.0:
+                    ud = nb_side * d
+                    td = upper_tail(abs(ud), gd)
+                    xr[7] = 1.0 - td if ud >= 0.0 else td
             r = y[i]
             if full:
-                for j in range(k):
+                for j in range(N_LIN):
                     r -= xr[j] * lin[j]
-                ph = gz * _INV_SQRT_2PI
-                xr[k] = (lin[2] * gz * z - lin[3] * ph * side) / sg
-                xr[k + 1] = (lin[2] * gz * z * z - lin[3] * ph * side * z) / sg
+                xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) / sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
+                xr[N_LIN + 1] = (
+                    (lin[2] * gz * z * z - lin[3] * ph * side * z) / sg + lin[4] * ph + 2.0 * lin[5] * sg * f
+                )
             for a in range(m_):
                 xa = xr[a]
                 b[a] += xa * r
@@ -183,18 +249,51 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig, sat_dn):  # type: 
         for a in range(m_):
             for j in range(a + 1, m_):
                 M[j, a] = M[a, j]
+        for a in range(N_LIN):  # the parameters left out: an identity row and column
+            if not active[a]:
+                for j in range(m_):
+                    M[a, j] = 0.0
+                    M[j, a] = 0.0
+                M[a, a] = 1.0
+                b[a] = 0.0
         if not _solve(M, b, m_):
-            return c, sg, lin[2], lin[3], False
+            return c, sg, lin[2], lin[3], False, np.nan, np.nan
         if not full:
-            for j in range(k):
+            for j in range(N_LIN):
                 lin[j] = b[j]
             continue
-        for j in range(k):
+        for j in range(N_LIN):
             lin[j] += b[j]
-        c += min(max(b[k], -MAX_STEP_PX), MAX_STEP_PX)
-        sg = min(max(sg + min(max(b[k + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig)
-    ok = math.isfinite(c) and lin[2] > 0.0 and lin[3] > TRIGGER_FRAC * lin[2]
-    return c, sg, lin[2], lin[3], ok
+        c += min(max(b[N_LIN], -MAX_STEP_PX), MAX_STEP_PX)
+        sg = min(max(sg + min(max(b[N_LIN + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig)
+    # the residual at the result
+    rss = 0.0
+    dof = -n_par
+    for i in range(k_rows):
+        if y[i] >= sat_dn:
+            continue
+        z = (q[i] - c) / sg
+        gz = math.exp(-0.5 * z * z)
+        u = side * z
+        tail = upper_tail(abs(u), gz)
+        f = 1.0 - tail if u >= 0.0 else tail
+        ph = gz * _INV_SQRT_2PI
+        r = y[i] - lin[0] - lin[1] * q[i] - lin[2] * gz - lin[3] * f
+        r -= lin[4] * sg * (u * f + ph) + lin[5] * sg * sg * ((u * u + 1.0) * f + u * ph)
+        if has_nb:
+            d = (q[i] - nb_c) / nb_s
+            gd = math.exp(-0.5 * d * d)
+            r -= lin[6] * gd
+            if nb_side != 0.0:
+                ud = nb_side * d
+                td = upper_tail(abs(ud), gd)
+                r -= lin[7] * (1.0 - td if ud >= 0.0 else td)
+        rss += r * r
+        dof += 1
+    x2 = 2.0 * sg  # the glow two sigmas outward of the edge (where its step is complete) is a glow
+    g_out = lin[3] + lin[4] * x2 + lin[5] * x2 * x2
+    ok = math.isfinite(c) and lin[2] > 0.0 and (not glow_on or g_out > TRIGGER_FRAC * lin[2])
+    return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
 @njit
@@ -338,17 +437,114 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 both += glowing[j]
         glow_run[t] = 2 * both > cnt
     glowing = glow_run
-    # the fits: round 1 with the neighbours of the common fit, round 2 (points with a neighbour) with round 1's
+    # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
+    # it (no glow term where none shows)
+    fit_me = np.zeros(n, np.bool_)
+    for t in range(n):
+        nb = nb0[t]
+        s_nb = max(sig[nb], lo_sig) if nb >= 0 else 0.0
+        fit_me[t] = glowing[t] or (
+            cand[t]
+            and nb >= 0
+            and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
+            and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
+        )
+    # the fits, without and with the glow's ramp: round 1 with the neighbours of the common fit, the next rounds
+    # (points with a neighbour) with the previous round's
+    v0, s0, f0, rss0, _d0, st0 = _rounds(
+        image,
+        cols,
+        laser,
+        at,
+        vv,
+        sig,
+        nb_ok,
+        nb0,
+        fit_me,
+        glowing,
+        side,
+        rc,
+        hw,
+        kt,
+        sg0,
+        lo_sig,
+        max_sig,
+        sat_dn,
+        False,
+    )
+    v2, s2, f2, rss2, dof2, _st2 = _rounds(
+        image,
+        cols,
+        laser,
+        at,
+        vv,
+        sig,
+        nb_ok,
+        nb0,
+        fit_me,
+        glowing,
+        side,
+        rc,
+        hw,
+        kt,
+        sg0,
+        lo_sig,
+        max_sig,
+        sat_dn,
+        True,
+    )
+    # the ramp where the stripe's profiles ask for it (the F statistic of its two parameters, pooled along the
+    # stripe) and its glow is strong enough to tell its ramp from the stripe (the pooled step over the stripe's peak)
+    v_out = v0
+    s_out = s0
+    fitted = f0.copy()
+    for t in range(n):
+        if not f2[t]:
+            continue
+        d_rss = 0.0
+        r2 = 0.0
+        df2 = 0.0
+        a_sum = 0.0
+        g_sum = 0.0
+        cnt = 0
+        for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
+            j = at[laser[t], cc]
+            if j >= 0 and f0[j] and f2[j] and glowing[j]:
+                d_rss += rss0[j] - rss2[j]
+                r2 += rss2[j]
+                df2 += dof2[j]
+                a_sum += st0[0, j]
+                g_sum += st0[1, j]
+                cnt += 1
+        if cnt > 0 and d_rss / (2.0 * cnt) > F_SELECT * (r2 / df2) and g_sum >= RAMP_MIN_STEP * a_sum:
+            v_out[t] = v2[t]
+            s_out[t] = s2[t]
+            fitted[t] = True
+    return v_out, s_out, fitted
+
+
+@njit
+def _rounds(  # type: ignore[no-untyped-def]
+    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig, sat_dn, ramp
+):
+    """The joint fits of the points ``fit_me`` (:func:`glow_refit`'s arrays), with the glow's ramp or without:
+    :data:`ROUNDS` rounds, the first with the common fit's neighbours, each next one (points with a neighbour) with
+    the previous round's. Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe
+    amplitudes and glow steps (2, N)."""
+    n = cols.size
     v_out = vv.copy()
     s_out = sig.copy()
     fitted = np.zeros(n, np.bool_)
+    rss = np.full(n, np.nan)
+    dof = np.full(n, np.nan)
+    steps = np.zeros((2, n))
     y = np.empty(2 * MAX_HALF_PX + 1)
     q = np.empty(2 * MAX_HALF_PX + 1)
-    for rnd in range(2):
+    for rnd in range(ROUNDS):
         v1 = v_out.copy()
         s1 = s_out.copy()
         for t in range(n):
-            if not glowing[t] or (rnd == 1 and not (nb0[t] >= 0 and fitted[t])):
+            if not fit_me[t] or (rnd > 0 and not (nb0[t] >= 0 and fitted[t])):
                 continue
             nb = (
                 nb0[t]
@@ -359,15 +555,33 @@ def glow_refit(  # type: ignore[no-untyped-def]
             nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
             if not abs(nb_c) < hw[t] + 3.0 * nb_s:  # (also NaN) its stripe does not reach the fit's window
                 nb_c = np.nan
+            # the other stripe's glow, where its edge lies in the window
+            nb_side = side[nb] if nb >= 0 and glowing[nb] and abs(nb_c) <= hw[t] else 0.0
             k_rows = 2 * hw[t] + 1
             for i in range(k_rows):
                 y[i] = float(image[rc[t] - hw[t] + i, cols[t], 1])
                 q[i] = float(i - hw[t])
-            c, sg, _a, _g, good = _fit_one(
-                y[:k_rows], q[:k_rows], side[t], vv[t] - rc[t], sg0[t], nb_c, nb_s, lo_sig, max_sig, sat_dn
+            c, sg, a_fit, g_fit, good, rs, df = _fit_one(
+                y[:k_rows],
+                q[:k_rows],
+                side[t],
+                vv[t] - rc[t],
+                sg0[t],
+                nb_c,
+                nb_s,
+                nb_side,
+                glowing[t],
+                ramp,
+                lo_sig,
+                max_sig,
+                sat_dn,
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c
                 s_out[t] = sg
+                rss[t] = rs
+                dof[t] = df
+                steps[0, t] = a_fit
+                steps[1, t] = g_fit
                 fitted[t] = True
-    return v_out, s_out, fitted
+    return v_out, s_out, fitted, rss, dof, steps
