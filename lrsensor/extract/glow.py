@@ -29,23 +29,23 @@ move the centre 0.15 px outward (walls at 3 m read 1.7 % short without any glow)
 What this stage does. It fits the model above by least squares on the rows ``c -+ (4.5 sigma + 2)`` (at most
 :data:`MAX_HALF_PX`) where a point's profile shows a glow, and also, without the glow's terms, where another laser's
 stripe overlaps this one (centres closer than :data:`PAIR_SIGMAS` times the sum of their sigmas, both at least
-:data:`PAIR_MIN_SIGMA`: blurred stripes at long range): the linear parameters solved exactly at the common
-fit's centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and
-width held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free).
-:data:`ROUNDS` rounds: the first with the other stripes where the common fit put them, each next one (points with
-another stripe in the fit) where the previous round's fit put them, so that two close stripes converge to their
-joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one shows: the glow two
-sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit; elsewhere, and wherever
-no glow shows and no stripe is close (clear water), the common fit stands untouched. Profiles taken as flat tops
-(thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless clipped: the model has no flat
-top.
+:data:`PAIR_MIN_SIGMA`: blurred stripes at long range): the linear parameters solved exactly at the common fit's
+centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and width
+held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free). :data:`ROUNDS`
+rounds: the first with the other stripes where the common fit put them, each next one (points with another stripe in
+the fit that moved by more than :data:`ROUND_TOL_PX`) where the previous round's fit put them, so that two close
+stripes converge to their joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one
+shows: the glow two sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit;
+elsewhere, and wherever no glow shows and no stripe is close (clear water), the common fit stands untouched.
+Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless
+clipped: the model has no flat top.
 
-Which glow: the fits run without the ramp (``g1 = g2 = 0``: a step) and with it, and a point takes the fit with the
-ramp where, pooled over its stripe's glowing points within :data:`POOL_COLS` columns either side that both fits
-kept, (a) the F statistic of the ramp's two parameters (the drop of the residual sum of squares per parameter over
-the residual variance with the ramp) exceeds :data:`F_SELECT`: the profiles ask for it beyond their noise, and (b)
-the glow's step is at least :data:`RAMP_MIN_STEP` of the stripe's peak: a weak glow's ramp trades off with the
-stripe's own shape. Otherwise the step model's fit stands.
+Which glow: the step model (``g1 = g2 = 0``) is fitted first; where the glow's step, pooled over the stripe's
+glowing points within :data:`POOL_COLS` columns either side, is at least :data:`RAMP_MIN_STEP` of the stripe's peak
+(a weaker glow's ramp trades off with the stripe's own shape), the model with the ramp is fitted too, with the other
+stripes where the step model put them, and taken where the F statistic of the ramp's two parameters, pooled the same
+way (the drop of the residual sum of squares per parameter over the residual variance with the ramp), exceeds
+:data:`F_SELECT`: the profiles ask for it beyond their noise. Otherwise the step model's fit stands.
 
 Where a glow shows: the step at each point is estimated from the green rows beyond its flanks, outer less inner, at
 ``2.5 sigma + 1`` rows from the centre and at twice that (``2 D_near - D_far``: a linear background cancels, a glow
@@ -70,17 +70,20 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
 - The ramp. On noise-free profiles (attenuation 0.3 /m, glow step 0.5) the step model leaves 0.03-0.09 px inward at
   1-3 m where the glow brightens, 0.3-0.65 px at 3 m with 4 px of blur; with the ramp 0.00-0.02 px at 0.5-3 m
   (1.5 px) and 0.5-2 m (4 px). A linear ramp alone is worse than none over this window (0.1-1.5 px: the glow's
-  growth is curved). With the ramp everywhere the per-column noise grows 2-3x and medians at 1-2 m with 4 px of
-  blur grow by a half; by the selection it is taken where the glow's growth shows (far walls, sharp stripes):
-  3 m, step 0.5, 1.5 px of blur: median 0.65 % -> 0.16 %. At 3 m with 4 px of blur the window spans ranges from
-  3 m to 1 m, where no second-order ramp holds (0.1 px left at 4.5 sigma).
-- The other stripe close by: in the fit, 3 m without glow, 4 px of blur: median 1.7 % -> 0.25 %.
-- The fits cost 3-8 us a column (4 px of blur: 41 rows; twice, with and without the ramp) where the common fit
-  costs about 0.1 us: they run only where a glow shows or a blurred stripe is close. The test costs about 0.3 ms
-  a frame; on the simulator's named scenes (clear water, its own turbid scene with a glow blurred by 8 px, clutter)
-  and on the independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a
-  frame. Without the colour test and the majority along the stripe, steps in the background's shade (the same in
-  every channel) were taken for glow: up to 360 columns of a frame, medians up to 0.0075 points off.
+  growth is curved). With the ramp everywhere the per-column noise grows 2-3x and the medians with 4 px of blur
+  grow by a half to double (1 m: 0.12 -> 0.20 %, 2 m: 0.33 -> 0.61 %); with the selection it is taken where the
+  glow's growth shows (far walls, sharp stripes): 3 m, step 0.5, 1.5 px of blur: median 0.66 % -> 0.19 %. A weak
+  glow's ramp (step 0.1) read walls at 3 m 1-2 % long. At 3 m with 4 px of blur the window spans ranges from 3 m
+  to about 1 m, where no second-order ramp holds (0.1 px left at 4.5 sigma, noise-free).
+- The other stripe close by: in the fit, 3 m without glow, 4 px of blur: median 1.7 % -> 0.24 %.
+- Cost (CPU time, 1920x1080, one thread): 10-45 us a fitted column, against about 0.1 us for the common fit: a
+  frame at 1 m with 1.5 px of blur (3700 glowing points) 37 ms; at 2 m with 4 px, the other stripe and the ramp,
+  127 ms; at 3 m with 4 px and no glow (the pair fits alone) 80 ms. The fits run only where a glow shows or blurred
+  stripes overlap; in clear water the stage is the test alone, about 0.4 ms a frame. On the simulator's named
+  scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
+  ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame. Without the colour test and the
+  majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
+  360 columns of a frame, medians up to 0.0075 points off.
 
 The compiled kernel is :func:`glow_refit`; the reference's is :func:`lrsensor.extract.reference_glow.glow_refit`
 (numpy, vectorized over the points). Both read the constants here.
@@ -128,6 +131,9 @@ F_SELECT = 4.0
 #: ... and where the glow's step, pooled the same way, is at least this share of the stripe's peak (a weaker glow's
 #: ramp trades off with the stripe's own shape: on the turbidity model a step of 0.1 read walls at 3 m 1-2 % long).
 RAMP_MIN_STEP = 0.2
+#: ... a point is refitted in the next round only where the other stripe (its centre or sigma) moved by more than
+#: this, px.
+ROUND_TOL_PX = 0.01
 #: The joint fit is kept within this distance of the common fit's centre, px.
 MAX_MOVE_PX = 4.0
 #: Linear parameters of the joint fit: background level and slope, stripe, glow step, glow ramp, neighbour.
@@ -184,7 +190,7 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max
     ``sat_dn`` (clipped) are left out.
 
     First the linear parameters alone at the start, then :data:`ITERATIONS` Gauss-Newton steps in all of them; each
-    pass builds the normal equations row by row. Parameters a profile's model leaves out keep an identity row."""
+    pass builds the normal equations row by row, in the parameters the profile's model has."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
     active = np.ones(N_LIN, np.bool_)
@@ -192,17 +198,26 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max
     active[4] = active[5] = glow_on and ramp
     active[6] = has_nb
     active[7] = has_nb and nb_side != 0.0
-    kk = N_LIN + 2
+    # the active parameters, linear first, then the centre and sigma: the normal equations in them alone (the
+    # reference's identity rows for the others decouple exactly)
+    par = np.empty(N_LIN + 2, np.int64)
+    n_lin = 0
+    for a in range(N_LIN):
+        if active[a]:
+            par[n_lin] = a
+            n_lin += 1
+    par[n_lin] = N_LIN
+    par[n_lin + 1] = N_LIN + 1
+    kk = n_lin + 2
+    n_par = kk
     M = np.empty((kk, kk))
     b = np.empty(kk)
-    xr = np.zeros(kk)
+    xr = np.zeros(N_LIN + 2)
+    xs = np.empty(kk)
     lin = np.zeros(N_LIN)
-    n_par = 2
-    for a in range(N_LIN):
-        n_par += active[a]
     for it in range(ITERATIONS + 1):
         full = it > 0
-        m_ = kk if full else N_LIN
+        m_ = kk if full else n_lin
         for a in range(m_):
             b[a] = 0.0
             for j in range(a, m_):
@@ -242,30 +257,25 @@ def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max
                     (lin[2] * gz * z * z - lin[3] * ph * side * z) / sg + lin[4] * ph + 2.0 * lin[5] * sg * f
                 )
             for a in range(m_):
-                xa = xr[a]
+                xs[a] = xr[par[a]]
+            for a in range(m_):
+                xa = xs[a]
                 b[a] += xa * r
                 for j in range(a, m_):
-                    M[a, j] += xa * xr[j]
+                    M[a, j] += xa * xs[j]
         for a in range(m_):
             for j in range(a + 1, m_):
                 M[j, a] = M[a, j]
-        for a in range(N_LIN):  # the parameters left out: an identity row and column
-            if not active[a]:
-                for j in range(m_):
-                    M[a, j] = 0.0
-                    M[j, a] = 0.0
-                M[a, a] = 1.0
-                b[a] = 0.0
         if not _solve(M, b, m_):
             return c, sg, lin[2], lin[3], False, np.nan, np.nan
         if not full:
-            for j in range(N_LIN):
-                lin[j] = b[j]
+            for a in range(n_lin):
+                lin[par[a]] = b[a]
             continue
-        for j in range(N_LIN):
-            lin[j] += b[j]
-        c += min(max(b[N_LIN], -MAX_STEP_PX), MAX_STEP_PX)
-        sg = min(max(sg + min(max(b[N_LIN + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig)
+        for a in range(n_lin):
+            lin[par[a]] += b[a]
+        c += min(max(b[n_lin], -MAX_STEP_PX), MAX_STEP_PX)
+        sg = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig)
     # the residual at the result
     rss = 0.0
     dof = -n_par
@@ -449,13 +459,15 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
-    # the fits, without and with the glow's ramp: round 1 with the neighbours of the common fit, the next rounds
-    # (points with a neighbour) with the previous round's
+    # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
+    # over the stripe's peak), with the other stripes where the step model put them
     v0, s0, f0, rss0, _d0, st0 = _rounds(
         image,
         cols,
         laser,
         at,
+        vv,
+        sig,
         vv,
         sig,
         nb_ok,
@@ -472,6 +484,18 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sat_dn,
         False,
     )
+    strong = np.zeros(n, np.bool_)
+    for t in range(n):
+        if not glowing[t]:
+            continue
+        a_sum = 0.0
+        g_sum = 0.0
+        for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
+            j = at[laser[t], cc]
+            if j >= 0 and f0[j] and glowing[j]:
+                a_sum += st0[0, j]
+                g_sum += st0[1, j]
+        strong[t] = a_sum > 0.0 and g_sum >= RAMP_MIN_STEP * a_sum
     v2, s2, f2, rss2, dof2, _st2 = _rounds(
         image,
         cols,
@@ -479,9 +503,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
         at,
         vv,
         sig,
+        v0,
+        s0,
         nb_ok,
         nb0,
-        fit_me,
+        strong,
         glowing,
         side,
         rc,
@@ -493,8 +519,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sat_dn,
         True,
     )
-    # the ramp where the stripe's profiles ask for it (the F statistic of its two parameters, pooled along the
-    # stripe) and its glow is strong enough to tell its ramp from the stripe (the pooled step over the stripe's peak)
+    # ... taken where the stripe's profiles ask for it: the F statistic of its two parameters, pooled along the stripe
     v_out = v0
     s_out = s0
     fitted = f0.copy()
@@ -504,8 +529,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
         d_rss = 0.0
         r2 = 0.0
         df2 = 0.0
-        a_sum = 0.0
-        g_sum = 0.0
         cnt = 0
         for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
             j = at[laser[t], cc]
@@ -513,10 +536,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 d_rss += rss0[j] - rss2[j]
                 r2 += rss2[j]
                 df2 += dof2[j]
-                a_sum += st0[0, j]
-                g_sum += st0[1, j]
                 cnt += 1
-        if cnt > 0 and d_rss / (2.0 * cnt) > F_SELECT * (r2 / df2) and g_sum >= RAMP_MIN_STEP * a_sum:
+        if cnt > 0 and d_rss / (2.0 * cnt) > F_SELECT * (r2 / df2):
             v_out[t] = v2[t]
             s_out[t] = s2[t]
             fitted[t] = True
@@ -525,16 +546,39 @@ def glow_refit(  # type: ignore[no-untyped-def]
 
 @njit
 def _rounds(  # type: ignore[no-untyped-def]
-    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig, sat_dn, ramp
+    image,
+    cols,
+    laser,
+    at,
+    vv,
+    sig,
+    v_init,
+    s_init,
+    nb_ok,
+    nb0,
+    fit_me,
+    glowing,
+    side,
+    rc,
+    hw,
+    kt,
+    sg0,
+    lo_sig,
+    max_sig,
+    sat_dn,
+    ramp,
 ):
     """The joint fits of the points ``fit_me`` (:func:`glow_refit`'s arrays), with the glow's ramp or without:
-    :data:`ROUNDS` rounds, the first with the common fit's neighbours, each next one (points with a neighbour) with
-    the previous round's. Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe
-    amplitudes and glow steps (2, N)."""
+    :data:`ROUNDS` rounds, the first with the other stripes at ``v_init``, ``s_init`` (N,), each next one (points
+    with another stripe whose centre or sigma moved by more than :data:`ROUND_TOL_PX`) with the previous round's.
+    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
+    steps (2, N)."""
     n = cols.size
-    v_out = vv.copy()
-    s_out = sig.copy()
+    v_out = v_init.copy()
+    s_out = s_init.copy()
     fitted = np.zeros(n, np.bool_)
+    last_c = np.full(n, np.nan)  # the other stripe (centre, sigma) in each point's last fit
+    last_s = np.full(n, np.nan)
     rss = np.full(n, np.nan)
     dof = np.full(n, np.nan)
     steps = np.zeros((2, n))
@@ -555,6 +599,12 @@ def _rounds(  # type: ignore[no-untyped-def]
             nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
             if not abs(nb_c) < hw[t] + 3.0 * nb_s:  # (also NaN) its stripe does not reach the fit's window
                 nb_c = np.nan
+            if rnd > 0:  # refitted only where the other stripe moved
+                same_c = abs(nb_c - last_c[t]) <= ROUND_TOL_PX or (math.isnan(nb_c) and math.isnan(last_c[t]))
+                if same_c and abs(nb_s - last_s[t]) <= ROUND_TOL_PX:
+                    continue
+            last_c[t] = nb_c
+            last_s[t] = nb_s
             # the other stripe's glow, where its edge lies in the window
             nb_side = side[nb] if nb >= 0 and glowing[nb] and abs(nb_c) <= hw[t] else 0.0
             k_rows = 2 * hw[t] + 1

@@ -25,6 +25,7 @@ from .glow import (
     PAIR_SIGMAS,
     POOL_COLS,
     RAMP_MIN_STEP,
+    ROUND_TOL_PX,
     ROUNDS,
     TREND_VAR,
     TRIGGER_FRAC,
@@ -266,13 +267,15 @@ def glow_refit(
     paired = np.zeros(n, bool)
     paired[idx[near]] = True
 
-    def rounds(ramp: bool) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
-        v_out, s_out = vv.copy(), sig.copy()
+    def rounds(
+        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+        v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
         steps = np.zeros((2, n))
         rss = np.full(n, np.nan)
         dof = np.full(n, np.nan)
-        todo = glowing | paired
+        last = np.full((2, n), np.nan)  # the other stripe (centre, sigma) in each point's last fit
         for rnd in range(ROUNDS):
             v1, s1 = v_out.copy(), s_out.copy()
             idx = np.flatnonzero(todo if rnd == 0 else todo & (nb0 >= 0) & fitted)
@@ -285,6 +288,17 @@ def glow_refit(
             nb_c = np.where(have, v1[nbc] - rc[idx], np.nan)
             with np.errstate(invalid="ignore"):
                 nb_c = np.where(np.abs(nb_c) < hw[idx] + 3.0 * nb_s, nb_c, np.nan)  # it reaches the fit's window
+            if rnd > 0:  # refitted only where the other stripe moved
+                l_c, l_s = last[0, idx], last[1, idx]
+                with np.errstate(invalid="ignore"):
+                    same = ((np.abs(nb_c - l_c) <= ROUND_TOL_PX) | (np.isnan(nb_c) & np.isnan(l_c))) & (
+                        np.abs(nb_s - l_s) <= ROUND_TOL_PX
+                    )
+                idx, nb, have, nbc, nb_s, nb_c = (x[~same] for x in (idx, nb, have, nbc, nb_s, nb_c))
+                if idx.size == 0:
+                    break
+            last[0, idx] = nb_c
+            last[1, idx] = nb_s
             big = int(hw[idx].max())
             rel = np.arange(-big, big + 1)[None, :]
             mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
@@ -316,26 +330,27 @@ def glow_refit(
             fitted[sel] = True
         return v_out, s_out, fitted, rss, dof, steps
 
-    v0, s0, f0, rss0, _d0, st0 = rounds(False)
-    v2, s2, f2, rss2, dof2, _st2 = rounds(True)
-    # the ramp where the stripe's profiles ask for it (the pooled F statistic of its two parameters) and its glow is
-    # strong enough to tell its ramp from the stripe (the pooled step over the stripe's peak)
+    def pooled(values: FloatArray) -> FloatArray:
+        """Sums (k, n) of ``values`` (k, n) over each point's stripe within POOL_COLS columns either side."""
+        acc = np.zeros_like(values)
+        for off in range(-POOL_COLS, POOL_COLS + 1):
+            cc = cols + off
+            inside = (cc >= 0) & (cc < w)
+            j = np.where(inside, at[laser, np.clip(cc, 0, w - 1)], -1)
+            acc += np.where(j >= 0, values[:, np.maximum(j, 0)], 0.0)
+        return acc
+
+    # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
+    # over the stripe's peak), with the other stripes where the step model put them
+    v0, s0, f0, rss0, _d0, st0 = rounds(False, glowing | paired, vv, sig)
+    g_on = f0 & glowing
+    a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
+    strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
+    v2, s2, f2, rss2, dof2, _st2 = rounds(True, strong, v0, s0)
+    # ... taken where the stripe's profiles ask for it: the pooled F statistic of its two parameters
     pair = f0 & f2 & glowing
-    d_rss = np.where(pair, rss0 - rss2, 0.0)
-    r2 = np.where(pair, rss2, 0.0)
-    df2 = np.where(pair, dof2, 0.0)
-    nb2 = pair.astype(np.float64)
-    a0 = np.where(pair, st0[0], 0.0)
-    g0 = np.where(pair, st0[1], 0.0)
-    acc = np.zeros((6, n))
-    for off in range(-POOL_COLS, POOL_COLS + 1):
-        cc = cols + off
-        inside = (cc >= 0) & (cc < w)
-        j = np.where(inside, at[laser, np.clip(cc, 0, w - 1)], -1)
-        jc = np.maximum(j, 0)
-        use = j >= 0
-        acc += np.where(use, np.stack([d_rss[jc], r2[jc], df2[jc], nb2[jc], a0[jc], g0[jc]]), 0.0)
+    acc = pooled(np.stack([np.where(pair, x, 0.0) for x in (rss0 - rss2, rss2, dof2, np.ones(n))]))
     with np.errstate(divide="ignore", invalid="ignore"):
         F = (acc[0] / (2.0 * acc[3])) / (acc[1] / acc[2])
-    take2 = f2 & (F > F_SELECT) & (acc[5] >= RAMP_MIN_STEP * acc[4])
+    take2 = f2 & (F > F_SELECT)
     return np.where(take2, v2, v0), np.where(take2, s2, s0), f0 | take2
