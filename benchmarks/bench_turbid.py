@@ -429,6 +429,28 @@ STAGE_CELLS = [
 ]
 
 
+#: The cells whose CPU time per frame --cost measures (range m, glow step, blur px): clear-ish water, a glow at 1 m,
+#: a blurred glow at 2 m, the two blurred stripes close together at 3 m without and with a glow.
+COST_CELLS = ((1.0, 0.0, 1.5), (1.0, 0.5, 1.5), (2.0, 0.5, 4.0), (3.0, 0.0, 4.0), (3.0, 0.5, 4.0))
+
+
+def frame_cost(repeats: int = 5, seed: int = 1) -> list[str]:
+    """CPU time per frame of ``Sensor(calibration).process`` (median of ``repeats`` after one warm call,
+    ``time.process_time``: the process's CPU, not the wall) on the frames of :data:`COST_CELLS`; the table rows."""
+    rows = ["| range m | glow step | blur px | CPU ms/frame | points |", "|---:|---:|---:|---:|---:|"]
+    for d, g, b in COST_CELLS:
+        frame = render(Turbid(distance_m=d, glow_step=g, blur_px=b, seed=seed))
+        sensor = Sensor(frame.calibration)
+        scan = sensor.process(frame.image)
+        times = []
+        for _ in range(repeats):
+            t0 = time.process_time()
+            sensor.process(frame.image)
+            times.append(time.process_time() - t0)
+        rows.append(f"| {d:.1f} | {g:.1f} | {b:.1f} | {1e3 * float(np.median(times)):.1f} | {scan.laser.size} |")
+    return rows
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (0 .. N-1)")
@@ -436,6 +458,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="two cells, one seed; writes only to an explicit --out")
     ap.add_argument(
         "--stages", action="store_true", help="print where the numpy reference loses the failing cells' columns; exit"
+    )
+    ap.add_argument(
+        "--cost", action="store_true", help="print the CPU time per frame of a few cells (one thread); exit"
     )
     args = ap.parse_args(argv)
     if args.seeds < 1:
@@ -447,6 +472,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from lrsensor.extract.compile import warm_up
 
     warm_up()
+    if args.cost:
+        print("\n".join(frame_cost()))
+        return 0
     seeds = range(1 if args.quick else args.seeds)
     command = COMMAND + ("" if args.seeds == 3 else f" --seeds {args.seeds}") + (" --quick" if args.quick else "")
     rows = run(grid(args.quick), list(seeds))

@@ -24,9 +24,12 @@ from .glow import (
     PAIR_MIN_SIGMA,
     PAIR_SIGMAS,
     POOL_COLS,
+    RAMP_EVERY,
+    RAMP_MARGIN,
     RAMP_MIN_STEP,
     ROUND_TOL_PX,
     ROUNDS,
+    STOP_PX,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
@@ -75,14 +78,19 @@ def fit_profiles(
     use_glow: BoolArray | None = None,
     nb_side: FloatArray | None = None,
     ramp: bool = True,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
+    lin0: FloatArray | None = None,
+    warm: BoolArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
     relative to the window's middle), glow side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``,
     ``nb_s`` (n,) (NaN: none); ``use_glow`` (n,) (default all): the glow's step and ramp in the model (False: a
     stripe beside another one, no glow), ``nb_side`` (n,) the side of the other stripe's glow (0: none, default),
-    ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c, sigma, A, g, ok, rss,
-    dof)``, (n,) each: the fit, its residual sum of squares and its degrees of freedom."""
+    ``ramp``: the glow's linear and quadratic growth outward in the model; ``warm`` (n,): one Gauss-Newton step from
+    the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
+    Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
+    (at the last step's start, as :func:`lrsensor.extract.glow._fit_into`), degrees of freedom and linear
+    parameters."""
     n, k_rows = Y.shape
     glow_on = np.ones(n, bool) if use_glow is None else use_glow
     mask = mask * (sat_dn > Y)  # clipped samples left out
@@ -100,7 +108,10 @@ def fit_profiles(
         active[np.ix_(drop, np.array(cols))] = False
     if not ramp:
         active[:, [_R, _Q]] = False
-    for it in range(ITERATIONS + 2):
+    warm = np.zeros(n, bool) if warm is None else warm
+    live = np.ones(n, bool)  # the fits still stepping (the others' steps are below STOP_PX: they stay)
+    rss = np.full(n, np.nan)
+    for it in range(ITERATIONS + 1):
         z = (q - c[:, None]) / sg[:, None]
         gz = np.exp(-0.5 * z * z)
         u = s * z
@@ -115,11 +126,6 @@ def fit_profiles(
         tail_d = _upper_tail(np.abs(ud), np.exp(-0.5 * ud * ud))
         NG = np.where(ud >= 0.0, 1.0 - tail_d, tail_d)
         X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, F, R, Qd, N, NG], axis=2)
-        if it == ITERATIONS + 1:  # the residual at the result
-            res = (Y - np.einsum("nik,nk->ni", X, lin)) * mask
-            rss = (res * res).sum(axis=1)
-            dof = mask.sum(axis=1) - active.sum(axis=1)
-            break
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
         else:  # a Gauss-Newton step in all of them
@@ -128,25 +134,30 @@ def fit_profiles(
             ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
             J = np.concatenate([X, dc[:, :, None], ds[:, :, None]], axis=2)
             r = Y - np.einsum("nik,nk->ni", X, lin)
+            rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow._fit_into says why)
         J = J * mask[:, :, None]
         act = active[:, : J.shape[2]]
         J = J * act[:, None, :]
         M = np.einsum("nik,nij->nkj", J, J) + np.eye(J.shape[2])[None] * ~act[:, :, None]
         b = np.einsum("nik,ni->nk", J, r * mask)
         step, solved = _solve(M, b)
-        good &= solved
-        step = np.where(good[:, None], step, 0.0)
+        good &= solved | (warm & (it == 0))
+        step = np.where((good & live)[:, None], step, 0.0)
         if it == 0:
-            lin = step
+            lin = step if lin0 is None else np.where(warm[:, None], lin0, step)
             continue
         lin = lin + step[:, :N_LIN]
-        c = c + np.clip(step[:, N_LIN], -MAX_STEP_PX, MAX_STEP_PX)
-        sg = np.clip(sg + np.clip(step[:, N_LIN + 1], -MAX_STEP_PX, MAX_STEP_PX), min_sig, max_sig)
+        dc = np.clip(step[:, N_LIN], -MAX_STEP_PX, MAX_STEP_PX)
+        ds = np.clip(sg + np.clip(step[:, N_LIN + 1], -MAX_STEP_PX, MAX_STEP_PX), min_sig, max_sig) - sg
+        c = c + dc
+        sg = sg + ds
+        live &= ((np.abs(dc) > STOP_PX) | (np.abs(ds) > STOP_PX)) & ~warm
+    dof = mask.sum(axis=1) - active.sum(axis=1)
     # the glow two sigmas outward of the edge (where its step is complete) is a glow: positive
     x2 = 2.0 * sg
     g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
     good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > TRIGGER_FRAC * lin[:, _A]))
-    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof
+    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin
 
 
 def _neighbours(
@@ -275,7 +286,8 @@ def glow_refit(
         steps = np.zeros((2, n))
         rss = np.full(n, np.nan)
         dof = np.full(n, np.nan)
-        last = np.full((2, n), np.nan)  # the other stripe (centre, sigma) in each point's last fit
+        last = np.full((3, n), np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
+        lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
         for rnd in range(ROUNDS):
             v1, s1 = v_out.copy(), s_out.copy()
             idx = np.flatnonzero(todo if rnd == 0 else todo & (nb0 >= 0) & fitted)
@@ -297,27 +309,36 @@ def glow_refit(
                 idx, nb, have, nbc, nb_s, nb_c = (x[~same] for x in (idx, nb, have, nbc, nb_s, nb_c))
                 if idx.size == 0:
                     break
+            nb_side = np.where(have & glowing[nbc] & (np.abs(nb_c) <= hw[idx]), side[nbc], 0.0)  # its glow's edge
+            # one step from the last fit where its model stays (glow._rounds)
+            cold = (rnd == 0) | glowing[idx]
+            warm = ~cold & (np.isnan(nb_c) == np.isnan(last[0, idx])) & (nb_side == last[2, idx])
             last[0, idx] = nb_c
             last[1, idx] = nb_s
+            last[2, idx] = nb_side
             big = int(hw[idx].max())
             rel = np.arange(-big, big + 1)[None, :]
             mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
             rr = np.clip(rc[idx][:, None] + rel, 0, h - 1)
             Y = green[rr, cols[idx][:, None]].astype(np.float64)
-            c, sg, a_, g_, good, rs, df = fit_profiles(
+            # the common fit, then each point's last fit (glowing points: the common fit again, glow._rounds)
+            start = (np.where(cold, vv[idx], v_out[idx]), np.where(cold, sg0[idx], s_out[idx]))
+            c, sg, a_, g_, good, rs, df, lin = fit_profiles(
                 Y,
                 mask,
                 side[idx],
-                vv[idx] - rc[idx],
-                sg0[idx],
+                start[0] - rc[idx],
+                start[1],
                 nb_c,
                 nb_s,
                 lo_sig,
                 max_sig,
                 sat_dn,
                 glowing[idx],
-                np.where(have & glowing[nbc] & (np.abs(nb_c) <= hw[idx]), side[nbc], 0.0),  # its glow in the window
+                nb_side,
                 ramp,
+                lin_t[idx],
+                warm,
             )
             with np.errstate(invalid="ignore"):
                 keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
@@ -328,6 +349,7 @@ def glow_refit(
             steps[:, sel] = np.stack([a_[keep], g_[keep]])
             dof[sel] = df[keep]
             fitted[sel] = True
+            lin_t[sel] = lin[keep]
         return v_out, s_out, fitted, rss, dof, steps
 
     def pooled(values: FloatArray) -> FloatArray:
@@ -346,11 +368,19 @@ def glow_refit(
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
-    v2, s2, f2, rss2, dof2, _st2 = rounds(True, strong, v0, s0)
-    # ... taken where the stripe's profiles ask for it: the pooled F statistic of its two parameters
-    pair = f0 & f2 & glowing
-    acc = pooled(np.stack([np.where(pair, x, 0.0) for x in (rss0 - rss2, rss2, dof2, np.ones(n))]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        F = (acc[0] / (2.0 * acc[3])) / (acc[1] / acc[2])
-    take2 = f2 & (F > F_SELECT)
-    return np.where(take2, v2, v0), np.where(take2, s2, s0), f0 | take2
+
+    def pooled_f(f2: BoolArray, rss2: FloatArray, dof2: FloatArray) -> FloatArray:
+        """The ramp's F statistic at each point, pooled over its stretch's glowing points fitted with and without
+        it (glow._pooled_f); NaN where none is."""
+        pair = f0 & f2 & glowing
+        acc = pooled(np.stack([np.where(pair, x, 0.0) for x in (rss0 - rss2, rss2, dof2, np.ones(n))]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.asarray((acc[0] / (2.0 * acc[3])) / (acc[1] / acc[2]))
+
+    # the ramp's F test, first per stretch at every RAMP_EVERY-th column's strong points; then at every strong point
+    # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
+    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0)
+    maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
+    v3, s3, f3, rss3, dof3, _st3 = rounds(True, maybe, v0, s0)
+    f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3
