@@ -303,8 +303,8 @@ def glow_refit(
             if rnd > 0:  # refitted only where the other stripe moved
                 l_c, l_s = last[0, idx], last[1, idx]
                 with np.errstate(invalid="ignore"):
-                    same = ((np.abs(nb_c - l_c) <= ROUND_TOL_PX) | (np.isnan(nb_c) & np.isnan(l_c))) & (
-                        np.abs(nb_s - l_s) <= ROUND_TOL_PX
+                    same = (np.isnan(nb_c) & np.isnan(l_c)) | (
+                        (np.abs(nb_c - l_c) <= ROUND_TOL_PX) & (np.abs(nb_s - l_s) <= ROUND_TOL_PX)
                     )
                 idx, nb, have, nbc, nb_s, nb_c = (x[~same] for x in (idx, nb, have, nbc, nb_s, nb_c))
                 if idx.size == 0:
