@@ -36,12 +36,16 @@ def test_glow_sides_are_away_from_the_vanishing_line() -> None:
     assert (sides[1] == 1).all()
 
 
-@pytest.mark.parametrize(("attenuation_per_m", "tol_px"), [(0.0, 0.02), (0.3, 0.1)])
-def test_joint_fit_finds_the_centre_of_a_noise_free_glowing_profile(attenuation_per_m: float, tol_px: float) -> None:
+@pytest.mark.parametrize(
+    ("attenuation_per_m", "ramp", "tol_px"), [(0.0, False, 0.02), (0.3, False, 0.1), (0.3, True, 0.02)]
+)
+def test_joint_fit_finds_the_centre_of_a_noise_free_glowing_profile(
+    attenuation_per_m: float, ramp: bool, tol_px: float
+) -> None:
     """Glow step 0.5 of the stripe's peak, 4 px of forward-scatter blur, 1 m: the common fit reads the centre about
-    0.9 px outward; the joint fit within 0.02 px where the glow is flat along the rows (no attenuation: the model is
-    exact) and within 0.1 px where it brightens towards the camera (0.3 /m: the model has no ramp), and the
-    compiled fit gives the reference's centre."""
+    0.9 px outward; the joint fit within 0.02 px where the glow is flat along the rows (no attenuation: the step
+    model is exact), within 0.1 px with the step model where the glow brightens towards the camera (0.3 /m), and
+    within 0.02 px there with the glow's ramp; the compiled fit gives the reference's centre."""
     frame = render(Turbid(distance_m=1.0, glow_step=0.5, blur_px=4.0, attenuation_per_m=attenuation_per_m, **QUIET))
     green = frame.layers["stripe"] + frame.layers["glow"]
     for li, side in ((0, -1.0), (1, 1.0)):
@@ -66,14 +70,19 @@ def test_joint_fit_finds_the_centre_of_a_noise_free_glowing_profile(attenuation_
                 0.5,
                 5.0,
                 250.0,
+                ramp=ramp,
             )
             assert ref[4][0]
             assert rc + ref[0][0] == pytest.approx(v_true, abs=tol_px)
             assert ref[3][0] / ref[2][0] == pytest.approx(0.5, abs=0.15)  # the glow's step over the stripe's peak
+            assert ref[6][0] == y.size - (8 if ramp else 6)  # degrees of freedom: no neighbour in the model
             if HAVE_NUMBA:
-                c, _sg, _a, _g, ok = glow._fit_one(y, q, side, c_common - rc, sigma, np.nan, 1.0, 0.5, 5.0, 250.0)
+                c, _sg, _a, _g, ok, _rss, _dof = glow._fit_one(
+                    y, q, side, c_common - rc, sigma, np.nan, 1.0, 0.0, True, ramp, 0.5, 5.0, 250.0
+                )
                 assert ok
                 assert c == pytest.approx(ref[0][0], abs=1e-9)
+                assert _rss == pytest.approx(ref[5][0], rel=1e-6, abs=1e-9)
 
 
 @pytest.mark.parametrize(("distance_m", "blur_px"), [(1.0, 4.0), (0.5, 1.5)])
@@ -86,6 +95,56 @@ def test_glowing_walls_are_read_without_bias(distance_m: float, blur_px: float) 
     assert np.median(old) > 0.5
     assert abs(np.median(new)) < 0.05
     assert new.size >= 0.95 * old.size
+
+
+@pytest.mark.parametrize(
+    ("turbid", "old_px", "tol_px"),
+    [
+        # two blurred stripes 18 px apart, no glow: fitted together (the common fit: 0.15 px outward)
+        (Turbid(distance_m=3.0, glow_step=0.0, blur_px=4.0, seed=2), 0.1, 0.03),
+        # a glow that brightens steeply outward: the ramp in the model (the common fit: 0.4 px outward)
+        (Turbid(distance_m=3.0, glow_step=0.5, blur_px=1.5, seed=2), 0.3, 0.02),
+    ],
+    ids=["3m-close-blurred-stripes", "3m-glow"],
+)
+def test_far_walls_are_read_without_bias(turbid: Turbid, old_px: float, tol_px: float) -> None:
+    """Far walls in turbid water: the median row error of the default extractor's points is within ``tol_px`` of
+    the truth, where the common fit alone (``glow_fit=False``) reads the stripe at least ``old_px`` outward."""
+    frame = render(turbid)
+    assert np.median(_outward_shift(frame, glow_fit=False)) > old_px
+    assert abs(np.median(_outward_shift(frame))) < tol_px
+
+
+def test_the_ramp_follows_a_glow_that_brightens_outward() -> None:
+    """Noise-free profiles at 3 m (glow step 0.5, 1.5 px of blur): the glow grows about threefold within the fit's
+    window; the step model reads the centre at least 0.05 px inward, the model with the ramp within 0.015 px."""
+    frame = render(Turbid(distance_m=3.0, glow_step=0.5, blur_px=1.5, **QUIET))
+    green = (frame.layers["stripe"] + frame.layers["glow"]).astype(np.float64)
+    for li, side in ((0, -1.0), (1, 1.0)):
+        for u in (400, 959, 1500):
+            v_true = float(frame.rows[li, u])
+            rc = round(v_true)
+            sigma = math.hypot(1.5, 0.0015 * frame.calibration.camera.fy / float(frame.range_m[li, u]))
+            half = min(math.ceil(glow.WINDOW_SIGMAS * sigma) + 2, glow.MAX_HALF_PX)
+            y = green[rc - half : rc + half + 1, u][None, :]
+            shift = {}
+            for ramp in (False, True):
+                c, *_rest = reference_glow.fit_profiles(
+                    y,
+                    np.ones_like(y),
+                    np.array([side]),
+                    np.array([v_true - rc + 0.3]),
+                    np.array([sigma]),
+                    np.array([np.nan]),
+                    np.array([1.0]),
+                    0.5,
+                    5.0,
+                    250.0,
+                    ramp=ramp,
+                )
+                shift[ramp] = side * (rc + c[0] - v_true)
+            assert shift[False] < -0.05
+            assert abs(shift[True]) < 0.015
 
 
 def test_clear_water_is_untouched() -> None:

@@ -5,26 +5,50 @@ back to the camera. The sheet between the camera and the wall images on the side
 plane's vanishing line (above the top laser's stripe, below the bottom one's) and ENDS at the stripe, where the
 sheet meets the wall; the wall cuts the sheet along the sheet's own thickness profile, so the glow's edge is a
 step whose 50 % point is the stripe's centre, and forward scatter blurs stripe and edge alike. A column's profile
-is then, with ``z = (v - c) / sigma`` and ``s`` the glow's side (+1: the glow at larger rows)::
+is then, with ``z = (v - c) / sigma``, ``u = s z`` and ``s`` the glow's side (+1: the glow at larger rows)::
 
-    y(v) = b0 + b1 (v - v0) + A exp(-z^2 / 2) + g Phi(s z)          [+ a N(v): another laser's stripe close by]
+    y(v) = b0 + b1 (v - v0) + A exp(-z^2 / 2) + g Phi(u) + g1 sigma R1(u) + g2 sigma^2 R2(u)
+           [+ a N(v) + a_g Phi(s' d): another laser's stripe close by, and its own glow's edge]
 
 The stripe (a Gaussian) and the glow's edge (a blurred step) share their centre ``c`` and their width ``sigma``
-(a sheet of Gaussian thickness blurred by a Gaussian: both widths are ``sqrt(sigma_sheet^2 + blur^2)``).
+(a sheet of Gaussian thickness blurred by a Gaussian: both widths are ``sqrt(sigma_sheet^2 + blur^2)``). The glow
+is not flat beyond its edge: it brightens outward (the sheet seen there is nearer the camera: shorter paths through
+the water, and at far walls the rows outward of the stripe span ranges from the wall nearly to the port). Its
+growth over the window, to second order, is ``g1 x + g2 x^2`` (``x = s (v - c)`` px outward); cut by the same edge
+and blurred by the same Gaussian, ``x`` and ``x^2`` become ``sigma R1(u)`` and ``sigma^2 R2(u)`` exactly, with
+``R1 = u Phi(u) + phi(u)`` and ``R2 = (u^2 + 1) Phi(u) + u phi(u)`` (the first two moments of a Gaussian cut at
+zero). Both stay linear parameters.
 
 Why the common fit fails there. Its linear background through two flank windows takes the step as a slope; what
 the line leaves of the step is odd about the centre and pulls the Gaussian-weighted centroid towards the glow,
 0.1-1.1 px on the independent turbidity model (``benchmarks/turbid_model.py``), which reads walls 0.2-10 % short.
+A stripe of another laser close by (far walls: at 3 m the two stripes of the paper's lasers are 18 px apart) lies
+in the common fit's inner flank; with 4 px of forward-scatter blur its subtracted Gaussian leaves enough there to
+move the centre 0.15 px outward (walls at 3 m read 1.7 % short without any glow).
 
-What this stage does. Where a point's profile shows a glow, the model above is fitted by least squares on the rows
-``c -+ (4.5 sigma + 2)`` (at most :data:`MAX_HALF_PX`): the linear parameters ``b0, b1, A, g`` (and ``a``, with the
-neighbour's centre and width held) solved exactly at the common fit's centre and width, then :data:`ITERATIONS`
-Gauss-Newton steps in all of them. Points with another laser's fitted stripe
-close by are fitted twice, the second time with that stripe where its own fit put it. The fit is kept where it
-converges to a stripe and a glow (``A > 0``, ``g > 0.05 A``) within :data:`MAX_MOVE_PX` of the common fit (a second
-round that fails keeps the first round's); elsewhere, and wherever no glow shows (clear water), the common fit
-stands untouched. Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left
-alone unless clipped: the model has no flat top.
+What this stage does. It fits the model above by least squares on the rows ``c -+ (4.5 sigma + 2)`` (at most
+:data:`MAX_HALF_PX`) where a point's profile shows a glow, and also, without the glow's terms, where another laser's
+stripe overlaps this one (centres closer than :data:`PAIR_SIGMAS` times the sum of their sigmas, both at least
+:data:`PAIR_MIN_SIGMA`: blurred stripes at long range): the linear parameters solved exactly at the common fit's
+centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and width
+held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free). :data:`ROUNDS`
+rounds: the first with the other stripes where the common fit put them, each next one (points with another stripe in
+the fit that moved by more than :data:`ROUND_TOL_PX`) where the previous round's fit put them, so that two close
+stripes converge to their joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one
+shows: the glow two sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit;
+elsewhere, and wherever no glow shows and no stripe is close (clear water), the common fit stands untouched.
+Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless
+clipped: the model has no flat top.
+
+Which glow: the step model (``g1 = g2 = 0``) is fitted first; where the glow's step, pooled over the stripe's
+glowing points within :data:`POOL_COLS` columns either side, is at least :data:`RAMP_MIN_STEP` of the stripe's peak
+(a weaker glow's ramp trades off with the stripe's own shape), the model with the ramp is fitted too, with the other
+stripes where the step model put them, and taken where the F statistic of the ramp's two parameters, pooled the same
+way (the drop of the residual sum of squares per parameter over the residual variance with the ramp), exceeds
+:data:`F_SELECT`: the profiles ask for it beyond their noise. Otherwise the step model's fit stands. The test is
+decided per stretch first: the ramp is fitted at every :data:`RAMP_EVERY`-th column, and at the other points only
+where that sample's pooled statistic comes within :data:`RAMP_MARGIN` of the bar (below 3 m the ramp is taken at
+almost no point, and most of its fits were lost; a sample's decision alone read far walls with much blur worse).
 
 Where a glow shows: the step at each point is estimated from the green rows beyond its flanks, outer less inner, at
 ``2.5 sigma + 1`` rows from the centre and at twice that (``2 D_near - D_far``: a linear background cancels, a glow
@@ -33,27 +57,39 @@ its median over the stripe's points within :data:`POOL_COLS` columns either side
 column does not decide) must exceed 3.5x its noise and 5 % of the stripe's amplitude (more than half of those
 steps exceed that threshold), and the step summed over them must have the laser's colour: green over red and blue
 by ``min_green_ratio``, as the stripe's colour test asks (a step in the wall's shade or the ambient light is not a
-glow); and most of those points must pass the test too (a glow lies along the stripe, not at a few columns).
+glow); and most of the stripe's points within :data:`POOL_COLS` columns must pass that test too: a glow lies along
+the stripe, not at a few columns.
 
-Why this estimator, measured on the turbidity model (glow step 0.5 of the peak unless said):
+Why this estimator, measured on the turbidity model (``python benchmarks/bench_turbid.py``; the results and the
+Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water.md):
 
-- Single columns before the along-stripe smoothing: the joint fit's median row shift is within 0.03 px of zero at
+- Single columns before the along-stripe smoothing: the step model's median row shift is within 0.03 px of zero at
   0.5-2 m for 1.5 and 4 px of blur (the common fit: +0.46 to +1.03 px).
 - A background from the inner flank alone cannot work: the glow's edge is half way up at the centre, so even the
   stripe's inner half carries a quarter of the stripe's peak of glow.
 - The window must be long (4.5 sigma): at 3 sigma the background's slope, the step and the centre trade off and
-  the noise doubles (p5-p95 of single columns +-1.4 px against +-0.7 px at 4 px of blur).
-- The glow brightens away from the wall (shorter paths through the water). On noise-free profiles the step model
-  leaves 0.01-0.02 px where the glow is flat and 0.05-0.1 px inward where it brightens (0.3 /m at 1-2 m); a glow
-  that grows exponentially with a free rate halves that at 1-2 m, is worse at 3 m, and on noisy frames moves no
-  median by more than 0.03 px, for an eighth parameter: left out.
-- The joint fit is about twice as noisy as the common fit, and costs 3-8 us a column (4 px of blur: 41 rows) where
-  the common fit costs about 0.1 us: it runs only where a glow shows. The test costs about 0.3 ms a frame; on the
-  simulator's named scenes (clear water, its own turbid scene with a glow blurred by 8 px, clutter) and on the
-  independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame,
-  and no median moves by more than 0.001 percentage points. Without the colour test and the majority along the
-  stripe, steps in the background's shade (the same in every channel) were taken for glow: up to 360 columns of
-  a frame, medians up to 0.0075 points off.
+  the noise doubles (p5-p95 of single columns +-1.4 px against +-0.7 px at 4 px of blur); on noisy frames the
+  medians of the short window's fits move by up to 0.4 px.
+- The ramp. On noise-free profiles (attenuation 0.3 /m, glow step 0.5) the step model leaves 0.03-0.09 px inward at
+  1-3 m where the glow brightens, 0.3-0.65 px at 3 m with 4 px of blur; with the ramp 0.00-0.02 px at 0.5-3 m
+  (1.5 px) and 0.5-2 m (4 px). A linear ramp alone is worse than none over this window (0.1-1.5 px: the glow's
+  growth is curved). With the ramp everywhere the per-column noise grows 2-3x and the medians with 4 px of blur
+  grow by a half to double (1 m: 0.12 -> 0.20 %, 2 m: 0.33 -> 0.61 %); with the selection it is taken where the
+  glow's growth shows (far walls, sharp stripes): 3 m, step 0.5, 1.5 px of blur: median 0.66 % -> 0.19 %. A weak
+  glow's ramp (step 0.1) read walls at 3 m 1-2 % long. At 3 m with 4 px of blur the window spans ranges from 3 m
+  to about 1 m, where no second-order ramp holds (0.1 px left at 4.5 sigma, noise-free).
+- The other stripe close by: in the fit, 3 m without glow, 4 px of blur: median 1.7 % -> 0.24 %.
+- Cost: 2-7 us a fit of one column (23-61 rows, up to 10 parameters), against about 0.1 us for the common fit
+  (the frames' figures: ``python benchmarks/bench_turbid.py --cost``, docs/water.md). What it takes: the normal
+  equations from the Jacobian's columns (summed row by row into the matrix, every sum waited on memory), the
+  Gaussians along the rows by ratios (one exponential a row was half the time), Cholesky solves, no allocation per
+  fit, the steps stopped where they settle (:data:`STOP_PX`), the rounds' refits of stripes beside another one one
+  step from their last fit, the ramp decided per stretch. The fits run only where a glow shows or blurred
+  stripes overlap; in clear water the stage is the test alone, about 0.4 ms a frame. On the simulator's named
+  scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
+  ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame. Without the colour test and the
+  majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
+  360 columns of a frame, medians up to 0.0075 points off.
 
 The compiled kernel is :func:`glow_refit`; the reference's is :func:`lrsensor.extract.reference_glow.glow_refit`
 (numpy, vectorized over the points). Both read the constants here.
@@ -87,8 +123,35 @@ MAX_HALF_PX = 30
 #: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
 ITERATIONS = 4
 MAX_STEP_PX = 1.0
+#: ... the steps stop where the centre's and sigma's both fall to this, px.
+STOP_PX = 1e-3
+#: A stripe is fitted together with another laser's where their centres are closer than this many times the sum
+#: of their sigmas (4 px of blur at 3 m: 18 px apart, sigmas of 4 px; sharp stripes of 1.5 px: from 4.6 m on).
+PAIR_SIGMAS = 4.0
+#: ... and both are blurred: sigmas of at least this, px. Sharp stripes close together (clear water, far walls) keep
+#: the common fit with the other's Gaussian subtracted (:mod:`lrsensor.extract.refit`), which is right for them.
+PAIR_MIN_SIGMA = 2.0
+#: Rounds of the fits: the first with the common fit's neighbours, each next one with the previous round's.
+ROUNDS = 4
+#: The glow's ramp (its linear and quadratic growth outward) is taken where the F statistic of its two parameters,
+#: pooled over the stripe's points within POOL_COLS columns either side, exceeds this.
+F_SELECT = 4.0
+#: ... and where the glow's step, pooled the same way, is at least this share of the stripe's peak (a weaker glow's
+#: ramp trades off with the stripe's own shape: on the turbidity model a step of 0.1 read walls at 3 m 1-2 % long).
+RAMP_MIN_STEP = 0.2
+#: ... decided per stretch: the ramp is fitted at every RAMP_EVERY-th column first, and where the F statistic pooled
+#: over those asks for it, at every point of the stretch (it is taken at few points below 3 m: most fits would be lost).
+RAMP_EVERY = 4
+#: ... and fitted at every point of the stretches whose sampled F statistic exceeds this share of F_SELECT (the
+#: sampled test decides alone where the ramp is plainly not asked for; near the bar, the whole stretch decides).
+RAMP_MARGIN = 0.5
+#: ... a point is refitted in the next round only where the other stripe (its centre or sigma) moved by more than
+#: this, px.
+ROUND_TOL_PX = 0.01
 #: The joint fit is kept within this distance of the common fit's centre, px.
 MAX_MOVE_PX = 4.0
+#: Linear parameters of the joint fit: background level and slope, stripe, glow step, glow ramp, neighbour.
+N_LIN = 8
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 #: Phi(x) = 1 - phi(x) t P(t), t = 1 / (1 + p x), x >= 0 (Abramowitz-Stegun 26.2.17, |error| < 7.5e-8).
@@ -104,97 +167,235 @@ def upper_tail(a, gauss):  # type: ignore[no-untyped-def]
     return gauss * _INV_SQRT_2PI * poly
 
 
+@inline
+def _dot(x, y, n):  # type: ignore[no-untyped-def]
+    """``sum(x[:n] * y[:n])`` in four sums (a single one would wait on every add)."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    i = 0
+    while i + 4 <= n:
+        s0 += x[i] * y[i]
+        s1 += x[i + 1] * y[i + 1]
+        s2 += x[i + 2] * y[i + 2]
+        s3 += x[i + 3] * y[i + 3]
+        i += 4
+    while i < n:
+        s0 += x[i] * y[i]
+        i += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+@inline
+def _gauss_rows(out, q0, k_rows, c, inv_s):  # type: ignore[no-untyped-def]
+    """``out[i] = exp(-((q0 + i - c) inv_s)^2 / 2)`` for ``i < k_rows``: from the row nearest ``c`` outward, each row
+    the last times the ratio of neighbouring rows, which changes by ``exp(-inv_s^2)`` a row (three exponentials
+    instead of one a row, which were half a fit's time; relative error ~1e-14; rows far out may underflow to 0)."""
+    m = min(max(int(math.floor(c - q0 + 0.5)), 0), k_rows - 1)  # noqa: RUF046 (numba: floor of a float is a float)
+    z = (q0 + m - c) * inv_s
+    g0 = math.exp(-0.5 * z * z)
+    out[m] = g0
+    h2 = 0.5 * inv_s * inv_s
+    k2 = math.exp(-2.0 * h2)
+    g = g0
+    r = math.exp(-z * inv_s - h2)
+    for i in range(m + 1, k_rows):
+        g *= r
+        out[i] = g
+        r *= k2
+    g = g0
+    r = math.exp(z * inv_s - h2)
+    for i in range(m - 1, -1, -1):
+        g *= r
+        out[i] = g
+        r *= k2
+
+
 @njit
 def _solve(M, b, k):  # type: ignore[no-untyped-def]
-    """Solve ``M[:k, :k] x = b[:k]`` in place (Gaussian elimination, partial pivoting); False when singular."""
-    for i in range(k):
-        p = i
-        for r in range(i + 1, k):
-            if abs(M[r, i]) > abs(M[p, i]):
-                p = r
-        if not abs(M[p, i]) > 1e-12:
+    """Solve ``M[:k, :k] x = b[:k]`` in place for a symmetric positive definite ``M`` (normal equations; Cholesky,
+    half the work of an elimination with pivots: the solves were a third of a fit's time); False when singular (a
+    pivot at or below 1e-12, or below 1e-13 of its diagonal entry: a column the others nearly span)."""
+    for j in range(k):
+        d = M[j, j]
+        for p in range(j):
+            d -= M[j, p] * M[j, p]
+        if not (d > 1e-12 and d > 1e-13 * M[j, j]):
             return False
-        if p != i:
-            for j in range(k):
-                M[i, j], M[p, j] = M[p, j], M[i, j]
-            b[i], b[p] = b[p], b[i]
-        for r in range(i + 1, k):
-            f = M[r, i] / M[i, i]
-            for j in range(i, k):
-                M[r, j] -= f * M[i, j]
-            b[r] -= f * b[i]
-    for i in range(k - 1, -1, -1):
+        d = math.sqrt(d)
+        M[j, j] = d
+        inv = 1.0 / d
+        for i in range(j + 1, k):
+            acc = M[i, j]
+            for p in range(j):
+                acc -= M[i, p] * M[j, p]
+            M[i, j] = acc * inv
+    for i in range(k):  # L y = b
         acc = b[i]
-        for j in range(i + 1, k):
-            acc -= M[i, j] * b[j]
+        for p in range(i):
+            acc -= M[i, p] * b[p]
+        b[i] = acc / M[i, i]
+    for i in range(k - 1, -1, -1):  # L^T x = y
+        acc = b[i]
+        for p in range(i + 1, k):
+            acc -= M[p, i] * b[p]
         b[i] = acc / M[i, i]
     return True
 
 
 @njit
-def _fit_one(y, q, side, c, sg, nb_c, nb_s, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
+def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
-    centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none). Returns
-    ``(c, sigma, A, g, ok)``. Samples at or above ``sat_dn`` (clipped) are left out.
+    centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
+    the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
+    another one, no glow); ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c,
+    sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares (at the last Gauss-Newton step's start) and
+    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out."""
+    kk = N_LIN + 2
+    return _fit_into(
+        y,
+        q,
+        side,
+        c,
+        sg,
+        nb_c,
+        nb_s,
+        nb_side,
+        glow_on,
+        ramp,
+        min_sig,
+        max_sig,
+        sat_dn,
+        np.empty((kk, kk)),
+        np.empty(kk),
+        np.empty(kk),
+        np.empty(N_LIN),
+        np.empty(kk, np.int64),
+        np.empty((N_LIN + 5, y.size)),
+        False,
+    )
 
-    First the linear parameters alone at the start, then :data:`ITERATIONS` Gauss-Newton steps in all of them; each
-    pass builds the normal equations row by row (one ``exp`` per row, two with a neighbour)."""
+
+@njit
+def _fit_into(  # type: ignore[no-untyped-def]
+    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm
+):
+    """:func:`_fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
+    (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
+    Gaussians along the rows): the fits of a frame allocate nothing per point. The rows ``q`` are one apart.
+    ``warm``: ``lin`` holds the linear parameters of a fit of this model at ``c``, ``sg`` (a round's earlier fit, its
+    other stripe moved a little): one Gauss-Newton step from there, no linear start.
+
+    First the linear parameters alone at the start, then at most :data:`ITERATIONS` Gauss-Newton steps in all of
+    them, fewer where the centre's and sigma's step falls to :data:`STOP_PX`; each pass builds the normal equations
+    row by row, in the parameters the profile's model has, and sums the squared residuals at its start (the last
+    pass's sum is the fit's: a converged step changes it by its square, and a pass of its own would cost as much as
+    a step)."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
-    k = 5 if has_nb else 4
-    kk = k + 2
-    M = np.empty((kk, kk))
-    b = np.empty(kk)
-    xr = np.empty(kk)
-    lin = np.zeros(k)
-    for it in range(ITERATIONS + 1):
+    nb_glow = has_nb and nb_side != 0.0
+    # the active parameters, linear first, then the centre and sigma: the normal equations in them alone (the
+    # reference's identity rows for the others decouple exactly)
+    n_lin = 0
+    for a in range(N_LIN):
+        keep = (a != 3 or glow_on) and (a not in (4, 5) or (glow_on and ramp)) and (a != 6 or has_nb)
+        if not keep or (a == 7 and not nb_glow):
+            continue
+        par[n_lin] = a
+        n_lin += 1
+    par[n_lin] = N_LIN
+    par[n_lin + 1] = N_LIN + 1
+    kk = n_lin + 2
+    for a in range(N_LIN + 2):
+        xr[a] = 0.0
+    if not warm:
+        for a in range(N_LIN):
+            lin[a] = 0.0
+    jac = work[: N_LIN + 2]
+    res = work[N_LIN + 2]
+    g_own = work[N_LIN + 3]
+    g_nb = work[N_LIN + 4]
+    if has_nb:  # the other stripe's Gaussian: held in the fit
+        _gauss_rows(g_nb, q[0], k_rows, nb_c, 1.0 / nb_s)
+    rss = np.nan
+    dof = -kk
+    for i in range(k_rows):
+        dof += y[i] < sat_dn
+    for it in range(1 if warm else 0, 2 if warm else ITERATIONS + 1):
         full = it > 0
-        m_ = kk if full else k
-        for a in range(m_):
-            b[a] = 0.0
-            for j in range(a, m_):
-                M[a, j] = 0.0
+        m_ = kk if full else n_lin
+        r2 = 0.0
+        inv_sg = 1.0 / sg
+        n_s = 0  # the samples taken (unclipped)
+        _gauss_rows(g_own, q[0], k_rows, c, inv_sg)
         for i in range(k_rows):
             if y[i] >= sat_dn:
                 continue
-            z = (q[i] - c) / sg
-            gz = math.exp(-0.5 * z * z)
-            u = side * z
-            tail = upper_tail(abs(u), gz)
+            z = (q[i] - c) * inv_sg
+            gz = g_own[i]
             xr[0] = 1.0
             xr[1] = q[i]
             xr[2] = gz
-            xr[3] = 1.0 - tail if u >= 0.0 else tail
+            f = 0.0
+            ph = 0.0
+            rmp = 0.0
+            if glow_on:
+                u = side * z
+                tail = upper_tail(abs(u), gz)
+                f = 1.0 - tail if u >= 0.0 else tail
+                ph = gz * _INV_SQRT_2PI
+                xr[3] = f
+                if ramp:
+                    rmp = sg * (u * f + ph)
+                    xr[4] = rmp
+                    xr[5] = sg * sg * ((u * u + 1.0) * f + u * ph)
             if has_nb:
-                d = (q[i] - nb_c) / nb_s
-                xr[4] = math.exp(-0.5 * d * d)
+                gd = g_nb[i]
+                xr[6] = gd
+                if nb_glow:
+                    ud = nb_side * (q[i] - nb_c) / nb_s
+                    td = upper_tail(abs(ud), gd)
+                    xr[7] = 1.0 - td if ud >= 0.0 else td
             r = y[i]
             if full:
-                for j in range(k):
+                for j in range(N_LIN):
                     r -= xr[j] * lin[j]
-                ph = gz * _INV_SQRT_2PI
-                xr[k] = (lin[2] * gz * z - lin[3] * ph * side) / sg
-                xr[k + 1] = (lin[2] * gz * z * z - lin[3] * ph * side * z) / sg
+                r2 += r * r
+                xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
+                xr[N_LIN + 1] = (
+                    (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
+                )
             for a in range(m_):
-                xa = xr[a]
-                b[a] += xa * r
-                for j in range(a, m_):
-                    M[a, j] += xa * xr[j]
+                jac[a, n_s] = xr[par[a]]
+            res[n_s] = r
+            n_s += 1
+        # the normal equations from the Jacobian's columns (row by row into the sums would chain every sum through
+        # memory: several times slower)
         for a in range(m_):
-            for j in range(a + 1, m_):
-                M[j, a] = M[a, j]
+            ja = jac[a]
+            b[a] = _dot(ja, res, n_s)
+            for j in range(a, m_):
+                M[a, j] = M[j, a] = _dot(ja, jac[j], n_s)
         if not _solve(M, b, m_):
-            return c, sg, lin[2], lin[3], False
+            return c, sg, lin[2], lin[3], False, np.nan, np.nan
         if not full:
-            for j in range(k):
-                lin[j] = b[j]
+            for a in range(n_lin):
+                lin[par[a]] = b[a]
             continue
-        for j in range(k):
-            lin[j] += b[j]
-        c += min(max(b[k], -MAX_STEP_PX), MAX_STEP_PX)
-        sg = min(max(sg + min(max(b[k + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig)
-    ok = math.isfinite(c) and lin[2] > 0.0 and lin[3] > TRIGGER_FRAC * lin[2]
-    return c, sg, lin[2], lin[3], ok
+        rss = r2
+        for a in range(n_lin):
+            lin[par[a]] += b[a]
+        dc = min(max(b[n_lin], -MAX_STEP_PX), MAX_STEP_PX)
+        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg
+        c += dc
+        sg += ds
+        if abs(dc) <= STOP_PX and abs(ds) <= STOP_PX:
+            break
+    x2 = 2.0 * sg  # the glow two sigmas outward of the edge (where its step is complete) is a glow
+    g_out = lin[3] + lin[4] * x2 + lin[5] * x2 * x2
+    ok = math.isfinite(c) and lin[2] > 0.0 and (not glow_on or g_out > TRIGGER_FRAC * lin[2])
+    return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
 @njit
@@ -338,17 +539,170 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 both += glowing[j]
         glow_run[t] = 2 * both > cnt
     glowing = glow_run
-    # the fits: round 1 with the neighbours of the common fit, round 2 (points with a neighbour) with round 1's
-    v_out = vv.copy()
-    s_out = sig.copy()
+    # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
+    # it (no glow term where none shows)
+    fit_me = np.zeros(n, np.bool_)
+    for t in range(n):
+        nb = nb0[t]
+        s_nb = max(sig[nb], lo_sig) if nb >= 0 else 0.0
+        fit_me[t] = glowing[t] or (
+            cand[t]
+            and nb >= 0
+            and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
+            and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
+        )
+    # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
+    # over the stripe's peak), with the other stripes where the step model put them
+    v0, s0, f0, rss0, _d0, st0 = _rounds(
+        image,
+        cols,
+        laser,
+        at,
+        vv,
+        sig,
+        vv,
+        sig,
+        nb_ok,
+        nb0,
+        fit_me,
+        glowing,
+        side,
+        rc,
+        hw,
+        kt,
+        sg0,
+        lo_sig,
+        max_sig,
+        sat_dn,
+        False,
+    )
+    strong = np.zeros(n, np.bool_)
+    for t in range(n):
+        if not glowing[t]:
+            continue
+        a_sum = 0.0
+        g_sum = 0.0
+        for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
+            j = at[laser[t], cc]
+            if j >= 0 and f0[j] and glowing[j]:
+                a_sum += st0[0, j]
+                g_sum += st0[1, j]
+        strong[t] = a_sum > 0.0 and g_sum >= RAMP_MIN_STEP * a_sum
+    # the ramp's F test, first per stretch: the ramp fitted at the strong points of every RAMP_EVERY-th column (both
+    # lasers' points of a column together: close stripes are fitted in pairs); then at every strong point whose
+    # stretch's sampled F statistic comes within RAMP_MARGIN of the bar, and taken where the F statistic pooled over
+    # all of them passes it
+    sample = np.zeros(n, np.bool_)
+    for t in range(n):
+        sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
+    _v2, _s2, f2, rss2, dof2, _st2 = _rounds(
+        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
+        sat_dn, True,
+    )  # fmt: skip
+    maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
+    v3, s3, f3, rss3, dof3, _st3 = _rounds(
+        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
+        sat_dn, True,
+    )  # fmt: skip
+    take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
+    v_out = v0
+    s_out = s0
+    fitted = f0.copy()
+    for t in range(n):
+        if take[t]:
+            v_out[t] = v3[t]
+            s_out[t] = s3[t]
+            fitted[t] = True
+    return v_out, s_out, fitted
+
+
+@njit
+def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # type: ignore[no-untyped-def]
+    """At the points ``where`` (N,): the F statistic of the glow's ramp (its two parameters), pooled over the glowing
+    points of the same laser within :data:`POOL_COLS` columns fitted with it (``f2``) and without (``f0``): the drop of
+    the residual sum of squares per parameter over the residual variance with it; 0 where none is fitted."""
+    n = cols.size
+    w = at.shape[1]
+    out = np.zeros(n)
+    for t in range(n):
+        if not where[t]:
+            continue
+        d_rss = 0.0
+        r2 = 0.0
+        df2 = 0.0
+        cnt = 0
+        for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
+            j = at[laser[t], cc]
+            if j >= 0 and f0[j] and f2[j] and glowing[j]:
+                d_rss += rss0[j] - rss2[j]
+                r2 += rss2[j]
+                df2 += dof2[j]
+                cnt += 1
+        if cnt > 0:
+            out[t] = d_rss / (2.0 * cnt) / (r2 / df2)
+    return out
+
+
+@njit
+def _rounds(  # type: ignore[no-untyped-def]
+    image,
+    cols,
+    laser,
+    at,
+    vv,
+    sig,
+    v_init,
+    s_init,
+    nb_ok,
+    nb0,
+    fit_me,
+    glowing,
+    side,
+    rc,
+    hw,
+    kt,
+    sg0,
+    lo_sig,
+    max_sig,
+    sat_dn,
+    ramp,
+):
+    """The joint fits of the points ``fit_me`` (:func:`glow_refit`'s arrays), with the glow's ramp or without:
+    :data:`ROUNDS` rounds, the first with the other stripes at ``v_init``, ``s_init`` (N,), each next one (points
+    with another stripe in the window whose centre or sigma moved by more than :data:`ROUND_TOL_PX`) with the
+    previous round's (a stripe out of the window in both rounds leaves the same fit: at 2 m, 9 of 10 refits were). A
+    later round refits a point without a glow (a stripe beside another one) by one Gauss-Newton step from its last
+    fit where its model stays (the other stripe moved by hundredths of a px: the step lands within the rounds'
+    tolerance of a whole refit, a third of its cost); a glowing point is refitted whole from the common fit (where
+    the glow's model is poor, far walls with much blur, its fits do not converge in :data:`ITERATIONS` steps, and
+    continuing them moved the single columns' median by 0.05-0.1 px there).
+    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
+    steps (2, N)."""
+    n = cols.size
+    v_out = v_init.copy()
+    s_out = s_init.copy()
     fitted = np.zeros(n, np.bool_)
+    last_c = np.full(n, np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
+    last_s = np.full(n, np.nan)
+    last_side = np.zeros(n)
+    lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
+    rss = np.full(n, np.nan)
+    dof = np.full(n, np.nan)
+    steps = np.zeros((2, n))
     y = np.empty(2 * MAX_HALF_PX + 1)
     q = np.empty(2 * MAX_HALF_PX + 1)
-    for rnd in range(2):
+    kk = N_LIN + 2
+    M = np.empty((kk, kk))
+    b = np.empty(kk)
+    xr = np.empty(kk)
+    lin = np.empty(N_LIN)
+    par = np.empty(kk, np.int64)
+    work = np.empty((N_LIN + 5, 2 * MAX_HALF_PX + 1))
+    for rnd in range(ROUNDS):
         v1 = v_out.copy()
         s1 = s_out.copy()
         for t in range(n):
-            if not glowing[t] or (rnd == 1 and not (nb0[t] >= 0 and fitted[t])):
+            if not fit_me[t] or (rnd > 0 and not (nb0[t] >= 0 and fitted[t])):
                 continue
             nb = (
                 nb0[t]
@@ -359,15 +713,55 @@ def glow_refit(  # type: ignore[no-untyped-def]
             nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
             if not abs(nb_c) < hw[t] + 3.0 * nb_s:  # (also NaN) its stripe does not reach the fit's window
                 nb_c = np.nan
+            if rnd > 0:  # refitted only where the other stripe moved (out of the window in both: the same fit)
+                out_both = math.isnan(nb_c) and math.isnan(last_c[t])
+                if out_both or (abs(nb_c - last_c[t]) <= ROUND_TOL_PX and abs(nb_s - last_s[t]) <= ROUND_TOL_PX):
+                    continue
+            # the other stripe's glow, where its edge lies in the window
+            nb_side = side[nb] if nb >= 0 and glowing[nb] and abs(nb_c) <= hw[t] else 0.0
+            # one step from the last fit where its model stays (the other stripe moved by hundredths of a px)
+            cold = rnd == 0 or glowing[t]
+            warm = not cold and math.isnan(nb_c) == math.isnan(last_c[t]) and nb_side == last_side[t]
+            last_c[t] = nb_c
+            last_s[t] = nb_s
+            last_side[t] = nb_side
+            for a in range(N_LIN):
+                lin[a] = lin_t[t, a]
             k_rows = 2 * hw[t] + 1
             for i in range(k_rows):
                 y[i] = float(image[rc[t] - hw[t] + i, cols[t], 1])
                 q[i] = float(i - hw[t])
-            c, sg, _a, _g, good = _fit_one(
-                y[:k_rows], q[:k_rows], side[t], vv[t] - rc[t], sg0[t], nb_c, nb_s, lo_sig, max_sig, sat_dn
+            # the first round from the common fit, the next ones from the point's last fit
+            c, sg, a_fit, g_fit, good, rs, df = _fit_into(
+                y[:k_rows],
+                q[:k_rows],
+                side[t],
+                (vv[t] if cold else v_out[t]) - rc[t],
+                sg0[t] if cold else s_out[t],
+                nb_c,
+                nb_s,
+                nb_side,
+                glowing[t],
+                ramp,
+                lo_sig,
+                max_sig,
+                sat_dn,
+                M,
+                b,
+                xr,
+                lin,
+                par,
+                work,
+                warm,
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c
                 s_out[t] = sg
+                rss[t] = rs
+                dof[t] = df
+                steps[0, t] = a_fit
+                steps[1, t] = g_fit
                 fitted[t] = True
-    return v_out, s_out, fitted
+                for a in range(N_LIN):
+                    lin_t[t, a] = lin[a]
+    return v_out, s_out, fitted, rss, dof, steps

@@ -13,13 +13,23 @@ from numpy.typing import NDArray
 
 from . import glow
 from .glow import (
+    F_SELECT,
     ITERATIONS,
     MAX_HALF_PX,
     MAX_MOVE_PX,
     MAX_STEP_PX,
     MEDIAN_VAR,
     MIN_SIGMA_PX,
+    N_LIN,
+    PAIR_MIN_SIGMA,
+    PAIR_SIGMAS,
     POOL_COLS,
+    RAMP_EVERY,
+    RAMP_MARGIN,
+    RAMP_MIN_STEP,
+    ROUND_TOL_PX,
+    ROUNDS,
+    STOP_PX,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
@@ -33,6 +43,9 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _upper_tail: Any = getattr(glow.upper_tail, "py_func", glow.upper_tail)
+_INV_SQRT_2PI = 0.3989422804014327
+#: Columns of the linear parameters: background level and slope, stripe, glow step, glow ramp, neighbour.
+_A, _G, _R, _Q, _N, _NG = 2, 3, 4, 5, 6, 7
 
 
 def _solve(M: FloatArray, b: FloatArray) -> tuple[FloatArray, BoolArray]:
@@ -62,54 +75,89 @@ def fit_profiles(
     min_sig: float,
     max_sig: float,
     sat_dn: float,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
+    use_glow: BoolArray | None = None,
+    nb_side: FloatArray | None = None,
+    ramp: bool = True,
+    lin0: FloatArray | None = None,
+    warm: BoolArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
     relative to the window's middle), glow side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``,
-    ``nb_s`` (n,) (NaN: none). Returns ``(c, sigma, A, g, ok)``, (n,) each."""
+    ``nb_s`` (n,) (NaN: none); ``use_glow`` (n,) (default all): the glow's step and ramp in the model (False: a
+    stripe beside another one, no glow), ``nb_side`` (n,) the side of the other stripe's glow (0: none, default),
+    ``ramp``: the glow's linear and quadratic growth outward in the model; ``warm`` (n,): one Gauss-Newton step from
+    the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
+    Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
+    (at the last step's start, as :func:`lrsensor.extract.glow._fit_into`), degrees of freedom and linear
+    parameters."""
     n, k_rows = Y.shape
+    glow_on = np.ones(n, bool) if use_glow is None else use_glow
     mask = mask * (sat_dn > Y)  # clipped samples left out
     q = (np.arange(k_rows) - k_rows // 2).astype(np.float64)[None, :]
     has_nb = np.isfinite(nb_c)
     c = c.copy()
     sg = sg.copy()
     good = np.ones(n, bool)
-    lin = np.zeros((n, 5))
+    lin = np.zeros((n, N_LIN))
     s = side[:, None]
+    nb_sd = np.zeros(n) if nb_side is None else nb_side
+    # the linear parameters a point's model leaves out (an identity row and column each)
+    active = np.ones((n, N_LIN + 2), bool)
+    for drop, cols in ((~glow_on, [_G, _R, _Q]), (~has_nb, [_N]), (~has_nb | (nb_sd == 0.0), [_NG])):
+        active[np.ix_(drop, np.array(cols))] = False
+    if not ramp:
+        active[:, [_R, _Q]] = False
+    warm = np.zeros(n, bool) if warm is None else warm
+    live = np.ones(n, bool)  # the fits still stepping (the others' steps are below STOP_PX: they stay)
+    rss = np.full(n, np.nan)
     for it in range(ITERATIONS + 1):
         z = (q - c[:, None]) / sg[:, None]
         gz = np.exp(-0.5 * z * z)
         u = s * z
         tail = _upper_tail(np.abs(u), gz)
         F = np.where(u >= 0.0, 1.0 - tail, tail)
+        ph = gz * _INV_SQRT_2PI
+        R = sg[:, None] * (u * F + ph)  # the blurred edge of a glow that grows linearly outward (px)
+        Qd = sg[:, None] ** 2 * ((u * u + 1.0) * F + u * ph)  # ... quadratically
         d = (q - np.where(has_nb, nb_c, 0.0)[:, None]) / nb_s[:, None]
         N = np.where(has_nb[:, None], np.exp(-0.5 * d * d), 0.0)
-        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, F, N], axis=2)
+        ud = np.where(has_nb[:, None], nb_sd[:, None] * d, 0.0)  # the neighbour's own glow edge
+        tail_d = _upper_tail(np.abs(ud), np.exp(-0.5 * ud * ud))
+        NG = np.where(ud >= 0.0, 1.0 - tail_d, tail_d)
+        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, F, R, Qd, N, NG], axis=2)
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
         else:  # a Gauss-Newton step in all of them
-            A, g = lin[:, 2:3], lin[:, 3:4]
-            ph = gz * 0.3989422804014327
-            dc = (A * gz * z - g * ph * s) / sg[:, None]
-            ds = (A * gz * z * z - g * ph * s * z) / sg[:, None]
+            A, g, gr, gq = lin[:, _A : _A + 1], lin[:, _G : _G + 1], lin[:, _R : _R + 1], lin[:, _Q : _Q + 1]
+            dc = (A * gz * z - g * ph * s) / sg[:, None] - gr * s * F - 2.0 * gq * s * R
+            ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
             J = np.concatenate([X, dc[:, :, None], ds[:, :, None]], axis=2)
             r = Y - np.einsum("nik,nk->ni", X, lin)
+            rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow._fit_into says why)
         J = J * mask[:, :, None]
-        M = np.einsum("nik,nij->nkj", J, J)
-        M[~has_nb, 4, :] = 0.0
-        M[~has_nb, :, 4] = 0.0
-        M[~has_nb, 4, 4] = 1.0
-        step, solved = _solve(M, np.einsum("nik,ni->nk", J, r * mask))
-        good &= solved
-        step = np.where(good[:, None], step, 0.0)
+        act = active[:, : J.shape[2]]
+        J = J * act[:, None, :]
+        M = np.einsum("nik,nij->nkj", J, J) + np.eye(J.shape[2])[None] * ~act[:, :, None]
+        b = np.einsum("nik,ni->nk", J, r * mask)
+        step, solved = _solve(M, b)
+        good &= solved | (warm & (it == 0))
+        step = np.where((good & live)[:, None], step, 0.0)
         if it == 0:
-            lin = step
+            lin = step if lin0 is None else np.where(warm[:, None], lin0, step)
             continue
-        lin = lin + step[:, :5]
-        c = c + np.clip(step[:, 5], -MAX_STEP_PX, MAX_STEP_PX)
-        sg = np.clip(sg + np.clip(step[:, 6], -MAX_STEP_PX, MAX_STEP_PX), min_sig, max_sig)
-    good &= np.isfinite(c) & (lin[:, 2] > 0.0) & (lin[:, 3] > TRIGGER_FRAC * lin[:, 2])
-    return c, sg, lin[:, 2], lin[:, 3], good
+        lin = lin + step[:, :N_LIN]
+        dc = np.clip(step[:, N_LIN], -MAX_STEP_PX, MAX_STEP_PX)
+        ds = np.clip(sg + np.clip(step[:, N_LIN + 1], -MAX_STEP_PX, MAX_STEP_PX), min_sig, max_sig) - sg
+        c = c + dc
+        sg = sg + ds
+        live &= ((np.abs(dc) > STOP_PX) | (np.abs(ds) > STOP_PX)) & ~warm
+    dof = mask.sum(axis=1) - active.sum(axis=1)
+    # the glow two sigmas outward of the edge (where its step is complete) is a glow: positive
+    x2 = 2.0 * sg
+    g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
+    good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > TRIGGER_FRAC * lin[:, _A]))
+    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin
 
 
 def _neighbours(
@@ -218,33 +266,121 @@ def glow_refit(
         jc = np.maximum(j, 0)
         both += (j >= 0) & cand[jc] & glowing[jc]
     glowing[idx] &= 2 * both > cnt
-    # the fits: round 1 with the neighbours of the common fit, round 2 (points with a neighbour) with round 1's
-    v_out, s_out = vv.copy(), sig.copy()
-    fitted = np.zeros(n, bool)
-    for rnd in range(2):
-        v1, s1 = v_out.copy(), s_out.copy()
-        idx = np.flatnonzero(glowing if rnd == 0 else glowing & (nb0 >= 0) & fitted)
-        if idx.size == 0:
-            continue
-        nb = nb0[idx] if rnd == 0 else _neighbours(idx, at, cols, laser, nb_ok, v1, s1, reach)
-        have = nb >= 0
-        nbc = np.maximum(nb, 0)
-        nb_s = np.where(have, np.maximum(s1[nbc], lo_sig), 1.0)
-        nb_c = np.where(have, v1[nbc] - rc[idx], np.nan)
-        with np.errstate(invalid="ignore"):
-            nb_c = np.where(np.abs(nb_c) < hw[idx] + 3.0 * nb_s, nb_c, np.nan)  # it reaches the fit's window
-        big = int(hw[idx].max())
-        rel = np.arange(-big, big + 1)[None, :]
-        mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
-        rr = np.clip(rc[idx][:, None] + rel, 0, h - 1)
-        Y = green[rr, cols[idx][:, None]].astype(np.float64)
-        c, sg, _a, _g, good = fit_profiles(
-            Y, mask, side[idx], vv[idx] - rc[idx], sg0[idx], nb_c, nb_s, lo_sig, max_sig, sat_dn
+    # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
+    # it (no glow term where none shows)
+    idx = np.flatnonzero(cand & (nb0 >= 0))
+    nbc = nb0[idx]
+    with np.errstate(invalid="ignore"):
+        s_nb = np.maximum(sig[nbc], lo_sig)
+        near = (np.abs(vv[nbc] - vv[idx]) < PAIR_SIGMAS * (sg0[idx] + s_nb)) & (
+            np.minimum(sg0[idx], s_nb) >= PAIR_MIN_SIGMA
         )
-        with np.errstate(invalid="ignore"):
-            keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
-        sel = idx[keep]
-        v_out[sel] = rc[sel] + c[keep]
-        s_out[sel] = sg[keep]
-        fitted[sel] = True
-    return v_out, s_out, fitted
+    paired = np.zeros(n, bool)
+    paired[idx[near]] = True
+
+    def rounds(
+        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+        v_out, s_out = v_init.copy(), s_init.copy()
+        fitted = np.zeros(n, bool)
+        steps = np.zeros((2, n))
+        rss = np.full(n, np.nan)
+        dof = np.full(n, np.nan)
+        last = np.full((3, n), np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
+        lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
+        for rnd in range(ROUNDS):
+            v1, s1 = v_out.copy(), s_out.copy()
+            idx = np.flatnonzero(todo if rnd == 0 else todo & (nb0 >= 0) & fitted)
+            if idx.size == 0:
+                break
+            nb = nb0[idx] if rnd == 0 else _neighbours(idx, at, cols, laser, nb_ok, v1, s1, reach)
+            have = nb >= 0
+            nbc = np.maximum(nb, 0)
+            nb_s = np.where(have, np.maximum(s1[nbc], lo_sig), 1.0)
+            nb_c = np.where(have, v1[nbc] - rc[idx], np.nan)
+            with np.errstate(invalid="ignore"):
+                nb_c = np.where(np.abs(nb_c) < hw[idx] + 3.0 * nb_s, nb_c, np.nan)  # it reaches the fit's window
+            if rnd > 0:  # refitted only where the other stripe moved
+                l_c, l_s = last[0, idx], last[1, idx]
+                with np.errstate(invalid="ignore"):
+                    same = (np.isnan(nb_c) & np.isnan(l_c)) | (
+                        (np.abs(nb_c - l_c) <= ROUND_TOL_PX) & (np.abs(nb_s - l_s) <= ROUND_TOL_PX)
+                    )
+                idx, nb, have, nbc, nb_s, nb_c = (x[~same] for x in (idx, nb, have, nbc, nb_s, nb_c))
+                if idx.size == 0:
+                    break
+            nb_side = np.where(have & glowing[nbc] & (np.abs(nb_c) <= hw[idx]), side[nbc], 0.0)  # its glow's edge
+            # one step from the last fit where its model stays (glow._rounds)
+            cold = (rnd == 0) | glowing[idx]
+            warm = ~cold & (np.isnan(nb_c) == np.isnan(last[0, idx])) & (nb_side == last[2, idx])
+            last[0, idx] = nb_c
+            last[1, idx] = nb_s
+            last[2, idx] = nb_side
+            big = int(hw[idx].max())
+            rel = np.arange(-big, big + 1)[None, :]
+            mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
+            rr = np.clip(rc[idx][:, None] + rel, 0, h - 1)
+            Y = green[rr, cols[idx][:, None]].astype(np.float64)
+            # the common fit, then each point's last fit (glowing points: the common fit again, glow._rounds)
+            start = (np.where(cold, vv[idx], v_out[idx]), np.where(cold, sg0[idx], s_out[idx]))
+            c, sg, a_, g_, good, rs, df, lin = fit_profiles(
+                Y,
+                mask,
+                side[idx],
+                start[0] - rc[idx],
+                start[1],
+                nb_c,
+                nb_s,
+                lo_sig,
+                max_sig,
+                sat_dn,
+                glowing[idx],
+                nb_side,
+                ramp,
+                lin_t[idx],
+                warm,
+            )
+            with np.errstate(invalid="ignore"):
+                keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
+            sel = idx[keep]
+            v_out[sel] = rc[sel] + c[keep]
+            s_out[sel] = sg[keep]
+            rss[sel] = rs[keep]
+            steps[:, sel] = np.stack([a_[keep], g_[keep]])
+            dof[sel] = df[keep]
+            fitted[sel] = True
+            lin_t[sel] = lin[keep]
+        return v_out, s_out, fitted, rss, dof, steps
+
+    def pooled(values: FloatArray) -> FloatArray:
+        """Sums (k, n) of ``values`` (k, n) over each point's stripe within POOL_COLS columns either side."""
+        acc = np.zeros_like(values)
+        for off in range(-POOL_COLS, POOL_COLS + 1):
+            cc = cols + off
+            inside = (cc >= 0) & (cc < w)
+            j = np.where(inside, at[laser, np.clip(cc, 0, w - 1)], -1)
+            acc += np.where(j >= 0, values[:, np.maximum(j, 0)], 0.0)
+        return acc
+
+    # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
+    # over the stripe's peak), with the other stripes where the step model put them
+    v0, s0, f0, rss0, _d0, st0 = rounds(False, glowing | paired, vv, sig)
+    g_on = f0 & glowing
+    a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
+    strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
+
+    def pooled_f(f2: BoolArray, rss2: FloatArray, dof2: FloatArray) -> FloatArray:
+        """The ramp's F statistic at each point, pooled over its stretch's glowing points fitted with and without
+        it (glow._pooled_f); NaN where none is."""
+        pair = f0 & f2 & glowing
+        acc = pooled(np.stack([np.where(pair, x, 0.0) for x in (rss0 - rss2, rss2, dof2, np.ones(n))]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.asarray((acc[0] / (2.0 * acc[3])) / (acc[1] / acc[2]))
+
+    # the ramp's F test, first per stretch at every RAMP_EVERY-th column's strong points; then at every strong point
+    # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
+    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0)
+    maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
+    v3, s3, f3, rss3, dof3, _st3 = rounds(True, maybe, v0, s0)
+    f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3
