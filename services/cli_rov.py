@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import dataclasses
 import faulthandler
+import io
 import logging
 import shutil
 import signal
@@ -155,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
     where it waits)."""
     from .keys import FleetKeys, check_robot_name
 
-    if hasattr(signal, "SIGUSR1"):
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    _dump_threads_on_sigusr1()
 
     # (--channel with another method is refused here, before the network)
     process_options = command_line_options(args.method, args.channel, args.min_range_m, args.max_range_m)
@@ -166,6 +166,17 @@ def run(args: argparse.Namespace) -> int:
     # camera, the IMU's serial port or a session that would disturb the first one.
     with _open_outbox(args, keys.fleet, robot) as (outbox, temporary):
         return _run(args, process_options, keys, robot, outbox, temporary)
+
+
+def _dump_threads_on_sigusr1() -> None:
+    """Make SIGUSR1 write every thread's stack to stderr, where stderr is a real file (not under a test's capture,
+    whose stream has no descriptor for the signal handler to write to)."""
+    if not hasattr(signal, "SIGUSR1"):
+        return
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (io.UnsupportedOperation, ValueError, AttributeError):
+        log.debug("stderr has no file descriptor: no thread dump on SIGUSR1")
 
 
 def _run(args: argparse.Namespace, process_options: Any, keys: Any, robot: str, outbox: Any, temporary: bool) -> int:
