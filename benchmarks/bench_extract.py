@@ -400,7 +400,7 @@ def stage_times(image: np.ndarray, sensor: Sensor, repeats: int) -> list[tuple[s
         whole += time.thread_time() - t0
     rows = [(stage, 1e3 * totals.get(stage, 0.0) / repeats) for stage in STAGES]
     rows.append(("sum of the stages, each timed as a separate call", sum(t for _, t in rows)))
-    rows.append(("Sensor.process (three compiled calls for all of them)", 1e3 * whole / repeats))
+    rows.append(("Sensor.process (five compiled calls for all of them)", 1e3 * whole / repeats))
     return rows
 
 
@@ -499,7 +499,7 @@ def stages_table(name: str, seeds: int, repeats: int) -> list[str]:
         "",
         "Per-thread CPU time of each compiled stage of `Sensor.process` (default method), mean over back-to-back "
         "repetitions on the same render (warm). The stages are timed one call at a time from Python (each call's "
-        "argument passing included), so they add up to more than the three compiled calls that `Sensor.process` "
+        "argument passing included), so they add up to more than the five compiled calls that `Sensor.process` "
         "makes.",
         "",
         "| stage | " + " | ".join("ms" if seeds == 1 else f"seed {k}" for k in range(seeds)) + " |",
