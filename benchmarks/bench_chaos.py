@@ -54,15 +54,15 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # run as a script or as -m benchmarks.bench_chaos
 
-from netlink import LinkSpec, NetLink, unavailable, zenoh_config  # noqa: E402
+from netlink import LinkSpec, LoggedProcesses, NetLink, unavailable, zenoh_config  # noqa: E402
 from procs import router_cmd  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -122,7 +122,7 @@ class ChaosConfig:
 
 
 # ----------------------------------------------------------------------------------------------- the network
-class Loopback:
+class Loopback(LoggedProcesses):
     """Everything on this host's loopback: the stand-in for :class:`netlink.NetLink` without root (no flaps)."""
 
     ns_base = ns_rov = ""
@@ -130,27 +130,8 @@ class Loopback:
     def __init__(self, workdir: Path) -> None:
         from services.testnet import free_port
 
-        self.workdir = workdir
-        self.workdir.mkdir(parents=True, exist_ok=True)
+        super().__init__(workdir)
         self.zenoh_port = free_port()
-        self._procs: list[subprocess.Popen[bytes]] = []
-        self._logs: list[IO[bytes]] = []
-
-    def start(self, name: str, ns: str, args: Sequence[str]) -> subprocess.Popen[bytes]:
-        import os
-
-        fh = (self.workdir / f"{name}.log").open("ab")
-        self._logs.append(fh)
-        env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
-        p = subprocess.Popen(list(args), stdout=fh, stderr=subprocess.STDOUT, env=env)
-        self._procs.append(p)
-        return p
-
-    def log(self, name: str) -> str:
-        for fh in self._logs:
-            fh.flush()
-        path = self.workdir / f"{name}.log"
-        return path.read_text(errors="replace") if path.exists() else ""
 
     def rov_endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.zenoh_port}"
@@ -162,17 +143,7 @@ class Loopback:
         return
 
     def close(self) -> None:
-        for p in self._procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self._procs:
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
-        for fh in self._logs:
-            fh.close()
+        self.stop_processes()
 
 
 @contextlib.contextmanager

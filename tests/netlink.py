@@ -115,7 +115,58 @@ def _run(*cmd: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return r
 
 
-class NetLink:
+class LoggedProcesses:
+    """Processes started with their output in ``<workdir>/<name>.log``, all stopped by :meth:`stop_processes`.
+
+    The shared part of :class:`NetLink` and the chaos soak's loopback stand-in: a subclass says where a command
+    runs by overriding :meth:`command`.
+    """
+
+    def __init__(self, workdir: Path) -> None:
+        self.workdir = Path(workdir)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self._procs: list[subprocess.Popen[bytes]] = []
+        self._logs: list[IO[bytes]] = []
+
+    def command(self, ns: str, args: Sequence[str]) -> list[str]:
+        """The argument vector that runs ``args`` in namespace ``ns`` (here: as it is)."""
+        return list(args)
+
+    def start(self, name: str, ns: str, args: Sequence[str]) -> subprocess.Popen[bytes]:
+        """Start ``args`` inside namespace ``ns``, output to ``<workdir>/<name>.log``; stopped at exit."""
+        fh = (self.workdir / f"{name}.log").open("ab")
+        self._logs.append(fh)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
+        p = subprocess.Popen(self.command(ns, args), stdout=fh, stderr=subprocess.STDOUT, env=env)
+        self._procs.append(p)
+        return p
+
+    def log(self, name: str) -> str:
+        """The output of the process started as ``name`` so far."""
+        for fh in self._logs:
+            fh.flush()
+        path = self.workdir / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def stop_processes(self) -> None:
+        """SIGTERM every process started here (newest first), SIGKILL what is left after 10 s (idempotent)."""
+        for p in reversed(self._procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 10.0
+        for p in reversed(self._procs):
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+        self._procs.clear()
+        for fh in self._logs:
+            fh.close()
+        self._logs.clear()
+
+
+class NetLink(LoggedProcesses):
     """Two namespaces, a veth pair with ``spec``'s impairments and a delaying relay; a context manager.
 
     Args:
@@ -124,9 +175,8 @@ class NetLink:
     """
 
     def __init__(self, spec: LinkSpec, workdir: Path) -> None:
+        super().__init__(workdir)
         self.spec = spec
-        self.workdir = Path(workdir)
-        self.workdir.mkdir(parents=True, exist_ok=True)
         token = secrets.token_hex(3)
         self.ns_base = f"lrs{token}-b"
         self.ns_rov = f"lrs{token}-r"
@@ -134,8 +184,6 @@ class NetLink:
         self.dev_rov = f"vr{token}"
         self.zenoh_port = 7447
         self.relay_port = 7448
-        self._procs: list[subprocess.Popen[bytes]] = []
-        self._logs: list[IO[bytes]] = []
         self._made: list[str] = []
 
     # ------------------------------------------------------------------------------------------- set up
@@ -185,21 +233,8 @@ class NetLink:
         self.start("relay", self.ns_base, relay)
 
     # ------------------------------------------------------------------------------------------- processes
-    def start(self, name: str, ns: str, args: Sequence[str]) -> subprocess.Popen[bytes]:
-        """Start ``args`` inside namespace ``ns``, output to ``<workdir>/<name>.log``; stopped at exit."""
-        fh = (self.workdir / f"{name}.log").open("ab")
-        self._logs.append(fh)
-        env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
-        p = subprocess.Popen(["ip", "netns", "exec", ns, *args], stdout=fh, stderr=subprocess.STDOUT, env=env)
-        self._procs.append(p)
-        return p
-
-    def log(self, name: str) -> str:
-        """The output of the process started as ``name`` so far."""
-        for fh in self._logs:
-            fh.flush()
-        path = self.workdir / f"{name}.log"
-        return path.read_text(errors="replace") if path.exists() else ""
+    def command(self, ns: str, args: Sequence[str]) -> list[str]:
+        return ["ip", "netns", "exec", ns, *args]
 
     def base_endpoint(self) -> str:
         """Where the base station (router) listens inside its namespace."""
@@ -235,20 +270,7 @@ class NetLink:
     # ------------------------------------------------------------------------------------------- tear down
     def close(self) -> None:
         """Stop every process started here and delete the namespaces (idempotent)."""
-        for p in reversed(self._procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10.0
-        for p in reversed(self._procs):
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
-        self._procs.clear()
-        for fh in self._logs:
-            fh.close()
-        self._logs.clear()
+        self.stop_processes()
         for ns in self._made:
             _run("ip", "netns", "del", ns, check=False)
         self._made.clear()
