@@ -395,6 +395,12 @@ class MapBuilder:
             return lm
 
     @property
+    def version(self) -> int:
+        """A number that grows whenever the map's planes change (a merge with observations, a rebuild)."""
+        with self._lock:
+            return self._version
+
+    @property
     def tracks(self) -> dict[str, list[tuple[int, float, float, float]]]:
         """Robot -> list of (t_ns, north_m, east_m, down_m), one sample per ``track_interval_s``."""
         with self._lock:

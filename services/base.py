@@ -220,7 +220,7 @@ class BaseStation:
             from .map_workers import WorkerPool
 
             assert self.map is not None
-            pool = WorkerPool(s, self.keys, self.map, lambda robot, done: None, lambda changes: None)
+            pool = WorkerPool(s, self.keys, self.map, lambda robot, done, unplaced: None, lambda changes: None)
             self.feed.use_workers(pool)
             pool.start()
             if self.n_map_workers and self.worker_endpoint is not None:

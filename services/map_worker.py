@@ -8,6 +8,10 @@ through :meth:`~mapping.MapBuilder.observe_cloud`: windows and extraction, no ma
 what each extraction gives on ``<root>/map/obs/<name>``: the plane observations (exact sufficient statistics)
 and the sequence numbers of the clouds they commit. The base (the merger) only adds them to the shared map.
 
+With navigation in the workers (the base's jobs say ``navigate``), the worker also corrects each cloud's pose
+before it places it: :mod:`services.map_worker_nav` (a mirror of the merged map's planes from
+``<root>/map/landmarks``, the registration stride, the robot's state carried to its next worker through the base).
+
 Which robots a worker serves is the base's decision (:mod:`services.map_workers`); the worker follows the
 jobs. A job of a newer epoch for a robot means the robot was (re)assigned here: the worker forgets the robot's
 old window first, since the base re-sends every cloud not yet committed. Jobs of an older epoch are stale and
@@ -36,12 +40,15 @@ from lrsensor.frames import body_to_ned
 
 from .errors import WireError
 from .keys import FleetKeys
+from .map_worker_nav import REGISTER_EVERY_S, NavStep, WorkerNav, decode_landmarks, decode_state, encode_state
 from .map_worker_wire import (
     FLUSH_KEY,
     MapControl,
     MapJob,
+    NavReport,
     PlaneObservations,
     decode_work,
+    landmarks_key,
     obs_key,
     work_key,
     workers_key,
@@ -65,15 +72,35 @@ class MapWorker:
         keys: the fleet's key expressions.
         name: this worker's name (default: :func:`worker_name`).
         cfg: the map configuration (must match the base's; default ``MapConfig()``, the base's default too).
+        register_every_s: the navigation's registration stride (:mod:`services.map_worker_nav`).
+        nav_publish_s: report a robot's registered estimate to the base at most this often (capture time, s).
     """
 
-    def __init__(self, session: Any, keys: FleetKeys, name: str | None = None, cfg: Any = None) -> None:
+    def __init__(
+        self,
+        session: Any,
+        keys: FleetKeys,
+        name: str | None = None,
+        cfg: Any = None,
+        register_every_s: float = REGISTER_EVERY_S,
+        nav_publish_s: float = 0.2,
+    ) -> None:
         from mapping import MapBuilder, MapConfig  # Open3D lives behind this import
+        from mapping.navigation import PlaneLandmarks
 
         self.session = session
         self.keys = keys
         self.name = name or worker_name()
         self.builder = MapBuilder(cfg or MapConfig())
+        self.nav = WorkerNav(register_every_s=register_every_s)
+        self.nav_publish_s = nav_publish_s
+        #: the mirror of the merged map's planes (map frame) and its version at the base
+        self.landmarks: Any = PlaneLandmarks.empty()
+        self.landmarks_version = -1
+        #: per robot: seqs pending that navigation did not place; capture time of the last estimate reported
+        self._unplaced: dict[str, list[int]] = {}
+        self._reported: dict[str, int] = {}
+        self._state_failed = False
         #: per robot: the epoch it is served under and the seqs in its window not yet committed
         self._epoch: dict[str, int] = {}
         self._pending: dict[str, list[int]] = {}
@@ -109,6 +136,7 @@ class MapWorker:
         )
         self._entities += [
             self._pub,
+            self.session.declare_subscriber(landmarks_key(self.keys), self._on_landmarks),
             self.session.declare_subscriber(work_key(self.keys, self.name), self._on_work),
             self.session.liveliness().declare_token(workers_key(self.keys, self.name)),
         ]
@@ -122,6 +150,15 @@ class MapWorker:
             self._queue.put(None)
             self._thread.join(timeout=10.0)
             self._thread = None
+
+    def _on_landmarks(self, sample: Any) -> None:
+        try:
+            version, lm = decode_landmarks(sample.payload.to_bytes())
+        except WireError as err:
+            log.warning("map worker %s: %s", self.name, err)
+            return
+        if version > self.landmarks_version:  # one assignment: the work thread sees the old or the new mirror
+            self.landmarks, self.landmarks_version = lm, version
 
     def _on_work(self, sample: Any) -> None:
         self._queue.put(sample.payload.to_bytes())  # never blocks (see the module docstring)
@@ -152,6 +189,8 @@ class MapWorker:
                     out.append(self._observed(robot, [], FLUSH_KEY))
             elif msg.kind == "drop" and self._epoch.get(msg.robot, -1) < msg.epoch:
                 self._forget(msg.robot)
+            elif msg.kind == "adopt" and self._epoch.get(msg.robot, -1) < msg.epoch:
+                self._adopt(msg)
         else:
             out.extend(self._job(msg))
         for obs in out:
@@ -162,8 +201,32 @@ class MapWorker:
 
     def _forget(self, robot: str) -> None:
         self.builder.drop_robot(robot)
+        self.nav.forget(robot)
         self._pending.pop(robot, None)
+        self._unplaced.pop(robot, None)
+        self._reported.pop(robot, None)
         self._epoch.pop(robot, None)
+
+    def _adopt(self, msg: MapControl) -> None:
+        """The robot moved here: its navigation continues from the state after its last committed cloud."""
+        self._forget(msg.robot)
+        self._epoch[msg.robot] = msg.epoch
+        if msg.state:
+            try:
+                self.nav.restore(msg.robot, decode_state(msg.state))
+                return
+            except (WireError, KeyError, TypeError, ValueError) as err:
+                log.warning("map worker %s: %s's navigation restarts (state refused: %s)", self.name, msg.robot, err)
+
+    def _navigate(self, job: MapJob) -> NavStep:
+        step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self.landmarks)
+        est = step.estimate
+        if est is not None and self._pub is not None:
+            last = self._reported.get(job.robot)
+            if last is None or not 0 <= est.t_ns - last < self.nav_publish_s * 1e9:
+                self._reported[job.robot] = est.t_ns
+                self._pub.put(NavReport(self.name, job.robot, job.epoch, encode_state(est)).to_bytes())
+        return step
 
     def _job(self, job: MapJob) -> list[PlaneObservations]:
         held = self._epoch.get(job.robot)
@@ -175,9 +238,18 @@ class MapWorker:
             self._epoch[job.robot] = job.epoch
         self.jobs += 1
         self._pending.setdefault(job.robot, []).append(job.seq)
+        pose = job.pose
         try:
+            if job.navigate:
+                step = self._navigate(job)
+                if step.pose is None or not step.placed:  # done with, without planes
+                    self._unplaced.setdefault(job.robot, []).append(job.seq)
+                    if self.builder.uncommitted(job.robot) == 0:
+                        return [self._observed(job.robot, [], job.t_ns)]
+                    return []
+                pose = step.pose
             pts = job.points_body.astype(np.float64)
-            records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, job.pose), job.pose)
+            records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, pose), pose)
         except Exception as err:  # done with, not stuck in flight at the base: commit what is pending, no planes
             self.errors += 1
             log.warning("map worker %s: cloud %s#%d not mapped: %s", self.name, job.robot, job.seq, err)
@@ -192,6 +264,27 @@ class MapWorker:
         from mapping.plane_map import record_to_wire
 
         seqs = tuple(self._pending.pop(robot, []))
+        unplaced = tuple(self._unplaced.pop(robot, []))
         return PlaneObservations(
-            self.name, robot, self._epoch.get(robot, 0), seqs, tuple(record_to_wire(r) for r in records), key_ns
+            self.name,
+            robot,
+            self._epoch.get(robot, 0),
+            seqs,
+            tuple(record_to_wire(r) for r in records),
+            key_ns,
+            unplaced,
+            self._nav_state(robot),
         )
+
+    def _nav_state(self, robot: str) -> bytes:
+        """The robot's navigation state after its last processed cloud (b"": none, or it does not encode)."""
+        snap = self.nav.snapshot(robot)
+        if snap is None:
+            return b""
+        try:
+            return encode_state(snap)
+        except WireError as err:
+            if not self._state_failed:
+                self._state_failed = True
+                log.warning("map worker %s: navigation state not carried (a moved robot restarts): %s", self.name, err)
+            return b""

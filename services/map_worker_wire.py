@@ -4,7 +4,10 @@ Keys, under the fleet's root ``<prefix>/<fleet>``:
 
 * ``<root>/map/workers/<worker>``: a worker's liveliness token while it is up (the base's view of who is alive);
 * ``<root>/map/work/<worker>``: the base's jobs for that worker (:class:`MapJob`, :class:`MapControl`);
-* ``<root>/map/obs/<worker>``: the worker's plane observations (:class:`PlaneObservations`).
+* ``<root>/map/obs/<worker>``: the worker's plane observations (:class:`PlaneObservations`) and, with navigation
+  in the workers, its robots' estimates (:class:`NavReport`);
+* ``<root>/map/landmarks``: the merged map's planes as registration targets, for the workers' navigation
+  (:func:`services.map_worker_nav.encode_landmarks`).
 
 A job is one accepted cloud of one robot with the pose to place it with (the navigation's, when it runs) and the
 robot's assignment *epoch*: the base bumps a robot's epoch each time the robot moves to another worker, and takes
@@ -41,6 +44,11 @@ def work_key(keys: FleetKeys, worker: str) -> str:
     return f"{keys.root}/map/work/{check_name(worker, 'worker name')}"
 
 
+def landmarks_key(keys: FleetKeys) -> str:
+    """``<root>/map/landmarks``: the merged map's planes for the workers' navigation."""
+    return f"{keys.root}/map/landmarks"
+
+
 def obs_key(keys: FleetKeys, worker: str = "*") -> str:
     """``<root>/map/obs/<worker>``: plane observations of one worker (``*``: all)."""
     return f"{keys.root}/map/obs/{worker}"
@@ -53,8 +61,10 @@ class MapJob:
     Attributes:
         robot, seq, t_ns: the cloud's robot, sequence number and capture time (ns since the epoch).
         epoch: the robot's assignment epoch at the base.
-        pose: the pose to place it with (NED; the navigation's corrected pose when it runs).
+        pose: the pose to place it with (NED; the navigation's corrected pose when it runs at the base), or with
+            ``navigate`` the raw pose the robot sent: the worker corrects it (:mod:`services.map_worker_nav`).
         points_body: (N, 3) float32, body frame, metres.
+        navigate: whether the worker runs the robot's navigation on this cloud.
     """
 
     robot: str
@@ -63,6 +73,7 @@ class MapJob:
     epoch: int
     pose: Pose
     points_body: NDArray[np.float32]
+    navigate: bool = False
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -77,22 +88,29 @@ class MapJob:
                 "epoch": self.epoch,
                 "pose": [p.north_m, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad],
                 "points": np.ascontiguousarray(self.points_body, "<f4").tobytes(),
+                "nav": self.navigate,
             }
         )
 
 
 @dataclass(frozen=True)
 class MapControl:
-    """A control message: ``flush`` (extract every pending window now) or ``drop`` (forget ``robot``'s window:
-    it moved to another worker at ``epoch``)."""
+    """A control message: ``flush`` (extract every pending window now), ``drop`` (forget ``robot``'s window:
+    it moved to another worker at ``epoch``) or ``adopt`` (``robot`` moved here at ``epoch``: continue its
+    navigation from ``state``, :func:`services.map_worker_nav.encode_state` of the state after its last committed
+    cloud; the clouds not committed follow)."""
 
     kind: str
     robot: str = ""
     epoch: int = 0
+    state: bytes = b""
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
-        return msgpack.packb({"v": SCHEMA, "type": self.kind, "robot": self.robot, "epoch": self.epoch})
+        d = {"v": SCHEMA, "type": self.kind, "robot": self.robot, "epoch": self.epoch}
+        if self.state:
+            d["state"] = self.state
+        return msgpack.packb(d)
 
 
 @dataclass(frozen=True)
@@ -107,6 +125,9 @@ class PlaneObservations:
         records: the observations, wire form (merged by the base as they are: it only adds statistics).
         key_ns: where the base merges them in its canonical order: the capture time of the cloud that triggered
             the extraction, or :data:`FLUSH_KEY` for the extraction of a flush (then by robot name).
+        unplaced: of ``seqs``, the clouds navigation could not place (committed without planes).
+        nav_state: with navigation in the worker, the robot's navigation state after the last cloud of ``seqs``
+            (:func:`services.map_worker_nav.encode_state`); empty otherwise.
     """
 
     worker: str
@@ -115,6 +136,8 @@ class PlaneObservations:
     seqs: tuple[int, ...]
     records: tuple[dict[str, Any], ...]
     key_ns: int = 0
+    unplaced: tuple[int, ...] = ()
+    nav_state: bytes = b""
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -128,6 +151,8 @@ class PlaneObservations:
                 "seqs": list(self.seqs),
                 "records": list(self.records),
                 "key_ns": self.key_ns,
+                "unplaced": list(self.unplaced),
+                "nav_state": self.nav_state,
             }
         )
 
@@ -143,10 +168,45 @@ class PlaneObservations:
                 tuple(int(s) for s in d["seqs"]),
                 tuple(dict(r) for r in d["records"]),
                 int(d["key_ns"]),
+                tuple(int(s) for s in d.get("unplaced", ())),
+                bytes(d.get("nav_state", b"")),
             )
         except (KeyError, TypeError, ValueError) as err:
             msg = f"plane observations: malformed: {err!r}"
             raise WireError(msg) from err
+
+
+@dataclass(frozen=True)
+class NavReport:
+    """A robot's registered estimate, from the worker that navigates it (at most every ``nav_publish_s`` of capture
+    time per robot): the base serves and publishes it (turned by the fleet's frame) as it does its own.
+
+    Attributes:
+        worker, robot, epoch: as in :class:`PlaneObservations` (a stale epoch's report is ignored).
+        estimate: :func:`services.map_worker_nav.encode_state` of the :class:`mapping.navigation.NavEstimate`.
+    """
+
+    worker: str
+    robot: str
+    epoch: int
+    estimate: bytes
+
+    def to_bytes(self) -> bytes:
+        """Schema-1 msgpack."""
+        d = {"v": SCHEMA, "type": "nav", "worker": self.worker, "robot": self.robot, "epoch": self.epoch}
+        return msgpack.packb(d | {"estimate": self.estimate})
+
+
+def decode_obs(payload: bytes) -> PlaneObservations | NavReport:
+    """A message of ``<root>/map/obs/<worker>`` (raises :class:`~services.errors.WireError`)."""
+    d = _unpack(payload, None)
+    if d.get("type") == "nav":
+        try:
+            return NavReport(str(d["worker"]), str(d["robot"]), int(d["epoch"]), bytes(d["estimate"]))
+        except (KeyError, TypeError, ValueError) as err:
+            msg = f"nav report: malformed: {err!r}"
+            raise WireError(msg) from err
+    return PlaneObservations.from_bytes(payload)
 
 
 def decode_work(payload: bytes) -> MapJob | MapControl:
@@ -166,9 +226,10 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
                 int(d["epoch"]),
                 Pose(*(float(x) for x in d["pose"])),
                 pts.reshape(-1, 3),
+                bool(d.get("nav", False)),
             )
-        if kind in ("flush", "drop"):
-            return MapControl(kind, str(d.get("robot", "")), int(d.get("epoch", 0)))
+        if kind in ("flush", "drop", "adopt"):
+            return MapControl(kind, str(d.get("robot", "")), int(d.get("epoch", 0)), bytes(d.get("state", b"")))
     except (KeyError, TypeError, ValueError) as err:
         msg = f"map work: malformed: {err!r}"
         raise WireError(msg) from err

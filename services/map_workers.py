@@ -25,6 +25,12 @@ merge in the order the workers happen to answer: each observation carries the ca
 triggered its extraction (``key_ns``), and it is held until no cloud still in flight is older; held observations
 are merged by (key, robot): the order one map thread fed in capture order merges them in, whatever the number of
 workers. The price is latency: an observation may wait up to one window period for the other robots' windows.
+
+Navigation in the workers (``navigate``; :mod:`services.map_worker_nav`): jobs carry the raw pose and the worker
+corrects it. The merger publishes its planes on ``<root>/map/landmarks`` (at most every
+:data:`~services.map_worker_nav.LANDMARKS_EVERY_S` after a change, and at once when a worker joins), keeps each
+robot's navigation state from the observations that commit its clouds, and hands that state to a robot's new
+worker (``adopt``) before re-sending its clouds.
 """
 
 from __future__ import annotations
@@ -46,7 +52,17 @@ from lrsensor.frames import Pose
 
 from .errors import WireError
 from .keys import FleetKeys
-from .map_worker_wire import MapControl, MapJob, PlaneObservations, obs_key, work_key, workers_key
+from .map_worker_nav import LANDMARKS_EVERY_S, decode_state, encode_landmarks
+from .map_worker_wire import (
+    MapControl,
+    MapJob,
+    NavReport,
+    decode_obs,
+    landmarks_key,
+    obs_key,
+    work_key,
+    workers_key,
+)
 from .zconfig import undeclare_all
 
 if TYPE_CHECKING:
@@ -77,8 +93,9 @@ def owner(robot: str, workers: Iterable[str]) -> str | None:
 #: worker's window (extracted only at the next flush) must not stall the others' merge.
 MAX_HOLD_S = 2.0
 
-#: An observation held for the canonical merge order: (key_ns, robot, arrival number, records, [(seq, t_ns)]).
-_Held = tuple[int, str, int, list[Any], list[tuple[int, int]]]
+#: An observation held for the canonical merge order: (key_ns, robot, arrival number, records, [(seq, t_ns)],
+#: unplaced seqs, navigation state).
+_Held = tuple[int, str, int, list[Any], list[tuple[int, int]], tuple[int, ...], bytes]
 
 
 @dataclass
@@ -96,9 +113,12 @@ class WorkerPool:
         session: the base's open Zenoh session.
         keys: the fleet's key expressions.
         builder: the shared map (the merger's; only :meth:`~mapping.MapBuilder.merge` is used).
-        on_commit: called with ``(robot, [(seq, t_ns), ...])`` when clouds reached the map.
+        on_commit: called with ``(robot, [(seq, t_ns), ...], unplaced seqs)`` when clouds reached the map (or, the
+            unplaced ones, were done with: navigation could not place them).
         on_changes: called with the map changes of each merge (the feed publishes them).
         max_in_flight: see the module docstring.
+        navigate: whether the workers run the navigation (see the module docstring).
+        landmark_min_points: with ``navigate``, planes with fewer points are not sent to the workers.
     """
 
     def __init__(
@@ -106,9 +126,11 @@ class WorkerPool:
         session: Any,
         keys: FleetKeys,
         builder: MapBuilder,
-        on_commit: Callable[[str, list[tuple[int, int]]], None],
+        on_commit: Callable[[str, list[tuple[int, int]], tuple[int, ...]], None],
         on_changes: Callable[[list[MapChange]], None],
         max_in_flight: int = MAX_IN_FLIGHT,
+        navigate: bool = False,
+        landmark_min_points: int = 0,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -116,6 +138,16 @@ class WorkerPool:
         self.on_commit = on_commit
         self.on_changes = on_changes
         self.max_in_flight = max_in_flight
+        self.navigate = navigate
+        self.landmark_min_points = landmark_min_points
+        #: with ``navigate``: called with ``(robot, state)`` as the clouds an observation commits are merged, and
+        #: with ``(robot, NavEstimate)`` for each estimate a worker reports
+        self.on_nav_state: Callable[[str, bytes], None] = lambda robot, state: None
+        self.on_nav_report: Callable[[str, Any], None] = lambda robot, est: None
+        #: per robot: the navigation state after its last committed cloud (carried to its next worker)
+        self._nav_state: dict[str, bytes] = {}
+        self._lm_pub: Any = None
+        self._lm_sent: tuple[int, float] = (-1, 0.0)
         self._cond = threading.Condition()
         self._workers: set[str] = set()
         self._pubs: dict[str, Any] = {}
@@ -144,6 +176,13 @@ class WorkerPool:
         self._thread = threading.Thread(target=self._run, name="base-merger", daemon=True)
         self._thread.start()
         s = self.session
+        if self.navigate:
+            import zenoh
+
+            self._lm_pub = s.declare_publisher(
+                landmarks_key(self.keys), congestion_control=zenoh.CongestionControl.DROP
+            )
+            self._entities.append(self._lm_pub)
         self._entities += [
             s.declare_subscriber(obs_key(self.keys), lambda sample: self._events.put(("obs", sample))),
             s.liveliness().declare_subscriber(
@@ -262,7 +301,7 @@ class WorkerPool:
             return
         epoch = self._epoch[robot]
         for it in items:
-            self._put(w, MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body).to_bytes())
+            self._put(w, MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate).to_bytes())
 
     def _reassign(self) -> None:
         """Move every robot whose rendezvous owner changed; re-send its in-flight clouds to the new owner."""
@@ -277,6 +316,9 @@ class WorkerPool:
                 self._put(old, MapControl("drop", robot, self._epoch[robot]).to_bytes())
             items = [self._in_flight[robot][s] for s in sorted(self._in_flight.get(robot, {}))]
             self.resent += len(items) if new is not None else 0
+            if self.navigate and new is not None:  # its navigation continues after its last committed cloud
+                state = self._nav_state.get(robot, b"")
+                self._put(new, MapControl("adopt", robot, self._epoch[robot], state).to_bytes())
             self._send(robot, items)
             log.info("robot %s moves from map worker %s to %s (%d clouds again)", robot, old, new, len(items))
 
@@ -284,11 +326,12 @@ class WorkerPool:
     def _run(self) -> None:
         while True:
             try:
-                ev = self._events.get(timeout=0.25)
+                ev = self._events.get(timeout=0.25 if not self.navigate else LANDMARKS_EVERY_S)
             except queue.Empty:
                 with self._cond:
                     ready = self._ready() if self._held else []
                 self._merge(ready)
+                self._publish_landmarks()
                 continue
             if ev is None:
                 return
@@ -315,6 +358,7 @@ class WorkerPool:
                 )
                 self._workers.add(name)
                 log.info("map worker %s joined (%d alive)", name, len(self._workers))
+                self._lm_sent = (-1, 0.0)  # the newcomer needs the planes now
             else:
                 if name not in self._workers:
                     return
@@ -330,7 +374,10 @@ class WorkerPool:
         from mapping.plane_map import record_from_wire
 
         try:
-            obs = PlaneObservations.from_bytes(payload)
+            obs = decode_obs(payload)
+            if isinstance(obs, NavReport):
+                self._on_nav(obs)
+                return
             records = [record_from_wire(r) for r in obs.records]
         except (WireError, KeyError, TypeError, ValueError) as err:
             self.errors += 1
@@ -343,11 +390,37 @@ class WorkerPool:
             table = self._in_flight.get(obs.robot, {})
             done = [(s, table.pop(s).t_ns) for s in obs.seqs if s in table]
             self.committed[obs.worker] = self.committed.get(obs.worker, 0) + len(done)
+            if obs.nav_state:
+                self._nav_state[obs.robot] = obs.nav_state
             self._seq += 1
             self._held_since[self._seq] = time.monotonic()
-            heapq.heappush(self._held, (obs.key_ns, obs.robot, self._seq, records, done))
+            item = (obs.key_ns, obs.robot, self._seq, records, done, obs.unplaced, obs.nav_state)
+            heapq.heappush(self._held, item)
             ready = self._ready()
         self._merge(ready)
+        self._publish_landmarks()
+
+    def _on_nav(self, report: NavReport) -> None:
+        with self._cond:
+            if self._owner.get(report.robot) != report.worker or self._epoch.get(report.robot) != report.epoch:
+                return
+        self.on_nav_report(report.robot, decode_state(report.estimate))
+
+    def _publish_landmarks(self) -> None:
+        """With ``navigate``: the map's planes to the workers, when they changed, at most every
+        ``LANDMARKS_EVERY_S``."""
+        if self._lm_pub is None:
+            return
+        version = self.builder.version
+        sent, at = self._lm_sent
+        now = time.monotonic()
+        if version == sent or now - at < LANDMARKS_EVERY_S:
+            return
+        self._lm_sent = (version, now)
+        try:
+            self._lm_pub.put(encode_landmarks(self.builder.landmarks(self.landmark_min_points), version))
+        except Exception as err:  # the workers keep their mirror; the next change sends it again
+            log.warning("map planes not sent to the workers: %s", err)
 
     def _ready(self) -> list[_Held]:
         """Under the lock: the held observations that no cloud still in flight can precede (canonical order)."""
@@ -362,14 +435,16 @@ class WorkerPool:
         return out
 
     def _merge(self, ready: list[_Held]) -> None:
-        for _key, robot, _n, records, done in ready:
+        for _key, robot, _n, records, done, unplaced, nav_state in ready:
             try:
                 changes = self.builder.merge(records) if records else []
                 self.merged += len(records)
                 if changes:
                     self.on_changes(changes)
+                if nav_state:
+                    self.on_nav_state(robot, nav_state)
                 if done:
-                    self.on_commit(robot, done)
+                    self.on_commit(robot, done, unplaced)
             finally:  # counted out of flight only once merged and reported: flush() then sees them done
                 with self._cond:
                     self._n_in_flight -= len(done)

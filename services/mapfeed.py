@@ -266,13 +266,20 @@ class MapFeed:
             self._thread.start()
 
     def use_workers(self, pool: WorkerPool) -> None:
-        """Send the per-robot work to plane workers (before :meth:`start`); the map thread then only navigates
-        and dispatches, and ``pool`` merges what the workers observe (see :mod:`services.map_workers`)."""
+        """Send the per-robot work to plane workers (before :meth:`start`); the map thread then only dispatches,
+        ``pool`` merges what the workers observe (see :mod:`services.map_workers`), and with navigation the
+        workers navigate too (:mod:`services.map_worker_nav`): this feed keeps their robots' states for the fleet's
+        frame and serves their estimates."""
         self.pool = pool
         if self.fleet is not None:
             self.set_smoothing(False)
         pool.on_commit = self._commit_done
         pool.on_changes = lambda changes: self._publish_changes(None, changes)
+        if self.navigator is not None:
+            pool.navigate = True
+            pool.landmark_min_points = self.navigator.cfg.min_landmark_points
+            pool.on_nav_state = self._worker_nav_state
+            pool.on_nav_report = lambda robot, est: self._nav_publish(est.turned(self._frame))
 
     def close(self, save: bool) -> None:
         """Stop publishing, let the map thread finish its queue, flush the map, and save it when ``save``."""
@@ -384,6 +391,10 @@ class MapFeed:
     def _map_one(self, msg: CloudMsg) -> bool:
         """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
         assert self.builder is not None
+        if self.pool is not None and self.pool.navigate:  # the workers navigate (services.map_worker_nav)
+            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, msg.pose, msg.points_body)
+            self.clouds += 1
+            return True
         points_body = msg.points_body.astype(np.float64)
         pose = msg.pose
         if self.fleet is not None:
@@ -432,14 +443,49 @@ class MapFeed:
         for _seq, t_ns in done:
             self.map_latency.add(now - t_ns, None)
 
-    def _commit_done(self, robot: str, done: list[tuple[int, int]]) -> None:
-        """Plane workers committed these ``(seq, t_ns)`` clouds of ``robot``: count, time, acknowledge."""
+    def _commit_done(self, robot: str, done: list[tuple[int, int]], unplaced: tuple[int, ...] = ()) -> None:
+        """Plane workers committed these ``(seq, t_ns)`` clouds of ``robot``: count, time, acknowledge (of them,
+        ``unplaced`` are those the workers' navigation could not place: counted as such, not as mapped)."""
         now = time.time_ns()
+        left_out = set(unplaced)
+        n_out = sum(1 for seq, _ in done if seq in left_out)
         with self._count_lock:
-            self._mapped[robot] = self._mapped.get(robot, 0) + len(done)
+            self._mapped[robot] = self._mapped.get(robot, 0) + len(done) - n_out
+        if n_out:
+            self.unplaced += n_out
+            with self._nav_lock:
+                counts = self._nav_counts.setdefault(robot, [0, 0])
+                counts[1] += n_out
+        if self.navigator is not None and self.pool is not None and self.pool.navigate:
+            with self._nav_lock:
+                self._nav_counts.setdefault(robot, [0, 0])[0] += len(done) - n_out
         for seq, t_ns in done:
-            self.map_latency.add(now - t_ns, None)
+            if seq not in left_out:
+                self.map_latency.add(now - t_ns, None)
             self.on_mapped(robot, seq)
+
+    def _worker_nav_state(self, robot: str, state: bytes) -> None:
+        """A worker's navigation state of ``robot`` after its committed clouds: kept in this feed's
+        :class:`~mapping.navigation.Navigator` for the fleet's frame (the mean heading correction)."""
+        from mapping.navigation import RobotNav
+
+        from .map_worker_nav import decode_state
+
+        nav = self.navigator
+        if nav is None:
+            return
+        try:
+            snap = decode_state(state)["nav"]
+        except Exception as err:  # the frame goes on without this robot's newest state
+            log.debug("navigation state of %s not decoded: %s", robot, err)
+            return
+        rn = nav.robots.get(robot)
+        if rn is None:
+            rn = nav.robots[robot] = RobotNav(robot, nav.cfg)
+        rn.restore(snap)
+        if nav.origin_ne is None and rn.started:
+            nav.origin_ne = (float(rn.start_ne[0]), float(rn.start_ne[1]))
+        self._frame = nav.frame()
 
     def mapped(self, robot: str) -> int:
         """Clouds of ``robot`` that reached the map."""

@@ -251,3 +251,125 @@ def test_base_cli_starts_and_stops_its_local_worker_processes(tmp_path: Path, pr
         _wait(lambda: workers() == 1, 60, "the base's own worker process")
     assert base.stop(timeout_s=30) == 0, base.output()
     assert "map worker stopped" in base.output()  # the worker left with the base, no orphan
+
+
+# ---------------------------------------------------------------------- navigation in the workers
+def _nav_job(robot: str, seq: int, epoch: int, frame: DiveFrame) -> MapJob:
+    pts = frame.points_body.astype(np.float32)
+    return MapJob(robot, seq, frame.t_ns, epoch, frame.pose_est, pts, navigate=True)
+
+
+def _tank_landmarks(frames: list[DiveFrame]) -> Any:
+    b = MapBuilder(MapConfig())
+    for f in frames:
+        b.add_cloud_body(f.robot, f.t_ns, f.points_body.astype(np.float64), f.pose_est)
+    b.flush()
+    return b.landmarks(300)
+
+
+def test_landmarks_and_navigation_state_survive_the_wire() -> None:
+    from mapping.navigation import NavConfig, RobotNav
+    from services.map_worker_nav import decode_landmarks, decode_state, encode_landmarks, encode_state
+
+    frames = _frames(2.0)
+    lm = _tank_landmarks(frames)
+    assert len(lm) >= 4
+    version, back = decode_landmarks(encode_landmarks(lm, 7))
+    assert version == 7
+    assert back.contrib == lm.contrib
+    for name in ("ids", "normal", "d", "centroid", "u", "v", "u_range", "v_range"):
+        assert np.array_equal(getattr(back, name), getattr(lm, name))
+    nav = RobotNav("rov1", NavConfig())
+    own = [f for f in frames if f.robot == "rov1"]
+    for f in own[:20]:
+        nav.update(f.t_ns, f.pose_est, f.points_body, lm)
+    twin = RobotNav("rov1", nav.cfg)
+    twin.restore(decode_state(encode_state(nav.snapshot())))
+    for f in own[20:30]:  # the restored estimator continues exactly
+        a = nav.update(f.t_ns, f.pose_est, f.points_body, lm)
+        b = twin.update(f.t_ns, f.pose_est, f.points_body, lm)
+        assert a == b
+
+
+def test_the_stride_registers_every_third_scan_and_applies_the_latest_correction_between() -> None:
+    from services.map_worker_nav import WorkerNav, corrected
+
+    frames = [f for f in _frames(2.0) if f.robot == "rov1"]
+    lm = _tank_landmarks(frames)
+    wn = WorkerNav()
+    steps = [wn.step("rov1", f.t_ns, f.pose_est, f.points_body, lm) for f in frames[:30]]
+    registered = [i for i, s in enumerate(steps) if s.estimate is not None]
+    assert registered == list(range(0, 30, 3))  # 30 Hz: every third scan, 10 Hz of registration
+    assert (wn.registered, wn.strided) == (10, 20)
+    latest = steps[27].estimate
+    assert steps[28].pose == corrected(latest, frames[28].pose_est)
+    assert steps[28].pose is not None
+    assert abs(steps[28].pose.north_m - frames[28].pose_est.north_m - latest.correction["north_m"]) < 1e-12
+    every = WorkerNav(register_every_s=0.0)
+    assert all(every.step("rov1", f.t_ns, f.pose_est, f.points_body, lm).estimate for f in frames[:5])
+
+
+def test_a_robot_moved_to_another_worker_continues_its_navigation_exactly() -> None:
+    frames = [f for f in _frames(2.0) if f.robot == "rov1"]
+    lm = _tank_landmarks(frames)
+    ref, a, b = (MapWorker(None, FleetKeys("t"), n) for n in ("ref", "wa", "wb"))
+    for w in (ref, a, b):
+        w.landmarks = lm
+    out_a: list[PlaneObservations] = []
+    for seq, f in enumerate(frames[:25]):
+        ref.handle(_nav_job("rov1", seq, 0, f))
+        out_a += a.handle(_nav_job("rov1", seq, 0, f))
+    committed = out_a[-1].seqs[-1]
+    assert committed == 19  # two extractions of 10; 20..24 in flight when wa dies
+    b.handle(MapControl("adopt", "rov1", 1, out_a[-1].nav_state))
+    for seq in range(committed + 1, 40):  # the base re-sends the clouds in flight, then the new ones
+        b.handle(_nav_job("rov1", seq, 1, frames[seq]))
+    for seq in range(25, 40):
+        ref.handle(_nav_job("rov1", seq, 0, frames[seq]))
+    sa, sb = ref.nav.snapshot("rov1"), b.nav.snapshot("rov1")
+    assert sa is not None
+    assert sb is not None
+    assert np.array_equal(sa["nav"]["x"], sb["nav"]["x"])
+    assert np.array_equal(sa["nav"]["P"], sb["nav"]["P"])
+    assert sa["nav"]["latest"] == sb["nav"]["latest"]
+    fresh = MapWorker(None, FleetKeys("t"), "wc")  # without the state: an honest restart from the next fix
+    fresh.landmarks = lm
+    fresh.handle(MapControl("adopt", "rov1", 1, b""))
+    fresh.handle(_nav_job("rov1", 20, 1, frames[20]))
+    st = fresh.nav.snapshot("rov1")
+    assert st is not None
+    assert st["nav"]["latest"].motion == "start"
+
+
+def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list[DiveFrame]) -> None:
+    base = net.start_base(map_mode="on", navigation=True, remote_workers=True, workers=2)
+    workers = [MapWorker(net.session(), net.keys, f"w{i}") for i in range(2)]
+    for w in workers:
+        w.start()
+    try:
+        pool = base.feed.pool
+        assert pool is not None
+        assert pool.navigate
+        assert pool.wait_for_workers(2, 20)
+        per = 90
+        _publish(net, frames, ROBOTS, 0, per)
+        assert base.drain(60)
+        base.flush_map(60)
+        st = base.status()
+        placed = {r: st["robots"][r]["nav"]["placed"] for r in ROBOTS}
+        unplaced = {r: st["robots"][r]["nav"]["unplaced"] for r in ROBOTS}
+        assert all(placed[r] + unplaced[r] == per for r in ROBOTS), (placed, unplaced)
+        assert {r: st["robots"][r]["mapped"] for r in ROBOTS} == placed
+        assert sum(placed.values()) >= 0.9 * per * len(ROBOTS)
+        for r in ROBOTS:  # acknowledgeable once committed, placed or not
+            assert base.ledger.records[r].mapped.ranges() == [[0, per - 1]]
+        assert base.feed.nav_robots() == sorted(ROBOTS)  # the workers' estimates are served by the base
+        assert all(w.landmarks_version >= 0 and len(w.landmarks) > 0 for w in workers)  # the mirror arrived
+        assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 3
+        assert sum(w.nav.strided for w in workers) > 0
+        navigator = base.feed.navigator
+        assert navigator is not None
+        assert set(navigator.robots) == set(ROBOTS)  # their states, for the fleet's frame
+    finally:
+        for w in workers:
+            w.close()

@@ -1,0 +1,238 @@
+"""Navigation in the plane workers: each robot's estimator runs in the worker that owns the robot.
+
+The worker that extracts a robot's planes also corrects its poses (:class:`WorkerNav`, one
+:class:`mapping.navigation.RobotNav` per robot, used only through its public methods), against a *mirror* of the
+shared map's planes: the base's merger publishes them (:class:`~mapping.navigation.PlaneLandmarks`, map frame) on
+``<root>/map/landmarks`` at most every :data:`LANDMARKS_EVERY_S` after a merge changed the map
+(:func:`encode_landmarks`). So a worker's mirror lags the base's map by that period plus the transit; the map itself
+lags the clouds by the canonical merge's hold (a window period, docs/scaling.md). The registration needs planes,
+not their newest millimetres: a plane's normal and offset move by millimetres over that time, and a plane new to
+the map is used a few scans later than in one process.
+
+**Registration stride.** Consecutive scans of a robot at 30 Hz overlap almost fully and its correction (the offset
+from the raw fix, the heading correction) changes slowly, so a robot's scan is registered (``RobotNav.update``)
+only when at least ``register_every_s`` of capture time passed since its last registration (default 0.09 s: every
+third scan at 30 Hz, every scan at 10 Hz and slower). A scan in between is placed with the latest correction:
+the raw position plus the latest offset from the raw fix (without a fix: the latest corrected position) and the
+raw heading plus the latest heading correction; it is placed (mapped) when the latest estimate was. Every cloud
+still reaches the map.
+
+**State across workers.** Each observation message carries the robot's navigation state after the last cloud it
+commits (:meth:`WorkerNav.snapshot`: ``RobotNav.snapshot()`` and the stride's bookkeeping, encoded by
+:func:`encode_state`); the base keeps the latest. When the robot moves to another worker, the base sends that state
+first and then every cloud not committed yet, so the new worker continues the estimator exactly where the
+committed clouds left it (the state is not lost with a SIGKILLed worker). A state that does not encode (a future
+estimator with foreign objects in its snapshot) is not sent: the new worker then restarts the robot's estimator
+from its next fix, and says so in its log.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from lrsensor.frames import Pose
+
+from .errors import WireError
+
+log = logging.getLogger(__name__)
+
+#: The merger publishes its planes to the workers at most this often after a change, seconds.
+LANDMARKS_EVERY_S = 0.1
+#: Register a robot's scan when at least this much capture time passed since its last registration, seconds.
+REGISTER_EVERY_S = 0.09
+
+
+# ---------------------------------------------------------------------------------------------- codec
+def _enc(obj: Any) -> Any:
+    """A msgpack-ready form of a snapshot value: numbers, strings, None, lists, dicts, ndarrays, tuples, a Pose
+    and the navigation's dataclasses (tagged); anything else raises :class:`WireError`."""
+    if obj is None or isinstance(obj, bool | int | float | str):
+        return obj
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        return {"__nd__": [a.dtype.str, list(a.shape), a.tobytes()]}
+    if isinstance(obj, tuple):
+        return {"__tuple__": [_enc(v) for v in obj]}
+    if isinstance(obj, list):
+        return [_enc(v) for v in obj]
+    if isinstance(obj, dict):
+        return {"__dict__": [[_enc(k), _enc(v)] for k, v in obj.items()]}
+    if dataclasses.is_dataclass(obj) and type(obj).__name__ in _classes():
+        fields = {f.name: _enc(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {"__dc__": [type(obj).__name__, fields]}
+    msg = f"navigation state: cannot encode a {type(obj).__name__}"
+    raise WireError(msg)
+
+
+def _dec(obj: Any) -> Any:
+    if isinstance(obj, list):
+        return [_dec(v) for v in obj]
+    if not isinstance(obj, dict):
+        return obj
+    if "__nd__" in obj:
+        dt, shape, raw = obj["__nd__"]
+        return np.frombuffer(raw, dtype=np.dtype(dt)).reshape(shape).copy()
+    if "__tuple__" in obj:
+        return tuple(_dec(v) for v in obj["__tuple__"])
+    if "__dict__" in obj:
+        return {_dec(k): _dec(v) for k, v in obj["__dict__"]}
+    if "__dc__" in obj:
+        name, fields = obj["__dc__"]
+        cls = _classes().get(name)
+        if cls is None:
+            msg = f"navigation state: unknown type {name!r}"
+            raise WireError(msg)
+        return cls(**{k: _dec(v) for k, v in fields.items()})
+    msg = "navigation state: untagged map"
+    raise WireError(msg)
+
+
+def _classes() -> dict[str, type]:
+    from mapping.navigation import NavEstimate
+
+    return {"Pose": Pose, "NavEstimate": NavEstimate}
+
+
+def encode_state(state: Any) -> bytes:
+    """Bytes of a navigation state (:meth:`WorkerNav.snapshot`, an estimate); raises :class:`WireError` when it
+    holds a type this codec does not know."""
+    return bytes(msgpack.packb(_enc(state)))
+
+
+def decode_state(payload: bytes) -> Any:
+    """The value :func:`encode_state` encoded (raises :class:`WireError`)."""
+    try:
+        return _dec(msgpack.unpackb(payload, raw=False, strict_map_key=False))
+    except (ValueError, TypeError, KeyError, msgpack.UnpackException) as err:
+        msg = f"navigation state does not decode: {err!r}"
+        raise WireError(msg) from err
+
+
+def encode_landmarks(lm: Any, version: int) -> bytes:
+    """The map's planes as registration targets (:class:`~mapping.navigation.PlaneLandmarks`), with the map's
+    version: what ``<root>/map/landmarks`` carries."""
+    fields = {f.name: _enc(getattr(lm, f.name)) for f in dataclasses.fields(lm)}
+    return bytes(msgpack.packb({"v": 1, "type": "landmarks", "version": version, "fields": fields}))
+
+
+def decode_landmarks(payload: bytes) -> tuple[int, Any]:
+    """``(version, PlaneLandmarks)`` of :func:`encode_landmarks` (raises :class:`WireError`)."""
+    from mapping.navigation import PlaneLandmarks
+
+    try:
+        d = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        if d.get("type") != "landmarks":
+            msg = "not a landmarks message"
+            raise WireError(msg)
+        return int(d["version"]), PlaneLandmarks(**{k: _dec(v) for k, v in d["fields"].items()})
+    except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as err:
+        msg = f"landmarks do not decode: {err!r}"
+        raise WireError(msg) from err
+
+
+# ---------------------------------------------------------------------------------------------- the estimators
+@dataclasses.dataclass(frozen=True)
+class NavStep:
+    """What navigation decided for one cloud.
+
+    Attributes:
+        pose: the pose to place the cloud with (NED, map frame); None: no position.
+        placed: whether the cloud goes into the map.
+        estimate: the registration's :class:`~mapping.navigation.NavEstimate` when this scan was registered
+            (None for a scan placed with the latest correction).
+    """
+
+    pose: Pose | None
+    placed: bool
+    estimate: Any = None
+
+
+class WorkerNav:
+    """The estimators of the robots one worker serves, with the registration stride (see the module docstring).
+
+    Args:
+        cfg: the navigation's configuration (default ``NavConfig()``, the base's ``--nav filter``).
+        register_every_s: the stride, seconds of capture time (0: register every scan).
+    """
+
+    def __init__(self, cfg: Any = None, register_every_s: float = REGISTER_EVERY_S) -> None:
+        from mapping.navigation import NavConfig
+
+        self.cfg = cfg or NavConfig()
+        self.register_every_s = register_every_s
+        self._navs: dict[str, Any] = {}
+        #: per robot: capture time of the last registered scan
+        self._last_reg: dict[str, int] = {}
+        #: scans registered, scans placed with the latest correction
+        self.registered = 0
+        self.strided = 0
+
+    def _nav(self, robot: str) -> Any:
+        nav = self._navs.get(robot)
+        if nav is None:
+            from mapping.navigation import RobotNav
+
+            nav = self._navs[robot] = RobotNav(robot, self.cfg)
+        return nav
+
+    def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any) -> NavStep:
+        """One cloud of ``robot``: registered, or placed with the latest correction."""
+        nav = self._nav(robot)
+        last = self._last_reg.get(robot)
+        latest = nav.latest
+        due = (
+            last is None
+            or not nav.started
+            or latest is None
+            or latest.pose is None
+            or not 0 <= t_ns - last < self.register_every_s * 1e9
+        )
+        if due:
+            est = nav.update(t_ns, raw, points_body, landmarks)
+            self._last_reg[robot] = t_ns
+            self.registered += 1
+            return NavStep(est.pose, bool(est.placed and est.pose is not None), est)
+        self.strided += 1
+        return NavStep(corrected(latest, raw), bool(latest.placed))
+
+    def snapshot(self, robot: str) -> dict[str, Any] | None:
+        """The robot's whole navigation state (None: it has none here)."""
+        nav = self._navs.get(robot)
+        if nav is None:
+            return None
+        return {"nav": nav.snapshot(), "last_reg": self._last_reg.get(robot)}
+
+    def restore(self, robot: str, state: dict[str, Any]) -> None:
+        """Continue ``robot`` from a :meth:`snapshot` (of this worker or another)."""
+        self._nav(robot).restore(state["nav"])
+        if state.get("last_reg") is None:
+            self._last_reg.pop(robot, None)
+        else:
+            self._last_reg[robot] = int(state["last_reg"])
+
+    def forget(self, robot: str) -> None:
+        """Drop the robot's estimator (it moved away, or restarts)."""
+        self._navs.pop(robot, None)
+        self._last_reg.pop(robot, None)
+
+
+def corrected(latest: Any, raw: Pose) -> Pose | None:
+    """``raw`` with the latest estimate's correction: the raw position plus its offset from the raw fix (without a
+    fix now or then: the latest corrected position), depth and attitude raw, the heading plus its correction."""
+    if latest.pose is None:
+        return None
+    corr = latest.correction
+    yaw = raw.yaw_rad + math.radians(float(corr.get("yaw_deg", 0.0)))
+    if math.isfinite(raw.north_m + raw.east_m) and "north_m" in corr and "east_m" in corr:
+        north, east = raw.north_m + float(corr["north_m"]), raw.east_m + float(corr["east_m"])
+    else:
+        north, east = latest.pose.north_m, latest.pose.east_m
+    return Pose(north, east, raw.down_m, raw.roll_rad, raw.pitch_rad, yaw)
