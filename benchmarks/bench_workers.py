@@ -12,8 +12,15 @@ processes. Two runs per configuration, navigation on and off:
 * **real time**: the fleet at its real rate (robots x 30 Hz, capture time = publication time); the map-update
   latency p50/p99 (capture to commit, ``map.latency_ms``) and whether every cloud reached the map.
 
-Also, navigation off: the planes of the flood run against one ``MapBuilder`` fed the same clouds in capture order
-(the merge is order-sensitive), largest angle and offset difference over the large faces.
+Navigation runs as ``lrsensor base`` runs it by default (``--nav filter``): in the base's map thread with 0
+workers (every scan registered), in the workers otherwise (``services.map_worker_nav``: every third scan at 30 Hz
+registered, against the workers' mirror of the merged planes). CPU: the base process's, and the worker processes'
+(from /proc) during the flood.
+
+The same map: the planes of the flood run (map frame) against one ``MapBuilder`` fed the same clouds in capture
+order (the merge is order-sensitive), largest angle and offset difference over the large faces; with navigation,
+the reference also navigates in that one process (``WorkerNav``, the workers' stride, against the builder's planes
+as they are at each cloud).
 """
 
 from __future__ import annotations
@@ -86,30 +93,73 @@ def publish(endpoint: str, fleet: str, robots: int, seconds: float, paced: bool)
     return 0
 
 
-def reference_planes(robots: int, seconds: float) -> list[dict[str, Any]]:
-    """The map of one ``MapBuilder`` fed the publisher's clouds in capture order (raw poses), then flushed."""
+def reference_planes(
+    robots: int, seconds: float, nav: bool = False, lag_s: float = 0.0, every_s: float | None = None
+) -> list[dict[str, Any]]:
+    """The map of one ``MapBuilder`` fed the publisher's clouds in capture order, then flushed: with the raw poses,
+    or with ``nav`` the poses one process's ``WorkerNav`` (stride ``every_s``, default the workers') corrects
+    against the builder's planes of the moment, or with ``lag_s`` those of ``lag_s`` of capture time before (a
+    worker's mirror lags the merged map)."""
+    from collections import deque
+
     from mapping import MapBuilder, MapConfig
+    from mapping.navigation import NavConfig
+    from services.map_worker_nav import REGISTER_EVERY_S, WorkerNav
 
     b = MapBuilder(MapConfig())
-    for robot, t_ns, pts, pose in fleet_frames(robots, seconds):
+    wn = WorkerNav(register_every_s=REGISTER_EVERY_S if every_s is None else every_s)
+    min_points = NavConfig().min_landmark_points
+    seen: deque[tuple[int, Any]] = deque()  # (capture time the planes became these, planes)
+    mirror = b.landmarks(min_points)
+    for robot, t_ns, pts, raw in fleet_frames(robots, seconds):
+        pose = raw
+        if nav:
+            lm = b.landmarks(min_points)
+            if not seen or seen[-1][1] is not lm:
+                seen.append((t_ns, lm))
+            while seen and seen[0][0] <= t_ns - lag_s * 1e9:
+                mirror = seen.popleft()[1]
+            step = wn.step(robot, t_ns, raw, pts, mirror if lag_s > 0 else lm)
+            if step.pose is None or not step.placed:
+                continue
+            pose = step.pose
         b.add_cloud_body(robot, t_ns, pts.astype(np.float64), pose)
     b.flush()
     planes: list[dict[str, Any]] = b.map_json()["planes"]
     return planes
 
 
+def _proc_cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds of these processes so far (Linux /proc; 0 for a process gone)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
 def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float) -> dict[str, Any]:
     """One configuration through a real base station; returns the figures."""
+    from services.base import BaseStation
     from services.testnet import TestNetwork
 
     with TestNetwork("bench") as net:
-        base = net.start_base(
+        base = net.base = BaseStation(
+            net.router,
+            net.keys,
+            None,
             map_mode="on",
             navigation=nav,
             map_workers=n_workers,
             worker_endpoint=net.endpoint if n_workers else None,
             save_period_s=60.0,
         )
+        base.feed.set_smoothing(False)  # lrsensor base's default, --nav filter
+        base.start()
         if n_workers:
             assert base.feed.pool is not None
             if not base.feed.pool.wait_for_workers(n_workers, 120):
@@ -121,7 +171,9 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
         assert pub.stdin is not None
         assert pub.stdout is not None
         pub.stdout.readline()  # ready: the frames are simulated
+        pids = [p.pid for p in getattr(base, "_worker_procs", [])]
         cpu0 = os.times()
+        wcpu0 = _proc_cpu_s(pids)
         pub.stdin.write(b"go\n")
         pub.stdin.flush()
         t_first = None
@@ -136,9 +188,11 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
         base.flush_map(600)
         t_end = time.perf_counter()
         cpu1 = os.times()
+        wcpu1 = _proc_cpu_s(pids)
         st = base.status()
         mapped = sum(v.get("mapped", 0) for v in st["robots"].values())
-        planes = base.map_json()["planes"]
+        assert base.map is not None
+        planes = base.map.map_json()["planes"]  # the map frame (the reference's), not turned by the fleet frame
         unplaced = st["map"]["unplaced"]
     wall = t_end - (t_first or t_end)
     return {
@@ -152,6 +206,7 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
         "p50": st["map"]["latency_ms"]["p50"],
         "p99": st["map"]["latency_ms"]["p99"],
         "base_cpu_s": (cpu1.user + cpu1.system) - (cpu0.user + cpu0.system),
+        "worker_cpu_s": wcpu1 - wcpu0,
         "wall_s": wall,
         "planes": planes,
     }
@@ -167,6 +222,44 @@ def plane_diff(a: list[dict[str, Any]], b: list[dict[str, Any]], min_points: int
     return worst_a, worst_d
 
 
+def tank_score(planes: list[dict[str, Any]], seconds: float) -> tuple[float, float, int, int]:
+    """Against the simulated tank: worst angle (deg) and offset (m) over the faces hit, faces missing (2 deg,
+    5 cm), duplicated faces."""
+    from mapping.synth import hit_faces, score_map, simulate_dive, tank, two_rov_plans
+
+    frames = simulate_dive(tank(), two_rov_plans(), duration_s=seconds, rate_hz=30.0, n_rays=1900, seed=3)
+    sc = score_map(planes, tank(), hit_faces(tank(), frames))
+    hit = [f for f in sc.faces if f.hit]
+    worst_a = max((f.angle_deg for f in hit), default=float("nan"))
+    worst_d = max((f.offset_m for f in hit), default=float("nan"))
+    return worst_a, worst_d, len(sc.missing()), len(sc.duplicates())
+
+
+def same_map_nav(robots: int, seconds: float, flood: list[dict[str, Any]]) -> str:
+    """With navigation: the worker runs' maps and one process's variants against one process with the workers'
+    stride and the freshest planes, and each against the tank."""
+    ref = reference_planes(robots, seconds, True)
+    variants: list[tuple[str, list[dict[str, Any]]]] = [
+        ("one process, every 3rd scan, the planes of the moment (the reference)", ref),
+        ("one process, every scan, the planes of the moment", reference_planes(robots, seconds, True, every_s=0.0)),
+    ]
+    for lag in (0.1, 0.3, 0.6):
+        name = f"one process, every 3rd scan, the planes of {lag:g} s before"
+        variants.append((name, reference_planes(robots, seconds, True, lag)))
+    variants.append(("one process, no navigation (raw poses)", reference_planes(robots, seconds, False)))
+    variants += [(f"flood through {f['workers']} worker processes", f["planes"]) for f in flood]
+    lines = [
+        "| map (navigation on, seeded replay) | vs the reference: max deg | max mm | vs the tank: worst deg | worst mm "
+        "| faces missing | duplicated |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, planes in variants:
+        da, dd = plane_diff(ref, planes)
+        ta, td, miss, dup = tank_score(planes, seconds)
+        lines.append(f"| {name} | {da:.2f} | {dd * 1e3:.1f} | {ta:.2f} | {td * 1e3:.1f} | {miss} | {dup} |")
+    return "\n".join(lines)
+
+
 def _ms(v: float | None) -> str:
     return "-" if v is None else f"{v:.0f}"
 
@@ -176,6 +269,7 @@ def main() -> int:
     ap.add_argument("--robots", type=int, default=20)
     ap.add_argument("--seconds", type=float, default=4.0, help="simulated dive length per robot")
     ap.add_argument("--workers", default="0,1,2,4", help="worker process counts (0: the map in the base process)")
+    ap.add_argument("--nav", default="off,on", help="navigation settings to run: off, on or both")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "workers.md")
     ap.add_argument("--publish", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--fleet", default="bench", help=argparse.SUPPRESS)
@@ -186,7 +280,7 @@ def main() -> int:
     counts = [int(x) for x in args.workers.split(",")]
     load0 = os.getloadavg()[0]
     rows = []
-    for nav in (False, True):
+    for nav in [x == "on" for x in args.nav.split(",")]:
         for n in counts:
             flood = run_one(n, nav, False, args.robots, args.seconds)
             real = run_one(n, nav, True, args.robots, args.seconds)
@@ -202,22 +296,25 @@ def main() -> int:
         f"## Plane workers ({args.robots} robots x 30 Hz, {args.seconds:g} s of dive = {rows[0][0]['clouds']} clouds "
         f"of ~3300 points; load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
         "",
-        f"| map workers | navigation | flood: clouds/s (needed {need}) | base CPU s (flood) | real time: map latency "
-        "p50 ms | p99 ms | real time: mapped / sent (unplaced) | flood planes vs one MapBuilder in capture order: max "
-        "deg | max mm |",
+        f"| map workers | navigation | flood: clouds/s (needed {need}) | flood CPU s: base + workers | real time: map "
+        "latency p50 ms | p99 ms | real time: mapped / sent (unplaced) | flood planes vs one process in capture order: "
+        "max deg | max mm |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    ref = reference_planes(args.robots, args.seconds)
+    refs = {nav: reference_planes(args.robots, args.seconds, nav) for nav in {f["nav"] for f, _ in rows}}
     for flood, real in rows:
-        da, dd = plane_diff(ref, flood["planes"])
-        same = "- | -" if flood["nav"] else f"{da:.2f} | {dd * 1e3:.1f}"
+        da, dd = plane_diff(refs[flood["nav"]], flood["planes"])
         name = "0 (map thread in the base process)" if flood["workers"] == 0 else f"{flood['workers']} processes"
+        nav = "off" if not flood["nav"] else ("every scan, base" if flood["workers"] == 0 else "every 3rd, workers")
         lines.append(
-            f"| {name} | {'on' if flood['nav'] else 'off'} | {flood['rate']:.0f} | {flood['base_cpu_s']:.1f} | "
+            f"| {name} | {nav} | {flood['rate']:.0f} | {flood['base_cpu_s']:.1f} + {flood['worker_cpu_s']:.1f} | "
             f"{_ms(real['p50'])} | {_ms(real['p99'])} | {real['mapped']} / {real['clouds']} ({real['unplaced']}) | "
-            f"{same} |"
+            f"{da:.2f} | {dd * 1e3:.1f} |"
         )
     lines.append("")
+    nav_floods = [f for f, _ in rows if f["nav"] and f["workers"] > 0]
+    if nav_floods:
+        lines += ["### The same map with navigation", "", same_map_nav(args.robots, args.seconds, nav_floods), ""]
     text = "\n".join(lines)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -423,16 +423,46 @@ class WorkerPool:
             log.warning("map planes not sent to the workers: %s", err)
 
     def _ready(self) -> list[_Held]:
-        """Under the lock: the held observations that no cloud still in flight can precede (canonical order)."""
-        firsts = [next(iter(t.values())).t_ns for t in self._in_flight.values() if t]
-        mark = min(firsts) if firsts else None
+        """Under the lock: the held observations that no observation still to come can precede (canonical order);
+        an observation without planes adds nothing, so its place in the order does not matter."""
+        bounds = [self._next_key_bound(t) for t in self._in_flight.values() if t]
+        mark = min(bounds) if bounds else None
         out = []
         oldest = time.monotonic() - MAX_HOLD_S
         while self._held and (mark is None or self._held[0][0] < mark or min(self._held_since.values()) < oldest):
             item = heapq.heappop(self._held)
             self._held_since.pop(item[2], None)
             out.append(item)
+        # the empty ones behind the first that must wait: commit them now (acknowledgements, latency)
+        keep = [h for h in self._held if h[3]]
+        if len(keep) < len(self._held):
+            out += [h for h in self._held if not h[3]]
+            for h in self._held:
+                if not h[3]:
+                    self._held_since.pop(h[2], None)
+            self._held = keep
+            heapq.heapify(self._held)
         return out
+
+    def _next_key_bound(self, table: dict[int, _InFlight]) -> int:
+        """The earliest merge key a robot's next observation with planes can have: the capture time of the first
+        of its in-flight clouds (oldest first) at which its window's extraction could fire (the builder's rules,
+        ``MapConfig.extract_every_*``, counted on every in-flight cloud and on the points before thinning, so that
+        it fires no later than the worker's window does), or its newest in-flight cloud's (the trigger is still
+        to come, and a robot's clouds come in capture order)."""
+        cfg = self.builder.cfg
+        points = 0
+        first = last = 0
+        for n, it in enumerate(table.values(), start=1):
+            points += it.points_body.shape[0]
+            if n == 1:
+                first = it.t_ns
+            last = it.t_ns
+            if n >= cfg.extract_every_clouds or points >= cfg.extract_every_points:
+                return it.t_ns
+            if cfg.extract_every_s > 0 and n >= 2 and it.t_ns - first >= cfg.extract_every_s * 1e9:
+                return it.t_ns
+        return last
 
     def _merge(self, ready: list[_Held]) -> None:
         for _key, robot, _n, records, done, unplaced, nav_state in ready:

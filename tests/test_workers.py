@@ -373,3 +373,22 @@ def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list
     finally:
         for w in workers:
             w.close()
+
+
+def test_the_merge_waits_only_for_observations_that_can_still_precede() -> None:
+    from lrsensor.frames import Pose
+    from services.map_workers import WorkerPool, _InFlight
+
+    pool = WorkerPool(None, FleetKeys("t"), MapBuilder(MapConfig()), lambda *a: None, lambda c: None)
+    cfg = pool.builder.cfg
+    pose = Pose(0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    def table(n: int, points: int, dt_ns: int = 33_000_000) -> dict[int, _InFlight]:
+        return {s: _InFlight(s, 1000 + s * dt_ns, pose, np.zeros((points, 3), np.float32)) for s in range(n)}
+
+    # by count: the window's 10th cloud triggers, so nothing with planes can come before its time
+    assert pool._next_key_bound(table(15, 100)) == 1000 + (cfg.extract_every_clouds - 1) * 33_000_000
+    assert pool._next_key_bound(table(3, 100)) == 1000 + 2 * 33_000_000  # the trigger is still to come
+    assert pool._next_key_bound(table(5, cfg.extract_every_points)) == 1000  # one cloud full of points
+    by_time = table(5, 100, dt_ns=600_000_000)  # 2 clouds 1 s apart or more fire by time
+    assert pool._next_key_bound(by_time) == 1000 + 2 * 600_000_000
