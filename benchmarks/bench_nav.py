@@ -165,13 +165,20 @@ class Acceptance:
 
 
 def run_acceptance(
-    work: Path, seconds: float = 12.0, rate_hz: float = 5.0, seed: int = 1, nav: str = "on", size: str = "640x360"
+    work: Path,
+    seconds: float = 12.0,
+    rate_hz: float = 5.0,
+    seed: int = 1,
+    nav: str = "on",
+    size: str = "640x360",
+    record: Path | None = None,
 ) -> Acceptance:
     """``lrsensor base`` and one ``lrsensor rov --imu csv:FILE`` per robot of :data:`ACCEPTANCE` as processes on
     loopback, each replaying its own recorded dive (``lrsensor.sim.dive.record_dive``: rendered images, the
     navigation's ``imu.csv``); the map served on ``lrs/<fleet>/map`` once every cloud is acknowledged, scored
     against the tank's true faces (``services.demo.score_map``: matched within 2 deg and 5 cm, and within the
-    demo's 5 deg and 15 cm)."""
+    demo's 5 deg and 15 cm). With ``record``, ``lrsensor record`` writes the fleet's clouds there (MCAP) for
+    :func:`replay_acceptance`."""
     import json
     import signal
     import subprocess
@@ -231,6 +238,14 @@ def run_acceptance(
                     msg = "the base station did not come up: " + (work / "base.log").read_text(errors="replace")
                     raise RuntimeError(msg)
                 time.sleep(0.2)
+            if record is not None:
+                logs["record"] = (work / "record.log").open("wb")
+                rovs["record"] = subprocess.Popen(
+                    [*lrs, "record", "--fleet", fleet, "--connect", f"tcp/127.0.0.1:{port}", "--out", str(record),
+                     "--overwrite"],
+                    stdout=logs["record"], stderr=subprocess.STDOUT, env=env,
+                )  # fmt: skip
+                time.sleep(1.0)  # its subscription declared before the first cloud
             for robot, d in dives.items():
                 rovs[robot] = subprocess.Popen(
                     [*lrs, "rov", "--fleet", fleet, "--robot", robot, "--connect", f"tcp/127.0.0.1:{port}",
@@ -239,6 +254,8 @@ def run_acceptance(
                     stdout=logs[robot], stderr=subprocess.STDOUT, env=env,
                 )  # fmt: skip
             for robot, p in rovs.items():
+                if robot == "record":
+                    continue
                 if p.wait(timeout=240) != 0:
                     msg = f"{robot} failed: " + (work / f"{robot}.log").read_text(errors="replace")
                     raise RuntimeError(msg)
@@ -278,6 +295,73 @@ def run_acceptance(
         map_json=served,
         status=status,
     )
+
+
+def replay_acceptance(recording: Path, nav: str = "filter", setup: Any = None) -> dict[str, Any]:
+    """Replay a recorded acceptance run (:func:`run_acceptance` with ``record``) in this process through
+    ``services.mapfeed.MapFeed`` as ``lrsensor base --nav NAV`` maps it (clouds in their recorded order, compact
+    ones triangulated with the recorded calibration); ``setup(feed)`` may change the feed's navigation before it
+    starts. Returns the served map's score (``services.demo.score_map``: ``matched``, ``loose``, ``spurious``,
+    ``duplicates``), the feed, and the map thread's longest hold of one cloud (``max_hold_s``)."""
+    import tempfile
+
+    from services.demo import score_map as score_served
+    from services.mapfeed import MapFeed, load_map_builder
+    from services.replay import read_recording
+    from services.wire import CloudMsg, StripeMsg, calibration_fingerprint, decode_cloud
+
+    rec = read_recording(recording)
+    with tempfile.TemporaryDirectory(prefix="nav-replay-") as tmp:
+        builder = load_map_builder(Path(tmp), "on")
+        feed = MapFeed(builder, lambda robot, seq: None, navigation=nav != "off", queue_size=1 << 16)
+        if nav == "filter":
+            feed.set_smoothing(False)
+        if setup is not None:
+            setup(feed)
+        seen: set[tuple[str, int]] = set()
+        msgs: list[CloudMsg] = []
+        for _, robot, payload in rec.clouds:
+            m = decode_cloud(payload)
+            if (m.robot, m.seq) in seen:
+                continue
+            seen.add((m.robot, m.seq))
+            if isinstance(m, StripeMsg):
+                calib = next(c for c in rec.calibrations[robot] if calibration_fingerprint(c) == m.calib_id)
+                m = m.to_cloud(calib)
+            msgs.append(m)
+        holds: list[float] = []
+        orig = feed._map_one
+
+        def timed(msg: CloudMsg) -> bool:
+            t0 = time.perf_counter()
+            try:
+                return orig(msg)
+            finally:
+                holds.append(time.perf_counter() - t0)
+
+        feed._map_one = timed  # type: ignore[method-assign]
+        feed.start(None)
+        t0 = time.perf_counter()
+        for m in msgs:
+            feed.take(m, time.time_ns())
+        feed.flush()
+        wall = time.perf_counter() - t0
+        served = feed.map_json()
+        feed.close(save=False)
+    planes = served.get("planes", [])
+    strict = score_served(planes, angle_deg=2.0, dist_m=0.05)
+    loose = score_served(planes)
+    return {
+        "matched": len(strict["matched"]),
+        "loose": len(loose["matched"]),
+        "spurious": int(strict["spurious"]),
+        "duplicates": sum(n - 1 for n in strict["duplicates"].values()),
+        "errors": strict["matched"],
+        "feed": feed,
+        "max_hold_s": max(holds, default=0.0),
+        "wall_s": wall,
+        "clouds": len(msgs),
+    }
 
 
 def acceptance_table(rows: list[tuple[str, Acceptance]]) -> str:

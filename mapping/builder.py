@@ -36,7 +36,7 @@ from .landmarks import PlaneLandmarks
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
-from .replace import Placement, move_placement, rebuild
+from .replace import Placement, PlacementSnapshot, move_placement, rebuild
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapChange, MapConfig, PlaneStats
@@ -351,20 +351,45 @@ class MapBuilder:
         before: every plane of the new map as updated, and every old id the new map lacks as removed (into the
         new plane nearest to it)."""
         with self._lock:
-            old = self._map
-            new = rebuild(self._placements, self.cfg, self._frozen)
-            self._map = new
-            self._version += 1
-            changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]
-            gone = sorted(set(old.planes) - set(new.planes))
-            if gone and new.planes:
-                ids = np.array(sorted(new.planes))
-                cents = np.array([new.planes[int(i)].fit.centroid for i in ids])
-                for pid in gone:
-                    c = old.planes[pid].fit.centroid
-                    into = int(ids[np.argmin(np.linalg.norm(cents - c, axis=1))])
-                    changes.append(MapChange.removed(pid, into))
-            return changes
+            return self._swap_map(rebuild(self._placements, self.cfg, self._frozen))
+
+    def placements_snapshot(self) -> PlacementSnapshot:
+        """The kept observations as they are now, for re-placing and rebuilding off this builder's thread
+        (:class:`PlacementSnapshot`; :meth:`adopt` takes the result back). No :meth:`freeze` may run until then."""
+        with self._lock:
+            return PlacementSnapshot(list(self._placements), self.cfg, self._frozen)
+
+    def adopt(self, snap: PlacementSnapshot, new_map: PlaneMap | None) -> list[MapChange]:
+        """Take a snapshot's moved observations and the map rebuilt from them; the observations merged since the
+        snapshot are fused on top. Returns the changes as :meth:`rebuild` does."""
+        with self._lock:
+            n0 = len(snap.original)
+            kept = self._placements[:n0]
+            if len(kept) != n0 or any(a is not b for a, b in zip(kept, snap.original, strict=True)):
+                msg = "the kept observations changed under a placement snapshot (freeze while smoothing?)"
+                raise MapInputError(msg)
+            later = self._placements[n0:]
+            self._placements = snap.placements + later
+            if new_map is None:
+                new_map = rebuild(snap.placements, self.cfg, self._frozen)
+            for pl in later:
+                new_map.add(pl.record)
+            return self._swap_map(new_map)
+
+    def _swap_map(self, new: PlaneMap) -> list[MapChange]:
+        old = self._map
+        self._map = new
+        self._version += 1
+        changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]
+        gone = sorted(set(old.planes) - set(new.planes))
+        if gone and new.planes:
+            ids = np.array(sorted(new.planes))
+            cents = np.array([new.planes[int(i)].fit.centroid for i in ids])
+            for pid in gone:
+                c = old.planes[pid].fit.centroid
+                into = int(ids[np.argmin(np.linalg.norm(cents - c, axis=1))])
+                changes.append(MapChange.removed(pid, into))
+        return changes
 
     # ----------------------------------------------------------------- output
     def map_json(self, include_tracks: bool = False, include_tentative: bool = False) -> dict[str, Any]:

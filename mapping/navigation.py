@@ -105,8 +105,12 @@ class NavConfig:
 
     Evidence: a plane only this robot contributed to, first seen by it less than ``own_recent_s`` before the scan,
     holds the robot's own recent poses and so no absolute information; its residuals count ``own_recent_weight``
-    of their information. A registration whose correction lies beyond the prediction's error model (squared
-    Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong association, not drift: it is
+    of their information. With ``own_turn_s`` > 0, a plane only this robot contributed to, first seen by it less than
+    ``own_turn_s`` before the scan, does not turn the robot's heading at all (its residuals move the position only):
+    the robot's own planes were placed with its own heading and say nothing of its compass's bias
+    (``own_recent_turns`` False does the same within ``own_recent_s``). A registration whose correction lies
+    beyond the prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``)
+    is a wrong association, not drift: it is
     rejected and counted (:attr:`RobotNav.gated`).
 
     Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
@@ -157,6 +161,7 @@ class NavConfig:
     own_recent_s: float = 20.0
     own_recent_weight: float = 0.03
     own_recent_turns: bool = True
+    own_turn_s: float = 0.0
     gate_chi2: float = 0.0
 
 
@@ -400,19 +405,27 @@ class RobotNav:
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(5) - k @ h) @ self.P
 
-    def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> FloatArray:
+    def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(P,) information weight per plane: ``own_recent_weight`` for a plane only this robot made, first seen by
-        it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise."""
+        it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise; and (P,) whether
+        the plane may turn the heading (see ``NavConfig.own_turn_s``, ``own_recent_turns``)."""
         cfg = self.cfg
         w = np.ones(len(lm))
-        if not lm.contrib or (cfg.own_recent_weight >= 1.0 and cfg.own_recent_turns):
-            return w
+        turns = np.ones(len(lm), dtype=bool)
+        if not lm.contrib:
+            return w, turns
         horizon = t_ns - int(cfg.own_recent_s * 1e9)
+        turn_horizon = t_ns - int(cfg.own_turn_s * 1e9) if cfg.own_turn_s > 0 else None
         for i, c in enumerate(lm.contrib):
             mine = c.get(self.robot)
-            if mine is not None and len(c) == 1 and mine[1] >= horizon:
+            if mine is None or len(c) != 1:
+                continue
+            if mine[1] >= horizon and (cfg.own_recent_weight < 1.0 or not cfg.own_recent_turns):
                 w[i] = min(cfg.own_recent_weight, 1.0 - 1e-9)
-        return w
+                turns[i] = cfg.own_recent_turns
+            if turn_horizon is not None and mine[1] >= turn_horizon:
+                turns[i] = False
+        return w, turns
 
     def _register(
         self, raw: Pose, points_body: FloatArray, lm: PlaneLandmarks, t_ns: int = 0
@@ -434,7 +447,7 @@ class RobotNav:
         gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
         inliers = 0
         used: tuple[int, ...] = ()
-        plane_w = self._plane_weights(t_ns, lm)
+        plane_w, plane_turns = self._plane_weights(t_ns, lm)
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -451,10 +464,9 @@ class RobotNav:
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
             pw = plane_w[k[sel]]
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
-            if not cfg.own_recent_turns:
-                # a robot's own recent planes were placed with its own heading: they hold its position against
-                # the dead reckoning's drift, but say nothing about the compass's bias
-                j[pw < 1.0, 2] = 0.0
+            # a robot's own planes were placed with its own heading: they hold its position against the dead
+            # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_turn_s)
+            j[~plane_turns[k[sel]], 2] = 0.0
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
             h3 = scale * (j.T * w) @ j
             g3 = scale * (j.T * w) @ r

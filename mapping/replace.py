@@ -19,7 +19,7 @@ window, not the dive.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -100,3 +100,24 @@ def rebuild(placements: list[Placement], cfg: MapConfig, frozen: PlaneMap | None
     for pl in placements:
         m.add(pl.record)
     return m
+
+
+class PlacementSnapshot:
+    """A builder's kept observations at one moment (:meth:`mapping.MapBuilder.placements_snapshot`), moved and
+    rebuilt off the builder's thread: the observations are copies (moving one replaces its arrays and record,
+    never edits them), so the builder goes on merging meanwhile; :meth:`mapping.MapBuilder.adopt` takes the
+    result back."""
+
+    def __init__(self, placements: list[Placement], cfg: MapConfig, frozen: PlaneMap | None) -> None:
+        self.original = placements
+        self.placements = [replace(pl) for pl in placements]
+        self.cfg = cfg
+        self.frozen = frozen
+
+    def move(self, robot: str, old: dict[int, Pose], new: dict[int, Pose]) -> int:
+        """Move ``robot``'s observations from the cloud poses ``old`` to ``new``; returns how many moved."""
+        return sum(1 for pl in self.placements if pl.robot == robot and move_placement(pl, old, new, self.cfg))
+
+    def rebuild(self) -> PlaneMap:
+        """The map of the (moved) observations on top of the frozen ones (:func:`rebuild`)."""
+        return rebuild(self.placements, self.cfg, self.frozen)

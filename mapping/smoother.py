@@ -24,6 +24,8 @@ Cost: a re-filter registers each window scan again (``rerun_points`` points each
 
 from __future__ import annotations
 
+import threading
+import time
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
@@ -87,6 +89,59 @@ class _Scan:
     est: NavEstimate | None = None
 
 
+def _record(nav: RobotNav, scan: _Scan, est: NavEstimate) -> None:
+    """Keep what ``nav``'s last update of ``scan`` did (for the backward pass)."""
+    scan.est = est
+    if nav.prior is None or nav.transition is None or est.pose is None:
+        scan.prior_x = scan.prior_p = scan.trans = scan.post_x = scan.post_p = None
+        if est.pose is not None:
+            scan.post_x = nav.x[_SUB].copy()
+            scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+        return
+    scan.prior_x = nav.prior[0][_SUB].copy()
+    scan.prior_p = nav.prior[1][np.ix_(_SUB, _SUB)].copy()
+    scan.trans = nav.transition[np.ix_(_SUB, _SUB)].copy()
+    scan.post_x = nav.x[_SUB].copy()
+    scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+
+
+class SmoothJob:
+    """One robot's smoothing run, detached from its live filter: the window's scans (copies) re-filtered from the
+    state before the first re-filtered one by a filter of its own, then smoothed backward. :meth:`run` touches
+    nothing but the job, so it may run on another thread (:class:`FleetPlacements` with ``background``)."""
+
+    def __init__(self, robot: str, cfg: NavConfig, scans: list[_Scan], start: int, first_ns: int | None) -> None:
+        self.robot = robot
+        self.cfg = cfg
+        self.scans = scans
+        self.start = start
+        self.first_ns = first_ns
+        #: after :meth:`run`: t_ns -> revised pose, the filter's state after the last scan, the launch's position
+        self.revised: dict[int, Pose] = {}
+        self.end: dict[str, Any] | None = None
+        self.start_map_ne: tuple[float, float] | None = None
+
+    def run(self, landmarks: PlaneLandmarks) -> None:
+        """Re-filter against ``landmarks`` and smooth (fills :attr:`revised`, :attr:`end`)."""
+        nav = RobotNav(self.robot, self.cfg)
+        nav.restore(self.scans[self.start].before)
+        for s in self.scans[self.start :]:
+            s.before = nav.snapshot()
+            est = nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
+            _record(nav, s, est)
+        xs = RobotSmoother._rts(self.scans)
+        for s, x in zip(self.scans, xs, strict=True):
+            if x is None or s.est is None or s.est.pose is None:
+                continue
+            r = s.raw
+            self.revised[s.t_ns] = Pose(
+                float(x[0]), float(x[1]), r.down_m, r.roll_rad, r.pitch_rad, r.yaw_rad + float(x[2])
+            )
+            if s.t_ns == self.first_ns:
+                self.start_map_ne = (float(x[0]), float(x[1]))
+        self.end = nav.snapshot()
+
+
 class RobotSmoother:
     """One robot's filter and its fixed-window smoother (see the module docstring). One thread feeds it."""
 
@@ -120,19 +175,7 @@ class RobotSmoother:
         return est
 
     def _record(self, scan: _Scan, est: NavEstimate) -> None:
-        nav = self.nav
-        scan.est = est
-        if nav.prior is None or nav.transition is None or est.pose is None:
-            scan.prior_x = scan.prior_p = scan.trans = scan.post_x = scan.post_p = None
-            if est.pose is not None:
-                scan.post_x = nav.x[_SUB].copy()
-                scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
-            return
-        scan.prior_x = nav.prior[0][_SUB].copy()
-        scan.prior_p = nav.prior[1][np.ix_(_SUB, _SUB)].copy()
-        scan.trans = nav.transition[np.ix_(_SUB, _SUB)].copy()
-        scan.post_x = nav.x[_SUB].copy()
-        scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+        _record(self.nav, scan, est)
 
     def _trim(self) -> None:
         newest = self.scans[-1].t_ns
@@ -151,10 +194,20 @@ class RobotSmoother:
     def smooth(self, landmarks: PlaneLandmarks) -> dict[int, Pose]:
         """Re-filter the window against ``landmarks`` and smooth it; returns t_ns -> the revised pose of each
         window scan that has one (placed or not: the caller decides what to re-place)."""
-        if not self.scans:
+        job = self.prepare()
+        if job is None:
             return {}
+        job.run(landmarks)
+        return self.apply(job, landmarks)
+
+    def prepare(self) -> SmoothJob | None:
+        """The next run's work, detached from the live filter (its scans copied): :meth:`SmoothJob.run` may run on
+        another thread while this smoother keeps taking clouds; :meth:`apply` hands the result back. None when
+        there is nothing to smooth."""
+        if not self.scans:
+            return None
         self.last_smooth_ns = self.scans[-1].t_ns
-        scans = list(self.scans)
+        scans = [replace(s) for s in self.scans]
         start = 0
         overlap = self.scfg.refilter_overlap_s
         if overlap is not None and self._refiltered_ns is not None:
@@ -163,27 +216,31 @@ class RobotSmoother:
             lim = self._refiltered_ns - int(overlap * 1e9)
             start = next((i for i, s in enumerate(scans) if s.t_ns >= lim), len(scans) - 1)
         self._refiltered_ns = scans[-1].t_ns
-        self.nav.restore(scans[start].before)
-        live_cfg = self.nav.cfg
-        self.nav.cfg = replace(live_cfg, iterations=self.scfg.rerun_iterations)
         self.refiltered += len(scans) - start
-        try:
-            for s in scans[start:]:
-                s.before = self.nav.snapshot()
-                est = self.nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
-                self._record(s, est)
-        finally:
-            self.nav.cfg = live_cfg
-        xs = self._rts(scans)
-        out: dict[int, Pose] = {}
-        for s, x in zip(scans, xs, strict=True):
-            if x is None or s.est is None or s.est.pose is None:
-                continue
-            r = s.raw
-            out[s.t_ns] = Pose(float(x[0]), float(x[1]), r.down_m, r.roll_rad, r.pitch_rad, r.yaw_rad + float(x[2]))
-            if s.t_ns == self._first_ns:
-                self.start_map_ne = (float(x[0]), float(x[1]))
-        return out
+        cfg = replace(self.nav.cfg, iterations=self.scfg.rerun_iterations)
+        return SmoothJob(self.robot, cfg, scans, start, self._first_ns)
+
+    def apply(self, job: SmoothJob, landmarks: PlaneLandmarks) -> dict[int, Pose]:
+        """Take a finished :class:`SmoothJob` back: its scans' re-filtered steps replace the window's, and the live
+        filter continues from its end, re-running (against ``landmarks``) the scans that came in meanwhile.
+        Returns the job's revised poses (t_ns -> Pose)."""
+        if job.end is None:
+            return {}
+        done = {s.t_ns: s for s in job.scans}
+        newer: list[_Scan] = []
+        for i, s in enumerate(self.scans):
+            if s.t_ns in done:
+                self.scans[i] = done[s.t_ns]
+            elif s.t_ns > job.scans[-1].t_ns:
+                newer.append(s)
+        self.nav.restore(job.end)
+        for s in newer:
+            s.before = self.nav.snapshot()
+            est = self.nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
+            self._record(s, est)
+        if job.start_map_ne is not None:
+            self.start_map_ne = job.start_map_ne
+        return job.revised
 
     @staticmethod
     def _rts(scans: list[_Scan]) -> list[FloatArray | None]:
@@ -210,6 +267,41 @@ class RobotSmoother:
         return xs
 
 
+class _FleetJob:
+    """One smoothing run of every robot, detached from the map thread (see :class:`FleetPlacements`)."""
+
+    def __init__(
+        self, jobs: dict[str, SmoothJob], landmarks: PlaneLandmarks, snap: Any, poses: dict[str, dict[int, Pose]]
+    ) -> None:
+        self.jobs = jobs
+        self.landmarks = landmarks
+        #: the builder's kept observations when the run started (copies the run may move), and the poses they
+        #: were placed with
+        self.snap = snap
+        self.poses: dict[str, dict[int, Pose]] = poses
+        self.moved = 0
+        self.new_map: Any = None
+        self.compute_s = 0.0
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            for name, job in sorted(self.jobs.items()):
+                job.run(self.landmarks)
+                old = self.poses.get(name, {})
+                new = {t: p for t, p in job.revised.items() if t in old}
+                self.moved += self.snap.move(name, old, new)
+            if self.moved:
+                self.new_map = self.snap.rebuild()
+        except BaseException as err:  # handed to the map thread, which logs it
+            self.error = err
+        finally:
+            self.compute_s = time.perf_counter() - t0
+            self.done.set()
+
+
 class FleetPlacements:
     """The poses each robot's clouds are in the map with, and the step that lets the map follow the smoothers.
 
@@ -219,27 +311,54 @@ class FleetPlacements:
     map is rebuilt once. Needs ``builder.keep_placements`` (set here).
     """
 
-    def __init__(self, nav: Any, builder: Any) -> None:
+    def __init__(self, nav: Any, builder: Any, background: bool | str = False) -> None:
         self.nav = nav
         self.builder = builder
         builder.keep_placements = True
         self.poses: dict[str, dict[int, Pose]] = {}
+        #: with ``background`` True, a due run's re-filter, smoothing and rebuild happen on a thread of their own
+        #: while the map thread goes on; the next :meth:`step` after it finished hands the result over (the
+        #: scans that came meanwhile re-run, the observations merged meanwhile fused on top). ``"wait"``: the same
+        #: split, but the next step waits for the run (reproducible, for benchmarks: as without background)
+        self.background = background
+        self._job: _FleetJob | None = None
+        self._thread: threading.Thread | None = None
         #: wall time of each smoothing run (s), and the clouds it re-placed
         self.runs_s: list[float] = []
+        #: how long each run during the dive held the map thread (s): all of it without background, else its start
+        #: and hand-over; the end of a dive's runs (``force``), always on the map thread, in ``final_s``
+        self.holds_s: list[float] = []
+        self.final_s: list[float] = []
         self.replaced = 0
         self.frozen = 0
+        self.errors = 0
 
     def placed(self, robot: str, t_ns: int, pose: Pose) -> None:
         """``robot``'s cloud of ``t_ns`` went into the map with ``pose``."""
         self.poses.setdefault(robot, {})[int(t_ns)] = pose
 
     def step(self, robot: str, t_ns: int, *, force: bool = False) -> list[Any]:
-        """Smooth and re-place when due; returns the map's changes (:class:`mapping.types.MapChange`)."""
-        import time
-
+        """Smooth and re-place when due; returns the map's changes (:class:`mapping.types.MapChange`). ``force``
+        (the end of a dive) hands over any background run and smooths once more, on this thread."""
+        changes: list[Any] = []
+        job = self._job
+        if job is not None and (force or self.background == "wait" or job.done.is_set()):
+            changes += self._hand_over()
+        if force:
+            return changes + self._run_here(final=True)
         sm = self.nav.smoothers.get(robot)
-        if not force and (sm is None or not sm.due(t_ns)):
-            return []
+        if sm is None or not sm.due(t_ns):
+            return changes
+        if not self.background:
+            return changes + self._run_here()
+        if self._job is None:
+            self._start()
+            if self.background == "wait":
+                changes += self._hand_over()
+        return changes
+
+    def _run_here(self, final: bool = False) -> list[Any]:
+        """Every robot's run on this thread (``final``: the end of a dive's, timed in :attr:`final_s`)."""
         t0 = time.perf_counter()
         lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
         moved = 0
@@ -251,6 +370,13 @@ class FleetPlacements:
             mine.update(new)
         changes: list[Any] = self.builder.rebuild() if moved else []
         self.replaced += moved
+        self._freeze()
+        dt = time.perf_counter() - t0
+        self.runs_s.append(dt)
+        (self.final_s if final else self.holds_s).append(dt)
+        return changes
+
+    def _freeze(self) -> None:
         # what left every window will not move again: fuse it once, forget its points and poses
         cut = {name: sm.scans[0].t_ns for name, sm in self.nav.smoothers.items() if sm.scans}
         self.frozen += self.builder.freeze(cut)
@@ -258,5 +384,42 @@ class FleetPlacements:
             poses = self.poses.get(name)
             if poses:
                 self.poses[name] = {t: p for t, p in poses.items() if t >= t0_ns}
-        self.runs_s.append(time.perf_counter() - t0)
+
+    def _start(self) -> None:
+        """Detach a run: each robot's window, the landmarks and the kept observations as they are now."""
+        t0 = time.perf_counter()
+        lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
+        jobs = {}
+        for name, smoother in sorted(self.nav.smoothers.items()):
+            job = smoother.prepare()
+            if job is not None:
+                jobs[name] = job
+        poses = {name: dict(p) for name, p in self.poses.items()}
+        self._job = _FleetJob(jobs, lm, self.builder.placements_snapshot(), poses)
+        self._thread = threading.Thread(target=self._job.run, name="nav-smoother", daemon=True)
+        self._thread.start()
+        self._hold_start = time.perf_counter() - t0
+
+    def _hand_over(self) -> list[Any]:
+        """Take a background run's result into the live filters and the map (waits for it to finish)."""
+        job, thread = self._job, self._thread
+        assert job is not None
+        assert thread is not None
+        thread.join()
+        t0 = time.perf_counter()
+        self._job = self._thread = None
+        self.runs_s.append(job.compute_s)
+        if job.error is not None:
+            self.errors += 1
+            raise RuntimeError(f"background smoothing failed: {job.error}") from job.error
+        lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
+        for name, sj in job.jobs.items():
+            revised = self.nav.smoothers[name].apply(sj, lm)
+            mine = self.poses.setdefault(name, {})
+            old = job.poses.get(name, {})
+            mine.update({t: p for t, p in revised.items() if t in old})
+        changes: list[Any] = self.builder.adopt(job.snap, job.new_map) if job.moved else []
+        self.replaced += job.moved
+        self._freeze()
+        self.holds_s.append(self._hold_start + time.perf_counter() - t0)
         return changes

@@ -472,6 +472,8 @@ class DiveMap:
     frame: Any = None
     constrained_scans: int = 0
     smooth_cost_s: list[float] = field(default_factory=list)
+    #: how long each smoothing run held the map thread (all of it, unless it ran in the background), s
+    smooth_hold_s: list[float] = field(default_factory=list)
     final_error_m: dict[str, list[float]] = field(default_factory=dict)
     placed: dict[str, dict[int, Pose]] = field(default_factory=dict)
 
@@ -482,13 +484,20 @@ class DiveMap:
 
 
 def replay_dive(
-    frames: list[DiveFrame], navigate: bool, cfg: Any = None, nav_cfg: Any = None, smoother: Any = None
+    frames: list[DiveFrame],
+    navigate: bool,
+    cfg: Any = None,
+    nav_cfg: Any = None,
+    smoother: Any = None,
+    background: bool | str = False,
 ) -> DiveMap:
     """Feed a simulated dive into a :class:`mapping.MapBuilder` the way the base station does.
 
     ``navigate`` False: trust the poses (clouds without a horizontal fix are left out, as ``unplaced``).
     True: correct each cloud's pose with :class:`mapping.navigation.Navigator` against the map's planes first,
-    and place the cloud while the estimator says so.
+    and place the cloud while the estimator says so. With a ``smoother`` (:class:`mapping.smoother.SmootherConfig`),
+    past poses are smoothed and their clouds re-placed (``background``: see
+    :class:`mapping.smoother.FleetPlacements`; ``"wait"`` measures what a run would hold the map thread for).
     """
     import time
 
@@ -503,7 +512,7 @@ def replay_dive(
     min_pts = nav.cfg.min_landmark_points if nav is not None else 0
     placed: dict[str, dict[int, Pose]] = {}
     truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
-    fleet = FleetPlacements(nav, b) if nav is not None and smoother is not None else None
+    fleet = FleetPlacements(nav, b, background) if nav is not None and smoother is not None else None
 
     def follow() -> None:
         # the smoother's revisions of the poses still in its windows (older ones no longer move)
@@ -548,6 +557,7 @@ def replay_dive(
         fleet.step("", 0, force=True)  # the end of the dive: the map as the last smoothing leaves it
         follow()
         out.smooth_cost_s = fleet.runs_s
+        out.smooth_hold_s = fleet.holds_s
     out.frame = nav.frame() if nav is not None else None
     # the poses each cloud is in the map with now (after any smoothing), against the truth
     out.final_error_m = {}

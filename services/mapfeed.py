@@ -232,7 +232,9 @@ class MapFeed:
         if on:
             self.navigator = Navigator(SMOOTHED_NAV, SmootherConfig())
             assert self.builder is not None
-            self.fleet = FleetPlacements(self.navigator, self.builder)
+            # the re-filter and rebuild run on a thread of their own: the map thread is held only to start a
+            # run and hand its result over (docs/navigation.md)
+            self.fleet = FleetPlacements(self.navigator, self.builder, background=True)
         else:
             self.navigator = Navigator()
             self.fleet = None
@@ -574,15 +576,18 @@ class MapFeed:
         )
 
     def _smoothing_json(self) -> dict[str, Any]:
-        """The smoother's runs, the longest and last run's wall time (ms), and the clouds' observations re-placed."""
+        """The smoother's runs, the longest and last run's wall time (ms), the longest the map thread was held by
+        one (``max_hold_ms``: the runs themselves go on a thread of their own), and the observations re-placed."""
         fleet = self.fleet
         if fleet is None:
             return {}
         runs = list(fleet.runs_s)
+        holds = list(fleet.holds_s)
         return {
             "runs": len(runs),
             "last_ms": round(1e3 * runs[-1], 1) if runs else None,
             "max_ms": round(1e3 * max(runs), 1) if runs else None,
+            "max_hold_ms": round(1e3 * max(holds), 1) if holds else None,
             "replaced": fleet.replaced,
         }
 

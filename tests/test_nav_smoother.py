@@ -193,3 +193,53 @@ def test_an_incremental_refilter_registers_fewer_scans(drift_dive: tuple[Scene, 
     # the last run plus 2 s (50 + 3 x 70)
     assert counts[None] >= 450, counts
     assert counts[2.0] <= 280, counts
+
+
+def test_a_background_run_gives_the_same_map_and_holds_the_map_thread_briefly(
+    drift_dive: tuple[Scene, list[Any]],
+) -> None:
+    _, frames = drift_dive
+    cfg = NavConfig(fix_quality_factor=5.0)
+    here = replay_dive(frames, navigate=True, nav_cfg=cfg, smoother=SmootherConfig())
+    # the same runs detached from the map thread (the next step waits for each, so the result is reproducible)
+    away = replay_dive(frames, navigate=True, nav_cfg=cfg, smoother=SmootherConfig(), background="wait")
+    a, b = here.planes(), away.planes()
+    assert len(a) == len(b)
+    for p, q in zip(a, b, strict=True):
+        assert p["normal"] == pytest.approx(q["normal"], abs=1e-9)
+        assert p["d"] == pytest.approx(q["d"], abs=1e-9)
+    assert len(away.smooth_hold_s) == len(here.smooth_hold_s) >= 2
+    # the map thread only starts a run and hands it over; the run itself went on another thread
+    assert max(away.smooth_hold_s) < 0.5 * max(here.smooth_hold_s), (away.smooth_hold_s, here.smooth_hold_s)
+
+
+def test_observations_merged_during_a_background_run_stay_in_the_map(drift_dive: tuple[Scene, list[Any]]) -> None:
+    _, frames = drift_dive
+    mine = [f for f in frames if f.robot == "rov1"]
+    b = MapBuilder()
+    b.keep_placements = True
+    poses: dict[int, Pose] = {}
+    for f in mine[:150]:
+        b.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est)
+        poses[f.t_ns] = f.pose_est
+    snap = b.placements_snapshot()
+    n0 = len(snap.placements)
+    assert n0 > 0
+    # a run moves every cloud 10 cm north while the map thread goes on merging
+    moved = {t: Pose(p.north_m + 0.1, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad) for t, p in poses.items()}
+    for f in mine[150:250]:
+        b.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est)
+    later = len(b._placements) - n0
+    assert later > 0
+    assert snap.move("rov1", poses, moved) == n0
+    changes = b.adopt(snap, snap.rebuild())
+    assert changes
+    assert len(b._placements) == n0 + later
+    # the snapshot's observations moved, the later ones are as merged
+    assert all(x is y for x, y in zip(b._placements[:n0], snap.placements, strict=True))
+    assert b.map_json()["planes"]
+    # a snapshot whose observations were frozen meanwhile is refused
+    snap2 = b.placements_snapshot()
+    b.freeze({"rov1": 2**62})
+    with pytest.raises(Exception, match="changed under a placement snapshot"):
+        b.adopt(snap2, None)

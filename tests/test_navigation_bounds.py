@@ -55,9 +55,15 @@ def test_own_recent_planes_carry_little_weight() -> None:
         ]
     )
     nav = RobotNav("rov1", NavConfig(own_recent_s=10.0, own_recent_weight=0.1))
-    assert nav._plane_weights(100 * S, lm).tolist() == [0.1, 1.0, 1.0, 1.0]
+    assert nav._plane_weights(100 * S, lm)[0].tolist() == [0.1, 1.0, 1.0, 1.0]
+    assert nav._plane_weights(100 * S, lm)[1].tolist() == [True] * 4
     off = RobotNav("rov1", NavConfig(own_recent_weight=1.0))
-    assert off._plane_weights(100 * S, lm).tolist() == [1.0] * 4
+    assert off._plane_weights(100 * S, lm)[0].tolist() == [1.0] * 4
+    # own planes that move the position only: the recent one (own_recent_turns), or any of its own (own_turn_s)
+    still = RobotNav("rov1", NavConfig(own_recent_s=10.0, own_recent_weight=0.1, own_recent_turns=False))
+    assert still._plane_weights(100 * S, lm)[1].tolist() == [False, True, True, True]
+    never = RobotNav("rov1", NavConfig(own_recent_s=10.0, own_recent_weight=0.1, own_turn_s=1000.0))
+    assert never._plane_weights(100 * S, lm)[1].tolist() == [False, False, True, True]
 
 
 def test_a_correction_beyond_the_motion_model_is_rejected_and_counted() -> None:
