@@ -617,6 +617,10 @@ class Navigator:
         self.smoothers: dict[str, Any] = {}
         #: where the first robot started (the map frame's pivot)
         self.origin_ne: tuple[float, float] | None = None
+        #: robot -> the robots whose map parts are joined to its own (they contributed to a common plane,
+        #: directly or through others), as the latest landmarks say; None: unknown (planes without contributions)
+        self.linked: dict[str, frozenset[str]] | None = None
+        self._linked_of: PlaneLandmarks | None = None
 
     def frame(self) -> NavFrame:
         """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
@@ -631,25 +635,37 @@ class Navigator:
     def _launch_frame(self) -> NavFrame:
         """With smoothing: the rigid turn and shift that best carries the robots' launch points as the map now
         places them (each robot's smoothed first pose) onto their launch fixes, which are absolute. Two launch
-        points ``frame_min_baseline_m`` apart or more fix the heading; with fewer, the heading is the mean
-        heading correction (the compasses' mean, as without smoothing) and the shift the mean offset."""
+        points ``frame_min_baseline_m`` apart or more, of robots the map joins (:attr:`linked`: they contributed to
+        common planes), fix the heading; otherwise the heading is the mean heading correction (the compasses' mean,
+        as without smoothing) and the shift the mean offset."""
         # a lost robot's smoothed launch carries nothing, and a launch moved beyond what its fix allows (3 sigma)
         # is a bad association, not evidence on the frame
         lim = 3.0 * self.cfg.launch_sigma_m
-        pairs = [
-            (sm.start_map_ne, sm.nav.start_ne)
-            for sm in self.smoothers.values()
+        usable = {
+            name: (sm.start_map_ne, sm.nav.start_ne)
+            for name, sm in self.smoothers.items()
             if sm.start_map_ne is not None
             and not sm.nav.lost
             and float(np.hypot(*(np.asarray(sm.start_map_ne) - sm.nav.start_ne))) <= lim
-        ]
+        }
+        # launches turn the map only where the map joins them: robots that never shared a plane each built their
+        # own part of it, and a turn between their launch points would only be their fixes' noise
+        linked = self.linked
+        if linked is None:
+            group = frozenset(usable)
+        else:
+            group = max(
+                (linked.get(name, frozenset({name})) & set(usable) for name in usable), key=len, default=frozenset()
+            )
+        joined = len(group) >= 2
+        pairs = [usable[name] for name in sorted(group)] if joined else list(usable.values())
         if not pairs:
             return NavFrame()
         a = np.array([p[0] for p in pairs])
         b = np.array([p[1] for p in pairs])
         ca, cb = a.mean(axis=0), b.mean(axis=0)
         spread = float(np.linalg.norm(a - ca, axis=1).max())
-        if len(pairs) >= 2 and spread >= 0.5 * self.cfg.frame_min_baseline_m:
+        if joined and len(pairs) >= 2 and spread >= 0.5 * self.cfg.frame_min_baseline_m:
             h = (a - ca).T @ (b - cb)
             ang = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])  # the turn carrying a onto b
             yaw = -ang
@@ -673,6 +689,9 @@ class Navigator:
                 nav = self.robots[robot] = new.nav
             else:
                 nav = self.robots[robot] = RobotNav(robot, self.cfg)
+        if landmarks is not self._linked_of:
+            self._linked_of = landmarks
+            self.linked = _joined(landmarks)
         sm = self.smoothers.get(robot)
         if sm is not None:
             est: NavEstimate = sm.update(t_ns, raw, points_body, landmarks)
@@ -685,3 +704,27 @@ class Navigator:
     def latest(self) -> dict[str, NavEstimate]:
         """Robot -> its latest estimate."""
         return {r: n.latest for r, n in sorted(self.robots.items()) if n.latest is not None}
+
+
+def _joined(landmarks: PlaneLandmarks) -> dict[str, frozenset[str]] | None:
+    """Robot -> the robots joined to it through planes they contributed to together (itself included); None when
+    the landmarks do not say who contributed."""
+    if len(landmarks) and not any(landmarks.contrib):
+        return None
+    parent: dict[str, str] = {}
+
+    def root(a: str) -> str:
+        while parent.setdefault(a, a) != a:
+            a = parent[a]
+        return a
+
+    for c in landmarks.contrib:
+        names = sorted(c)
+        for other in names[1:]:
+            parent[root(other)] = root(names[0])
+        if names:
+            root(names[0])
+    groups: dict[str, set[str]] = {}
+    for name in parent:
+        groups.setdefault(root(name), set()).add(name)
+    return {name: frozenset(groups[root(name)]) for name in parent}

@@ -243,3 +243,25 @@ def test_observations_merged_during_a_background_run_stay_in_the_map(drift_dive:
     b.freeze({"rov1": 2**62})
     with pytest.raises(Exception, match="changed under a placement snapshot"):
         b.adopt(snap2, None)
+
+
+def test_launches_turn_the_map_only_where_the_map_joins_their_robots() -> None:
+    from test_navigation_bounds import _plane
+
+    from mapping.landmarks import PlaneLandmarks
+
+    def frame_yaw_deg(contributions: list[dict[str, tuple[int, int]]]) -> float:
+        nav = Navigator(NavConfig(), SmootherConfig())
+        lm = PlaneLandmarks.from_planes([_plane(i, c) for i, c in enumerate(contributions)])
+        for i, (n, e) in enumerate([(1.0, 1.0), (6.0, 1.0)]):
+            nav.update(f"r{i}", 1_000, Pose(n, e, 2.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), lm)
+        a = math.radians(1.0)
+        for sm in nav.smoothers.values():
+            n, e = sm.nav.start_ne
+            sm.start_map_ne = (math.cos(a) * n - math.sin(a) * e, math.sin(a) * n + math.cos(a) * e)
+        return math.degrees(nav.frame().yaw_rad)
+
+    # each robot built its own part of the map: the launches' turn is their fixes' noise, the compasses decide
+    assert frame_yaw_deg([{"r0": (500, 0)}, {"r1": (500, 0)}]) == pytest.approx(0.0, abs=1e-9)
+    # a plane both contributed to joins the parts: the launch points fix the heading
+    assert frame_yaw_deg([{"r0": (500, 0)}, {"r0": (500, 0), "r1": (500, 0)}]) == pytest.approx(1.0, abs=1e-6)
