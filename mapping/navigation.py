@@ -181,6 +181,10 @@ class NavEstimate:
         inliers: points associated with map planes (0: no registration).
         planes: ids of the planes the scan was registered to.
         correction: the yaw correction (deg) and, with a raw fix, the horizontal offset from it (m).
+        pinned: horizontal directions this scan pinned to the map (0, 1 or 2; along the registration
+            information's eigenvectors, so an oblique wall counts as one too).
+        free_bearing_deg: with one pinned direction (degenerate geometry: one flat wall, parallel walls), the
+            bearing of the free one (deg from north, 0-180): the position along it is not observed; else None.
     """
 
     robot: str
@@ -193,12 +197,17 @@ class NavEstimate:
     inliers: int = 0
     planes: tuple[int, ...] = ()
     correction: dict[str, float] = field(default_factory=dict)
+    pinned: int = 0
+    free_bearing_deg: float | None = None
 
     def turned(self, frame: NavFrame) -> NavEstimate:
         """This estimate with its pose turned from the map frame to NED (see :class:`NavFrame`)."""
         if self.pose is None or frame.identity:
             return self
-        return replace(self, pose=frame.pose(self.pose))
+        free = self.free_bearing_deg
+        if free is not None:
+            free = (free - math.degrees(frame.yaw_rad)) % 180.0
+        return replace(self, pose=frame.pose(self.pose), free_bearing_deg=free)
 
     def to_json(self) -> dict[str, Any]:
         """The JSON of CONVENTIONS' ``<root>/<robot>/nav`` key (angles in degrees, null when unknown)."""
@@ -219,6 +228,7 @@ class NavEstimate:
         out["unconstrained"] = [a for a in AXES if not self.constrained.get(a)]
         out.update(placed=self.placed, motion=self.motion, inliers=self.inliers, planes=list(self.planes))
         out["correction"] = dict(self.correction)
+        out["degenerate"] = {"free_bearing_deg": self.free_bearing_deg} if self.free_bearing_deg is not None else None
         return out
 
 
@@ -567,11 +577,18 @@ class RobotNav:
     ) -> NavEstimate:
         cfg = self.cfg
         constrained = dict.fromkeys(AXES, False)
+        pinned, free_bearing = 0, None
         if inliers:
             reg_cov = np.linalg.inv(h3 + np.eye(3) * 1.0)  # a 1 m / 1 rad prior: unconstrained reads as ~1
             reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
             limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
             constrained = {a: bool(s <= lim) for a, s, lim in zip(AXES, reg_std, limits, strict=True)}
+            # which horizontal directions the scan pinned, whatever the walls' orientation
+            evals, evecs = np.linalg.eigh(reg_cov[0:2, 0:2])
+            pinned = int(np.sum(evals <= cfg.constrained_std_m**2))
+            if pinned == 1:
+                free = evecs[:, 1]
+                free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
         att = cfg.attitude_std_deg
         if not known:
             std = {"north_m": math.inf, "east_m": math.inf, "down_m": cfg.depth_std_m}
@@ -601,7 +618,9 @@ class RobotNav:
             pinned = constrained["north"] and constrained["east"]
             boot = motion in ("scan-odometry", "start") and max(float(sd[0]), float(sd[1])) <= cfg.bootstrap_std_m
             placed = placed and (pinned or boot)
-        return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr)
+        return NavEstimate(
+            self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
+        )
 
 
 class Navigator:

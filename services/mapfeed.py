@@ -605,7 +605,8 @@ class MapFeed:
 
     def nav_status(self, robot: str) -> dict[str, Any] | None:
         """What the status says of a robot's navigation: ``placed``/``unplaced`` clouds, the axes its scans
-        constrain now, ``position`` (``constrained``, ``partly`` (one horizontal axis), ``unconstrained``,
+        constrain now, ``position`` (``constrained``, ``partly`` (one horizontal direction: ``degenerate`` then
+        gives the free one's bearing, ``{"free_bearing_deg"}``, e.g. along one flat wall), ``unconstrained``,
         ``lost`` (no fix and too uncertain to trust its scans until the next fix), ``unknown``), the horizontal
         and heading standard deviations, how it moved (``motion``). None when navigation is off or the robot sent
         nothing yet."""
@@ -615,7 +616,8 @@ class MapFeed:
         if self.navigator is None or est is None:
             return None
         js = est.to_json()
-        n_axes = sum(1 for a in ("north", "east") if est.constrained.get(a))
+        # horizontal directions the scan pinned (an oblique wall pins one, though neither axis alone)
+        n_axes = max(est.pinned, sum(1 for a in ("north", "east") if est.constrained.get(a)))
         position = "unknown" if est.pose is None else ("constrained", "partly", "unconstrained")[2 - n_axes]
         if est.motion == "lost":
             position = "lost"
@@ -629,5 +631,6 @@ class MapFeed:
             "east_m_std": js.get("east_m_std"),
             "yaw_deg_std": js.get("yaw_deg_std"),
             "motion": est.motion,
+            "degenerate": js["degenerate"],
             "t_ns": est.t_ns,
         }

@@ -73,6 +73,31 @@ def test_a_single_flat_wall_leaves_the_position_along_it_unconstrained() -> None
     js = est.to_json()
     assert js["constrained"] == ["north", "yaw"]
     assert js["unconstrained"] == ["east"]
+    # degenerate: one direction pinned, the free one along the wall (east, bearing 90 deg)
+    assert est.pinned == 1
+    assert js["degenerate"]["free_bearing_deg"] == pytest.approx(90.0, abs=1.0)
+
+
+def test_an_oblique_flat_wall_is_reported_degenerate_along_it() -> None:
+    # a wall whose normal points 30 deg east of north: neither north nor east alone is pinned, one direction is
+    n = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0)), 0.0])
+    u = np.array([-n[1], n[0], 0.0])
+    c = np.array([0.0, 0.0, 1.0])
+    extent = {"centroid": c.tolist(), "u": u.tolist(), "v": [0.0, 0.0, 1.0], "u_range_m": [-4.0, 4.0],
+              "v_range_m": [-1.0, 1.0]}  # fmt: skip
+    lm = PlaneLandmarks.from_planes([{"id": 1, "normal": n.tolist(), "d": float(-n @ c), "n_points": 10_000,
+                                      "extent": extent}])  # fmt: skip
+    true = Pose(1.2 * n[0], 1.2 * n[1], 1.0, 0.0, 0.0, math.atan2(-n[1], -n[0]))  # 1.2 m off it, facing it
+    hits = []
+    for k in np.linspace(-1.0, 1.0, 300):  # a stripe along the wall at the vehicle's depth
+        hits.append(c + u * (1.2 * math.tan(k * 0.5)) + np.array([0.0, 0.0, 0.0]))
+    points = ned_to_body(np.array(hits), true)
+    nav = RobotNav("rov1", NavConfig(launch_sigma_m=0.3))
+    est = nav.update(0, _raw(true, 0.05, 0.05, 0.0), points, lm)
+    assert est.inliers >= 100
+    assert est.pinned == 1
+    assert est.free_bearing_deg is not None
+    assert est.free_bearing_deg == pytest.approx(120.0, abs=2.0)  # along the wall: 30 + 90 deg
 
 
 def test_without_a_fix_the_position_is_unknown_and_not_placed() -> None:

@@ -91,6 +91,9 @@ def test_navigation_places_a_depth_only_robot_and_publishes_its_pose(depth_only_
     assert nav["placed"] + nav["unplaced"] == N_FRAMES
     assert robot["unplaced"] == nav["unplaced"]
     assert nav["position"] in {"constrained", "partly", "unconstrained", "lost"}
+    # one pinned direction: the free one's bearing is said, else nothing
+    assert (nav["degenerate"] is not None) == (nav["position"] == "partly")
+    assert "degenerate" in answers[0]
     assert status["map"]["navigation"] is True
     assert status["map"]["clouds"] == nav["placed"]
 
