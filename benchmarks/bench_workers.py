@@ -270,6 +270,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=4.0, help="simulated dive length per robot")
     ap.add_argument("--workers", default="0,1,2,4", help="worker process counts (0: the map in the base process)")
     ap.add_argument("--nav", default="off,on", help="navigation settings to run: off, on or both")
+    ap.add_argument("--no-same-map", action="store_true", help="leave out the same-map check with navigation")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "workers.md")
     ap.add_argument("--publish", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--fleet", default="bench", help=argparse.SUPPRESS)
@@ -313,7 +314,7 @@ def main() -> int:
         )
     lines.append("")
     nav_floods = [f for f, _ in rows if f["nav"] and f["workers"] > 0]
-    if nav_floods:
+    if nav_floods and not args.no_same_map:
         lines += ["### The same map with navigation", "", same_map_nav(args.robots, args.seconds, nav_floods), ""]
     text = "\n".join(lines)
     print(text)

@@ -13,9 +13,10 @@ the map is used a few scans later than in one process.
 from the raw fix, the heading correction) changes slowly, so a robot's scan is registered (``RobotNav.update``)
 only when at least ``register_every_s`` of capture time passed since its last registration (default 0.09 s: every
 third scan at 30 Hz, every scan at 10 Hz and slower). A scan in between is placed with the latest correction:
-the raw position plus the latest offset from the raw fix (without a fix: the latest corrected position) and the
-raw heading plus the latest heading correction; it is placed (mapped) when the latest estimate was. Every cloud
-still reaches the map.
+the raw position plus the latest offset from the raw fix (without a fix: the latest corrected position moved on at
+the velocity of the last two registered positions, at most :data:`EXTRAPOLATE_S` apart) and the raw heading plus
+the latest heading correction; it is placed (mapped) when the latest estimate was. Every cloud still reaches the
+map.
 
 **State across workers.** Each observation message carries the robot's navigation state after the last cloud it
 commits (:meth:`WorkerNav.snapshot`: ``RobotNav.snapshot()`` and the stride's bookkeeping, encoded by
@@ -46,6 +47,9 @@ log = logging.getLogger(__name__)
 LANDMARKS_EVERY_S = 0.1
 #: Register a robot's scan when at least this much capture time passed since its last registration, seconds.
 REGISTER_EVERY_S = 0.09
+#: Without a fix, scans between registrations move on at the velocity of the last two registered positions when
+#: these are at most this far apart (capture time, seconds); otherwise they keep the latest position.
+EXTRAPOLATE_S = 0.5
 
 
 # ---------------------------------------------------------------------------------------------- codec
@@ -169,8 +173,9 @@ class WorkerNav:
         self.cfg = cfg or NavConfig()
         self.register_every_s = register_every_s
         self._navs: dict[str, Any] = {}
-        #: per robot: capture time of the last registered scan
+        #: per robot: capture time of the last registered scan; the registered estimate before the latest
         self._last_reg: dict[str, int] = {}
+        self._before: dict[str, Any] = {}
         #: scans registered, scans placed with the latest correction
         self.registered = 0
         self.strided = 0
@@ -198,21 +203,23 @@ class WorkerNav:
         if due:
             est = nav.update(t_ns, raw, points_body, landmarks)
             self._last_reg[robot] = t_ns
+            self._before[robot] = latest
             self.registered += 1
             return NavStep(est.pose, bool(est.placed and est.pose is not None), est)
         self.strided += 1
-        return NavStep(corrected(latest, raw), bool(latest.placed))
+        return NavStep(corrected(latest, raw, self._before.get(robot), t_ns), bool(latest.placed))
 
     def snapshot(self, robot: str) -> dict[str, Any] | None:
         """The robot's whole navigation state (None: it has none here)."""
         nav = self._navs.get(robot)
         if nav is None:
             return None
-        return {"nav": nav.snapshot(), "last_reg": self._last_reg.get(robot)}
+        return {"nav": nav.snapshot(), "last_reg": self._last_reg.get(robot), "before": self._before.get(robot)}
 
     def restore(self, robot: str, state: dict[str, Any]) -> None:
         """Continue ``robot`` from a :meth:`snapshot` (of this worker or another)."""
         self._nav(robot).restore(state["nav"])
+        self._before[robot] = state.get("before")
         if state.get("last_reg") is None:
             self._last_reg.pop(robot, None)
         else:
@@ -222,11 +229,14 @@ class WorkerNav:
         """Drop the robot's estimator (it moved away, or restarts)."""
         self._navs.pop(robot, None)
         self._last_reg.pop(robot, None)
+        self._before.pop(robot, None)
 
 
-def corrected(latest: Any, raw: Pose) -> Pose | None:
-    """``raw`` with the latest estimate's correction: the raw position plus its offset from the raw fix (without a
-    fix now or then: the latest corrected position), depth and attitude raw, the heading plus its correction."""
+def corrected(latest: Any, raw: Pose, before: Any = None, t_ns: int | None = None) -> Pose | None:
+    """``raw`` at ``t_ns`` with the latest estimate's correction: the raw position plus its offset from the raw fix;
+    without a fix now or then, the latest corrected position, moved on at the velocity from the registered estimate
+    ``before`` it (when both have a position and are at most ``EXTRAPOLATE_S`` apart); depth and attitude raw, the
+    heading plus its correction."""
     if latest.pose is None:
         return None
     corr = latest.correction
@@ -235,4 +245,9 @@ def corrected(latest: Any, raw: Pose) -> Pose | None:
         north, east = raw.north_m + float(corr["north_m"]), raw.east_m + float(corr["east_m"])
     else:
         north, east = latest.pose.north_m, latest.pose.east_m
+        span = (latest.t_ns - before.t_ns) * 1e-9 if before is not None and before.pose is not None else 0.0
+        if t_ns is not None and 0 < span <= EXTRAPOLATE_S:
+            ahead = (t_ns - latest.t_ns) * 1e-9 / span
+            north += (latest.pose.north_m - before.pose.north_m) * ahead
+            east += (latest.pose.east_m - before.pose.east_m) * ahead
     return Pose(north, east, raw.down_m, raw.roll_rad, raw.pitch_rad, yaw)

@@ -392,3 +392,27 @@ def test_the_merge_waits_only_for_observations_that_can_still_precede() -> None:
     assert pool._next_key_bound(table(5, cfg.extract_every_points)) == 1000  # one cloud full of points
     by_time = table(5, 100, dt_ns=600_000_000)  # 2 clouds 1 s apart or more fire by time
     assert pool._next_key_bound(by_time) == 1000 + 2 * 600_000_000
+
+
+def test_without_a_fix_the_scans_between_registrations_move_on_at_the_registered_velocity() -> None:
+    from dataclasses import replace
+
+    from lrsensor.frames import Pose
+    from mapping.navigation import NavEstimate
+    from services.map_worker_nav import corrected
+
+    def est(t_s: float, north: float) -> NavEstimate:
+        pose = Pose(north, 2.0, 1.0, 0.0, 0.0, 0.1)
+        return NavEstimate("r", int(t_s * 1e9), pose, {}, {}, True, "motion-prior", correction={"yaw_deg": 1.0})
+
+    raw = Pose(float("nan"), float("nan"), 1.5, 0.0, 0.0, 0.2)
+    before, latest = est(0.0, 1.0), est(0.1, 1.03)  # 0.3 m/s north
+    p = corrected(latest, raw, before, int(0.15e9))
+    assert p is not None
+    assert abs(p.north_m - 1.045) < 1e-9
+    assert p.east_m == 2.0
+    assert p.down_m == 1.5
+    assert abs(p.yaw_rad - (0.2 + np.radians(1.0))) < 1e-12
+    stale = corrected(latest, raw, replace(before, t_ns=int(-1e9)), int(0.15e9))  # too far apart: stays
+    assert stale is not None
+    assert stale.north_m == 1.03
