@@ -24,11 +24,12 @@ def default_map_workers(cores: int | None = None) -> int:
     """Local worker processes by default: the cores minus two (0 on a 2-core machine: one map thread in the
     base process).
 
-    The base process keeps about one core busy at a fleet's full rate on its own with navigation (Zenoh,
-    decoding, the ledger, navigation, the merge). On two cores worker processes do raise throughput without
-    navigation (benchmarks/results/workers.md), but they compete with the base's navigation and with everything
-    else on the machine, and they delay acknowledgements until a window is committed: an operator opts in with
-    ``--map-workers N``. From three cores on, each worker has a core of extraction to itself.
+    Without workers the base process keeps about one core busy at a fleet's full rate on its own (Zenoh,
+    decoding, the ledger, navigation, extraction, the merge); with workers it only ingests, dispatches and merges,
+    and the workers extract and navigate. On two cores worker processes do raise throughput
+    (benchmarks/results/workers.md), but they share the cores with everything else on the machine and delay
+    acknowledgements until a window is committed: an operator opts in with ``--map-workers N``. From three cores
+    on, each worker has a core of extraction to itself.
     """
     n = cores if cores is not None else (os.cpu_count() or 1)
     return max(0, n - 2)

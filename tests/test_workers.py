@@ -185,10 +185,11 @@ def test_in_process_workers_map_every_cloud_once_like_one_process(net: TestNetwo
     assert records == single.planes_records()  # bit for bit, the exact integer statistics too
 
 
+@pytest.mark.parametrize("navigation", [False, True])
 def test_a_sigkilled_worker_moves_its_robots_and_every_cloud_is_mapped_once(
-    net: TestNetwork, frames: list[DiveFrame], tmp_path: Path, procs: list[Proc]
+    net: TestNetwork, frames: list[DiveFrame], tmp_path: Path, procs: list[Proc], navigation: bool
 ) -> None:
-    base = net.start_base(map_mode="on", navigation=False, remote_workers=True)
+    base = net.start_base(map_mode="on", navigation=navigation, remote_workers=True)
     pool = base.feed.pool
     assert pool is not None
     procs += [_worker_proc(net, tmp_path, "wa"), _worker_proc(net, tmp_path, "wb")]
@@ -203,7 +204,14 @@ def test_a_sigkilled_worker_moves_its_robots_and_every_cloud_is_mapped_once(
     _publish(net, frames, ROBOTS, 45, 90)
     assert base.drain(60)
     base.flush_map(60)
-    _mapped_once(net, ROBOTS, 90)
+    if navigation:  # every cloud done with once: placed (mapped) or not, each acknowledged
+        st = base.status()
+        assert all(st["robots"][r]["nav"]["placed"] + st["robots"][r]["nav"]["unplaced"] == 90 for r in ROBOTS)
+        assert all(st["robots"][r]["mapped"] == st["robots"][r]["nav"]["placed"] for r in ROBOTS)
+        assert all(base.ledger.records[r].mapped.ranges() == [[0, 89]] for r in ROBOTS)
+        assert sum(st["robots"][r]["nav"]["placed"] for r in ROBOTS) >= 0.9 * 90 * len(ROBOTS)
+    else:
+        _mapped_once(net, ROBOTS, 90)
     assert pool.moves >= len(victims)
     assert pool.resent > 0
 
