@@ -157,8 +157,8 @@ class MapWorker:
         except WireError as err:
             log.warning("map worker %s: %s", self.name, err)
             return
-        if version > self.landmarks_version:  # one assignment: the work thread sees the old or the new mirror
-            self.landmarks, self.landmarks_version = lm, version
+        # one publisher delivers in order, and a restarted base counts from 0 again: the newest message wins
+        self.landmarks, self.landmarks_version = lm, version  # the work thread sees the old or the new mirror
 
     def _on_work(self, sample: Any) -> None:
         self._queue.put(sample.payload.to_bytes())  # never blocks (see the module docstring)
