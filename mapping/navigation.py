@@ -105,13 +105,13 @@ class NavConfig:
 
     Evidence: a plane only this robot contributed to, first seen by it less than ``own_recent_s`` before the scan,
     holds the robot's own recent poses and so no absolute information; its residuals count ``own_recent_weight``
-    of their information. With ``own_turn_s`` > 0, a plane only this robot contributed to, first seen by it less than
-    ``own_turn_s`` before the scan, does not turn the robot's heading at all (its residuals move the position only):
-    the robot's own planes were placed with its own heading and say nothing of its compass's bias
-    (``own_recent_turns`` False does the same within ``own_recent_s``). A registration whose correction lies
-    beyond the prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``)
-    is a wrong association, not drift: it is
-    rejected and counted (:attr:`RobotNav.gated`).
+    of their information. Such planes were placed with the robot's own heading and say nothing of its compass's
+    bias: with ``own_recent_turns`` False they move the position only, not the heading; with
+    ``own_recent_turns_alone`` False, only while the map has not joined the robot's part to another robot's
+    (:attr:`RobotNav.joined`). With ``own_turn_s`` > 0, no plane only this robot contributed to, first seen by it
+    less than ``own_turn_s`` before the scan, turns its heading. A registration whose correction lies beyond the
+    prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong
+    association, not drift: it is rejected and counted (:attr:`RobotNav.gated`).
 
     Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
     without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before) replaces the walk
@@ -162,6 +162,7 @@ class NavConfig:
     own_recent_weight: float = 0.03
     own_recent_turns: bool = True
     own_turn_s: float = 0.0
+    own_recent_turns_alone: bool = True
     gate_chi2: float = 0.0
 
 
@@ -261,6 +262,9 @@ class RobotNav:
         self.odometry_pairs = 0
         #: registrations rejected as beyond the motion model's error (see ``NavConfig.gate_chi2``)
         self.gated = 0
+        #: whether the map joins this robot's part to another robot's (set by :class:`Navigator` before each update;
+        #: see ``NavConfig.own_recent_turns_alone``)
+        self.joined = True
 
     _STATE = (
         "t_ns",
@@ -430,9 +434,10 @@ class RobotNav:
             mine = c.get(self.robot)
             if mine is None or len(c) != 1:
                 continue
-            if mine[1] >= horizon and (cfg.own_recent_weight < 1.0 or not cfg.own_recent_turns):
+            recent_turns = cfg.own_recent_turns and (self.joined or cfg.own_recent_turns_alone)
+            if mine[1] >= horizon and (cfg.own_recent_weight < 1.0 or not recent_turns):
                 w[i] = min(cfg.own_recent_weight, 1.0 - 1e-9)
-                turns[i] = cfg.own_recent_turns
+                turns[i] = recent_turns
             if turn_horizon is not None and mine[1] >= turn_horizon:
                 turns[i] = False
         return w, turns
@@ -711,6 +716,7 @@ class Navigator:
         if landmarks is not self._linked_of:
             self._linked_of = landmarks
             self.linked = _joined(landmarks)
+        nav.joined = self.linked is None or len(self.linked.get(robot, ())) >= 2
         sm = self.smoothers.get(robot)
         if sm is not None:
             est: NavEstimate = sm.update(t_ns, raw, points_body, landmarks)

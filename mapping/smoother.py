@@ -47,8 +47,10 @@ _SUB = [0, 1, 4]
 #: estimate. A drifting dead reckoning's fixes are the sum of the increments the filter already uses; weighted
 #: as independent measurements every 0.2 s they dragged the smoothed tracks toward the drift. A robot's own recent
 #: planes count more than under the filter alone (10 s at 0.1, not 20 s at 0.03): the smoother's re-filter needs
-#: them to hold a drifting robot between its passes (docs/navigation.md, "Measured").
-SMOOTHED_NAV = NavConfig(fix_quality_factor=5.0, own_recent_s=10.0, own_recent_weight=0.1)
+#: them to hold a drifting robot between its passes (docs/navigation.md, "Measured"); but while the map has not
+#: joined a robot's part to another robot's, they move its position only, not its heading (on the short rendered
+#: dives they turned a drifting robot's heading the wrong way: docs/navigation.md, "Short dives").
+SMOOTHED_NAV = NavConfig(fix_quality_factor=5.0, own_recent_s=10.0, own_recent_weight=0.1, own_recent_turns_alone=False)
 
 
 @dataclass(frozen=True)
@@ -120,10 +122,13 @@ class SmoothJob:
         self.revised: dict[int, Pose] = {}
         self.end: dict[str, Any] | None = None
         self.start_map_ne: tuple[float, float] | None = None
+        #: the live filter's :attr:`RobotNav.joined` when the job was made
+        self.joined = True
 
     def run(self, landmarks: PlaneLandmarks) -> None:
         """Re-filter against ``landmarks`` and smooth (fills :attr:`revised`, :attr:`end`)."""
         nav = RobotNav(self.robot, self.cfg)
+        nav.joined = self.joined
         nav.restore(self.scans[self.start].before)
         for s in self.scans[self.start :]:
             s.before = nav.snapshot()
@@ -218,7 +223,9 @@ class RobotSmoother:
         self._refiltered_ns = scans[-1].t_ns
         self.refiltered += len(scans) - start
         cfg = replace(self.nav.cfg, iterations=self.scfg.rerun_iterations)
-        return SmoothJob(self.robot, cfg, scans, start, self._first_ns)
+        job = SmoothJob(self.robot, cfg, scans, start, self._first_ns)
+        job.joined = self.nav.joined
+        return job
 
     def apply(self, job: SmoothJob, landmarks: PlaneLandmarks) -> dict[int, Pose]:
         """Take a finished :class:`SmoothJob` back: its scans' re-filtered steps replace the window's, and the live

@@ -27,12 +27,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nav",
         choices=("on", "filter", "off"),
-        default="filter",
-        help="correct each robot's horizontal position and heading from its scans before mapping; filter "
-        "(default): correct each cloud once; on: also smooth past poses and re-place their clouds (best on long "
-        "dives with drifting dead reckoning, but on short dives whose robots see different parts of the site it "
-        "served fewer faces within 2 deg/5 cm than off: docs/navigation.md); off: trust the poses (clouds without "
-        "a horizontal fix are unplaced)",
+        default="on",
+        help="correct each robot's horizontal position and heading from its scans before mapping; on (default): "
+        "correct each cloud and smooth past poses on a thread of their own, re-placing their clouds; filter: "
+        "correct each cloud once (no re-placing); off: trust the poses (clouds without a horizontal fix are "
+        "unplaced); docs/navigation.md",
     )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")

@@ -265,3 +265,14 @@ def test_launches_turn_the_map_only_where_the_map_joins_their_robots() -> None:
     assert frame_yaw_deg([{"r0": (500, 0)}, {"r1": (500, 0)}]) == pytest.approx(0.0, abs=1e-9)
     # a plane both contributed to joins the parts: the launch points fix the heading
     assert frame_yaw_deg([{"r0": (500, 0)}, {"r0": (500, 0), "r1": (500, 0)}]) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_lrsensor_base_smooths_by_default() -> None:
+    import argparse
+
+    from services.cli_base import configure
+
+    parser = argparse.ArgumentParser()
+    configure(parser)
+    assert parser.parse_args(["--fleet", "f"]).nav == "on"
+    assert parser.parse_args(["--fleet", "f", "--nav", "filter"]).nav == "filter"

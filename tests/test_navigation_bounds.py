@@ -64,6 +64,27 @@ def test_own_recent_planes_carry_little_weight() -> None:
     assert still._plane_weights(100 * S, lm)[1].tolist() == [False, True, True, True]
     never = RobotNav("rov1", NavConfig(own_recent_s=10.0, own_recent_weight=0.1, own_turn_s=1000.0))
     assert never._plane_weights(100 * S, lm)[1].tolist() == [False, False, True, True]
+    # own recent planes turn the heading only once the map joined the robot to another (the smoother's tuning)
+    alone = RobotNav("rov1", NavConfig(own_recent_s=10.0, own_recent_weight=0.1, own_recent_turns_alone=False))
+    alone.joined = False
+    assert alone._plane_weights(100 * S, lm)[0].tolist() == [0.1, 1.0, 1.0, 1.0]
+    assert alone._plane_weights(100 * S, lm)[1].tolist() == [False, True, True, True]
+    alone.joined = True
+    assert alone._plane_weights(100 * S, lm)[1].tolist() == [True] * 4
+
+
+def test_the_navigator_says_which_robots_the_map_joins() -> None:
+    from mapping.navigation import Navigator
+
+    nav = Navigator()
+    lm = PlaneLandmarks.from_planes(
+        [_plane(1, {"rov1": (500, 0)}), _plane(2, {"rov2": (500, 0), "rov3": (500, 0)}), _plane(3, {"rov3": (9, 0)})]
+    )
+    for robot in ("rov1", "rov2"):
+        nav.update(robot, S, Pose(1.0, 1.0, 1.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), lm)
+    assert nav.linked == {"rov1": {"rov1"}, "rov2": {"rov2", "rov3"}, "rov3": {"rov2", "rov3"}}
+    assert not nav.robots["rov1"].joined
+    assert nav.robots["rov2"].joined
 
 
 def test_a_correction_beyond_the_motion_model_is_rejected_and_counted() -> None:
