@@ -122,6 +122,7 @@ class SmoothJob:
         self.revised: dict[int, Pose] = {}
         self.end: dict[str, Any] | None = None
         self.start_map_ne: tuple[float, float] | None = None
+        self._nav: RobotNav | None = None
         #: the live filter's :attr:`RobotNav.joined` when the job was made
         self.joined = True
 
@@ -144,6 +145,20 @@ class SmoothJob:
             )
             if s.t_ns == self.first_ns:
                 self.start_map_ne = (float(x[0]), float(x[1]))
+        self.end = nav.snapshot()
+        self._nav = nav
+
+    def catch_up(self, newer: list[_Scan], landmarks: PlaneLandmarks) -> None:
+        """Carry the re-filtered state on over ``newer`` scans (copies of what the live filter took since the job
+        was made), so that the hand-over has few left to re-run on the map thread."""
+        nav = self._nav
+        if nav is None or self.end is None:
+            return
+        for s in newer:
+            s.before = nav.snapshot()
+            est = nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
+            _record(nav, s, est)
+            self.scans.append(s)
         self.end = nav.snapshot()
 
 
@@ -277,10 +292,21 @@ class RobotSmoother:
 class _FleetJob:
     """One smoothing run of every robot, detached from the map thread (see :class:`FleetPlacements`)."""
 
+    #: catch up with the live filters until at most this many scans per robot are left for the hand-over
+    CATCH_UP_LEFT = 3
+    CATCH_UP_PASSES = 5
+
     def __init__(
-        self, jobs: dict[str, SmoothJob], landmarks: PlaneLandmarks, snap: Any, poses: dict[str, dict[int, Pose]]
+        self,
+        jobs: dict[str, SmoothJob],
+        landmarks: PlaneLandmarks,
+        snap: Any,
+        poses: dict[str, dict[int, Pose]],
+        live: dict[str, deque[_Scan]] | None = None,
     ) -> None:
         self.jobs = jobs
+        #: the live smoothers' scan windows, read (never written) to catch up with what came meanwhile
+        self.live = live or {}
         self.landmarks = landmarks
         #: the builder's kept observations when the run started (copies the run may move), and the poses they
         #: were placed with
@@ -302,11 +328,31 @@ class _FleetJob:
                 self.moved += self.snap.move(name, old, new)
             if self.moved:
                 self.new_map = self.snap.rebuild()
+            self._catch_up()
         except BaseException as err:  # handed to the map thread, which logs it
             self.error = err
         finally:
             self.compute_s = time.perf_counter() - t0
             self.done.set()
+
+    def _catch_up(self) -> None:
+        """Re-run, on this thread, the scans the live filters took while the run went on (the map thread then
+        re-runs only the last few at the hand-over)."""
+        for _ in range(self.CATCH_UP_PASSES):
+            left = 0
+            for name, job in sorted(self.jobs.items()):
+                window = self.live.get(name)
+                if window is None or not job.scans:
+                    continue
+                try:
+                    current = list(window)  # one C call under the GIL; retried if the map thread changed it
+                except RuntimeError:
+                    current = list(window)
+                newer = [replace(s) for s in current if s.t_ns > job.scans[-1].t_ns]
+                job.catch_up(newer, self.landmarks)
+                left = max(left, len(newer))
+            if left <= self.CATCH_UP_LEFT:
+                return
 
 
 class FleetPlacements:
@@ -402,7 +448,8 @@ class FleetPlacements:
             if job is not None:
                 jobs[name] = job
         poses = {name: dict(p) for name, p in self.poses.items()}
-        self._job = _FleetJob(jobs, lm, self.builder.placements_snapshot(), poses)
+        live = {name: self.nav.smoothers[name].scans for name in jobs}
+        self._job = _FleetJob(jobs, lm, self.builder.placements_snapshot(), poses, live)
         self._thread = threading.Thread(target=self._job.run, name="nav-smoother", daemon=True)
         self._thread.start()
         self._hold_start = time.perf_counter() - t0

@@ -276,3 +276,50 @@ def test_lrsensor_base_smooths_by_default() -> None:
     configure(parser)
     assert parser.parse_args(["--fleet", "f"]).nav == "on"
     assert parser.parse_args(["--fleet", "f", "--nav", "filter"]).nav == "filter"
+
+
+def test_a_run_on_its_own_thread_hands_over_without_holding_the_map_thread(
+    drift_dive: tuple[Scene, list[Any]],
+) -> None:
+    _, frames = drift_dive
+    # as the base runs it: the map thread goes on while a run is away and takes it over when it is done. Replayed
+    # as fast as the map takes the clouds, a run lags by many seconds of the dive (it does not in real time: see
+    # docs/navigation.md), so only the mechanics are checked here
+    run = replay_dive(
+        frames, navigate=True, nav_cfg=NavConfig(fix_quality_factor=5.0), smoother=SmootherConfig(), background=True
+    )
+    assert len(run.smooth_hold_s) >= 1
+    assert max(run.smooth_hold_s) < 0.5 * max(run.smooth_cost_s), (run.smooth_hold_s, run.smooth_cost_s)
+    assert sum(len(v) for v in run.placed.values()) == len(frames)
+    assert len(run.planes()) >= 10
+
+
+def test_a_job_catches_up_so_the_hand_over_re_runs_few_scans(drift_dive: tuple[Scene, list[Any]]) -> None:
+    from dataclasses import replace as copy
+
+    _, frames = drift_dive
+    mine = [f for f in frames if f.robot == "rov1"][:160]
+    cfg = NavConfig(fix_quality_factor=5.0)
+    sm = RobotSmoother("rov1", cfg, SmootherConfig())
+    b = MapBuilder()
+
+    def feed(fs: list[Any]) -> None:
+        for f in fs:
+            sm.update(f.t_ns, f.pose_est, f.points_body, b.landmarks(cfg.min_landmark_points))
+            b.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est)
+
+    feed(mine[:100])
+    job = sm.prepare()
+    assert job is not None
+    lm = b.landmarks(cfg.min_landmark_points)
+    job.run(lm)
+    feed(mine[100:150])  # the live filter went on meanwhile
+    job.catch_up([copy(s) for s in sm.scans if s.t_ns > job.scans[-1].t_ns], lm)
+    feed(mine[150:])
+    assert job.scans[-1].t_ns == mine[149].t_ns
+    sm.apply(job, lm)
+    # the window holds the job's scans up to its end, then the live ones re-run from it; the live filter is at the
+    # newest scan
+    assert [s.t_ns for s in sm.scans] == [f.t_ns for f in mine]
+    assert all(a is b for a, b in zip(list(sm.scans)[:150], job.scans[-150:], strict=True))
+    assert sm.nav.t_ns == mine[-1].t_ns
