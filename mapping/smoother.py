@@ -24,6 +24,7 @@ Cost: a re-filter registers each window scan again (``rerun_points`` points each
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -39,6 +40,8 @@ from .landmarks import PlaneLandmarks, subsample
 from .navigation import NavConfig, NavEstimate, RobotNav
 
 FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
 
 #: The smoothed sub-state of RobotNav's five: north, east, yaw correction.
 _SUB = [0, 1, 4]
@@ -416,7 +419,12 @@ class FleetPlacements:
         lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
         moved = 0
         for name, smoother in sorted(self.nav.smoothers.items()):
-            revised = smoother.smooth(lm)
+            try:
+                revised = smoother.smooth(lm)
+            except Exception as err:  # a run works on copies: the live filter and the map go on as they are
+                self.errors += 1
+                log.error("smoothing %s failed: %r", name, err, exc_info=err)
+                continue
             mine = self.poses.get(name, {})
             new = {t: p for t, p in revised.items() if t in mine}
             moved += self.builder.replace_poses(name, mine, new)
@@ -464,8 +472,10 @@ class FleetPlacements:
         self._job = self._thread = None
         self.runs_s.append(job.compute_s)
         if job.error is not None:
+            # the live filters and the map go on as they are; the next run starts from them
             self.errors += 1
-            raise RuntimeError(f"background smoothing failed: {job.error}") from job.error
+            log.error("background smoothing failed: %r", job.error, exc_info=job.error)
+            return []
         lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
         for name, sj in job.jobs.items():
             revised = self.nav.smoothers[name].apply(sj, lm)

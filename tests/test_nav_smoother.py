@@ -323,3 +323,24 @@ def test_a_job_catches_up_so_the_hand_over_re_runs_few_scans(drift_dive: tuple[S
     assert [s.t_ns for s in sm.scans] == [f.t_ns for f in mine]
     assert all(a is b for a, b in zip(list(sm.scans)[:150], job.scans[-150:], strict=True))
     assert sm.nav.t_ns == mine[-1].t_ns
+
+
+def test_a_failed_background_run_is_counted_and_the_map_goes_on(drift_dive: tuple[Scene, list[Any]]) -> None:
+    from mapping.smoother import SmoothJob
+
+    _, frames = drift_dive
+    orig = SmoothJob.run
+
+    def broken(self: SmoothJob, landmarks: Any) -> None:
+        raise ValueError("boom")
+
+    SmoothJob.run = broken  # type: ignore[method-assign]
+    try:
+        scfg = SmootherConfig(every_s=5.0)
+        cfg = NavConfig(fix_quality_factor=5.0)
+        run = replay_dive(frames[:300], navigate=True, nav_cfg=cfg, smoother=scfg, background="wait")
+    finally:
+        SmoothJob.run = orig  # type: ignore[method-assign]
+    assert sum(len(v) for v in run.placed.values()) == 300
+    assert run.planes()
+    assert not run.smooth_hold_s or max(run.smooth_hold_s) < 1.0
