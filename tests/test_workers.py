@@ -424,3 +424,17 @@ def test_without_a_fix_the_scans_between_registrations_move_on_at_the_registered
     stale = corrected(latest, raw, replace(before, t_ns=int(-1e9)), int(0.15e9))  # too far apart: stays
     assert stale is not None
     assert stale.north_m == 1.03
+
+
+def test_clouds_navigation_cannot_place_are_committed_without_planes_and_said_unplaced() -> None:
+    from dataclasses import replace
+
+    frames = [f for f in _frames(1.0) if f.robot == "rov1"]
+    worker = MapWorker(None, FleetKeys("t"), "w1")
+    out: list[PlaneObservations] = []
+    for seq, f in enumerate(frames[:5]):  # no horizontal fix ever: no position, nothing placed
+        raw = replace(f.pose_est, north_m=float("nan"), east_m=float("nan"))
+        job = MapJob("rov1", seq, f.t_ns, 0, raw, f.points_body.astype(np.float32), navigate=True)
+        out += worker.handle(job)
+    assert [(o.seqs, o.unplaced, o.records) for o in out] == [((s,), (s,), ()) for s in range(5)]  # each at once
+    assert all(o.nav_state for o in out)  # the state travels even before the robot has a position
