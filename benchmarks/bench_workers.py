@@ -13,7 +13,7 @@ processes. Two runs per configuration, navigation on and off:
   latency p50/p99 (capture to commit, ``map.latency_ms``) and whether every cloud reached the map.
 
 Navigation runs as ``lrsensor base`` runs it by default (``--nav filter``): in the base's map thread with 0
-workers (every scan registered), in the workers otherwise (``services.map_worker_nav``: every third scan at 30 Hz
+workers (every scan registered), in the workers otherwise (``services.map_worker_nav``: every sixth scan at 30 Hz
 registered, against the workers' mirror of the merged planes). CPU: the base process's, and the worker processes'
 (from /proc) during the flood.
 
@@ -244,11 +244,11 @@ def same_map_nav(robots: int, seconds: float, flood: list[dict[str, Any]]) -> st
     stride and the freshest planes, and each against the tank."""
     ref = reference_planes(robots, seconds, True)
     variants: list[tuple[str, list[dict[str, Any]]]] = [
-        ("one process, every 3rd scan, the planes of the moment (the reference)", ref),
+        ("one process, every 6th scan, the planes of the moment (the reference)", ref),
         ("one process, every scan, the planes of the moment", reference_planes(robots, seconds, True, every_s=0.0)),
     ]
     for lag in (0.1, 0.3, 0.6):
-        name = f"one process, every 3rd scan, the planes of {lag:g} s before"
+        name = f"one process, every 6th scan, the planes of {lag:g} s before"
         variants.append((name, reference_planes(robots, seconds, True, lag)))
     variants.append(("one process, no navigation (raw poses)", reference_planes(robots, seconds, False)))
     variants += [(f"flood through {f['workers']} worker processes", f["planes"]) for f in flood]
@@ -311,7 +311,7 @@ def main() -> int:
     for flood, real in rows:
         da, dd = plane_diff(refs[flood["nav"]], flood["planes"])
         name = "0 (map thread in the base process)" if flood["workers"] == 0 else f"{flood['workers']} processes"
-        nav = "off" if not flood["nav"] else ("every scan, base" if flood["workers"] == 0 else "every 3rd, workers")
+        nav = "off" if not flood["nav"] else ("every scan, base" if flood["workers"] == 0 else "every 6th, workers")
         lines.append(
             f"| {name} | {nav} | {flood['rate']:.0f} | {flood['base_cpu_s']:.1f} + {flood['worker_cpu_s']:.1f} "
             f"({flood['pub_cpu_s']:.1f}) | "

@@ -11,12 +11,12 @@ the map is used a few scans later than in one process.
 
 **Registration stride.** Consecutive scans of a robot at 30 Hz overlap almost fully and its correction (the offset
 from the raw fix, the heading correction) changes slowly, so a robot's scan is registered (``RobotNav.update``)
-only when at least ``register_every_s`` of capture time passed since its last registration (default 0.09 s: every
-third scan at 30 Hz, every scan at 10 Hz and slower). A scan in between is placed with the latest correction:
-the raw position plus the latest offset from the raw fix (without a fix: the latest corrected position moved on at
-the velocity of the last two registered positions, at most :data:`EXTRAPOLATE_S` apart) and the raw heading plus
-the latest heading correction; it is placed (mapped) when the latest estimate was. Every cloud still reaches the
-map.
+only when at least ``register_every_s`` of capture time passed since its last registration (default 0.19 s: every
+sixth scan at 30 Hz, every second at 10 Hz; 5 Hz, the rate the base publishes each robot's estimate at). A scan
+in between is placed with the latest correction: the raw position plus the latest offset from the raw fix (without
+a fix: the latest corrected position moved on at the velocity of the last two registered positions, at most
+:data:`EXTRAPOLATE_S` apart) and the raw heading plus the latest heading correction; it is placed (mapped) when the
+latest estimate was. Every cloud still reaches the map.
 
 **State across workers.** Each observation message carries the robot's navigation state after the last cloud it
 commits (:meth:`WorkerNav.snapshot`: ``RobotNav.snapshot()`` and the stride's bookkeeping, encoded by
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 #: The merger publishes its planes to the workers at most this often after a change, seconds.
 LANDMARKS_EVERY_S = 0.1
 #: Register a robot's scan when at least this much capture time passed since its last registration, seconds.
-REGISTER_EVERY_S = 0.09
+REGISTER_EVERY_S = 0.19
 #: Without a fix, scans between registrations move on at the velocity of the last two registered positions when
 #: these are at most this far apart (capture time, seconds); otherwise they keep the latest position.
 EXTRAPOLATE_S = 0.5
