@@ -265,22 +265,22 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     _subtract_lines(P, line, A)
     # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
     sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
-    lv = np.empty(3 * n)
+    lv = np.empty(2 * n)  # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2)
     for t in range(n):
-        lv[t] = max(A[R - sp, t], 0.5)
-        lv[n + t] = max(A[R, t], 0.5)
-        lv[2 * n + t] = max(A[R + sp, t], 0.5)
-    lv = np.log(lv)
+        am = max(A[R - sp, t], 0.5)
+        a0 = max(A[R, t], 0.5)
+        ap = max(A[R + sp, t], 0.5)
+        lv[t] = am / ap
+        lv[n + t] = (am / a0) * (ap / a0)
+    lv = np.log(lv)  # (two logarithms a column, not three)
     c = np.empty(n)
     sigma = np.empty(n)
     ok = np.empty(n, np.bool_)
     for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
+        odd = lv[t]
+        den = lv[n + t]
         curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * sp * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        c[t] = R + (min(max(0.5 * sp * odd / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
         sigma[t] = sp / math.sqrt(-den) if curved else np.inf
         ok[t] = curved and sigma[t] >= min_sig and sigma[t] <= max_sig
         if saturated[t]:
@@ -373,7 +373,10 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     ex = np.empty(2 * n, np.float32)
     for t in range(n):
         g2[t] = np.exp(np.float32(-2.0 * inv2[t]))
+    in_window = np.flatnonzero(window)
     for _ in range(iterations):
+        lo = m  # the rows any Gaussian weight reaches
+        hi = 0
         for t in range(n):
             s0[t] = 0.0
             s1[t] = 0.0
@@ -384,21 +387,30 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             d0 = q0[t] - c[t] if gauss else 0.0
             ex[t] = -(d0 * d0) * inv2[t]
             ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
+            lo = min(lo, q0[t] if gauss else m)
+            hi = max(hi, q1[t] if gauss else 0)
         ex = np.exp(ex)
         for t in range(n):
             w[t] = ex[t]
             ratio[t] = ex[n + t]
-        for q in range(m):
+        for q in range(lo, hi):  # every column with Gaussian weights (the window columns' sums are taken below)
             aq = A[q]
             for t in range(n):
                 inr = (q >= q0[t]) & (q < q1[t])
                 d = q - c[t]
-                wt = min(max(hs[t] - abs(d), 0.0), 1.0) if window[t] else w[t]
-                wa = wt * aq[t]
+                wa = w[t] * aq[t]
                 s0[t] += wa if inr else 0.0
                 s1[t] += wa * d if inr else 0.0
                 w[t] = w[t] * ratio[t] if inr else w[t]
                 ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
+        for t in in_window:  # (few: saturated and flat-topped profiles)
+            s0[t] = 0.0
+            s1[t] = 0.0
+            for q in range(q0[t], q1[t]):
+                d = q - c[t]
+                wa = min(max(hs[t] - abs(d), 0.0), 1.0) * A[q, t]
+                s0[t] += wa
+                s1[t] += wa * d
         for t in range(n):
             if s0[t] != 0.0:
                 step = gain[t] * s1[t] / s0[t]
