@@ -265,7 +265,9 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     _subtract_lines(P, line, A)
     # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
     sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
-    lv = np.empty(2 * n)  # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2)
+    # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2), in float32 (the centroid
+    # iterations take the start to 1e-7 px; sigma, the width limits' and the quality's, to 1e-5 of itself)
+    lv = np.empty(2 * n, np.float32)
     for t in range(n):
         am = max(A[R - sp, t], 0.5)
         a0 = max(A[R, t], 0.5)
@@ -277,8 +279,8 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     sigma = np.empty(n)
     ok = np.empty(n, np.bool_)
     for t in range(n):
-        odd = lv[t]
-        den = lv[n + t]
+        odd = float(lv[t])
+        den = float(lv[n + t])
         curved = den < -1e-6
         c[t] = R + (min(max(0.5 * sp * odd / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
         sigma[t] = sp / math.sqrt(-den) if curved else np.inf
@@ -359,8 +361,9 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     """Centroid iterations on the background-free profiles ``A`` (m, n) from the centres ``c`` (n,) (window
     rows, updated in place): where ``window``, the plain centroid with weights 1 within ``hs - 1`` rows of the
     centre, 0 beyond ``hs`` and linear between; elsewhere Gaussian weights ``exp(-d^2 inv2)`` out to ``reach``
-    rows (by recurrence: two ``exp`` per column and iteration, in float32: a third of float64's time, and the
-    weights' shape, hence the centre, to about 1e-6 of a px), the step times ``gain``. A step is at most a row;
+    rows (by recurrence from the first row's, taken as 1: the centroid takes only their ratios; one ``exp`` per
+    column and iteration, in float32: a third of float64's time, and the weights' shape, hence the centre, to
+    about 1e-6 of a px), the step times ``gain``. A step is at most a row;
     a column whose centre is not finite stays so."""
     m, n = A.shape
     q0 = np.empty(n, np.int64)
@@ -370,7 +373,7 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     g2 = np.empty(n)
     s0 = np.empty(n)
     s1 = np.empty(n)
-    ex = np.empty(2 * n, np.float32)
+    ex = np.empty(n, np.float32)
     for t in range(n):
         g2[t] = np.exp(np.float32(-2.0 * inv2[t]))
     in_window = np.flatnonzero(window)
@@ -385,14 +388,13 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
             q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
             d0 = q0[t] - c[t] if gauss else 0.0
-            ex[t] = -(d0 * d0) * inv2[t]
-            ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
+            ex[t] = -(2.0 * d0 + 1.0) * inv2[t]
             lo = min(lo, q0[t] if gauss else m)
             hi = max(hi, q1[t] if gauss else 0)
         ex = np.exp(ex)
         for t in range(n):
-            w[t] = ex[t]
-            ratio[t] = ex[n + t]
+            w[t] = 1.0  # the first row's weight: the centroid takes the weights' ratios only
+            ratio[t] = ex[t]
         for q in range(lo, hi):  # every column with Gaussian weights (the window columns' sums are taken below)
             aq = A[q]
             for t in range(n):
