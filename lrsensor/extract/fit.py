@@ -267,14 +267,14 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2), in float32 (the centroid
     # iterations take the start to 1e-7 px; sigma, the width limits' and the quality's, to 1e-5 of itself)
+    # (scalar logf: numpy's logarithm of a float32 array would compile its ufunc loop for that type too)
     lv = np.empty(2 * n, np.float32)
     for t in range(n):
         am = max(A[R - sp, t], 0.5)
         a0 = max(A[R, t], 0.5)
         ap = max(A[R + sp, t], 0.5)
-        lv[t] = am / ap
-        lv[n + t] = (am / a0) * (ap / a0)
-    lv = np.log(lv)  # (two logarithms a column, not three)
+        lv[t] = math.log(np.float32(am / ap))
+        lv[n + t] = math.log(np.float32((am / a0) * (ap / a0)))
     c = np.empty(n)
     sigma = np.empty(n)
     ok = np.empty(n, np.bool_)
@@ -375,7 +375,7 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     s1 = np.empty(n)
     ex = np.empty(n, np.float32)
     for t in range(n):
-        g2[t] = np.exp(np.float32(-2.0 * inv2[t]))
+        g2[t] = math.exp(np.float32(-2.0 * inv2[t]))
     in_window = np.flatnonzero(window)
     for _ in range(iterations):
         lo = m  # the rows any Gaussian weight reaches
@@ -388,10 +388,9 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
             q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
             d0 = q0[t] - c[t] if gauss else 0.0
-            ex[t] = -(2.0 * d0 + 1.0) * inv2[t]
+            ex[t] = math.exp(np.float32(-(2.0 * d0 + 1.0) * inv2[t]))  # (scalar expf, as the logarithms)
             lo = min(lo, q0[t] if gauss else m)
             hi = max(hi, q1[t] if gauss else 0)
-        ex = np.exp(ex)
         for t in range(n):
             w[t] = 1.0  # the first row's weight: the centroid takes the weights' ratios only
             ratio[t] = ex[t]
