@@ -586,6 +586,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
+    if not fit_me.any():  # clear water, stripes apart: the common fit stands
+        return vv.copy(), sig.copy(), np.zeros(n, np.bool_)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     v0, s0, f0, rss0, _d0, st0 = _rounds(
@@ -604,6 +606,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 a_sum += st0[0, j]
                 g_sum += st0[1, j]
         strong[t] = a_sum > 0.0 and g_sum >= RAMP_MIN_STEP * a_sum
+    if not strong.any():  # no glow strong enough for its ramp: the step model stands
+        return v0, s0, f0
     # the ramp's F test, first per stretch: the ramp fitted at the strong points of every RAMP_EVERY-th column (both
     # lasers' points of a column together: close stripes are fitted in pairs); then at every strong point whose
     # stretch's sampled F statistic comes within RAMP_MARGIN of the bar, and taken where the F statistic pooled over
