@@ -85,11 +85,8 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   Gaussians along the rows by ratios (one exponential a row was half the time), Cholesky solves, no allocation per
   fit, the steps stopped where they settle (:data:`STOP_PX`), the rounds' refits of stripes beside another one one
   step from their last fit, the ramp decided per stretch. The fits run only where a glow shows or blurred
-  stripes overlap; in clear water the stage is the test alone, and the test is cheap there too: the other stripe's
-  Gaussian by ratios along the trigger's rows (an exponential a row was two thirds of the test), and the pools
-  counted one by one, with the steps' colour, only where counts along the columns leave a majority above the
-  threshold possible (a step of noise passes the lowest threshold at about 15 % of the points). On the simulator's
-  named scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
+  stripes overlap; in clear water the stage is the test alone, about 0.4 ms a frame. On the simulator's named
+  scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
   ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame. Without the colour test and the
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
@@ -401,26 +398,6 @@ def _fit_into(  # type: ignore[no-untyped-def]
     return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
-@inline
-def _raw_steps(image, col, rc, side, kt, out):  # type: ignore[no-untyped-def]
-    """The glow trigger's step of one point in green, red and blue (nothing subtracted), into ``out`` (3,): twice the
-    outer less the inner rows at ``kt`` rows from the centre row ``rc`` less that at ``2 kt + 1`` rows,
-    :data:`TRIGGER_ROWS` rows each, the glow on the ``side`` (+-1) of larger rows."""
-    d_g = 0.0
-    d_r = 0.0
-    d_b = 0.0
-    for k0, wgt in ((kt, 2.0), (2 * kt + 1, -1.0)):
-        for i in range(TRIGGER_ROWS):
-            for sgn in (1, -1):
-                rr = rc + sgn * side * (k0 + i)
-                d_g += wgt * sgn * float(image[rr, col, 1])
-                d_r += wgt * sgn * float(image[rr, col, 2])
-                d_b += wgt * sgn * float(image[rr, col, 0])
-    out[0] = d_g / TRIGGER_ROWS
-    out[1] = d_r / TRIGGER_ROWS
-    out[2] = d_b / TRIGGER_ROWS
-
-
 @njit
 def _neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
     """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
@@ -493,69 +470,57 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # within POOL_COLS columns
     nb0 = np.full(n, -1, np.int64)
     diff = np.zeros(n)
-    kt_max = 0
-    for t in range(n):
-        kt_max = max(kt_max, kt[t] if cand[t] else 0)
-    g_nb = np.empty(2 * (2 * kt_max + TRIGGER_ROWS) + 1)  # the other stripe's Gaussian at rows rc -+ that
+    diff_rgb = np.zeros((3, n))  # the raw step in green, red and blue (nothing subtracted): the glow's colour
     for t in range(n):
         if not cand[t]:
             continue
         nb = _neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
         nb0[t] = nb
-        span = 2 * kt[t] + TRIGGER_ROWS
-        if nb >= 0:
-            _gauss_rows(g_nb, rc[t] - span, 2 * span + 1, vv[nb], 1.0 / max(sig[nb], lo_sig))
         d = 0.0
+        d_g = 0.0
+        d_r = 0.0
+        d_b = 0.0
         for k0, wgt in ((kt[t], 2.0), (2 * kt[t] + 1, -1.0)):
             for i in range(TRIGGER_ROWS):
                 for sgn in (1, -1):
-                    off = sgn * int(side[t]) * (k0 + i)
-                    val = float(image[rc[t] + off, cols[t], 1])
+                    rr = rc[t] + sgn * int(side[t]) * (k0 + i)
+                    val = float(image[rr, cols[t], 1])
+                    d_g += wgt * sgn * val
                     if nb >= 0:
-                        val -= amp[nb] * g_nb[span + off]
+                        e = (rr - vv[nb]) / max(sig[nb], lo_sig)
+                        val -= amp[nb] * math.exp(-0.5 * e * e)
                     d += wgt * sgn * val
+                    d_r += wgt * sgn * float(image[rr, cols[t], 2])
+                    d_b += wgt * sgn * float(image[rr, cols[t], 0])
         diff[t] = d / TRIGGER_ROWS
-    # the pooled test: first an upper bound of the steps above the threshold at every point from counts of the
-    # steps above the lowest threshold of any point (its noise term over a whole pool), summed along the columns:
-    # the median of few points exceeds it in clear water (a step of noise: 15 % of the points), so the pools are
-    # counted one by one, and the steps' colour summed, only where a majority of steps could be above
-    pool_n = 2 * POOL_COLS + 1
-    counts = np.zeros((2, n_l, w + 1), np.int64)  # candidates, steps above the lowest threshold: before column c
-    for li in range(n_l):
-        # (less a margin for the rounding of the threshold's own arithmetic)
-        low = TRIGGER_SNR * noise_l[li] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / pool_n) * (1 - 1e-9)
-        for cc in range(w):
-            j = at[li, cc]
-            is_c = j >= 0 and cand[j]
-            counts[0, li, cc + 1] = counts[0, li, cc] + is_c
-            counts[1, li, cc + 1] = counts[1, li, cc] + (is_c and diff[j] > low)
-    diff_rgb = np.full((3, n), np.nan)  # the raw step in green, red and blue (nothing subtracted): the glow's colour
+        diff_rgb[0, t] = d_g / TRIGGER_ROWS
+        diff_rgb[1, t] = d_r / TRIGGER_ROWS
+        diff_rgb[2, t] = d_b / TRIGGER_ROWS
     glowing = np.zeros(n, np.bool_)
     for t in range(n):
         if not cand[t]:
             continue
         lo_c = max(cols[t] - POOL_COLS, 0)
         hi_c = min(cols[t] + POOL_COLS + 1, w)
-        cnt = counts[0, laser[t], hi_c] - counts[0, laser[t], lo_c]
-        if 2 * (counts[1, laser[t], hi_c] - counts[1, laser[t], lo_c]) <= cnt:
-            continue
-        # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows (of the band's
-        # pixel noise: the flanks' spread about the common fit's line holds the glow's own step)
-        noise = noise_l[laser[t]] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
-        thr = max(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[t])
-        above = 0
+        cnt = 0
         sum_g = 0.0
         sum_r = 0.0
         sum_b = 0.0
         for cc in range(lo_c, hi_c):
             j = at[laser[t], cc]
             if j >= 0 and cand[j]:
-                above += diff[j] > thr
-                if math.isnan(diff_rgb[0, j]):
-                    _raw_steps(image, cols[j], rc[j], int(side[j]), kt[j], diff_rgb[:, j])
+                cnt += 1
                 sum_g += diff_rgb[0, j]
                 sum_r += diff_rgb[1, j]
                 sum_b += diff_rgb[2, j]
+        # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows (of the band's
+        # pixel noise: the flanks' spread about the common fit's line holds the glow's own step)
+        noise = noise_l[laser[t]] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
+        thr = max(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[t])
+        above = 0
+        for cc in range(lo_c, hi_c):
+            j = at[laser[t], cc]
+            above += j >= 0 and cand[j] and diff[j] > thr
         # the median step exceeds the threshold, and the pooled raw step is the laser's colour (green over red and
         # blue as the stripe's colour test asks: a step of the wall's or the water's colour is not a glow; raw, since
         # a neighbour stripe close by is subtracted in green only, and it has the laser's colour too)
@@ -586,14 +551,31 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
-    if not fit_me.any():  # clear water, stripes apart: the common fit stands
-        return vv.copy(), sig.copy(), np.zeros(n, np.bool_)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     v0, s0, f0, rss0, _d0, st0 = _rounds(
-        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, False,
-    )  # fmt: skip
+        image,
+        cols,
+        laser,
+        at,
+        vv,
+        sig,
+        vv,
+        sig,
+        nb_ok,
+        nb0,
+        fit_me,
+        glowing,
+        side,
+        rc,
+        hw,
+        kt,
+        sg0,
+        lo_sig,
+        max_sig,
+        sat_dn,
+        False,
+    )
     strong = np.zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -606,8 +588,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 a_sum += st0[0, j]
                 g_sum += st0[1, j]
         strong[t] = a_sum > 0.0 and g_sum >= RAMP_MIN_STEP * a_sum
-    if not strong.any():  # no glow strong enough for its ramp: the step model stands
-        return v0, s0, f0
     # the ramp's F test, first per stretch: the ramp fitted at the strong points of every RAMP_EVERY-th column (both
     # lasers' points of a column together: close stripes are fitted in pairs); then at every strong point whose
     # stretch's sampled F statistic comes within RAMP_MARGIN of the bar, and taken where the F statistic pooled over
