@@ -404,14 +404,14 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
                 s1[t] += wa * d if inr else 0.0
                 w[t] = w[t] * ratio[t] if inr else w[t]
                 ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
-        for t in in_window:  # (few: saturated and flat-topped profiles)
-            s0[t] = 0.0
-            s1[t] = 0.0
-            for q in range(q0[t], q1[t]):
-                d = q - c[t]
-                wa = min(max(hs[t] - abs(d), 0.0), 1.0) * A[q, t]
-                s0[t] += wa
-                s1[t] += wa * d
+        for tw in in_window:  # (few: saturated and flat-topped profiles)
+            s0[tw] = 0.0
+            s1[tw] = 0.0
+            for q in range(q0[tw], q1[tw]):
+                d = q - c[tw]
+                wa = min(max(hs[tw] - abs(d), 0.0), 1.0) * A[q, tw]
+                s0[tw] += wa
+                s1[tw] += wa * d
         for t in range(n):
             if s0[t] != 0.0:
                 step = gain[t] * s1[t] / s0[t]
