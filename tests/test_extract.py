@@ -468,17 +468,28 @@ def _assert_fit_matches_reference(
 
 
 def test_kernels_sort_and_take_medians_as_numpy_does() -> None:
-    """The kernels' shell sort orders values as ``np.sort`` does, NaN last, and their median is numba's
-    ``np.median`` (on values without NaN, numpy's) to the bit."""
+    """The kernels' shell sort orders values as ``np.sort`` does, NaN last, and their median (a selection) is
+    numba's ``np.median`` (on values without NaN, numpy's) to the bit: the middle of that order, ties, reversed
+    and sorted inputs, NaN among the values included."""
     from lrsensor.extract.sorting import median, sorted_copy
 
+    def middle(a: np.ndarray) -> float:
+        srt = np.sort(a)  # NaN last
+        h = a.size // 2
+        return float(srt[h] if a.size % 2 else (srt[h - 1] + srt[h]) / 2)
+
     rng = np.random.default_rng(2)
-    for n in (1, 2, 7, 48, 1000, 5001):
+    for n in (1, 2, 3, 7, 48, 1000, 5001):
         a = rng.normal(size=n).round(1)
         np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
         assert median(a) == np.median(a)
-        a[rng.random(n) < 0.2] = np.nan
-        np.testing.assert_array_equal(sorted_copy(a), np.sort(a))
+        for b in (np.sort(a), np.sort(a)[::-1].copy(), a.round(0)):
+            assert median(b) == np.median(b)
+        for share in (0.2, 0.5, 0.8):
+            b = a.copy()
+            b[rng.random(n) < share] = np.nan
+            np.testing.assert_array_equal(sorted_copy(b), np.sort(b))
+            np.testing.assert_equal(median(b), middle(b))
 
 
 def test_fit_equals_the_reference_for_every_kind_of_profile() -> None:

@@ -77,10 +77,21 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     (k_rows, N) float64.
 
     Three ``exp`` per column: each column's Gaussian by recurrence from the first row where it exceeds ``e^-30``
-    of its peak (a start further out could underflow to zero and stay there)."""
+    of its peak (a start further out could underflow to zero and stay there); none where nothing is subtracted."""
     n = cols.size
     W = np.empty((k_rows, n), np.uint8)
     gather_green(image, cols, top, W)
+    P = np.empty((k_rows, n))
+    nb_any = False
+    for t in range(n):
+        nb_any |= amp[t] != 0.0
+    if not nb_any:  # nothing to subtract (the first fit of every point)
+        for q in range(k_rows):
+            wq = W[q]
+            pq = P[q]
+            for t in range(n):
+                pq[t] = wq[t]
+        return P
     qs = np.empty(n, np.int64)
     ex = np.empty(2 * n)
     for t in range(n):
@@ -93,7 +104,6 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     ex = np.exp(ex)
     w = ex[:n].copy()
     ratio = ex[n:].copy()
-    P = np.empty((k_rows, n))
     for q in range(k_rows):
         wq = W[q]
         pq = P[q]
@@ -217,8 +227,7 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
         has = math.isfinite(nb_v[t])
         amp_nb[t] = nb_a[t] if has else 0.0
         inv_nb[t] = 0.5 / (nb_s[t] * nb_s[t]) if has else 1.0
-        g2_nb[t] = -2.0 * inv_nb[t]
-    g2_nb = np.exp(g2_nb)
+        g2_nb[t] = math.exp(-2.0 * inv_nb[t]) if has else 1.0
     # 1. re-centre on the integer peak of rows - e ... rows + e: the middle of its clipped run, else the first
     # maximum
     top = np.empty(n, np.int64)
@@ -256,22 +265,24 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     _subtract_lines(P, line, A)
     # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
     sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
-    lv = np.empty(3 * n)
+    # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2), in float32 (the centroid
+    # iterations take the start to 1e-7 px; sigma, the width limits' and the quality's, to 1e-5 of itself)
+    # (scalar logf: numpy's logarithm of a float32 array would compile its ufunc loop for that type too)
+    lv = np.empty(2 * n, np.float32)
     for t in range(n):
-        lv[t] = max(A[R - sp, t], 0.5)
-        lv[n + t] = max(A[R, t], 0.5)
-        lv[2 * n + t] = max(A[R + sp, t], 0.5)
-    lv = np.log(lv)
+        am = max(A[R - sp, t], 0.5)
+        a0 = max(A[R, t], 0.5)
+        ap = max(A[R + sp, t], 0.5)
+        lv[t] = math.log(np.float32(am / ap))
+        lv[n + t] = math.log(np.float32((am / a0) * (ap / a0)))
     c = np.empty(n)
     sigma = np.empty(n)
     ok = np.empty(n, np.bool_)
     for t in range(n):
-        ym = lv[t]
-        y0 = lv[n + t]
-        yp = lv[2 * n + t]
-        den = ym - 2.0 * y0 + yp
+        odd = float(lv[t])
+        den = float(lv[n + t])
         curved = den < -1e-6
-        c[t] = R + (min(max(0.5 * sp * (ym - yp) / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
+        c[t] = R + (min(max(0.5 * sp * odd / (den if curved else -1.0), -1.0), 1.0) if curved else 0.0)
         sigma[t] = sp / math.sqrt(-den) if curved else np.inf
         ok[t] = curved and sigma[t] >= min_sig and sigma[t] <= max_sig
         if saturated[t]:
@@ -350,7 +361,9 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     """Centroid iterations on the background-free profiles ``A`` (m, n) from the centres ``c`` (n,) (window
     rows, updated in place): where ``window``, the plain centroid with weights 1 within ``hs - 1`` rows of the
     centre, 0 beyond ``hs`` and linear between; elsewhere Gaussian weights ``exp(-d^2 inv2)`` out to ``reach``
-    rows (by recurrence: two ``exp`` per column and iteration), the step times ``gain``. A step is at most a row;
+    rows (by recurrence from the first row's, taken as 1: the centroid takes only their ratios; one ``exp`` per
+    column and iteration, in float32: a third of float64's time, and the weights' shape, hence the centre, to
+    about 1e-6 of a px), the step times ``gain``. A step is at most a row;
     a column whose centre is not finite stays so."""
     m, n = A.shape
     q0 = np.empty(n, np.int64)
@@ -360,11 +373,13 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     g2 = np.empty(n)
     s0 = np.empty(n)
     s1 = np.empty(n)
-    ex = np.empty(2 * n)
+    ex = np.empty(n, np.float32)
     for t in range(n):
-        g2[t] = -2.0 * inv2[t]
-    g2 = np.exp(g2)
+        g2[t] = math.exp(np.float32(-2.0 * inv2[t]))
+    in_window = np.flatnonzero(window)
     for _ in range(iterations):
+        lo = m  # the rows any Gaussian weight reaches
+        hi = 0
         for t in range(n):
             s0[t] = 0.0
             s1[t] = 0.0
@@ -373,23 +388,30 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
             q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
             d0 = q0[t] - c[t] if gauss else 0.0
-            ex[t] = -(d0 * d0) * inv2[t]
-            ex[n + t] = -(2.0 * d0 + 1.0) * inv2[t]
-        ex = np.exp(ex)
+            ex[t] = math.exp(np.float32(-(2.0 * d0 + 1.0) * inv2[t]))  # (scalar expf, as the logarithms)
+            lo = min(lo, q0[t] if gauss else m)
+            hi = max(hi, q1[t] if gauss else 0)
         for t in range(n):
-            w[t] = ex[t]
-            ratio[t] = ex[n + t]
-        for q in range(m):
+            w[t] = 1.0  # the first row's weight: the centroid takes the weights' ratios only
+            ratio[t] = ex[t]
+        for q in range(lo, hi):  # every column with Gaussian weights (the window columns' sums are taken below)
             aq = A[q]
             for t in range(n):
                 inr = (q >= q0[t]) & (q < q1[t])
                 d = q - c[t]
-                wt = min(max(hs[t] - abs(d), 0.0), 1.0) if window[t] else w[t]
-                wa = wt * aq[t]
+                wa = w[t] * aq[t]
                 s0[t] += wa if inr else 0.0
                 s1[t] += wa * d if inr else 0.0
                 w[t] = w[t] * ratio[t] if inr else w[t]
                 ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
+        for tw in in_window:  # (few: saturated and flat-topped profiles)
+            s0[tw] = 0.0
+            s1[tw] = 0.0
+            for q in range(q0[tw], q1[tw]):
+                d = q - c[tw]
+                wa = min(max(hs[tw] - abs(d), 0.0), 1.0) * A[q, tw]
+                s0[tw] += wa
+                s1[tw] += wa * d
         for t in range(n):
             if s0[t] != 0.0:
                 step = gain[t] * s1[t] / s0[t]
