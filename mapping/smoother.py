@@ -110,6 +110,15 @@ def _record(nav: RobotNav, scan: _Scan, est: NavEstimate) -> None:
     scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
 
 
+def _refilter(nav: RobotNav, scans: list[_Scan], landmarks: PlaneLandmarks) -> None:
+    """Run ``nav`` over ``scans`` in order against ``landmarks``, keeping in each scan the state before its update and
+    what the update did (:func:`_record`)."""
+    for s in scans:
+        s.before = nav.snapshot()
+        est = nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
+        _record(nav, s, est)
+
+
 class SmoothJob:
     """One robot's smoothing run, detached from its live filter: the window's scans (copies) re-filtered from the
     state before the first re-filtered one by a filter of its own, then smoothed backward. :meth:`run` touches
@@ -134,10 +143,7 @@ class SmoothJob:
         nav = RobotNav(self.robot, self.cfg)
         nav.joined = self.joined
         nav.restore(self.scans[self.start].before)
-        for s in self.scans[self.start :]:
-            s.before = nav.snapshot()
-            est = nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
-            _record(nav, s, est)
+        _refilter(nav, self.scans[self.start :], landmarks)
         xs = RobotSmoother._rts(self.scans)
         for s, x in zip(self.scans, xs, strict=True):
             if x is None or s.est is None or s.est.pose is None:
@@ -157,11 +163,8 @@ class SmoothJob:
         nav = self._nav
         if nav is None or self.end is None:
             return
-        for s in newer:
-            s.before = nav.snapshot()
-            est = nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
-            _record(nav, s, est)
-            self.scans.append(s)
+        _refilter(nav, newer, landmarks)
+        self.scans.extend(newer)
         self.end = nav.snapshot()
 
 
@@ -188,7 +191,7 @@ class RobotSmoother:
         keep = subsample(pts[np.all(np.isfinite(pts), axis=1)], self.scfg.rerun_points).astype(np.float32)
         scan = _Scan(int(t_ns), raw, keep, self.nav.snapshot())
         est = self.nav.update(t_ns, raw, pts, landmarks)
-        self._record(scan, est)
+        _record(self.nav, scan, est)
         if est.motion == "start":
             self._first_ns = scan.t_ns
             self.start_map_ne = (float(self.nav.x[0]), float(self.nav.x[1]))
@@ -196,9 +199,6 @@ class RobotSmoother:
             self.scans.append(scan)
             self._trim()
         return est
-
-    def _record(self, scan: _Scan, est: NavEstimate) -> None:
-        _record(self.nav, scan, est)
 
     def _trim(self) -> None:
         newest = self.scans[-1].t_ns
@@ -259,10 +259,7 @@ class RobotSmoother:
             elif s.t_ns > job.scans[-1].t_ns:
                 newer.append(s)
         self.nav.restore(job.end)
-        for s in newer:
-            s.before = self.nav.snapshot()
-            est = self.nav.update(s.t_ns, s.raw, s.points.astype(np.float64), landmarks)
-            self._record(s, est)
+        _refilter(self.nav, newer, landmarks)
         if job.start_map_ne is not None:
             self.start_map_ne = job.start_map_ne
         return job.revised
