@@ -1,6 +1,8 @@
 """Benchmark of laser-aided navigation (issue 27): the map trusting the poses vs the map with corrected poses.
 
     python benchmarks/bench_nav.py [--seconds 90] [--seed 1] [--acceptance 24] [--out benchmarks/results/nav.md]
+    python -m benchmarks.bench_nav --modes '' --realtime drift      # the map thread's hold, fed in real time
+    python -m benchmarks.bench_nav --modes '' --replay-acceptance 24  # a recorded acceptance run per variant
 
 A simulated 3-robot dive in the tank (``mapping.synth``: ``three_rov_plans``, both laser fans ray-traced at
 10 Hz, 400 rays per laser, 2 mm range noise) with each navigation of ``lrsensor.sim.navigation``:
@@ -370,6 +372,60 @@ def replay_acceptance(recording: Path, nav: str = "filter", setup: Any = None) -
     }
 
 
+def run_realtime(mode: str, seconds: float, seed: int) -> str:
+    """The simulated dive of ``mode`` fed to ``--nav on``'s filter and smoother in real time (each frame at its
+    capture time), the smoother's runs truly on a thread of their own as the base station runs them: the map
+    thread's longest hold by a run (start and hand-over), its longest step per frame, and the served map's score.
+    Returns a markdown table."""
+    scene = tank()
+    frames = simulate_dive(
+        scene, three_rov_plans(), duration_s=seconds, rate_hz=10.0, n_rays=400, seed=seed, navigation=MODES[mode]
+    )
+    hits = hit_faces(scene, frames)
+    run = replay_dive(
+        frames, navigate=True, nav_cfg=SMOOTHED_NAV, smoother=SmootherConfig(), background=True, realtime=True
+    )
+    score = score_map(run.planes(), scene, hits)
+    seen = [f for f in score.faces if f.hit]
+    during = run.smooth_hold_s[:-1] if len(run.smooth_hold_s) > 1 else run.smooth_hold_s
+    return "\n".join(
+        [
+            "| dive | faces seen / recovered (2 deg, 5 cm) | duplicates | spurious | smoother runs | longest "
+            "map-thread hold by a run during the dive (ms) | longest map-thread step per frame (ms) | last run "
+            "at the end (s) |",
+            "|---|---|---|---|---|---|---|---|",
+            f"| {mode}, {seconds:g} s, seed {seed} | {len(seen)} / {len(seen) - len(score.missing())} | "
+            f"{len(score.duplicates())} | {len(score.spurious)} | {len(run.smooth_cost_s)} | "
+            f"{1e3 * max(during, default=math.nan):.0f} | {1e3 * max(run.step_s, default=math.nan):.0f} | "
+            f"{_f(run.smooth_hold_s[-1] if run.smooth_hold_s else math.nan, '.1f')} |",
+        ]
+    )
+
+
+#: The variants :func:`run_replays` replays a recorded acceptance run with (name -> (``--nav``, setup)).
+REPLAY_VARIANTS: dict[str, tuple[str, Any]] = {"`--nav off`": ("off", None), "`--nav filter`": ("filter", None)}
+REPLAY_VARIANTS["`--nav on`"] = ("on", None)
+
+
+def run_replays(seconds: float, seed: int) -> str:
+    """One acceptance run through processes (``--nav on``) recorded with ``lrsensor record``, then replayed
+    in-process per variant of :data:`REPLAY_VARIANTS` (:func:`replay_acceptance`). Returns a markdown table."""
+    import tempfile
+
+    lines = [
+        f"| variant | {seconds:g} s seed {seed}: faces 2 deg, 5 cm / 5 deg, 15 cm, spurious | duplicates |",
+        "|---|---|---|",
+    ]
+    with tempfile.TemporaryDirectory(prefix="nav-replays-") as tmp:
+        rec = Path(tmp) / "acceptance.mcap"
+        run_acceptance(Path(tmp), seconds=seconds, seed=seed, nav="on", record=rec)
+        for name, (nav, setup) in REPLAY_VARIANTS.items():
+            r = replay_acceptance(rec, nav=nav, setup=setup)
+            lines.append(f"| {name} | {r['matched']} / {r['loose']}, {r['spurious']} | {r['duplicates']} |")
+            print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
 def acceptance_table(rows: list[tuple[str, Acceptance]]) -> str:
     """The markdown table of acceptance runs."""
     lines = [
@@ -426,6 +482,19 @@ def main() -> int:
         metavar="S",
         help="also run the acceptance check through processes (S-second dives; lrsensor base --nav off/filter/on)",
     )
+    ap.add_argument(
+        "--realtime",
+        default="",
+        metavar="MODE",
+        help="also feed MODE's dive to --nav on in real time (smoother truly in the background): map-thread hold",
+    )
+    ap.add_argument(
+        "--replay-acceptance",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="also record one S-second acceptance run and replay it in-process per variant (off, filter, on)",
+    )
     args = ap.parse_args()
     open3d()  # import once, outside the timings
     load0 = os.getloadavg()[0]
@@ -440,6 +509,18 @@ def main() -> int:
             with tempfile.TemporaryDirectory(prefix="nav-acceptance-") as tmp:
                 accepted.append((nav, run_acceptance(Path(tmp), seconds=args.acceptance, seed=args.seed, nav=nav)))
             print(acceptance_table(accepted[-1:]), flush=True)
+    extra: list[str] = []
+    if args.realtime:
+        extra += ["### Fed in real time", "", f"`python -m benchmarks.bench_nav --modes '' --seconds {args.seconds:g} "
+                  f"--seed {args.seed} --realtime {args.realtime}`", "", run_realtime(args.realtime, args.seconds,
+                  args.seed), ""]  # fmt: skip
+        print("\n".join(extra), flush=True)
+    if args.replay_acceptance > 0:
+        table_r = run_replays(args.replay_acceptance, args.seed)
+        cmd = f"--modes '' --seed {args.seed} --replay-acceptance {args.replay_acceptance:g}"
+        extra += ["### A recorded acceptance run replayed per variant", "", f"`python -m benchmarks.bench_nav {cmd}`",
+                  "", table_r, ""]  # fmt: skip
+        print(table_r, flush=True)
     load1 = os.getloadavg()[0]
     corrected = [r for r in rows if r.way != "trusted" and math.isfinite(r.cost_ms_mean)]
     cost = max((r.cost_ms_mean for r in corrected), default=math.nan)
@@ -483,9 +564,22 @@ def main() -> int:
             if accepted
             else []
         )
+        + extra
     )
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if not rows and not accepted and args.out.exists():
+        # only the extra sections ran: they replace their own sections of the results, the rest stays
+        old = args.out.read_text()
+        for section in "\n".join(extra).split("### ")[1:]:
+            head = section.split("\n", 1)[0]
+            start = old.find("### " + head)
+            if start >= 0:
+                end = old.find("\n### ", start + 4)
+                old = old[:start] + "### " + section.rstrip() + "\n" + (old[end:] if end >= 0 else "")
+            else:
+                old = old.rstrip() + "\n\n### " + section.rstrip() + "\n"
+        text = old
     args.out.write_text(text)
     return 0
 

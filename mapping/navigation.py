@@ -38,6 +38,7 @@ Everything here is numpy: the problem is three unknowns with a Kalman prior, sol
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -64,6 +65,7 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 #: The axes whose constraint is reported.
 AXES = ("north", "east", "yaw")
@@ -118,6 +120,9 @@ class NavConfig:
     where the two scans observe it. A cloud without a fix is placed when its scan pinned both horizontal axes to
     the map, or, with scan odometry, while the robot's horizontal standard deviation is within
     ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
+
+    Pose graph (``graph_without_fix``): a robot whose cloud after its launch fix has no fix is navigated by a pose
+    graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM) instead of this filter, from its launch on.
     """
 
     max_points: int = 300
@@ -164,6 +169,7 @@ class NavConfig:
     own_turn_s: float = 0.0
     own_recent_turns_alone: bool = True
     gate_chi2: float = 0.0
+    graph_without_fix: bool = True
 
 
 @dataclass(frozen=True)
@@ -634,7 +640,9 @@ class Navigator:
 
     def __init__(self, cfg: NavConfig | None = None, smoother: Any = None) -> None:
         self.cfg = cfg or NavConfig()
-        self.robots: dict[str, RobotNav] = {}
+        #: robot -> its estimator: a :class:`RobotNav`, or a :class:`mapping.posegraph.GraphNav` for a robot without
+        #: fixes after its launch (the same public methods)
+        self.robots: dict[str, Any] = {}
         #: with a :class:`mapping.smoother.SmootherConfig`: one :class:`mapping.smoother.RobotSmoother` per robot
         #: (its ``nav`` is the robot's entry in :attr:`robots`)
         self.smoother_cfg = smoother
@@ -645,6 +653,12 @@ class Navigator:
         #: directly or through others), as the latest landmarks say; None: unknown (planes without contributions)
         self.linked: dict[str, frozenset[str]] | None = None
         self._linked_of: PlaneLandmarks | None = None
+        #: with ``graph_without_fix``: each robot's launch cloud (t_ns, raw, points), until its next cloud says
+        #: whether it has fixes; the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`, None: default)
+        self._launches: dict[str, tuple[int, Pose, Any]] = {}
+        self.graph_cfg: Any = None
+        #: robots whose pose graph could not start (GTSAM missing): they keep the filter
+        self.graph_failed: set[str] = set()
 
     def frame(self) -> NavFrame:
         """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
@@ -716,15 +730,38 @@ class Navigator:
         if landmarks is not self._linked_of:
             self._linked_of = landmarks
             self.linked = _joined(landmarks)
+        launch = self._launches.pop(robot, None)
+        if launch is not None and not math.isfinite(raw.north_m + raw.east_m):
+            nav = self._to_graph(robot, nav, launch, landmarks)
         nav.joined = self.linked is None or len(self.linked.get(robot, ())) >= 2
+        started = nav.started
         sm = self.smoothers.get(robot)
         if sm is not None:
             est: NavEstimate = sm.update(t_ns, raw, points_body, landmarks)
         else:
             est = nav.update(t_ns, raw, points_body, landmarks)
+        if self.cfg.graph_without_fix and not started and nav.started and isinstance(nav, RobotNav):
+            self._launches[robot] = (int(t_ns), raw, points_body)
         if self.origin_ne is None and nav.started:
             self.origin_ne = (float(nav.start_ne[0]), float(nav.start_ne[1]))
         return est
+
+    def _to_graph(self, robot: str, nav: Any, launch: tuple[int, Pose, Any], landmarks: PlaneLandmarks) -> Any:
+        """``robot`` has no fix after its launch: from now on its pose graph (started at its launch cloud)
+        navigates it instead of the filter (and its smoother); without GTSAM it keeps the filter."""
+        from .posegraph import GraphNav
+
+        graph = GraphNav(robot, self.cfg, self.graph_cfg)
+        try:
+            graph.update(launch[0], launch[1], launch[2], landmarks)
+        except MapInputError as err:
+            if robot not in self.graph_failed:
+                log.warning("%s: %s; it keeps the filter", robot, err)
+            self.graph_failed.add(robot)
+            return nav
+        self.smoothers.pop(robot, None)
+        self.robots[robot] = graph
+        return graph
 
     def latest(self) -> dict[str, NavEstimate]:
         """Robot -> its latest estimate."""

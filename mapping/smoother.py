@@ -355,6 +355,21 @@ class _FleetJob:
                 return
 
 
+class _GraphJob:
+    """A pose graph's part of a run (:class:`mapping.posegraph.GraphNav`): its revised poses, read from the graph
+    on the map thread when the run starts (the graph is its own smoother: nothing to re-run)."""
+
+    def __init__(self, revised: dict[int, Pose]) -> None:
+        self.revised = revised
+        self.scans: list[Any] = []
+
+    def run(self, landmarks: PlaneLandmarks) -> None:
+        """Nothing to compute: the graph already holds every pose's smoothed estimate."""
+
+    def catch_up(self, scans: list[Any], landmarks: PlaneLandmarks) -> None:
+        """Nothing to catch up with: the live graph keeps going."""
+
+
 class FleetPlacements:
     """The poses each robot's clouds are in the map with, and the step that lets the map follow the smoothers.
 
@@ -385,6 +400,8 @@ class FleetPlacements:
         self.replaced = 0
         self.frozen = 0
         self.errors = 0
+        #: capture time of each pose graph's last run (graphs are due every ``SmootherConfig.every_s`` too)
+        self._graph_runs: dict[str, int] = {}
 
     def placed(self, robot: str, t_ns: int, pose: Pose) -> None:
         """``robot``'s cloud of ``t_ns`` went into the map with ``pose``."""
@@ -400,7 +417,10 @@ class FleetPlacements:
         if force:
             return changes + self._run_here(final=True)
         sm = self.nav.smoothers.get(robot)
-        if sm is None or not sm.due(t_ns):
+        if sm is None:
+            if not self._graph_due(robot, t_ns):
+                return changes
+        elif not sm.due(t_ns):
             return changes
         if not self.background:
             return changes + self._run_here()
@@ -409,6 +429,21 @@ class FleetPlacements:
             if self.background == "wait":
                 changes += self._hand_over()
         return changes
+
+    def _graphs(self) -> dict[str, Any]:
+        """The robots navigated by a pose graph (``revised_poses``), by name."""
+        return {n: r for n, r in sorted(self.nav.robots.items()) if hasattr(r, "revised_poses") and r.started}
+
+    def _graph_due(self, robot: str, t_ns: int) -> bool:
+        graph = self.nav.robots.get(robot)
+        if not hasattr(graph, "revised_poses"):
+            return False
+        last = self._graph_runs.setdefault(robot, int(t_ns))
+        every = self.nav.smoother_cfg.every_s if self.nav.smoother_cfg is not None else 10.0
+        if t_ns - last < every * 1e9:
+            return False
+        self._graph_runs[robot] = int(t_ns)
+        return True
 
     def _run_here(self, final: bool = False) -> list[Any]:
         """Every robot's run on this thread (``final``: the end of a dive's, timed in :attr:`final_s`)."""
@@ -426,6 +461,11 @@ class FleetPlacements:
             new = {t: p for t, p in revised.items() if t in mine}
             moved += self.builder.replace_poses(name, mine, new)
             mine.update(new)
+        for name, graph in self._graphs().items():
+            mine = self.poses.get(name, {})
+            new = {t: p for t, p in graph.revised_poses().items() if t in mine}
+            moved += self.builder.replace_poses(name, mine, new)
+            mine.update(new)
         changes: list[Any] = self.builder.rebuild() if moved else []
         self.replaced += moved
         self._freeze()
@@ -437,6 +477,7 @@ class FleetPlacements:
     def _freeze(self) -> None:
         # what left every window will not move again: fuse it once, forget its points and poses
         cut = {name: sm.scans[0].t_ns for name, sm in self.nav.smoothers.items() if sm.scans}
+        cut.update({name: graph.window_start_ns for name, graph in self._graphs().items()})
         self.frozen += self.builder.freeze(cut)
         for name, t0_ns in cut.items():
             poses = self.poses.get(name)
@@ -452,8 +493,10 @@ class FleetPlacements:
             job = smoother.prepare()
             if job is not None:
                 jobs[name] = job
+        for name, graph in self._graphs().items():
+            jobs[name] = _GraphJob(graph.revised_poses())  # type: ignore[assignment]
         poses = {name: dict(p) for name, p in self.poses.items()}
-        live = {name: self.nav.smoothers[name].scans for name in jobs}
+        live = {name: self.nav.smoothers[name].scans for name in jobs if name in self.nav.smoothers}
         self._job = _FleetJob(jobs, lm, self.builder.placements_snapshot(), poses, live)
         self._thread = threading.Thread(target=self._job.run, name="nav-smoother", daemon=True)
         self._thread.start()
@@ -475,7 +518,7 @@ class FleetPlacements:
             return []
         lm = self.builder.landmarks(self.nav.cfg.min_landmark_points)
         for name, sj in job.jobs.items():
-            revised = self.nav.smoothers[name].apply(sj, lm)
+            revised = self.nav.smoothers[name].apply(sj, lm) if name in self.nav.smoothers else sj.revised
             mine = self.poses.setdefault(name, {})
             old = job.poses.get(name, {})
             mine.update({t: p for t, p in revised.items() if t in old})

@@ -476,6 +476,8 @@ class DiveMap:
     smooth_hold_s: list[float] = field(default_factory=list)
     final_error_m: dict[str, list[float]] = field(default_factory=dict)
     placed: dict[str, dict[int, Pose]] = field(default_factory=dict)
+    #: each frame's time on the map thread (s): the smoother's step, navigation and placing the cloud
+    step_s: list[float] = field(default_factory=list)
 
     def planes(self) -> list[dict[str, Any]]:
         """The served map's planes (in NED: turned by the navigation's frame when there is one)."""
@@ -490,6 +492,7 @@ def replay_dive(
     nav_cfg: Any = None,
     smoother: Any = None,
     background: bool | str = False,
+    realtime: bool = False,
 ) -> DiveMap:
     """Feed a simulated dive into a :class:`mapping.MapBuilder` the way the base station does.
 
@@ -498,6 +501,9 @@ def replay_dive(
     and place the cloud while the estimator says so. With a ``smoother`` (:class:`mapping.smoother.SmootherConfig`),
     past poses are smoothed and their clouds re-placed (``background``: see
     :class:`mapping.smoother.FleetPlacements`; ``"wait"`` measures what a run would hold the map thread for).
+    ``realtime``: each frame is fed at its capture time (from the first frame's, on the wall clock), as a base
+    station receives a live dive: background runs then truly overlap the feed; :attr:`DiveMap.step_s` keeps each
+    frame's time on the map thread (smoother step, navigation and placing).
     """
     import time
 
@@ -520,7 +526,13 @@ def replay_dive(
         for robot, poses in fleet.poses.items():
             placed.setdefault(robot, {}).update(poses)
 
+    wall0 = time.perf_counter()
+    step0 = 0.0
     for f in frames:
+        if realtime:
+            due = wall0 + (f.t_ns - frames[0].t_ns) * 1e-9
+            time.sleep(max(0.0, due - time.perf_counter()))
+        step0 = time.perf_counter()
         if fleet is not None:
             runs = len(fleet.runs_s)
             fleet.step(f.robot, f.t_ns)
@@ -535,6 +547,7 @@ def replay_dive(
             out.constrained_scans += int(est.constrained["north"] and est.constrained["east"])
             if est.pose is None or not est.placed:
                 out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
+                out.step_s.append(time.perf_counter() - step0)
                 continue
             pose = est.pose
             pts = body_to_ned(f.points_body, pose)
@@ -547,6 +560,7 @@ def replay_dive(
         if fleet is not None:
             fleet.placed(f.robot, f.t_ns, pose)
         placed.setdefault(f.robot, {})[f.t_ns] = pose
+        out.step_s.append(time.perf_counter() - step0)
         served = nav.frame().pose(pose) if nav is not None else pose
         err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
         out.position_error_m.setdefault(f.robot, []).append(err)
