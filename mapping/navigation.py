@@ -749,11 +749,10 @@ class Navigator:
     def _to_graph(self, robot: str, nav: Any, launch: tuple[int, Pose, Any], landmarks: PlaneLandmarks) -> Any:
         """``robot`` has no fix after its launch: from now on its pose graph (started at its launch cloud)
         navigates it instead of the filter (and its smoother); without GTSAM it keeps the filter."""
-        from .posegraph import GraphNav
+        from .posegraph import start_graph
 
-        graph = GraphNav(robot, self.cfg, self.graph_cfg)
         try:
-            graph.update(launch[0], launch[1], launch[2], landmarks)
+            graph = start_graph(robot, self.cfg, self.graph_cfg, launch, landmarks)
         except MapInputError as err:
             if robot not in self.graph_failed:
                 log.warning("%s: %s; it keeps the filter", robot, err)

@@ -85,13 +85,15 @@ def increment(
     if new_rel.shape[0] > cfg.max_new_points:
         new_rel = new_rel[np.linspace(0, new_rel.shape[0] - 1, cfg.max_new_points).round().astype(np.int64)]
     p_inv = np.linalg.inv(prior_cov)
+    qq = np.einsum("ij,ij->i", q, q)
     delta = np.zeros(2)
     h = np.zeros((2, 2))
     pairs = 0
     for _ in range(cfg.iterations):
         p = new_rel.copy()
         p[:, 0:2] += delta
-        d2 = ((p[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)
+        # squared distances by one product (|p|^2 + |q|^2 - 2 p.q): the (K, M, 3) difference array cost most
+        d2 = np.einsum("ij,ij->i", p, p)[:, None] + qq[None, :] - 2.0 * (p @ q.T)
         j = np.argmin(d2, axis=1)
         near = d2[np.arange(p.shape[0]), j] <= cfg.max_pair_m**2
         pairs = int(near.sum())

@@ -110,6 +110,12 @@ class GraphConfig:
 _LEVER_M = 2.0
 
 
+def _isam2(g: Any) -> Any:
+    """An iSAM2 with GTSAM's defaults (relinearising every 10 updates where a variable moved by 0.1: every step
+    at 0.01 made the depth-only dive three times slower and no better)."""
+    return g.ISAM2()
+
+
 def _pose2(g: Any, x: FloatArray) -> Any:
     return g.Pose2(float(x[0]), float(x[1]), float(x[2]))
 
@@ -308,8 +314,9 @@ class GraphNav:
         )
         return out
 
-    def restore(self, snap: dict[str, Any]) -> None:
-        """Back to a :meth:`snapshot` (of this estimator or of another process's): the graph is rebuilt."""
+    def restore(self, snap: dict[str, Any], solve: bool = True) -> None:
+        """Back to a :meth:`snapshot` (of this estimator or of another process's): the graph is rebuilt (not with
+        ``solve`` False: the state is then only read, as the map thread reads a plane worker's for the frame)."""
         self._reset()
         for k in self._STATE:
             setattr(self, k, snap[k])
@@ -328,7 +335,7 @@ class GraphNav:
         self._specs = [(str(kind), tuple(int(k) for k in keys), tuple(data)) for kind, keys, data in snap["specs"]]
         self._est = np.asarray(snap["est"], dtype=np.float64).reshape(-1, 3)
         self.latest = snap["latest"]
-        if self._specs:
+        if self._specs and solve:
             self._rebuild(self._first_key, None)
 
     def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
@@ -437,7 +444,7 @@ class GraphNav:
     def _launch(self, t: int, raw: Pose, pts: FloatArray, fix: FloatArray) -> None:
         g = gtsam_module()
         self._reset()
-        self._isam = g.ISAM2()
+        self._isam = _isam2(g)
         self._pending: list[tuple[str, tuple[int, ...], tuple[Any, ...]]] = []
         self.start_ne = fix.copy()
         self._t.append(t)
@@ -558,7 +565,7 @@ class GraphNav:
                     p = est.atPose2(k)
                     self._est[k] = (p.x(), p.y(), p.theta())
         else:
-            for k in range(max(self._first_key, last - 6), n):
+            for k in {last, max(self._first_key, last - 1), max(self._first_key, last - 5)}:
                 p = self._isam.calculateEstimatePose2(k)
                 self._est[k] = (p.x(), p.y(), p.theta())
         arr = self._est
@@ -600,80 +607,73 @@ class GraphNav:
                 use[i] = False
                 if self.gcfg.own_planes and mine[1] <= horizon:
                     own_anchor[i] = self._key_at(mine[1])
-        h_total = np.zeros((3, 3))
-        inliers = 0
-        used: list[int] = []
-        others = use.copy()
-        if others.any():
-            res = self._fit(key, raw, pts, _take(lm, others), self.gcfg.map_min_sigma_m)
-            if res is not None:
-                _, info, n_in, ids, per_plane = res
-                self._plane_factors(key, raw, per_plane)
-                h_total += _inflate(info, self.gcfg.map_plane_sigma_m, math.radians(self.gcfg.map_plane_sigma_deg))
-                inliers += n_in
-                used += ids
-        anchors = own_anchor[own_anchor >= self._first_key]
-        if anchors.size:
-            # the anchor: the pose that made most of the own planes in view (one loop closure per scan)
-            a = int(np.bincount(anchors - self._first_key).argmax()) + self._first_key
-            sel = own_anchor == a
-            res = self._fit(key, raw, pts, _take(lm, sel), self.gcfg.own_sigma_m)
-            if res is not None and a in self._then:
-                _, info, n_in, ids, per_plane = res
-                self._plane_factors(key, raw, per_plane, anchor=a)
-                self.loops += 1
-                h_total += _inflate(info, self.gcfg.own_sigma_m, math.radians(self.gcfg.map_plane_sigma_deg))
-                inliers += n_in
-                used += ids
+        usable = use | (own_anchor >= self._first_key)
+        if not usable.any():
+            return np.zeros((3, 3)), 0, ()
+        res = self._fit(key, raw, pts, _take(lm, usable), self.gcfg.map_min_sigma_m)
+        if res is None:
+            return np.zeros((3, 3)), 0, ()
+        _, info, inliers, used, per_plane = res
+        anchor_of = {int(lm.ids[i]): int(own_anchor[i]) for i in np.flatnonzero(own_anchor >= self._first_key)}
+        loops = self._plane_factors(key, raw, per_plane, anchor_of)
+        self.loops += int(loops > 0)
+        # what the scan pinned (reported as the filter reports it: the planes taken as they are)
+        h_total = info
         if self._pending:
             self._solve()
-        return h_total, inliers, tuple(sorted(set(used)))
+        return h_total, inliers, tuple(used)
 
     def _plane_factors(
         self,
         key: int,
         raw: Pose,
         per_plane: list[tuple[int, FloatArray, float, FloatArray, int]],
-        anchor: int | None = None,
-    ) -> None:
+        anchor_of: dict[int, int],
+    ) -> int:
         """One factor per plane this scan saw: the mean of its inliers on the plane, with an offset of the plane's
         own (a variable per plane, its prior ``map_plane_sigma_m``, ``own_sigma_m`` for the robot's own): the scans
-        that see one plane share its error instead of each taking it as new evidence. With ``anchor`` (the robot's
-        own plane), the plane is expressed in the frame of the pose that made it, as that pose then was, and moves
-        with that pose: seeing it again relates the two poses (a loop closure), it does not fix this one."""
+        that see one plane share its error instead of each taking it as new evidence. A plane of the robot's own
+        (``anchor_of``: plane id -> the pose whose cloud first made it) is expressed in the frame of that pose as
+        it was when the cloud was placed, and moves with that pose: seeing it again relates the two poses (a loop
+        closure), it does not fix this one. Returns the loop closures added."""
         cfg = self.cfg
-        then = self._then.get(anchor) if anchor is not None else None
+        x = self._est[key]
+        loops = 0
         for pid, n, d, c, m in per_plane:
             if abs(float(n[2])) > 0.5:
                 continue  # a floor or a ceiling: depth is measured, it says nothing horizontal
-            sigma_plane = self.gcfg.own_sigma_m if then is not None else self.gcfg.map_plane_sigma_m
+            anchor = anchor_of.get(pid)
+            then = self._then.get(anchor) if anchor is not None else None
+            if anchor is not None and then is None:
+                continue
+            sigma_plane = self.gcfg.own_sigma_m if anchor is not None else self.gcfg.map_plane_sigma_m
+            sigma = max(cfg.point_sigma_m, self.gcfg.map_min_sigma_m) / math.sqrt(min(m, cfg.max_independent_points))
+            const = float(n[2]) * (raw.down_m + float(c[2])) + d
+            nh = n[0:2].astype(np.float64)
+            off = self._offset(pid)
+            if anchor is None or then is None:
+                e = float(nh @ (x[0:2] + _rot(float(x[2])) @ c[0:2])) + const + off
+                kind, keys = "plane", (key,)  # type: tuple[str, tuple[int, ...]]
+                data = (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma)
+            else:
+                # the plane in the anchor's frame as it was placed: n_loc . q + const_loc = 0 for q in that frame
+                n_loc = _rot(float(then[2])).T @ nh
+                const_loc = const + float(nh @ then[0:2])
+                xa = self._est[anchor]
+                u = x[0:2] + _rot(float(x[2])) @ c[0:2] - xa[0:2]
+                e = float(n_loc @ _rot(float(xa[2])).T @ u) + const_loc + off
+                kind, keys = "anchored", (anchor, key)
+                data = (pid, float(n_loc[0]), float(n_loc[1]), float(c[0]), float(c[1]), const_loc, sigma)
+            if abs(e) > self.gcfg.plane_gate_m:
+                self.gated += 1
+                continue
             if pid not in self._plane_ids:
                 self._plane_ids.add(pid)
                 self._add("plane_prior", (), (pid, sigma_plane))
                 self._new_offsets.add(pid)
-            sigma = max(cfg.point_sigma_m, self.gcfg.map_min_sigma_m) / math.sqrt(min(m, cfg.max_independent_points))
-            const = float(n[2]) * (raw.down_m + float(c[2])) + d
-            nh = n[0:2].astype(np.float64)
-            x = self._est[key]
-            off = self._offset(pid)
-            if then is None or anchor is None:
-                e = float(nh @ (x[0:2] + _rot(float(x[2])) @ c[0:2])) + const + off
-                if abs(e) > self.gcfg.plane_gate_m:
-                    self.gated += 1
-                    continue
-                self._add("plane", (key,), (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma))
-                continue
-            # the plane in the anchor's frame as it was placed: n_loc . q + const_loc = 0 for q in that frame
-            n_loc = _rot(float(then[2])).T @ nh
-            const_loc = const + float(nh @ then[0:2])
-            xa = self._est[anchor]
-            u = x[0:2] + _rot(float(x[2])) @ c[0:2] - xa[0:2]
-            e = float(n_loc @ _rot(float(xa[2])).T @ u) + const_loc + off
-            if abs(e) > self.gcfg.plane_gate_m:
-                self.gated += 1
-                continue
-            data = (pid, float(n_loc[0]), float(n_loc[1]), float(c[0]), float(c[1]), const_loc, sigma)
-            self._add("anchored", (anchor, key), data)
+            self._add(kind, keys, data)
+            loops += int(kind == "anchored")
+        return loops
 
     def _offset(self, pid: int) -> float:
         """The current estimate of plane ``pid``'s offset (0 before it has one)."""
@@ -789,7 +789,7 @@ class GraphNav:
         self._first_key = first
         self._specs = specs
         self._then = {k: v for k, v in self._then.items() if k >= first}
-        self._isam = g.ISAM2()
+        self._isam = _isam2(g)
         self._pending = list(specs)
         self._new_values = {k: self._est[k] for k in range(first, len(self._t))}
         self._solve(all_keys=True)
@@ -842,6 +842,25 @@ class GraphNav:
             pinned,
             free_bearing,
         )
+
+
+def start_graph(
+    robot: str,
+    cfg: NavConfig,
+    graph: GraphConfig | None,
+    launch: tuple[int, Pose, Any],
+    landmarks: PlaneLandmarks,
+) -> GraphNav:
+    """A robot's pose graph started at its launch cloud ``launch`` (t_ns, raw pose with the fix, body points);
+    raises :class:`MapInputError` when GTSAM is missing."""
+    nav = GraphNav(robot, cfg, graph)
+    nav.update(launch[0], launch[1], launch[2], landmarks)
+    return nav
+
+
+def is_graph_state(snap: Any) -> bool:
+    """Whether an estimator's :meth:`snapshot` is a :class:`GraphNav`'s (else a filter's)."""
+    return isinstance(snap, dict) and bool(snap.get("graph"))
 
 
 def _take(lm: PlaneLandmarks, sel: NDArray[np.bool_]) -> PlaneLandmarks:

@@ -179,6 +179,9 @@ class WorkerNav:
         #: scans registered, scans placed with the latest correction
         self.registered = 0
         self.strided = 0
+        #: each robot's launch cloud until its next one says whether it has fixes (a robot without goes to a pose
+        #: graph, mapping.posegraph, as in the map thread's Navigator)
+        self._launch: dict[str, tuple[int, Pose, Any]] = {}
 
     def _nav(self, robot: str) -> Any:
         nav = self._navs.get(robot)
@@ -188,9 +191,27 @@ class WorkerNav:
             nav = self._navs[robot] = RobotNav(robot, self.cfg)
         return nav
 
+    def _to_graph(self, robot: str, nav: Any, raw: Pose, landmarks: Any) -> Any:
+        """A robot whose cloud after its launch has no fix: its pose graph from the launch on (without GTSAM it
+        keeps the filter)."""
+        launch = self._launch.pop(robot, None)
+        if launch is None or math.isfinite(raw.north_m + raw.east_m) or not self.cfg.graph_without_fix:
+            return nav
+        from mapping.errors import MapInputError
+        from mapping.posegraph import start_graph
+
+        try:
+            graph = self._navs[robot] = start_graph(robot, self.cfg, None, launch, landmarks)
+        except MapInputError as err:
+            log.warning("%s: %s; it keeps the filter", robot, err)
+            return nav
+        return graph
+
     def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any) -> NavStep:
-        """One cloud of ``robot``: registered, or placed with the latest correction."""
-        nav = self._nav(robot)
+        """One cloud of ``robot``: registered, or placed with the latest correction (a pose graph takes every
+        cloud: its odometry pairs consecutive scans)."""
+        nav = self._to_graph(robot, self._nav(robot), raw, landmarks)
+        started = nav.started
         last = self._last_reg.get(robot)
         latest = nav.latest
         due = (
@@ -199,9 +220,12 @@ class WorkerNav:
             or latest is None
             or latest.pose is None
             or not 0 <= t_ns - last < self.register_every_s * 1e9
+            or hasattr(nav, "revised_poses")
         )
         if due:
             est = nav.update(t_ns, raw, points_body, landmarks)
+            if not started and nav.started and not hasattr(nav, "revised_poses"):
+                self._launch[robot] = (int(t_ns), raw, points_body)
             self._last_reg[robot] = t_ns
             self._before[robot] = latest
             self.registered += 1
@@ -218,6 +242,10 @@ class WorkerNav:
 
     def restore(self, robot: str, state: dict[str, Any]) -> None:
         """Continue ``robot`` from a :meth:`snapshot` (of this worker or another)."""
+        from mapping.posegraph import GraphNav, is_graph_state
+
+        if is_graph_state(state["nav"]):
+            self._navs[robot] = GraphNav(robot, self.cfg)
         self._nav(robot).restore(state["nav"])
         self._before[robot] = state.get("before")
         if state.get("last_reg") is None:
@@ -228,6 +256,7 @@ class WorkerNav:
     def forget(self, robot: str) -> None:
         """Drop the robot's estimator (it moved away, or restarts)."""
         self._navs.pop(robot, None)
+        self._launch.pop(robot, None)
         self._last_reg.pop(robot, None)
         self._before.pop(robot, None)
 

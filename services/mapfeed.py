@@ -481,10 +481,17 @@ class MapFeed:
         except Exception as err:  # the frame goes on without this robot's newest state
             log.debug("navigation state of %s not decoded: %s", robot, err)
             return
+        from mapping.posegraph import GraphNav, is_graph_state
+
         rn = nav.robots.get(robot)
+        if is_graph_state(snap) != isinstance(rn, GraphNav):
+            rn = None
         if rn is None:
-            rn = nav.robots[robot] = RobotNav(robot, nav.cfg)
-        rn.restore(snap)
+            rn = nav.robots[robot] = GraphNav(robot, nav.cfg) if is_graph_state(snap) else RobotNav(robot, nav.cfg)
+        if isinstance(rn, GraphNav):
+            rn.restore(snap, solve=False)  # read for the frame only: the worker runs the graph
+        else:
+            rn.restore(snap)
         if nav.origin_ne is None and rn.started:
             nav.origin_ne = (float(rn.start_ne[0]), float(rn.start_ne[1]))
         self._frame = nav.frame()
