@@ -101,6 +101,7 @@ class GraphConfig:
     window_s: float = 120.0
     rebase_every_s: float = 30.0
     place_std_m: float = 0.1
+    boot_std_m: float = 1.0
     lost_std_m: float = 0.3
     observed_std_m: float = 0.1
     plane_gate_m: float = 0.1
@@ -827,7 +828,11 @@ class GraphNav:
         std.update(roll_deg=att, pitch_deg=att, yaw_deg=math.hypot(math.degrees(float(sd[2])), att))
         corr = math.remainder(float(x[2]) - self._compass[-1], 2 * math.pi)
         pose = Pose(float(x[0]), float(x[1]), raw.down_m, raw.roll_rad, raw.pitch_rad, raw.yaw_rad + corr)
-        placed = not self.lost and max(float(sd[0]), float(sd[1])) <= self.gcfg.place_std_m
+        worst = max(float(sd[0]), float(sd[1]))
+        # placed while the position is known well enough: pinned to the map in both directions by this scan, or
+        # (before there is a map here: the first scans make it) within boot_std_m of the launch on odometry alone
+        pinned_both = constrained["north"] and constrained["east"]
+        placed = not self.lost and worst <= self.gcfg.place_std_m and (pinned_both or worst <= self.gcfg.boot_std_m)
         return NavEstimate(
             self.robot,
             t,
