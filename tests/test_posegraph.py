@@ -150,3 +150,26 @@ def test_one_wall_pins_one_direction_and_says_which_is_free() -> None:
     assert est.free_bearing_deg == pytest.approx(90.0, abs=5.0)  # free along the wall (east)
     assert est.constrained["north"]
     assert not est.constrained["east"]
+
+
+def test_a_plane_worker_runs_the_graph_on_every_scan_and_hands_it_over(depth_only: list[Any]) -> None:
+    from services.map_worker_nav import WorkerNav, decode_state, encode_state
+
+    fr = _robot_frames(depth_only, "rov3")
+    lm = PlaneLandmarks.empty()
+    a = WorkerNav()
+    for f in fr[:30]:
+        a.step("rov3", f.t_ns, f.pose_est, f.points_body, lm)
+    assert isinstance(a._navs["rov3"], GraphNav)
+    assert a.strided == 0  # no stride: the odometry pairs consecutive scans
+    state = a.snapshot("rov3")
+    assert state is not None
+    b = WorkerNav()
+    b.restore("rov3", decode_state(encode_state(state)))
+    assert isinstance(b._navs["rov3"], GraphNav)
+    for f in fr[30:45]:
+        sa = a.step("rov3", f.t_ns, f.pose_est, f.points_body, lm)
+        sb = b.step("rov3", f.t_ns, f.pose_est, f.points_body, lm)
+        assert sa.pose is not None
+        assert sb.pose is not None
+        assert math.hypot(sb.pose.north_m - sa.pose.north_m, sb.pose.east_m - sa.pose.east_m) < 0.1
