@@ -18,8 +18,8 @@ from mapping.synth import simulate_dive, tank, three_rov_plans
 
 pytest.importorskip("gtsam")
 
-from mapping import posegraph  # noqa: E402
-from mapping.posegraph import GraphConfig, GraphNav  # noqa: E402
+from mapping import posegraph
+from mapping.posegraph import GraphConfig, GraphNav
 
 
 @pytest.fixture(scope="module")
