@@ -121,8 +121,9 @@ class NavConfig:
     the map, or, with scan odometry, while the robot's horizontal standard deviation is within
     ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
 
-    Pose graph (``graph_without_fix``): a robot whose cloud after its launch fix has no fix is navigated by a pose
-    graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM) instead of this filter, from its launch on.
+    Pose graph (``graph_without_fix``): a robot whose fixes stop within ``launch_window_s`` of its first (a launch
+    fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM) instead of this
+    filter, from its last launch cloud on.
     """
 
     max_points: int = 300
@@ -170,6 +171,7 @@ class NavConfig:
     own_recent_turns_alone: bool = True
     gate_chi2: float = 0.0
     graph_without_fix: bool = True
+    launch_window_s: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -656,6 +658,7 @@ class Navigator:
         #: with ``graph_without_fix``: each robot's launch cloud (t_ns, raw, points), until its next cloud says
         #: whether it has fixes; the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`, None: default)
         self._launches: dict[str, tuple[int, Pose, Any]] = {}
+        self._first_fix: dict[str, int] = {}
         self.graph_cfg: Any = None
         #: robots whose pose graph could not start (GTSAM missing): they keep the filter
         self.graph_failed: set[str] = set()
@@ -730,21 +733,30 @@ class Navigator:
         if landmarks is not self._linked_of:
             self._linked_of = landmarks
             self.linked = _joined(landmarks)
-        launch = self._launches.pop(robot, None)
-        if launch is not None and not math.isfinite(raw.north_m + raw.east_m):
-            nav = self._to_graph(robot, nav, launch, landmarks)
+        fixed = math.isfinite(raw.north_m + raw.east_m)
+        if not fixed and robot in self._launches:
+            nav = self._to_graph(robot, nav, self._launches.pop(robot), landmarks)
         nav.joined = self.linked is None or len(self.linked.get(robot, ())) >= 2
-        started = nav.started
         sm = self.smoothers.get(robot)
         if sm is not None:
             est: NavEstimate = sm.update(t_ns, raw, points_body, landmarks)
         else:
             est = nav.update(t_ns, raw, points_body, landmarks)
-        if self.cfg.graph_without_fix and not started and nav.started and isinstance(nav, RobotNav):
-            self._launches[robot] = (int(t_ns), raw, points_body)
+        if self.cfg.graph_without_fix and fixed and isinstance(nav, RobotNav) and nav.started:
+            self._keep_launch(robot, int(t_ns), raw, points_body)
         if self.origin_ne is None and nav.started:
             self.origin_ne = (float(nav.start_ne[0]), float(nav.start_ne[1]))
         return est
+
+    def _keep_launch(self, robot: str, t_ns: int, raw: Pose, points_body: Any) -> None:
+        """A cloud with a fix: while the robot's fixes are only those of its launch (within ``launch_window_s`` of
+        its first), the latest such cloud is where its pose graph starts if the fixes stop; a robot with fixes
+        after that (dead reckoning, a USBL) keeps the filter."""
+        first = self._first_fix.setdefault(robot, t_ns)
+        if t_ns - first <= self.cfg.launch_window_s * 1e9:
+            self._launches[robot] = (t_ns, raw, points_body)
+        else:
+            self._launches.pop(robot, None)
 
     def _to_graph(self, robot: str, nav: Any, launch: tuple[int, Pose, Any], landmarks: PlaneLandmarks) -> Any:
         """``robot`` has no fix after its launch: from now on its pose graph (started at its launch cloud)

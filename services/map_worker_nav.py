@@ -182,6 +182,7 @@ class WorkerNav:
         #: each robot's launch cloud until its next one says whether it has fixes (a robot without goes to a pose
         #: graph, mapping.posegraph, as in the map thread's Navigator)
         self._launch: dict[str, tuple[int, Pose, Any]] = {}
+        self._first_fix: dict[str, int] = {}
 
     def _nav(self, robot: str) -> Any:
         nav = self._navs.get(robot)
@@ -194,9 +195,9 @@ class WorkerNav:
     def _to_graph(self, robot: str, nav: Any, raw: Pose, landmarks: Any) -> Any:
         """A robot whose cloud after its launch has no fix: its pose graph from the launch on (without GTSAM it
         keeps the filter)."""
-        launch = self._launch.pop(robot, None)
-        if launch is None or math.isfinite(raw.north_m + raw.east_m) or not self.cfg.graph_without_fix:
+        if math.isfinite(raw.north_m + raw.east_m) or robot not in self._launch or not self.cfg.graph_without_fix:
             return nav
+        launch = self._launch.pop(robot)
         from mapping.errors import MapInputError
         from mapping.posegraph import start_graph
 
@@ -211,7 +212,6 @@ class WorkerNav:
         """One cloud of ``robot``: registered, or placed with the latest correction (a pose graph takes every
         cloud: its odometry pairs consecutive scans)."""
         nav = self._to_graph(robot, self._nav(robot), raw, landmarks)
-        started = nav.started
         last = self._last_reg.get(robot)
         latest = nav.latest
         due = (
@@ -224,8 +224,13 @@ class WorkerNav:
         )
         if due:
             est = nav.update(t_ns, raw, points_body, landmarks)
-            if not started and nav.started and not hasattr(nav, "revised_poses"):
-                self._launch[robot] = (int(t_ns), raw, points_body)
+            if nav.started and not hasattr(nav, "revised_poses") and math.isfinite(raw.north_m + raw.east_m):
+                # while its fixes are only its launch's, the latest is where a graph starts if they stop
+                first = self._first_fix.setdefault(robot, int(t_ns))
+                if t_ns - first <= self.cfg.launch_window_s * 1e9:
+                    self._launch[robot] = (int(t_ns), raw, points_body)
+                else:
+                    self._launch.pop(robot, None)
             self._last_reg[robot] = t_ns
             self._before[robot] = latest
             self.registered += 1
@@ -257,6 +262,7 @@ class WorkerNav:
         """Drop the robot's estimator (it moved away, or restarts)."""
         self._navs.pop(robot, None)
         self._launch.pop(robot, None)
+        self._first_fix.pop(robot, None)
         self._last_reg.pop(robot, None)
         self._before.pop(robot, None)
 

@@ -35,7 +35,7 @@ def test_a_depth_only_fleet_is_placed_by_its_pose_graphs(depth_only: list[Any]) 
     run = replay_dive(depth_only, navigate=True)
     n = len(depth_only)
     # the filter placed nothing of this fleet (every robot lost within a second); the graphs place most clouds
-    assert sum(run.unplaced.values()) < 0.3 * n, run.unplaced
+    assert sum(run.unplaced.values()) < 0.45 * n, run.unplaced
     errs = [e for v in run.final_error_m.values() for e in v]
     assert max(errs) < 0.15, max(errs)
     assert {type(run.builder) for _ in [0]}  # the map was built
@@ -55,6 +55,20 @@ def test_robots_with_fixes_keep_the_filter_and_without_get_a_graph() -> None:
     assert isinstance(nav.robots["blind"], GraphNav)
     assert est.pose is not None
     assert est.pose.north_m == pytest.approx(2.0, abs=0.1)
+
+
+def test_a_launch_fix_over_several_clouds_still_hands_the_robot_to_its_graph() -> None:
+    nav = Navigator()
+    lm = PlaneLandmarks.empty()
+    pts = np.zeros((0, 3))
+    nofix = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0)
+    for k in range(3):  # the launch fix straddles the first frames (a rendered dive's CSV)
+        nav.update("blind", k * 200_000_000, Pose(2.0, 2.0, 1.0, 0.0, 0.0, 0.0), pts, lm)
+        nav.update("dvl", k * 1_500_000_000, Pose(1.0, 1.0, 1.0, 0.0, 0.0, 0.0), pts, lm)
+    nav.update("blind", 600_000_000, nofix, pts, lm)
+    nav.update("dvl", 4_500_000_000, nofix, pts, lm)  # fixes for 3 s, then a gap: a dropout, not depth-only
+    assert isinstance(nav.robots["blind"], GraphNav)
+    assert isinstance(nav.robots["dvl"], RobotNav)
 
 
 def test_without_gtsam_the_error_names_the_extra_and_the_filter_stays(monkeypatch: pytest.MonkeyPatch) -> None:
