@@ -9,6 +9,13 @@ An observation (the points one robot's window gave one plane) joins a map plane 
   sheets scan faces in horizontal bands), overlap or touch (coplanar faces that are apart stay apart),
 * and the fused plane is still thin (RMS <= ``merge_max_rms_m``).
 
+Two planes that fail those tests may still be one surface: seen from poses that disagree by more than
+``merge_offset_m``, one wall gives two parallel planes a decimetre apart. When they face the same way, lie within
+``same_face_offset_m`` and cover the same part of the face (:mod:`mapping.same_face`: the rays that made the far
+one would have stopped at the near one; :meth:`PlaneMap.same_face`), they fuse too: the one fewer robots (then
+fewer points) made is first moved along the other's normal onto it (:meth:`PlaneRecord.shifted`, exact), since what
+separates them is the pose error of the robots that made it, not the surface.
+
 Fusion adds the exact integer statistics and refits. When an observation matches several map planes (it bridges
 them), all of them fuse into the one with the smallest id, and the result is checked against the remaining planes
 again. The integer statistics make fusion order-independent: merging A then B gives exactly what B then A gives.
@@ -23,6 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .planes import pack_keys
+from .same_face import shared_fraction
 from .stats import Contribution, VoxelSet, merge_contributions
 from .types import MapChange, MapConfig, PlaneFit, PlaneStats, scatter_matrix
 
@@ -45,6 +54,7 @@ class PlaneRecord:
         voxels: down-sampled points for export and extents.
         n_obs: number of observations fused.
         hint_normal: (3,) normal of the window fit (only for associating a fresh observation; not persisted).
+        within: the pooled scatter of the fused observations about their own centroids (see :func:`fit_parts`).
     """
 
     stats: PlaneStats
@@ -76,6 +86,26 @@ class PlaneRecord:
             self.n_obs + other.n_obs,
             None,
             tuple(a + b for a, b in zip(self.within, other.within, strict=True)),  # type: ignore[arg-type]
+        )
+
+    def shifted(self, t_q: tuple[int, int, int], voxel_quanta: int) -> PlaneRecord:
+        """This record with every point moved by ``t_q`` (quanta, NED), exactly: sums and bounds move, the scatter
+        about the centroid and the orientation do not; export voxels move by their centroids (``voxel_quanta`` per
+        edge)."""
+        st = self.stats
+        n, s, t = st.n, st.s, t_q
+        pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        ss = tuple(st.ss[k] + t[i] * s[j] + t[j] * s[i] + n * t[i] * t[j] for k, (i, j) in enumerate(pairs))
+        vox = self.voxels
+        tv = np.array(t, dtype=np.int64)
+        sums = vox.sums + vox.counts[:, None] * tv[None, :]
+        keys = pack_keys(np.floor_divide(np.floor_divide(sums, vox.counts[:, None]), voxel_quanta))
+        return replace(
+            self,
+            stats=PlaneStats(n, (s[0] + n * t[0], s[1] + n * t[1], s[2] + n * t[2]), ss),  # type: ignore[arg-type]
+            aabb_min=(self.aabb_min[0] + t[0], self.aabb_min[1] + t[1], self.aabb_min[2] + t[2]),
+            aabb_max=(self.aabb_max[0] + t[0], self.aabb_max[1] + t[1], self.aabb_max[2] + t[2]),
+            voxels=VoxelSet.reduced(keys, vox.counts, sums),
         )
 
     @classmethod
@@ -346,6 +376,42 @@ class PlaneMap:
         )
         return merged.rms_m <= cfg.merge_max_rms_m
 
+    def same_face(self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit) -> bool:
+        """Whether two touching planes are one surface seen from poses that disagree (see :mod:`mapping.same_face`):
+        normals within ``same_face_angle_deg``, points within ``same_face_offset_m`` (RMS, either way round), and
+        at least ``same_face_share`` of the smaller one's points where both cover the face over a whole block."""
+        cfg = self.cfg
+        if cfg.same_face_offset_m <= 0 or _angle_deg(fa.normal, fb.normal) > cfg.same_face_angle_deg:
+            return False
+        if min(rms_distance(fa, fb), rms_distance(fb, fa)) > cfg.same_face_offset_m:
+            return False
+        n = fa.normal + fb.normal
+        u, v = in_plane_axes(n / np.linalg.norm(n))
+        q = cfg.quantum_m
+        share = shared_fraction(
+            a.voxels.centroids_m(q),
+            a.voxels.counts,
+            b.voxels.centroids_m(q),
+            b.voxels.counts,
+            u,
+            v,
+            cfg.same_face_cell_m,
+            cfg.same_face_block_cells,
+        )
+        return share >= cfg.same_face_share
+
+    def _fuse(self, a: PlaneRecord, b: PlaneRecord, fb: PlaneFit | None = None) -> PlaneRecord:
+        """``a + b`` for two records of one surface that pose errors set apart: the one fewer robots (then fewer
+        points) made moves along the other's normal onto the other's plane first (:meth:`PlaneRecord.shifted`)."""
+        q = self.cfg.quantum_m
+        ref, other = (a, b) if (len(a.contributions), a.stats.n) >= (len(b.contributions), b.stats.n) else (b, a)
+        f_ref = ref.fit(q, self.cfg.between_window_weight)
+        f_other = fb if other is b and fb is not None else other.fit(q, self.cfg.between_window_weight)
+        step = -(float(f_ref.normal @ f_other.centroid) + f_ref.d) * f_ref.normal / q
+        t = np.rint(step).astype(np.int64)
+        vq = max(1, round(self.cfg.export_voxel_m / q))
+        return ref + other.shifted((int(t[0]), int(t[1]), int(t[2])), vq)
+
     def can_create(self, obs: PlaneRecord, f: PlaneFit) -> bool:
         """Whether an observation is good enough to start a new plane on its own (not line-like, thin)."""
         return f.width_m >= self.cfg.min_width_m and f.rms_m <= self.cfg.max_rms_m
@@ -370,6 +436,15 @@ class PlaneMap:
             for pid in self._touching(obs)
             if self.matches(obs, f_obs, self.planes[pid].record, self.planes[pid].fit, hint)
         ]
+        same = False
+        if not hits and self.can_create(obs, f_obs):
+            # a view of a face from a pose off by more than merge_offset_m is still that face
+            same = True
+            hits = [
+                pid
+                for pid in self._touching(obs)
+                if self.same_face(obs, f_obs, self.planes[pid].record, self.planes[pid].fit)
+            ]
         if not hits:
             if not self.can_create(obs, f_obs):
                 return []
@@ -378,26 +453,30 @@ class PlaneMap:
             self._put(MapPlane(pid, replace(obs, hint_normal=None), cfg))
             return [MapChange.updated(self.planes[pid])] if self._published(obs) else []
         keep = hits[0]
-        rec = self.planes[keep].record + obs
+        rec = self._fuse(self.planes[keep].record, obs, f_obs) if same else self.planes[keep].record + obs
         removed: list[int] = []
         for pid in hits[1:]:
             gone = self._pop(pid)
-            rec = rec + gone
+            rec = self._fuse(rec, gone) if same else rec + gone
             if self._published(gone):
                 removed.append(pid)
         # Cascade: the grown plane may now meet others.
         while True:
             grown = MapPlane(keep, rec, cfg)
-            more = [
-                pid
-                for pid in self._touching(rec)
-                if pid != keep and self.matches(rec, grown.fit, self.planes[pid].record, self.planes[pid].fit)
-            ]
+            more: list[tuple[int, bool]] = []
+            for pid in self._touching(rec):
+                if pid == keep:
+                    continue
+                other, f_other = self.planes[pid].record, self.planes[pid].fit
+                if self.matches(rec, grown.fit, other, f_other):
+                    more.append((pid, False))
+                elif self.same_face(rec, grown.fit, other, f_other):
+                    more.append((pid, True))
             if not more:
                 break
-            for pid in more:
+            for pid, moved in more:
                 gone = self._pop(pid)
-                rec = rec + gone
+                rec = self._fuse(rec, gone) if moved else rec + gone
                 if self._published(gone):
                     removed.append(pid)
         self._put(MapPlane(keep, rec, cfg))

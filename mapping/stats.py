@@ -65,6 +65,11 @@ class VoxelSet:
         return cls._reduce(keys, np.ones(p.shape[0], np.int64), p)
 
     @staticmethod
+    def reduced(keys: IntArray, counts: IntArray, sums: IntArray) -> VoxelSet:
+        """Voxels with these keys, counts and sums (any order, keys may repeat: repeated keys add up)."""
+        return VoxelSet._reduce(keys, counts, sums)
+
+    @staticmethod
     def _reduce(keys: IntArray, counts: IntArray, sums: IntArray) -> VoxelSet:
         if keys.shape[0] == 0:
             return VoxelSet.empty()

@@ -93,6 +93,14 @@ class MapConfig:
         merge_gap_down_m: the same along down: the horizontal laser sheets scan a face in horizontal bands
             (one per robot depth), so bands of one face seen at different depths are expected to leave gaps.
         merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
+        same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
+            planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
+            each other (RMS, either way round, as ``merge_offset_m``) are one surface seen from poses that disagree
+            when at least ``same_face_share`` of the smaller one's points lie where both cover the face over a
+            whole square of ``same_face_block_cells`` x ``same_face_block_cells`` in-plane cells of
+            ``same_face_cell_m``: the lasers' rays would have stopped at the nearer one (occlusion,
+            :mod:`mapping.same_face`). ``same_face_offset_m`` must stay below ``min_sensor_distance_m`` (the
+            vehicle that saw the farther plane was then in front of the nearer one); 0 turns the rule off.
 
     Storage:
         quantum_m: quantum of the exact integer statistics.
@@ -138,6 +146,11 @@ class MapConfig:
     merge_gap_m: float = 0.3
     merge_gap_down_m: float = 1.0
     merge_max_rms_m: float = 0.03
+    same_face_offset_m: float = 0.15
+    same_face_angle_deg: float = 3.0
+    same_face_cell_m: float = 0.05
+    same_face_block_cells: int = 3
+    same_face_share: float = 0.2
 
     quantum_m: float = 1e-4
     export_voxel_m: float = 0.05
@@ -155,7 +168,14 @@ class MapConfig:
                 raise MapConfigError(msg)
             if (
                 f.name
-                not in ("seed", "autosave_every_s", "extract_every_s", "max_cloud_rate_hz", "between_window_weight")
+                not in (
+                    "seed",
+                    "autosave_every_s",
+                    "extract_every_s",
+                    "max_cloud_rate_hz",
+                    "between_window_weight",
+                    "same_face_offset_m",
+                )
                 and value <= 0
             ):
                 msg = f"MapConfig.{f.name} must be > 0, got {value!r}"
@@ -171,6 +191,12 @@ class MapConfig:
             raise MapConfigError(msg)
         if self.ransac_iterations < 1 or not 0 < self.cell_planarity < 1:
             msg = "MapConfig: ransac_iterations must be >= 1 and cell_planarity in (0, 1)"
+            raise MapConfigError(msg)
+        if self.same_face_offset_m >= self.min_sensor_distance_m or self.same_face_share > 1.0:
+            msg = (
+                f"MapConfig: same_face_offset_m ({self.same_face_offset_m}) must be below min_sensor_distance_m "
+                f"({self.min_sensor_distance_m}) and same_face_share ({self.same_face_share}) at most 1"
+            )
             raise MapConfigError(msg)
         if self.quantum_m > 0.001:
             msg = f"MapConfig.quantum_m must be <= 1 mm, got {self.quantum_m}"
