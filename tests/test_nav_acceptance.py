@@ -26,10 +26,10 @@ def test_a_fleet_of_processes_maps_the_tank_and_says_where_it_is_lost(tmp_path: 
         nav = robots[robot]["nav"]
         assert nav["placed"] + nav["unplaced"] == n, (robot, nav)
         if mode == "depth-only":
-            # no map of anyone else around its launch and no fix after it: the status says so, nothing is placed
-            # from a guess
+            # no map of anyone else around its launch and no fix after it: its pose graph follows it on scan
+            # odometry and places its first clouds while within 10 cm, then the status says it is lost
             assert nav["position"] in {"lost", "unconstrained"}, nav
-            assert nav["placed"] <= 2, nav
+            assert nav["placed"] <= 10, nav
             assert robots[robot]["unplaced"] == nav["unplaced"]
         else:
             assert nav["placed"] == n, (robot, nav)
