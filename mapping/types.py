@@ -100,7 +100,8 @@ class MapConfig:
             whole square of ``same_face_block_cells`` x ``same_face_block_cells`` in-plane cells of
             ``same_face_cell_m``: the lasers' rays would have stopped at the nearer one (occlusion,
             :mod:`mapping.same_face`). ``same_face_offset_m`` must stay below ``min_sensor_distance_m`` (the
-            vehicle that saw the farther plane was then in front of the nearer one); 0 turns the rule off.
+            vehicle that saw the farther plane was then in front of the nearer one); 0 (the default, see
+            docs/mapping.md "Measured") turns the rule off, 0.15 turns it on.
 
     Storage:
         quantum_m: quantum of the exact integer statistics.
@@ -146,7 +147,7 @@ class MapConfig:
     merge_gap_m: float = 0.3
     merge_gap_down_m: float = 1.0
     merge_max_rms_m: float = 0.03
-    same_face_offset_m: float = 0.15
+    same_face_offset_m: float = 0.0
     same_face_angle_deg: float = 3.0
     same_face_cell_m: float = 0.05
     same_face_block_cells: int = 3
