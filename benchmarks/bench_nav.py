@@ -17,7 +17,9 @@ Each dive is replayed into ``mapping.MapBuilder`` three times, as the base stati
 (``mapping.synth.replay_dive``): trusting the poses (``lrsensor base --nav off``: clouds without a fix are left
 out), correcting them first with the filter (``mapping.navigation``, the base's default), and with the smoother
 (``mapping.smoother``: past poses re-estimated and their clouds re-placed in the map, a last smoothing at the end of
-the dive; fixes weighted by ``SMOOTHED_NAV``). The served map is scored against the tank's faces
+the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
+``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``,
+off by default; ``mapping.posegraph``). The served map is scored against the tank's faces
 (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames where both lasers hit it;
 *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered, the worst angle and
 offset over the seen faces that have a plane (a seen face without one is counted in "missing"), duplicates,
@@ -33,7 +35,7 @@ import argparse
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -103,9 +105,13 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     )
     hits = hit_faces(scene, frames)
     rows = []
-    for way in ("trusted", "corrected", "smoothed"):
+    ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
+    for way in ways:
         navigate = way != "trusted"
         kw: dict[str, Any] = {}
+        if way == "graph":  # as smoothed, the robots without a fix on their pose graphs (opt-in)
+            kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True), "smoother": SmootherConfig(),
+                  "background": "wait"}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart

@@ -121,9 +121,12 @@ class NavConfig:
     the map, or, with scan odometry, while the robot's horizontal standard deviation is within
     ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
 
-    Pose graph (``graph_without_fix``): a robot whose fixes stop within ``launch_window_s`` of its first (a launch
-    fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM) instead of this
-    filter, from its last launch cloud on.
+    Pose graph (``graph_without_fix``, off by default): a robot whose fixes stop within ``launch_window_s`` of its
+    first (a launch fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM)
+    instead of this filter, from its last launch cloud on. Off because the graphs track such a robot for tens of
+    seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
+    gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
+    stay unplaced: an empty part of the map rather than a wrong one.
     """
 
     max_points: int = 300
@@ -170,7 +173,7 @@ class NavConfig:
     own_turn_s: float = 0.0
     own_recent_turns_alone: bool = True
     gate_chi2: float = 0.0
-    graph_without_fix: bool = True
+    graph_without_fix: bool = False
     launch_window_s: float = 2.0
 
 

@@ -13,13 +13,16 @@ import pytest
 from lrsensor.frames import Pose
 from mapping.errors import MapInputError
 from mapping.landmarks import PlaneLandmarks
-from mapping.navigation import Navigator, RobotNav
+from mapping.navigation import NavConfig, Navigator, RobotNav
 from mapping.synth import simulate_dive, tank, three_rov_plans
 
 pytest.importorskip("gtsam")
 
 from mapping import posegraph
 from mapping.posegraph import GraphConfig, GraphNav
+
+#: the pose graph is opt-in (NavConfig.graph_without_fix, off by default)
+GRAPH = NavConfig(graph_without_fix=True)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +35,7 @@ def depth_only() -> list[Any]:
 def test_a_depth_only_fleet_is_placed_by_its_pose_graphs(depth_only: list[Any]) -> None:
     from mapping.synth import replay_dive
 
-    run = replay_dive(depth_only, navigate=True)
+    run = replay_dive(depth_only, navigate=True, nav_cfg=GRAPH)
     n = len(depth_only)
     # the filter placed nothing of this fleet (every robot lost within a second); the graphs place most clouds
     assert sum(run.unplaced.values()) < 0.45 * n, run.unplaced
@@ -44,7 +47,7 @@ def test_a_depth_only_fleet_is_placed_by_its_pose_graphs(depth_only: list[Any]) 
 
 
 def test_robots_with_fixes_keep_the_filter_and_without_get_a_graph() -> None:
-    nav = Navigator()
+    nav = Navigator(GRAPH)
     lm = PlaneLandmarks.empty()
     pts = np.zeros((0, 3))
     nav.update("good", 0, Pose(1.0, 1.0, 1.0, 0.0, 0.0, 0.0), pts, lm)
@@ -58,7 +61,7 @@ def test_robots_with_fixes_keep_the_filter_and_without_get_a_graph() -> None:
 
 
 def test_a_launch_fix_over_several_clouds_still_hands_the_robot_to_its_graph() -> None:
-    nav = Navigator()
+    nav = Navigator(GRAPH)
     lm = PlaneLandmarks.empty()
     pts = np.zeros((0, 3))
     nofix = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0)
@@ -76,7 +79,7 @@ def test_without_gtsam_the_error_names_the_extra_and_the_filter_stays(monkeypatc
     monkeypatch.setitem(sys.modules, "gtsam", None)  # import gtsam now raises ImportError
     with pytest.raises(MapInputError, match=r"lrsensor\[graph\]"):
         posegraph.gtsam_module()
-    nav = Navigator()
+    nav = Navigator(GRAPH)
     lm = PlaneLandmarks.empty()
     nav.update("blind", 0, Pose(2.0, 2.0, 1.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), lm)
     nav.update("blind", 100_000_000, Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0), np.zeros((0, 3)), lm)
@@ -171,14 +174,14 @@ def test_a_plane_worker_runs_the_graph_on_every_scan_and_hands_it_over(depth_onl
 
     fr = _robot_frames(depth_only, "rov3")
     lm = PlaneLandmarks.empty()
-    a = WorkerNav()
+    a = WorkerNav(GRAPH)
     for f in fr[:30]:
         a.step("rov3", f.t_ns, f.pose_est, f.points_body, lm)
     assert isinstance(a._navs["rov3"], GraphNav)
     assert a.strided == 0  # no stride: the odometry pairs consecutive scans
     state = a.snapshot("rov3")
     assert state is not None
-    b = WorkerNav()
+    b = WorkerNav(GRAPH)
     b.restore("rov3", decode_state(encode_state(state)))
     assert isinstance(b._navs["rov3"], GraphNav)
     for f in fr[30:45]:
@@ -187,3 +190,16 @@ def test_a_plane_worker_runs_the_graph_on_every_scan_and_hands_it_over(depth_onl
         assert sa.pose is not None
         assert sb.pose is not None
         assert math.hypot(sb.pose.north_m - sa.pose.north_m, sb.pose.east_m - sa.pose.east_m) < 0.1
+
+
+def test_by_default_a_robot_without_a_fix_keeps_the_filter_and_is_reported_lost() -> None:
+    nav = Navigator()
+    lm = PlaneLandmarks.empty()
+    pts = np.zeros((0, 3))
+    nav.update("blind", 0, Pose(2.0, 2.0, 1.0, 0.0, 0.0, 0.0), pts, lm)
+    est = None
+    for k in range(1, 40):
+        est = nav.update("blind", k * 100_000_000, Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0), pts, lm)
+    assert isinstance(nav.robots["blind"], RobotNav)
+    assert est is not None
+    assert est.motion == "lost"
