@@ -45,6 +45,17 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .errors import MapInputError
+from .graph_factors import (
+    anchored_error,
+    global_cov,
+    isam2,
+    local_info,
+    plane_error,
+    pose2,
+    robust,
+    rot,
+    velocity_error,
+)
 from .landmarks import PlaneLandmarks, associate, subsample
 from .navigation import AXES, NavConfig, NavEstimate
 from .odometry import OdometryConfig, increment
@@ -109,112 +120,6 @@ class GraphConfig:
 
 #: the lever (m) that turns a heading into a distance where directions over position and heading are compared
 _LEVER_M = 2.0
-
-
-def _isam2(g: Any) -> Any:
-    """An iSAM2 with GTSAM's defaults (relinearising every 10 updates where a variable moved by 0.1: every step
-    at 0.01 made the depth-only dive three times slower and no better)."""
-    return g.ISAM2()
-
-
-def _pose2(g: Any, x: FloatArray) -> Any:
-    return g.Pose2(float(x[0]), float(x[1]), float(x[2]))
-
-
-def _rot(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
-
-
-def _local_info(h_global: FloatArray, theta: float) -> FloatArray:
-    """Information (3x3, north/east/heading) turned into GTSAM's Pose2 tangent at heading ``theta`` (the
-    translation error is in the pose's own frame)."""
-    a = np.eye(3)
-    a[0:2, 0:2] = _rot(theta)
-    out = a.T @ h_global @ a
-    return 0.5 * (out + out.T)
-
-
-def _global_cov(cov_local: FloatArray, theta: float) -> FloatArray:
-    a = np.eye(3)
-    a[0:2, 0:2] = _rot(theta)
-    return a @ cov_local @ a.T
-
-
-def _inflate(h: FloatArray, sigma_m: float, sigma_rad: float) -> FloatArray:
-    """Information (3x3, north/east/heading) with the landmarks' own uncertainty added: along each of its
-    eigenvectors the variance grows by ``sigma_m``^2 (its horizontal part) and ``sigma_rad``^2 (its heading
-    part); a plane is not exact, so no scan pins a pose beyond what its planes are known to."""
-    lam, vec = np.linalg.eigh(0.5 * (h + h.T))
-    lam = np.maximum(lam, 0.0)
-    extra = sigma_m**2 * np.sum(vec[0:2] ** 2, axis=0) + sigma_rad**2 * vec[2] ** 2
-    out = (vec * (lam / (1.0 + lam * extra))) @ vec.T
-    return np.asarray(0.5 * (out + out.T), dtype=np.float64)
-
-
-def _robust(g: Any, sigma: float) -> Any:
-    """A 1-D noise model of ``sigma`` with a Huber loss beyond 1.5 sigma (a wrong association costs linearly)."""
-    return g.noiseModel.Robust.Create(g.noiseModel.mEstimator.Huber.Create(1.5), g.noiseModel.Isotropic.Sigma(1, sigma))
-
-
-def _plane_error(n: FloatArray, c: FloatArray, const: float) -> Any:
-    """The residual (1,) of a plane seen from a pose: ``n . (t + R(theta) c) + const + offset`` (``n`` the plane's
-    horizontal normal, ``c`` the mean of its points in the level frame, ``const`` the vertical part and ``d``)."""
-    skew = np.array([[0.0, -1.0], [1.0, 0.0]])
-
-    def err(this: Any, values: Any, jac: Any) -> FloatArray:
-        k = this.keys()
-        pose = values.atPose2(k[0])
-        off = values.atVector(k[1])
-        r = pose.rotation().matrix()
-        e = float(n @ (pose.translation() + r @ c)) + const + float(off[0])
-        if jac is not None:
-            jac[0] = np.array([[*(n @ r), float(n @ r @ skew @ c)]])
-            jac[1] = np.ones((1, 1))
-        return np.array([e])
-
-    return err
-
-
-def _anchored_error(n_loc: FloatArray, c: FloatArray, const: float) -> Any:
-    """The residual (1,) of a plane fixed to an anchor pose, seen from another: ``n_loc . R_a^T (t + R c - t_a) +
-    const + offset`` (``n_loc``, ``const``: the plane in the anchor's frame; ``c`` the mean of the seeing scan's
-    points in its level frame)."""
-    skew = np.array([[0.0, -1.0], [1.0, 0.0]])
-
-    def err(this: Any, values: Any, jac: Any) -> FloatArray:
-        k = this.keys()
-        pa, pi = values.atPose2(k[0]), values.atPose2(k[1])
-        off = values.atVector(k[2])
-        ra, ri = pa.rotation().matrix(), pi.rotation().matrix()
-        u = pi.translation() + ri @ c - pa.translation()
-        e = float(n_loc @ ra.T @ u) + const + float(off[0])
-        if jac is not None:
-            jac[0] = np.array([[*(-n_loc), float(-n_loc @ skew @ ra.T @ u)]])
-            jac[1] = np.array([[*(n_loc @ ra.T @ ri), float(n_loc @ ra.T @ ri @ skew @ c)]])
-            jac[2] = np.ones((1, 1))
-        return np.array([e])
-
-    return err
-
-
-def _velocity_error(dt1: float, dt2: float) -> Any:
-    """The residual of three poses' mean velocities (2,): (t2 - t1) / dt2 - (t1 - t0) / dt1, NED."""
-
-    def err(this: Any, values: Any, jac: Any) -> FloatArray:
-        k = this.keys()
-        p0, p1, p2 = values.atPose2(k[0]), values.atPose2(k[1]), values.atPose2(k[2])
-        t0, t1, t2 = p0.translation(), p1.translation(), p2.translation()
-        e = (t2 - t1) / dt2 - (t1 - t0) / dt1
-        if jac is not None:
-            z = np.zeros((2, 1))
-            r0, r1, r2 = p0.rotation().matrix(), p1.rotation().matrix(), p2.rotation().matrix()
-            jac[0] = np.hstack([r0 / dt1, z])
-            jac[1] = np.hstack([-r1 * (1.0 / dt2 + 1.0 / dt1), z])
-            jac[2] = np.hstack([r2 / dt2, z])
-        return np.asarray(e, dtype=np.float64)
-
-    return err
 
 
 class GraphNav:
@@ -404,29 +309,29 @@ class GraphNav:
         if kind in ("prior", "map"):
             # data: mean (3,) north/east/heading and information (3x3, global axes)
             mean = np.asarray(data[0], dtype=np.float64)
-            info = _local_info(np.asarray(data[1], dtype=np.float64).reshape(3, 3), float(mean[2]))
-            return g.PriorFactorPose2(keys[0], _pose2(g, mean), g.noiseModel.Gaussian.Information(info))
+            info = local_info(np.asarray(data[1], dtype=np.float64).reshape(3, 3), float(mean[2]))
+            return g.PriorFactorPose2(keys[0], pose2(g, mean), g.noiseModel.Gaussian.Information(info))
         if kind in ("between", "loop"):
             # data: relative pose (3,) in the first pose's frame and its information (3x3, that pose's tangent)
             rel = np.asarray(data[0], dtype=np.float64)
             info = np.asarray(data[1], dtype=np.float64).reshape(3, 3)
-            return g.BetweenFactorPose2(keys[0], keys[1], _pose2(g, rel), g.noiseModel.Gaussian.Information(info))
+            return g.BetweenFactorPose2(keys[0], keys[1], pose2(g, rel), g.noiseModel.Gaussian.Information(info))
         if kind == "velocity":
             dt1, dt2, sigma = (float(v) for v in data)
-            return g.CustomFactor(g.noiseModel.Isotropic.Sigma(2, sigma), list(keys), _velocity_error(dt1, dt2))
+            return g.CustomFactor(g.noiseModel.Isotropic.Sigma(2, sigma), list(keys), velocity_error(dt1, dt2))
         if kind == "plane":
             pid, nx, ny, cx, cy, const, sigma = data
             return g.CustomFactor(
-                _robust(g, float(sigma)),
+                robust(g, float(sigma)),
                 [keys[0], g.symbol("p", int(pid))],
-                _plane_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
+                plane_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
             )
         if kind == "anchored":
             pid, nx, ny, cx, cy, const, sigma = data
             return g.CustomFactor(
-                _robust(g, float(sigma)),
+                robust(g, float(sigma)),
                 [keys[0], keys[1], g.symbol("p", int(pid))],
-                _anchored_error(
+                anchored_error(
                     np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)
                 ),
             )
@@ -445,7 +350,7 @@ class GraphNav:
     def _launch(self, t: int, raw: Pose, pts: FloatArray, fix: FloatArray) -> None:
         g = gtsam_module()
         self._reset()
-        self._isam = _isam2(g)
+        self._isam = isam2(g)
         self._pending: list[tuple[str, tuple[int, ...], tuple[Any, ...]]] = []
         self.start_ne = fix.copy()
         self._t.append(t)
@@ -480,7 +385,7 @@ class GraphNav:
         x_prev = self._est[prev]
         v = self.x[2:4]
         # the predicted move, in the previous pose's level frame (heading x_prev[2])
-        r_prev = _rot(float(x_prev[2]))
+        r_prev = rot(float(x_prev[2]))
         pred = r_prev.T @ (v * dt)
         speed_var = (gcfg.max_speed_m_s * dt) ** 2
         walk_var = gcfg.velocity_walk_m_s**2 * dt**3 + (0.05 * dt) ** 2
@@ -509,7 +414,7 @@ class GraphNav:
         # the move's information: the scan's, plus a weak bound from the speed
         info2 = h + np.eye(2) / speed_var
         # the between-factor's translation error lies in the frame turned by the measured turn
-        r_d = _rot(dyaw)
+        r_d = rot(dyaw)
         info = np.zeros((3, 3))
         info[0:2, 0:2] = r_d.T @ info2 @ r_d
         yaw_sigma = max(math.radians(self.cfg.yaw_walk_deg_per_sqrt_s) * math.sqrt(dt), math.radians(0.02))
@@ -542,7 +447,7 @@ class GraphNav:
             graph.add(self._factor(kind, keys, data))
         values = g.Values()
         for k, x in self._new_values.items():
-            values.insert(k, _pose2(g, x))
+            values.insert(k, pose2(g, x))
         for pid in self._new_offsets:
             values.insert(g.symbol("p", pid), np.zeros(1))
         self._new_offsets = set()
@@ -570,7 +475,7 @@ class GraphNav:
                 p = self._isam.calculateEstimatePose2(k)
                 self._est[k] = (p.x(), p.y(), p.theta())
         arr = self._est
-        self._cov = _global_cov(np.asarray(self._isam.marginalCovariance(last)), float(arr[last, 2]))
+        self._cov = global_cov(np.asarray(self._isam.marginalCovariance(last)), float(arr[last, 2]))
         # the velocity over the last few poses (what predicts the next move)
         back = max(self._first_key, last - 5)
         if last > back:
@@ -653,16 +558,16 @@ class GraphNav:
             nh = n[0:2].astype(np.float64)
             off = self._offset(pid)
             if anchor is None or then is None:
-                e = float(nh @ (x[0:2] + _rot(float(x[2])) @ c[0:2])) + const + off
+                e = float(nh @ (x[0:2] + rot(float(x[2])) @ c[0:2])) + const + off
                 kind, keys = "plane", (key,)  # type: tuple[str, tuple[int, ...]]
                 data = (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma)
             else:
                 # the plane in the anchor's frame as it was placed: n_loc . q + const_loc = 0 for q in that frame
-                n_loc = _rot(float(then[2])).T @ nh
+                n_loc = rot(float(then[2])).T @ nh
                 const_loc = const + float(nh @ then[0:2])
                 xa = self._est[anchor]
-                u = x[0:2] + _rot(float(x[2])) @ c[0:2] - xa[0:2]
-                e = float(n_loc @ _rot(float(xa[2])).T @ u) + const_loc + off
+                u = x[0:2] + rot(float(x[2])) @ c[0:2] - xa[0:2]
+                e = float(n_loc @ rot(float(xa[2])).T @ u) + const_loc + off
                 kind, keys = "anchored", (anchor, key)
                 data = (pid, float(n_loc[0]), float(n_loc[1]), float(c[0]), float(c[1]), const_loc, sigma)
             if abs(e) > self.gcfg.plane_gate_m:
@@ -775,7 +680,7 @@ class GraphNav:
 
         first = max(self._first_key, bisect.bisect_left(self._t, t_cut))
         self._refresh(all_keys=True)
-        cov = _global_cov(np.asarray(self._isam.marginalCovariance(first)), float(self._est[first, 2]))
+        cov = global_cov(np.asarray(self._isam.marginalCovariance(first)), float(self._est[first, 2]))
         self._rebuild(first, (self._est[first].copy(), np.asarray(np.linalg.inv(cov), dtype=np.float64)))
 
     def _rebuild(self, first: int, marginal: tuple[FloatArray, FloatArray] | None) -> None:
@@ -790,7 +695,7 @@ class GraphNav:
         self._first_key = first
         self._specs = specs
         self._then = {k: v for k, v in self._then.items() if k >= first}
-        self._isam = _isam2(g)
+        self._isam = isam2(g)
         self._pending = list(specs)
         self._new_values = {k: self._est[k] for k in range(first, len(self._t))}
         self._solve(all_keys=True)
