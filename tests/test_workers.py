@@ -372,7 +372,7 @@ def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list
         for r in ROBOTS:  # acknowledgeable once committed, placed or not
             assert base.ledger.records[r].mapped.ranges() == [[0, per - 1]]
         assert base.feed.nav_robots() == sorted(ROBOTS)  # the workers' estimates are served by the base
-        assert all(w.landmarks_version >= 0 and len(w.landmarks) > 0 for w in workers)  # the mirror arrived
+        assert all(len(w.snapshots) > 0 for w in workers)  # the merger's snapshots arrived
         assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 6
         assert sum(w.nav.strided for w in workers) > 0
         navigator = base.feed.navigator
@@ -438,3 +438,70 @@ def test_clouds_navigation_cannot_place_are_committed_without_planes_and_said_un
         out += worker.handle(job)
     assert [(o.seqs, o.unplaced, o.records) for o in out] == [((s,), (s,), ()) for s in range(5)]  # each at once
     assert all(o.nav_state for o in out)  # the state travels even before the robot has a position
+
+
+# ---------------------------------------------------------------------- the same map with navigation
+def _one_process_nav(frames: list[DiveFrame], robots: list[str], per: int, lag_ns: int) -> MapBuilder:
+    """One process by the workers' rule: each robot's ``WorkerNav`` (the stride, the filter), a registered scan
+    against this builder's own ``snapshot(T)``, the clouds in capture order."""
+    from mapping.navigation import NavConfig
+    from services.map_worker_nav import WorkerNav
+
+    single = MapBuilder(MapConfig())
+    wn = WorkerNav()
+    min_points = NavConfig().min_landmark_points
+    by = {"rov1": [f for f in frames if f.robot == "rov1"], "rov2": [f for f in frames if f.robot == "rov2"]}
+    for i in range(per):
+        for k, r in enumerate(robots):
+            f = by["rov1" if k % 2 == 0 else "rov2"][i]
+            pts = f.points_body.astype(np.float32)
+            step = wn.step(r, f.t_ns, f.pose_est, pts, single.snapshot_landmarks(f.t_ns, lag_ns, min_points))
+            if step.pose is None or not step.placed:
+                continue
+            single.add_cloud_body(r, f.t_ns, pts.astype(np.float64), step.pose)
+    single.flush()
+    return single
+
+
+def _plane_diff(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> tuple[float, float]:
+    """Largest angle (deg) and offset (m) between each plane of ``a`` and its nearest in ``b``."""
+    worst_a, worst_d = 0.0, 0.0
+    for p in a:
+        q = min(b, key=lambda q: abs(q["d"] - p["d"]) + 1 - float(np.dot(q["normal"], p["normal"])))
+        cos = min(1.0, float(np.dot(q["normal"], p["normal"])))
+        worst_a, worst_d = max(worst_a, float(np.degrees(np.arccos(cos)))), max(worst_d, abs(q["d"] - p["d"]))
+    return worst_a, worst_d
+
+
+def test_workers_navigating_by_snapshots_give_one_process_map(net: TestNetwork, frames: list[DiveFrame]) -> None:
+    # navigation is a loop (the planes correct the poses that make the planes): each registered scan uses
+    # snapshot(T) of the merged map, T fixed by its capture time, in the workers as in one process
+    base = net.start_base(map_mode="on", navigation=True, remote_workers=True, workers=2)
+    workers = [MapWorker(net.session(), net.keys, f"w{i}") for i in range(2)]
+    for w in workers:
+        w.start()
+    try:
+        pool = base.feed.pool
+        assert pool is not None
+        assert pool.snapshot_lag_ns > 0
+        assert pool.wait_for_workers(2, 20)
+        per = 90
+        _publish(net, frames, ROBOTS, 0, per)
+        assert base.drain(60)
+        base.flush_map(60)
+        assert base.map is not None
+        planes = base.map.map_json()["planes"]  # the map frame (not turned by the fleet's frame)
+        records = base.map.planes_records()
+        snaps = base.status()["map"]["worker_pool"]["snapshots"]
+        assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 6
+    finally:
+        for w in workers:
+            w.close()
+    assert (snaps["not_exact"], snaps["late"], snaps["forced"]) == (0, 0, 0), snaps
+    single = _one_process_nav(frames, ROBOTS, per, pool.snapshot_lag_ns)
+    ref = single.map_json()["planes"]
+    assert len(planes) == len(ref) >= 4
+    deg, off_m = _plane_diff(ref, planes)
+    assert deg <= 0.1
+    assert off_m <= 1e-3
+    assert records == single.planes_records()  # in fact bit for bit
