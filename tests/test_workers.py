@@ -505,3 +505,60 @@ def test_workers_navigating_by_snapshots_give_one_process_map(net: TestNetwork, 
     assert deg <= 0.1
     assert off_m <= 1e-3
     assert records == single.planes_records()  # in fact bit for bit
+
+
+def test_snapshots_survive_the_wire_and_a_store_finds_each_grid_time() -> None:
+    from mapping.landmarks import SNAPSHOT_GRID_NS, LandmarkSnapshots, SnapshotRange, snapshot_time
+    from services.errors import WireError
+    from services.map_worker_nav import decode_mirror, encode_snapshots
+
+    g = SNAPSHOT_GRID_NS
+    assert snapshot_time(10 * g + 5, 0) == 10 * g
+    assert snapshot_time(10 * g, 0) == 10 * g  # on the grid: that time itself
+    assert snapshot_time(10 * g + 5, 5 * g) == 5 * g
+    lm = _tank_landmarks(_frames(1.0))
+    ranges = [SnapshotRange(0, 3 * g, lm), SnapshotRange(4 * g, 9 * g, lm, exact=False)]
+    kind, base_id, back = decode_mirror(encode_snapshots("b1", ranges))
+    assert (kind, base_id) == ("snapshots", "b1")
+    assert [(r.lo_ns, r.hi_ns, r.exact) for r in back] == [(0, 3 * g, True), (4 * g, 9 * g, False)]
+    assert np.array_equal(back[1].landmarks.normal, lm.normal)
+    assert back[0].landmarks.contrib == lm.contrib
+    with pytest.raises(WireError):
+        decode_mirror(b"\x93garbage")
+    store = LandmarkSnapshots(keep_ns=20 * g)
+    for r in back:
+        store.put(r)
+    assert store.final_ns == 9 * g
+    got = store.get(3 * g)
+    assert got is not None
+    assert got.lo_ns == 0
+    assert store.get(10 * g) is None  # not final yet: a scan that needs it waits
+    assert store.newest_before(10 * g) is back[1]
+    store.put(SnapshotRange(40 * g, 41 * g, lm))  # the older ones fall out of the kept span
+    assert store.get(3 * g) is None
+    assert store.newest_before(3 * g) is not None  # the fallback takes the oldest kept
+
+
+def test_a_scan_whose_snapshot_does_not_come_waits_its_cap_then_goes_on_not_exact() -> None:
+    from mapping.landmarks import SnapshotRange
+
+    frames = [f for f in _frames(1.0) if f.robot == "rov1"]
+    lm = _tank_landmarks(frames)
+    worker = MapWorker(None, FleetKeys("t"), "w1", snapshot_wait_s=0.2)
+    lag = 500_000_000
+    worker.take_snapshots("b1", [SnapshotRange(0, frames[0].t_ns - lag, lm)])  # only the first scan's
+    out: list[PlaneObservations] = []
+    for seq, f in enumerate(frames[:12]):
+        job = MapJob("rov1", seq, f.t_ns, 0, f.pose_est, f.points_body.astype(np.float32), True, lag)
+        out += worker.handle(job)
+    assert worker.nav.registered == 1  # the scan 0.2 s on waits for its snapshot, the later ones behind it
+    assert out == []
+    assert worker.snap_waited == 1
+    assert worker.snap_not_exact == 0
+    time.sleep(0.25)
+    out += worker.handle(MapControl("flush"))  # no deadlock: past the cap, the newest snapshot before it
+    assert [o.seqs for o in out] == [tuple(range(10)), (10, 11)]
+    assert worker.nav.registered == 2
+    assert worker.snap_not_exact == 1
+    assert worker.snap_wait_ms >= 200
+    assert out[-1].snap_not_exact == 1  # reported to the base with each observation
