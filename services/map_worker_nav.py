@@ -1,13 +1,14 @@
 """Navigation in the plane workers: each robot's estimator runs in the worker that owns the robot.
 
 The worker that extracts a robot's planes also corrects its poses (:class:`WorkerNav`, one
-:class:`mapping.navigation.RobotNav` per robot, used only through its public methods), against a *mirror* of the
-shared map's planes: the base's merger publishes them (:class:`~mapping.navigation.PlaneLandmarks`, map frame) on
-``<root>/map/landmarks`` at most every :data:`LANDMARKS_EVERY_S` after a merge changed the map
-(:func:`encode_landmarks`). So a worker's mirror lags the base's map by that period plus the transit; the map itself
-lags the clouds by the canonical merge's hold (a window period, docs/scaling.md). The registration needs planes,
-not their newest millimetres: a plane's normal and offset move by millimetres over that time, and a plane new to
-the map is used a few scans later than in one process.
+:class:`mapping.navigation.RobotNav` per robot, used only through its public methods). A registered scan uses the
+merged map's *snapshot* its capture time names: ``snapshot(T)``, T the grid time at or before its capture time minus
+:data:`SNAPSHOT_LAG_S` (:func:`mapping.landmarks.snapshot_time`), the map after exactly the observations before T
+in the canonical merge order. The base's merger publishes each snapshot once it is final (:func:`encode_snapshots`,
+``<root>/map/landmarks``); a worker holds a robot whose snapshot has not come yet, at most :data:`SNAPSHOT_WAIT_S`
+(:mod:`services.map_worker`). One process follows the same rule (``MapBuilder.snapshot_landmarks``), so a scan's
+pose, and the map, do not depend on timing. (Jobs without a lag use a mirror of the planes of the moment, sent at
+most every :data:`LANDMARKS_EVERY_S`: :func:`encode_landmarks`.)
 
 **Registration stride.** Consecutive scans of a robot at 30 Hz overlap almost fully and its correction (the offset
 from the raw fix, the heading correction) changes slowly, so a robot's scan is registered (``RobotNav.update``)

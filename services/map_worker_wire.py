@@ -6,8 +6,8 @@ Keys, under the fleet's root ``<prefix>/<fleet>``:
 * ``<root>/map/work/<worker>``: the base's jobs for that worker (:class:`MapJob`, :class:`MapControl`);
 * ``<root>/map/obs/<worker>``: the worker's plane observations (:class:`PlaneObservations`) and, with navigation
   in the workers, its robots' estimates (:class:`NavReport`);
-* ``<root>/map/landmarks``: the merged map's planes as registration targets, for the workers' navigation
-  (:func:`services.map_worker_nav.encode_landmarks`).
+* ``<root>/map/landmarks``: the merged map's snapshots as registration targets, for the workers' navigation
+  (:func:`services.map_worker_nav.encode_snapshots`).
 
 A job is one accepted cloud of one robot with the pose to place it with (the navigation's, when it runs) and the
 robot's assignment *epoch*: the base bumps a robot's epoch each time the robot moves to another worker, and takes

@@ -22,15 +22,22 @@ The merge: observations are decoded and merged on this module's thread (``MapBui
 exact addition of statistics, nothing per robot), then the committed clouds are reported (``on_commit``). The
 merge is order-sensitive (which plane an observation joins depends on what the map holds), so the merger does not
 merge in the order the workers happen to answer: each observation carries the capture time of the cloud that
-triggered its extraction (``key_ns``), and it is held until no cloud still in flight is older; held observations
-are merged by (key, robot): the order one map thread fed in capture order merges them in, whatever the number of
-workers. The price is latency: an observation may wait up to one window period for the other robots' windows.
+triggered its extraction (``key_ns``), and it is held until no observation still to come can precede it (the
+*frontier*: the earliest key each robot's in-flight clouds could still fire their window at, see
+:meth:`WorkerPool._next_key_bound`); held observations are merged by (key, robot): the order one map thread fed in
+capture order merges them in, whatever the number of workers. An observation waits at most ``MAX_HOLD_S``, and a
+robot with nothing dispatched or committed for that long holds nothing back.
 
 Navigation in the workers (``navigate``; :mod:`services.map_worker_nav`): jobs carry the raw pose and the worker
-corrects it. The merger publishes its planes on ``<root>/map/landmarks`` (at most every
-:data:`~services.map_worker_nav.LANDMARKS_EVERY_S` after a change, and at once when a worker joins), keeps each
-robot's navigation state from the observations that commit its clouds, and hands that state to a robot's new
-worker (``adopt``) before re-sending its clouds.
+corrects it. A registered scan uses the merged map's *snapshot* its capture time names (``snapshot(T)``, T =
+:func:`mapping.landmarks.snapshot_time` of its capture time and ``snapshot_lag_s``: the map after exactly the
+observations with a key before T). As the frontier passes each grid time T, the merger takes the planes before the
+first merge at or after T and publishes them on ``<root>/map/landmarks``
+(:func:`~services.map_worker_nav.encode_snapshots`; the last ``SNAPSHOTS_KEEP_NS`` again when a worker joins),
+so the poses, and the map, do not depend on timing. It keeps each robot's navigation state from the observations
+that commit its clouds, and hands that state to a robot's new worker (``adopt``) before re-sending its clouds.
+Counted (``status_json()["snapshots"]``): the workers' waits and scans not exact, observations merged after their
+snapshot was out (``late``) or past the hold cap (``forced``).
 """
 
 from __future__ import annotations
