@@ -48,9 +48,10 @@ log = logging.getLogger(__name__)
 #: the moment, for jobs without a snapshot lag).
 LANDMARKS_EVERY_S = 0.1
 #: A scan captured at t registers against ``snapshot(T)``, T the grid time at or before t minus this lag (capture
-#: time, seconds; :func:`mapping.landmarks.snapshot_time`): longer than the merge's usual lag behind the clouds
-#: (a window period plus the workers' queue), so that a scan seldom waits for its snapshot.
-SNAPSHOT_LAG_S = 0.5
+#: time, seconds; :func:`mapping.landmarks.snapshot_time`). A scan waits only when some robot's window that fires
+#: before T is not merged yet, i.e. when the workers' queues differ by more than this lag minus a window period
+#: (1/3 s at 30 Hz): longer waits less; the registration needs planes, not their last second of change.
+SNAPSHOT_LAG_S = 0.7
 #: A scan waits at most this long (wall time, seconds) for its snapshot; then it registers against the newest
 #: snapshot before it and is counted ``not_exact`` (longer than the merge's hold cap, 2 s, plus transit).
 SNAPSHOT_WAIT_S = 3.0
