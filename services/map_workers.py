@@ -26,7 +26,7 @@ triggered its extraction (``key_ns``), and it is held until no observation still
 *frontier*: the earliest key each robot's in-flight clouds could still fire their window at, see
 :meth:`WorkerPool._next_key_bound`); held observations are merged by (key, robot): the order one map thread fed in
 capture order merges them in, whatever the number of workers. An observation waits at most ``MAX_HOLD_S``, and a
-robot with nothing dispatched or committed for that long holds nothing back.
+robot with nothing dispatched or committed for that long, its window's trigger still to come, holds nothing back.
 
 Navigation in the workers (``navigate``; :mod:`services.map_worker_nav`): jobs carry the raw pose and the worker
 corrects it. A registered scan uses the merged map's *snapshot* its capture time names (``snapshot(T)``, T =
@@ -476,12 +476,16 @@ class WorkerPool:
         """Under the lock: the held observations that no observation still to come can precede (canonical order),
         and that bound, the *frontier* (no observation still to come has a key before it; None: nothing sent
         yet). An observation without planes adds nothing, so its place in the order does not matter. A robot with
-        nothing dispatched or committed for ``MAX_HOLD_S`` (gone silent with clouds in its window) holds nothing
-        back: its late observation is merged when it comes (counted ``late`` when a snapshot was past it)."""
+        nothing dispatched or committed for ``MAX_HOLD_S`` whose window's trigger is still to come (gone silent with
+        clouds in its window) holds nothing back: its late observation is merged when it comes (counted ``late``
+        when a snapshot was past it). A robot whose window is due waits, however slow its worker."""
         quiet = time.monotonic() - MAX_HOLD_S
-        bounds = [
-            self._next_key_bound(t) for r, t in self._in_flight.items() if t and self._active.get(r, 0.0) >= quiet
-        ]
+        bounds = []
+        for r, t in self._in_flight.items():
+            if t:
+                bound, triggered = self._key_bound(t)
+                if triggered or self._active.get(r, 0.0) >= quiet:  # a due window comes, however slow its worker
+                    bounds.append(bound)
         mark = min(bounds) if bounds else None
         # nothing in flight: a robot's next cloud is assumed no older than the newest one sent (capture order)
         frontier = mark if mark is not None else self._newest_t
@@ -514,6 +518,11 @@ class WorkerPool:
         ``MapConfig.extract_every_*``, counted on every in-flight cloud and on the points before thinning, so that
         it fires no later than the worker's window does), or its newest in-flight cloud's (the trigger is still
         to come, and a robot's clouds come in capture order)."""
+        return self._key_bound(table)[0]
+
+    def _key_bound(self, table: dict[int, _InFlight]) -> tuple[int, bool]:
+        """:meth:`_next_key_bound`, and whether a cloud in flight fires the window (False: the trigger is still to
+        come, from a robot that may have gone silent)."""
         cfg = self.builder.cfg
         points = 0
         first = last = 0
@@ -523,10 +532,10 @@ class WorkerPool:
                 first = it.t_ns
             last = it.t_ns
             if n >= cfg.extract_every_clouds or points >= cfg.extract_every_points:
-                return it.t_ns
+                return it.t_ns, True
             if cfg.extract_every_s > 0 and n >= 2 and it.t_ns - first >= cfg.extract_every_s * 1e9:
-                return it.t_ns
-        return last
+                return it.t_ns, True
+        return last, False
 
     def _merge(self, ready: list[_Held], frontier: int | None) -> None:
         """Merge the ready observations in their order; with the snapshot rule, publish the snapshots they finalize
