@@ -73,7 +73,6 @@ from .zconfig import undeclare_all
 log = logging.getLogger(__name__)
 
 
-
 def worker_name() -> str:
     """A name unique to this process: ``<host>-<pid>-<random>`` (a valid key chunk)."""
     host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())[:24] or "host"
