@@ -562,3 +562,27 @@ def test_a_scan_whose_snapshot_does_not_come_waits_its_cap_then_goes_on_not_exac
     assert worker.snap_not_exact == 1
     assert worker.snap_wait_ms >= 200
     assert out[-1].snap_not_exact == 1  # reported to the base with each observation
+
+
+def test_one_process_snapshot_is_the_map_before_the_first_merge_at_or_after_its_time() -> None:
+    from mapping.landmarks import snapshot_time
+
+    frames = _frames(2.0)
+    b = MapBuilder(MapConfig())
+    lag = 300_000_000
+    before: list[tuple[int, Any]] = []  # (capture time, the planes before that cloud went in)
+    older = 0
+    for f in frames:
+        got = b.snapshot_landmarks(f.t_ns, lag, 300)
+        want_t = snapshot_time(f.t_ns, lag)
+        first_at = [lm for t, lm in before if t >= want_t]
+        expected = first_at[0] if first_at else b.landmarks(300)
+        assert np.array_equal(got.ids, expected.ids)
+        assert np.array_equal(got.d, expected.d)
+        older += not np.array_equal(got.d, b.landmarks(300).d)  # not the planes of the moment
+        before.append((f.t_ns, b.landmarks(300)))
+        b.add_cloud_body(f.robot, f.t_ns, f.points_body.astype(np.float64), f.pose_est)
+    assert len(b.landmarks(300)) >= 4
+    assert older > len(frames) // 4
+    with pytest.raises(Exception, match="min_points"):
+        b.snapshot_landmarks(frames[-1].t_ns, lag, 100)
