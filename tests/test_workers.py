@@ -586,3 +586,23 @@ def test_one_process_snapshot_is_the_map_before_the_first_merge_at_or_after_its_
     assert older > len(frames) // 4
     with pytest.raises(Exception, match="min_points"):
         b.snapshot_landmarks(frames[-1].t_ns, lag, 100)
+
+
+def test_a_silent_robot_does_not_hold_the_frontier_but_a_slow_workers_due_window_does() -> None:
+    from lrsensor.frames import Pose
+    from services.map_workers import MAX_HOLD_S, WorkerPool, _InFlight
+
+    pool = WorkerPool(None, FleetKeys("t"), MapBuilder(MapConfig()), lambda *a: None, lambda c: None)
+    pose = Pose(0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    def table(t0_ns: int, n: int) -> dict[int, _InFlight]:
+        return {s: _InFlight(s, t0_ns + s * 33_000_000, pose, np.zeros((10, 3), np.float32)) for s in range(n)}
+
+    now = time.monotonic()
+    pool._in_flight = {"a": table(5_000_000_000, 3), "b": table(1_000_000_000, 3)}
+    pool._active = {"a": now, "b": now}
+    assert pool._ready()[1] == 1_000_000_000 + 2 * 33_000_000  # b's window may still fire at its newest cloud
+    pool._active["b"] = now - MAX_HOLD_S - 1  # b went silent, its window's trigger still to come
+    assert pool._ready()[1] == 5_000_000_000 + 2 * 33_000_000
+    pool._in_flight["b"] = table(1_000_000_000, 12)  # a due window in a slow worker's queue: waited for
+    assert pool._ready()[1] == 1_000_000_000 + 9 * 33_000_000
