@@ -19,8 +19,10 @@ registered, against the workers' mirror of the merged planes). CPU: the base pro
 
 The same map: the planes of the flood run (map frame) against one ``MapBuilder`` fed the same clouds in capture
 order (the merge is order-sensitive), largest angle and offset difference over the large faces; with navigation,
-the reference also navigates in that one process (``WorkerNav``, the workers' stride, against the builder's planes
-as they are at each cloud).
+the reference also navigates in that one process by the workers' rule (``WorkerNav``: the stride, the filter; a
+registered scan against the builder's ``snapshot(T)``, ``MapBuilder.snapshot_landmarks``, the lag the base's
+workers use). The snapshot columns: scans that waited for their snapshot in the workers, the longest wait, and
+scans registered against another snapshot (late past the cap) with observations merged late or past the hold cap.
 """
 
 from __future__ import annotations
@@ -94,12 +96,17 @@ def publish(endpoint: str, fleet: str, robots: int, seconds: float, paced: bool)
 
 
 def reference_planes(
-    robots: int, seconds: float, nav: bool = False, lag_s: float = 0.0, every_s: float | None = None
+    robots: int,
+    seconds: float,
+    nav: bool = False,
+    lag_s: float = 0.0,
+    every_s: float | None = None,
+    snapshot_lag_s: float | None = None,
 ) -> list[dict[str, Any]]:
     """The map of one ``MapBuilder`` fed the publisher's clouds in capture order, then flushed: with the raw poses,
     or with ``nav`` the poses one process's ``WorkerNav`` (stride ``every_s``, default the workers') corrects
-    against the builder's planes of the moment, or with ``lag_s`` those of ``lag_s`` of capture time before (a
-    worker's mirror lags the merged map)."""
+    against the builder's planes of the moment, or with ``lag_s`` those of ``lag_s`` of capture time before, or
+    with ``snapshot_lag_s`` by the workers' rule: ``snapshot(T)`` of that lag."""
     from collections import deque
 
     from mapping import MapBuilder, MapConfig
@@ -119,6 +126,8 @@ def reference_planes(
                 seen.append((t_ns, lm))
             while seen and seen[0][0] <= t_ns - lag_s * 1e9:
                 mirror = seen.popleft()[1]
+            if snapshot_lag_s is not None:
+                lm = b.snapshot_landmarks(t_ns, round(snapshot_lag_s * 1e9), min_points)
             step = wn.step(robot, t_ns, raw, pts, mirror if lag_s > 0 else lm)
             if step.pose is None or not step.placed:
                 continue
@@ -142,7 +151,9 @@ def _proc_cpu_s(pids: list[int]) -> float:
     return total
 
 
-def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float) -> dict[str, Any]:
+def run_one(
+    n_workers: int, nav: bool, paced: bool, robots: int, seconds: float, lag_s: float | None = None
+) -> dict[str, Any]:
     """One configuration through a real base station; returns the figures."""
     from services.base import BaseStation
     from services.testnet import TestNetwork
@@ -165,6 +176,8 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
             if not base.feed.pool.wait_for_workers(n_workers, 120):
                 msg = "the worker processes did not come up"
                 raise RuntimeError(msg)
+            if lag_s is not None:  # before the first cloud: every job carries it
+                base.feed.pool.snapshot_lag_ns = round(lag_s * 1e9)
         cmd = [sys.executable, __file__, "--publish", net.endpoint, "--fleet", "bench", "--robots", str(robots)]
         cmd += ["--seconds", str(seconds)] + (["--paced"] if paced else [])
         pub = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT)
@@ -197,6 +210,7 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
         assert base.map is not None
         planes = base.map.map_json()["planes"]  # the map frame (the reference's), not turned by the fleet frame
         unplaced = st["map"]["unplaced"]
+        snaps = st["map"].get("worker_pool", {}).get("snapshots")
     wall = t_end - (t_first or t_end)
     return {
         "workers": n_workers,
@@ -213,6 +227,7 @@ def run_one(n_workers: int, nav: bool, paced: bool, robots: int, seconds: float)
         "pub_cpu_s": pub_cpu,
         "wall_s": wall,
         "planes": planes,
+        "snapshots": snaps,
     }
 
 
@@ -239,17 +254,19 @@ def tank_score(planes: list[dict[str, Any]], seconds: float) -> tuple[float, flo
     return worst_a, worst_d, len(sc.missing()), len(sc.duplicates())
 
 
-def same_map_nav(robots: int, seconds: float, flood: list[dict[str, Any]]) -> str:
-    """With navigation: the worker runs' maps and one process's variants against one process with the workers'
-    stride and the freshest planes, and each against the tank."""
-    ref = reference_planes(robots, seconds, True)
+def same_map_nav(
+    robots: int, seconds: float, flood: list[dict[str, Any]], ref: list[dict[str, Any]], lag: float
+) -> str:
+    """With navigation: the worker runs' maps and one process's variants against one process by the workers' rule
+    (``ref``: the stride, ``snapshot(T)`` of ``lag``), and each against the tank."""
     variants: list[tuple[str, list[dict[str, Any]]]] = [
-        ("one process, every 6th scan, the planes of the moment (the reference)", ref),
+        (f"one process, every 6th scan, snapshot(T) of {lag:g} s before (the reference)", ref),
+        ("one process, every 6th scan, the planes of the moment", reference_planes(robots, seconds, True)),
         ("one process, every scan, the planes of the moment", reference_planes(robots, seconds, True, every_s=0.0)),
     ]
-    for lag in (0.1, 0.3, 0.6):
-        name = f"one process, every 6th scan, the planes of {lag:g} s before"
-        variants.append((name, reference_planes(robots, seconds, True, lag)))
+    for old in (0.3, 0.6):
+        name = f"one process, every 6th scan, the planes of {old:g} s before"
+        variants.append((name, reference_planes(robots, seconds, True, old)))
     variants.append(("one process, no navigation (raw poses)", reference_planes(robots, seconds, False)))
     variants += [(f"flood through {f['workers']} worker processes", f["planes"]) for f in flood]
     lines = [
@@ -275,6 +292,7 @@ def main() -> int:
     ap.add_argument("--workers", default="0,1,2,4", help="worker process counts (0: the map in the base process)")
     ap.add_argument("--nav", default="off,on", help="navigation settings to run: off, on or both")
     ap.add_argument("--no-same-map", action="store_true", help="leave out the same-map check with navigation")
+    ap.add_argument("--lag-s", type=float, default=None, help="the workers' snapshot lag (default: the base's)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "workers.md")
     ap.add_argument("--publish", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--fleet", default="bench", help=argparse.SUPPRESS)
@@ -287,12 +305,13 @@ def main() -> int:
     rows = []
     for nav in [x == "on" for x in args.nav.split(",")]:
         for n in counts:
-            flood = run_one(n, nav, False, args.robots, args.seconds)
-            real = run_one(n, nav, True, args.robots, args.seconds)
+            flood = run_one(n, nav, False, args.robots, args.seconds, args.lag_s)
+            real = run_one(n, nav, True, args.robots, args.seconds, args.lag_s)
             rows.append((flood, real))
             print(
                 f"workers {n} nav {nav}: {flood['rate']:.0f} clouds/s, real time p50 {real['p50']} p99 {real['p99']} "
-                f"ms, mapped {real['mapped']}/{real['clouds']}",
+                f"ms, mapped {real['mapped']}/{real['clouds']}, snapshots flood {flood['snapshots']} real "
+                f"{real['snapshots']} (load {os.getloadavg()[0]:.1f})",
                 flush=True,
             )
     load1 = os.getloadavg()[0]
@@ -304,24 +323,37 @@ def main() -> int:
         f"| map workers | navigation | flood: clouds/s (needed {need}) | flood CPU s: base + workers (publisher) | "
         "real time: map "
         "latency p50 ms | p99 ms | real time: mapped / sent (unplaced) | flood planes vs one process in capture order: "
-        "max deg | max mm |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "max deg | max mm | snapshot waits: flood / real time (longest ms) | not exact: flood / real time |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    refs = {nav: reference_planes(args.robots, args.seconds, nav) for nav in {f["nav"] for f, _ in rows}}
+    from services.map_worker_nav import SNAPSHOT_LAG_S
+
+    lag = SNAPSHOT_LAG_S if args.lag_s is None else args.lag_s
+    refs = {
+        nav: reference_planes(args.robots, args.seconds, nav, snapshot_lag_s=lag if nav else None)
+        for nav in {f["nav"] for f, _ in rows}
+    }
     for flood, real in rows:
         da, dd = plane_diff(refs[flood["nav"]], flood["planes"])
+        fs, rs = flood["snapshots"], real["snapshots"]
+        if fs and rs:
+            waits = f"{fs['waited']} / {rs['waited']} ({fs['max_wait_ms']} / {rs['max_wait_ms']})"
+            inexact = f"{fs['not_exact'] + fs['late'] + fs['forced']} / {rs['not_exact'] + rs['late'] + rs['forced']}"
+        else:
+            waits = inexact = "-"
         name = "0 (map thread in the base process)" if flood["workers"] == 0 else f"{flood['workers']} processes"
         nav = "off" if not flood["nav"] else ("every scan, base" if flood["workers"] == 0 else "every 6th, workers")
         lines.append(
             f"| {name} | {nav} | {flood['rate']:.0f} | {flood['base_cpu_s']:.1f} + {flood['worker_cpu_s']:.1f} "
             f"({flood['pub_cpu_s']:.1f}) | "
             f"{_ms(real['p50'])} | {_ms(real['p99'])} | {real['mapped']} / {real['clouds']} ({real['unplaced']}) | "
-            f"{da:.2f} | {dd * 1e3:.1f} |"
+            f"{da:.2f} | {dd * 1e3:.1f} | {waits} | {inexact} |"
         )
     lines.append("")
     nav_floods = [f for f, _ in rows if f["nav"] and f["workers"] > 0]
     if nav_floods and not args.no_same_map:
-        lines += ["### The same map with navigation", "", same_map_nav(args.robots, args.seconds, nav_floods), ""]
+        table = same_map_nav(args.robots, args.seconds, nav_floods, refs[True], lag)
+        lines += ["### The same map with navigation", "", table, ""]
     text = "\n".join(lines)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

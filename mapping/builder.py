@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose
 
 from .errors import MapInputError, MappingError, MapStoreError
-from .landmarks import PlaneLandmarks
+from .landmarks import SNAPSHOT_GRID_NS, LandmarkSnapshots, PlaneLandmarks, SnapshotRange, snapshot_time
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
@@ -97,6 +97,11 @@ class MapBuilder:
         #: bumped whenever the planes change (the navigation's landmarks are cached per version)
         self._version = 0
         self._landmarks: tuple[int, int, PlaneLandmarks] | None = None
+        #: with navigation against snapshots (:meth:`snapshot_landmarks`): the planes as they were at each grid
+        #: time, the minimum points of a landmark, the last grid time recorded
+        self._snaps: LandmarkSnapshots | None = None
+        self._snap_min_points = 0
+        self._snap_upto: int | None = None
         #: keep every merged observation's points (:class:`mapping.replace.Placement`) so that clouds can be
         #: re-placed when a smoother revises their poses (:meth:`replace_poses`); only for one-process use
         #: (observations merged in the order this builder extracted them)
@@ -124,6 +129,7 @@ class MapBuilder:
             With a per-robot cap (``max_cloud_rate_hz`` > 0), clouds closer in time than 1 / ``max_cloud_rate_hz``
             to the robot's last one taken only extend its track (counted: :attr:`rate_skipped`).
         """
+        self._record_snapshots(int(t_ns))  # before this cloud's merge: its key is not before any grid time <= t_ns
         records = self.observe_cloud(robot, t_ns, points_ned, pose)
         changes = self.merge(records) if records else []
         self._maybe_autosave()
@@ -418,6 +424,37 @@ class MapBuilder:
             lm = PlaneLandmarks.from_planes(planes, min_points)
             self._landmarks = (self._version, min_points, lm)
             return lm
+
+    def snapshot_landmarks(self, t_ns: int, lag_ns: int, min_points: int = 0) -> PlaneLandmarks:
+        """The planes a scan captured at ``t_ns`` registers against in one process, by the rule plane workers
+        follow (docs/scaling.md): ``snapshot(T)`` for ``T`` = :func:`~mapping.landmarks.snapshot_time` (``t_ns``,
+        ``lag_ns``), the map after merging exactly the observations whose trigger capture time is before ``T``.
+        The first call starts the bookkeeping (:meth:`add_cloud` then records the planes at each grid time before
+        the merge that passes it); clouds must come in capture order, as they do to one map thread."""
+        with self._lock:
+            if self._snaps is None:
+                self._snaps = LandmarkSnapshots()
+                self._snap_min_points = min_points
+            elif min_points != self._snap_min_points:
+                msg = f"snapshot_landmarks: min_points {min_points} differs from the first call's"
+                raise MapInputError(msg)
+            self._record_snapshots(int(t_ns))
+            want = snapshot_time(t_ns, lag_ns)
+            rng = self._snaps.get(want) or self._snaps.newest_before(want)
+            assert rng is not None  # a range up to t_ns was just recorded
+            return rng.landmarks
+
+    def _record_snapshots(self, t_ns: int) -> None:
+        """The planes now are ``snapshot(T)`` for every grid time not recorded yet up to ``t_ns`` (every merge so
+        far had a key at or before the previous cloud's capture time)."""
+        with self._lock:
+            if self._snaps is None:
+                return
+            hi = (t_ns // SNAPSHOT_GRID_NS) * SNAPSHOT_GRID_NS
+            lo = 0 if self._snap_upto is None else self._snap_upto + SNAPSHOT_GRID_NS
+            if hi >= lo:
+                self._snaps.put(SnapshotRange(lo, hi, self.landmarks(self._snap_min_points)))
+                self._snap_upto = hi
 
     @property
     def version(self) -> int:

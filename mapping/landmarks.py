@@ -106,3 +106,83 @@ def associate(
     rows = np.arange(p_ned.shape[0])
     best = np.where(np.isfinite(score[rows, k]), k, -1)
     return best.astype(np.int64), dist[rows, k]
+
+
+# ---------------------------------------------------------------------------------------------- snapshots
+#: The grid of snapshot times, ns: a scan registers against the map as it was at a multiple of this.
+SNAPSHOT_GRID_NS = 100_000_000
+
+
+def snapshot_time(t_ns: int, lag_ns: int, grid_ns: int = SNAPSHOT_GRID_NS) -> int:
+    """The snapshot a scan captured at ``t_ns`` registers against: the grid time at or before ``t_ns - lag_ns``
+    (ns). ``snapshot(T)`` is the merged map after committing, in the canonical order (trigger capture time, robot),
+    exactly the observations whose key is before ``T``; it depends on the data only, not on when it was computed."""
+    return ((int(t_ns) - int(lag_ns)) // grid_ns) * grid_ns
+
+
+@dataclass(frozen=True)
+class SnapshotRange:
+    """The map's planes as they were at every grid time ``lo_ns <= T <= hi_ns`` (``snapshot(T)``, see
+    :func:`snapshot_time`): no observation with a key in ``[lo_ns, hi_ns)`` exists.
+
+    Attributes:
+        lo_ns, hi_ns: the first and last grid time (ns) this state is ``snapshot(T)`` of.
+        landmarks: the planes as registration targets.
+        exact: False when the merge that made it could not keep the canonical order (an observation merged past
+            its hold cap): then it is only the planes of about that time.
+    """
+
+    lo_ns: int
+    hi_ns: int
+    landmarks: PlaneLandmarks
+    exact: bool = True
+
+
+class LandmarkSnapshots:
+    """The recent snapshots of the merged map (:class:`SnapshotRange`, disjoint and ascending), as the merger
+    finalizes them: one process's builder records its own; a plane worker keeps those the merger publishes.
+
+    Args:
+        keep_ns: ranges whose ``hi_ns`` is more than this before the newest one's are dropped.
+    """
+
+    def __init__(self, keep_ns: int = 10_000_000_000) -> None:
+        self.keep_ns = keep_ns
+        self._ranges: list[SnapshotRange] = []
+
+    def __len__(self) -> int:
+        return len(self._ranges)
+
+    @property
+    def final_ns(self) -> int | None:
+        """The latest grid time whose snapshot is known (None: none yet)."""
+        return self._ranges[-1].hi_ns if self._ranges else None
+
+    def put(self, rng: SnapshotRange) -> None:
+        """Add a range (a later one wins where they overlap: e.g. re-sent on a worker's join)."""
+        self._ranges = [r for r in self._ranges if r.hi_ns < rng.lo_ns or r.lo_ns > rng.hi_ns] + [rng]
+        self._ranges.sort(key=lambda r: r.lo_ns)
+        cut = self._ranges[-1].hi_ns - self.keep_ns
+        self._ranges = [r for r in self._ranges if r.hi_ns >= cut]
+
+    def get(self, t_grid_ns: int) -> SnapshotRange | None:
+        """The range holding ``snapshot(t_grid_ns)``; None when not known (not final yet, or dropped)."""
+        for r in reversed(self._ranges):
+            if r.lo_ns <= t_grid_ns <= r.hi_ns:
+                return r
+            if r.hi_ns < t_grid_ns:
+                return None
+        return None
+
+    def newest_before(self, t_grid_ns: int) -> SnapshotRange | None:
+        """The latest range starting at or before ``t_grid_ns`` (else the oldest one): the fallback when the exact
+        snapshot is late past its cap, or already dropped."""
+        best = None
+        for r in self._ranges:
+            if r.lo_ns <= t_grid_ns:
+                best = r
+        return best if best is not None else (self._ranges[0] if self._ranges else None)
+
+    def clear(self) -> None:
+        """Forget every range (a restarted merger's times start afresh)."""
+        self._ranges = []

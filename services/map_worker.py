@@ -9,8 +9,13 @@ what each extraction gives on ``<root>/map/obs/<name>``: the plane observations 
 and the sequence numbers of the clouds they commit. The base (the merger) only adds them to the shared map.
 
 With navigation in the workers (the base's jobs say ``navigate``), the worker also corrects each cloud's pose
-before it places it: :mod:`services.map_worker_nav` (a mirror of the merged map's planes from
-``<root>/map/landmarks``, the registration stride, the robot's state carried to its next worker through the base).
+before it places it: :mod:`services.map_worker_nav` (the registration stride, the robot's state carried to its
+next worker through the base). A scan it registers uses the merged map's *snapshot* its capture time names
+(``snapshot(T)``, T = :func:`mapping.landmarks.snapshot_time` of the job's capture time and lag: the map after
+exactly the observations before T, whatever the timing), which the merger publishes on ``<root>/map/landmarks``
+once it is final. When it has not come yet, the robot's jobs wait (in order; the other robots go on) until it
+does, or for at most :data:`~services.map_worker_nav.SNAPSHOT_WAIT_S`: then the scan registers against the newest
+snapshot before its own and is counted ``not_exact``. Jobs without a lag use the mirror of the moment.
 
 Which robots a worker serves is the base's decision (:mod:`services.map_workers`); the worker follows the
 jobs. A job of a newer epoch for a robot means the robot was (re)assigned here: the worker forgets the robot's
@@ -31,7 +36,9 @@ import os
 import queue
 import socket
 import threading
+import time
 import uuid
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -40,7 +47,15 @@ from lrsensor.frames import body_to_ned
 
 from .errors import WireError
 from .keys import FleetKeys
-from .map_worker_nav import REGISTER_EVERY_S, NavStep, WorkerNav, decode_landmarks, decode_state, encode_state
+from .map_worker_nav import (
+    REGISTER_EVERY_S,
+    SNAPSHOT_WAIT_S,
+    NavStep,
+    WorkerNav,
+    decode_mirror,
+    decode_state,
+    encode_state,
+)
 from .map_worker_wire import (
     FLUSH_KEY,
     MapControl,
@@ -74,6 +89,7 @@ class MapWorker:
         cfg: the map configuration (must match the base's; default ``MapConfig()``, the base's default too).
         register_every_s: the navigation's registration stride (:mod:`services.map_worker_nav`).
         nav_publish_s: report a robot's registered estimate to the base at most this often (capture time, s).
+        snapshot_wait_s: longest a scan waits for its snapshot (wall time, s; see the module docstring).
     """
 
     def __init__(
@@ -84,8 +100,10 @@ class MapWorker:
         cfg: Any = None,
         register_every_s: float = REGISTER_EVERY_S,
         nav_publish_s: float = 0.2,
+        snapshot_wait_s: float = SNAPSHOT_WAIT_S,
     ) -> None:
         from mapping import MapBuilder, MapConfig  # Open3D lives behind this import
+        from mapping.landmarks import LandmarkSnapshots
         from mapping.navigation import PlaneLandmarks
 
         self.session = session
@@ -97,6 +115,19 @@ class MapWorker:
         #: the mirror of the merged map's planes (map frame) and its version at the base
         self.landmarks: Any = PlaneLandmarks.empty()
         self.landmarks_version = -1
+        #: the merger's snapshots (the snapshot rule), the merger they came from; guarded by ``_snap_cond``
+        self.snapshots = LandmarkSnapshots()
+        self._snap_base = ""
+        self._snap_cond = threading.Condition()
+        self.snapshot_wait_s = snapshot_wait_s
+        #: per robot: its jobs waiting for a snapshot, in order, with when the first began to wait (monotonic s)
+        self._waiting: dict[str, deque[MapJob]] = {}
+        self._woken = threading.Event()
+        self._wait_since: dict[str, float] = {}
+        #: scans that waited for their snapshot, the longest wait (ms), scans registered against another snapshot
+        self.snap_waited = 0
+        self.snap_wait_ms = 0
+        self.snap_not_exact = 0
         #: per robot: seqs pending that navigation did not place; capture time of the last estimate reported
         self._unplaced: dict[str, list[int]] = {}
         self._reported: dict[str, int] = {}
@@ -153,23 +184,45 @@ class MapWorker:
 
     def _on_landmarks(self, sample: Any) -> None:
         try:
-            version, lm = decode_landmarks(sample.payload.to_bytes())
+            kind, a, b = decode_mirror(sample.payload.to_bytes())
         except WireError as err:
             log.warning("map worker %s: %s", self.name, err)
             return
+        if kind == "snapshots":
+            self.take_snapshots(a, b)
+            self._woken.set()  # seen before the next job: the robots that wait go on first
+            self._queue.put(b"")  # and wakes the thread when it is idle
+            return
         # one publisher delivers in order, and a restarted base counts from 0 again: the newest message wins
-        self.landmarks, self.landmarks_version = lm, version  # the work thread sees the old or the new mirror
+        self.landmarks, self.landmarks_version = b, a  # the work thread sees the old or the new mirror
+
+    def take_snapshots(self, base_id: str, ranges: list[Any]) -> None:
+        """Keep snapshots the merger ``base_id`` published (a new merger's replace an old one's)."""
+        with self._snap_cond:
+            if base_id != self._snap_base:
+                self.snapshots.clear()
+                self._snap_base = base_id
+            for r in ranges:
+                self.snapshots.put(r)
+            self._snap_cond.notify_all()
 
     def _on_work(self, sample: Any) -> None:
         self._queue.put(sample.payload.to_bytes())  # never blocks (see the module docstring)
 
     def _run(self) -> None:
         while True:
-            payload = self._queue.get()
+            try:
+                payload = self._queue.get(timeout=0.25 if self._waiting else None)
+            except queue.Empty:
+                payload = b""  # a robot's wait may have passed its cap
             if payload is None:
                 return
             try:
-                self.handle(decode_work(payload))
+                if self._waiting and (self._woken.is_set() or not payload):
+                    self._woken.clear()
+                    self._retry()
+                if payload:  # b"": only a wake-up
+                    self.handle(decode_work(payload))
             except WireError as err:
                 self.errors += 1
                 log.warning("map worker %s: %s", self.name, err)
@@ -181,8 +234,10 @@ class MapWorker:
     def handle(self, msg: MapJob | MapControl) -> list[PlaneObservations]:
         """Process one message; returns (and publishes, when started) the observations it gave."""
         out: list[PlaneObservations] = []
+        early: list[PlaneObservations] = []
         if isinstance(msg, MapControl):
             if msg.kind == "flush":
+                early = self._retry(until_done=True)  # the waiting jobs first (published): before the flush
                 for robot, records in self.builder.flush_observations().items():
                     out.append(self._observed(robot, records, FLUSH_KEY))
                 for robot in sorted(r for r, seqs in self._pending.items() if seqs):  # nothing left to extract
@@ -192,12 +247,86 @@ class MapWorker:
             elif msg.kind == "adopt" and self._epoch.get(msg.robot, -1) < msg.epoch:
                 self._adopt(msg)
         else:
-            out.extend(self._job(msg))
+            out.extend(self._take(msg))
+        self._publish(out)
+        return early + out
+
+    def _publish(self, out: list[PlaneObservations]) -> None:
         for obs in out:
             if self._pub is not None:
                 self._pub.put(obs.to_bytes())
             self.published += 1
-        return out
+
+    # ------------------------------------------------------------------ the snapshot rule
+    def _snapshot_of(self, job: MapJob) -> int | None:
+        """The grid time of the snapshot ``job`` registers against; None: it needs none (no lag, or a scan
+        between registrations)."""
+        from mapping.landmarks import snapshot_time
+
+        if not job.navigate or job.lag_ns <= 0 or not self.nav.due(job.robot, job.t_ns, job.pose):
+            return None
+        return snapshot_time(job.t_ns, job.lag_ns)
+
+    def _has_snapshot(self, t_grid_ns: int | None) -> bool:
+        if t_grid_ns is None:
+            return True
+        with self._snap_cond:
+            return self.snapshots.get(t_grid_ns) is not None
+
+    def _take(self, job: MapJob) -> list[PlaneObservations]:
+        """A job in the robot's order: behind its waiting jobs, or waiting itself for its snapshot."""
+        held = self._epoch.get(job.robot)
+        if held is not None and job.epoch < held:
+            self.stale += 1
+            return []
+        if held is None or job.epoch > held:  # (re)assigned here: the base re-sends what is not committed
+            self._forget(job.robot)
+            self._epoch[job.robot] = job.epoch
+        q = self._waiting.get(job.robot)
+        if q:
+            q.append(job)
+            return []
+        if not self._has_snapshot(self._snapshot_of(job)):
+            self._waiting[job.robot] = deque([job])
+            self._wait_since[job.robot] = time.monotonic()
+            self.snap_waited += 1
+            return []
+        return self._job(job)
+
+    def _drop_waiting(self, robot: str) -> None:
+        self._waiting.pop(robot, None)
+        self._wait_since.pop(robot, None)
+
+    def _retry(self, until_done: bool = False) -> list[PlaneObservations]:
+        """Run the waiting jobs whose snapshot came or whose wait passed its cap (publishing each observation at
+        once: the merger waits for them); with ``until_done``, wait for the snapshots (each up to its cap) until no
+        job waits. Returns the observations published."""
+        out: list[PlaneObservations] = []
+        while True:
+            for robot in sorted(self._waiting):
+                q = self._waiting[robot]
+                while q:
+                    job = q[0]
+                    since = self._wait_since.get(robot)
+                    waited = since is not None and time.monotonic() - since >= self.snapshot_wait_s
+                    if not waited and not self._has_snapshot(self._snapshot_of(job)):
+                        break
+                    q.popleft()
+                    if since is not None:
+                        self.snap_wait_ms = max(self.snap_wait_ms, round(1e3 * (time.monotonic() - since)))
+                        self._wait_since.pop(robot, None)
+                    done = self._job(job)
+                    self._publish(done)
+                    out += done
+                    if q and not self._has_snapshot(self._snapshot_of(q[0])):  # the next one waits anew
+                        self._wait_since[robot] = time.monotonic()
+                        self.snap_waited += 1
+                if not q:
+                    self._drop_waiting(robot)
+            if not until_done or not self._waiting:
+                return out
+            with self._snap_cond:
+                self._snap_cond.wait(0.05)
 
     def _forget(self, robot: str) -> None:
         self.builder.drop_robot(robot)
@@ -206,6 +335,7 @@ class MapWorker:
         self._unplaced.pop(robot, None)
         self._reported.pop(robot, None)
         self._epoch.pop(robot, None)
+        self._drop_waiting(robot)
 
     def _adopt(self, msg: MapControl) -> None:
         """The robot moved here: its navigation continues from the state after its last committed cloud."""
@@ -218,8 +348,25 @@ class MapWorker:
             except (WireError, KeyError, TypeError, ValueError) as err:
                 log.warning("map worker %s: %s's navigation restarts (state refused: %s)", self.name, msg.robot, err)
 
+    def _landmarks_for(self, job: MapJob) -> Any:
+        """The planes ``job``'s scan registers against: its snapshot, else (late past the cap, or dropped) the
+        newest before it, counted not exact; without a lag, the mirror of the moment."""
+        want = self._snapshot_of(job)
+        if want is None:
+            return self.landmarks
+        with self._snap_cond:
+            rng = self.snapshots.get(want)
+            if rng is None or not rng.exact:
+                self.snap_not_exact += 1
+                rng = rng or self.snapshots.newest_before(want)
+        if rng is None:
+            from mapping.navigation import PlaneLandmarks
+
+            return PlaneLandmarks.empty()
+        return rng.landmarks
+
     def _navigate(self, job: MapJob) -> NavStep:
-        step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self.landmarks)
+        step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self._landmarks_for(job))
         est = step.estimate
         if est is not None and self._pub is not None:
             last = self._reported.get(job.robot)
@@ -246,7 +393,12 @@ class MapWorker:
                     self._unplaced.setdefault(job.robot, []).append(job.seq)
                     if self.builder.uncommitted(job.robot) == 0:
                         return [self._observed(job.robot, [], job.t_ns)]
-                    return []
+                    # mid-window: committed now on its own, or the base, counting it in the window, would bound the
+                    # window's next observation too early (and hold the merge and the snapshots back); no state:
+                    # the one carried must follow the window's clouds, which are not committed yet
+                    self._pending[job.robot].remove(job.seq)
+                    self._unplaced[job.robot].remove(job.seq)
+                    return [self._observations(job.robot, (job.seq,), [], job.t_ns, (job.seq,), b"")]
                 pose = step.pose
             pts = job.points_body.astype(np.float64)
             records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, pose), pose)
@@ -265,16 +417,21 @@ class MapWorker:
 
         seqs = tuple(self._pending.pop(robot, []))
         unplaced = tuple(self._unplaced.pop(robot, []))
-        return PlaneObservations(
-            self.name,
-            robot,
-            self._epoch.get(robot, 0),
-            seqs,
-            tuple(record_to_wire(r) for r in records),
-            key_ns,
-            unplaced,
-            self._nav_state(robot),
-        )
+        wire = [record_to_wire(r) for r in records]
+        return self._observations(robot, seqs, wire, key_ns, unplaced, self._nav_state(robot))
+
+    def _observations(
+        self,
+        robot: str,
+        seqs: tuple[int, ...],
+        wire: list[dict[str, Any]],
+        key_ns: int,
+        unplaced: tuple[int, ...],
+        nav_state: bytes,
+    ) -> PlaneObservations:
+        epoch = self._epoch.get(robot, 0)
+        counts = (self.snap_waited, self.snap_wait_ms, self.snap_not_exact)
+        return PlaneObservations(self.name, robot, epoch, seqs, tuple(wire), key_ns, unplaced, nav_state, *counts)
 
     def _nav_state(self, robot: str) -> bytes:
         """The robot's navigation state after its last processed cloud (b"": none, or it does not encode)."""

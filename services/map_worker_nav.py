@@ -1,13 +1,14 @@
 """Navigation in the plane workers: each robot's estimator runs in the worker that owns the robot.
 
 The worker that extracts a robot's planes also corrects its poses (:class:`WorkerNav`, one
-:class:`mapping.navigation.RobotNav` per robot, used only through its public methods), against a *mirror* of the
-shared map's planes: the base's merger publishes them (:class:`~mapping.navigation.PlaneLandmarks`, map frame) on
-``<root>/map/landmarks`` at most every :data:`LANDMARKS_EVERY_S` after a merge changed the map
-(:func:`encode_landmarks`). So a worker's mirror lags the base's map by that period plus the transit; the map itself
-lags the clouds by the canonical merge's hold (a window period, docs/scaling.md). The registration needs planes,
-not their newest millimetres: a plane's normal and offset move by millimetres over that time, and a plane new to
-the map is used a few scans later than in one process.
+:class:`mapping.navigation.RobotNav` per robot, used only through its public methods). A registered scan uses the
+merged map's *snapshot* its capture time names: ``snapshot(T)``, T the grid time at or before its capture time minus
+:data:`SNAPSHOT_LAG_S` (:func:`mapping.landmarks.snapshot_time`), the map after exactly the observations before T
+in the canonical merge order. The base's merger publishes each snapshot once it is final (:func:`encode_snapshots`,
+``<root>/map/landmarks``); a worker holds a robot whose snapshot has not come yet, at most :data:`SNAPSHOT_WAIT_S`
+(:mod:`services.map_worker`). One process follows the same rule (``MapBuilder.snapshot_landmarks``), so a scan's
+pose, and the map, do not depend on timing. (Jobs without a lag use a mirror of the planes of the moment, sent at
+most every :data:`LANDMARKS_EVERY_S`: :func:`encode_landmarks`.)
 
 **Registration stride.** Consecutive scans of a robot at 30 Hz overlap almost fully and its correction (the offset
 from the raw fix, the heading correction) changes slowly, so a robot's scan is registered (``RobotNav.update``)
@@ -43,8 +44,17 @@ from .errors import WireError
 
 log = logging.getLogger(__name__)
 
-#: The merger publishes its planes to the workers at most this often after a change, seconds.
+#: The merger publishes its planes to the workers at most this often after a change, seconds (the mirror of
+#: the moment, for jobs without a snapshot lag).
 LANDMARKS_EVERY_S = 0.1
+#: A scan captured at t registers against ``snapshot(T)``, T the grid time at or before t minus this lag (capture
+#: time, seconds; :func:`mapping.landmarks.snapshot_time`). A scan waits only when some robot's window that fires
+#: before T is not merged yet, i.e. when the workers' queues differ by more than this lag minus a window period
+#: (1/3 s at 30 Hz): longer waits less; the registration needs planes, not their last second of change.
+SNAPSHOT_LAG_S = 0.7
+#: A scan waits at most this long (wall time, seconds) for its snapshot; then it registers against the newest
+#: snapshot before it and is counted ``not_exact`` (longer than the merge's hold cap, 2 s, plus transit).
+SNAPSHOT_WAIT_S = 3.0
 #: Register a robot's scan when at least this much capture time passed since its last registration, seconds.
 REGISTER_EVERY_S = 0.19
 #: Without a fix, scans between registrations move on at the velocity of the last two registered positions when
@@ -142,6 +152,40 @@ def decode_landmarks(payload: bytes) -> tuple[int, Any]:
         raise WireError(msg) from err
 
 
+def encode_snapshots(base_id: str, ranges: list[Any]) -> bytes:
+    """Snapshots of the merged map (:class:`~mapping.landmarks.SnapshotRange`) from the merger ``base_id`` (a
+    name unique to the merger's run): what ``<root>/map/landmarks`` carries with the snapshot rule."""
+    rows = []
+    for r in ranges:
+        fields = {f.name: _enc(getattr(r.landmarks, f.name)) for f in dataclasses.fields(r.landmarks)}
+        rows.append([r.lo_ns, r.hi_ns, r.exact, fields])
+    return bytes(msgpack.packb({"v": 1, "type": "snapshots", "base": base_id, "ranges": rows}))
+
+
+def decode_mirror(payload: bytes) -> tuple[str, Any, Any]:
+    """A ``<root>/map/landmarks`` message: ``("snapshots", base_id, [SnapshotRange, ...])`` of
+    :func:`encode_snapshots`, or ``("landmarks", version, PlaneLandmarks)`` of :func:`encode_landmarks` (raises
+    :class:`WireError`)."""
+    from mapping.landmarks import PlaneLandmarks, SnapshotRange
+
+    try:
+        d = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        kind = d.get("type")
+        if kind == "landmarks":
+            return "landmarks", int(d["version"]), PlaneLandmarks(**{k: _dec(v) for k, v in d["fields"].items()})
+        if kind != "snapshots":
+            msg = f"not a landmarks message: {kind!r}"
+            raise WireError(msg)
+        out = [
+            SnapshotRange(int(lo), int(hi), PlaneLandmarks(**{k: _dec(v) for k, v in f.items()}), bool(exact))
+            for lo, hi, exact, f in d["ranges"]
+        ]
+        return "snapshots", str(d["base"]), out
+    except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as err:
+        msg = f"landmarks do not decode: {err!r}"
+        raise WireError(msg) from err
+
+
 # ---------------------------------------------------------------------------------------------- the estimators
 @dataclasses.dataclass(frozen=True)
 class NavStep:
@@ -195,7 +239,7 @@ class WorkerNav:
     def _to_graph(self, robot: str, nav: Any, raw: Pose, landmarks: Any) -> Any:
         """A robot whose cloud after its launch has no fix: its pose graph from the launch on (without GTSAM it
         keeps the filter)."""
-        if math.isfinite(raw.north_m + raw.east_m) or robot not in self._launch or not self.cfg.graph_without_fix:
+        if not self._graph_next(robot, raw):
             return nav
         launch = self._launch.pop(robot)
         from mapping.errors import MapInputError
@@ -208,13 +252,19 @@ class WorkerNav:
             return nav
         return graph
 
-    def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any) -> NavStep:
-        """One cloud of ``robot``: registered, or placed with the latest correction (a pose graph takes every
-        cloud: its odometry pairs consecutive scans)."""
-        nav = self._to_graph(robot, self._nav(robot), raw, landmarks)
+    def _graph_next(self, robot: str, raw: Pose) -> bool:
+        """Whether ``robot``'s cloud with the raw pose ``raw`` turns it to a pose graph (:meth:`_to_graph`)."""
+        return not math.isfinite(raw.north_m + raw.east_m) and robot in self._launch and self.cfg.graph_without_fix
+
+    def due(self, robot: str, t_ns: int, raw: Pose | None = None) -> bool:
+        """Whether :meth:`step` registers ``robot``'s scan captured at ``t_ns`` with the raw pose ``raw`` (then it
+        needs the landmarks; a pose graph takes every cloud)."""
+        nav = self._navs.get(robot)
+        if nav is None or (raw is not None and self._graph_next(robot, raw)):
+            return True
         last = self._last_reg.get(robot)
         latest = nav.latest
-        due = (
+        return (
             last is None
             or not nav.started
             or latest is None
@@ -222,6 +272,13 @@ class WorkerNav:
             or not 0 <= t_ns - last < self.register_every_s * 1e9
             or hasattr(nav, "revised_poses")
         )
+
+    def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any) -> NavStep:
+        """One cloud of ``robot``: registered (against ``landmarks``), or placed with the latest correction (a pose
+        graph takes every cloud: its odometry pairs consecutive scans)."""
+        nav = self._to_graph(robot, self._nav(robot), raw, landmarks)
+        due = self.due(robot, t_ns, raw)
+        latest = nav.latest
         if due:
             est = nav.update(t_ns, raw, points_body, landmarks)
             if nav.started and not hasattr(nav, "revised_poses") and math.isfinite(raw.north_m + raw.east_m):

@@ -6,8 +6,8 @@ Keys, under the fleet's root ``<prefix>/<fleet>``:
 * ``<root>/map/work/<worker>``: the base's jobs for that worker (:class:`MapJob`, :class:`MapControl`);
 * ``<root>/map/obs/<worker>``: the worker's plane observations (:class:`PlaneObservations`) and, with navigation
   in the workers, its robots' estimates (:class:`NavReport`);
-* ``<root>/map/landmarks``: the merged map's planes as registration targets, for the workers' navigation
-  (:func:`services.map_worker_nav.encode_landmarks`).
+* ``<root>/map/landmarks``: the merged map's snapshots as registration targets, for the workers' navigation
+  (:func:`services.map_worker_nav.encode_snapshots`).
 
 A job is one accepted cloud of one robot with the pose to place it with (the navigation's, when it runs) and the
 robot's assignment *epoch*: the base bumps a robot's epoch each time the robot moves to another worker, and takes
@@ -65,6 +65,9 @@ class MapJob:
             ``navigate`` the raw pose the robot sent: the worker corrects it (:mod:`services.map_worker_nav`).
         points_body: (N, 3) float32, body frame, metres.
         navigate: whether the worker runs the robot's navigation on this cloud.
+        lag_ns: with ``navigate``, the snapshot lag (ns): a registered scan uses ``snapshot(T)`` of the merged map,
+            T = :func:`mapping.landmarks.snapshot_time` (``t_ns``, ``lag_ns``), waiting for it when needed; 0: the
+            worker's mirror of the moment.
     """
 
     robot: str
@@ -74,6 +77,7 @@ class MapJob:
     pose: Pose
     points_body: NDArray[np.float32]
     navigate: bool = False
+    lag_ns: int = 0
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -89,6 +93,7 @@ class MapJob:
                 "pose": [p.north_m, p.east_m, p.down_m, p.roll_rad, p.pitch_rad, p.yaw_rad],
                 "points": np.ascontiguousarray(self.points_body, "<f4").tobytes(),
                 "nav": self.navigate,
+                "lag": self.lag_ns,
             }
         )
 
@@ -127,7 +132,11 @@ class PlaneObservations:
             the extraction, or :data:`FLUSH_KEY` for the extraction of a flush (then by robot name).
         unplaced: of ``seqs``, the clouds navigation could not place (committed without planes).
         nav_state: with navigation in the worker, the robot's navigation state after the last cloud of ``seqs``
-            (:func:`services.map_worker_nav.encode_state`); empty otherwise.
+            (:func:`services.map_worker_nav.encode_state`); empty otherwise (or when the message commits a cloud
+            out of its window's order: an unplaced one).
+        snap_waited, snap_wait_ms, snap_not_exact: the worker's counters so far (all robots): scans that waited for
+            their snapshot of the merged map, the longest such wait (ms), and scans registered against another
+            snapshot than theirs (late past ``SNAPSHOT_WAIT_S``, or a snapshot the merger marked not exact).
     """
 
     worker: str
@@ -138,6 +147,9 @@ class PlaneObservations:
     key_ns: int = 0
     unplaced: tuple[int, ...] = ()
     nav_state: bytes = b""
+    snap_waited: int = 0
+    snap_wait_ms: int = 0
+    snap_not_exact: int = 0
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -153,6 +165,7 @@ class PlaneObservations:
                 "key_ns": self.key_ns,
                 "unplaced": list(self.unplaced),
                 "nav_state": self.nav_state,
+                "snap": [self.snap_waited, self.snap_wait_ms, self.snap_not_exact],
             }
         )
 
@@ -170,6 +183,7 @@ class PlaneObservations:
                 int(d["key_ns"]),
                 tuple(int(s) for s in d.get("unplaced", ())),
                 bytes(d.get("nav_state", b"")),
+                *(int(x) for x in d.get("snap", (0, 0, 0))[:3]),
             )
         except (KeyError, TypeError, ValueError) as err:
             msg = f"plane observations: malformed: {err!r}"
@@ -227,6 +241,7 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
                 Pose(*(float(x) for x in d["pose"])),
                 pts.reshape(-1, 3),
                 bool(d.get("nav", False)),
+                int(d.get("lag", 0)),
             )
         if kind in ("flush", "drop", "adopt"):
             return MapControl(kind, str(d.get("robot", "")), int(d.get("epoch", 0)), bytes(d.get("state", b"")))

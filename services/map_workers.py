@@ -22,15 +22,22 @@ The merge: observations are decoded and merged on this module's thread (``MapBui
 exact addition of statistics, nothing per robot), then the committed clouds are reported (``on_commit``). The
 merge is order-sensitive (which plane an observation joins depends on what the map holds), so the merger does not
 merge in the order the workers happen to answer: each observation carries the capture time of the cloud that
-triggered its extraction (``key_ns``), and it is held until no cloud still in flight is older; held observations
-are merged by (key, robot): the order one map thread fed in capture order merges them in, whatever the number of
-workers. The price is latency: an observation may wait up to one window period for the other robots' windows.
+triggered its extraction (``key_ns``), and it is held until no observation still to come can precede it (the
+*frontier*: the earliest key each robot's in-flight clouds could still fire their window at, see
+:meth:`WorkerPool._next_key_bound`); held observations are merged by (key, robot): the order one map thread fed in
+capture order merges them in, whatever the number of workers. An observation waits at most ``MAX_HOLD_S``, and a
+robot with nothing dispatched or committed for that long, its window's trigger still to come, holds nothing back.
 
 Navigation in the workers (``navigate``; :mod:`services.map_worker_nav`): jobs carry the raw pose and the worker
-corrects it. The merger publishes its planes on ``<root>/map/landmarks`` (at most every
-:data:`~services.map_worker_nav.LANDMARKS_EVERY_S` after a change, and at once when a worker joins), keeps each
-robot's navigation state from the observations that commit its clouds, and hands that state to a robot's new
-worker (``adopt``) before re-sending its clouds.
+corrects it. A registered scan uses the merged map's *snapshot* its capture time names (``snapshot(T)``, T =
+:func:`mapping.landmarks.snapshot_time` of its capture time and ``snapshot_lag_s``: the map after exactly the
+observations with a key before T). As the frontier passes each grid time T, the merger takes the planes before the
+first merge at or after T and publishes them on ``<root>/map/landmarks``
+(:func:`~services.map_worker_nav.encode_snapshots`; the last ``SNAPSHOTS_KEEP_NS`` again when a worker joins),
+so the poses, and the map, do not depend on timing. It keeps each robot's navigation state from the observations
+that commit its clouds, and hands that state to a robot's new worker (``adopt``) before re-sending its clouds.
+Counted (``status_json()["snapshots"]``): the workers' waits and scans not exact, observations merged after their
+snapshot was out (``late``) or past the hold cap (``forced``).
 """
 
 from __future__ import annotations
@@ -41,6 +48,8 @@ import logging
 import queue
 import threading
 import time
+import uuid
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -52,8 +61,9 @@ from lrsensor.frames import Pose
 
 from .errors import WireError
 from .keys import FleetKeys
-from .map_worker_nav import LANDMARKS_EVERY_S, decode_state, encode_landmarks
+from .map_worker_nav import LANDMARKS_EVERY_S, SNAPSHOT_LAG_S, decode_state, encode_landmarks, encode_snapshots
 from .map_worker_wire import (
+    FLUSH_KEY,
     MapControl,
     MapJob,
     NavReport,
@@ -67,6 +77,7 @@ from .zconfig import undeclare_all
 
 if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
+    from mapping.landmarks import SnapshotRange
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +101,11 @@ def owner(robot: str, workers: Iterable[str]) -> str | None:
 
 
 #: Longest an observation is held for the canonical order, seconds: a robot that went silent with clouds in its
-#: worker's window (extracted only at the next flush) must not stall the others' merge.
+#: worker's window (extracted only at the next flush) must not stall the others' merge. A robot with nothing
+#: dispatched and nothing committed for this long holds neither the merge nor the snapshots back.
 MAX_HOLD_S = 2.0
+#: The merger keeps its snapshots this far back (capture time, ns) to send them to a worker that joins.
+SNAPSHOTS_KEEP_NS = 5_000_000_000
 
 #: An observation held for the canonical merge order: (key_ns, robot, arrival number, records, [(seq, t_ns)],
 #: unplaced seqs, navigation state).
@@ -119,6 +133,8 @@ class WorkerPool:
         max_in_flight: see the module docstring.
         navigate: whether the workers run the navigation (see the module docstring).
         landmark_min_points: with ``navigate``, planes with fewer points are not sent to the workers.
+        snapshot_lag_s: with ``navigate``, the snapshot rule's lag (docs/scaling.md; 0: the workers register
+            against a mirror of the planes of the moment, sent at most every ``LANDMARKS_EVERY_S``).
     """
 
     def __init__(
@@ -131,6 +147,7 @@ class WorkerPool:
         max_in_flight: int = MAX_IN_FLIGHT,
         navigate: bool = False,
         landmark_min_points: int = 0,
+        snapshot_lag_s: float = SNAPSHOT_LAG_S,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -140,6 +157,22 @@ class WorkerPool:
         self.max_in_flight = max_in_flight
         self.navigate = navigate
         self.landmark_min_points = landmark_min_points
+        self.snapshot_lag_ns = round(snapshot_lag_s * 1e9)
+        #: the snapshot rule (merger thread): this merger's name, the last grid time published, keys up to which
+        #: the published snapshots are not exact, the ranges kept for a joining worker
+        self._base_id = uuid.uuid4().hex[:12]
+        self._snap_upto: int | None = None
+        self._inexact_to = -1
+        self._kept: deque[SnapshotRange] = deque()
+        #: per robot: when it last had a cloud dispatched or committed (monotonic s); the newest capture time sent
+        self._active: dict[str, float] = {}
+        self._newest_t: int | None = None
+        #: observations merged after a snapshot that should hold them was published (a robot late past the hold),
+        #: observations merged past their hold cap; per worker: its snapshot counters (waited, longest wait ms,
+        #: not exact)
+        self.snap_late = 0
+        self.snap_forced = 0
+        self._snap_counts: dict[str, tuple[int, int, int]] = {}
         #: with ``navigate``: called with ``(robot, state)`` as the clouds an observation commits are merged, and
         #: with ``(robot, NavEstimate)`` for each estimate a worker reports
         self.on_nav_state: Callable[[str, bytes], None] = lambda robot, state: None
@@ -179,9 +212,9 @@ class WorkerPool:
         if self.navigate:
             import zenoh
 
-            self._lm_pub = s.declare_publisher(
-                landmarks_key(self.keys), congestion_control=zenoh.CongestionControl.DROP
-            )
+            # snapshots must arrive (a scan waits for its own); the mirror of the moment may skip one
+            cc = zenoh.CongestionControl.BLOCK if self.snapshot_lag_ns > 0 else zenoh.CongestionControl.DROP
+            self._lm_pub = s.declare_publisher(landmarks_key(self.keys), congestion_control=cc)
             self._entities.append(self._lm_pub)
         self._entities += [
             s.declare_subscriber(obs_key(self.keys), lambda sample: self._events.put(("obs", sample))),
@@ -231,13 +264,24 @@ class WorkerPool:
                 }
                 for w in sorted(self._workers)
             }
-            return {
+            out: dict[str, Any] = {
                 "workers": per,
                 "in_flight": self._n_in_flight,
                 "stale": self.stale,
                 "moves": self.moves,
                 "resent": self.resent,
             }
+            if self.navigate and self.snapshot_lag_ns > 0:
+                counts = [self._snap_counts.get(w, (0, 0, 0)) for w in sorted(self._workers)]
+                out["snapshots"] = {
+                    "lag_ms": round(self.snapshot_lag_ns / 1e6),
+                    "waited": sum(c[0] for c in counts),
+                    "max_wait_ms": max((c[1] for c in counts), default=0),
+                    "not_exact": sum(c[2] for c in counts),
+                    "late": self.snap_late,
+                    "forced": self.snap_forced,
+                }
+            return out
 
     def wait_for_workers(self, n: int, timeout_s: float) -> bool:
         """Wait until at least ``n`` workers are alive; False on timeout."""
@@ -263,6 +307,8 @@ class WorkerPool:
                 return  # already in flight (the ledger de-duplicates; this is a second guard)
             table[seq] = item
             self._n_in_flight += 1
+            self._active[robot] = time.monotonic()
+            self._newest_t = t_ns if self._newest_t is None else max(self._newest_t, t_ns)
             if robot not in self._owner:
                 self._owner[robot] = owner(robot, self._workers)
                 self._epoch[robot] = 0
@@ -300,8 +346,10 @@ class WorkerPool:
         if w is None:
             return
         epoch = self._epoch[robot]
+        lag = self.snapshot_lag_ns if self.navigate else 0
         for it in items:
-            self._put(w, MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate).to_bytes())
+            job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag)
+            self._put(w, job.to_bytes())
 
     def _reassign(self) -> None:
         """Move every robot whose rendezvous owner changed; re-send its in-flight clouds to the new owner."""
@@ -329,9 +377,8 @@ class WorkerPool:
                 ev = self._events.get(timeout=0.25 if not self.navigate else LANDMARKS_EVERY_S)
             except queue.Empty:
                 with self._cond:
-                    ready = self._ready() if self._held else []
-                self._merge(ready)
-                self._publish_landmarks()
+                    ready, frontier = self._ready()
+                self._merge(ready, frontier)
                 continue
             if ev is None:
                 return
@@ -359,6 +406,8 @@ class WorkerPool:
                 self._workers.add(name)
                 log.info("map worker %s joined (%d alive)", name, len(self._workers))
                 self._lm_sent = (-1, 0.0)  # the newcomer needs the planes now
+                if self._kept:
+                    self._publish_snapshots(list(self._kept))
             else:
                 if name not in self._workers:
                     return
@@ -392,13 +441,14 @@ class WorkerPool:
             self.committed[obs.worker] = self.committed.get(obs.worker, 0) + len(done)
             if obs.nav_state:
                 self._nav_state[obs.robot] = obs.nav_state
+            self._snap_counts[obs.worker] = (obs.snap_waited, obs.snap_wait_ms, obs.snap_not_exact)
+            self._active[obs.robot] = time.monotonic()
             self._seq += 1
             self._held_since[self._seq] = time.monotonic()
             item = (obs.key_ns, obs.robot, self._seq, records, done, obs.unplaced, obs.nav_state)
             heapq.heappush(self._held, item)
-            ready = self._ready()
-        self._merge(ready)
-        self._publish_landmarks()
+            ready, frontier = self._ready()
+        self._merge(ready, frontier)
 
     def _on_nav(self, report: NavReport) -> None:
         with self._cond:
@@ -407,9 +457,9 @@ class WorkerPool:
         self.on_nav_report(report.robot, decode_state(report.estimate))
 
     def _publish_landmarks(self) -> None:
-        """With ``navigate``: the map's planes to the workers, when they changed, at most every
+        """With ``navigate`` and no snapshot lag: the map's planes to the workers, when they changed, at most every
         ``LANDMARKS_EVERY_S``."""
-        if self._lm_pub is None:
+        if self._lm_pub is None or self.snapshot_lag_ns > 0:
             return
         version = self.builder.version
         sent, at = self._lm_sent
@@ -422,17 +472,35 @@ class WorkerPool:
         except Exception as err:  # the workers keep their mirror; the next change sends it again
             log.warning("map planes not sent to the workers: %s", err)
 
-    def _ready(self) -> list[_Held]:
-        """Under the lock: the held observations that no observation still to come can precede (canonical order);
-        an observation without planes adds nothing, so its place in the order does not matter."""
-        bounds = [self._next_key_bound(t) for t in self._in_flight.values() if t]
+    def _ready(self) -> tuple[list[_Held], int | None]:
+        """Under the lock: the held observations that no observation still to come can precede (canonical order),
+        and that bound, the *frontier* (no observation still to come has a key before it; None: nothing sent
+        yet). An observation without planes adds nothing, so its place in the order does not matter. A robot with
+        nothing dispatched or committed for ``MAX_HOLD_S`` whose window's trigger is still to come (gone silent with
+        clouds in its window) holds nothing back: its late observation is merged when it comes (counted ``late``
+        when a snapshot was past it). A robot whose window is due waits, however slow its worker."""
+        quiet = time.monotonic() - MAX_HOLD_S
+        bounds = []
+        for r, t in self._in_flight.items():
+            if t:
+                bound, triggered = self._key_bound(t)
+                if triggered or self._active.get(r, 0.0) >= quiet:  # a due window comes, however slow its worker
+                    bounds.append(bound)
         mark = min(bounds) if bounds else None
+        # nothing in flight: a robot's next cloud is assumed no older than the newest one sent (capture order)
+        frontier = mark if mark is not None else self._newest_t
+        if not self._held:
+            return [], frontier
         out = []
         oldest = time.monotonic() - MAX_HOLD_S
         while self._held and (mark is None or self._held[0][0] < mark or min(self._held_since.values()) < oldest):
             item = heapq.heappop(self._held)
             self._held_since.pop(item[2], None)
             out.append(item)
+            if mark is not None and item[0] >= mark and item[3] and item[0] != FLUSH_KEY:
+                # past its hold cap: the snapshots up to its key, published later, hold it too early
+                self.snap_forced += 1
+                self._inexact_to = max(self._inexact_to, item[0])
         # the empty ones behind the first that must wait: commit them now (acknowledgements, latency)
         keep = [h for h in self._held if h[3]]
         if len(keep) < len(self._held):
@@ -442,7 +510,7 @@ class WorkerPool:
                     self._held_since.pop(h[2], None)
             self._held = keep
             heapq.heapify(self._held)
-        return out
+        return out, frontier
 
     def _next_key_bound(self, table: dict[int, _InFlight]) -> int:
         """The earliest merge key a robot's next observation with planes can have: the capture time of the first
@@ -450,6 +518,11 @@ class WorkerPool:
         ``MapConfig.extract_every_*``, counted on every in-flight cloud and on the points before thinning, so that
         it fires no later than the worker's window does), or its newest in-flight cloud's (the trigger is still
         to come, and a robot's clouds come in capture order)."""
+        return self._key_bound(table)[0]
+
+    def _key_bound(self, table: dict[int, _InFlight]) -> tuple[int, bool]:
+        """:meth:`_next_key_bound`, and whether a cloud in flight fires the window (False: the trigger is still to
+        come, from a robot that may have gone silent)."""
         cfg = self.builder.cfg
         points = 0
         first = last = 0
@@ -459,13 +532,23 @@ class WorkerPool:
                 first = it.t_ns
             last = it.t_ns
             if n >= cfg.extract_every_clouds or points >= cfg.extract_every_points:
-                return it.t_ns
+                return it.t_ns, True
             if cfg.extract_every_s > 0 and n >= 2 and it.t_ns - first >= cfg.extract_every_s * 1e9:
-                return it.t_ns
-        return last
+                return it.t_ns, True
+        return last, False
 
-    def _merge(self, ready: list[_Held]) -> None:
-        for _key, robot, _n, records, done, unplaced, nav_state in ready:
+    def _merge(self, ready: list[_Held], frontier: int | None) -> None:
+        """Merge the ready observations in their order; with the snapshot rule, publish the snapshots they finalize
+        (the planes before the first merge whose key is at or after a grid time, for the grid times up to the
+        frontier)."""
+        snaps = self._lm_pub is not None and self.snapshot_lag_ns > 0
+        out: list[SnapshotRange] = []
+        for key, robot, _n, records, done, unplaced, nav_state in ready:
+            if snaps and records:
+                if frontier is not None:
+                    out += self._close(min(key, frontier))
+                if key != FLUSH_KEY and self._snap_upto is not None and key < self._snap_upto:
+                    self.snap_late += 1  # a snapshot that should hold it is out: the workers' maps differ
             try:
                 changes = self.builder.merge(records) if records else []
                 self.merged += len(records)
@@ -479,3 +562,41 @@ class WorkerPool:
                 with self._cond:
                     self._n_in_flight -= len(done)
                     self._cond.notify_all()
+        if snaps:
+            if frontier is not None:
+                out += self._close(frontier)
+            if out:
+                self._publish_snapshots(out)
+        else:
+            self._publish_landmarks()
+
+    def _close(self, upto_ns: int) -> list[SnapshotRange]:
+        """The map's planes now are ``snapshot(T)`` of every grid time T not published yet up to ``upto_ns``
+        (the caller knows every observation with a key before those T is merged, and none after): their ranges,
+        kept for a joining worker."""
+        from mapping.landmarks import SNAPSHOT_GRID_NS, SnapshotRange
+
+        g = SNAPSHOT_GRID_NS
+        hi = (upto_ns // g) * g
+        lo = 0 if self._snap_upto is None else self._snap_upto + g
+        if hi < lo:
+            return []
+        lm = self.builder.landmarks(self.landmark_min_points)
+        out = []
+        if lo <= self._inexact_to:  # an observation merged early sits in these: only the planes of about then
+            cut = min(hi, (self._inexact_to // g) * g)
+            out.append(SnapshotRange(lo, cut, lm, exact=False))
+            lo = cut + g
+        if hi >= lo:
+            out.append(SnapshotRange(lo, hi, lm))
+        self._snap_upto = hi
+        self._kept.extend(out)
+        while self._kept and self._kept[0].hi_ns < hi - SNAPSHOTS_KEEP_NS:
+            self._kept.popleft()
+        return out
+
+    def _publish_snapshots(self, ranges: list[SnapshotRange]) -> None:
+        try:
+            self._lm_pub.put(encode_snapshots(self._base_id, ranges))
+        except Exception as err:  # a worker's scan waits past its cap for these, counted not exact
+            log.warning("map snapshots not sent to the workers: %s", err)

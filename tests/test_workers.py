@@ -372,7 +372,7 @@ def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list
         for r in ROBOTS:  # acknowledgeable once committed, placed or not
             assert base.ledger.records[r].mapped.ranges() == [[0, per - 1]]
         assert base.feed.nav_robots() == sorted(ROBOTS)  # the workers' estimates are served by the base
-        assert all(w.landmarks_version >= 0 and len(w.landmarks) > 0 for w in workers)  # the mirror arrived
+        assert all(len(w.snapshots) > 0 for w in workers)  # the merger's snapshots arrived
         assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 6
         assert sum(w.nav.strided for w in workers) > 0
         navigator = base.feed.navigator
@@ -438,3 +438,171 @@ def test_clouds_navigation_cannot_place_are_committed_without_planes_and_said_un
         out += worker.handle(job)
     assert [(o.seqs, o.unplaced, o.records) for o in out] == [((s,), (s,), ()) for s in range(5)]  # each at once
     assert all(o.nav_state for o in out)  # the state travels even before the robot has a position
+
+
+# ---------------------------------------------------------------------- the same map with navigation
+def _one_process_nav(frames: list[DiveFrame], robots: list[str], per: int, lag_ns: int) -> MapBuilder:
+    """One process by the workers' rule: each robot's ``WorkerNav`` (the stride, the filter), a registered scan
+    against this builder's own ``snapshot(T)``, the clouds in capture order."""
+    from mapping.navigation import NavConfig
+    from services.map_worker_nav import WorkerNav
+
+    single = MapBuilder(MapConfig())
+    wn = WorkerNav()
+    min_points = NavConfig().min_landmark_points
+    by = {"rov1": [f for f in frames if f.robot == "rov1"], "rov2": [f for f in frames if f.robot == "rov2"]}
+    for i in range(per):
+        for k, r in enumerate(robots):
+            f = by["rov1" if k % 2 == 0 else "rov2"][i]
+            pts = f.points_body.astype(np.float32)
+            step = wn.step(r, f.t_ns, f.pose_est, pts, single.snapshot_landmarks(f.t_ns, lag_ns, min_points))
+            if step.pose is None or not step.placed:
+                continue
+            single.add_cloud_body(r, f.t_ns, pts.astype(np.float64), step.pose)
+    single.flush()
+    return single
+
+
+def _plane_diff(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> tuple[float, float]:
+    """Largest angle (deg) and offset (m) between each plane of ``a`` and its nearest in ``b``."""
+    worst_a, worst_d = 0.0, 0.0
+    for p in a:
+        q = min(b, key=lambda q: abs(q["d"] - p["d"]) + 1 - float(np.dot(q["normal"], p["normal"])))
+        cos = min(1.0, float(np.dot(q["normal"], p["normal"])))
+        worst_a, worst_d = max(worst_a, float(np.degrees(np.arccos(cos)))), max(worst_d, abs(q["d"] - p["d"]))
+    return worst_a, worst_d
+
+
+def test_workers_navigating_by_snapshots_give_one_process_map(net: TestNetwork, frames: list[DiveFrame]) -> None:
+    # navigation is a loop (the planes correct the poses that make the planes): each registered scan uses
+    # snapshot(T) of the merged map, T fixed by its capture time, in the workers as in one process
+    base = net.start_base(map_mode="on", navigation=True, remote_workers=True, workers=2)
+    workers = [MapWorker(net.session(), net.keys, f"w{i}") for i in range(2)]
+    for w in workers:
+        w.start()
+    try:
+        pool = base.feed.pool
+        assert pool is not None
+        assert pool.snapshot_lag_ns > 0
+        assert pool.wait_for_workers(2, 20)
+        per = 90
+        _publish(net, frames, ROBOTS, 0, per)
+        assert base.drain(60)
+        base.flush_map(60)
+        assert base.map is not None
+        planes = base.map.map_json()["planes"]  # the map frame (not turned by the fleet's frame)
+        records = base.map.planes_records()
+        snaps = base.status()["map"]["worker_pool"]["snapshots"]
+        assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 6
+    finally:
+        for w in workers:
+            w.close()
+    assert (snaps["not_exact"], snaps["late"], snaps["forced"]) == (0, 0, 0), snaps
+    single = _one_process_nav(frames, ROBOTS, per, pool.snapshot_lag_ns)
+    ref = single.map_json()["planes"]
+    assert len(planes) == len(ref) >= 4
+    deg, off_m = _plane_diff(ref, planes)
+    assert deg <= 0.1
+    assert off_m <= 1e-3
+    assert records == single.planes_records()  # in fact bit for bit
+
+
+def test_snapshots_survive_the_wire_and_a_store_finds_each_grid_time() -> None:
+    from mapping.landmarks import SNAPSHOT_GRID_NS, LandmarkSnapshots, SnapshotRange, snapshot_time
+    from services.errors import WireError
+    from services.map_worker_nav import decode_mirror, encode_snapshots
+
+    g = SNAPSHOT_GRID_NS
+    assert snapshot_time(10 * g + 5, 0) == 10 * g
+    assert snapshot_time(10 * g, 0) == 10 * g  # on the grid: that time itself
+    assert snapshot_time(10 * g + 5, 5 * g) == 5 * g
+    lm = _tank_landmarks(_frames(1.0))
+    ranges = [SnapshotRange(0, 3 * g, lm), SnapshotRange(4 * g, 9 * g, lm, exact=False)]
+    kind, base_id, back = decode_mirror(encode_snapshots("b1", ranges))
+    assert (kind, base_id) == ("snapshots", "b1")
+    assert [(r.lo_ns, r.hi_ns, r.exact) for r in back] == [(0, 3 * g, True), (4 * g, 9 * g, False)]
+    assert np.array_equal(back[1].landmarks.normal, lm.normal)
+    assert back[0].landmarks.contrib == lm.contrib
+    with pytest.raises(WireError):
+        decode_mirror(b"\x93garbage")
+    store = LandmarkSnapshots(keep_ns=20 * g)
+    for r in back:
+        store.put(r)
+    assert store.final_ns == 9 * g
+    got = store.get(3 * g)
+    assert got is not None
+    assert got.lo_ns == 0
+    assert store.get(10 * g) is None  # not final yet: a scan that needs it waits
+    assert store.newest_before(10 * g) is back[1]
+    store.put(SnapshotRange(40 * g, 41 * g, lm))  # the older ones fall out of the kept span
+    assert store.get(3 * g) is None
+    assert store.newest_before(3 * g) is not None  # the fallback takes the oldest kept
+
+
+def test_a_scan_whose_snapshot_does_not_come_waits_its_cap_then_goes_on_not_exact() -> None:
+    from mapping.landmarks import SnapshotRange
+
+    frames = [f for f in _frames(1.0) if f.robot == "rov1"]
+    lm = _tank_landmarks(frames)
+    worker = MapWorker(None, FleetKeys("t"), "w1", snapshot_wait_s=0.2)
+    lag = 500_000_000
+    worker.take_snapshots("b1", [SnapshotRange(0, frames[0].t_ns - lag, lm)])  # only the first scan's
+    out: list[PlaneObservations] = []
+    for seq, f in enumerate(frames[:12]):
+        job = MapJob("rov1", seq, f.t_ns, 0, f.pose_est, f.points_body.astype(np.float32), True, lag)
+        out += worker.handle(job)
+    assert worker.nav.registered == 1  # the scan 0.2 s on waits for its snapshot, the later ones behind it
+    assert out == []
+    assert worker.snap_waited == 1
+    assert worker.snap_not_exact == 0
+    time.sleep(0.25)
+    out += worker.handle(MapControl("flush"))  # no deadlock: past the cap, the newest snapshot before it
+    assert [o.seqs for o in out] == [tuple(range(10)), (10, 11)]
+    assert worker.nav.registered == 2
+    assert worker.snap_not_exact == 1
+    assert worker.snap_wait_ms >= 200
+    assert out[-1].snap_not_exact == 1  # reported to the base with each observation
+
+
+def test_one_process_snapshot_is_the_map_before_the_first_merge_at_or_after_its_time() -> None:
+    from mapping.landmarks import snapshot_time
+
+    frames = _frames(2.0)
+    b = MapBuilder(MapConfig())
+    lag = 300_000_000
+    before: list[tuple[int, Any]] = []  # (capture time, the planes before that cloud went in)
+    older = 0
+    for f in frames:
+        got = b.snapshot_landmarks(f.t_ns, lag, 300)
+        want_t = snapshot_time(f.t_ns, lag)
+        first_at = [lm for t, lm in before if t >= want_t]
+        expected = first_at[0] if first_at else b.landmarks(300)
+        assert np.array_equal(got.ids, expected.ids)
+        assert np.array_equal(got.d, expected.d)
+        older += not np.array_equal(got.d, b.landmarks(300).d)  # not the planes of the moment
+        before.append((f.t_ns, b.landmarks(300)))
+        b.add_cloud_body(f.robot, f.t_ns, f.points_body.astype(np.float64), f.pose_est)
+    assert len(b.landmarks(300)) >= 4
+    assert older > len(frames) // 4
+    with pytest.raises(Exception, match="min_points"):
+        b.snapshot_landmarks(frames[-1].t_ns, lag, 100)
+
+
+def test_a_silent_robot_does_not_hold_the_frontier_but_a_slow_workers_due_window_does() -> None:
+    from lrsensor.frames import Pose
+    from services.map_workers import MAX_HOLD_S, WorkerPool, _InFlight
+
+    pool = WorkerPool(None, FleetKeys("t"), MapBuilder(MapConfig()), lambda *a: None, lambda c: None)
+    pose = Pose(0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    def table(t0_ns: int, n: int) -> dict[int, _InFlight]:
+        return {s: _InFlight(s, t0_ns + s * 33_000_000, pose, np.zeros((10, 3), np.float32)) for s in range(n)}
+
+    now = time.monotonic()
+    pool._in_flight = {"a": table(5_000_000_000, 3), "b": table(1_000_000_000, 3)}
+    pool._active = {"a": now, "b": now}
+    assert pool._ready()[1] == 1_000_000_000 + 2 * 33_000_000  # b's window may still fire at its newest cloud
+    pool._active["b"] = now - MAX_HOLD_S - 1  # b went silent, its window's trigger still to come
+    assert pool._ready()[1] == 5_000_000_000 + 2 * 33_000_000
+    pool._in_flight["b"] = table(1_000_000_000, 12)  # a due window in a slow worker's queue: waited for
+    assert pool._ready()[1] == 1_000_000_000 + 9 * 33_000_000
