@@ -594,7 +594,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
-    # over the stripe's peak), with the other stripes where the step model put them
+    # over the stripe's peak), with the other stripes where the step model put them (the model chosen by a value, not
+    # a constant: numba compiles a kernel once for each constant it is called with, the rounds and their fits twice)
+    step_model = bool(False)  # noqa: UP018 (numba: bool() of a constant is a value)
+    ramp_model = bool(True)  # noqa: UP018
     v0, s0, f0, rss0, _d0, st0 = _rounds(
         image,
         cols,
@@ -616,7 +619,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         lo_sig,
         max_sig,
         sat_dn,
-        False,
+        step_model,
     )
     strong = np.zeros(n, np.bool_)
     for t in range(n):
@@ -639,12 +642,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
     _v2, _s2, f2, rss2, dof2, _st2 = _rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, True,
+        sat_dn, ramp_model,
     )  # fmt: skip
     maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
     v3, s3, f3, rss3, dof3, _st3 = _rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, True,
+        sat_dn, ramp_model,
     )  # fmt: skip
     take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
