@@ -746,6 +746,7 @@ def _rounds(  # type: ignore[no-untyped-def]
     for rnd in range(ROUNDS):
         v1 = v_out.copy()
         s1 = s_out.copy()
+        taken = False
         for t in range(n):
             if not fit_me[t] or (rnd > 0 and not (nb0[t] >= 0 and fitted[t])):
                 continue
@@ -807,6 +808,9 @@ def _rounds(  # type: ignore[no-untyped-def]
                 steps[0, t] = a_fit
                 steps[1, t] = g_fit
                 fitted[t] = True
+                taken = True
                 for a in range(N_LIN):
                     lin_t[t, a] = lin[a]
+        if not taken:  # the next round would see the same other stripes as this one: nothing to refit
+            break
     return v_out, s_out, fitted, rss, dof, steps
