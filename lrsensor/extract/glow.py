@@ -85,12 +85,10 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   Gaussians along the rows by ratios (one exponential a row was half the time), Cholesky solves, no allocation per
   fit, the steps stopped where they settle (:data:`STOP_PX`), the rounds' refits of stripes beside another one one
   step from their last fit, the ramp decided per stretch. The fits run only where a glow shows or blurred
-  stripes overlap; in clear water the stage is the test alone, and the test is cheap there: the step in green at
-  every point (the other laser's stripe subtracted where it reaches the rows), the steps compared with each point's
-  threshold only where prefix counts along the stripe leave a majority above the lowest threshold possible, and the
-  colour read only where the steps pass (the same decisions as comparing and reading everywhere). On the
-  simulator's named scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
-  ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame. Without the colour test and the
+  stripes overlap; in clear water the stage is the test alone, cheap there: pools are compared point by point, and
+  the colour read, only where prefix counts leave a glow possible. On the simulator's named scenes (clear water, its
+  own turbid scene, clutter) and on the independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it
+  fits at most a few columns a frame. Without the colour test and the
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
@@ -417,11 +415,8 @@ def _raw_step(image, rc, col, out, kt, ch):  # type: ignore[no-untyped-def]
     far = 2 * kt + 1
     s = 0.0
     for i in range(TRIGGER_ROWS):
-        near_o = float(image[rc + out * (kt + i), col, ch])
-        near_i = float(image[rc - out * (kt + i), col, ch])
-        far_o = float(image[rc + out * (far + i), col, ch])
-        far_i = float(image[rc - out * (far + i), col, ch])
-        s += 2.0 * (near_o - near_i) - (far_o - far_i)
+        s += 2.0 * (float(image[rc + out * (kt + i), col, ch]) - float(image[rc - out * (kt + i), col, ch]))
+        s -= float(image[rc + out * (far + i), col, ch]) - float(image[rc - out * (far + i), col, ch])
     return s
 
 
@@ -521,15 +516,13 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if nb >= 0:
             d -= amp[nb] * _gauss_step(rc[t] - vv[nb], int(side[t]), kt[t], 1.0 / max(sig[nb], lo_sig))
         diff[t] = d / TRIGGER_ROWS
-    # the median step exceeds the threshold (more than half of the steps around do): counted along each laser's
-    # columns first (prefix counts) of the candidates and of their steps above the lowest threshold any point can
-    # have (that of a whole pool), so that the steps are compared one by one only where a majority is possible (in
-    # clear water, at few points)
-    pool_n = 2 * POOL_COLS + 1
+    # the median step exceeds the threshold (more than half of the steps around do): prefix counts along each laser's
+    # columns of the candidates and of their steps above the lowest threshold any point can have (a whole pool's), so
+    # that the steps are compared one by one only where a majority is possible (in clear water, at few points)
     n_cand = np.zeros((n_l, w + 1), np.int64)
     n_over = np.zeros((n_l, w + 1), np.int64)
     for li in range(n_l):
-        low = TRIGGER_SNR * _pool_noise(noise_l[li], pool_n)
+        low = TRIGGER_SNR * _pool_noise(noise_l[li], 2 * POOL_COLS + 1)
         for cc in range(w):
             j = at[li, cc]
             n_cand[li, cc + 1] = n_cand[li, cc] + (j >= 0 and cand[j])
@@ -552,8 +545,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         glowing[t] = 2 * above > cnt
     # where it does, the raw step pooled the same way has the laser's colour: green over red and blue as the stripe's
     # colour test asks (a step of the wall's or the water's colour is not a glow; raw, since a neighbour stripe close
-    # by is subtracted in green only, and it has the laser's colour too); the raw steps are read only there (in clear
-    # water, almost nowhere)
+    # by is subtracted in green only, and it has the laser's colour too), read only there
     rgb = np.full((3, n), np.nan)  # the raw step in green, red and blue (nothing subtracted)
     for t in range(n):
         if not glowing[t]:
@@ -570,16 +562,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # and so does the majority of the points around: a glow lies along the stripe, not at a few columns
     glow_run = np.zeros(n, np.bool_)
     for t in range(n):
-        if not glowing[t]:
-            continue
-        li = laser[t]
-        lo_c = max(cols[t] - POOL_COLS, 0)
-        hi_c = min(cols[t] + POOL_COLS + 1, w)
-        both = 0
-        for cc in range(lo_c, hi_c):
-            j = at[li, cc]
-            both += j >= 0 and glowing[j]
-        glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
+        if glowing[t]:
+            li, lo_c, hi_c = laser[t], max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)
+            both = 0
+            for cc in range(lo_c, hi_c):
+                both += at[li, cc] >= 0 and glowing[at[li, cc]]
+            glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
     glowing = glow_run
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
