@@ -747,3 +747,37 @@ def test_real_frames_compile_nothing_beyond_the_cached_calls() -> None:
         subpixel_extract(setup.render(1).image, setup.calibration)
     for kernel in (locate_candidates, fit_points, refine_and_finish):
         assert len(kernel.signatures) == 1, kernel
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_glow_test_decides_as_the_reference_where_stripes_overlap(seed: int) -> None:
+    """On a clear wall at 5 m the two lasers' stripes lie about 11 rows apart, inside each other's glow-test rows:
+    the compiled test (the other stripe subtracted, pools compared only where prefix counts leave a majority, the
+    colour read only where the steps pass) takes the reference's decisions and fits, point for point."""
+    from lrsensor.extract import frame as compiled
+    from lrsensor.extract import glow, reference_glow
+    from lrsensor.extract.compile import HAVE_NUMBA, warm_up
+    from lrsensor.extract.settings import frame_settings
+    from lrsensor.sim.scenes import wall_scene
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    warm_up()
+    r = wall_scene(5.0, width=1920, height=1080).render(seed=seed)
+    bands, s, geo = frame_settings(r.calibration, SubpixelConfig())
+    picked = compiled.locate_candidates(r.image, bands, s)
+    mfw = compiled.max_fwhm_at(
+        picked.cols, picked.rows, picked.laser, compiled.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
+    )
+    p = compiled.fit_points(r.image, picked, mfw, s)
+    f = p.fits
+    args = (
+        r.image, p.cols, p.laser, bands.glow_side, f.centre, f.amplitude, f.sigma, f.saturated, f.ok, f.local_noise,
+        p.noise, s.min_fwhm_px / compiled.FWHM_PER_SIGMA, s.max_sigma_px, s.saturation_dn, s.min_green_ratio,
+    )  # fmt: skip
+    v_road, s_road, f_road = glow.glow_refit(*(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+    v_ref, s_ref, f_ref = reference_glow.glow_refit(*(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+    assert np.count_nonzero(f.ok) > 2000
+    np.testing.assert_array_equal(f_road, f_ref)
+    np.testing.assert_allclose(v_road, v_ref, atol=1e-6)
+    np.testing.assert_allclose(s_road, s_ref, atol=1e-6)

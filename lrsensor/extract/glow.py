@@ -85,9 +85,10 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   Gaussians along the rows by ratios (one exponential a row was half the time), Cholesky solves, no allocation per
   fit, the steps stopped where they settle (:data:`STOP_PX`), the rounds' refits of stripes beside another one one
   step from their last fit, the ramp decided per stretch. The fits run only where a glow shows or blurred
-  stripes overlap; in clear water the stage is the test alone, about 0.4 ms a frame. On the simulator's named
-  scenes (clear water, its own turbid scene, clutter) and on the independent box-sheet model of
-  ``benchmarks/bench_foreign_render.py`` it fits at most a few columns a frame. Without the colour test and the
+  stripes overlap; in clear water the stage is the test alone, cheap there: pools are compared point by point, and
+  the colour read, only where prefix counts leave a glow possible. On the simulator's named scenes (clear water, its
+  own turbid scene, clutter) and on the independent box-sheet model of ``benchmarks/bench_foreign_render.py`` it
+  fits at most a few columns a frame. Without the colour test and the
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
@@ -398,6 +399,42 @@ def _fit_into(  # type: ignore[no-untyped-def]
     return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
+@inline
+def _pool_noise(noise, cnt):  # type: ignore[no-untyped-def]
+    """The noise of a median of ``cnt`` steps (:func:`_raw_step`), each from differences of means of
+    :data:`TRIGGER_ROWS` rows of pixel noise ``noise`` (the band's: the flanks' spread about the common fit's line
+    holds the glow's own step); it falls as ``cnt`` grows."""
+    return noise * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
+
+
+@inline
+def _raw_step(image, rc, col, out, kt, ch):  # type: ignore[no-untyped-def]
+    """The step of channel ``ch`` of column ``col`` about row ``rc``, times :data:`TRIGGER_ROWS`: twice the sum of the
+    outer (direction ``out``, +-1) less the inner rows ``kt ... kt + TRIGGER_ROWS - 1`` rows from ``rc``, less that
+    at ``2 kt + 1 ...`` (a linear background cancels; sums of integers, exact)."""
+    far = 2 * kt + 1
+    s = 0.0
+    for i in range(TRIGGER_ROWS):
+        s += 2.0 * (float(image[rc + out * (kt + i), col, ch]) - float(image[rc - out * (kt + i), col, ch]))
+        s -= float(image[rc + out * (far + i), col, ch]) - float(image[rc - out * (far + i), col, ch])
+    return s
+
+
+@inline
+def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
+    """:func:`_raw_step` of a unit Gaussian of ``1 / inv_s`` px centred ``x0`` rows before ``rc``: the other laser's
+    stripe in the step, subtracted (rows beyond 9 sigmas of it, below ``e^-40``, left out)."""
+    far = 2 * kt + 1
+    s = 0.0
+    for i in range(TRIGGER_ROWS):
+        for k, wgt in ((kt + i, 2.0), (far + i, -1.0)):
+            for sgn in (1, -1):
+                e = (x0 + sgn * out * k) * inv_s
+                if abs(e) < 9.0:
+                    s += wgt * sgn * math.exp(-0.5 * e * e)
+    return s
+
+
 @njit
 def _neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
     """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
@@ -467,77 +504,70 @@ def glow_refit(  # type: ignore[no-untyped-def]
         cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
-    # within POOL_COLS columns
+    # within POOL_COLS columns: first the step in green at every candidate
     nb0 = np.full(n, -1, np.int64)
     diff = np.zeros(n)
-    diff_rgb = np.zeros((3, n))  # the raw step in green, red and blue (nothing subtracted): the glow's colour
     for t in range(n):
         if not cand[t]:
             continue
         nb = _neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
         nb0[t] = nb
-        d = 0.0
-        d_g = 0.0
-        d_r = 0.0
-        d_b = 0.0
-        for k0, wgt in ((kt[t], 2.0), (2 * kt[t] + 1, -1.0)):
-            for i in range(TRIGGER_ROWS):
-                for sgn in (1, -1):
-                    rr = rc[t] + sgn * int(side[t]) * (k0 + i)
-                    val = float(image[rr, cols[t], 1])
-                    d_g += wgt * sgn * val
-                    if nb >= 0:
-                        e = (rr - vv[nb]) / max(sig[nb], lo_sig)
-                        val -= amp[nb] * math.exp(-0.5 * e * e)
-                    d += wgt * sgn * val
-                    d_r += wgt * sgn * float(image[rr, cols[t], 2])
-                    d_b += wgt * sgn * float(image[rr, cols[t], 0])
+        d = _raw_step(image, rc[t], cols[t], int(side[t]), kt[t], 1)
+        if nb >= 0:
+            d -= amp[nb] * _gauss_step(rc[t] - vv[nb], int(side[t]), kt[t], 1.0 / max(sig[nb], lo_sig))
         diff[t] = d / TRIGGER_ROWS
-        diff_rgb[0, t] = d_g / TRIGGER_ROWS
-        diff_rgb[1, t] = d_r / TRIGGER_ROWS
-        diff_rgb[2, t] = d_b / TRIGGER_ROWS
+    # the median step exceeds the threshold (more than half of the steps around do): prefix counts along each laser's
+    # columns of the candidates and of their steps above the lowest threshold any point can have (a whole pool's), so
+    # that the steps are compared one by one only where a majority is possible (in clear water, at few points)
+    n_cand = np.zeros((n_l, w + 1), np.int64)
+    n_over = np.zeros((n_l, w + 1), np.int64)
+    for li in range(n_l):
+        low = TRIGGER_SNR * _pool_noise(noise_l[li], 2 * POOL_COLS + 1)
+        for cc in range(w):
+            j = at[li, cc]
+            n_cand[li, cc + 1] = n_cand[li, cc] + (j >= 0 and cand[j])
+            n_over[li, cc + 1] = n_over[li, cc] + (j >= 0 and cand[j] and diff[j] > low)
     glowing = np.zeros(n, np.bool_)
     for t in range(n):
         if not cand[t]:
             continue
+        li = laser[t]
         lo_c = max(cols[t] - POOL_COLS, 0)
         hi_c = min(cols[t] + POOL_COLS + 1, w)
-        cnt = 0
-        sum_g = 0.0
-        sum_r = 0.0
-        sum_b = 0.0
-        for cc in range(lo_c, hi_c):
-            j = at[laser[t], cc]
-            if j >= 0 and cand[j]:
-                cnt += 1
-                sum_g += diff_rgb[0, j]
-                sum_r += diff_rgb[1, j]
-                sum_b += diff_rgb[2, j]
-        # the noise of a median of cnt such steps, each from differences of means of TRIGGER_ROWS rows (of the band's
-        # pixel noise: the flanks' spread about the common fit's line holds the glow's own step)
-        noise = noise_l[laser[t]] * math.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
-        thr = max(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[t])
+        cnt = n_cand[li, hi_c] - n_cand[li, lo_c]
+        if 2 * (n_over[li, hi_c] - n_over[li, lo_c]) <= cnt:
+            continue
+        thr = max(TRIGGER_SNR * _pool_noise(noise_l[li], cnt), TRIGGER_FRAC * amp[t])
         above = 0
         for cc in range(lo_c, hi_c):
-            j = at[laser[t], cc]
+            j = at[li, cc]
             above += j >= 0 and cand[j] and diff[j] > thr
-        # the median step exceeds the threshold, and the pooled raw step is the laser's colour (green over red and
-        # blue as the stripe's colour test asks: a step of the wall's or the water's colour is not a glow; raw, since
-        # a neighbour stripe close by is subtracted in green only, and it has the laser's colour too)
-        glowing[t] = 2 * above > cnt and sum_g > green_ratio * sum_r and sum_g > green_ratio * sum_b
-    # and so does the majority of the points around: a glow lies along the stripe, not at a few columns
-    glow_run = np.zeros(n, np.bool_)
+        glowing[t] = 2 * above > cnt
+    # where it does, the raw step pooled the same way has the laser's colour: green over red and blue as the stripe's
+    # colour test asks (a step of the wall's or the water's colour is not a glow; raw, since a neighbour stripe close
+    # by is subtracted in green only, and it has the laser's colour too), read only there
+    rgb = np.full((3, n), np.nan)  # the raw step in green, red and blue (nothing subtracted)
     for t in range(n):
         if not glowing[t]:
             continue
-        cnt = 0
-        both = 0
+        sums = np.zeros(3)
         for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
             j = at[laser[t], cc]
             if j >= 0 and cand[j]:
-                cnt += 1
-                both += glowing[j]
-        glow_run[t] = 2 * both > cnt
+                for k in range(3):
+                    if math.isnan(rgb[k, j]):
+                        rgb[k, j] = _raw_step(image, rc[j], cols[j], int(side[j]), kt[j], (1, 2, 0)[k]) / TRIGGER_ROWS
+                    sums[k] += rgb[k, j]
+        glowing[t] = sums[0] > green_ratio * sums[1] and sums[0] > green_ratio * sums[2]
+    # and so does the majority of the points around: a glow lies along the stripe, not at a few columns
+    glow_run = np.zeros(n, np.bool_)
+    for t in range(n):
+        if glowing[t]:
+            li, lo_c, hi_c = laser[t], max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)
+            both = 0
+            for cc in range(lo_c, hi_c):
+                both += at[li, cc] >= 0 and glowing[at[li, cc]]
+            glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
     glowing = glow_run
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
@@ -552,7 +582,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
-    # over the stripe's peak), with the other stripes where the step model put them
+    # over the stripe's peak), with the other stripes where the step model put them (the model chosen by a value, not
+    # a constant: numba compiles a kernel once for each constant it is called with, the rounds and their fits twice)
+    step_model = bool(False)  # noqa: UP018 (numba: bool() of a constant is a value)
+    ramp_model = bool(True)  # noqa: UP018
     v0, s0, f0, rss0, _d0, st0 = _rounds(
         image,
         cols,
@@ -574,7 +607,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         lo_sig,
         max_sig,
         sat_dn,
-        False,
+        step_model,
     )
     strong = np.zeros(n, np.bool_)
     for t in range(n):
@@ -597,12 +630,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
     _v2, _s2, f2, rss2, dof2, _st2 = _rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, True,
+        sat_dn, ramp_model,
     )  # fmt: skip
     maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
     v3, s3, f3, rss3, dof3, _st3 = _rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, True,
+        sat_dn, ramp_model,
     )  # fmt: skip
     take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
@@ -701,6 +734,7 @@ def _rounds(  # type: ignore[no-untyped-def]
     for rnd in range(ROUNDS):
         v1 = v_out.copy()
         s1 = s_out.copy()
+        taken = False
         for t in range(n):
             if not fit_me[t] or (rnd > 0 and not (nb0[t] >= 0 and fitted[t])):
                 continue
@@ -762,6 +796,9 @@ def _rounds(  # type: ignore[no-untyped-def]
                 steps[0, t] = a_fit
                 steps[1, t] = g_fit
                 fitted[t] = True
+                taken = True
                 for a in range(N_LIN):
                     lin_t[t, a] = lin[a]
+        if not taken:  # the next round would see the same other stripes as this one: nothing to refit
+            break
     return v_out, s_out, fitted, rss, dof, steps

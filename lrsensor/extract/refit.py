@@ -159,7 +159,13 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
                 g_f = max(best - flanks, 0.0) / s_j
                 arg[m] = max(-0.5 * g_c * g_c, -0.5 * g_f * g_f + LOG_FLANK_TAIL)
                 m += 1
-    tail = np.exp(arg[:m])
+    # the tail's test (amp_j e^arg > NEIGHBOUR_TAIL max(amp_t, 1)) fails wherever e^arg is below NEIGHBOUR_TAIL over
+    # the largest neighbour amplitude (a margin of 1e-6 for rounding): the exponential only where it can pass (at 5 m
+    # the tails' logarithms are about -14: few points)
+    amp_top = 0.0
+    for i in range(m):
+        amp_top = max(amp_top, amp[nbj[i]])
+    lowest = math.log(NEIGHBOUR_TAIL / amp_top) - 1e-6 if amp_top > 0.0 else np.inf
     idx = np.empty(m, np.int64)
     nb_v = np.empty(m)
     nb_a = np.empty(m)
@@ -168,7 +174,7 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     for i in range(m):
         t = cand[i]
         j = nbj[i]
-        if not amp[j] * tail[i] > NEIGHBOUR_TAIL * max(amp[t], 1.0):
+        if not (arg[i] >= lowest and amp[j] * math.exp(arg[i]) > NEIGHBOUR_TAIL * max(amp[t], 1.0)):
             continue
         s_j = sig[j] if math.isfinite(sig[j]) else 1.0
         same = (
