@@ -273,15 +273,22 @@ class MapWorker:
         with self._snap_cond:
             return self.snapshots.get(t_grid_ns) is not None
 
-    def _take(self, job: MapJob) -> list[PlaneObservations]:
-        """A job in the robot's order: behind its waiting jobs, or waiting itself for its snapshot."""
+    def _current(self, job: MapJob) -> bool:
+        """Whether ``job`` is of the robot's current assignment here (counted ``stale`` if it is older); a newer
+        epoch means the robot was (re)assigned here, and the base re-sends what is not committed: start afresh."""
         held = self._epoch.get(job.robot)
         if held is not None and job.epoch < held:
             self.stale += 1
-            return []
-        if held is None or job.epoch > held:  # (re)assigned here: the base re-sends what is not committed
+            return False
+        if held is None or job.epoch > held:
             self._forget(job.robot)
             self._epoch[job.robot] = job.epoch
+        return True
+
+    def _take(self, job: MapJob) -> list[PlaneObservations]:
+        """A job in the robot's order: behind its waiting jobs, or waiting itself for its snapshot."""
+        if not self._current(job):
+            return []
         q = self._waiting.get(job.robot)
         if q:
             q.append(job)
@@ -376,13 +383,8 @@ class MapWorker:
         return step
 
     def _job(self, job: MapJob) -> list[PlaneObservations]:
-        held = self._epoch.get(job.robot)
-        if held is not None and job.epoch < held:
-            self.stale += 1
+        if not self._current(job):
             return []
-        if held is None or job.epoch > held:  # (re)assigned here: the base re-sends what is not committed
-            self._forget(job.robot)
-            self._epoch[job.robot] = job.epoch
         self.jobs += 1
         self._pending.setdefault(job.robot, []).append(job.seq)
         pose = job.pose
