@@ -349,6 +349,8 @@ class OutboxSink:
             priority=zenoh.Priority.DATA_LOW,  # below the ack queries and the ROV's status
         )
         self._lock = threading.Lock()
+        #: held over an acknowledgement's removal from the outbox and its counters, and by stats()
+        self._ack_lock = threading.Lock()
         self._pub_lock = threading.Lock()  # one put at a time: live sends and re-sends interleave cleanly
         self._last_sent: dict[int, float] = {}
         self._sends: dict[int, int] = {}  # how often each pending cloud went out (1: a round-trip sample)
@@ -574,34 +576,37 @@ class OutboxSink:
                 break
             lo, hi = pending[0], pending[-1]
             relevant = [r for r in ranges if r[1] >= lo and r[0] <= hi]
-            hit = self.outbox.take_acked_ranges(relevant) if relevant else []  # exactly those removed
-            n = len(hit)
-            removed += n
-            with self._lock:
-                self.counters.ack_polls += 1
-                self.counters.acked += n
-                acked_bytes = 0
-                newest_single: float | None = None  # send time of the latest cloud acknowledged after one send
-                for s in hit:
-                    if self._fate.pop(s, None) == "queued":  # acknowledged before this process sent it
-                        self.counters.queued -= 1
-                        if s < self._first_seq:  # an earlier run forwarded it
-                            self.counters.forwarded += 1
-                        else:  # published while no subscriber matched, and yet it arrived: live
-                            self.counters.live += 1
-                    t = self._last_sent.get(s)
-                    if t is not None:
-                        self._acked_sent_t = max(self._acked_sent_t, t)
-                        if self._sends.get(s) == 1 and s not in self._unheard:
-                            newest_single = t if newest_single is None else max(newest_single, t)
-                    acked_bytes += self._sizes.get(s, 0)
-                    self._forget(s)
-                self.clock.acked_bytes(now, acked_bytes)
-                if newest_single is not None:
-                    self.clock.rtt_sample(now, now - newest_single)
-                if n:
-                    self._last_progress = now
-                    self.clock.progressed()
+            # the removal and its counters under one lock that stats() takes too: a reader never sees a cloud
+            # gone from the outbox and not yet counted acknowledged
+            with self._ack_lock:
+                hit = self.outbox.take_acked_ranges(relevant) if relevant else []  # exactly those removed
+                n = len(hit)
+                removed += n
+                with self._lock:
+                    self.counters.ack_polls += 1
+                    self.counters.acked += n
+                    acked_bytes = 0
+                    newest_single: float | None = None  # send time of the latest cloud acknowledged after one send
+                    for s in hit:
+                        if self._fate.pop(s, None) == "queued":  # acknowledged before this process sent it
+                            self.counters.queued -= 1
+                            if s < self._first_seq:  # an earlier run forwarded it
+                                self.counters.forwarded += 1
+                            else:  # published while no subscriber matched, and yet it arrived: live
+                                self.counters.live += 1
+                        t = self._last_sent.get(s)
+                        if t is not None:
+                            self._acked_sent_t = max(self._acked_sent_t, t)
+                            if self._sends.get(s) == 1 and s not in self._unheard:
+                                newest_single = t if newest_single is None else max(newest_single, t)
+                        acked_bytes += self._sizes.get(s, 0)
+                        self._forget(s)
+                    self.clock.acked_bytes(now, acked_bytes)
+                    if newest_single is not None:
+                        self.clock.rtt_sample(now, now - newest_single)
+                    if n:
+                        self._last_progress = now
+                        self.clock.progressed()
         if not answered:
             self._poll_timeout = min(MAX_POLL_TIMEOUT_S, 2 * self._poll_timeout)
         return removed
@@ -732,7 +737,7 @@ class OutboxSink:
 
     def stats(self) -> dict[str, Any]:
         """Delivery counters and the outbox's, JSON-ready."""
-        with self._lock:
+        with self._ack_lock, self._lock:
             c = self.counters
             out: dict[str, Any] = {
                 "sent": c.sent,
@@ -750,7 +755,7 @@ class OutboxSink:
                 **c.budget(),
                 "link": self.clock.to_json(),
             }
-        out["outbox"] = self.outbox.stats().to_json_dict()
+            out["outbox"] = self.outbox.stats().to_json_dict()
         return out
 
     def close(self) -> None:
