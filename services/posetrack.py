@@ -335,6 +335,16 @@ class PoseTrack:
             return False
         return any(s.n and s.last_t < t_ns - self.max_gap_ns for s in (self._att, self._depth))
 
+    def pose_waiting(self, t_ns: int, timeout_s: float) -> Pose | None:
+        """The pose at ``t_ns`` from a live source, waiting (at most ``timeout_s``) for the samples after it.
+
+        A pose without a fix waits too: a source may send the depth after a frame before the fix that goes
+        with it. A source that sends no fixes, or fell silent, is not waited for (see :meth:`wait_covering`)."""
+        pose = self.pose_at(t_ns)
+        if (pose is None or not has_fix(pose)) and self.wait_covering(t_ns, timeout_s):
+            pose = self.pose_at(t_ns)
+        return pose
+
     def wait_covering(self, t_ns: int, timeout_s: float) -> bool:
         """Block until attitude and depth samples at or after ``t_ns`` exist (a live source behind the camera;
         also the next fix while fixes are coming), or the timeout. Returns at once, False, when the source

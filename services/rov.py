@@ -376,9 +376,8 @@ class RovService:
 
     def _process(self, t_ns: int, image: Any, sink: CloudSink) -> None:
         c = self.counters
-        pose = self.imu.track.pose_at(t_ns)
-        if pose is None and self.imu.live and self.imu.track.wait_covering(t_ns, LIVE_IMU_WAIT_S):
-            pose = self.imu.track.pose_at(t_ns)
+        track = self.imu.track
+        pose = track.pose_waiting(t_ns, LIVE_IMU_WAIT_S) if self.imu.live else track.pose_at(t_ns)
         if pose is None:
             with self._lock:
                 c.skipped += 1

@@ -6,6 +6,7 @@ import math
 import os
 import pty
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -367,3 +368,32 @@ def test_mavlink_without_pymavlink_says_what_to_install(monkeypatch: pytest.Monk
     imu = open_imu("mavlink:udpin:127.0.0.1:14551")  # the import waits until the source opens
     with pytest.raises(ImuError, match=r"pip install 'lrsensor\[mavlink\]'"), imu:
         pass
+
+
+def test_a_live_pose_waits_for_the_fix_that_follows_the_depth() -> None:
+    # a DVL autopilot sends depth and position together; the depth after a frame may arrive before the fix
+    track = PoseTrack(max_fix_gap_s=1.0)
+    for t in (0, 200_000_000):
+        track.add_attitude(t, 0.0, 0.0, 0.5)
+        track.add_depth(t, 2.0)
+    track.add_fix(0, 1.0, -1.0)
+    frame = 100_000_000
+    p = track.pose_at(frame)
+    assert p is not None
+    assert not has_fix(p)
+    threading.Timer(0.05, lambda: track.add_fix(200_000_000, 3.0, -3.0)).start()
+    p = track.pose_waiting(frame, timeout_s=5.0)
+    assert p is not None
+    assert has_fix(p)
+    assert (p.north_m, p.east_m) == pytest.approx((2.0, -2.0))
+    # a source that sends no fixes is not waited for
+    no_fix = PoseTrack()
+    no_fix.add_attitude(0, 0.0, 0.0, 0.0)
+    no_fix.add_depth(0, 1.0)
+    no_fix.add_attitude(200_000_000, 0.0, 0.0, 0.0)
+    no_fix.add_depth(200_000_000, 1.0)
+    t0 = time.monotonic()
+    p = no_fix.pose_waiting(frame, timeout_s=5.0)
+    assert p is not None
+    assert not has_fix(p)
+    assert time.monotonic() - t0 < 1.0
