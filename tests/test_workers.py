@@ -7,6 +7,7 @@ import signal
 import time
 from collections import Counter
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -349,7 +350,9 @@ def test_a_robot_moved_to_another_worker_continues_its_navigation_exactly() -> N
     assert st["nav"]["latest"].motion == "start"
 
 
-def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list[DiveFrame]) -> None:
+@contextmanager
+def _navigating_workers(net: TestNetwork, frames: list[DiveFrame], per: int) -> Iterator[tuple[Any, list[MapWorker]]]:
+    """A base with navigation and two in-process plane workers, after ``per`` frames of each robot are mapped."""
     base = net.start_base(map_mode="on", navigation=True, remote_workers=True, workers=2)
     workers = [MapWorker(net.session(), net.keys, f"w{i}") for i in range(2)]
     for w in workers:
@@ -358,11 +361,20 @@ def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list
         pool = base.feed.pool
         assert pool is not None
         assert pool.navigate
+        assert pool.snapshot_lag_ns > 0
         assert pool.wait_for_workers(2, 20)
-        per = 90
         _publish(net, frames, ROBOTS, 0, per)
         assert base.drain(60)
         base.flush_map(60)
+        yield base, workers
+    finally:
+        for w in workers:
+            w.close()
+
+
+def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list[DiveFrame]) -> None:
+    per = 90
+    with _navigating_workers(net, frames, per) as (base, workers):
         st = base.status()
         placed = {r: st["robots"][r]["nav"]["placed"] for r in ROBOTS}
         unplaced = {r: st["robots"][r]["nav"]["unplaced"] for r in ROBOTS}
@@ -378,9 +390,6 @@ def test_in_process_workers_navigate_their_robots(net: TestNetwork, frames: list
         navigator = base.feed.navigator
         assert navigator is not None
         assert set(navigator.robots) == set(ROBOTS)  # their states, for the fleet's frame
-    finally:
-        for w in workers:
-            w.close()
 
 
 def test_the_merge_waits_only_for_observations_that_can_still_precede() -> None:
@@ -476,27 +485,15 @@ def _plane_diff(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> tuple[float
 def test_workers_navigating_by_snapshots_give_one_process_map(net: TestNetwork, frames: list[DiveFrame]) -> None:
     # navigation is a loop (the planes correct the poses that make the planes): each registered scan uses
     # snapshot(T) of the merged map, T fixed by its capture time, in the workers as in one process
-    base = net.start_base(map_mode="on", navigation=True, remote_workers=True, workers=2)
-    workers = [MapWorker(net.session(), net.keys, f"w{i}") for i in range(2)]
-    for w in workers:
-        w.start()
-    try:
+    per = 90
+    with _navigating_workers(net, frames, per) as (base, workers):
         pool = base.feed.pool
         assert pool is not None
-        assert pool.snapshot_lag_ns > 0
-        assert pool.wait_for_workers(2, 20)
-        per = 90
-        _publish(net, frames, ROBOTS, 0, per)
-        assert base.drain(60)
-        base.flush_map(60)
         assert base.map is not None
         planes = base.map.map_json()["planes"]  # the map frame (not turned by the fleet's frame)
         records = base.map.planes_records()
         snaps = base.status()["map"]["worker_pool"]["snapshots"]
         assert sum(w.nav.registered for w in workers) >= per * len(ROBOTS) // 6
-    finally:
-        for w in workers:
-            w.close()
     assert (snaps["not_exact"], snaps["late"], snaps["forced"]) == (0, 0, 0), snaps
     single = _one_process_nav(frames, ROBOTS, per, pool.snapshot_lag_ns)
     ref = single.map_json()["planes"]
