@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from mapping.navigation import NavConfig
 from mapping.planes import open3d
 from mapping.smoother import SMOOTHED_NAV, SmootherConfig
 from mapping.synth import DiveMap, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
@@ -97,6 +98,23 @@ def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
     return worst
 
 
+#: ``NavConfig`` fields every navigated replay of :func:`run_mode` takes (``--nav-bias`` sets the velocity bias)
+NAV_OVERRIDES: dict[str, Any] = {}
+
+
+def _bias_setup(feed: Any) -> None:
+    """A replay variant: ``--nav on`` with the dead reckoning's velocity bias in the filter and smoother."""
+    from mapping.navigation import Navigator
+    from mapping.smoother import FleetPlacements
+
+    feed.navigator = Navigator(replace(SMOOTHED_NAV, dr_bias_sigma_m_s=BIAS_SIGMA_M_S), SmootherConfig())
+    feed.fleet = FleetPlacements(feed.navigator, feed.builder, background=True)
+
+
+#: the velocity bias's launch sigma (m/s) of the option measured (``NavConfig.dr_bias_sigma_m_s``)
+BIAS_SIGMA_M_S = 0.003
+
+
 def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     """Simulate one dive and replay it both ways."""
     scene = tank()
@@ -108,14 +126,15 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
     for way in ways:
         navigate = way != "trusted"
-        kw: dict[str, Any] = {}
+        kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
         if way == "graph":  # as smoothed, the robots without a fix on their pose graphs (opt-in)
-            kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True), "smoother": SmootherConfig(),
-                  "background": "wait"}  # fmt: skip
+            kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
+                  "smoother": SmootherConfig(), "background": "wait"}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart
-            kw = {"nav_cfg": SMOOTHED_NAV, "smoother": SmootherConfig(), "background": "wait"}
+            kw = {"nav_cfg": replace(SMOOTHED_NAV, **NAV_OVERRIDES), "smoother": SmootherConfig(),
+                  "background": "wait"}  # fmt: skip
         t0 = time.perf_counter()
         run = replay_dive(frames, navigate=navigate, **kw)
         wall = time.perf_counter() - t0
@@ -408,6 +427,7 @@ def run_realtime(mode: str, seconds: float, seed: int) -> str:
 #: The variants :func:`run_replays` replays a recorded acceptance run with (name -> (``--nav``, setup)).
 REPLAY_VARIANTS: dict[str, tuple[str, Any]] = {"`--nav off`": ("off", None), "`--nav filter`": ("filter", None)}
 REPLAY_VARIANTS["`--nav on`"] = ("on", None)
+REPLAY_VARIANTS["`--nav on`, velocity bias"] = ("on", _bias_setup)
 
 
 def run_replays(seconds: float, seed: int) -> str:
@@ -498,7 +518,15 @@ def main() -> int:
         metavar="S",
         help="also record one S-second acceptance run and replay it in-process per variant (off, filter, on)",
     )
+    ap.add_argument(
+        "--nav-bias",
+        action="store_true",
+        help="navigated replays with the dead reckoning's velocity bias in the filter and smoother (an option: "
+        f"NavConfig.dr_bias_sigma_m_s {BIAS_SIGMA_M_S})",
+    )
     args = ap.parse_args()
+    if args.nav_bias:
+        NAV_OVERRIDES["dr_bias_sigma_m_s"] = BIAS_SIGMA_M_S
     open3d()  # import once, outside the timings
     load0 = os.getloadavg()[0]
     rows: list[Row] = []
@@ -534,6 +562,7 @@ def main() -> int:
             "",
             f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
             + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
+            + (" --nav-bias" if args.nav_bias else "")
             + "`",
             "",
             table(rows),

@@ -4,17 +4,22 @@ Attitude (roll, pitch) and depth are measured well by every pose source; what a 
 where it is horizontally (no fix at all, or dead reckoning that drifts) and its true heading (a compass near
 steel is off by degrees). So the estimator has five states per robot, in NED (metres, m/s, radians)::
 
-    x = [north, east, v_north, v_east, yaw_correction]
+    x = [north, east, bias_north, bias_east, yaw_correction]
 
-and the corrected pose is ``(north, east, raw down, raw roll, raw pitch, raw yaw + yaw_correction)``.
+(``bias``: the dead reckoning's velocity bias, m/s, as from a current's drag) and the corrected pose is
+``(north, east, raw down, raw roll, raw pitch, raw yaw + yaw_correction)``.
 
 One step per cloud (:meth:`RobotNav.update`), a Kalman filter whose measurement update is a robust
 scan-to-map registration:
 
 1. **Predict.** With dead reckoning (the raw pose has a horizontal position, and had one at the previous
    cloud), the raw position's increment, turned by the current yaw correction (the compass bias turned it
-   too), moves the position; its noise grows with the distance (``dr_scale_sigma``) and with time
-   (``dr_velocity_sigma_m_s``). Without a fix, the position is a random walk (``walk_speed_m_s``).
+   too), moves the position, and so does the velocity bias times the time (a slow random walk,
+   ``dr_bias_sigma_m_s`` / ``dr_bias_walk_m_s_per_sqrt_s``): the error of a dead reckoning in a current grows
+   with time, not with its square root, and registrations that pin an axis estimate the bias along it, so the
+   prediction follows the drift along an axis no scan pins and its covariance grows as the drift can. The
+   noise also grows with the distance (``dr_scale_sigma``) and with time (``dr_velocity_sigma_m_s``, white).
+   Without a fix, the position is a random walk (``walk_speed_m_s``).
    The yaw correction is a random walk (``yaw_walk_deg_per_sqrt_s``).
 2. **Fix.** A raw horizontal position is also a weak absolute measurement (``fix_sigma_m``, at most once per
    ``fix_every_s``): dead reckoning's absolute error is unknown, so it only anchors a robot the scans cannot.
@@ -83,13 +88,19 @@ class NavConfig:
     are mapped in horizontal bands); a registration needs ``min_inliers`` points; planes with fewer than
     ``min_landmark_points`` points are not used.
 
-    Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (a velocity bias),
+    Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (white velocity
+    noise), the dead reckoning's velocity bias (a state: ``dr_bias_sigma_m_s`` at launch, a random walk of
+    ``dr_bias_walk_m_s_per_sqrt_s``; ``dr_bias_sigma_m_s`` 0 leaves it out, the model before it; small at launch,
+    so that the first seconds, when a fleet's first scans make the map, keep the dead reckoning's increments),
     ``walk_speed_m_s`` (the random walk of the position without a fix), ``yaw_walk_deg_per_sqrt_s``; fixes are
     absolute measurements at most every ``fix_every_s``, their sigma ``fix_quality_factor`` x the RMS of their
     disagreement with the estimate over ``fix_quality_s`` (a drifting dead reckoning earns a weak one), within
     ``fix_min_sigma_m`` .. ``fix_sigma_m``; the compass's bias is within ``compass_bias_deg`` (a pull of the yaw
-    correction to 0, as often as fixes); initial ``launch_sigma_m``, ``init_speed_sigma_m_s``,
-    ``init_yaw_sigma_deg``.
+    correction to 0, as often as fixes). With the bias state, a fix's sigma is at least its disagreement now, and
+    with ``fix_persistence`` the fixes of a disagreement that persists (its running mean near its RMS) beyond
+    ``fix_persist_min_m`` count as one per ``fix_quality_s``, not one per ``fix_every_s``: a dead reckoning's
+    drift is not white noise. Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
+    bias), ``init_yaw_sigma_deg``.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -143,6 +154,10 @@ class NavConfig:
     min_landmark_points: int = 300
     dr_scale_sigma: float = 0.03
     dr_velocity_sigma_m_s: float = 0.02
+    dr_bias_sigma_m_s: float = 0.0
+    dr_bias_walk_m_s_per_sqrt_s: float = 0.003
+    fix_persistence: bool = True
+    fix_persist_min_m: float = 0.1
     walk_speed_m_s: float = 0.3
     yaw_walk_deg_per_sqrt_s: float = 0.1
     fix_sigma_m: float = 0.5
@@ -261,6 +276,8 @@ class RobotNav:
         self.yaw_scans = 0
         #: running mean square of the fixes' disagreement with the estimate, per axis (m^2)
         self.fix_err2 = 0.0
+        #: running mean of the fixes' disagreement (north, east; m): a persistent one is a drift, not noise
+        self.fix_mean = np.zeros(2)
         self.last_compass_ns: int | None = None
         #: no fix and an uncertainty past ``lost_std_m``: the scans are not trusted until the next fix
         self.lost = False
@@ -285,6 +302,7 @@ class RobotNav:
         "start_ne",
         "yaw_scans",
         "fix_err2",
+        "fix_mean",
         "last_compass_ns",
         "lost",
         "_prev_scan",
@@ -312,12 +330,13 @@ class RobotNav:
     def _start(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
         self.x = np.array([raw_ne[0], raw_ne[1], 0.0, 0.0, 0.0])
+        bias = cfg.dr_bias_sigma_m_s if cfg.dr_bias_sigma_m_s > 0 else cfg.init_speed_sigma_m_s
         self.P = np.diag(
             [
                 cfg.launch_sigma_m**2,
                 cfg.launch_sigma_m**2,
-                cfg.init_speed_sigma_m_s**2,
-                cfg.init_speed_sigma_m_s**2,
+                bias**2,
+                bias**2,
                 math.radians(cfg.init_yaw_sigma_deg) ** 2,
             ]
         )
@@ -325,6 +344,7 @@ class RobotNav:
         self.last_fix_ns = t_ns
         self.start_ne = raw_ne.copy()
         self.fix_err2 = cfg.launch_sigma_m**2
+        self.fix_mean = np.zeros(2)
 
     def _predict(
         self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
@@ -348,7 +368,13 @@ class RobotNav:
             # the increment turns with the yaw correction: d(step)/dc = ez x step
             f[0:2, 4] = [-step[1], step[0]]
             self.x[0:2] += step
-            if dt > 0:
+            if cfg.dr_bias_sigma_m_s > 0 and dt > 0:
+                # a current's drag (or any slow velocity bias) moves the robot by bias * dt beyond what the dead
+                # reckoning says: the position's error grows with time along whatever no scan pins
+                f[0, 2] = f[1, 3] = dt
+                self.x[0:2] += self.x[2:4] * dt
+                q[2, 2] = q[3, 3] = cfg.dr_bias_walk_m_s_per_sqrt_s**2 * dt
+            elif dt > 0:
                 self.x[2:4] = step / dt
             self.transition = f @ ou
             self.P = f @ self.P @ f.T
@@ -361,7 +387,8 @@ class RobotNav:
             # wrong one carried the robot metres away while the scans kept its std small across the wall.)
             # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
             # relative measurement, so its covariance adds to the position's like dead reckoning's.
-            self.x[2:4] = 0.0
+            if self.cfg.dr_bias_sigma_m_s <= 0:
+                self.x[2:4] = 0.0
             self.transition = ou
             walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
@@ -422,7 +449,25 @@ class RobotNav:
         innov = raw_ne - self.x[0:2]
         a = min(1.0, cfg.fix_every_s / cfg.fix_quality_s) if cfg.fix_every_s > 0 else 0.05
         self.fix_err2 = (1 - a) * self.fix_err2 + a * float(innov @ innov) / 2
-        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(self.fix_err2)))
+        self.fix_mean = (1 - a) * self.fix_mean + a * innov
+        err2 = self.fix_err2
+        n_fixes = 1.0
+        if cfg.dr_bias_sigma_m_s > 0 and cfg.fix_persistence:
+            # with the velocity bias in the model the covariance grows as a drift can, and a dead reckoning that
+            # drifted away since is no better than its disagreement now (the running mean lags it by seconds)
+            err2 = max(err2, float(innov @ innov) / 2)
+            # a dead reckoning's error persists (a drift, not noise): its fixes over fix_quality_s are one
+            # measurement, not one per fix_every_s; taken as independent they dragged the estimate back to the
+            # drift as soon as no scan pinned an axis. Persistence: the disagreement's mean against its RMS
+            # (white fixes, a USBL's: about 0; a drift: 1)
+            # (white fixes, a USBL's: about 0; a drift: 1). A disagreement within fix_persist_min_m is what the
+            # map's own offset from the fixes leaves (good navigation): those fixes stay independent
+            rho = float(self.fix_mean @ self.fix_mean) / max(2.0 * self.fix_err2, 1e-12)
+            persist = min(1.0, max(0.0, (rho - 0.1) / 0.9))
+            if math.sqrt(err2) > cfg.fix_persist_min_m:
+                n_fixes = 1.0 + persist * cfg.fix_quality_s / max(cfg.fix_every_s, 1e-3)
+        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(err2)))
+        sigma *= math.sqrt(n_fixes)
         h = np.zeros((2, 5))
         h[0, 0] = h[1, 1] = 1.0
         s = h @ self.P @ h.T + np.eye(2) * sigma**2

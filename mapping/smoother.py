@@ -10,7 +10,7 @@ scans (the registration's sub-sample, body frame, float32) and the filter's stat
    planes placed from better poses than when the scans first came).
 2. **Smooth.** A Rauch-Tung-Striebel backward pass over the window's (north, east, yaw correction) uses every
    later scan for each earlier pose: the exact fixed-interval smoother of the filter's linearization (dead
-   reckoning's increment turned by the yaw correction is the only coupling; the velocity states are unused).
+   reckoning's increment turned by the yaw correction, and its velocity bias times the time, couple the states).
 3. **Report.** The revised poses of the window's scans (robot, t_ns -> Pose); the map re-places the clouds whose
    pose moved (:mod:`mapping.replace`). The live filter continues from the re-filtered state.
 
@@ -43,8 +43,17 @@ FloatArray = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
 
-#: The smoothed sub-state of RobotNav's five: north, east, yaw correction.
-_SUB = [0, 1, 4]
+#: The smoothed state: with the dead reckoning's velocity bias (``NavConfig.dr_bias_sigma_m_s`` > 0) all of
+#: RobotNav's five (north, east, the bias, yaw correction): the bias couples the positions of consecutive scans, so a
+#: pass over a sub-state would not be the exact smoother; without it north, east and yaw correction (the velocity
+#: states are then unused). The yaw correction is last in both.
+_SUB = [0, 1, 2, 3, 4]
+_SUB_NO_BIAS = [0, 1, 4]
+
+
+def _sub(nav: RobotNav) -> list[int]:
+    return _SUB if nav.cfg.dr_bias_sigma_m_s > 0 else _SUB_NO_BIAS
+
 
 #: The filter's tuning under the smoother: fixes weighted by 5x (not 1.5x) their RMS disagreement with the
 #: estimate. A drifting dead reckoning's fixes are the sum of the increments the filter already uses; weighted
@@ -84,8 +93,9 @@ class _Scan:
     points: NDArray[np.float32]
     #: the filter's state before this scan (to restart the filter here)
     before: dict[str, Any]
-    #: after the update: the prediction (3,), (3, 3), the transition from the previous scan (3, 3), the
-    #: posterior (3,), (3, 3); None where the scan did not move the filter (start, unknown, late)
+    #: after the update: the prediction (S,), (S, S), the transition from the previous scan (S, S), the
+    #: posterior (S,), (S, S) (S: the smoothed state, :func:`_sub`, yaw correction last); None where the scan did
+    #: not move the filter (start, unknown, late)
     prior_x: FloatArray | None = None
     prior_p: FloatArray | None = None
     trans: FloatArray | None = None
@@ -97,17 +107,18 @@ class _Scan:
 def _record(nav: RobotNav, scan: _Scan, est: NavEstimate) -> None:
     """Keep what ``nav``'s last update of ``scan`` did (for the backward pass)."""
     scan.est = est
+    sub = _sub(nav)
     if nav.prior is None or nav.transition is None or est.pose is None:
         scan.prior_x = scan.prior_p = scan.trans = scan.post_x = scan.post_p = None
         if est.pose is not None:
-            scan.post_x = nav.x[_SUB].copy()
-            scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+            scan.post_x = nav.x[sub].copy()
+            scan.post_p = nav.P[np.ix_(sub, sub)].copy()
         return
-    scan.prior_x = nav.prior[0][_SUB].copy()
-    scan.prior_p = nav.prior[1][np.ix_(_SUB, _SUB)].copy()
-    scan.trans = nav.transition[np.ix_(_SUB, _SUB)].copy()
-    scan.post_x = nav.x[_SUB].copy()
-    scan.post_p = nav.P[np.ix_(_SUB, _SUB)].copy()
+    scan.prior_x = nav.prior[0][sub].copy()
+    scan.prior_p = nav.prior[1][np.ix_(sub, sub)].copy()
+    scan.trans = nav.transition[np.ix_(sub, sub)].copy()
+    scan.post_x = nav.x[sub].copy()
+    scan.post_p = nav.P[np.ix_(sub, sub)].copy()
 
 
 def _refilter(nav: RobotNav, scans: list[_Scan], landmarks: PlaneLandmarks) -> None:
@@ -150,7 +161,7 @@ class SmoothJob:
                 continue
             r = s.raw
             self.revised[s.t_ns] = Pose(
-                float(x[0]), float(x[1]), r.down_m, r.roll_rad, r.pitch_rad, r.yaw_rad + float(x[2])
+                float(x[0]), float(x[1]), r.down_m, r.roll_rad, r.pitch_rad, r.yaw_rad + float(x[-1])
             )
             if s.t_ns == self.first_ns:
                 self.start_map_ne = (float(x[0]), float(x[1]))
@@ -266,8 +277,8 @@ class RobotSmoother:
 
     @staticmethod
     def _rts(scans: list[_Scan]) -> list[FloatArray | None]:
-        """Rauch-Tung-Striebel over the scans' recorded filter steps: the smoothed (north, east, yaw correction)
-        per scan (None where the filter had no state). A scan without a transition (a restart) ends the pass."""
+        """Rauch-Tung-Striebel over the scans' recorded filter steps: the smoothed state (:func:`_sub`) per scan
+        (None where the filter had no state). A scan without a transition (a restart) ends the pass."""
         n = len(scans)
         xs: list[FloatArray | None] = [None] * n
         nxt: FloatArray | None = None
