@@ -100,6 +100,8 @@ def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
 
 #: ``NavConfig`` fields every navigated replay of :func:`run_mode` takes (``--nav-bias`` sets the velocity bias)
 NAV_OVERRIDES: dict[str, Any] = {}
+#: ``GraphConfig`` fields the ``graph`` replays of :func:`run_mode` take (``--graph-second-hypothesis``)
+GRAPH_OVERRIDES: dict[str, Any] = {}
 
 
 def _bias_setup(feed: Any) -> None:
@@ -128,8 +130,11 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
         navigate = way != "trusted"
         kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
         if way == "graph":  # as smoothed, the robots without a fix on their pose graphs (opt-in)
+            from mapping.posegraph import GraphConfig
+
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
-                  "smoother": SmootherConfig(), "background": "wait"}  # fmt: skip
+                  "smoother": SmootherConfig(), "background": "wait",
+                  "graph_cfg": GraphConfig(**GRAPH_OVERRIDES)}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart
@@ -524,9 +529,16 @@ def main() -> int:
         help="navigated replays with the dead reckoning's velocity bias in the filter and smoother (an option: "
         f"NavConfig.dr_bias_sigma_m_s {BIAS_SIGMA_M_S})",
     )
+    ap.add_argument(
+        "--graph-second-hypothesis",
+        action="store_true",
+        help="the graph rows with GraphConfig.second_hypothesis (an option: ambiguous plane factors left out)",
+    )
     args = ap.parse_args()
     if args.nav_bias:
         NAV_OVERRIDES["dr_bias_sigma_m_s"] = BIAS_SIGMA_M_S
+    if args.graph_second_hypothesis:
+        GRAPH_OVERRIDES["second_hypothesis"] = True
     open3d()  # import once, outside the timings
     load0 = os.getloadavg()[0]
     rows: list[Row] = []
@@ -563,6 +575,7 @@ def main() -> int:
             f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
             + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
             + (" --nav-bias" if args.nav_bias else "")
+            + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
             + "`",
             "",
             table(rows),

@@ -94,7 +94,8 @@ class GraphConfig:
     made from several poses); ``observed_std_m``: a registration's direction counts where it alone pins the pose
     within this (the heading at a 2 m lever); ``window_s`` / ``rebase_every_s``: the bounded window;
     ``place_std_m``: clouds are placed while the horizontal standard deviation is below it; ``lost_std_m``: beyond
-    it no plane is registered.
+    it no plane is registered. ``second_hypothesis`` (off): a plane factor is left out when another plane would
+    explain the scan's points on it within the pose's marginal (:meth:`GraphNav._ambiguous`).
     """
 
     velocity_walk_m_s: float = 0.1
@@ -116,6 +117,7 @@ class GraphConfig:
     lost_std_m: float = 0.3
     observed_std_m: float = 0.1
     plane_gate_m: float = 0.1
+    second_hypothesis: bool = False
 
 
 #: the lever (m) that turns a heading into a distance where directions over position and heading are compared
@@ -143,6 +145,8 @@ class GraphNav:
         self.prior = self.transition = None
         self.gated = 0
         self.loops = 0
+        #: plane factors left out because another plane was as likely (``GraphConfig.second_hypothesis``)
+        self.ambiguous = 0
         self._reset()
 
     def _reset(self) -> None:
@@ -521,7 +525,7 @@ class GraphNav:
             return np.zeros((3, 3)), 0, ()
         _, info, inliers, used, per_plane = res
         anchor_of = {int(lm.ids[i]): int(own_anchor[i]) for i in np.flatnonzero(own_anchor >= self._first_key)}
-        loops = self._plane_factors(key, raw, per_plane, anchor_of)
+        loops = self._plane_factors(key, raw, per_plane, anchor_of, lm)
         self.loops += int(loops > 0)
         # what the scan pinned (reported as the filter reports it: the planes taken as they are)
         h_total = info
@@ -535,6 +539,7 @@ class GraphNav:
         raw: Pose,
         per_plane: list[tuple[int, FloatArray, float, FloatArray, int]],
         anchor_of: dict[int, int],
+        lm: PlaneLandmarks | None = None,
     ) -> int:
         """One factor per plane this scan saw: the mean of its inliers on the plane, with an offset of the plane's
         own (a variable per plane, its prior ``map_plane_sigma_m``, ``own_sigma_m`` for the robot's own): the scans
@@ -573,6 +578,9 @@ class GraphNav:
             if abs(e) > self.gcfg.plane_gate_m:
                 self.gated += 1
                 continue
+            if self.gcfg.second_hypothesis and lm is not None and self._ambiguous(pid, n, d, c, x, raw, lm):
+                self.ambiguous += 1
+                continue
             if pid not in self._plane_ids:
                 self._plane_ids.add(pid)
                 self._add("plane_prior", (), (pid, sigma_plane))
@@ -580,6 +588,32 @@ class GraphNav:
             self._add(kind, keys, data)
             loops += int(kind == "anchored")
         return loops
+
+    def _ambiguous(
+        self, pid: int, n: FloatArray, d: float, c: FloatArray, x: FloatArray, raw: Pose, lm: PlaneLandmarks
+    ) -> bool:
+        """Whether another plane of ``lm`` (facing the same way, a different surface: more than 5 cm from plane
+        ``pid`` where the scan saw it) would explain the scan's points on ``pid`` as well, within the pose's marginal
+        (3 sigma along its normal + 5 cm, the heading at a 2 m lever): in a symmetric tank a robot that slid along a
+        wall finds a face where it thinks it is, and only the next candidate's distance tells the association is a
+        guess."""
+        p = np.array([*(x[0:2] + rot(float(x[2])) @ c[0:2]), raw.down_m + float(c[2])])
+        veh = np.array([x[0], x[1], raw.down_m])
+        own = float(n @ p) + d
+        dist = lm.normal @ p + lm.d
+        same_way = lm.normal @ n >= math.cos(math.radians(15.0))
+        facing = (veh - p) @ lm.normal.T > 0.0
+        rel = p[None, :] - lm.centroid
+        pu = np.einsum("pk,pk->p", rel, lm.u)
+        pv = np.einsum("pk,pk->p", rel, lm.v)
+        m, md = self.cfg.extent_margin_m, self.cfg.extent_margin_down_m
+        inside = (pu >= lm.u_range[:, 0] - m) & (pu <= lm.u_range[:, 1] + m)
+        inside &= (pv >= lm.v_range[:, 0] - md) & (pv <= lm.v_range[:, 1] + md)
+        nh = lm.normal[:, 0:2]
+        along = np.einsum("pi,ij,pj->p", nh, self._cov[0:2, 0:2], nh) + _LEVER_M**2 * self._cov[2, 2]
+        gate = 3.0 * np.sqrt(along) + 0.05
+        other = (lm.ids != pid) & same_way & facing & inside & (np.abs(dist - own) > 0.05)
+        return bool(np.any(other & (np.abs(dist) <= gate)))
 
     def _offset(self, pid: int) -> float:
         """The current estimate of plane ``pid``'s offset (0 before it has one)."""

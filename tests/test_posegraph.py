@@ -203,3 +203,28 @@ def test_by_default_a_robot_without_a_fix_keeps_the_filter_and_is_reported_lost(
     assert isinstance(nav.robots["blind"], RobotNav)
     assert est is not None
     assert est.motion == "lost"
+
+
+def _wall(pid: int, north: float) -> dict[str, Any]:
+    """A wall facing north (normal +north) at ``north``, 4 m wide and 2 m tall around east 0, depth 1."""
+    extent = {"centroid": [north, 0.0, 1.0], "u": [0.0, 1.0, 0.0], "v": [0.0, 0.0, 1.0],
+              "u_range_m": [-2.0, 2.0], "v_range_m": [-1.0, 1.0]}  # fmt: skip
+    return {"id": pid, "normal": [1.0, 0.0, 0.0], "d": -north, "n_points": 10_000, "extent": extent}
+
+
+def test_a_plane_factor_is_left_out_when_another_plane_explains_the_scan_as_well() -> None:
+    # the second-hypothesis test (GraphConfig.second_hypothesis): the scan's points lie on the wall at north 0;
+    # a parallel face 0.3 m behind them is as likely while the pose is uncertain by 0.2 m, not at 1 cm; a copy of
+    # the same surface 2 cm away is no other hypothesis
+    g = GraphNav("rov1", NavConfig(), GraphConfig(second_hypothesis=True))
+    x = np.array([1.0, 0.0, math.pi])  # 1 m north of the wall, facing it
+    c = np.array([1.0, 0.0, 0.0])  # the points' mean, 1 m ahead in the level frame (turned by the heading)
+    raw = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, math.pi)
+    n, d = np.array([1.0, 0.0, 0.0]), 0.0
+    lm = PlaneLandmarks.from_planes([_wall(1, 0.0), _wall(2, -0.3)])
+    g._cov = np.diag([0.2**2, 0.2**2, 1e-6])
+    assert g._ambiguous(1, n, d, c, x, raw, lm)
+    g._cov = np.diag([0.01**2, 0.01**2, 1e-6])
+    assert not g._ambiguous(1, n, d, c, x, raw, lm)
+    g._cov = np.diag([0.2**2, 0.2**2, 1e-6])
+    assert not g._ambiguous(1, n, d, c, x, raw, PlaneLandmarks.from_planes([_wall(1, 0.0), _wall(2, -0.02)]))
