@@ -3,7 +3,8 @@
 The fit lays its profiles out as (rows, columns) arrays so that every inner loop runs over columns and vectorizes:
 a window of ``m = 2 half + 1`` rows of ``n`` columns is (m, n). This module gathers those windows from the image
 (:func:`gather_green`), reads the colour rises at the peaks (:func:`colour_rises`, for the colour test pooled along
-the stripe in :mod:`.finish`) and stores one point's fit into a frame's (:func:`put_fit`).
+the stripe in :mod:`.finish`) and stores one point's fit into a frame's (:func:`put_fit`); :func:`take` picks
+elements by index for every kernel of the frame.
 """
 
 from __future__ import annotations
@@ -86,6 +87,16 @@ def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no
         for ch in channels:
             uc = np.uint64(ch)
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
+
+
+@inline
+def take(a, idx):  # type: ignore[no-untyped-def]
+    """``a[idx]`` of a 1-D array ``a`` and indices ``idx`` (K,), in a loop: numba's fancy indexing compiles its
+    general machinery (any dimensions, broadcasting, negative indices) at every place it is used."""
+    out = np.empty(idx.size, a.dtype)
+    for i in range(idx.size):
+        out[i] = a[idx[i]]
+    return out
 
 
 @inline

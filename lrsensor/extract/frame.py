@@ -51,6 +51,7 @@ from numpy.typing import NDArray
 
 from ._jit import inline, njit
 from .chains import expand_half, select_candidates, sorted_blocks
+from .columns import take
 from .detect import detect_band
 from .finish import finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
@@ -222,7 +223,8 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
             good[t] = ok[t] and not sat[t]
             touched[cols[t]] = True
         look = np.flatnonzero(touched)
-        touched[look] = False
+        for c in look:
+            touched[c] = False
 
 
 @inline
@@ -338,7 +340,9 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
         for i in range(m_sub):
             sub[i] = int(i * step)
         sub[m_sub - 1] = n - 1
-    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mfw[sub])
+    sig_med, plateau, wide_lim = frame_profile_stats(
+        image, take(cols, sub), take(rows, sub), half0, sat_dn, max_sigma, take(mfw, sub)
+    )
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     nan = np.full(n, np.nan)
     fits = fit_columns(image, cols, rows, half, sig_med, s, nan, nan, nan, mfw)
@@ -438,10 +442,13 @@ def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-
             uv[t, 1] = v[t]
         return uv, laser, quality, xyz
     idx = np.flatnonzero(keep)
+    xyz_k = np.empty((kept, 3))
     for j in range(kept):
         uv[j, 0] = u[idx[j]]
         uv[j, 1] = v[idx[j]]
-    return uv, laser[idx], quality[idx], xyz[idx]
+        for a in range(3):
+            xyz_k[j, a] = xyz[idx[j], a]
+    return uv, take(laser, idx), take(quality, idx), xyz_k
 
 
 FloatArray = NDArray[np.float64]
