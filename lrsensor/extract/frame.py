@@ -59,7 +59,7 @@ from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
-from .sorting import median, sorted_copy
+from .sorting import kth, median
 
 #: Sigma of a Gaussian per full width at half maximum.
 FWHM_PER_SIGMA = 2.3548200450309493
@@ -167,8 +167,7 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
         sg = median(widths[:nw]) / 2.3548200450309493
         if math.isfinite(sg):
             sigma = min(max(sg, 0.6), max(max_sigma, wide / 2.3548200450309493))
-    srt = sorted_copy(n_sat)
-    plateau = srt[int(0.9 * (n - 1))] if n > 0 else 0.0
+    plateau = kth(n_sat, int(0.9 * (n - 1))) if n > 0 else 0.0
     return sigma, plateau, wide
 
 
