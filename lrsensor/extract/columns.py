@@ -1,10 +1,10 @@
-"""Pieces of the column-parallel fit (:mod:`.fit`): gathering windows, colour rises, half-level crossings.
+"""Pieces of the column-parallel fit (:mod:`.fit`): gathering windows, colour rises, storing a fit.
 
 The fit lays its profiles out as (rows, columns) arrays so that every inner loop runs over columns and vectorizes:
 a window of ``m = 2 half + 1`` rows of ``n`` columns is (m, n). This module gathers those windows from the image
 (:func:`gather_green`), reads the colour rises at the peaks (:func:`colour_rises`, for the colour test pooled along
-the stripe in :mod:`.finish`), finds half-level crossings column by column with selects (:func:`half_crossings`)
-and stores one point's fit into a frame's (:func:`put_fit`).
+the stripe in :mod:`.finish`) and stores one point's fit into a frame's (:func:`put_fit`); :func:`take` picks
+elements by index for every kernel of the frame.
 """
 
 from __future__ import annotations
@@ -89,86 +89,14 @@ def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no
             rise[ch, t] = flat[rp + uc] - 0.5 * (float(flat[rl + uc]) + flat[rh + uc])
 
 
-@njit
-def half_crossings(B, level):  # type: ignore[no-untyped-def]
-    """The first crossings below ``level`` (n,) left and right of the middle row of profiles ``B`` (m, n), float32
-    or float64, linearly interpolated as :func:`.fit._level_width` does for one profile (-1 where there is
-    none): ``(xa, xb)``, (n,) each of ``B``'s type. The row below the level, its value and its inner neighbour's
-    are found by selects, four rows per pass over the columns; then one division per column."""
-    m, n = B.shape
-    R = m // 2
-    xq = np.empty_like(B[0])  # the row found, in B's type (-1: none yet)
-    qv = np.empty_like(B[0, :4])  # row numbers in B's type
-    va = np.zeros_like(B[0])
-    vn = np.zeros_like(B[0])
-    xa = np.full_like(B[0], -1.0)
-    xb = np.full_like(B[0], -1.0)
-    for side in (-1, 1):
-        q = R + side
-        for t in range(n):
-            xq[t] = -1.0
-        while 0 <= q < m:
-            if (q + 1 if side < 0 else m - q) >= 4:
-                r0 = B[q]
-                r1 = B[q + side]
-                r2 = B[q + 2 * side]
-                r3 = B[q + 3 * side]
-                rn = B[q - side]
-                for j in range(4):
-                    qv[j] = q + j * side
-                q0 = qv[0]
-                q1 = qv[1]
-                q2 = qv[2]
-                q3 = qv[3]
-                for t in range(n):
-                    x_ = xq[t]
-                    a_ = va[t]
-                    n_ = vn[t]
-                    lv_ = level[t]
-                    v0 = r0[t]
-                    v1 = r1[t]
-                    v2 = r2[t]
-                    v3 = r3[t]
-                    vp = rn[t]
-                    tk = (x_ < 0.0) & (v0 < lv_)
-                    x_ = q0 if tk else x_
-                    n_ = vp if tk else n_
-                    a_ = v0 if tk else a_
-                    tk = (x_ < 0.0) & (v1 < lv_)
-                    x_ = q1 if tk else x_
-                    n_ = v0 if tk else n_
-                    a_ = v1 if tk else a_
-                    tk = (x_ < 0.0) & (v2 < lv_)
-                    x_ = q2 if tk else x_
-                    n_ = v1 if tk else n_
-                    a_ = v2 if tk else a_
-                    tk = (x_ < 0.0) & (v3 < lv_)
-                    x_ = q3 if tk else x_
-                    n_ = v2 if tk else n_
-                    a_ = v3 if tk else a_
-                    xq[t] = x_
-                    va[t] = a_
-                    vn[t] = n_
-                q += 4 * side
-            else:
-                r0 = B[q]
-                rn = B[q - side]
-                qv[0] = q
-                q0 = qv[0]
-                for t in range(n):
-                    v0 = r0[t]
-                    vp = rn[t]
-                    x_ = xq[t]
-                    tk = (x_ < 0.0) & (v0 < level[t])
-                    xq[t] = q0 if tk else x_
-                    vn[t] = vp if tk else vn[t]
-                    va[t] = v0 if tk else va[t]
-                q += side
-        xs = xa if side < 0 else xb
-        for t in range(n):  # q + (level - a) / (a_inner - a) on the left, q - ... on the right (exact in B's type)
-            if xq[t] >= 0.0:
-                xs[t] = xq[t] - side * ((level[t] - va[t]) / (vn[t] - va[t]))
-    return xa, xb
+@inline
+def take(a, idx):  # type: ignore[no-untyped-def]
+    """``a[idx]`` of a 1-D array ``a`` and indices ``idx`` (K,), in a loop: numba's fancy indexing compiles its
+    general machinery (any dimensions, broadcasting, negative indices) at every place it is used."""
+    out = np.empty(idx.size, a.dtype)
+    for i in range(idx.size):
+        out[i] = a[idx[i]]
+    return out
 
 
 @inline

@@ -25,10 +25,12 @@ second. This module decides when that compile happens and where:
   than over the libraries they would save). The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
-  bring numpy's broadcasting and its messages; a median beside a sort), and a kernel called with a constant
-  argument compiles once for each constant (numba types a constant as a literal of its value: the glow's rounds
-  compiled twice, for ``False`` and ``True``), so flags reach kernels as values. ``python -m benchmarks.bench_compile``
-  measures the compile and what its level costs a frame (docs/performance.md).
+  bring numpy's broadcasting and its messages; fancy indexing, whose one-dimensional case is a loop,
+  :func:`~lrsensor.extract.columns.take`; a sort where a selection gives the order statistic), and a kernel
+  called with a constant argument compiles once for each constant (numba types a constant as a literal of its
+  value: the glow's rounds compiled twice, for ``False`` and ``True``), so flags reach kernels as values.
+  ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
+  (docs/performance.md).
 - **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
   the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
   (the ROV, which must not stall its camera): the compile runs in the background and the extractor runs its

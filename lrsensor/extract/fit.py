@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._jit import inline, njit
-from .columns import colour_rises, gather_green, half_crossings
+from .columns import colour_rises, gather_green
 
 #: Rows either side of the picked row within which a profile is re-centred on its integer peak.
 RECENTRE_PX = 3
@@ -79,18 +79,12 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     Three ``exp`` per column: each column's Gaussian by recurrence from the first row where it exceeds ``e^-30``
     of its peak (a start further out could underflow to zero and stay there); none where nothing is subtracted."""
     n = cols.size
-    W = np.empty((k_rows, n), np.uint8)
-    gather_green(image, cols, top, W)
     P = np.empty((k_rows, n))
+    gather_green(image, cols, top, P)
     nb_any = False
     for t in range(n):
         nb_any |= amp[t] != 0.0
     if not nb_any:  # nothing to subtract (the first fit of every point)
-        for q in range(k_rows):
-            wq = W[q]
-            pq = P[q]
-            for t in range(n):
-                pq[t] = wq[t]
         return P
     qs = np.empty(n, np.int64)
     ex = np.empty(2 * n)
@@ -105,11 +99,10 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     w = ex[:n].copy()
     ratio = ex[n:].copy()
     for q in range(k_rows):
-        wq = W[q]
         pq = P[q]
         for t in range(n):
             on = q >= qs[t]
-            pq[t] = wq[t] - (amp[t] * w[t] if on else 0.0)
+            pq[t] = pq[t] - (amp[t] * w[t] if on else 0.0)
             w[t] = w[t] * ratio[t] if on else w[t]
             ratio[t] = ratio[t] * g2[t] if on else ratio[t]
     return P
@@ -157,9 +150,9 @@ def _flank_line(p, o, flank):  # type: ignore[no-untyped-def]
 
 
 @inline
-def _level_width(S, level):  # type: ignore[no-untyped-def]
-    """Width at ``level`` of the profile ``S`` (m,) between its first crossings below it left and right of the
-    middle sample, linearly interpolated; inf where one is missing."""
+def _crossings(S, level):  # type: ignore[no-untyped-def]
+    """The first crossings below ``level`` of the profile ``S`` (m,) left and right of its middle sample, linearly
+    interpolated: ``(xa, xb)`` in rows (-1 where there is none)."""
     m = S.size
     R = m // 2
     xa = -1.0
@@ -172,6 +165,13 @@ def _level_width(S, level):  # type: ignore[no-untyped-def]
         if S[q] < level:
             xb = q - (level - S[q]) / (S[q - 1] - S[q])
             break
+    return xa, xb
+
+
+@inline
+def _level_width(S, level):  # type: ignore[no-untyped-def]
+    """Width at ``level`` of the profile ``S`` (m,) between its :func:`_crossings`; inf where one is missing."""
+    xa, xb = _crossings(S, level)
     return xb - xa if (xa >= 0 and xb >= 0) else np.inf
 
 
@@ -294,18 +294,21 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     window = saturated.copy()  # the columns of the window centroid (else Gaussian weights)
     hs = np.empty(n)  # its half-width
     lim_c = np.empty(n)  # the largest accepted distance of the centre from the peak row
-    lvl = np.empty(n)
+    # (a profile below half level k_w rows either side of the peak row is narrower than 2 k_w <= wide_fwhm: most
+    # are, and skip the search for their crossings)
+    k_w = min(max(int(0.5 * wide_fwhm), 0), R)
     for t in range(n):
         hs[t] = 0.5 * n_sat[t] + 2.5 * sigma_hint + 1.0
         lim_c[t] = 0.5 * n_sat[t] + 1.0 if saturated[t] else 2.0
-        lvl[t] = 0.5 * A[R, t]
-    xa, xb = half_crossings(A, lvl)
-    for t in range(n):
-        fw = xb[t] - xa[t] if (xa[t] >= 0 and xb[t] >= 0) else np.inf
-        if saturated[t] or not A[R, t] > 0 or not fw > wide_fwhm:
+        lvl = 0.5 * A[R, t]
+        if saturated[t] or not lvl > 0 or (A[R - k_w, t] < lvl and A[R + k_w, t] < lvl):
+            continue
+        xa, xb = _crossings(A[:, t], lvl)
+        fw = xb - xa if (xa >= 0 and xb >= 0) else np.inf
+        if not fw > wide_fwhm:
             continue
         if math.isfinite(fw):  # the peak sample may be anywhere on the top
-            c[t] = 0.5 * (xa[t] + xb[t])
+            c[t] = 0.5 * (xa + xb)
             lim_c[t] = 0.5 * fw + 1.0
         if not _is_flat(A[:, t].copy(), A[R, t], fw):
             continue

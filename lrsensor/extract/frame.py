@@ -51,6 +51,7 @@ from numpy.typing import NDArray
 
 from ._jit import inline, njit
 from .chains import expand_half, select_candidates, sorted_blocks
+from .columns import take
 from .detect import detect_band
 from .finish import finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
@@ -58,7 +59,7 @@ from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
-from .sorting import median, sorted_copy
+from .sorting import kth, median
 
 #: Sigma of a Gaussian per full width at half maximum.
 FWHM_PER_SIGMA = 2.3548200450309493
@@ -166,8 +167,7 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
         sg = median(widths[:nw]) / 2.3548200450309493
         if math.isfinite(sg):
             sigma = min(max(sg, 0.6), max(max_sigma, wide / 2.3548200450309493))
-    srt = sorted_copy(n_sat)
-    plateau = srt[int(0.9 * (n - 1))] if n > 0 else 0.0
+    plateau = kth(n_sat, int(0.9 * (n - 1))) if n > 0 else 0.0
     return sigma, plateau, wide
 
 
@@ -222,7 +222,8 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
             good[t] = ok[t] and not sat[t]
             touched[cols[t]] = True
         look = np.flatnonzero(touched)
-        touched[look] = False
+        for c in look:
+            touched[c] = False
 
 
 @inline
@@ -338,7 +339,9 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
         for i in range(m_sub):
             sub[i] = int(i * step)
         sub[m_sub - 1] = n - 1
-    sig_med, plateau, wide_lim = frame_profile_stats(image, cols[sub], rows[sub], half0, sat_dn, max_sigma, mfw[sub])
+    sig_med, plateau, wide_lim = frame_profile_stats(
+        image, take(cols, sub), take(rows, sub), half0, sat_dn, max_sigma, take(mfw, sub)
+    )
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
     nan = np.full(n, np.nan)
     fits = fit_columns(image, cols, rows, half, sig_med, s, nan, nan, nan, mfw)
@@ -438,10 +441,13 @@ def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-
             uv[t, 1] = v[t]
         return uv, laser, quality, xyz
     idx = np.flatnonzero(keep)
+    xyz_k = np.empty((kept, 3))
     for j in range(kept):
         uv[j, 0] = u[idx[j]]
         uv[j, 1] = v[idx[j]]
-    return uv, laser[idx], quality[idx], xyz[idx]
+        for a in range(3):
+            xyz_k[j, a] = xyz[idx[j], a]
+    return uv, take(laser, idx), take(quality, idx), xyz_k
 
 
 FloatArray = NDArray[np.float64]

@@ -288,7 +288,12 @@ def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-unt
     out = np.full(n, floor)
     if n == 0 or sheet_mm <= 0:
         return out
-    pts = triangulate_geo(cols.astype(np.float64), rows.astype(np.float64), laser, geo)
+    u = np.empty(n)
+    v = np.empty(n)
+    for t in range(n):
+        u[t] = cols[t]
+        v[t] = rows[t]
+    pts = triangulate_geo(u, v, laser, geo)
     for t in range(n):
         depth = (
             (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]

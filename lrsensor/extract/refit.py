@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
-from .columns import put_fit
+from .columns import put_fit, take
 from .fit import fit_columns
 
 
@@ -201,6 +201,7 @@ def refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, half, sigma_hint, s,
     ``nb_v, nb_a, nb_s`` (M,)) and store the results in place into ``res``, the
     :class:`~lrsensor.extract.fit.Fits` of every point (``cols``, ``rows``, ``max_fwhm`` (N,) as for
     :func:`~lrsensor.extract.fit.fit_columns`, with its ``half``, ``sigma_hint`` and settings ``s``)."""
-    new = fit_columns(image, cols[idx], rows[idx], half, sigma_hint, s, nb_v, nb_a, nb_s, max_fwhm[idx])
+    c_i, r_i, mfw_i = take(cols, idx), take(rows, idx), take(max_fwhm, idx)
+    new = fit_columns(image, c_i, r_i, half, sigma_hint, s, nb_v, nb_a, nb_s, mfw_i)
     for i in range(idx.size):
         put_fit(res, new, i, idx[i])

@@ -1,11 +1,9 @@
-"""Sorting for the kernels' medians: a sorted copy and the median of an array (numba-compiled when inlined).
+"""Order statistics for the kernels: the median of an array and its ``k``-th smallest value.
 
 numpy's sort and median compile into several libraries of their own (quicksort, partition, selection), seconds
-of the one-time compile for a few dozen to a few thousand values a frame; a shell sort compiles in a fraction of
-that and orders values as ``np.sort`` does (NaN last). The median needs no whole sort: a selection (Hoare's, on a
-copy) finds its middle values in linear time (a shell sort of the smoothing's few thousand values took about as
-long as the rest of the smoothing), and they are the sorted order's, so the medians are numba's ``np.median`` to
-the bit.
+of the one-time compile for a few dozen to a few thousand values a frame. Neither needs a whole sort: a selection
+(Hoare's, on a copy) finds the ``k``-th smallest value in linear time, and it is the sorted order's, so the medians
+are numba's ``np.median`` to the bit and :func:`kth` is ``np.sort(a)[k]``.
 """
 
 from __future__ import annotations
@@ -13,25 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from ._jit import inline
-
-#: Gaps of the shell sort (Ciura's), largest first.
-GAPS = (701, 301, 132, 57, 23, 10, 4, 1)
-
-
-@inline
-def sorted_copy(a):  # type: ignore[no-untyped-def]
-    """A sorted copy of the 1-D array ``a``, NaN last (as ``np.sort``)."""
-    out = a.copy()
-    n = out.size
-    for gap in GAPS:
-        for i in range(gap, n):
-            x = out[i]
-            j = i
-            while j >= gap and (out[j - gap] > x or (out[j - gap] != out[j - gap] and x == x)):
-                out[j] = out[j - gap]
-                j -= gap
-            out[j] = x
-    return out
 
 
 @inline
@@ -58,6 +37,13 @@ def select(x, n, k):  # type: ignore[no-untyped-def]
         if k < i:
             hi = j
     return x[k]
+
+
+@inline
+def kth(a, k):  # type: ignore[no-untyped-def]
+    """The ``k``-th smallest value of a 1-D array ``a`` without NaN (``np.sort(a)[k]``; :func:`select` on a copy)."""
+    x = a.copy()
+    return select(x, x.size, k)
 
 
 @inline
