@@ -1,0 +1,205 @@
+"""The navigation's tuning and what it reports: :class:`NavConfig` (the parameters of the filter, of the
+smoother's re-runs and of the fleet's frame) and :class:`NavEstimate` (a robot's corrected pose at one cloud, what
+``<root>/<robot>/nav`` publishes).
+
+The estimator is :class:`mapping.nav_filter.RobotNav`, the fleet's :class:`mapping.navigator.Navigator`;
+:mod:`mapping.navigation` exports all of them (and describes the method).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from lrsensor.frames import Pose
+
+from .nav_frame import NavFrame
+
+__all__ = ["AXES", "NavConfig", "NavEstimate"]
+
+#: The axes whose constraint is reported.
+AXES = ("north", "east", "yaw")
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """Tuning of :class:`Navigator` (metres, seconds, degrees where named ``_deg``).
+
+    Registration: ``max_points`` body points per scan (evenly sub-sampled) within ``max_range_m``;
+    ``point_sigma_m`` the noise of one point-to-plane residual, Huber-weighted beyond ``huber_m``; at most
+    ``max_independent_points`` count as independent; ``iterations`` re-associations; a point joins a plane within
+    ``gate_min_m`` .. ``gate_max_m`` (3 sigma of the predicted position along the plane's normal, + 5 cm) and
+    within its extent inflated by ``extent_margin_m`` horizontally and ``extent_margin_down_m`` in depth (faces
+    are mapped in horizontal bands); a registration needs ``min_inliers`` points; planes with fewer than
+    ``min_landmark_points`` points are not used.
+
+    Motion: ``dr_scale_sigma`` per metre of dead-reckoned distance, ``dr_velocity_sigma_m_s`` (white velocity
+    noise), the dead reckoning's velocity bias (a state: ``dr_bias_sigma_m_s`` at launch, a random walk of
+    ``dr_bias_walk_m_s_per_sqrt_s``; ``dr_bias_sigma_m_s`` 0 leaves it out, the model before it; small at launch,
+    so that the first seconds, when a fleet's first scans make the map, keep the dead reckoning's increments),
+    ``walk_speed_m_s`` (the random walk of the position without a fix), ``yaw_walk_deg_per_sqrt_s``; fixes are
+    absolute measurements at most every ``fix_every_s``, their sigma ``fix_quality_factor`` x the RMS of their
+    disagreement with the estimate over ``fix_quality_s`` (a drifting dead reckoning earns a weak one), within
+    ``fix_min_sigma_m`` .. ``fix_sigma_m``; the compass's bias is within ``compass_bias_deg`` (a pull of the yaw
+    correction to 0, as often as fixes). With the bias state, a fix's sigma is at least its disagreement now, and
+    with ``fix_persistence`` the fixes of a disagreement that persists (its running mean near its RMS) beyond
+    ``fix_persist_min_m`` count as one per ``fix_quality_s``, not one per ``fix_every_s``: a dead reckoning's
+    drift is not white noise. Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
+    bias), ``init_yaw_sigma_deg``.
+
+    Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
+    an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
+    exceeds it are not placed in the map), ``lost_std_m`` (without a fix, a robot whose predicted standard
+    deviation exceeds it is lost: its scans are not registered or placed until the next fix), ``depth_std_m`` /
+    ``attitude_std_deg`` (reported for the measured axes); ``frame_min_scans``: a robot's yaw correction counts
+    in :meth:`Navigator.frame` once that many scans constrained its heading; with smoothing, launch points
+    ``frame_min_baseline_m`` apart fix the frame's heading instead.
+
+    Heading: with ``yaw_bias_tau_s`` > 0 the yaw correction is the negative of a compass bias that wanders as an
+    Ornstein-Uhlenbeck process (stationary standard deviation ``yaw_bias_std_deg``, correlation time
+    ``yaw_bias_tau_s``): bounded and mean-reverting, so no run of registrations can carry it far past what a
+    compass does (the random walk and ``compass_bias_deg`` pulls are then off). ``yaw_bias_tau_s`` 0 restores the
+    walk.
+
+    Evidence: a plane only this robot contributed to, first seen by it less than ``own_recent_s`` before the scan,
+    holds the robot's own recent poses and so no absolute information; its residuals count ``own_recent_weight``
+    of their information. Such planes were placed with the robot's own heading and say nothing of its compass's
+    bias: with ``own_recent_turns`` False they move the position only, not the heading; with
+    ``own_recent_turns_alone`` False, only while the map has not joined the robot's part to another robot's
+    (:attr:`RobotNav.joined`). With ``own_turn_s`` > 0, no plane only this robot contributed to, first seen by it
+    less than ``own_turn_s`` before the scan, turns its heading. A registration whose correction lies beyond the
+    prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong
+    association, not drift: it is rejected and counted (:attr:`RobotNav.gated`).
+
+    Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
+    without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before) replaces the walk
+    where the two scans observe it. A cloud without a fix is placed when its scan pinned both horizontal axes to
+    the map, or, with scan odometry, while the robot's horizontal standard deviation is within
+    ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
+
+    Pose graph (``graph_without_fix``, off by default): a robot whose fixes stop within ``launch_window_s`` of its
+    first (a launch fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM)
+    instead of this filter, from its last launch cloud on. Off because the graphs track such a robot for tens of
+    seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
+    gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
+    stay unplaced: an empty part of the map rather than a wrong one.
+    """
+
+    max_points: int = 300
+    max_range_m: float = 4.0
+    point_sigma_m: float = 0.02
+    huber_m: float = 0.02
+    max_independent_points: int = 50
+    iterations: int = 4
+    gate_min_m: float = 0.1
+    gate_max_m: float = 0.3
+    extent_margin_m: float = 0.25
+    extent_margin_down_m: float = 1.5
+    min_inliers: int = 20
+    min_landmark_points: int = 300
+    dr_scale_sigma: float = 0.03
+    dr_velocity_sigma_m_s: float = 0.02
+    dr_bias_sigma_m_s: float = 0.0
+    dr_bias_walk_m_s_per_sqrt_s: float = 0.003
+    fix_persistence: bool = True
+    fix_persist_min_m: float = 0.1
+    walk_speed_m_s: float = 0.3
+    yaw_walk_deg_per_sqrt_s: float = 0.1
+    fix_sigma_m: float = 0.5
+    fix_quality_factor: float = 1.5
+    fix_min_sigma_m: float = 0.02
+    fix_quality_s: float = 20.0
+    fix_every_s: float = 0.2
+    launch_sigma_m: float = 0.05
+    init_speed_sigma_m_s: float = 0.3
+    init_yaw_sigma_deg: float = 3.0
+    compass_bias_deg: float = 3.0
+    constrained_std_m: float = 0.05
+    constrained_std_deg: float = 1.0
+    place_std_m: float = 0.3
+    lost_std_m: float = 0.3
+    depth_std_m: float = 0.01
+    attitude_std_deg: float = 0.2
+    frame_min_scans: int = 20
+    frame_min_baseline_m: float = 2.0
+    scan_odometry: bool = False
+    odometry_max_dt_s: float = 0.5
+    bootstrap_std_m: float = 0.1
+    yaw_bias_std_deg: float = 2.0
+    yaw_bias_tau_s: float = 0.0
+    own_recent_s: float = 20.0
+    own_recent_weight: float = 0.03
+    own_recent_turns: bool = True
+    own_turn_s: float = 0.0
+    own_recent_turns_alone: bool = True
+    gate_chi2: float = 0.0
+    graph_without_fix: bool = False
+    launch_window_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class NavEstimate:
+    """A robot's corrected pose at one cloud (what ``<root>/<robot>/nav`` publishes).
+
+    Attributes:
+        robot, t_ns: the robot and the cloud's capture time (ns since the epoch).
+        pose: the corrected pose (NED, radians); None when the robot's position is unknown (no fix ever).
+        std: standard deviations: ``north_m``, ``east_m``, ``down_m`` (m), ``roll_deg``, ``pitch_deg``,
+            ``yaw_deg`` (deg).
+        constrained: per axis of :data:`AXES`, whether this scan constrained it.
+        placed: whether the cloud may go into the map (position known well enough).
+        motion: how the position moved since the last cloud: ``dead-reckoning``, ``motion-prior``, ``start``, or
+            ``lost`` (no fix, and too uncertain to trust a scan: see ``NavConfig.lost_std_m``).
+        inliers: points associated with map planes (0: no registration).
+        planes: ids of the planes the scan was registered to.
+        correction: the yaw correction (deg) and, with a raw fix, the horizontal offset from it (m).
+        pinned: horizontal directions this scan pinned to the map (0, 1 or 2; along the registration
+            information's eigenvectors, so an oblique wall counts as one too).
+        free_bearing_deg: with one pinned direction (degenerate geometry: one flat wall, parallel walls), the
+            bearing of the free one (deg from north, 0-180): the position along it is not observed; else None.
+    """
+
+    robot: str
+    t_ns: int
+    pose: Pose | None
+    std: dict[str, float]
+    constrained: dict[str, bool]
+    placed: bool
+    motion: str
+    inliers: int = 0
+    planes: tuple[int, ...] = ()
+    correction: dict[str, float] = field(default_factory=dict)
+    pinned: int = 0
+    free_bearing_deg: float | None = None
+
+    def turned(self, frame: NavFrame) -> NavEstimate:
+        """This estimate with its pose turned from the map frame to NED (see :class:`NavFrame`)."""
+        if self.pose is None or frame.identity:
+            return self
+        free = self.free_bearing_deg
+        if free is not None:
+            free = (free - math.degrees(frame.yaw_rad)) % 180.0
+        return replace(self, pose=frame.pose(self.pose), free_bearing_deg=free)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON of CONVENTIONS' ``<root>/<robot>/nav`` key (angles in degrees, null when unknown)."""
+        p = self.pose
+        out: dict[str, Any] = {
+            "robot": self.robot,
+            "t_ns": self.t_ns,
+            "north_m": p.north_m if p else None,
+            "east_m": p.east_m if p else None,
+            "down_m": p.down_m if p else None,
+            "roll_deg": math.degrees(p.roll_rad) if p else None,
+            "pitch_deg": math.degrees(p.pitch_rad) if p else None,
+            "yaw_deg": math.degrees(p.yaw_rad) if p else None,
+        }
+        for k, v in self.std.items():
+            out[f"{k}_std"] = v if math.isfinite(v) else None
+        out["constrained"] = [a for a in AXES if self.constrained.get(a)]
+        out["unconstrained"] = [a for a in AXES if not self.constrained.get(a)]
+        out.update(placed=self.placed, motion=self.motion, inliers=self.inliers, planes=list(self.planes))
+        out["correction"] = dict(self.correction)
+        out["degenerate"] = {"free_bearing_deg": self.free_bearing_deg} if self.free_bearing_deg is not None else None
+        return out

@@ -1,0 +1,450 @@
+"""The per-robot navigation filter, :class:`RobotNav`: its five states, prediction, fixes, compass pull, the
+scan-to-map registration as the iterated Kalman update, and the estimate it reports.
+
+The method is described in :mod:`mapping.navigation`; the tuning and the estimate are in :mod:`mapping.nav_config`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrsensor.frames import Pose, R_ned_from_body
+
+from .landmarks import PlaneLandmarks, associate, subsample
+from .nav_config import AXES, NavConfig, NavEstimate
+from .nav_frame import rot2
+
+__all__ = ["RobotNav"]
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+
+class RobotNav:
+    """The estimator of one robot (the method: :mod:`mapping.navigation`). Not thread-safe: one thread feeds it."""
+
+    def __init__(self, robot: str, cfg: NavConfig) -> None:
+        self.robot = robot
+        self.cfg = cfg
+        self.x = np.zeros(5)
+        self.P = np.eye(5)
+        self.t_ns: int | None = None
+        self.last_raw_ne: FloatArray | None = None
+        self.last_fix_ns: int | None = None
+        self.latest: NavEstimate | None = None
+        #: where the robot started (its first fix), and how many scans constrained its heading
+        self.start_ne = np.zeros(2)
+        self.yaw_scans = 0
+        #: running mean square of the fixes' disagreement with the estimate, per axis (m^2)
+        self.fix_err2 = 0.0
+        #: running mean of the fixes' disagreement (north, east; m): a persistent one is a drift, not noise
+        self.fix_mean = np.zeros(2)
+        self.last_compass_ns: int | None = None
+        #: no fix and an uncertainty past ``lost_std_m``: the scans are not trusted until the next fix
+        self.lost = False
+        #: the last update's prediction (state, covariance) and transition from the previous state (5x5): what a
+        #: smoother (:mod:`mapping.smoother`) needs to run backward; None after a start
+        self.prior: tuple[FloatArray, FloatArray] | None = None
+        self.transition: FloatArray | None = None
+        #: the previous scan for scan odometry: points relative to the vehicle (NED axes), and its depth
+        self._prev_scan: tuple[FloatArray, float] | None = None
+        self.odometry_pairs = 0
+        #: registrations rejected as beyond the motion model's error (see ``NavConfig.gate_chi2``)
+        self.gated = 0
+        #: whether the map joins this robot's part to another robot's (set by :class:`Navigator` before each update;
+        #: see ``NavConfig.own_recent_turns_alone``)
+        self.joined = True
+
+    _STATE = (
+        "t_ns",
+        "gated",
+        "last_raw_ne",
+        "last_fix_ns",
+        "start_ne",
+        "yaw_scans",
+        "fix_err2",
+        "fix_mean",
+        "last_compass_ns",
+        "lost",
+        "_prev_scan",
+    )
+
+    def snapshot(self) -> dict[str, Any]:
+        """The estimator's whole state (a smoother restarts it from here to re-run later scans)."""
+        out: dict[str, Any] = {k: getattr(self, k) for k in self._STATE}
+        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest)
+        return out
+
+    def restore(self, snap: dict[str, Any]) -> None:
+        """Back to a :meth:`snapshot`."""
+        for k in self._STATE:
+            setattr(self, k, snap[k])
+        self.x = snap["x"].copy()
+        self.P = snap["P"].copy()
+        self.latest = snap["latest"]
+
+    @property
+    def started(self) -> bool:
+        """Whether the robot's position is known (it had a horizontal fix once)."""
+        return self.t_ns is not None
+
+    def _start(self, t_ns: int, raw_ne: FloatArray) -> None:
+        cfg = self.cfg
+        self.x = np.array([raw_ne[0], raw_ne[1], 0.0, 0.0, 0.0])
+        bias = cfg.dr_bias_sigma_m_s if cfg.dr_bias_sigma_m_s > 0 else cfg.init_speed_sigma_m_s
+        self.P = np.diag(
+            [
+                cfg.launch_sigma_m**2,
+                cfg.launch_sigma_m**2,
+                bias**2,
+                bias**2,
+                math.radians(cfg.init_yaw_sigma_deg) ** 2,
+            ]
+        )
+        self.t_ns = t_ns
+        self.last_fix_ns = t_ns
+        self.start_ne = raw_ne.copy()
+        self.fix_err2 = cfg.launch_sigma_m**2
+        self.fix_mean = np.zeros(2)
+
+    def _predict(
+        self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
+    ) -> str:
+        cfg = self.cfg
+        q = np.zeros((5, 5))
+        ou = np.eye(5)
+        if cfg.yaw_bias_tau_s > 0:
+            # the compass bias is bounded and mean-reverting (Ornstein-Uhlenbeck): the correction decays toward 0
+            # and its variance toward yaw_bias_std_deg^2
+            a = math.exp(-max(dt, 0.0) / cfg.yaw_bias_tau_s)
+            ou[4, 4] = a
+            self.x[4] *= a
+            self.P = ou @ self.P @ ou.T
+            q[4, 4] = math.radians(cfg.yaw_bias_std_deg) ** 2 * (1.0 - a * a)
+        else:
+            q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
+        if raw_ne is not None and self.last_raw_ne is not None:
+            step = rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
+            f = np.eye(5)
+            # the increment turns with the yaw correction: d(step)/dc = ez x step
+            f[0:2, 4] = [-step[1], step[0]]
+            self.x[0:2] += step
+            if cfg.dr_bias_sigma_m_s > 0 and dt > 0:
+                # a current's drag (or any slow velocity bias) moves the robot by bias * dt beyond what the dead
+                # reckoning says: the position's error grows with time along whatever no scan pins
+                f[0, 2] = f[1, 3] = dt
+                self.x[0:2] += self.x[2:4] * dt
+                q[2, 2] = q[3, 3] = cfg.dr_bias_walk_m_s_per_sqrt_s**2 * dt
+            elif dt > 0:
+                self.x[2:4] = step / dt
+            self.transition = f @ ou
+            self.P = f @ self.P @ f.T
+            var = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
+            q[0, 0] = q[1, 1] = var
+            motion = "dead-reckoning"
+        else:
+            # without dead reckoning the robot may be anywhere within its speed: a random walk. (A constant-
+            # velocity prior looked better on paper; along a single wall its velocity is unobservable, and a
+            # wrong one carried the robot metres away while the scans kept its std small across the wall.)
+            # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
+            # relative measurement, so its covariance adds to the position's like dead reckoning's.
+            if self.cfg.dr_bias_sigma_m_s <= 0:
+                self.x[2:4] = 0.0
+            self.transition = ou
+            walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
+            motion = "motion-prior"
+            if odo is not None and cfg.scan_odometry:
+                delta, cov, pairs = odo
+                if pairs:
+                    # like dead reckoning's, the increment was turned by the yaw correction (the scans were
+                    # placed with it): its uncertainty grows the position's with the distance
+                    f = np.eye(5)
+                    f[0:2, 4] = [-delta[1], delta[0]]
+                    self.transition = f
+                    self.P = f @ self.P @ f.T
+                    self.x[0:2] += delta
+                    walk = cov
+                    motion = "scan-odometry"
+            q[0:2, 0:2] = walk
+        self.P = self.P + q
+        return motion
+
+    def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
+        """Scan-to-scan increment (:mod:`mapping.odometry`) from the previous scan to ``pts`` (body, (M, 3)):
+        (move (2,), covariance (2, 2), pairs), or None without a previous scan."""
+        from .odometry import OdometryConfig, increment
+
+        prev = self._prev_scan
+        r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(self.x[4]))
+        rel = pts @ r_nb.T
+        self._prev_scan = (rel, raw.down_m)
+        if prev is None or dt <= 0 or dt > self.cfg.odometry_max_dt_s:
+            return None
+        new_rel = rel + np.array([0.0, 0.0, raw.down_m - prev[1]])
+        prior = np.eye(2) * self.cfg.walk_speed_m_s**2 * dt
+        return increment(prev[0], new_rel, prior, OdometryConfig())
+
+    def _compass(self, t_ns: int) -> None:
+        """The compass's bias is bounded: a weak pull of the yaw correction toward zero, at most every
+        ``fix_every_s`` (it keeps a heading the scans cannot hold from running away)."""
+        cfg = self.cfg
+        if cfg.yaw_bias_tau_s > 0:
+            return  # the Ornstein-Uhlenbeck prediction bounds the correction already
+        if self.last_compass_ns is not None and t_ns - self.last_compass_ns < cfg.fix_every_s * 1e9:
+            return
+        self.last_compass_ns = t_ns
+        h = np.zeros((1, 5))
+        h[0, 4] = 1.0
+        s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
+        k = (self.P @ h.T) / s
+        self.x = self.x - (k * float(self.x[4])).ravel()
+        self.P = (np.eye(5) - k @ h) @ self.P
+
+    def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
+        cfg = self.cfg
+        if self.last_fix_ns is not None and t_ns - self.last_fix_ns < cfg.fix_every_s * 1e9:
+            return
+        self.last_fix_ns = t_ns
+        # how well the fixes agree with the estimate tells how good they are: a drifting dead reckoning drifts
+        # away from what the scans say, a USBL or a good DVL does not
+        innov = raw_ne - self.x[0:2]
+        a = min(1.0, cfg.fix_every_s / cfg.fix_quality_s) if cfg.fix_every_s > 0 else 0.05
+        self.fix_err2 = (1 - a) * self.fix_err2 + a * float(innov @ innov) / 2
+        self.fix_mean = (1 - a) * self.fix_mean + a * innov
+        err2 = self.fix_err2
+        n_fixes = 1.0
+        if cfg.dr_bias_sigma_m_s > 0 and cfg.fix_persistence:
+            # with the velocity bias in the model the covariance grows as a drift can, and a dead reckoning that
+            # drifted away since is no better than its disagreement now (the running mean lags it by seconds)
+            err2 = max(err2, float(innov @ innov) / 2)
+            # a dead reckoning's error persists (a drift, not noise): its fixes over fix_quality_s are one
+            # measurement, not one per fix_every_s; taken as independent they dragged the estimate back to the
+            # drift as soon as no scan pinned an axis. Persistence: the disagreement's mean against its RMS
+            # (white fixes, a USBL's: about 0; a drift: 1)
+            # (white fixes, a USBL's: about 0; a drift: 1). A disagreement within fix_persist_min_m is what the
+            # map's own offset from the fixes leaves (good navigation): those fixes stay independent
+            rho = float(self.fix_mean @ self.fix_mean) / max(2.0 * self.fix_err2, 1e-12)
+            persist = min(1.0, max(0.0, (rho - 0.1) / 0.9))
+            if math.sqrt(err2) > cfg.fix_persist_min_m:
+                n_fixes = 1.0 + persist * cfg.fix_quality_s / max(cfg.fix_every_s, 1e-3)
+        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(err2)))
+        sigma *= math.sqrt(n_fixes)
+        h = np.zeros((2, 5))
+        h[0, 0] = h[1, 1] = 1.0
+        s = h @ self.P @ h.T + np.eye(2) * sigma**2
+        k = self.P @ h.T @ np.linalg.inv(s)
+        self.x = self.x + k @ (raw_ne - self.x[0:2])
+        self.P = (np.eye(5) - k @ h) @ self.P
+
+    def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """(P,) information weight per plane: ``own_recent_weight`` for a plane only this robot made, first seen by
+        it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise; and (P,) whether
+        the plane may turn the heading (see ``NavConfig.own_turn_s``, ``own_recent_turns``)."""
+        cfg = self.cfg
+        w = np.ones(len(lm))
+        turns = np.ones(len(lm), dtype=bool)
+        if not lm.contrib:
+            return w, turns
+        horizon = t_ns - int(cfg.own_recent_s * 1e9)
+        turn_horizon = t_ns - int(cfg.own_turn_s * 1e9) if cfg.own_turn_s > 0 else None
+        for i, c in enumerate(lm.contrib):
+            mine = c.get(self.robot)
+            if mine is None or len(c) != 1:
+                continue
+            recent_turns = cfg.own_recent_turns and (self.joined or cfg.own_recent_turns_alone)
+            if mine[1] >= horizon and (cfg.own_recent_weight < 1.0 or not recent_turns):
+                w[i] = min(cfg.own_recent_weight, 1.0 - 1e-9)
+                turns[i] = recent_turns
+            if turn_horizon is not None and mine[1] >= turn_horizon:
+                turns[i] = False
+        return w, turns
+
+    def _register(
+        self, raw: Pose, points_body: FloatArray, lm: PlaneLandmarks, t_ns: int = 0
+    ) -> tuple[FloatArray, int, tuple[int, ...]]:
+        """Gauss-Newton MAP update of ``x``/``P`` from point-to-plane residuals; returns the registration's own
+        information (3x3 over north, east, yaw correction), the inliers and the planes used."""
+        cfg = self.cfg
+        h3 = np.zeros((3, 3))
+        if len(lm) == 0 or points_body.shape[0] < cfg.min_inliers:
+            return h3, 0, ()
+        idx = [0, 1, 4]
+        x_pred = self.x.copy()
+        p_inv = np.linalg.inv(self.P)
+        x = x_pred.copy()
+        pos_cov = self.P[np.ix_([0, 1], [0, 1])]
+        nh = lm.normal[:, 0:2]
+        along = np.einsum("pi,ij,pj->p", nh, pos_cov, nh)
+        lever2 = 2.0**2 * self.P[4, 4]  # a point 2 m away moves by 2 m * yaw error
+        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
+        inliers = 0
+        used: tuple[int, ...] = ()
+        plane_w, plane_turns = self._plane_weights(t_ns, lm)
+        for it in range(cfg.iterations):
+            r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
+            veh = np.array([x[0], x[1], raw.down_m])
+            rel = points_body @ r_nb.T
+            p = rel + veh
+            k, dist = associate(p, veh, lm, gate, cfg)
+            sel = k >= 0
+            inliers = int(sel.sum())
+            if inliers < cfg.min_inliers:
+                return np.zeros((3, 3)), 0, ()
+            n = lm.normal[k[sel]]
+            r = dist[sel]
+            relh = rel[sel]
+            j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
+            pw = plane_w[k[sel]]
+            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
+            # a robot's own planes were placed with its own heading: they hold its position against the dead
+            # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_turn_s)
+            j[~plane_turns[k[sel]], 2] = 0.0
+            scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
+            h3 = scale * (j.T * w) @ j
+            g3 = scale * (j.T * w) @ r
+            hf = np.zeros((5, 5))
+            hf[np.ix_(idx, idx)] = h3
+            gf = np.zeros(5)
+            gf[idx] = g3
+            x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
+            if it >= 1:
+                # after the first pass the gate only needs to hold the residual noise and what is left
+                gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
+            used = tuple(int(i) for i in np.unique(lm.ids[k[sel]]))
+        hf = np.zeros((5, 5))
+        hf[np.ix_(idx, idx)] = h3
+        dx = (x - x_pred)[idx]
+        p3 = self.P[np.ix_(idx, idx)]
+        if cfg.gate_chi2 > 0 and float(dx @ np.linalg.solve(p3, dx)) > cfg.gate_chi2:
+            # a correction the motion model's error cannot explain: a wrong association, not drift
+            self.gated += 1
+            return np.zeros((3, 3)), 0, ()
+        self.x = x
+        cov = np.linalg.inv(p_inv + hf)
+        self.P = 0.5 * (cov + cov.T)
+        return h3, inliers, used
+
+    def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
+        """One cloud: predict, apply a fix, register against ``landmarks``; returns the estimate.
+
+        Args:
+            t_ns: capture time, ns since the epoch.
+            raw: the pose the robot sent (north/east NaN where it has no horizontal fix).
+            points_body: (N, 3) the cloud in the body frame, metres.
+            landmarks: the map's planes.
+
+        A cloud older than the last one moves nothing: it is placed with the current correction.
+        """
+        cfg = self.cfg
+        t = int(t_ns)
+        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
+        pts = subsample(pts, cfg.max_points)
+        raw_ne = np.array([raw.north_m, raw.east_m]) if math.isfinite(raw.north_m + raw.east_m) else None
+        self.prior = self.transition = None
+        if not self.started:
+            if raw_ne is None:
+                est = self._estimate(t, raw, np.zeros((3, 3)), 0, (), "unknown", known=False)
+                self.latest = est
+                return est
+            self._start(t, raw_ne)
+            self.last_raw_ne = raw_ne
+            if cfg.scan_odometry:
+                self._odometry(raw, pts, 0.0)  # keeps the scan for the next increment
+            motion = "start"
+        elif self.t_ns is not None and t < self.t_ns:
+            return self._estimate(t, raw, np.zeros((3, 3)), 0, (), "late", known=True, keep=True)
+        else:
+            assert self.t_ns is not None
+            dt = (t - self.t_ns) * 1e-9
+            odo = self._odometry(raw, pts, dt) if self.cfg.scan_odometry else None
+            if raw_ne is not None:
+                odo = None  # dead reckoning moves the prediction; the scan is only kept for the next increment
+            motion = self._predict(dt, raw_ne, odo)
+            self.odometry_pairs = odo[2] if odo is not None else 0
+            self.prior = (self.x.copy(), self.P.copy())
+            self.t_ns = t
+            self.last_raw_ne = raw_ne
+            if raw_ne is not None:
+                self._fix(t, raw_ne)
+                self.lost = False
+            self._compass(t)
+        if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
+            # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no
+            # scan is trusted again until a fix comes
+            self.lost = True
+        used: tuple[int, ...] = ()
+        if self.lost:
+            h3, inliers = np.zeros((3, 3)), 0
+            motion = "lost"
+        else:
+            h3, inliers, used = self._register(raw, pts, landmarks, t)
+        est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
+        self.yaw_scans += int(est.constrained["yaw"])
+        self.latest = est
+        return est
+
+    def _estimate(
+        self,
+        t: int,
+        raw: Pose,
+        h3: FloatArray,
+        inliers: int,
+        used: tuple[int, ...],
+        motion: str,
+        *,
+        known: bool,
+        keep: bool = False,
+    ) -> NavEstimate:
+        cfg = self.cfg
+        constrained = dict.fromkeys(AXES, False)
+        pinned, free_bearing = 0, None
+        if inliers:
+            reg_cov = np.linalg.inv(h3 + np.eye(3) * 1.0)  # a 1 m / 1 rad prior: unconstrained reads as ~1
+            reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
+            limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
+            constrained = {a: bool(s <= lim) for a, s, lim in zip(AXES, reg_std, limits, strict=True)}
+            # which horizontal directions the scan pinned, whatever the walls' orientation
+            evals, evecs = np.linalg.eigh(reg_cov[0:2, 0:2])
+            pinned = int(np.sum(evals <= cfg.constrained_std_m**2))
+            if pinned == 1:
+                free = evecs[:, 1]
+                free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
+        att = cfg.attitude_std_deg
+        if not known:
+            std = {"north_m": math.inf, "east_m": math.inf, "down_m": cfg.depth_std_m}
+            std.update(roll_deg=att, pitch_deg=att, yaw_deg=math.inf)
+            return NavEstimate(self.robot, t, None, std, constrained, False, motion)
+        sd = np.sqrt(np.maximum(np.diag(self.P), 0.0))
+        yaw_std = math.hypot(math.degrees(float(sd[4])), att)
+        std = {"north_m": float(sd[0]), "east_m": float(sd[1]), "down_m": cfg.depth_std_m}
+        std.update(roll_deg=att, pitch_deg=att, yaw_deg=yaw_std)
+        pose = Pose(
+            float(self.x[0]), float(self.x[1]), raw.down_m, raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(self.x[4])
+        )
+        if keep and self.last_raw_ne is not None and math.isfinite(raw.north_m + raw.east_m):
+            # a late cloud: the raw position plus the current offset
+            off = self.x[0:2] - self.last_raw_ne
+            pose = Pose(
+                raw.north_m + off[0], raw.east_m + off[1], pose.down_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad
+            )
+        corr = {"yaw_deg": math.degrees(float(self.x[4]))}
+        if math.isfinite(raw.north_m + raw.east_m):
+            corr.update(north_m=pose.north_m - raw.north_m, east_m=pose.east_m - raw.east_m)
+        placed = max(float(sd[0]), float(sd[1])) <= cfg.place_std_m
+        if not math.isfinite(raw.north_m + raw.east_m):
+            # without a fix only a scan that pins both horizontal axes to the map places its cloud: a motion
+            # prior's guess must not grow the map; but while scan odometry keeps the launch fix's position
+            # within bootstrap_std_m, the robot's own scans make the map (nobody else may have one)
+            pinned = constrained["north"] and constrained["east"]
+            boot = motion in ("scan-odometry", "start") and max(float(sd[0]), float(sd[1])) <= cfg.bootstrap_std_m
+            placed = placed and (pinned or boot)
+        return NavEstimate(
+            self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
+        )
