@@ -89,8 +89,49 @@ def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     return max(med / (0.6745 * math.sqrt(6.0)), 0.05)
 
 
+@inline
+def _glow_response(B, y, x, ds, hd):  # type: ignore[no-untyped-def]
+    """The second pass's response at detection row ``y`` (response numbering) of column ``x``: the centre over the
+    mean of the rows ``hd`` either side (rounded half up), saturating at 0 (see :func:`glow_candidates`)."""
+    c = np.int32(B[y + ds, x])
+    m = (np.int32(B[y + ds - hd, x]) + np.int32(B[y + ds + hd, x]) + np.int32(1)) >> np.int32(1)
+    return max(c - m, np.int32(0))
+
+
+@inline
+def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
+    """The second pass of :func:`detect_band` (the compiled twin of ``reference._glow_candidates``): in each column
+    ``x`` without a candidate whose band is not empty and whose glow side ``side[2 x]`` is known, the rows that
+    are vertical local maxima of the centre-over-mean response (:func:`_glow_response`) above ``t8``, whose centre
+    stands above both inner rows (``d / 2`` and ``d / 4`` inward) by more than ``t8``, and whose outer row at
+    ``d / 2`` is at least as bright as the centre: a stripe on the rising side of the sheet's glow. They are
+    marked in ``pk``, ``cnt16``, ``row_pk`` and their response written to ``resp`` (all in place)."""
+    ho = resp.shape[0]
+    for x in range(resp.shape[1]):
+        sd = side[min(2 * x, w - 1)]
+        if cnt16[x] != 0 or y1[x] <= y0[x] or sd == 0:
+            continue
+        for y in range(np.int64(y0[x]), np.int64(y1[x])):
+            r = _glow_response(B, y, x, ds, hd)
+            if r <= t8:
+                continue
+            if _glow_response(B, max(y - 1, 0), x, ds, hd) > r or _glow_response(B, min(y + 1, ho - 1), x, ds, hd) > r:
+                continue
+            c = np.int32(B[y + ds, x])
+            if sd > 0:
+                b_in, h_in, b_out = B[y, x], B[y + ds - hd, x], B[y + 2 * ds, x]
+            else:
+                b_in, h_in, b_out = B[y + 2 * ds, x], B[y + ds + hd, x], B[y, x]
+            if c - max(np.int32(b_in), np.int32(h_in)) <= t8 or np.int32(b_out) < c:
+                continue
+            pk[y, x] = 1
+            cnt16[x] += np.uint16(1)
+            row_pk[y] = 1
+            resp[y, x] = np.uint8(r)
+
+
 @njit
-def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
+def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side, col_offset):  # type: ignore[no-untyped-def]
     """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
     ``reference._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
 
@@ -223,6 +264,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         for x in range(wo):  # an integer OR (vectorizes)
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
+    if hd >= 2:
+        glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8)
     cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
     for x in range(wo):
         cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
