@@ -217,9 +217,10 @@ def _picked_near_truth(frame: TurbidFrame, cand: tuple[np.ndarray, np.ndarray], 
 
 def test_detection_finds_the_stripe_on_the_rising_glow() -> None:
     """3 m, glow step 0.5, 1.5 px of blur: the glow brightens so steeply outward that the two-sided contrast finds
-    the stripe in fewer than 60 % of the visible columns; the second pass (a centre-over-mean response in the
-    columns without any candidate, where the outer side is the brighter) finds it in more than 85 %, and the
-    compiled detection gives the reference's candidates bit for bit."""
+    the stripe in fewer than 60 % of the visible columns; the second pass (a centre-over-mean response where the
+    outer side is the brighter, in the columns without any candidate and then, the glow being found, in all)
+    finds it in more than 90 %, keeps every first-pass candidate, and the compiled detection gives the
+    reference's candidates bit for bit."""
     from lrsensor.extract import reference
     from lrsensor.extract.detect import detect_band
     from lrsensor.extract.settings import frame_settings
@@ -232,10 +233,9 @@ def test_detection_finds_the_stripe_on_the_rising_glow() -> None:
         u0, v0, _, noise0 = reference._candidates(frame.image, li, no_side, s, 0)
         assert noise == noise0
         assert _picked_near_truth(frame, (u0, v0), li) < 0.6
-        assert _picked_near_truth(frame, (u, v), li) > 0.85
-        first = np.isin(u, u0)  # columns with a first-pass candidate keep exactly those
-        np.testing.assert_array_equal(u[first], u0)
-        np.testing.assert_array_equal(v[first], v0)
+        assert _picked_near_truth(frame, (u, v), li) > 0.9
+        first, both = set(zip(u0.tolist(), v0.tolist(), strict=True)), set(zip(u.tolist(), v.tolist(), strict=True))
+        assert first <= both  # the first pass's candidates stay
         if HAVE_NUMBA:
             r0, r1 = bands.rows[li]
             args = (s.contrast_px, s.snr_threshold, s.area_noise, s.min_response_dn)

@@ -42,7 +42,7 @@ from ..calibration import Calibration
 from ..triangulation import triangulate as _triangulate
 from . import reference_finish, reference_glow, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
-from .detect import noise_col_step
+from .detect import GLOW_PASS_MIN, noise_col_step
 from .fit import flank_offset
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
@@ -319,16 +319,33 @@ def _candidates(
     uf = np.minimum(u * 2, w - 1)
     inside = (v >= v_lo[uf]) & (v <= v_hi[uf])  # the band need not be a rectangle
     u, v, a = u[inside], v[inside], a[inside]
-    if hd >= 2:
-        u2, v2, a2 = _glow_candidates(g, u, r0, thr, v_lo, v_hi, bands.glow_side[laser], ds, hd)
+    if hd >= 2 and _glow_shows(g, u, v, r0, thr, bands.glow_side[laser], ds, hd):
+        u2, v2, a2 = _glow_candidates(g, u, v, r0, thr, v_lo, v_hi, bands.glow_side[laser], ds, hd)
         u, v, a = np.concatenate([u, u2]), np.concatenate([v, v2]), np.concatenate([a, a2])
     order = np.lexsort((v, u))  # by column, then row
     return u[order] + col_offset, v[order], a[order], noise
 
 
+def _glow_shows(
+    g: NDArray[np.uint8], u: IntArray, v: IntArray, r0: int, thr: float, side: IntArray, ds: int, hd: int
+) -> bool:
+    """Whether the band shows the laser sheet's glow at the first pass's candidates ``u`` (detection columns),
+    ``v`` (full rows) (``detect.glow_shows``): at a quarter of them or more the detection row ``hd`` outward (the
+    glow ``side`` (W,)) is brighter than the row ``hd`` inward by more than ``thr``. In clear water both are
+    background; in turbid water the glow's edge lies between them. Only then does the second pass run."""
+    if u.size == 0:
+        return False
+    y = (v - r0) // 2 + ds
+    sd = side[np.minimum(2 * u, side.size - 1)]
+    gi = g.astype(np.int64)
+    step = sd * (gi[y + hd, u] - gi[y - hd, u])
+    return bool(4 * int(np.sum((sd != 0) & (step > thr))) >= u.size)
+
+
 def _glow_candidates(
     g: NDArray[np.uint8],
     u_first: IntArray,
+    v_first: IntArray,
     r0: int,
     thr: float,
     v_lo: IntArray,
@@ -340,13 +357,17 @@ def _glow_candidates(
     """The second detection pass (``detect.glow_candidates``): a stripe on the rising side of the sheet's glow.
 
     Where the glow brightens steeply outward (far walls in turbid water) the stripe is a shoulder on a step, not a
-    ridge, and the two-sided contrast finds nothing in its column. There, and only in columns of the band without
-    any candidate of the first pass (``u_first``: clear water keeps its candidates), the response is the centre
+    ridge, and the two-sided contrast finds nothing in its column. There, first in the columns of the band without
+    any candidate of the first pass (``u_first``, ``v_first``: detection columns, full rows), the response is the centre
     over the mean of the rows ``hd`` either side, ``G(v) - (G(v - hd) + G(v + hd)) / 2`` (rounded half up,
     saturating at 0): a blurred step's edge cancels at its centre, a convex glow gives nothing, the stripe its
     peak. A candidate is a vertical local maximum of it above ``thr`` whose centre stands above both inner rows
     (``ds`` and ``hd`` towards the vanishing line, away from the glow ``side`` (W,)) by more than ``thr`` and
     whose outer row at ``ds`` is at least as bright as the centre (the glow, which is why the first pass failed).
+    Where that finds at least :data:`~lrsensor.extract.detect.GLOW_PASS_MIN` candidates, the glow hides the stripe
+    in this band, and the columns with first-pass candidates get the second pass's too (at rows that are no
+    first-pass peak): a speck of the glow (noise, a particle) found there alone would cut the stripe's chain.
+    Clear water never gets that far.
 
     Args:
         g: (gh, wo) the detection image (2x2 average, 3-column box); u_first: detection columns with a candidate.
@@ -369,7 +390,12 @@ def _glow_candidates(
     uf = np.minimum(2 * x, side.size - 1)
     empty = np.ones(wo, bool)
     empty[u_first] = False
-    keep = (v >= v_lo[uf]) & (v <= v_hi[uf]) & empty[x]
+    inside = (v >= v_lo[uf]) & (v <= v_hi[uf])
+    keep = inside & empty[x]
+    if int(keep.sum()) >= GLOW_PASS_MIN:
+        first = np.zeros(pk.shape, bool)
+        first[(v_first - r0) // 2, u_first] = True
+        keep = inside & ~first[y, x]
     return x[keep], v[keep], r2[y[keep], x[keep]].astype(np.float64)
 
 
