@@ -129,11 +129,16 @@ def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, 
     cur = np.empty(wo, np.uint8)
     nxt = np.empty(wo, np.uint8)
     hits = np.empty(wo, np.uint8)
-    _glow_response_row(B, max(ya - 1, 0), ds, hd, prev, xa, xb)
-    _glow_response_row(B, ya, ds, hd, cur, xa, xb)
     found = 0
-    for y in range(ya, yb):
-        _glow_response_row(B, min(y + 1, ho - 1), ds, hd, nxt, xa, xb)
+    # the response of rows ya - 1 .. yb (clamped to the image) in turn; from the third on, row y = its index - 1
+    # has both neighbours (one call site: the helper is compiled inline once)
+    for step in range(yb - ya + 2):
+        _glow_response_row(B, min(max(ya - 1 + step, 0), ho - 1), ds, hd, nxt, xa, xb)
+        prev, cur, nxt = cur, nxt, prev
+        if step < 2:
+            continue
+        # cur holds the row just computed, y + 1; prev the row y; nxt the row y - 1 (overwritten next)
+        y = ya + step - 2
         bc = B[y + ds]
         b0 = B[y]
         b1 = B[y + 2 * ds]
@@ -144,11 +149,11 @@ def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, 
         for x in range(xa, xb):
             ux = np.uint64(x)
             c = bc[ux]
-            r = cur[ux]
+            r = prev[ux]
             # the centre above both inner rows by more than the threshold, the outer row at d / 2 at least as bright
             g_pos = (c - min(c, max(b0[ux], h0[ux])) > tu) & (b1[ux] >= c) & (s_pos[ux] != 0)
             g_neg = (c - min(c, max(b1[ux], h1[ux])) > tu) & (b0[ux] >= c) & (s_neg[ux] != 0)
-            hit = (r > tu) & (prev[ux] <= r) & (nxt[ux] <= r) & (g_pos | g_neg) & (want[ux] != 0) & (py[ux] == 0)
+            hit = (r > tu) & (nxt[ux] <= r) & (cur[ux] <= r) & (g_pos | g_neg) & (want[ux] != 0) & (py[ux] == 0)
             hits[ux] = hit & (fy >= y0[ux]) & (fy < y1[ux])
         any_hit = np.uint8(0)
         for x in range(xa, xb):  # an integer OR (vectorizes)
@@ -159,10 +164,9 @@ def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, 
                 if hits[x]:
                     py[x] = 1
                     cnt16[x] += np.uint16(1)
-                    ry[x] = cur[x]
+                    ry[x] = prev[x]
                     found += 1
             row_pk[y] = 1
-        prev, cur, nxt = cur, nxt, prev
     return found
 
 
@@ -220,11 +224,11 @@ def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  #
     if n_empty == 0:
         return
     tu = np.uint8(t8)
-    if _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, empty, s_pos, s_neg, ds, hd, tu) < GLOW_PASS_MIN:
-        return
-    for x in range(wo):
-        empty[x] = (empty[x] == 0) and (s_pos[x] | s_neg[x]) != 0  # now: the columns that had candidates
-    _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, empty, s_pos, s_neg, ds, hd, tu)
+    for sweep in range(2):  # (one call site: the sweep is compiled inline once)
+        if _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, empty, s_pos, s_neg, ds, hd, tu) < GLOW_PASS_MIN or sweep:
+            return
+        for x in range(wo):
+            empty[x] = (empty[x] == 0) and (s_pos[x] | s_neg[x]) != 0  # now: the columns that had candidates
 
 
 @inline
