@@ -7,6 +7,13 @@ noise and quarters the work), takes the two-sided contrast ``G(v) - max(G(v - d)
 band's noise. The contrast is positive only on ridges narrower than ``2 d``: thin stripes, not murk gradients,
 the backscatter glow of the laser sheet, haze or wide blobs.
 
+In turbid water the sheet's glow lies on the stripe's outer side, ends at the stripe and brightens outward; on far
+walls so steeply that the stripe is a shoulder on a step, not a ridge, and the contrast finds nothing. Where the
+band shows the glow at the first pass's candidates (:func:`glow_shows`), a second pass (:func:`glow_candidates`)
+takes the local maxima of the centre over the mean of the rows ``d / 4`` either side (a blurred step cancels at
+its centre) where the outer side is the brighter: first in the columns without a candidate, then, where it found
+the stripe there, in all. Clear water never runs it.
+
 The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of second differences of rows two apart
 (independent; linear gradients cancel) on a subsample of about 6000 pixels, for Gaussian noise of std s
 ``0.6745 sqrt(6) s``; histograms, not sorting (integer differences).

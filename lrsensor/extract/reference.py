@@ -10,7 +10,9 @@ step by step. Read it to learn what the kernels compute; read the kernels to lea
 :func:`lrsensor.extract.settings.frame_settings`, and:
 
 1. detects candidates per laser in its band (:func:`_candidates`: OpenCV's 2x2 area average, 3-column box,
-   two-sided contrast and local maxima, bit for bit what :func:`lrsensor.extract.detect.detect_band` computes);
+   two-sided contrast and local maxima, and where the band shows the sheet's glow a second pass for the stripe on
+   the glow's rising side, :func:`_glow_candidates`; bit for bit what :func:`lrsensor.extract.detect.detect_band`
+   computes);
 2. links them into chains and picks one per column (:func:`_pick`: :func:`_merge_plateaus`, :func:`_top_k`,
    :func:`_chains`), expanded from the half-resolution detection columns to full columns;
 3. fits the sub-pixel centre of every picked column on its green profile (:func:`_fit`, with
