@@ -720,7 +720,7 @@ def test_compiled_detection_equals_the_opencv_steps(width: int, band: tuple[int,
     v_hi[0, width // 3 : width // 2] = band[0] - 1  # an empty stretch: the band need not be a rectangle
     bands = Bands(np.array([band], np.int64), v_lo, v_hi, np.zeros((1, width), np.int64))
     s = frame_settings(Calibration.paper(), SubpixelConfig())[1]
-    args = (s.contrast_px, s.snr_threshold, s.area_noise, s.min_response_dn, v_lo[0], v_hi[0], 5)
+    args = (s.contrast_px, s.snr_threshold, s.area_noise, s.min_response_dn, v_lo[0], v_hi[0], bands.glow_side[0], 5)
     fast = detect_band(img, band[0], band[1], *args)
     slow = _candidates(img, 0, bands, s, 5)
     assert fast[0].size > 0.8 * width

@@ -267,6 +267,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
             s.min_response_dn,
             bands.v_lo[i],
             bands.v_hi[i],
+            bands.glow_side[i],
             i * wd,
         )
         parts_u.append(u)
