@@ -186,12 +186,14 @@ def test_compiled_glow_stage_equals_the_reference(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(subpixel, "USE_REFERENCE", True)
     slow = subpixel.extract(frame.image, frame.calibration)
     (args,) = captured
-    v_ref, s_ref, f_ref = real(*args)  # type: ignore[arg-type]
-    v_road, s_road, f_road = glow.glow_refit(*args)
+    v_ref, s_ref, f_ref, a_ref, n_ref = real(*args)  # type: ignore[arg-type]
+    v_road, s_road, f_road, a_road, n_road = glow.glow_refit(*args)
     assert f_ref.sum() > 0.8 * np.count_nonzero(args[8])  # most points show the glow and take the joint fit
     np.testing.assert_array_equal(f_road, f_ref)
     np.testing.assert_allclose(v_road, v_ref, atol=1e-6)
     np.testing.assert_allclose(s_road, s_ref, atol=1e-6)
+    np.testing.assert_allclose(a_road, a_ref, rtol=1e-6, atol=1e-6)  # the gate's amplitude and noise
+    np.testing.assert_allclose(n_road, n_ref, rtol=1e-6, atol=1e-6)
     monkeypatch.setattr(subpixel, "USE_REFERENCE", False)
     fast = subpixel.extract(frame.image, frame.calibration)
     kf = fast.laser * 10_000 + np.rint(fast.uv[:, 0]).astype(int)

@@ -434,7 +434,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
             in red and blue by this factor (the stripe's colour test).
 
     Returns:
-        ``(centre_row, sigma, fitted)``: (N,) each; the common fit's centre and sigma where ``fitted`` is False.
+        ``(centre_row, sigma, fitted, amplitude, noise)``: (N,) each; the common fit's centre and sigma where
+        ``fitted`` is False; the stripe's amplitude (DN) and the residual noise (DN, the root of the residual sum of
+        squares over the degrees of freedom) of the fit taken, ``amp`` and ``lnoise`` where none is (the
+        signal-to-noise gate's: the common fit's line takes part of the glow's step as a slope, which lowers its
+        amplitude and raises its flanks' spread).
     """
     h = image.shape[0]
     w = image.shape[1]
@@ -608,12 +612,26 @@ def glow_refit(  # type: ignore[no-untyped-def]
     v_out = v0
     s_out = s0
     fitted = f0.copy()
+    a_out = amp.copy()
+    n_out = lnoise.copy()
     for t in range(n):
         if take[t]:
             v_out[t] = v3[t]
             s_out[t] = s3[t]
             fitted[t] = True
-    return v_out, s_out, fitted
+            a_out[t] = _st3[0, t]
+            n_out[t] = _residual_noise(rss3[t], dof3[t], lnoise[t])
+        elif f0[t]:
+            a_out[t] = st0[0, t]
+            n_out[t] = _residual_noise(rss0[t], _d0[t], lnoise[t])
+    return v_out, s_out, fitted, a_out, n_out
+
+
+@inline
+def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
+    """A fit's residual noise, DN: ``sqrt(rss / dof)``, ``fallback`` where that is not finite."""
+    r = math.sqrt(rss / dof) if dof > 0.0 else np.nan
+    return r if math.isfinite(r) else fallback
 
 
 @njit

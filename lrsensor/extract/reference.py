@@ -45,6 +45,7 @@ from ..triangulation import triangulate as _triangulate
 from . import reference_finish, reference_glow, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import GLOW_PASS_MIN, noise_col_step
+from .finish import STRIPE_NOISE_MIN
 from .fit import flank_offset
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
@@ -174,8 +175,9 @@ def extract_frame(
                 arr[idx] = new
             rise[:, idx] = rise_i
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
-    if s.glow_fit:
-        vv = reference_glow.glow_refit(
+    own = np.zeros(cols.size, bool)
+    if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
+        vv, _sg, own, amp, lnoise = reference_glow.glow_refit(
             image,
             cols,
             laser,
@@ -191,10 +193,16 @@ def extract_frame(
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
-        )[0]
+        )
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
-    snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
+    # (where the glow stage's joint fit is taken, its residual noise alone: finish.finish_points)
+    noise_b = noise.copy()  # (finish.stripe_noise: the joint fits' residual noise, where they tell it)
+    for li in range(noise.size):
+        mine = own & (col_v // w == li)
+        if np.count_nonzero(mine) >= STRIPE_NOISE_MIN:
+            noise_b[li] = min(noise_b[li], float(np.median(lnoise[mine])))
+    snr = amp / np.maximum(np.maximum(np.where(own, 0.0, noise_b[col_v // w]), lnoise), 0.5)
     # 5. gates, runs, smoothing, quality
     ok, snr = pooled_gates(col_v, chain, ok, _sat, rise, snr, s)
     ok &= (amp >= s.min_contrast_dn) & ((snr >= s.min_snr) | _sat)

@@ -201,7 +201,7 @@ def glow_refit(
     max_sig: float,
     sat_dn: float,
     green_ratio: float,
-) -> tuple[FloatArray, FloatArray, BoolArray]:
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
     n = cols.size
@@ -364,7 +364,7 @@ def glow_refit(
 
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, _d0, st0 = rounds(False, glowing | paired, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, glowing | paired, vv, sig)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
@@ -381,6 +381,13 @@ def glow_refit(
     # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
     _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0)
     maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, _st3 = rounds(True, maybe, v0, s0)
+    v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0)
     f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
-    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3
+    # the gate's amplitude and noise: the fit taken's (glow.glow_refit)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n0 = np.sqrt(np.where(d0 > 0.0, rss0 / d0, np.nan))
+        n3 = np.sqrt(np.where(dof3 > 0.0, rss3 / dof3, np.nan))
+    a_out = np.where(f3, st3[0], np.where(f0, st0[0], amp))
+    n_out = np.where(f3, n3, np.where(f0, n0, lnoise))
+    n_out = np.where(np.isfinite(n_out), n_out, lnoise)
+    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3, a_out, n_out
