@@ -10,7 +10,7 @@ import pytest
 
 from benchmarks.turbid_model import Turbid, TurbidFrame, render
 from lrsensor import Calibration, Sensor
-from lrsensor.extract import centre, glow, reference_glow, subpixel
+from lrsensor.extract import centre, glow, glow_fit, reference_glow, subpixel
 from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 from lrsensor.extract.settings import glow_sides
 
@@ -77,7 +77,7 @@ def test_joint_fit_finds_the_centre_of_a_noise_free_glowing_profile(
             assert ref[3][0] / ref[2][0] == pytest.approx(0.5, abs=0.15)  # the glow's step over the stripe's peak
             assert ref[6][0] == y.size - (8 if ramp else 6)  # degrees of freedom: no neighbour in the model
             if HAVE_NUMBA:
-                c, _sg, _a, _g, ok, _rss, _dof = glow._fit_one(
+                c, _sg, _a, _g, ok, _rss, _dof = glow_fit.fit_one(
                     y, q, side, c_common - rc, sigma, np.nan, 1.0, 0.0, True, ramp, 0.5, 5.0, 250.0
                 )
                 assert ok
