@@ -284,6 +284,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for
+    # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
+    # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
+    ramp_on = np.array([False, True])
+    n_rounds = np.array([1, ROUNDS])
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image,
         cols,
@@ -305,8 +309,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
         lo_sig,
         max_sig,
         sat_dn,
-        False,
-        ROUNDS,
+        ramp_on[0],
+        n_rounds[1],
     )
     strong = np.zeros(n, np.bool_)
     for t in range(n):
@@ -331,12 +335,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
     _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, True, 1,
+        max_sig, sat_dn, ramp_on[1], n_rounds[0],
     )  # fmt: skip
     maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
     v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, True, ROUNDS,
+        max_sig, sat_dn, ramp_on[1], n_rounds[1],
     )  # fmt: skip
     take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0

@@ -199,9 +199,9 @@ def extract_frame(
     # (where the glow stage's joint fit is taken, its residual noise alone: finish.finish_points)
     noise_b = noise.copy()  # (finish.stripe_noise: the joint fits' residual noise, where they tell it)
     for li in range(noise.size):
-        mine = own & (col_v // w == li)
-        if np.count_nonzero(mine) >= STRIPE_NOISE_MIN:
-            noise_b[li] = min(noise_b[li], float(np.median(lnoise[mine])))
+        x = lnoise[own & (col_v // w == li) & np.isfinite(lnoise)]
+        if x.size >= STRIPE_NOISE_MIN:  # the lower median
+            noise_b[li] = min(noise_b[li], float(np.partition(x, (x.size - 1) // 2)[(x.size - 1) // 2]))
     snr = amp / np.maximum(np.maximum(np.where(own, 0.0, noise_b[col_v // w]), lnoise), 0.5)
     # 5. gates, runs, smoothing, quality
     ok, snr = pooled_gates(col_v, chain, ok, _sat, rise, snr, s)
