@@ -260,3 +260,68 @@ def test_far_glowing_walls_are_covered() -> None:
         assert seen[frame.visible[li]].mean() > 0.7
         rel = np.abs(scan.points[m, 0] - frame.range_m[li, u]) / frame.range_m[li, u]
         assert np.median(rel) < 0.003
+
+
+def test_the_stripe_noise_is_the_joint_fits_lower_median_where_they_tell_it() -> None:
+    """The gate's band noise (finish.stripe_noise): a laser with at least STRIPE_NOISE_MIN joint fits takes the lower
+    median of their residual noise where that is lower than the band's; fewer fits, or a higher median, leave the
+    band's noise; the selection gives what a sort gives."""
+    from lrsensor.extract import finish
+
+    kth = getattr(finish._kth_smallest, "py_func", finish._kth_smallest)
+    noise_of = getattr(finish.stripe_noise, "py_func", finish.stripe_noise)
+    rng = np.random.default_rng(3)
+    for size in (1, 2, 7, 64, 301):
+        x = rng.integers(0, 9, size).astype(float)  # ties included
+        for k in {0, (size - 1) // 2, size - 1}:
+            assert kth(x.copy(), k) == np.sort(x)[k]
+    m = finish.STRIPE_NOISE_MIN
+    lz = np.repeat([0, 1], m)
+    lnoise = np.concatenate([np.linspace(1.0, 3.0, m), np.linspace(6.0, 8.0, m)])
+    own = np.ones(2 * m, bool)
+    own[0] = False  # one point too few for laser 0
+    out = noise_of(lz, lnoise, own, np.array([4.0, 4.0]))
+    np.testing.assert_array_equal(out, [4.0, 4.0])  # laser 0: too few fits; laser 1: its fits' noise is higher
+    own[0] = True
+    out = noise_of(lz, lnoise, own, np.array([4.0, 4.0]))
+    assert out[0] == np.sort(lnoise[:m])[(m - 1) // 2]
+    assert out[1] == 4.0
+
+
+def test_the_gate_takes_the_joint_fits_amplitude_and_noise() -> None:
+    """2 m, glow step 0.5, 1.5 px of blur (seed 0): with the joint fit's stripe amplitude and residual noise at the
+    gate the points cover at least 90 % of the visible columns (about 80 % when the gate took the common fit's
+    amplitude, whose line takes part of the glow's step as a slope, over the band's noise); and the glow stage
+    returns the common fit's amplitude and noise where it fits nothing."""
+    frame = render(Turbid(distance_m=2.0, glow_step=0.5, blur_px=1.5, seed=0))
+    scan = Sensor(frame.calibration).process(frame.image)
+    for li in (0, 1):
+        u = np.rint(scan.uv[scan.laser == li, 0]).astype(int)
+        seen = np.zeros(frame.rows.shape[1], bool)
+        seen[u] = True
+        assert seen[frame.visible[li]].mean() >= 0.9
+    n = 5
+    cols = np.arange(n)
+    image = np.zeros((64, 8, 3), np.uint8)
+    out = reference_glow.glow_refit(
+        image, cols, np.zeros(n, np.int64), np.zeros((1, 8), np.int64), np.full(n, 30.0), np.full(n, 20.0),
+        np.full(n, 2.0), np.zeros(n, bool), np.ones(n, bool), np.full(n, 1.5), np.array([1.0]), 0.5, 8.0, 250.0, 1.5,
+    )  # fmt: skip
+    assert not out[2].any()
+    np.testing.assert_array_equal(out[3], 20.0)
+    np.testing.assert_array_equal(out[4], 1.5)
+
+
+def test_the_dim_ends_of_a_glowing_stripe_are_fitted_with_its_glow() -> None:
+    """Where nearly all of a laser's candidates show the glow (glow._whole_stripe), all of them are fitted with it
+    (the dim ends of a stripe, whose glow does not show above the noise); where fewer do, only those."""
+    f = getattr(glow._whole_stripe, "py_func", glow._whole_stripe)
+    laser = np.repeat([0, 1], 10)
+    cand = np.ones(20, bool)
+    cand[9] = False
+    glowing = np.zeros(20, bool)
+    glowing[:9] = True  # laser 0: all its 9 candidates
+    glowing[10:17] = True  # laser 1: 7 of 10
+    out = f(glowing, cand, laser, 2)
+    np.testing.assert_array_equal(out[:10], cand[:10])
+    np.testing.assert_array_equal(out[10:], glowing[10:])
