@@ -33,10 +33,11 @@ stripe overlaps this one (centres closer than :data:`PAIR_SIGMAS` times the sum 
 centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and width
 held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free). :data:`ROUNDS`
 rounds: the first with the other stripes where the common fit put them, each next one (points with another stripe in
-the fit that moved by more than :data:`ROUND_TOL_PX`) where the previous round's fit put them, so that two close
-stripes converge to their joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one
-shows: the glow two sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit;
-elsewhere, and wherever no glow shows and no stripe is close (clear water), the common fit stands untouched.
+the fit that moved by more than :data:`~lrsensor.extract.glow_fit.ROUND_TOL_PX` times how much of it reaches the
+window) where the previous round's fit put them, so that two close stripes converge to their joint fit. A fit is
+kept where it converges to a stripe (``A > 0``) with a glow (where one shows: the glow two sigmas outward of the
+edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit; elsewhere, and wherever no glow shows and no
+stripe is close (clear water), the common fit stands untouched.
 Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless
 clipped: the model has no flat top.
 
@@ -91,8 +92,13 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
-The compiled kernel is :func:`glow_refit`; the reference's is :func:`lrsensor.extract.reference_glow.glow_refit`
-(numpy, vectorized over the points). Both read the constants here.
+Where more than :data:`WHOLE_STRIPE_FRAC` of a stripe's points show the glow, all of them are fitted with it (its
+dim ends, where the glow does not show above the noise). The stage also returns the stripe amplitude and residual
+noise of each fit taken, which the signal-to-noise gate uses (:func:`lrsensor.extract.finish.finish_points`).
+
+The compiled kernel is :func:`glow_refit`; the fits and their rounds are in :mod:`lrsensor.extract.glow_fit`; the
+reference's is :func:`lrsensor.extract.reference_glow.glow_refit` (numpy, vectorized over the points). Both read
+the constants here and there.
 """
 
 from __future__ import annotations
