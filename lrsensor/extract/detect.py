@@ -7,6 +7,13 @@ noise and quarters the work), takes the two-sided contrast ``G(v) - max(G(v - d)
 band's noise. The contrast is positive only on ridges narrower than ``2 d``: thin stripes, not murk gradients,
 the backscatter glow of the laser sheet, haze or wide blobs.
 
+In turbid water the sheet's glow lies on the stripe's outer side, ends at the stripe and brightens outward; on far
+walls so steeply that the stripe is a shoulder on a step, not a ridge, and the contrast finds nothing. Where the
+band shows the glow at the first pass's candidates (:func:`glow_shows`), a second pass (:func:`glow_candidates`)
+takes the local maxima of the centre over the mean of the rows ``d / 4`` either side (a blurred step cancels at
+its centre) where the outer side is the brighter: first in the columns without a candidate, then, where it found
+the stripe there, in all. Clear water never runs it.
+
 The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of second differences of rows two apart
 (independent; linear gradients cancel) on a subsample of about 6000 pixels, for Gaussian noise of std s
 ``0.6745 sqrt(6) s``; histograms, not sorting (integer differences).
@@ -89,8 +96,176 @@ def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     return max(med / (0.6745 * math.sqrt(6.0)), 0.05)
 
 
+#: Second-pass candidates in the columns without any first-pass one from which the glow counts as hiding the stripe
+#: in this band, and the second pass also searches the columns that have candidates (see :func:`glow_candidates`).
+GLOW_PASS_MIN = 8
+
+
+@inline
+def _glow_response_row(B, y, ds, hd, out, xa, xb):  # type: ignore[no-untyped-def]
+    """The second pass's response of response row ``y`` in the columns ``[xa, xb)`` into ``out`` (wo,) uint8: the
+    centre over the mean of the rows ``hd`` either side (rounded half up), saturating at 0 (uint16 sums)."""
+    bc = B[y + ds]
+    h0 = B[y + ds - hd]
+    h1 = B[y + ds + hd]
+    one = np.uint16(1)
+    for x in range(xa, xb):
+        ux = np.uint64(x)
+        c = bc[ux]
+        m = np.uint8((np.uint16(h0[ux]) + np.uint16(h1[ux]) + one) >> one)
+        out[ux] = c - min(c, m)
+
+
+@inline
+def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu, xa, xb):  # type: ignore[no-untyped-def]
+    """One sweep of :func:`glow_candidates` over the rows of the columns ``want`` (wo,) uint8 (0 / 1) in
+    ``[xa, xb)``, row by row (the columns at once, in uint8 without branches: it vectorizes); ``s_pos``, ``s_neg``
+    (wo,) uint8: the glow lies at larger / smaller rows. Rows already marked in ``pk`` (first-pass peaks) stay as
+    they are. Returns the candidates added."""
+    ho = resp.shape[0]
+    wo = resp.shape[1]
+    ya = ho
+    yb = 0
+    for x in range(xa, xb):
+        if want[x] and y1[x] > y0[x]:
+            ya = min(ya, int(y0[x]))
+            yb = max(yb, int(y1[x]))
+    if yb <= ya:
+        return 0
+    prev = np.empty(wo, np.uint8)
+    cur = np.empty(wo, np.uint8)
+    nxt = np.empty(wo, np.uint8)
+    hits = np.empty(wo, np.uint8)
+    found = 0
+    # the response of rows ya - 1 .. yb (clamped to the image) in turn; from the third on, row y = its index - 1
+    # has both neighbours (one call site: the helper is compiled inline once)
+    for step in range(yb - ya + 2):
+        _glow_response_row(B, min(max(ya - 1 + step, 0), ho - 1), ds, hd, nxt, xa, xb)
+        prev, cur, nxt = cur, nxt, prev
+        if step < 2:
+            continue
+        # cur holds the row just computed, y + 1; prev the row y; nxt the row y - 1 (overwritten next)
+        y = ya + step - 2
+        bc = B[y + ds]
+        b0 = B[y]
+        b1 = B[y + 2 * ds]
+        h0 = B[y + ds - hd]
+        h1 = B[y + ds + hd]
+        py = pk[y]
+        fy = np.uint16(y)
+        for x in range(xa, xb):
+            ux = np.uint64(x)
+            c = bc[ux]
+            r = prev[ux]
+            # the centre above both inner rows by more than the threshold, the outer row at d / 2 at least as bright
+            g_pos = (c - min(c, max(b0[ux], h0[ux])) > tu) & (b1[ux] >= c) & (s_pos[ux] != 0)
+            g_neg = (c - min(c, max(b1[ux], h1[ux])) > tu) & (b0[ux] >= c) & (s_neg[ux] != 0)
+            hit = (r > tu) & (nxt[ux] <= r) & (cur[ux] <= r) & (g_pos | g_neg) & (want[ux] != 0) & (py[ux] == 0)
+            hits[ux] = hit & (fy >= y0[ux]) & (fy < y1[ux])
+        any_hit = np.uint8(0)
+        for x in range(xa, xb):  # an integer OR (vectorizes)
+            any_hit |= hits[np.uint64(x)]
+        if any_hit:  # (rare: the marks, one by one)
+            ry = resp[y]
+            for x in range(xa, xb):
+                if hits[x]:
+                    py[x] = 1
+                    cnt16[x] += np.uint16(1)
+                    ry[x] = prev[x]
+                    found += 1
+            row_pk[y] = 1
+    return found
+
+
+@inline
+def glow_shows(B, pk, row_pk, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
+    """Whether the band shows the laser sheet's glow at its first-pass candidates (the twin of
+    ``reference._glow_shows``): at a quarter of them or more the row ``d / 4`` outward (the glow side ``side[2 x]``)
+    is brighter than the row ``d / 4`` inward by more than ``t8``. In clear water both are background (about one
+    in 500 by noise); in turbid water the glow's edge lies between them. Reads only the peaks (the set bytes of the
+    mask ``pk`` in the rows ``row_pk``)."""
+    ho = pk.shape[0]
+    nw8 = pk.shape[1] // 8
+    words = pk.reshape(-1).view(np.uint64)
+    n_pk = 0
+    n_glow = 0
+    for y in range(ho):
+        if row_pk[y] == 0:
+            continue
+        bo = B[y + ds + hd]
+        bi = B[y + ds - hd]
+        for k in range(nw8):
+            wk = words[y * nw8 + k]
+            while wk:
+                x = 8 * k + (trailing_zeros(wk) >> 3)
+                wk &= wk - np.uint64(1)
+                sd = side[min(2 * x, w - 1)]
+                n_pk += 1
+                if sd > 0:
+                    n_glow += np.int64(bo[x]) - np.int64(bi[x]) > t8
+                elif sd < 0:
+                    n_glow += np.int64(bi[x]) - np.int64(bo[x]) > t8
+    return n_pk > 0 and 4 * n_glow >= n_pk
+
+
+@inline
+def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
+    """The second pass of :func:`detect_band` (the compiled twin of ``reference._glow_candidates``): a stripe on the
+    rising side of the sheet's glow. First in the columns without a candidate whose glow side ``side[2 x]`` is
+    known, then, where that found at least :data:`GLOW_PASS_MIN` candidates, in the other columns too: the rows
+    that are vertical local maxima of the centre-over-mean response (:func:`_glow_response_row`) above ``t8``,
+    whose centre stands above both inner rows (``d / 2`` and ``d / 4`` inward) by more than ``t8``, and whose
+    outer row at ``d / 2`` is at least as bright as the centre. They are marked in ``pk``, ``cnt16``, ``row_pk``
+    and their response written to ``resp`` (all in place)."""
+    wo = resp.shape[1]
+    s_pos = np.empty(wo, np.uint8)
+    s_neg = np.empty(wo, np.uint8)
+    empty = np.empty(wo, np.uint8)
+    n_empty = 0
+    for x in range(wo):
+        sd = side[min(2 * x, w - 1)]
+        s_pos[x] = sd > 0
+        s_neg[x] = sd < 0
+        empty[x] = (cnt16[x] == 0) and sd != 0
+        n_empty += int(empty[x])
+    if n_empty == 0:
+        return
+    tu = np.uint8(t8)
+    for sweep in range(2):  # (one call site: the sweep is compiled inline once)
+        if _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, empty, s_pos, s_neg, ds, hd, tu) < GLOW_PASS_MIN or sweep:
+            return
+        for x in range(wo):
+            empty[x] = (empty[x] == 0) and (s_pos[x] | s_neg[x]) != 0  # now: the columns that had candidates
+
+
+@inline
+def _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu):  # type: ignore[no-untyped-def]
+    """:func:`_glow_sweep` over each stretch of the columns ``want`` (stretches closer than 16 columns joined: the
+    sweep's rows are the stretch's band); returns the candidates added."""
+    wo = want.size
+    found = 0
+    x = 0
+    while x < wo:
+        if want[x] == 0:
+            x += 1
+            continue
+        xb = x + 1
+        gap = 0
+        for k in range(x + 1, wo):
+            if want[k] != 0:
+                xb = k + 1
+                gap = 0
+            else:
+                gap += 1
+                if gap >= 16:
+                    break
+        found += _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu, x, xb)
+        x = xb
+    return found
+
+
 @njit
-def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
+def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side, col_offset):  # type: ignore[no-untyped-def]
     """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
     ``reference._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
 
@@ -223,6 +398,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         for x in range(wo):  # an integer OR (vectorizes)
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
+    if hd >= 2 and glow_shows(B, pk, row_pk, side, w, ds, hd, t8):
+        glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8)
     cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
     for x in range(wo):
         cnt[x + 1] = cnt[x] + np.int64(cnt16[x])

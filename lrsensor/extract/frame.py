@@ -267,6 +267,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
             s.min_response_dn,
             bands.v_lo[i],
             bands.v_hi[i],
+            bands.glow_side[i],
             i * wd,
         )
         parts_u.append(u)
@@ -383,8 +384,9 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
     res = p.fits
     vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
     # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
+    own = np.zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
     if s.glow_fit:
-        v_g, _s_g, _f_g = glow_refit(
+        v_g, _s_g, own, a_g, n_g = glow_refit(
             image,
             cols,
             laser,
@@ -401,10 +403,14 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
             s.saturation_dn,
             s.min_green_ratio,
         )
+        # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
+        # takes part of the glow's step as a slope)
         for t in range(n):
             vv[t] = v_g[t]
+            amp[t] = a_g[t]
+            res.local_noise[t] = n_g[t]
     # gates, runs, smoothing, quality
-    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo)
+    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
 
 
 @njit
