@@ -231,8 +231,10 @@ def test_detection_finds_the_stripe_on_the_rising_glow() -> None:
     bands, s = frame_settings(frame.calibration, subpixel.SubpixelConfig())[:2]
     no_side = bands._replace(glow_side=np.zeros_like(bands.glow_side))
     for li in (0, 1):
-        u, v, a, noise = reference._candidates(frame.image, li, bands, s, 0)
-        u0, v0, _, noise0 = reference._candidates(frame.image, li, no_side, s, 0)
+        u, v, a, noise, sec = reference._candidates(frame.image, li, bands, s, 0)
+        u0, v0, _, noise0, sec0 = reference._candidates(frame.image, li, no_side, s, 0)
+        assert not sec0.any()  # the second pass's candidates, told apart
+        assert sec.sum() == u.size - u0.size
         assert noise == noise0
         assert _picked_near_truth(frame, (u0, v0), li) < 0.6
         assert _picked_near_truth(frame, (u, v), li) > 0.9
@@ -242,7 +244,7 @@ def test_detection_finds_the_stripe_on_the_rising_glow() -> None:
             r0, r1 = bands.rows[li]
             args = (s.contrast_px, s.snr_threshold, s.area_noise, s.min_response_dn)
             fast = detect_band(frame.image, r0, r1, *args, bands.v_lo[li], bands.v_hi[li], bands.glow_side[li], 0)
-            for x, y in zip(fast[:3], (u, v, a), strict=True):
+            for x, y in zip((*fast[:3], fast[4]), (u, v, a, sec), strict=True):
                 np.testing.assert_array_equal(x, y)
             assert fast[3] == noise
 
@@ -325,3 +327,33 @@ def test_the_dim_ends_of_a_glowing_stripe_are_fitted_with_its_glow() -> None:
     out = f(glowing, cand, laser, 2)
     np.testing.assert_array_equal(out[:10], cand[:10])
     np.testing.assert_array_equal(out[10:], glowing[10:])
+
+
+def test_the_frame_statistics_take_the_first_detection_passs_points() -> None:
+    """2 m, glow step 0.5, 4 px of blur: the second detection pass's points lie on the glow's rising side, whose step
+    widens their profiles' half-maximum width; the frame's typical sigma (hence every fit's window) comes from the
+    first pass's points, as in the reference. In clear water there is no second pass."""
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    from lrsensor.extract import frame as compiled
+    from lrsensor.extract.config import SubpixelConfig
+    from lrsensor.extract.settings import frame_settings
+
+    warm_up()
+    for step, glowing in ((0.5, True), (0.0, False)):
+        f = render(Turbid(distance_m=2.0, glow_step=step, blur_px=4.0, seed=1))
+        bands, s, geo = frame_settings(f.calibration, SubpixelConfig())
+        p = compiled.locate_candidates(f.image, bands, s)
+        assert p.second.any() == glowing
+        if not glowing:
+            continue
+        assert 0.05 * p.cols.size < np.count_nonzero(p.second) < 0.5 * p.cols.size
+        mfw = compiled.max_fwhm_at(
+            p.cols, p.rows, p.laser, compiled.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
+        )
+        located = compiled.fit_points(f.image, p, mfw, s)
+        sub = np.linspace(0, p.cols.size - 1, compiled.STATS_POINTS).astype(np.int64)  # every point's
+        sigma_all = compiled.frame_profile_stats(
+            f.image, p.cols[sub], p.rows[sub], s.window_half_px, s.saturation_dn, s.max_sigma_px, mfw[sub]
+        )[0]
+        assert located.sigma_px < 0.7 * sigma_all

@@ -169,7 +169,7 @@ def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, 
             ry = resp[y]
             for x in range(xa, xb):
                 if hits[x]:
-                    py[x] = 1
+                    py[x] = 2  # (a second-pass candidate: told apart from the first pass's in the output)
                     cnt16[x] += np.uint16(1)
                     ry[x] = prev[x]
                     found += 1
@@ -279,8 +279,9 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
         image: (H, W, 3) uint8 C-contiguous; r0, r1: the band's bounding rows; d: contrast offset (even), rows.
 
     Returns:
-        ``(cols, rows, strength, noise)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
-        int64, response (N,) float64, sorted by column then row; and the pixel noise, DN.
+        ``(cols, rows, strength, noise, second)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
+        int64, response (N,) float64, sorted by column then row; the pixel noise, DN; and (N,) bool whether each
+        candidate is the second pass's (on the glow's rising side, :func:`glow_candidates`).
     """
     h = image.shape[0]
     w = image.shape[1]
@@ -343,7 +344,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
     if ho <= 0:
         e_i = np.empty(0, np.int64)
-        return e_i, e_i, np.empty(0), noise
+        return e_i, e_i, np.empty(0), noise, np.empty(0, np.bool_)
     # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
     resp = np.empty((ho, wo), np.uint8)
     for y in range(ho):
@@ -407,6 +408,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     cu = np.empty(n, np.int64)
     cv = np.empty(n, np.int64)
     ca = np.empty(n)
+    c2 = np.empty(n, np.bool_)
     pos = cnt[:wo].copy()
     words = pk.reshape(-1).view(np.uint64)
     nw8 = w8 // 8
@@ -424,5 +426,6 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
                 cu[j] = x + col_offset
                 cv[j] = vy
                 ca[j] = ry[x]
+                c2[j] = pk[y, x] > 1
                 pos[x] = j + 1
-    return cu, cv, ca, noise
+    return cu, cv, ca, noise, c2

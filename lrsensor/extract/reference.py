@@ -47,11 +47,13 @@ from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import GLOW_PASS_MIN, noise_col_step
 from .finish import STRIPE_NOISE_MIN
 from .fit import flank_offset
+from .frame import STATS_POINTS
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 #: Rows per background flank of the sub-pixel fit (as the compiled kernels take them).
 _FLANK_PX = 3
@@ -87,14 +89,15 @@ def extract_frame(
     for i in range(n_l):
         if bands.rows[i, 1] <= bands.rows[i, 0]:
             continue
-        u, v, a, noise[i] = _candidates(image, i, bands, s, i * wd)
-        parts.append((u, v, a))
+        u, v, a, noise[i], sec = _candidates(image, i, bands, s, i * wd)
+        parts.append((u, v, a, sec))
     if not parts or sum(p[0].size for p in parts) == 0:
         return _nothing()
     # laser by laser, each sorted by column then row: the concatenation is sorted by (virtual) column
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
+    Sr = np.concatenate([p[3] for p in parts])
     n_cols = n_l * w
     # 2. continuity: chains; per column the candidate on the strongest long-enough chain
     jump = s.max_jump_px * 1.5
@@ -102,6 +105,18 @@ def extract_frame(
     col_d, rows_f, chain, chain_len = _pick(U, Vr, Ar, n_l * wd, s, wd, jump, min_run)
     if col_d.size == 0:
         return _nothing()
+    # whether each pick is the second detection pass's: the candidate of its column nearest its row (the first of a
+    # tie; rows ascend within a column)
+    pick_of = np.full(n_l * wd, -1)
+    pick_of[col_d] = np.arange(col_d.size)
+    has = pick_of[U] >= 0
+    j_c = np.flatnonzero(has)
+    dist = np.abs(Vr[j_c] - rows_f[pick_of[U[j_c]]])
+    o_n = np.lexsort((dist, U[j_c]))  # stable: by column, then distance, then row
+    first_of = np.ones(o_n.size, bool)
+    first_of[1:] = U[j_c][o_n][1:] != U[j_c][o_n][:-1]
+    sec_d = np.zeros(n_l * wd, bool)
+    sec_d[U[j_c][o_n][first_of]] = Sr[j_c][o_n][first_of]
     # every detection column c stands for the full columns 2c and 2c + 1 (between c and c + 1)
     laser_d = col_d // wd
     c = col_d - laser_d * wd
@@ -129,7 +144,11 @@ def extract_frame(
             max_fwhm[need] = _max_fwhm(calibration, geo, cols[need], rows[need], laser[need], s)
         return max_fwhm[idx]
 
-    sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
+    # the frame statistics from the first detection pass's points where it has enough (frame.fit_points says why)
+    pool = np.flatnonzero(~sec_d[laser * wd + cols // 2])
+    if pool.size < STATS_POINTS:
+        pool = np.arange(cols.size)
+    sub = pool[np.linspace(0, pool.size - 1, min(pool.size, STATS_POINTS)).astype(np.int64)]
     half0 = s.window_half_px
     P0 = _gather(image, cols[sub], rows[sub], half0, 1)
     wide_lim = float(np.median(max_fwhm_at(sub)))  # a wide-sheet frame needs a longer window
@@ -281,7 +300,7 @@ def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
 
 def _candidates(
     image: NDArray[np.uint8], laser: int, bands: Bands, s: Settings, col_offset: int
-) -> tuple[IntArray, IntArray, FloatArray, float]:
+) -> tuple[IntArray, IntArray, FloatArray, float, BoolArray]:
     """Stripe candidates of ``laser`` inside its band (:func:`lrsensor.extract.detect.detect_band`).
 
     The green channel of the band's rows (and ``d`` more either side, replicated beyond the image, evened) is
@@ -291,8 +310,9 @@ def _candidates(
     wide blobs). Candidates are its vertical local maxima above the noise-scaled threshold, inside the band.
 
     Returns:
-        ``(cols, rows, strength, noise)``: detection-scale columns plus ``col_offset`` (N,), full-resolution rows
-        (N,), contrast (N,), sorted by column then row, and the full-resolution pixel noise (DN).
+        ``(cols, rows, strength, noise, second)``: detection-scale columns plus ``col_offset`` (N,),
+        full-resolution rows (N,), contrast (N,), sorted by column then row, the full-resolution pixel noise (DN),
+        and (N,) whether each is the second pass's (:func:`_glow_candidates`).
     """
     r0, r1 = int(bands.rows[laser, 0]), int(bands.rows[laser, 1])
     h, w = image.shape[:2]
@@ -329,11 +349,13 @@ def _candidates(
     uf = np.minimum(u * 2, w - 1)
     inside = (v >= v_lo[uf]) & (v <= v_hi[uf])  # the band need not be a rectangle
     u, v, a = u[inside], v[inside], a[inside]
+    sec = np.zeros(u.size, bool)
     if hd >= 2 and _glow_shows(g, u, v, r0, thr, bands.glow_side[laser], ds, hd):
         u2, v2, a2 = _glow_candidates(g, u, v, r0, thr, v_lo, v_hi, bands.glow_side[laser], ds, hd)
         u, v, a = np.concatenate([u, u2]), np.concatenate([v, v2]), np.concatenate([a, a2])
+        sec = np.concatenate([sec, np.ones(u2.size, bool)])
     order = np.lexsort((v, u))  # by column, then row
-    return u[order] + col_offset, v[order], a[order], noise
+    return u[order] + col_offset, v[order], a[order], noise, sec[order]
 
 
 def _glow_shows(
