@@ -9,10 +9,10 @@ the backscatter glow of the laser sheet, haze or wide blobs.
 
 In turbid water the sheet's glow lies on the stripe's outer side, ends at the stripe and brightens outward; on far
 walls so steeply that the stripe is a shoulder on a step, not a ridge, and the contrast finds nothing. Where the
-band shows the glow at the first pass's candidates (:func:`glow_shows`), a second pass (:func:`glow_candidates`)
-takes the local maxima of the centre over the mean of the rows ``d / 4`` either side (a blurred step cancels at
-its centre) where the outer side is the brighter: first in the columns without a candidate, then, where it found
-the stripe there, in all. Clear water never runs it.
+band shows the glow at the first pass's candidates (counted as they are listed), a second pass
+(:func:`glow_candidates`) takes the local maxima of the centre over the mean of the rows ``d / 4`` either side (a
+blurred step cancels at its centre) where the outer side is the brighter: first in the columns without a candidate,
+then, where it found the stripe there, in all. Clear water never runs it.
 
 The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of second differences of rows two apart
 (independent; linear gradients cancel) on a subsample of about 6000 pixels, for Gaussian noise of std s
@@ -102,166 +102,49 @@ GLOW_PASS_MIN = 8
 
 
 @inline
-def _glow_response_row(B, y, ds, hd, out, xa, xb):  # type: ignore[no-untyped-def]
-    """The second pass's response of response row ``y`` in the columns ``[xa, xb)`` into ``out`` (wo,) uint8: the
-    centre over the mean of the rows ``hd`` either side (rounded half up), saturating at 0 (uint16 sums)."""
-    bc = B[y + ds]
-    h0 = B[y + ds - hd]
-    h1 = B[y + ds + hd]
-    one = np.uint16(1)
-    for x in range(xa, xb):
-        ux = np.uint64(x)
-        c = bc[ux]
-        m = np.uint8((np.uint16(h0[ux]) + np.uint16(h1[ux]) + one) >> one)
-        out[ux] = c - min(c, m)
-
-
-@inline
-def _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu, xa, xb):  # type: ignore[no-untyped-def]
-    """One sweep of :func:`glow_candidates` over the rows of the columns ``want`` (wo,) uint8 (0 / 1) in
-    ``[xa, xb)``, row by row (the columns at once, in uint8 without branches: it vectorizes); ``s_pos``, ``s_neg``
-    (wo,) uint8: the glow lies at larger / smaller rows. Rows already marked in ``pk`` (first-pass peaks) stay as
-    they are. Returns the candidates added."""
-    ho = resp.shape[0]
-    wo = resp.shape[1]
-    ya = ho
-    yb = 0
-    for x in range(xa, xb):
-        if want[x] and y1[x] > y0[x]:
-            ya = min(ya, int(y0[x]))
-            yb = max(yb, int(y1[x]))
-    if yb <= ya:
-        return 0
-    prev = np.empty(wo, np.uint8)
-    cur = np.empty(wo, np.uint8)
-    nxt = np.empty(wo, np.uint8)
-    hits = np.empty(wo, np.uint8)
-    found = 0
-    # the response of rows ya - 1 .. yb (clamped to the image) in turn; from the third on, row y = its index - 1
-    # has both neighbours (one call site: the helper is compiled inline once)
-    for step in range(yb - ya + 2):
-        _glow_response_row(B, min(max(ya - 1 + step, 0), ho - 1), ds, hd, nxt, xa, xb)
-        prev, cur, nxt = cur, nxt, prev
-        if step < 2:
-            continue
-        # cur holds the row just computed, y + 1; prev the row y; nxt the row y - 1 (overwritten next)
-        y = ya + step - 2
-        bc = B[y + ds]
-        b0 = B[y]
-        b1 = B[y + 2 * ds]
-        h0 = B[y + ds - hd]
-        h1 = B[y + ds + hd]
-        py = pk[y]
-        fy = np.uint16(y)
-        for x in range(xa, xb):
-            ux = np.uint64(x)
-            c = bc[ux]
-            r = prev[ux]
-            # the centre above both inner rows by more than the threshold, the outer row at d / 2 at least as bright
-            g_pos = (c - min(c, max(b0[ux], h0[ux])) > tu) & (b1[ux] >= c) & (s_pos[ux] != 0)
-            g_neg = (c - min(c, max(b1[ux], h1[ux])) > tu) & (b0[ux] >= c) & (s_neg[ux] != 0)
-            hit = (r > tu) & (nxt[ux] <= r) & (cur[ux] <= r) & (g_pos | g_neg) & (want[ux] != 0) & (py[ux] == 0)
-            hits[ux] = hit & (fy >= y0[ux]) & (fy < y1[ux])
-        any_hit = np.uint8(0)
-        for x in range(xa, xb):  # an integer OR (vectorizes)
-            any_hit |= hits[np.uint64(x)]
-        if any_hit:  # (rare: the marks, one by one)
-            ry = resp[y]
-            for x in range(xa, xb):
-                if hits[x]:
-                    py[x] = 2  # (a second-pass candidate: told apart from the first pass's in the output)
-                    cnt16[x] += np.uint16(1)
-                    ry[x] = prev[x]
-                    found += 1
-            row_pk[y] = 1
-    return found
-
-
-@inline
-def glow_shows(B, pk, row_pk, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
-    """Whether the band shows the laser sheet's glow at its first-pass candidates (the twin of
-    ``reference._glow_shows``): at a quarter of them or more the row ``d / 4`` outward (the glow side ``side[2 x]``)
-    is brighter than the row ``d / 4`` inward by more than ``t8``. In clear water both are background (about one
-    in 500 by noise); in turbid water the glow's edge lies between them. Reads only the peaks (the set bytes of the
-    mask ``pk`` in the rows ``row_pk``)."""
-    ho = pk.shape[0]
-    nw8 = pk.shape[1] // 8
-    words = pk.reshape(-1).view(np.uint64)
-    n_pk = 0
-    n_glow = 0
-    for y in range(ho):
-        if row_pk[y] == 0:
-            continue
-        bo = B[y + ds + hd]
-        bi = B[y + ds - hd]
-        for k in range(nw8):
-            wk = words[y * nw8 + k]
-            while wk:
-                x = 8 * k + (trailing_zeros(wk) >> 3)
-                wk &= wk - np.uint64(1)
-                sd = side[min(2 * x, w - 1)]
-                n_pk += 1
-                if sd > 0:
-                    n_glow += np.int64(bo[x]) - np.int64(bi[x]) > t8
-                elif sd < 0:
-                    n_glow += np.int64(bi[x]) - np.int64(bo[x]) > t8
-    return n_pk > 0 and 4 * n_glow >= n_pk
-
-
-@inline
 def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
     """The second pass of :func:`detect_band` (the compiled twin of ``reference._glow_candidates``): a stripe on the
     rising side of the sheet's glow. First in the columns without a candidate whose glow side ``side[2 x]`` is
-    known, then, where that found at least :data:`GLOW_PASS_MIN` candidates, in the other columns too: the rows
-    that are vertical local maxima of the centre-over-mean response (:func:`_glow_response_row`) above ``t8``,
-    whose centre stands above both inner rows (``d / 2`` and ``d / 4`` inward) by more than ``t8``, and whose
-    outer row at ``d / 2`` is at least as bright as the centre. They are marked in ``pk``, ``cnt16``, ``row_pk``
-    and their response written to ``resp`` (all in place)."""
+    known, then, where that found at least :data:`GLOW_PASS_MIN` candidates, in the other columns too: the rows that
+    are vertical local maxima of the centre-over-mean response (the centre over the mean of the rows ``hd`` either
+    side, rounded half up, at least 0) above ``t8``, whose centre stands above both inner rows (``d / 2`` and ``d /
+    4`` inward) by more than ``t8``, and whose outer row at ``d / 2`` is at least as bright as the centre. They are
+    marked 2 in ``pk`` (first-pass peaks are 1), counted in ``cnt16``, ``row_pk``, and their response written to
+    ``resp`` (all in place). The second sweep runs over all columns: an empty column's hits are marked already and
+    skipped (only unmarked rows are tested). Column by column in plain scalar loops: it runs only where a band shows
+    the glow, and the vectorized loops it had over the rows cost more of the one-time compile than of a frame
+    (:mod:`lrsensor.extract.compile`). The pixels are read as int64 (``int()`` of a uint8 is unsigned in numba: a
+    difference would wrap)."""
+    ho = resp.shape[0]
     wo = resp.shape[1]
-    s_pos = np.empty(wo, np.uint8)
-    s_neg = np.empty(wo, np.uint8)
-    empty = np.empty(wo, np.uint8)
-    n_empty = 0
-    for x in range(wo):
-        sd = side[min(2 * x, w - 1)]
-        s_pos[x] = sd > 0
-        s_neg[x] = sd < 0
-        empty[x] = (cnt16[x] == 0) and sd != 0
-        n_empty += int(empty[x])
-    if n_empty == 0:
-        return
-    tu = np.uint8(t8)
-    for sweep in range(2):  # (one call site: the sweep is compiled inline once)
-        if _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, empty, s_pos, s_neg, ds, hd, tu) < GLOW_PASS_MIN or sweep:
-            return
+    for sweep in range(2):
+        found = 0
         for x in range(wo):
-            empty[x] = (empty[x] == 0) and (s_pos[x] | s_neg[x]) != 0  # now: the columns that had candidates
-
-
-@inline
-def _glow_runs(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu):  # type: ignore[no-untyped-def]
-    """:func:`_glow_sweep` over each stretch of the columns ``want`` (stretches closer than 16 columns joined: the
-    sweep's rows are the stretch's band); returns the candidates added."""
-    wo = want.size
-    found = 0
-    x = 0
-    while x < wo:
-        if want[x] == 0:
-            x += 1
-            continue
-        xb = x + 1
-        gap = 0
-        for k in range(x + 1, wo):
-            if want[k] != 0:
-                xb = k + 1
-                gap = 0
-            else:
-                gap += 1
-                if gap >= 16:
-                    break
-        found += _glow_sweep(B, resp, pk, cnt16, row_pk, y0, y1, want, s_pos, s_neg, ds, hd, tu, x, xb)
-        x = xb
-    return found
+            sd = side[min(2 * x, w - 1)]
+            if sd == 0 or (sweep == 0 and cnt16[x] > 0):
+                continue
+            # the response down the column: at the row before, this one and the next (clamped to the response's rows)
+            y_a = int(y0[x])
+            r_prev = 0
+            r_cur = 0  # (the first two rows only fill these)
+            for y in range(y_a - 1, int(y1[x]) + 1):
+                yy = min(max(y, 0), ho - 1) + ds
+                diff = np.int64(B[yy, x]) - ((np.int64(B[yy - hd, x]) + np.int64(B[yy + hd, x]) + 1) >> 1)
+                r_next = int(diff) if diff > 0 else 0  # (int() of a signed integer: signed)
+                yc = y - 1  # the row now decided, its response r_cur
+                if yc >= y_a and pk[yc, x] == 0 and r_cur > t8 and r_prev <= r_cur and r_next <= r_cur:
+                    c = np.int64(B[yc + ds, x])
+                    inner = max(np.int64(B[yc + (0 if sd > 0 else 2 * ds), x]), np.int64(B[yc + ds - sd * hd, x]))
+                    if c - inner > t8 and np.int64(B[yc + (2 * ds if sd > 0 else 0), x]) >= c:
+                        pk[yc, x] = 2
+                        cnt16[x] += 1
+                        resp[yc, x] = r_cur
+                        row_pk[yc] = 1
+                        found += 1
+                r_prev = r_cur
+                r_cur = r_next
+        if found < GLOW_PASS_MIN:
+            return
 
 
 @njit
@@ -280,8 +163,9 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
 
     Returns:
         ``(cols, rows, strength, noise, second)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
-        int64, response (N,) float64, sorted by column then row; the pixel noise, DN; and (N,) bool whether each
-        candidate is the second pass's (on the glow's rising side, :func:`glow_candidates`).
+        int64, response (N,) float64, sorted by column then row; the pixel noise, DN; and (N,) int64, 1 where the
+        candidate is the second pass's (on the glow's rising side, :func:`glow_candidates`), else 0 (int64, not bool:
+        the types the frame's call already has, no list and array code compiled for one more).
     """
     h = image.shape[0]
     w = image.shape[1]
@@ -344,7 +228,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
     if ho <= 0:
         e_i = np.empty(0, np.int64)
-        return e_i, e_i, np.empty(0), noise, np.empty(0, np.bool_)
+        return e_i, e_i, np.empty(0), noise, e_i
     # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
     resp = np.empty((ho, wo), np.uint8)
     for y in range(ho):
@@ -399,33 +283,44 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
         for x in range(wo):  # an integer OR (vectorizes)
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
-    if hd >= 2 and glow_shows(B, pk, row_pk, side, w, ds, hd, t8):
+    # the candidates, column by column; where the band shows the laser sheet's glow at them (the twin of
+    # reference._glow_shows: at a quarter of them or more the row d / 4 outward, on the glow's side, is brighter than
+    # the row d / 4 inward by more than the threshold; in clear water both are background, in turbid water the glow's
+    # edge lies between them), the second pass's too (the candidates listed once more: one call site of each part)
+    for pass_ in range(2):
+        cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
+        for x in range(wo):
+            cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
+        n = cnt[wo]
+        cu = np.empty(n, np.int64)
+        cv = np.empty(n, np.int64)
+        ca = np.empty(n)
+        c2 = np.empty(n, np.int64)
+        pos = cnt[:wo].copy()
+        words = pk.reshape(-1).view(np.uint64)
+        nw8 = w8 // 8
+        n_glow = 0
+        for y in range(ho):
+            if row_pk[y] == 0:
+                continue
+            ry = resp[y]
+            vy = r0 + 2 * y
+            for k in range(nw8):
+                wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0, 1 or 2) each
+                while wk:  # the set bytes, lowest first (none in the common case)
+                    x = 8 * k + (trailing_zeros(wk) >> 3)
+                    wk &= wk - np.uint64(1)
+                    j = pos[x]
+                    cu[j] = x + col_offset
+                    cv[j] = vy
+                    ca[j] = ry[x]
+                    c2[j] = pk[y, x] > 1
+                    sd = side[min(2 * x, w - 1)]
+                    step = np.int64(B[y + ds + hd, x]) - np.int64(B[y + ds - hd, x])
+                    if (sd > 0 and step > t8) or (sd < 0 and -step > t8):
+                        n_glow += 1
+                    pos[x] = j + 1
+        if pass_ > 0 or hd < 2 or not (n > 0 and 4 * n_glow >= n):
+            return cu, cv, ca, noise, c2
         glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8)
-    cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
-    for x in range(wo):
-        cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
-    n = cnt[wo]
-    cu = np.empty(n, np.int64)
-    cv = np.empty(n, np.int64)
-    ca = np.empty(n)
-    c2 = np.empty(n, np.bool_)
-    pos = cnt[:wo].copy()
-    words = pk.reshape(-1).view(np.uint64)
-    nw8 = w8 // 8
-    for y in range(ho):
-        if row_pk[y] == 0:
-            continue
-        ry = resp[y]
-        vy = r0 + 2 * y
-        for k in range(nw8):
-            wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0 or 1) each
-            while wk:  # the set bytes, lowest first (none in the common case)
-                x = 8 * k + (trailing_zeros(wk) >> 3)
-                wk &= wk - np.uint64(1)
-                j = pos[x]
-                cu[j] = x + col_offset
-                cv[j] = vy
-                ca[j] = ry[x]
-                c2[j] = pk[y, x] > 1
-                pos[x] = j + 1
     return cu, cv, ca, noise, c2

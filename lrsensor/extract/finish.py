@@ -26,6 +26,7 @@ import numpy as np
 from ._jit import inline, njit
 from .geometry import central_view
 from .smooth import smooth_runs_at
+from .sorting import select
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -149,42 +150,12 @@ STRIPE_NOISE_MIN = 64
 
 
 @inline
-def _kth_smallest(a, k):  # type: ignore[no-untyped-def]
-    """The ``k``-th smallest of ``a`` (n,) float64 (0-based), reordering ``a`` in place (Hoare's selection: a few
-    loops, where numba's sort would add its whole implementation to the one-time compile)."""
-    lo = 0
-    hi = a.size - 1
-    while lo < hi:
-        pivot = a[(lo + hi) // 2]
-        i = lo
-        j = hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                x = a[i]
-                a[i] = a[j]
-                a[j] = x
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return a[k]
-
-
-@inline
 def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
     """The noise of each laser's band for the signal-to-noise gate, DN (L,): ``noise_l``, or where the laser has at
     least :data:`STRIPE_NOISE_MIN` points with their own joint fit (``own`` (N,), their residual noise ``lnoise``),
-    the (lower) median of those residual noises if lower. In turbid water the band's noise holds the glow's bright
-    rows beyond the stripe (their shot noise: 1.2-1.45x the noise at the stripe's row on the turbidity model), and
-    it is the gate's noise at the points whose glow is too faint for the glow stage."""
+    the (lower) median of those residual noises (:func:`.sorting.select`) if lower. In turbid water the band's noise
+    holds the glow's bright rows beyond the stripe (their shot noise: 1.2-1.45x the noise at the stripe's row on the
+    turbidity model), and it is the gate's noise at the points whose glow is too faint for the glow stage."""
     out = noise_l.copy()
     for li in range(noise_l.size):
         cnt = 0
@@ -198,7 +169,7 @@ def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
             if own[t] and lz[t] == li and math.isfinite(lnoise[t]):
                 vals[k] = lnoise[t]
                 k += 1
-        out[li] = min(out[li], _kth_smallest(vals, (cnt - 1) // 2))
+        out[li] = min(out[li], select(vals, cnt, (cnt - 1) // 2))
     return out
 
 

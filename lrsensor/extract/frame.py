@@ -104,8 +104,9 @@ class Picked(NamedTuple):
     chain_len: NDArray[np.int64]
     #: (L,) the band noise of each laser, DN.
     noise: NDArray[np.float64]
-    #: (N,) bool: the point's candidate is the detection's second pass's (on the glow's rising side, turbid water).
-    second: NDArray[np.bool_]
+    #: (N,) int64: 1 where the point's candidate is the detection's second pass's (on the glow's rising side, turbid
+    #: water), else 0.
+    second: NDArray[np.int64]
 
 
 @njit
@@ -233,9 +234,7 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
 def _no_candidates(noise):  # type: ignore[no-untyped-def]
     """The :class:`Picked` of a frame without candidates."""
     e_i = np.empty(0, np.int64)
-    return Picked(
-        col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise, second=np.empty(0, np.bool_)
-    )
+    return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise, second=e_i)
 
 
 @njit
@@ -285,7 +284,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     U = np.empty(total, np.int64)
     Vr = np.empty(total, np.int64)
     Ar = np.empty(total)
-    Sr = np.empty(total, np.bool_)
+    Sr = np.empty(total, np.int64)
     k = 0
     for j in range(len(parts_u)):
         for t in range(parts_u[j].size):
@@ -311,7 +310,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     if col_d.size == 0:
         return _no_candidates(noise)
     # whether each pick is the second pass's: the candidate of its column nearest its row (the first of a tie)
-    sec_d = np.zeros(n_cols_d, np.bool_)
+    sec_d = np.zeros(n_cols_d, np.int64)
     start = np.zeros(n_cols_d + 1, np.int64)
     for c in range(n_cols_d):
         start[c + 1] = start[c] + cnt[c]
@@ -328,7 +327,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     laser = sorted_blocks(col_v, w)
     rows = np.empty(n, np.int64)
     cols = np.empty(n, np.int64)
-    second = np.empty(n, np.bool_)
+    second = np.empty(n, np.int64)
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
@@ -359,10 +358,16 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
     # frame statistics (window length), then the fit of every point; the statistics from the first detection pass's
     # points where it has STATS_POINTS of them: the second pass's lie on the glow's rising side, whose step widens
     # their profiles' half-maximum width, and with it every fit's window and the glow stage's fits (docs/water.md)
-    pool = np.flatnonzero(~p.second)
-    if pool.size < STATS_POINTS:
-        pool = np.arange(n)
-    n_pool = pool.size
+    pool = np.empty(n, np.int64)
+    n_pool = 0
+    for t in range(n):
+        if p.second[t] == 0:
+            pool[n_pool] = t
+            n_pool += 1
+    if n_pool < STATS_POINTS:
+        for t in range(n):
+            pool[t] = t
+        n_pool = n
     m_sub = min(n_pool, STATS_POINTS)
     sub = np.empty(m_sub, np.int64)
     if m_sub == 1:

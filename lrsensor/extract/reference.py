@@ -361,10 +361,10 @@ def _candidates(
 def _glow_shows(
     g: NDArray[np.uint8], u: IntArray, v: IntArray, r0: int, thr: float, side: IntArray, ds: int, hd: int
 ) -> bool:
-    """Whether the band shows the laser sheet's glow at the first pass's candidates ``u`` (detection columns),
-    ``v`` (full rows) (``detect.glow_shows``): at a quarter of them or more the detection row ``hd`` outward (the
-    glow ``side`` (W,)) is brighter than the row ``hd`` inward by more than ``thr``. In clear water both are
-    background; in turbid water the glow's edge lies between them. Only then does the second pass run."""
+    """Whether the band shows the laser sheet's glow at the first pass's candidates ``u`` (detection columns), ``v``
+    (full rows) (as ``detect.detect_band`` counts them): at a quarter of them or more the detection row ``hd``
+    outward (the glow ``side`` (W,)) is brighter than the row ``hd`` inward by more than ``thr``. In clear water
+    both are background; in turbid water the glow's edge lies between them. Only then does the second pass run."""
     if u.size == 0:
         return False
     y = (v - r0) // 2 + ds
