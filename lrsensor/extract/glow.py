@@ -226,7 +226,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
     rc = np.zeros(n, np.int64)
     hw = np.zeros(n, np.int64)
     kt = np.zeros(n, np.int64)
-    reach_rows = np.zeros(n, np.int64)  # the rows within which another stripe is looked for
     for t in range(n):
         usable[t] = ok[t] and math.isfinite(vv[t]) and (sat[t] or sig[t] <= max_sig)
         if not usable[t]:
@@ -236,9 +235,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         rc[t] = int(math.floor(vv[t] + 0.5))  # noqa: RUF046 (numba: floor of a float is a float)
         hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
         kt[t] = int(math.ceil(TRIGGER_SIGMAS * sg0[t])) + 1  # noqa: RUF046
-        reach_rows[t] = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
+        reach = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
         nb_ok[t] = not sat[t]
-        cand[t] = side[t] != 0.0 and rc[t] - reach_rows[t] >= 0 and rc[t] + reach_rows[t] <= h - 1
+        cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
     # within POOL_COLS columns: first the step in green at every candidate
@@ -320,13 +319,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
         )
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
+    reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for
     # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
     # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
-    # (filled arrays of the types the stage already has: no code of their own)
-    ramp_on = np.zeros(2, np.bool_)
-    ramp_on[1] = True
-    n_rounds = np.full(2, ROUNDS, np.int64)
-    n_rounds[0] = 1
+    ramp_on = np.array([False, True])
+    n_rounds = np.array([1, ROUNDS])
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image,
         cols,
