@@ -355,9 +355,9 @@ def _shift(v: NDArray[np.float64], u: NDArray[np.int64], frame: TurbidFrame, li:
 def stage_losses(cell: Cell, seed: int = 0) -> list[str]:
     """Where the numpy reference (:mod:`lrsensor.extract.reference`) loses the visible columns of one frame, and
     how far its rows are off at each stage: one Markdown row per laser with the share of visible columns that get a
-    candidate on a picked chain, a fit, pass the colour test, reach the along-stripe smoothing and are returned, and
-    the median row shift outward (px) after the common fit, after the glow stage and after the smoothing (the
-    returned points)."""
+    candidate on a picked chain, a fit, pass the colour test, pass the amplitude and signal-to-noise gates (reach the
+    along-stripe smoothing) and are returned, and the median row shift outward (px) after the common fit, after the
+    glow stage and after the smoothing (the returned points)."""
     from unittest import mock
 
     from lrsensor.extract import reference, reference_glow, subpixel
@@ -373,7 +373,7 @@ def stage_losses(cell: Cell, seed: int = 0) -> list[str]:
 
     def gates_spy(*a: object) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         out = gates(*a)  # type: ignore[arg-type]
-        rec["gates"] = (a[0], out[0])  # type: ignore[assignment]
+        rec["gates"] = (a[0], out[0].copy())  # type: ignore[assignment]  # (the caller gates it further in place)
         return out
 
     def smooth_spy(*a: object, **k: object) -> NDArray[np.float64]:

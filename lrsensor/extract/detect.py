@@ -7,6 +7,13 @@ noise and quarters the work), takes the two-sided contrast ``G(v) - max(G(v - d)
 band's noise. The contrast is positive only on ridges narrower than ``2 d``: thin stripes, not murk gradients,
 the backscatter glow of the laser sheet, haze or wide blobs.
 
+In turbid water the sheet's glow lies on the stripe's outer side, ends at the stripe and brightens outward; on far
+walls so steeply that the stripe is a shoulder on a step, not a ridge, and the contrast finds nothing. Where the
+band shows the glow at the first pass's candidates (counted as they are listed), a second pass
+(:func:`glow_candidates`) takes the local maxima of the centre over the mean of the rows ``d / 4`` either side (a
+blurred step cancels at its centre) where the outer side is the brighter: first in the columns without a candidate,
+then, where it found the stripe there, in all. Clear water never runs it.
+
 The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of second differences of rows two apart
 (independent; linear gradients cancel) on a subsample of about 6000 pixels, for Gaussian noise of std s
 ``0.6745 sqrt(6) s``; histograms, not sorting (integer differences).
@@ -89,8 +96,59 @@ def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     return max(med / (0.6745 * math.sqrt(6.0)), 0.05)
 
 
+#: Second-pass candidates in the columns without any first-pass one from which the glow counts as hiding the stripe
+#: in this band, and the second pass also searches the columns that have candidates (see :func:`glow_candidates`).
+GLOW_PASS_MIN = 8
+
+
+@inline
+def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
+    """The second pass of :func:`detect_band` (the compiled twin of ``reference._glow_candidates``): a stripe on the
+    rising side of the sheet's glow. First in the columns without a candidate whose glow side ``side[2 x]`` is
+    known, then, where that found at least :data:`GLOW_PASS_MIN` candidates, in the other columns too: the rows that
+    are vertical local maxima of the centre-over-mean response (the centre over the mean of the rows ``hd`` either
+    side, rounded half up, at least 0) above ``t8``, whose centre stands above both inner rows (``d / 2`` and ``d /
+    4`` inward) by more than ``t8``, and whose outer row at ``d / 2`` is at least as bright as the centre. They are
+    marked 2 in ``pk`` (first-pass peaks are 1), counted in ``cnt16``, ``row_pk``, and their response written to
+    ``resp`` (all in place). The second sweep runs over all columns: an empty column's hits are marked already and
+    skipped (only unmarked rows are tested). Column by column in plain scalar loops: it runs only where a band shows
+    the glow, and the vectorized loops it had over the rows cost more of the one-time compile than of a frame
+    (:mod:`lrsensor.extract.compile`). The pixels are read as int64 (``int()`` of a uint8 is unsigned in numba: a
+    difference would wrap)."""
+    ho = resp.shape[0]
+    wo = resp.shape[1]
+    for sweep in range(2):
+        found = 0
+        for x in range(wo):
+            sd = side[min(2 * x, w - 1)]
+            if sd == 0 or (sweep == 0 and cnt16[x] > 0):
+                continue
+            # the response down the column: at the row before, this one and the next (clamped to the response's rows)
+            y_a = int(y0[x])
+            r_prev = 0
+            r_cur = 0  # (the first two rows only fill these)
+            for y in range(y_a - 1, int(y1[x]) + 1):
+                yy = min(max(y, 0), ho - 1) + ds
+                diff = np.int64(B[yy, x]) - ((np.int64(B[yy - hd, x]) + np.int64(B[yy + hd, x]) + 1) >> 1)
+                r_next = int(diff) if diff > 0 else 0  # (int() of a signed integer: signed)
+                yc = y - 1  # the row now decided, its response r_cur
+                if yc >= y_a and pk[yc, x] == 0 and r_cur > t8 and r_prev <= r_cur and r_next <= r_cur:
+                    c = np.int64(B[yc + ds, x])
+                    inner = max(np.int64(B[yc + (0 if sd > 0 else 2 * ds), x]), np.int64(B[yc + ds - sd * hd, x]))
+                    if c - inner > t8 and np.int64(B[yc + (2 * ds if sd > 0 else 0), x]) >= c:
+                        pk[yc, x] = 2
+                        cnt16[x] += 1
+                        resp[yc, x] = r_cur
+                        row_pk[yc] = 1
+                        found += 1
+                r_prev = r_cur
+                r_cur = r_next
+        if found < GLOW_PASS_MIN:
+            return
+
+
 @njit
-def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_offset):  # type: ignore[no-untyped-def]
+def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side, col_offset):  # type: ignore[no-untyped-def]
     """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
     ``reference._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
 
@@ -104,8 +162,10 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         image: (H, W, 3) uint8 C-contiguous; r0, r1: the band's bounding rows; d: contrast offset (even), rows.
 
     Returns:
-        ``(cols, rows, strength, noise)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
-        int64, response (N,) float64, sorted by column then row; and the pixel noise, DN.
+        ``(cols, rows, strength, noise, second)``: detection columns plus ``col_offset`` (N,) int64, full rows (N,)
+        int64, response (N,) float64, sorted by column then row; the pixel noise, DN; and (N,) int64, 1 where the
+        candidate is the second pass's (on the glow's rising side, :func:`glow_candidates`), else 0 (int64, not bool:
+        the types the frame's call already has, no list and array code compiled for one more).
     """
     h = image.shape[0]
     w = image.shape[1]
@@ -168,7 +228,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
     t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
     if ho <= 0:
         e_i = np.empty(0, np.int64)
-        return e_i, e_i, np.empty(0), noise
+        return e_i, e_i, np.empty(0), noise, e_i
     # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
     resp = np.empty((ho, wo), np.uint8)
     for y in range(ho):
@@ -223,29 +283,44 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, col_
         for x in range(wo):  # an integer OR (vectorizes)
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
-    cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
-    for x in range(wo):
-        cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
-    n = cnt[wo]
-    cu = np.empty(n, np.int64)
-    cv = np.empty(n, np.int64)
-    ca = np.empty(n)
-    pos = cnt[:wo].copy()
-    words = pk.reshape(-1).view(np.uint64)
-    nw8 = w8 // 8
-    for y in range(ho):
-        if row_pk[y] == 0:
-            continue
-        ry = resp[y]
-        vy = r0 + 2 * y
-        for k in range(nw8):
-            wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0 or 1) each
-            while wk:  # the set bytes, lowest first (none in the common case)
-                x = 8 * k + (trailing_zeros(wk) >> 3)
-                wk &= wk - np.uint64(1)
-                j = pos[x]
-                cu[j] = x + col_offset
-                cv[j] = vy
-                ca[j] = ry[x]
-                pos[x] = j + 1
-    return cu, cv, ca, noise
+    # the candidates, column by column; where the band shows the laser sheet's glow at them (the twin of
+    # reference._glow_shows: at a quarter of them or more the row d / 4 outward, on the glow's side, is brighter than
+    # the row d / 4 inward by more than the threshold; in clear water both are background, in turbid water the glow's
+    # edge lies between them), the second pass's too (the candidates listed once more: one call site of each part)
+    for pass_ in range(2):
+        cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
+        for x in range(wo):
+            cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
+        n = cnt[wo]
+        cu = np.empty(n, np.int64)
+        cv = np.empty(n, np.int64)
+        ca = np.empty(n)
+        c2 = np.empty(n, np.int64)
+        pos = cnt[:wo].copy()
+        words = pk.reshape(-1).view(np.uint64)
+        nw8 = w8 // 8
+        n_glow = 0
+        for y in range(ho):
+            if row_pk[y] == 0:
+                continue
+            ry = resp[y]
+            vy = r0 + 2 * y
+            for k in range(nw8):
+                wk = words[y * nw8 + k]  # the peaks of 8 columns, one byte (0, 1 or 2) each
+                while wk:  # the set bytes, lowest first (none in the common case)
+                    x = 8 * k + (trailing_zeros(wk) >> 3)
+                    wk &= wk - np.uint64(1)
+                    j = pos[x]
+                    cu[j] = x + col_offset
+                    cv[j] = vy
+                    ca[j] = ry[x]
+                    c2[j] = pk[y, x] > 1
+                    sd = side[min(2 * x, w - 1)]
+                    step = np.int64(B[y + ds + hd, x]) - np.int64(B[y + ds - hd, x])
+                    if (sd > 0 and step > t8) or (sd < 0 and -step > t8):
+                        n_glow += 1
+                    pos[x] = j + 1
+        if pass_ > 0 or hd < 2 or not (n > 0 and 4 * n_glow >= n):
+            return cu, cv, ca, noise, c2
+        glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8)
+    return cu, cv, ca, noise, c2

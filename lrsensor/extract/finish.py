@@ -26,6 +26,7 @@ import numpy as np
 from ._jit import inline, njit
 from .geometry import central_view
 from .smooth import smooth_runs_at
+from .sorting import select
 
 #: A 9-input sorting network with 25 compare-exchanges (Floyd's; checked on all 512 0-1 inputs in the tests),
 #: for the default pooled window of 9 columns (odd-even transposition needs 36).
@@ -144,8 +145,36 @@ def from_port_view(y, sw, idx, rows, slope):  # type: ignore[no-untyped-def]
     return out
 
 
+#: A laser's joint fits (:func:`.glow.glow_refit`) tell the noise at its stripe where there are at least this many.
+STRIPE_NOISE_MIN = 64
+
+
 @inline
-def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # type: ignore[no-untyped-def]
+def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
+    """The noise of each laser's band for the signal-to-noise gate, DN (L,): ``noise_l``, or where the laser has at
+    least :data:`STRIPE_NOISE_MIN` points with their own joint fit (``own`` (N,), their residual noise ``lnoise``),
+    the (lower) median of those residual noises (:func:`.sorting.select`) if lower. In turbid water the band's noise
+    holds the glow's bright rows beyond the stripe (their shot noise: 1.2-1.45x the noise at the stripe's row on the
+    turbidity model), and it is the gate's noise at the points whose glow is too faint for the glow stage."""
+    out = noise_l.copy()
+    for li in range(noise_l.size):
+        cnt = 0
+        for t in range(lz.size):
+            cnt += own[t] and lz[t] == li and math.isfinite(lnoise[t])
+        if cnt < STRIPE_NOISE_MIN:
+            continue
+        vals = np.empty(cnt)
+        k = 0
+        for t in range(lz.size):
+            if own[t] and lz[t] == li and math.isfinite(lnoise[t]):
+                vals[k] = lnoise[t]
+                k += 1
+        out[li] = min(out[li], select(vals, cnt, (cnt - 1) // 2))
+    return out
+
+
+@inline
+def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noise):  # type: ignore[no-untyped-def]
     """Colour and signal-to-noise gates, runs, along-stripe smoothing and quality of the fitted points.
 
     The colour test (green must rise more than ``green_ratio`` times red and blue; ``rise`` (3, N) in B, G, R)
@@ -168,6 +197,11 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
             its ``gate_pool_cols``, ``floor_frac`` its ``snr_floor_frac``, ``max_jump`` its ``max_jump_px``);
             geo: the :class:`~lrsensor.extract.settings.Geometry` (through a port the line fits run on the rows a
             pinhole in the water would see, :func:`port_view`).
+        own_noise: (N,) bool: the point's amplitude and local noise are its own joint fit's (the glow stage's: the
+            stripe's amplitude and the fit's residual noise, :func:`.glow.glow_refit`), and that noise is the
+            signal-to-noise ratio's alone: the band's noise holds the glow's brighter rows (more shot noise), and
+            the residuals of a fit that models the glow are the noise at the stripe. Elsewhere the noise is the
+            larger of the band's and the flanks' spread about the common fit's line.
 
     Returns ``(u, v, laser, quality)`` of the accepted points, (M,) each.
     """
@@ -188,8 +222,9 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo):  # typ
     d_b = dr[0]
     d_g = dr[1]
     d_r = dr[2]
+    noise_b = stripe_noise(lz, lnoise, own_noise, noise_l)
     for t in range(n):  # the points' signal-to-noise ratios and their dense rows, one pass (no branch)
-        noise = max(max(noise_l[lz[t]], lnoise[t]), 0.5)
+        noise = max(max(0.0 if own_noise[t] else noise_b[lz[t]], lnoise[t]), 0.5)
         snr[t] = amp[t] / noise
         qp = np.uint64(col_v[t] + pool)
         ch[qp] = chain[t]

@@ -63,6 +63,8 @@ from .sorting import kth, median
 
 #: Sigma of a Gaussian per full width at half maximum.
 FWHM_PER_SIGMA = 2.3548200450309493
+#: Profiles sampled for the frame statistics (:func:`frame_profile_stats`).
+STATS_POINTS = 48
 
 
 class Located(NamedTuple):
@@ -103,6 +105,9 @@ class Picked(NamedTuple):
     chain_len: NDArray[np.int64]
     #: (L,) the band noise of each laser, DN.
     noise: NDArray[np.float64]
+    #: (N,) int64: 1 where the point's candidate is the detection's second pass's (on the glow's rising side, turbid
+    #: water), else 0.
+    second: NDArray[np.int64]
 
 
 @njit
@@ -230,7 +235,7 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
 def _no_candidates(noise):  # type: ignore[no-untyped-def]
     """The :class:`Picked` of a frame without candidates."""
     e_i = np.empty(0, np.int64)
-    return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise)
+    return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise, second=e_i)
 
 
 @njit
@@ -252,13 +257,14 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     parts_u = []
     parts_v = []
     parts_a = []
+    parts_s = []
     total = 0
     for i in range(n_l):
         r0 = bands.rows[i, 0]
         r1 = bands.rows[i, 1]
         if r1 <= r0:
             continue
-        u, v, a, noise[i] = detect_band(
+        u, v, a, noise[i], sec = detect_band(
             image,
             r0,
             r1,
@@ -268,21 +274,25 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
             s.min_response_dn,
             bands.v_lo[i],
             bands.v_hi[i],
+            bands.glow_side[i],
             i * wd,
         )
         parts_u.append(u)
         parts_v.append(v)
         parts_a.append(a)
+        parts_s.append(sec)
         total += u.size
     U = np.empty(total, np.int64)
     Vr = np.empty(total, np.int64)
     Ar = np.empty(total)
+    Sr = np.empty(total, np.int64)
     k = 0
     for j in range(len(parts_u)):
         for t in range(parts_u[j].size):
             U[k] = parts_u[j][t]
             Vr[k] = parts_v[j][t]
             Ar[k] = parts_a[j][t]
+            Sr[k] = parts_s[j][t]
             k += 1
     if total == 0:
         return _no_candidates(noise)
@@ -300,15 +310,32 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     col_d, rows_f, chain, chain_len = select_candidates(U, Vr, Ar, n_cols_d, k, jump, wd, 3, min_run)
     if col_d.size == 0:
         return _no_candidates(noise)
+    # whether each pick is the second pass's: the candidate of its column nearest its row (the first of a tie)
+    sec_d = np.zeros(n_cols_d, np.int64)
+    start = np.zeros(n_cols_d + 1, np.int64)
+    for c in range(n_cols_d):
+        start[c + 1] = start[c] + cnt[c]
+    for i in range(col_d.size):
+        c = col_d[i]
+        best = np.inf
+        for j in range(start[c], start[c + 1]):
+            dj = abs(Vr[j] - rows_f[i])
+            if dj < best:
+                best = dj
+                sec_d[c] = Sr[j]
     col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
     n = col_v.size
     laser = sorted_blocks(col_v, w)
     rows = np.empty(n, np.int64)
     cols = np.empty(n, np.int64)
+    second = np.empty(n, np.int64)
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
-    return Picked(col_v=col_v, laser=laser, cols=cols, rows=rows, chain=chain, chain_len=chain_len, noise=noise)
+        second[t] = sec_d[laser[t] * wd + cols[t] // 2]
+    return Picked(
+        col_v=col_v, laser=laser, cols=cols, rows=rows, chain=chain, chain_len=chain_len, noise=noise, second=second
+    )
 
 
 @njit
@@ -329,16 +356,28 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
     if n == 0:
         return no_points(p.noise, half0)
     col_v, laser, cols, rows, chain, chain_len, noise = p.col_v, p.laser, p.cols, p.rows, p.chain, p.chain_len, p.noise
-    # frame statistics (window length), then the fit of every point
-    m_sub = min(n, 48)
+    # frame statistics (window length), then the fit of every point; the statistics from the first detection pass's
+    # points where it has STATS_POINTS of them: the second pass's lie on the glow's rising side, whose step widens
+    # their profiles' half-maximum width, and with it every fit's window and the glow stage's fits (docs/water.md)
+    pool = np.empty(n, np.int64)
+    n_pool = 0
+    for t in range(n):
+        if p.second[t] == 0:
+            pool[n_pool] = t
+            n_pool += 1
+    if n_pool < STATS_POINTS:
+        for t in range(n):
+            pool[t] = t
+        n_pool = n
+    m_sub = min(n_pool, STATS_POINTS)
     sub = np.empty(m_sub, np.int64)
     if m_sub == 1:
-        sub[0] = 0
+        sub[0] = pool[0]
     else:
-        step = (n - 1) / (m_sub - 1)
+        step = (n_pool - 1) / (m_sub - 1)
         for i in range(m_sub):
-            sub[i] = int(i * step)
-        sub[m_sub - 1] = n - 1
+            sub[i] = pool[int(i * step)]
+        sub[m_sub - 1] = pool[n_pool - 1]
     sig_med, plateau, wide_lim = frame_profile_stats(
         image, take(cols, sub), take(rows, sub), half0, sat_dn, max_sigma, take(mfw, sub)
     )
@@ -386,8 +425,9 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
     res = p.fits
     vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
     # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
+    own = np.zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
     if s.glow_fit:
-        v_g, _s_g, _f_g = glow_refit(
+        v_g, _s_g, own, a_g, n_g = glow_refit(
             image,
             cols,
             laser,
@@ -404,10 +444,14 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
             s.saturation_dn,
             s.min_green_ratio,
         )
+        # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
+        # takes part of the glow's step as a slope)
         for t in range(n):
             vv[t] = v_g[t]
+            amp[t] = a_g[t]
+            res.local_noise[t] = n_g[t]
     # gates, runs, smoothing, quality
-    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo)
+    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
 
 
 @njit

@@ -33,10 +33,11 @@ stripe overlaps this one (centres closer than :data:`PAIR_SIGMAS` times the sum 
 centre and width, then :data:`ITERATIONS` Gauss-Newton steps in all of them, the other stripe's centre and width
 held (its amplitude, and its glow's step where its glow shows and its edge lies in the window, free). :data:`ROUNDS`
 rounds: the first with the other stripes where the common fit put them, each next one (points with another stripe in
-the fit that moved by more than :data:`ROUND_TOL_PX`) where the previous round's fit put them, so that two close
-stripes converge to their joint fit. A fit is kept where it converges to a stripe (``A > 0``) with a glow (where one
-shows: the glow two sigmas outward of the edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit;
-elsewhere, and wherever no glow shows and no stripe is close (clear water), the common fit stands untouched.
+the fit that moved by more than :data:`~lrsensor.extract.glow_fit.ROUND_TOL_PX` times how much of it reaches the
+window) where the previous round's fit put them, so that two close stripes converge to their joint fit. A fit is
+kept where it converges to a stripe (``A > 0``) with a glow (where one shows: the glow two sigmas outward of the
+edge above 5 % of ``A``) within :data:`MAX_MOVE_PX` of the common fit; elsewhere, and wherever no glow shows and no
+stripe is close (clear water), the common fit stands untouched.
 Profiles taken as flat tops (thick sheets close to the wall, wider than ``max_sigma_px``) are left alone unless
 clipped: the model has no flat top.
 
@@ -92,8 +93,13 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
-The compiled kernel is :func:`glow_refit`; the reference's is :func:`lrsensor.extract.reference_glow.glow_refit`
-(numpy, vectorized over the points). Both read the constants here.
+Where more than :data:`WHOLE_STRIPE_FRAC` of a stripe's points show the glow, all of them are fitted with it (its
+dim ends, where the glow does not show above the noise). The stage also returns the stripe amplitude and residual
+noise of each fit taken, which the signal-to-noise gate uses (:func:`lrsensor.extract.finish.finish_points`).
+
+The compiled kernel is :func:`glow_refit`; the fits and their rounds are in :mod:`lrsensor.extract.glow_fit`; the
+reference's is :func:`lrsensor.extract.reference_glow.glow_refit` (numpy, vectorized over the points). Both read
+the constants here and there.
 """
 
 from __future__ import annotations
@@ -103,6 +109,7 @@ import math
 import numpy as np
 
 from ._jit import inline, njit
+from .glow_fit import ROUNDS, fit_rounds, neighbour
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -121,19 +128,12 @@ MEDIAN_VAR = 0.5 * math.pi
 #: The fit's window: the centre -+ (WINDOW_SIGMAS sigma + 2) rows, at most MAX_HALF_PX.
 WINDOW_SIGMAS = 4.5
 MAX_HALF_PX = 30
-#: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
-ITERATIONS = 4
-MAX_STEP_PX = 1.0
-#: ... the steps stop where the centre's and sigma's both fall to this, px.
-STOP_PX = 1e-3
 #: A stripe is fitted together with another laser's where their centres are closer than this many times the sum
 #: of their sigmas (4 px of blur at 3 m: 18 px apart, sigmas of 4 px; sharp stripes of 1.5 px: from 4.6 m on).
 PAIR_SIGMAS = 4.0
 #: ... and both are blurred: sigmas of at least this, px. Sharp stripes close together (clear water, far walls) keep
 #: the common fit with the other's Gaussian subtracted (:mod:`lrsensor.extract.refit`), which is right for them.
 PAIR_MIN_SIGMA = 2.0
-#: Rounds of the fits: the first with the common fit's neighbours, each next one with the previous round's.
-ROUNDS = 4
 #: The glow's ramp (its linear and quadratic growth outward) is taken where the F statistic of its two parameters,
 #: pooled over the stripe's points within POOL_COLS columns either side, exceeds this.
 F_SELECT = 4.0
@@ -146,257 +146,8 @@ RAMP_EVERY = 4
 #: ... and fitted at every point of the stretches whose sampled F statistic exceeds this share of F_SELECT (the
 #: sampled test decides alone where the ramp is plainly not asked for; near the bar, the whole stretch decides).
 RAMP_MARGIN = 0.5
-#: ... a point is refitted in the next round only where the other stripe (its centre or sigma) moved by more than
-#: this, px.
-ROUND_TOL_PX = 0.01
-#: The joint fit is kept within this distance of the common fit's centre, px.
-MAX_MOVE_PX = 4.0
-#: Linear parameters of the joint fit: background level and slope, stripe, glow step, glow ramp, neighbour.
-N_LIN = 8
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
-#: Phi(x) = 1 - phi(x) t P(t), t = 1 / (1 + p x), x >= 0 (Abramowitz-Stegun 26.2.17, |error| < 7.5e-8).
-_AS_P = 0.2316419
-_INV_SQRT_2PI = 0.3989422804014327
-
-
-@inline
-def upper_tail(a, gauss):  # type: ignore[no-untyped-def]
-    """``1 - Phi(a)`` for ``a >= 0`` given ``gauss = exp(-a^2 / 2)`` (Abramowitz-Stegun 26.2.17)."""
-    t = 1.0 / (1.0 + _AS_P * a)
-    poly = t * (0.319381530 + t * (-0.356563782 + t * (1.781477937 + t * (-1.821255978 + t * 1.330274429))))
-    return gauss * _INV_SQRT_2PI * poly
-
-
-@inline
-def _dot(x, y, n):  # type: ignore[no-untyped-def]
-    """``sum(x[:n] * y[:n])`` in four sums (a single one would wait on every add)."""
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    i = 0
-    while i + 4 <= n:
-        s0 += x[i] * y[i]
-        s1 += x[i + 1] * y[i + 1]
-        s2 += x[i + 2] * y[i + 2]
-        s3 += x[i + 3] * y[i + 3]
-        i += 4
-    while i < n:
-        s0 += x[i] * y[i]
-        i += 1
-    return (s0 + s1) + (s2 + s3)
-
-
-@inline
-def _gauss_rows(out, q0, k_rows, c, inv_s):  # type: ignore[no-untyped-def]
-    """``out[i] = exp(-((q0 + i - c) inv_s)^2 / 2)`` for ``i < k_rows``: from the row nearest ``c`` outward, each row
-    the last times the ratio of neighbouring rows, which changes by ``exp(-inv_s^2)`` a row (three exponentials
-    instead of one a row, which were half a fit's time; relative error ~1e-14; rows far out may underflow to 0)."""
-    m = min(max(int(math.floor(c - q0 + 0.5)), 0), k_rows - 1)  # noqa: RUF046 (numba: floor of a float is a float)
-    z = (q0 + m - c) * inv_s
-    g0 = math.exp(-0.5 * z * z)
-    out[m] = g0
-    h2 = 0.5 * inv_s * inv_s
-    k2 = math.exp(-2.0 * h2)
-    g = g0
-    r = math.exp(-z * inv_s - h2)
-    for i in range(m + 1, k_rows):
-        g *= r
-        out[i] = g
-        r *= k2
-    g = g0
-    r = math.exp(z * inv_s - h2)
-    for i in range(m - 1, -1, -1):
-        g *= r
-        out[i] = g
-        r *= k2
-
-
-@njit
-def _solve(M, b, k):  # type: ignore[no-untyped-def]
-    """Solve ``M[:k, :k] x = b[:k]`` in place for a symmetric positive definite ``M`` (normal equations; Cholesky,
-    half the work of an elimination with pivots: the solves were a third of a fit's time); False when singular (a
-    pivot at or below 1e-12, or below 1e-13 of its diagonal entry: a column the others nearly span)."""
-    for j in range(k):
-        d = M[j, j]
-        for p in range(j):
-            d -= M[j, p] * M[j, p]
-        if not (d > 1e-12 and d > 1e-13 * M[j, j]):
-            return False
-        d = math.sqrt(d)
-        M[j, j] = d
-        inv = 1.0 / d
-        for i in range(j + 1, k):
-            acc = M[i, j]
-            for p in range(j):
-                acc -= M[i, p] * M[j, p]
-            M[i, j] = acc * inv
-    for i in range(k):  # L y = b
-        acc = b[i]
-        for p in range(i):
-            acc -= M[i, p] * b[p]
-        b[i] = acc / M[i, i]
-    for i in range(k - 1, -1, -1):  # L^T x = y
-        acc = b[i]
-        for p in range(i + 1, k):
-            acc -= M[p, i] * b[p]
-        b[i] = acc / M[i, i]
-    return True
-
-
-@njit
-def _fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
-    """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
-    centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
-    the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
-    another one, no glow); ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c,
-    sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares (at the last Gauss-Newton step's start) and
-    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out."""
-    kk = N_LIN + 2
-    return _fit_into(
-        y,
-        q,
-        side,
-        c,
-        sg,
-        nb_c,
-        nb_s,
-        nb_side,
-        glow_on,
-        ramp,
-        min_sig,
-        max_sig,
-        sat_dn,
-        np.empty((kk, kk)),
-        np.empty(kk),
-        np.empty(kk),
-        np.empty(N_LIN),
-        np.empty(kk, np.int64),
-        np.empty((N_LIN + 5, y.size)),
-        False,
-    )
-
-
-@njit
-def _fit_into(  # type: ignore[no-untyped-def]
-    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm
-):
-    """:func:`_fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
-    (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
-    Gaussians along the rows): the fits of a frame allocate nothing per point. The rows ``q`` are one apart.
-    ``warm``: ``lin`` holds the linear parameters of a fit of this model at ``c``, ``sg`` (a round's earlier fit, its
-    other stripe moved a little): one Gauss-Newton step from there, no linear start.
-
-    First the linear parameters alone at the start, then at most :data:`ITERATIONS` Gauss-Newton steps in all of
-    them, fewer where the centre's and sigma's step falls to :data:`STOP_PX`; each pass builds the normal equations
-    row by row, in the parameters the profile's model has, and sums the squared residuals at its start (the last
-    pass's sum is the fit's: a converged step changes it by its square, and a pass of its own would cost as much as
-    a step)."""
-    k_rows = y.size
-    has_nb = math.isfinite(nb_c)
-    nb_glow = has_nb and nb_side != 0.0
-    # the active parameters, linear first, then the centre and sigma: the normal equations in them alone (the
-    # reference's identity rows for the others decouple exactly)
-    n_lin = 0
-    for a in range(N_LIN):
-        keep = (a != 3 or glow_on) and (a not in (4, 5) or (glow_on and ramp)) and (a != 6 or has_nb)
-        if not keep or (a == 7 and not nb_glow):
-            continue
-        par[n_lin] = a
-        n_lin += 1
-    par[n_lin] = N_LIN
-    par[n_lin + 1] = N_LIN + 1
-    kk = n_lin + 2
-    for a in range(N_LIN + 2):
-        xr[a] = 0.0
-    if not warm:
-        for a in range(N_LIN):
-            lin[a] = 0.0
-    jac = work[: N_LIN + 2]
-    res = work[N_LIN + 2]
-    g_own = work[N_LIN + 3]
-    g_nb = work[N_LIN + 4]
-    if has_nb:  # the other stripe's Gaussian: held in the fit
-        _gauss_rows(g_nb, q[0], k_rows, nb_c, 1.0 / nb_s)
-    rss = np.nan
-    dof = -kk
-    for i in range(k_rows):
-        dof += y[i] < sat_dn
-    for it in range(1 if warm else 0, 2 if warm else ITERATIONS + 1):
-        full = it > 0
-        m_ = kk if full else n_lin
-        r2 = 0.0
-        inv_sg = 1.0 / sg
-        n_s = 0  # the samples taken (unclipped)
-        _gauss_rows(g_own, q[0], k_rows, c, inv_sg)
-        for i in range(k_rows):
-            if y[i] >= sat_dn:
-                continue
-            z = (q[i] - c) * inv_sg
-            gz = g_own[i]
-            xr[0] = 1.0
-            xr[1] = q[i]
-            xr[2] = gz
-            f = 0.0
-            ph = 0.0
-            rmp = 0.0
-            if glow_on:
-                u = side * z
-                tail = upper_tail(abs(u), gz)
-                f = 1.0 - tail if u >= 0.0 else tail
-                ph = gz * _INV_SQRT_2PI
-                xr[3] = f
-                if ramp:
-                    rmp = sg * (u * f + ph)
-                    xr[4] = rmp
-                    xr[5] = sg * sg * ((u * u + 1.0) * f + u * ph)
-            if has_nb:
-                gd = g_nb[i]
-                xr[6] = gd
-                if nb_glow:
-                    ud = nb_side * (q[i] - nb_c) / nb_s
-                    td = upper_tail(abs(ud), gd)
-                    xr[7] = 1.0 - td if ud >= 0.0 else td
-            r = y[i]
-            if full:
-                for j in range(N_LIN):
-                    r -= xr[j] * lin[j]
-                r2 += r * r
-                xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
-                xr[N_LIN + 1] = (
-                    (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
-                )
-            for a in range(m_):
-                jac[a, n_s] = xr[par[a]]
-            res[n_s] = r
-            n_s += 1
-        # the normal equations from the Jacobian's columns (row by row into the sums would chain every sum through
-        # memory: several times slower)
-        for a in range(m_):
-            ja = jac[a]
-            b[a] = _dot(ja, res, n_s)
-            for j in range(a, m_):
-                M[a, j] = M[j, a] = _dot(ja, jac[j], n_s)
-        if not _solve(M, b, m_):
-            return c, sg, lin[2], lin[3], False, np.nan, np.nan
-        if not full:
-            for a in range(n_lin):
-                lin[par[a]] = b[a]
-            continue
-        rss = r2
-        for a in range(n_lin):
-            lin[par[a]] += b[a]
-        dc = min(max(b[n_lin], -MAX_STEP_PX), MAX_STEP_PX)
-        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg
-        c += dc
-        sg += ds
-        if abs(dc) <= STOP_PX and abs(ds) <= STOP_PX:
-            break
-    x2 = 2.0 * sg  # the glow two sigmas outward of the edge (where its step is complete) is a glow
-    g_out = lin[3] + lin[4] * x2 + lin[5] * x2 * x2
-    ok = math.isfinite(c) and lin[2] > 0.0 and (not glow_on or g_out > TRIGGER_FRAC * lin[2])
-    return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
 @inline
@@ -436,25 +187,6 @@ def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
 
 
 @njit
-def _neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
-    """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
-    (centre ``v_nb``, sigma ``s_nb``) reaches within ``reach`` rows of the point's centre ``v_nb[t]`` by 3 sigma;
-    -1: none."""
-    col = cols[t]
-    nb = -1
-    best = np.inf
-    for li in range(at.shape[0]):
-        j = at[li, col]
-        if li == laser[t] or j < 0 or not nb_ok[j]:
-            continue
-        dj = abs(v_nb[j] - v_nb[t])
-        if dj < reach + 3.0 * s_nb[j] and dj < best:
-            best = dj
-            nb = j
-    return nb
-
-
-@njit
 def glow_refit(  # type: ignore[no-untyped-def]
     image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio
 ):
@@ -471,7 +203,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
             in red and blue by this factor (the stripe's colour test).
 
     Returns:
-        ``(centre_row, sigma, fitted)``: (N,) each; the common fit's centre and sigma where ``fitted`` is False.
+        ``(centre_row, sigma, fitted, amplitude, noise)``: (N,) each; the common fit's centre and sigma where
+        ``fitted`` is False; the stripe's amplitude (DN) and the residual noise (DN, the root of the residual sum of
+        squares over the degrees of freedom) of the fit taken, ``amp`` and ``lnoise`` where none is (the
+        signal-to-noise gate's: the common fit's line takes part of the glow's step as a slope, which lowers its
+        amplitude and raises its flanks' spread).
     """
     h = image.shape[0]
     w = image.shape[1]
@@ -510,7 +246,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     for t in range(n):
         if not cand[t]:
             continue
-        nb = _neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
+        nb = neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
         nb0[t] = nb
         d = _raw_step(image, rc[t], cols[t], int(side[t]), kt[t], 1)
         if nb >= 0:
@@ -568,7 +304,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
             for cc in range(lo_c, hi_c):
                 both += at[li, cc] >= 0 and glowing[at[li, cc]]
             glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
-    glowing = glow_run
+    glowing = _whole_stripe(glow_run, cand, laser, n_l)
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
     fit_me = np.zeros(n, np.bool_)
@@ -582,11 +318,13 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
-    # over the stripe's peak), with the other stripes where the step model put them (the model chosen by a value, not
-    # a constant: numba compiles a kernel once for each constant it is called with, the rounds and their fits twice)
-    step_model = bool(False)  # noqa: UP018 (numba: bool() of a constant is a value)
-    ramp_model = bool(True)  # noqa: UP018
-    v0, s0, f0, rss0, _d0, st0 = _rounds(
+    # over the stripe's peak), with the other stripes where the step model put them
+    reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for
+    # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
+    # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
+    ramp_on = np.array([False, True])
+    n_rounds = np.array([1, ROUNDS])
+    v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image,
         cols,
         laser,
@@ -602,12 +340,13 @@ def glow_refit(  # type: ignore[no-untyped-def]
         side,
         rc,
         hw,
-        kt,
+        reach_rows,
         sg0,
         lo_sig,
         max_sig,
         sat_dn,
-        step_model,
+        ramp_on[0],
+        n_rounds[1],
     )
     strong = np.zeros(n, np.bool_)
     for t in range(n):
@@ -628,25 +367,68 @@ def glow_refit(  # type: ignore[no-untyped-def]
     sample = np.zeros(n, np.bool_)
     for t in range(n):
         sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
-    _v2, _s2, f2, rss2, dof2, _st2 = _rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, ramp_model,
+    # (the sampled test in one round, with the other stripes where the step model put them: it decides only which
+    # stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
+    _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
+        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp_on[1], n_rounds[0],
     )  # fmt: skip
     maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, _st3 = _rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, kt, sg0, lo_sig, max_sig,
-        sat_dn, ramp_model,
+    v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
+        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp_on[1], n_rounds[1],
     )  # fmt: skip
     take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
     s_out = s0
     fitted = f0.copy()
+    a_out = amp.copy()
+    n_out = lnoise.copy()
     for t in range(n):
+        if not (take[t] or f0[t]):
+            continue
+        rs, df = rss0[t], _d0[t]
+        a_out[t] = st0[0, t]
         if take[t]:
             v_out[t] = v3[t]
             s_out[t] = s3[t]
             fitted[t] = True
-    return v_out, s_out, fitted
+            rs, df = rss3[t], dof3[t]
+            a_out[t] = _st3[0, t]
+        n_out[t] = _residual_noise(rs, df, lnoise[t])
+    return v_out, s_out, fitted, a_out, n_out
+
+
+@inline
+def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
+    """A fit's residual noise, DN: ``sqrt(rss / dof)``, ``fallback`` where that is not finite."""
+    r = math.sqrt(rss / dof) if dof > 0.0 else np.nan
+    return r if math.isfinite(r) else fallback
+
+
+#: A stripe's glow is fitted along all of it where more than this share of its points show the glow (a weak glow,
+#: shown by fewer, fitted at the dim ends too, read walls at 2 m with 4 px of blur and a step of 0.1 worse: outliers
+#: 0.7 -> 2.0 %).
+WHOLE_STRIPE_FRAC = 0.8
+
+
+@njit
+def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
+    """``glowing`` (N,) and, where nearly all of a laser's candidates (``cand``) show the glow (more than
+    :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the same proportion
+    to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and the common fit
+    there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
+    n_c = np.zeros(n_l, np.int64)
+    n_g = np.zeros(n_l, np.int64)
+    for t in range(laser.size):
+        if cand[t]:
+            n_c[laser[t]] += 1
+            n_g[laser[t]] += glowing[t]
+    out = glowing.copy()
+    for t in range(laser.size):
+        if cand[t] and n_g[laser[t]] > WHOLE_STRIPE_FRAC * n_c[laser[t]]:
+            out[t] = True
+    return out
 
 
 @njit
@@ -674,131 +456,3 @@ def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # typ
         if cnt > 0:
             out[t] = d_rss / (2.0 * cnt) / (r2 / df2)
     return out
-
-
-@njit
-def _rounds(  # type: ignore[no-untyped-def]
-    image,
-    cols,
-    laser,
-    at,
-    vv,
-    sig,
-    v_init,
-    s_init,
-    nb_ok,
-    nb0,
-    fit_me,
-    glowing,
-    side,
-    rc,
-    hw,
-    kt,
-    sg0,
-    lo_sig,
-    max_sig,
-    sat_dn,
-    ramp,
-):
-    """The joint fits of the points ``fit_me`` (:func:`glow_refit`'s arrays), with the glow's ramp or without:
-    :data:`ROUNDS` rounds, the first with the other stripes at ``v_init``, ``s_init`` (N,), each next one (points
-    with another stripe in the window whose centre or sigma moved by more than :data:`ROUND_TOL_PX`) with the
-    previous round's (a stripe out of the window in both rounds leaves the same fit: at 2 m, 9 of 10 refits were). A
-    later round refits a point without a glow (a stripe beside another one) by one Gauss-Newton step from its last
-    fit where its model stays (the other stripe moved by hundredths of a px: the step lands within the rounds'
-    tolerance of a whole refit, a third of its cost); a glowing point is refitted whole from the common fit (where
-    the glow's model is poor, far walls with much blur, its fits do not converge in :data:`ITERATIONS` steps, and
-    continuing them moved the single columns' median by 0.05-0.1 px there).
-    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
-    steps (2, N)."""
-    n = cols.size
-    v_out = v_init.copy()
-    s_out = s_init.copy()
-    fitted = np.zeros(n, np.bool_)
-    last_c = np.full(n, np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
-    last_s = np.full(n, np.nan)
-    last_side = np.zeros(n)
-    lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
-    rss = np.full(n, np.nan)
-    dof = np.full(n, np.nan)
-    steps = np.zeros((2, n))
-    y = np.empty(2 * MAX_HALF_PX + 1)
-    q = np.empty(2 * MAX_HALF_PX + 1)
-    kk = N_LIN + 2
-    M = np.empty((kk, kk))
-    b = np.empty(kk)
-    xr = np.empty(kk)
-    lin = np.empty(N_LIN)
-    par = np.empty(kk, np.int64)
-    work = np.empty((N_LIN + 5, 2 * MAX_HALF_PX + 1))
-    for rnd in range(ROUNDS):
-        v1 = v_out.copy()
-        s1 = s_out.copy()
-        taken = False
-        for t in range(n):
-            if not fit_me[t] or (rnd > 0 and not (nb0[t] >= 0 and fitted[t])):
-                continue
-            nb = (
-                nb0[t]
-                if rnd == 0
-                else _neighbour(t, at, cols, laser, nb_ok, v1, s1, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
-            )
-            nb_s = 1.0 if nb < 0 else max(s1[nb], lo_sig)
-            nb_c = np.nan if nb < 0 else v1[nb] - rc[t]
-            if not abs(nb_c) < hw[t] + 3.0 * nb_s:  # (also NaN) its stripe does not reach the fit's window
-                nb_c = np.nan
-            if rnd > 0:  # refitted only where the other stripe moved (out of the window in both: the same fit)
-                out_both = math.isnan(nb_c) and math.isnan(last_c[t])
-                if out_both or (abs(nb_c - last_c[t]) <= ROUND_TOL_PX and abs(nb_s - last_s[t]) <= ROUND_TOL_PX):
-                    continue
-            # the other stripe's glow, where its edge lies in the window
-            nb_side = side[nb] if nb >= 0 and glowing[nb] and abs(nb_c) <= hw[t] else 0.0
-            # one step from the last fit where its model stays (the other stripe moved by hundredths of a px)
-            cold = rnd == 0 or glowing[t]
-            warm = not cold and math.isnan(nb_c) == math.isnan(last_c[t]) and nb_side == last_side[t]
-            last_c[t] = nb_c
-            last_s[t] = nb_s
-            last_side[t] = nb_side
-            for a in range(N_LIN):
-                lin[a] = lin_t[t, a]
-            k_rows = 2 * hw[t] + 1
-            for i in range(k_rows):
-                y[i] = float(image[rc[t] - hw[t] + i, cols[t], 1])
-                q[i] = float(i - hw[t])
-            # the first round from the common fit, the next ones from the point's last fit
-            c, sg, a_fit, g_fit, good, rs, df = _fit_into(
-                y[:k_rows],
-                q[:k_rows],
-                side[t],
-                (vv[t] if cold else v_out[t]) - rc[t],
-                sg0[t] if cold else s_out[t],
-                nb_c,
-                nb_s,
-                nb_side,
-                glowing[t],
-                ramp,
-                lo_sig,
-                max_sig,
-                sat_dn,
-                M,
-                b,
-                xr,
-                lin,
-                par,
-                work,
-                warm,
-            )
-            if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
-                v_out[t] = rc[t] + c
-                s_out[t] = sg
-                rss[t] = rs
-                dof[t] = df
-                steps[0, t] = a_fit
-                steps[1, t] = g_fit
-                fitted[t] = True
-                taken = True
-                for a in range(N_LIN):
-                    lin_t[t, a] = lin[a]
-        if not taken:  # the next round would see the same other stripes as this one: nothing to refit
-            break
-    return v_out, s_out, fitted, rss, dof, steps

@@ -10,7 +10,9 @@ step by step. Read it to learn what the kernels compute; read the kernels to lea
 :func:`lrsensor.extract.settings.frame_settings`, and:
 
 1. detects candidates per laser in its band (:func:`_candidates`: OpenCV's 2x2 area average, 3-column box,
-   two-sided contrast and local maxima, bit for bit what :func:`lrsensor.extract.detect.detect_band` computes);
+   two-sided contrast and local maxima, and where the band shows the sheet's glow a second pass for the stripe on
+   the glow's rising side, :func:`_glow_candidates`; bit for bit what :func:`lrsensor.extract.detect.detect_band`
+   computes);
 2. links them into chains and picks one per column (:func:`_pick`: :func:`_merge_plateaus`, :func:`_top_k`,
    :func:`_chains`), expanded from the half-resolution detection columns to full columns;
 3. fits the sub-pixel centre of every picked column on its green profile (:func:`_fit`, with
@@ -42,13 +44,16 @@ from ..calibration import Calibration
 from ..triangulation import triangulate as _triangulate
 from . import reference_finish, reference_glow, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
-from .detect import noise_col_step
+from .detect import GLOW_PASS_MIN, noise_col_step
+from .finish import STRIPE_NOISE_MIN
 from .fit import flank_offset
+from .frame import STATS_POINTS
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 #: Rows per background flank of the sub-pixel fit (as the compiled kernels take them).
 _FLANK_PX = 3
@@ -84,14 +89,15 @@ def extract_frame(
     for i in range(n_l):
         if bands.rows[i, 1] <= bands.rows[i, 0]:
             continue
-        u, v, a, noise[i] = _candidates(image, i, bands, s, i * wd)
-        parts.append((u, v, a))
+        u, v, a, noise[i], sec = _candidates(image, i, bands, s, i * wd)
+        parts.append((u, v, a, sec))
     if not parts or sum(p[0].size for p in parts) == 0:
         return _nothing()
     # laser by laser, each sorted by column then row: the concatenation is sorted by (virtual) column
     U = np.concatenate([p[0] for p in parts])
     Vr = np.concatenate([p[1] for p in parts])
     Ar = np.concatenate([p[2] for p in parts])
+    Sr = np.concatenate([p[3] for p in parts])
     n_cols = n_l * w
     # 2. continuity: chains; per column the candidate on the strongest long-enough chain
     jump = s.max_jump_px * 1.5
@@ -99,6 +105,18 @@ def extract_frame(
     col_d, rows_f, chain, chain_len = _pick(U, Vr, Ar, n_l * wd, s, wd, jump, min_run)
     if col_d.size == 0:
         return _nothing()
+    # whether each pick is the second detection pass's: the candidate of its column nearest its row (the first of a
+    # tie; rows ascend within a column)
+    pick_of = np.full(n_l * wd, -1)
+    pick_of[col_d] = np.arange(col_d.size)
+    has = pick_of[U] >= 0
+    j_c = np.flatnonzero(has)
+    dist = np.abs(Vr[j_c] - rows_f[pick_of[U[j_c]]])
+    o_n = np.lexsort((dist, U[j_c]))  # stable: by column, then distance, then row
+    first_of = np.ones(o_n.size, bool)
+    first_of[1:] = U[j_c][o_n][1:] != U[j_c][o_n][:-1]
+    sec_d = np.zeros(n_l * wd, bool)
+    sec_d[U[j_c][o_n][first_of]] = Sr[j_c][o_n][first_of]
     # every detection column c stands for the full columns 2c and 2c + 1 (between c and c + 1)
     laser_d = col_d // wd
     c = col_d - laser_d * wd
@@ -126,7 +144,11 @@ def extract_frame(
             max_fwhm[need] = _max_fwhm(calibration, geo, cols[need], rows[need], laser[need], s)
         return max_fwhm[idx]
 
-    sub = np.linspace(0, cols.size - 1, min(cols.size, 48)).astype(np.int64)
+    # the frame statistics from the first detection pass's points where it has enough (frame.fit_points says why)
+    pool = np.flatnonzero(~sec_d[laser * wd + cols // 2])
+    if pool.size < STATS_POINTS:
+        pool = np.arange(cols.size)
+    sub = pool[np.linspace(0, pool.size - 1, min(pool.size, STATS_POINTS)).astype(np.int64)]
     half0 = s.window_half_px
     P0 = _gather(image, cols[sub], rows[sub], half0, 1)
     wide_lim = float(np.median(max_fwhm_at(sub)))  # a wide-sheet frame needs a longer window
@@ -172,8 +194,9 @@ def extract_frame(
                 arr[idx] = new
             rise[:, idx] = rise_i
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
-    if s.glow_fit:
-        vv = reference_glow.glow_refit(
+    own = np.zeros(cols.size, bool)
+    if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
+        vv, _sg, own, amp, lnoise = reference_glow.glow_refit(
             image,
             cols,
             laser,
@@ -189,10 +212,16 @@ def extract_frame(
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
-        )[0]
+        )
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
-    snr = amp / np.maximum(np.maximum(noise[col_v // w], lnoise), 0.5)
+    # (where the glow stage's joint fit is taken, its residual noise alone: finish.finish_points)
+    noise_b = noise.copy()  # (finish.stripe_noise: the joint fits' residual noise, where they tell it)
+    for li in range(noise.size):
+        x = lnoise[own & (col_v // w == li) & np.isfinite(lnoise)]
+        if x.size >= STRIPE_NOISE_MIN:  # the lower median
+            noise_b[li] = min(noise_b[li], float(np.partition(x, (x.size - 1) // 2)[(x.size - 1) // 2]))
+    snr = amp / np.maximum(np.maximum(np.where(own, 0.0, noise_b[col_v // w]), lnoise), 0.5)
     # 5. gates, runs, smoothing, quality
     ok, snr = pooled_gates(col_v, chain, ok, _sat, rise, snr, s)
     ok &= (amp >= s.min_contrast_dn) & ((snr >= s.min_snr) | _sat)
@@ -271,7 +300,7 @@ def _noise_dn(g: NDArray[np.uint8], step: int = 8) -> float:
 
 def _candidates(
     image: NDArray[np.uint8], laser: int, bands: Bands, s: Settings, col_offset: int
-) -> tuple[IntArray, IntArray, FloatArray, float]:
+) -> tuple[IntArray, IntArray, FloatArray, float, BoolArray]:
     """Stripe candidates of ``laser`` inside its band (:func:`lrsensor.extract.detect.detect_band`).
 
     The green channel of the band's rows (and ``d`` more either side, replicated beyond the image, evened) is
@@ -281,8 +310,9 @@ def _candidates(
     wide blobs). Candidates are its vertical local maxima above the noise-scaled threshold, inside the band.
 
     Returns:
-        ``(cols, rows, strength, noise)``: detection-scale columns plus ``col_offset`` (N,), full-resolution rows
-        (N,), contrast (N,), sorted by column then row, and the full-resolution pixel noise (DN).
+        ``(cols, rows, strength, noise, second)``: detection-scale columns plus ``col_offset`` (N,),
+        full-resolution rows (N,), contrast (N,), sorted by column then row, the full-resolution pixel noise (DN),
+        and (N,) whether each is the second pass's (:func:`_glow_candidates`).
     """
     r0, r1 = int(bands.rows[laser, 0]), int(bands.rows[laser, 1])
     h, w = image.shape[:2]
@@ -313,16 +343,92 @@ def _candidates(
     pk: Any = cv2.compare(resp, loc, cv2.CMP_GE)
     pk &= cv2.compare(resp, thr, cv2.CMP_GT)  # type: ignore[call-overload]
     nz = cv2.findNonZero(pk)
-    if nz is None:
-        z = np.zeros(0, np.int64)
-        return z, z, np.zeros(0), noise
-    xy = nz.reshape(-1, 2).astype(np.int64)
+    xy = np.zeros((0, 2), np.int64) if nz is None else nz.reshape(-1, 2).astype(np.int64)
     u, v = xy[:, 0], r0 + 2 * xy[:, 1]
     a = resp[xy[:, 1], u].astype(np.float64)
     uf = np.minimum(u * 2, w - 1)
     inside = (v >= v_lo[uf]) & (v <= v_hi[uf])  # the band need not be a rectangle
-    order = np.argsort(u[inside], kind="stable")  # by column; rows stay ascending (findNonZero is row-major)
-    return u[inside][order] + col_offset, v[inside][order], a[inside][order], noise
+    u, v, a = u[inside], v[inside], a[inside]
+    sec = np.zeros(u.size, bool)
+    if hd >= 2 and _glow_shows(g, u, v, r0, thr, bands.glow_side[laser], ds, hd):
+        u2, v2, a2 = _glow_candidates(g, u, v, r0, thr, v_lo, v_hi, bands.glow_side[laser], ds, hd)
+        u, v, a = np.concatenate([u, u2]), np.concatenate([v, v2]), np.concatenate([a, a2])
+        sec = np.concatenate([sec, np.ones(u2.size, bool)])
+    order = np.lexsort((v, u))  # by column, then row
+    return u[order] + col_offset, v[order], a[order], noise, sec[order]
+
+
+def _glow_shows(
+    g: NDArray[np.uint8], u: IntArray, v: IntArray, r0: int, thr: float, side: IntArray, ds: int, hd: int
+) -> bool:
+    """Whether the band shows the laser sheet's glow at the first pass's candidates ``u`` (detection columns), ``v``
+    (full rows) (as ``detect.detect_band`` counts them): at a quarter of them or more the detection row ``hd``
+    outward (the glow ``side`` (W,)) is brighter than the row ``hd`` inward by more than ``thr``. In clear water
+    both are background; in turbid water the glow's edge lies between them. Only then does the second pass run."""
+    if u.size == 0:
+        return False
+    y = (v - r0) // 2 + ds
+    sd = side[np.minimum(2 * u, side.size - 1)]
+    gi = g.astype(np.int64)
+    step = sd * (gi[y + hd, u] - gi[y - hd, u])
+    return bool(4 * int(np.sum((sd != 0) & (step > thr))) >= u.size)
+
+
+def _glow_candidates(
+    g: NDArray[np.uint8],
+    u_first: IntArray,
+    v_first: IntArray,
+    r0: int,
+    thr: float,
+    v_lo: IntArray,
+    v_hi: IntArray,
+    side: IntArray,
+    ds: int,
+    hd: int,
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """The second detection pass (``detect.glow_candidates``): a stripe on the rising side of the sheet's glow.
+
+    Where the glow brightens steeply outward (far walls in turbid water) the stripe is a shoulder on a step, not a
+    ridge, and the two-sided contrast finds nothing in its column. There, first in the columns of the band without
+    any candidate of the first pass (``u_first``, ``v_first``: detection columns, full rows), the response is the centre
+    over the mean of the rows ``hd`` either side, ``G(v) - (G(v - hd) + G(v + hd)) / 2`` (rounded half up,
+    saturating at 0): a blurred step's edge cancels at its centre, a convex glow gives nothing, the stripe its
+    peak. A candidate is a vertical local maximum of it above ``thr`` whose centre stands above both inner rows
+    (``ds`` and ``hd`` towards the vanishing line, away from the glow ``side`` (W,)) by more than ``thr`` and
+    whose outer row at ``ds`` is at least as bright as the centre (the glow, which is why the first pass failed).
+    Where that finds at least :data:`~lrsensor.extract.detect.GLOW_PASS_MIN` candidates, the glow hides the stripe
+    in this band, and the columns with first-pass candidates get the second pass's too (at rows that are no
+    first-pass peak): a speck of the glow (noise, a particle) found there alone would cut the stripe's chain.
+    Clear water never gets that far.
+
+    Args:
+        g: (gh, wo) the detection image (2x2 average, 3-column box); u_first: detection columns with a candidate.
+
+    Returns:
+        ``(cols, rows, strength)``: detection columns (N,), full rows (N,), response (N,).
+    """
+    gi = g.astype(np.int32)
+    ho, wo = gi.shape[0] - 2 * ds, gi.shape[1]
+    c, b0, b1 = gi[ds : ds + ho], gi[:ho], gi[2 * ds : 2 * ds + ho]
+    h0, h1 = gi[ds - hd : ds - hd + ho], gi[ds + hd : ds + hd + ho]
+    r2 = np.maximum(c - ((h0 + h1 + 1) >> 1), 0)
+    sd = side[np.minimum(2 * np.arange(wo), side.size - 1)][None, :]
+    b_in, h_in, b_out = np.where(sd > 0, b0, b1), np.where(sd > 0, h0, h1), np.where(sd > 0, b1, b0)
+    up = np.concatenate([r2[:1], r2[:-1]])
+    down = np.concatenate([r2[1:], r2[-1:]])
+    pk = (r2 > thr) & (r2 >= up) & (r2 >= down) & (sd != 0) & (c - np.maximum(b_in, h_in) > thr) & (b_out >= c)
+    y, x = np.nonzero(pk)
+    v = r0 + 2 * y
+    uf = np.minimum(2 * x, side.size - 1)
+    empty = np.ones(wo, bool)
+    empty[u_first] = False
+    inside = (v >= v_lo[uf]) & (v <= v_hi[uf])
+    keep = inside & empty[x]
+    if int(keep.sum()) >= GLOW_PASS_MIN:
+        first = np.zeros(pk.shape, bool)
+        first[(v_first - r0) // 2, u_first] = True
+        keep = inside & ~first[y, x]
+    return x[keep], v[keep], r2[y[keep], x[keep]].astype(np.float64)
 
 
 _KERNEL_3 = cv2.getStructuringElement(cv2.MORPH_RECT, (1, 3))

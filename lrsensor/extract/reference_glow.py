@@ -11,38 +11,33 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import glow
+from . import glow_fit
 from .glow import (
     F_SELECT,
-    ITERATIONS,
     MAX_HALF_PX,
-    MAX_MOVE_PX,
-    MAX_STEP_PX,
     MEDIAN_VAR,
     MIN_SIGMA_PX,
-    N_LIN,
     PAIR_MIN_SIGMA,
     PAIR_SIGMAS,
     POOL_COLS,
     RAMP_EVERY,
     RAMP_MARGIN,
     RAMP_MIN_STEP,
-    ROUND_TOL_PX,
-    ROUNDS,
-    STOP_PX,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
     TRIGGER_SIGMAS,
     TRIGGER_SNR,
+    WHOLE_STRIPE_FRAC,
     WINDOW_SIGMAS,
 )
+from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-_upper_tail: Any = getattr(glow.upper_tail, "py_func", glow.upper_tail)
+_upper_tail: Any = getattr(glow_fit.upper_tail, "py_func", glow_fit.upper_tail)
 _INV_SQRT_2PI = 0.3989422804014327
 #: Columns of the linear parameters: background level and slope, stripe, glow step, glow ramp, neighbour.
 _A, _G, _R, _Q, _N, _NG = 2, 3, 4, 5, 6, 7
@@ -89,7 +84,7 @@ def fit_profiles(
     ``ramp``: the glow's linear and quadratic growth outward in the model; ``warm`` (n,): one Gauss-Newton step from
     the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
     Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
-    (at the last step's start, as :func:`lrsensor.extract.glow._fit_into`), degrees of freedom and linear
+    (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom and linear
     parameters."""
     n, k_rows = Y.shape
     glow_on = np.ones(n, bool) if use_glow is None else use_glow
@@ -134,7 +129,7 @@ def fit_profiles(
             ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
             J = np.concatenate([X, dc[:, :, None], ds[:, :, None]], axis=2)
             r = Y - np.einsum("nik,nk->ni", X, lin)
-            rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow._fit_into says why)
+            rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow_fit.fit_into says why)
         J = J * mask[:, :, None]
         act = active[:, : J.shape[2]]
         J = J * act[:, None, :]
@@ -156,7 +151,7 @@ def fit_profiles(
     # the glow two sigmas outward of the edge (where its step is complete) is a glow: positive
     x2 = 2.0 * sg
     g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
-    good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > TRIGGER_FRAC * lin[:, _A]))
+    good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > GLOW_MIN_FRAC * lin[:, _A]))
     return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin
 
 
@@ -171,7 +166,7 @@ def _neighbours(
     reach: IntArray,
 ) -> IntArray:
     """Per point of ``idx`` the nearest usable point of another laser in its column whose stripe reaches within
-    ``reach`` rows by 3 sigma (as :func:`lrsensor.extract.glow._neighbour`); -1: none."""
+    ``reach`` rows by 3 sigma (as :func:`lrsensor.extract.glow_fit.neighbour`); -1: none."""
     nb = np.full(idx.size, -1, np.int64)
     best = np.full(idx.size, np.inf)
     for li in range(at.shape[0]):
@@ -201,7 +196,7 @@ def glow_refit(
     max_sig: float,
     sat_dn: float,
     green_ratio: float,
-) -> tuple[FloatArray, FloatArray, BoolArray]:
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
     n = cols.size
@@ -266,6 +261,10 @@ def glow_refit(
         jc = np.maximum(j, 0)
         both += (j >= 0) & cand[jc] & glowing[jc]
     glowing[idx] &= 2 * both > cnt
+    # the whole stripe where most of it glows (glow._whole_stripe)
+    n_c = np.bincount(laser[cand], minlength=n_l)
+    n_g = np.bincount(laser[cand & glowing], minlength=n_l)
+    glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
     idx = np.flatnonzero(cand & (nb0 >= 0))
@@ -279,7 +278,7 @@ def glow_refit(
     paired[idx[near]] = True
 
     def rounds(
-        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray
+        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray, n_rounds: int = ROUNDS
     ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
         v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
@@ -288,7 +287,7 @@ def glow_refit(
         dof = np.full(n, np.nan)
         last = np.full((3, n), np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
         lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
-        for rnd in range(ROUNDS):
+        for rnd in range(n_rounds):
             v1, s1 = v_out.copy(), s_out.copy()
             idx = np.flatnonzero(todo if rnd == 0 else todo & (nb0 >= 0) & fitted)
             if idx.size == 0:
@@ -303,15 +302,17 @@ def glow_refit(
             if rnd > 0:  # refitted only where the other stripe moved
                 l_c, l_s = last[0, idx], last[1, idx]
                 with np.errstate(invalid="ignore"):
-                    same = (np.isnan(nb_c) & np.isnan(l_c)) | (
-                        (np.abs(nb_c - l_c) <= ROUND_TOL_PX) & (np.abs(nb_s - l_s) <= ROUND_TOL_PX)
-                    )
+                    e = np.maximum(np.abs(nb_c) - hw[idx], 0.0) / nb_s  # glow_fit.reach_weight
+                    moved = np.maximum(np.abs(nb_c - l_c), np.abs(nb_s - l_s)) * np.exp(-0.5 * e * e)
+                    same = (np.isnan(nb_c) & np.isnan(l_c)) | (moved <= ROUND_TOL_PX)
                 idx, nb, have, nbc, nb_s, nb_c = (x[~same] for x in (idx, nb, have, nbc, nb_s, nb_c))
                 if idx.size == 0:
                     break
             nb_side = np.where(have & glowing[nbc] & (np.abs(nb_c) <= hw[idx]), side[nbc], 0.0)  # its glow's edge
-            # one step from the last fit where its model stays (glow._rounds)
-            cold = (rnd == 0) | glowing[idx]
+            # one step from the last fit where its model stays (glow_fit.fit_rounds)
+            with np.errstate(invalid="ignore"):
+                tail = (np.abs(nb_c) > hw[idx]) & (np.abs(last[0, idx]) > hw[idx])
+            cold = (rnd == 0) | (glowing[idx] & ~tail)
             warm = ~cold & (np.isnan(nb_c) == np.isnan(last[0, idx])) & (nb_side == last[2, idx])
             last[0, idx] = nb_c
             last[1, idx] = nb_s
@@ -321,7 +322,7 @@ def glow_refit(
             mask = (np.abs(rel) <= hw[idx][:, None]).astype(np.float64)
             rr = np.clip(rc[idx][:, None] + rel, 0, h - 1)
             Y = green[rr, cols[idx][:, None]].astype(np.float64)
-            # the common fit, then each point's last fit (glowing points: the common fit again, glow._rounds)
+            # the common fit, then each point's last fit (glowing points: the common fit again, glow_fit.fit_rounds)
             start = (np.where(cold, vv[idx], v_out[idx]), np.where(cold, sg0[idx], s_out[idx]))
             c, sg, a_, g_, good, rs, df, lin = fit_profiles(
                 Y,
@@ -364,7 +365,7 @@ def glow_refit(
 
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, _d0, st0 = rounds(False, glowing | paired, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, glowing | paired, vv, sig)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
@@ -379,8 +380,16 @@ def glow_refit(
 
     # the ramp's F test, first per stretch at every RAMP_EVERY-th column's strong points; then at every strong point
     # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
-    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0)
+    # (the sampled test in one round: glow_refit)
+    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0, 1)
     maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, _st3 = rounds(True, maybe, v0, s0)
+    v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0)
     f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
-    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3
+    # the gate's amplitude and noise: the fit taken's (glow.glow_refit)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n0 = np.sqrt(np.where(d0 > 0.0, rss0 / d0, np.nan))
+        n3 = np.sqrt(np.where(dof3 > 0.0, rss3 / dof3, np.nan))
+    a_out = np.where(f3, st3[0], np.where(f0, st0[0], amp))
+    n_out = np.where(f3, n3, np.where(f0, n0, lnoise))
+    n_out = np.where(np.isfinite(n_out), n_out, lnoise)
+    return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3, a_out, n_out
