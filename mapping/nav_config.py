@@ -12,11 +12,14 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from lrsensor.frames import Pose
 
 from .nav_frame import NavFrame
 
-__all__ = ["AXES", "NavConfig", "NavEstimate"]
+__all__ = ["AXES", "NavConfig", "NavEstimate", "scan_constraint"]
 
 #: The axes whose constraint is reported.
 AXES = ("north", "east", "yaw")
@@ -203,3 +206,27 @@ class NavEstimate:
         out["correction"] = dict(self.correction)
         out["degenerate"] = {"free_bearing_deg": self.free_bearing_deg} if self.free_bearing_deg is not None else None
         return out
+
+
+def scan_constraint(h3: NDArray[np.float64], inliers: int, cfg: NavConfig) -> tuple[dict[str, bool], int, float | None]:
+    """What one scan's registration pinned: per axis of :data:`AXES` whether it is constrained, how many horizontal
+    directions are pinned (0-2), and with one pinned the bearing (deg, 0-180, from north) of the free one.
+
+    ``h3`` (3, 3) is the registration's information over north (m), east (m) and yaw (rad) from ``inliers``
+    point-to-plane residuals. A 1 m / 1 rad prior is added, so an unconstrained axis reads as ~1. The pinned
+    directions are the covariance's eigenvectors, so a wall at 30 deg reads as degenerate along it, not as both
+    axes unconstrained.
+    """
+    if not inliers:
+        return dict.fromkeys(AXES, False), 0, None
+    reg_cov = np.linalg.inv(h3 + np.eye(3))
+    reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
+    limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
+    constrained = {a: bool(sd <= lim) for a, sd, lim in zip(AXES, reg_std, limits, strict=True)}
+    evals, evecs = np.linalg.eigh(reg_cov[0:2, 0:2])
+    pinned = int(np.sum(evals <= cfg.constrained_std_m**2))
+    free_bearing = None
+    if pinned == 1:
+        free = evecs[:, 1]
+        free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
+    return constrained, pinned, free_bearing

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .landmarks import PlaneLandmarks, associate, subsample
-from .nav_config import AXES, NavConfig, NavEstimate
+from .nav_config import NavConfig, NavEstimate, scan_constraint
 from .nav_frame import rot2
 
 __all__ = ["RobotNav"]
@@ -403,19 +403,7 @@ class RobotNav:
         keep: bool = False,
     ) -> NavEstimate:
         cfg = self.cfg
-        constrained = dict.fromkeys(AXES, False)
-        pinned, free_bearing = 0, None
-        if inliers:
-            reg_cov = np.linalg.inv(h3 + np.eye(3) * 1.0)  # a 1 m / 1 rad prior: unconstrained reads as ~1
-            reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
-            limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
-            constrained = {a: bool(s <= lim) for a, s, lim in zip(AXES, reg_std, limits, strict=True)}
-            # which horizontal directions the scan pinned, whatever the walls' orientation
-            evals, evecs = np.linalg.eigh(reg_cov[0:2, 0:2])
-            pinned = int(np.sum(evals <= cfg.constrained_std_m**2))
-            if pinned == 1:
-                free = evecs[:, 1]
-                free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
+        constrained, pinned, free_bearing = scan_constraint(h3, inliers, cfg)
         att = cfg.attitude_std_deg
         if not known:
             std = {"north_m": math.inf, "east_m": math.inf, "down_m": cfg.depth_std_m}

@@ -57,7 +57,7 @@ from .graph_factors import (
     velocity_error,
 )
 from .landmarks import PlaneLandmarks, associate, subsample
-from .navigation import AXES, NavConfig, NavEstimate
+from .nav_config import AXES, NavConfig, NavEstimate, scan_constraint
 from .odometry import OdometryConfig, increment
 
 FloatArray = NDArray[np.float64]
@@ -747,18 +747,7 @@ class GraphNav:
         self, t: int, raw: Pose, h3: FloatArray, inliers: int, used: tuple[int, ...], motion: str
     ) -> NavEstimate:
         cfg = self.cfg
-        constrained = dict.fromkeys(AXES, False)
-        pinned, free_bearing = 0, None
-        if inliers:
-            reg_cov = np.linalg.inv(h3 + np.eye(3))
-            reg_std = np.sqrt(np.maximum(np.diag(reg_cov), 0.0))
-            limits = (cfg.constrained_std_m, cfg.constrained_std_m, math.radians(cfg.constrained_std_deg))
-            constrained = {a: bool(s <= lim) for a, s, lim in zip(AXES, reg_std, limits, strict=True)}
-            evals, evecs = np.linalg.eigh(reg_cov[0:2, 0:2])
-            pinned = int(np.sum(evals <= cfg.constrained_std_m**2))
-            if pinned == 1:
-                free = evecs[:, 1]
-                free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
+        constrained, pinned, free_bearing = scan_constraint(h3, inliers, cfg)
         x = self._est[-1]
         cov = self._cov
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
