@@ -105,11 +105,12 @@ GRAPH_OVERRIDES: dict[str, Any] = {}
 
 
 def _bias_setup(feed: Any) -> None:
-    """A replay variant: ``--nav on`` with the dead reckoning's velocity bias in the filter and smoother."""
+    """A replay variant: ``--nav on`` with the dead reckoning's velocity bias always open (not adaptive)."""
     from mapping.navigation import Navigator
     from mapping.smoother import FleetPlacements
 
-    feed.navigator = Navigator(replace(SMOOTHED_NAV, dr_bias_sigma_m_s=BIAS_SIGMA_M_S), SmootherConfig())
+    cfg = replace(SMOOTHED_NAV, dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
+    feed.navigator = Navigator(cfg, SmootherConfig())
     feed.fleet = FleetPlacements(feed.navigator, feed.builder, background=True)
 
 
@@ -526,8 +527,19 @@ def main() -> int:
     ap.add_argument(
         "--nav-bias",
         action="store_true",
-        help="navigated replays with the dead reckoning's velocity bias in the filter and smoother (an option: "
-        f"NavConfig.dr_bias_sigma_m_s {BIAS_SIGMA_M_S})",
+        help="navigated replays with the dead reckoning's velocity bias always open in the filter and smoother "
+        f"(NavConfig.dr_bias_sigma_m_s {BIAS_SIGMA_M_S}, not adaptive)",
+    )
+    ap.add_argument(
+        "--nav-bias-adaptive",
+        action="store_true",
+        help="as --nav-bias, but each robot's bias held at zero until its fixes' disagreement persists "
+        "(NavConfig.dr_bias_adaptive; the smoothed rows' default, this sets it for the filter's rows too)",
+    )
+    ap.add_argument(
+        "--no-nav-bias",
+        action="store_true",
+        help="navigated replays without the velocity bias (NavConfig.dr_bias_sigma_m_s 0; the default before it)",
     )
     ap.add_argument(
         "--graph-second-hypothesis",
@@ -536,7 +548,11 @@ def main() -> int:
     )
     args = ap.parse_args()
     if args.nav_bias:
-        NAV_OVERRIDES["dr_bias_sigma_m_s"] = BIAS_SIGMA_M_S
+        NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
+    if args.nav_bias_adaptive:
+        NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=True)
+    if args.no_nav_bias:
+        NAV_OVERRIDES["dr_bias_sigma_m_s"] = 0.0
     if args.graph_second_hypothesis:
         GRAPH_OVERRIDES["second_hypothesis"] = True
     open3d()  # import once, outside the timings
@@ -575,6 +591,8 @@ def main() -> int:
             f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
             + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
             + (" --nav-bias" if args.nav_bias else "")
+            + (" --nav-bias-adaptive" if args.nav_bias_adaptive else "")
+            + (" --no-nav-bias" if args.no_nav_bias else "")
             + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
             + "`",
             "",

@@ -48,7 +48,11 @@ class NavConfig:
     correction to 0, as often as fixes). With the bias state, a fix's sigma is at least its disagreement now, and
     with ``fix_persistence`` the fixes of a disagreement that persists (its running mean near its RMS) beyond
     ``fix_persist_min_m`` count as one per ``fix_quality_s``, not one per ``fix_every_s``: a dead reckoning's
-    drift is not white noise. Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
+    drift is not white noise. With ``dr_bias_adaptive`` the bias is a robot's own choice: held at
+    ``dr_bias_closed_sigma_m_s`` (no walk: the filter is then the one without the bias, fixes weighted as there)
+    until its fixes' disagreement persists (persistence at least ``dr_bias_open_persist``, 0-1) with an RMS beyond
+    ``fix_persist_min_m``: a drift shows, and the bias opens to ``dr_bias_sigma_m_s`` for the rest of the dive
+    (:attr:`RobotNav.bias_open`). Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
     bias), ``init_yaw_sigma_deg``.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
@@ -105,6 +109,9 @@ class NavConfig:
     dr_velocity_sigma_m_s: float = 0.02
     dr_bias_sigma_m_s: float = 0.0
     dr_bias_walk_m_s_per_sqrt_s: float = 0.003
+    dr_bias_adaptive: bool = False
+    dr_bias_closed_sigma_m_s: float = 1e-5
+    dr_bias_open_persist: float = 0.5
     fix_persistence: bool = True
     fix_persist_min_m: float = 0.1
     walk_speed_m_s: float = 0.3

@@ -59,6 +59,9 @@ class RobotNav:
         #: whether the map joins this robot's part to another robot's (set by :class:`Navigator` before each update;
         #: see ``NavConfig.own_recent_turns_alone``)
         self.joined = True
+        #: whether the velocity bias states are open: always with the bias in the model, with
+        #: ``NavConfig.dr_bias_adaptive`` only once this robot's fixes showed a persistent disagreement (a drift)
+        self.bias_open = cfg.dr_bias_sigma_m_s > 0 and not cfg.dr_bias_adaptive
 
     _STATE = (
         "t_ns",
@@ -72,6 +75,7 @@ class RobotNav:
         "last_compass_ns",
         "lost",
         "_prev_scan",
+        "bias_open",
     )
 
     def snapshot(self) -> dict[str, Any]:
@@ -96,7 +100,11 @@ class RobotNav:
     def _start(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
         self.x = np.array([raw_ne[0], raw_ne[1], 0.0, 0.0, 0.0])
-        bias = cfg.dr_bias_sigma_m_s if cfg.dr_bias_sigma_m_s > 0 else cfg.init_speed_sigma_m_s
+        self.bias_open = cfg.dr_bias_sigma_m_s > 0 and not cfg.dr_bias_adaptive
+        if cfg.dr_bias_sigma_m_s <= 0:
+            bias = cfg.init_speed_sigma_m_s
+        else:
+            bias = cfg.dr_bias_sigma_m_s if self.bias_open else cfg.dr_bias_closed_sigma_m_s
         self.P = np.diag(
             [
                 cfg.launch_sigma_m**2,
@@ -139,7 +147,8 @@ class RobotNav:
                 # reckoning says: the position's error grows with time along whatever no scan pins
                 f[0, 2] = f[1, 3] = dt
                 self.x[0:2] += self.x[2:4] * dt
-                q[2, 2] = q[3, 3] = cfg.dr_bias_walk_m_s_per_sqrt_s**2 * dt
+                if self.bias_open:
+                    q[2, 2] = q[3, 3] = cfg.dr_bias_walk_m_s_per_sqrt_s**2 * dt
             elif dt > 0:
                 self.x[2:4] = step / dt
             self.transition = f @ ou
@@ -218,18 +227,18 @@ class RobotNav:
         self.fix_mean = (1 - a) * self.fix_mean + a * innov
         err2 = self.fix_err2
         n_fixes = 1.0
-        if cfg.dr_bias_sigma_m_s > 0 and cfg.fix_persistence:
+        if cfg.dr_bias_sigma_m_s > 0 and not self.bias_open:
+            self._open_bias()
+        if self.bias_open and cfg.fix_persistence:
             # with the velocity bias in the model the covariance grows as a drift can, and a dead reckoning that
             # drifted away since is no better than its disagreement now (the running mean lags it by seconds)
             err2 = max(err2, float(innov @ innov) / 2)
             # a dead reckoning's error persists (a drift, not noise): its fixes over fix_quality_s are one
             # measurement, not one per fix_every_s; taken as independent they dragged the estimate back to the
             # drift as soon as no scan pinned an axis. Persistence: the disagreement's mean against its RMS
-            # (white fixes, a USBL's: about 0; a drift: 1)
             # (white fixes, a USBL's: about 0; a drift: 1). A disagreement within fix_persist_min_m is what the
             # map's own offset from the fixes leaves (good navigation): those fixes stay independent
-            rho = float(self.fix_mean @ self.fix_mean) / max(2.0 * self.fix_err2, 1e-12)
-            persist = min(1.0, max(0.0, (rho - 0.1) / 0.9))
+            persist = self._persistence()
             if math.sqrt(err2) > cfg.fix_persist_min_m:
                 n_fixes = 1.0 + persist * cfg.fix_quality_s / max(cfg.fix_every_s, 1e-3)
         sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(err2)))
@@ -240,6 +249,27 @@ class RobotNav:
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(5) - k @ h) @ self.P
+
+    def _persistence(self) -> float:
+        """How much the fixes' disagreement persists, 0-1: its running mean against its RMS (white fixes, a USBL's:
+        about 0; a drift: 1)."""
+        rho = float(self.fix_mean @ self.fix_mean) / max(2.0 * self.fix_err2, 1e-12)
+        return min(1.0, max(0.0, (rho - 0.1) / 0.9))
+
+    def _open_bias(self) -> None:
+        """With ``NavConfig.dr_bias_adaptive``: open the velocity bias once the fixes' disagreement persists beyond
+        ``fix_persist_min_m`` (this robot's dead reckoning drifts). Until then the bias stays held at zero: where the
+        poses are good, a free bias only lets registrations against a map's own offsets bend the track."""
+        cfg = self.cfg
+        if math.sqrt(self.fix_err2) <= cfg.fix_persist_min_m or self._persistence() < cfg.dr_bias_open_persist:
+            return
+        self.bias_open = True
+        # the drift's velocity is unknown: its launch uncertainty, from now on (the cross terms stay: near zero)
+        extra = max(cfg.dr_bias_sigma_m_s**2 - cfg.dr_bias_closed_sigma_m_s**2, 0.0)
+        self.P[2, 2] += extra
+        self.P[3, 3] += extra
+        log.debug("%s: the dead reckoning drifts (fixes %.2f m off, persisting): velocity bias open", self.robot,
+                  math.sqrt(self.fix_err2))  # fmt: skip
 
     def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(P,) information weight per plane: ``own_recent_weight`` for a plane only this robot made, first seen by

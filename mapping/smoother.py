@@ -61,8 +61,18 @@ def _sub(nav: RobotNav) -> list[int]:
 #: planes count more than under the filter alone (10 s at 0.1, not 20 s at 0.03): the smoother's re-filter needs
 #: them to hold a drifting robot between its passes (docs/navigation.md, "Measured"); but while the map has not
 #: joined a robot's part to another robot's, they move its position only, not its heading (on the short rendered
-#: dives they turned a drifting robot's heading the wrong way: docs/navigation.md, "Short dives").
-SMOOTHED_NAV = NavConfig(fix_quality_factor=5.0, own_recent_s=10.0, own_recent_weight=0.1, own_recent_turns_alone=False)
+#: dives they turned a drifting robot's heading the wrong way: docs/navigation.md, "Short dives"). The dead
+#: reckoning's velocity bias is in the model but held at zero per robot until its fixes' disagreement persists (a
+#: drift): always open, it bent good poses; never, a drifting robot's error outgrew its covariance along walls no
+#: scan pinned (docs/navigation.md, "The dead reckoning's velocity bias").
+SMOOTHED_NAV = NavConfig(
+    fix_quality_factor=5.0,
+    own_recent_s=10.0,
+    own_recent_weight=0.1,
+    own_recent_turns_alone=False,
+    dr_bias_sigma_m_s=0.003,
+    dr_bias_adaptive=True,
+)
 
 
 @dataclass(frozen=True)
