@@ -17,7 +17,9 @@ scan-to-map registration:
    too), moves the position, and so does the velocity bias times the time (a slow random walk,
    ``dr_bias_sigma_m_s`` / ``dr_bias_walk_m_s_per_sqrt_s``): the error of a dead reckoning in a current grows
    with time, not with its square root, and registrations that pin an axis estimate the bias along it, so the
-   prediction follows the drift along an axis no scan pins and its covariance grows as the drift can. The
+   prediction follows the drift along an axis no scan pins and its covariance grows as the drift can. With
+   ``dr_bias_adaptive`` (the smoothed default, ``--nav on``) each robot's bias stays closed until its fixes'
+   disagreement persists, then opens for the rest of the dive: good dead reckoning keeps the model without it. The
    noise also grows with the distance (``dr_scale_sigma``) and with time (``dr_velocity_sigma_m_s``, white).
    Without a fix, the position is a random walk (``walk_speed_m_s``).
    The yaw correction is a random walk (``yaw_walk_deg_per_sqrt_s``).
