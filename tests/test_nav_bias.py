@@ -11,7 +11,7 @@ import numpy as np
 
 from lrsensor.frames import Pose, ned_to_body
 from mapping.navigation import NavConfig, PlaneLandmarks, RobotNav
-from mapping.smoother import SMOOTHED_NAV
+from mapping.smoother import SMOOTHED_NAV, RobotSmoother, SmootherConfig
 from mapping.synth import Scene, tank, trace
 
 S = 1_000_000_000
@@ -87,25 +87,30 @@ def test_the_bias_state_survives_a_snapshot() -> None:
 def test_the_smoother_carries_the_bias_back_over_the_window() -> None:
     # the same station keeping under the smoother: every revised pose of the dive stays on the truth (the backward
     # pass runs over all five states; its poses use the bias the later scans saw)
-    from mapping.smoother import RobotSmoother, SmootherConfig
+    _, worst = _smoothed_dive(BIAS, corner_s=20.0, n_scans=280)
+    assert worst < 0.03
 
+
+def _smoothed_dive(cfg: NavConfig, corner_s: float, n_scans: int) -> tuple[RobotSmoother, float]:
+    """Station keeping in the tank's south-west corner for ``corner_s``, then facing the west wall alone, at 10 Hz
+    with a north drift of DRIFT_M_S in the raw poses, through the smoother: the smoother and the worst north error
+    (m) of its revised poses."""
     scene = tank(pillars=False)
     lm = _walls(scene)
     west = Scene(tuple(f for f in scene.faces if f.name == "wall.west"))
-    sm = RobotSmoother("rov1", BIAS, SmootherConfig())
+    sm = RobotSmoother("rov1", cfg, SmootherConfig())
     truth = {}
-    for k in range(280):
+    for k in range(n_scans):
         t = k * 0.1
-        corner = t < 20.0
+        corner = t < corner_s
         true = Pose(3.0, 1.0, 1.0, 0.0, 0.0, math.radians(225.0 if corner else 270.0))
         hits = trace(scene if corner else west, true, n_rays=200, fan_deg=120.0 if corner else 60.0)
         raw = Pose(true.north_m + DRIFT_M_S * t, true.east_m, true.down_m, 0.0, 0.0, true.yaw_rad)
         sm.update(round(t * S), raw, ned_to_body(hits.points_ned, true), lm)
         truth[round(t * S)] = true
     revised = sm.smooth(lm)
-    assert len(revised) == 280
-    worst = max(abs(p.north_m - truth[t].north_m) for t, p in revised.items())
-    assert worst < 0.03
+    assert len(revised) == n_scans
+    return sm, max(abs(p.north_m - truth[t].north_m) for t, p in revised.items())
 
 
 #: the smoother's default: each robot's bias held at zero until its fixes' disagreement persists (a drift shows)
@@ -146,23 +151,6 @@ def test_an_open_bias_survives_a_snapshot() -> None:
 def test_the_smoother_re_runs_the_filter_s_choice() -> None:
     # the smoother restarts the filter from a scan's snapshot: its re-runs open the bias at the same fix, and the
     # revised poses of the whole drifting dive stay on the truth
-    from mapping.smoother import RobotSmoother, SmootherConfig
-
-    scene = tank(pillars=False)
-    lm = _walls(scene)
-    west = Scene(tuple(f for f in scene.faces if f.name == "wall.west"))
-    sm = RobotSmoother("rov1", ADAPTIVE, SmootherConfig())
-    truth = {}
-    for k in range(480):
-        t = k * 0.1
-        corner = t < 40.0
-        true = Pose(3.0, 1.0, 1.0, 0.0, 0.0, math.radians(225.0 if corner else 270.0))
-        hits = trace(scene if corner else west, true, n_rays=200, fan_deg=120.0 if corner else 60.0)
-        raw = Pose(true.north_m + DRIFT_M_S * t, true.east_m, true.down_m, 0.0, 0.0, true.yaw_rad)
-        sm.update(round(t * S), raw, ned_to_body(hits.points_ned, true), lm)
-        truth[round(t * S)] = true
-    revised = sm.smooth(lm)
+    sm, worst = _smoothed_dive(ADAPTIVE, corner_s=40.0, n_scans=480)
     assert sm.nav.bias_open
-    assert len(revised) == 480
-    worst = max(abs(p.north_m - truth[t].north_m) for t, p in revised.items())
     assert worst < 0.03
