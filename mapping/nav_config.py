@@ -17,9 +17,10 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose
 
+from .landmarks import subsample
 from .nav_frame import NavFrame
 
-__all__ = ["AXES", "NavConfig", "NavEstimate", "scan_constraint"]
+__all__ = ["AXES", "NavConfig", "NavEstimate", "registration_points", "scan_constraint"]
 
 #: The axes whose constraint is reported.
 AXES = ("north", "east", "yaw")
@@ -237,3 +238,12 @@ def scan_constraint(h3: NDArray[np.float64], inliers: int, cfg: NavConfig) -> tu
         free = evecs[:, 1]
         free_bearing = math.degrees(math.atan2(float(free[1]), float(free[0]))) % 180.0
     return constrained, pinned, free_bearing
+
+
+def registration_points(points_body: Any, cfg: NavConfig) -> NDArray[np.float64]:
+    """The points of a cloud a registration uses: (M, 3) body frame, metres; the finite ones within
+    ``cfg.max_range_m``, evenly sub-sampled to at most ``cfg.max_points``."""
+    pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
+    return subsample(pts, cfg.max_points)

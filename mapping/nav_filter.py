@@ -15,8 +15,8 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose, R_ned_from_body
 
-from .landmarks import PlaneLandmarks, associate, subsample
-from .nav_config import NavConfig, NavEstimate, scan_constraint
+from .landmarks import PlaneLandmarks, associate
+from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
 from .nav_frame import rot2
 
 __all__ = ["RobotNav"]
@@ -372,10 +372,7 @@ class RobotNav:
         """
         cfg = self.cfg
         t = int(t_ns)
-        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
-        pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
-        pts = subsample(pts, cfg.max_points)
+        pts = registration_points(points_body, cfg)
         raw_ne = np.array([raw.north_m, raw.east_m]) if math.isfinite(raw.north_m + raw.east_m) else None
         self.prior = self.transition = None
         if not self.started:

@@ -56,8 +56,8 @@ from .graph_factors import (
     rot,
     velocity_error,
 )
-from .landmarks import PlaneLandmarks, associate, subsample
-from .nav_config import AXES, NavConfig, NavEstimate, scan_constraint
+from .landmarks import PlaneLandmarks, associate
+from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
 from .odometry import OdometryConfig, increment
 
 FloatArray = NDArray[np.float64]
@@ -256,10 +256,7 @@ class GraphNav:
         """
         cfg = self.cfg
         t = int(t_ns)
-        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
-        pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
-        pts = subsample(pts, cfg.max_points)
+        pts = registration_points(points_body, cfg)
         fix = np.array([raw.north_m, raw.east_m]) if math.isfinite(raw.north_m + raw.east_m) else None
         if not self.started:
             if fix is None:
