@@ -102,6 +102,8 @@ def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
 NAV_OVERRIDES: dict[str, Any] = {}
 #: ``GraphConfig`` fields the ``graph`` replays of :func:`run_mode` take (``--graph-second-hypothesis``)
 GRAPH_OVERRIDES: dict[str, Any] = {}
+#: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
+TRACKED_ROWS: list[bool] = []
 
 
 def _bias_setup(feed: Any) -> None:
@@ -127,6 +129,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     hits = hit_faces(scene, frames)
     rows = []
     ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
+    if TRACKED_ROWS and mode in ("depth-only", "mixed"):
+        ways.append("tracked")
     for way in ways:
         navigate = way != "trusted"
         kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
@@ -136,6 +140,12 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": GraphConfig(**GRAPH_OVERRIDES)}  # fmt: skip
+        if way == "tracked":  # as graph, the gated graph (mapping.posegraph.TRACKED, opt-in)
+            from mapping.posegraph import TRACKED
+
+            kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
+                                     **NAV_OVERRIDES),
+                  "smoother": SmootherConfig(), "background": "wait", "graph_cfg": TRACKED}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart
@@ -546,7 +556,15 @@ def main() -> int:
         action="store_true",
         help="the graph rows with GraphConfig.second_hypothesis (an option: ambiguous plane factors left out)",
     )
+    ap.add_argument(
+        "--graph-track",
+        action="store_true",
+        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.posegraph.TRACKED, "
+        "NavConfig.frame_graph_launches; an option)",
+    )
     args = ap.parse_args()
+    if args.graph_track:
+        TRACKED_ROWS.append(True)
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -594,6 +612,8 @@ def main() -> int:
             + (" --nav-bias-adaptive" if args.nav_bias_adaptive else "")
             + (" --no-nav-bias" if args.no_nav_bias else "")
             + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
+            + (" --modes " + args.modes if args.modes != ap.get_default("modes") else "")
+            + (" --graph-track" if args.graph_track else "")
             + "`",
             "",
             table(rows),
