@@ -18,16 +18,16 @@ Each dive is replayed into ``mapping.MapBuilder`` three times, as the base stati
 out), correcting them first with the filter (``mapping.navigation``, the base's default), and with the smoother
 (``mapping.smoother``: past poses re-estimated and their clouds re-placed in the map, a last smoothing at the end of
 the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
-``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``,
-off by default; ``mapping.posegraph``). The served map is scored against the tank's faces
-(``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames where both lasers hit it;
-*recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered, the worst angle and
-offset over the seen faces that have a plane (a seen face without one is counted in "missing"), duplicates,
-spurious planes, the clouds left unplaced, the robots' horizontal position error (of the poses the clouds are in
-the map with at the end, served in NED: largest, and the robots' last estimates), the share of scans whose
-registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
-smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run).
-"""
+``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``, off
+by default; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with the graphs' gates
+(``tracked``: ``mapping.posegraph.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
+scored against the tank's faces (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames
+where both lasers hit it; *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered,
+the worst angle and offset over the seen faces that have a plane (a seen face without one is counted in "missing"),
+duplicates, spurious planes, the clouds left unplaced, the robots' horizontal position error (of the poses the
+clouds are in the map with at the end, served in NED: largest, and the robots' last estimates), the share of scans
+whose registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
+smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run). """
 
 from __future__ import annotations
 

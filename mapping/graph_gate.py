@@ -95,6 +95,8 @@ class TrackGate:
         self.broke_ns = 0
         self.std_at_break = 0.0
         self.tried_ns = -(10**18)
+        #: when a scan last matched one place alone (a re-localization or a verification), ns
+        self.verified_ns = -(10**18)
 
     def step(self, std_m: float, t_ns: int) -> bool:
         """The marginal's horizontal std after the scan at ``t_ns``; returns True when this scan broke the track."""
@@ -134,6 +136,7 @@ class TrackGate:
             "broke_ns": self.broke_ns,
             "std_at_break": self.std_at_break,
             "tried_ns": self.tried_ns,
+            "verified_ns": self.verified_ns,
             "frozen_t": sorted(self.frozen),
             "frozen": [self.frozen[t].tolist() for t in sorted(self.frozen)],
         }
@@ -146,6 +149,7 @@ class TrackGate:
         self.broke_ns = int(snap.get("broke_ns", 0))  # type: ignore[call-overload]
         self.std_at_break = float(snap.get("std_at_break", 0.0))  # type: ignore[arg-type]
         self.tried_ns = int(snap.get("tried_ns", -(10**18)))  # type: ignore[call-overload]
+        self.verified_ns = int(snap.get("verified_ns", -(10**18)))  # type: ignore[call-overload]
         ts = snap.get("frozen_t", [])
         xs = snap.get("frozen", [])
         self.frozen = {int(t): np.asarray(x, dtype=np.float64) for t, x in zip(ts, xs, strict=True)}  # type: ignore[call-overload]
@@ -171,6 +175,7 @@ def relocalize(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLa
     g._solve()
     g.lost = False
     g.track.resume()
+    g.track.verified_ns = t
     return True
 
 
@@ -182,7 +187,10 @@ def verify(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandma
     x = g._est[key]
     rel = pts @ R_ned_from_body(raw.roll_rad, raw.pitch_rad, float(x[2])).T
     place = unique_place(rel, raw.down_m, x[0:2], g.gcfg.verify_radius_m, lm)
-    if place is None or float(np.hypot(*(place - x[0:2]))) <= g.gcfg.verify_tol_m:
+    if place is None:
+        return None
+    g.track.verified_ns = t
+    if float(np.hypot(*(place - x[0:2]))) <= g.gcfg.verify_tol_m:
         return None
     g._add("fix", (key,), (float(place[0]), float(place[1]), g.gcfg.relocalize_sigma_m))
     g._solve()

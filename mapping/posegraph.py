@@ -95,6 +95,7 @@ class GraphConfig:
     ``relocalize_every_s``, within ``relocalize_max_m`` and the speed bound since the break), that place then a
     prior of ``relocalize_sigma_m``. ``verify_every_s``: that often an unbroken track is checked the same way
     (within ``verify_radius_m``); a unique place more than ``verify_tol_m`` from the estimate re-anchors it there.
+    ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
     """
 
     velocity_walk_m_s: float = 0.1
@@ -126,6 +127,7 @@ class GraphConfig:
     verify_every_s: float = math.inf
     verify_radius_m: float = 0.5
     verify_tol_m: float = 0.08
+    place_verified_s: float = math.inf
 
 
 #: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
@@ -745,6 +747,7 @@ class GraphNav:
         pinned_both = constrained["north"] and constrained["east"]
         placed = not self.lost and not self.track.broken and worst <= self.gcfg.place_std_m
         placed = placed and (pinned_both or worst <= self.gcfg.boot_std_m)
+        placed = placed and (t - max(self._t[0], self.track.verified_ns)) * 1e-9 <= self.gcfg.place_verified_s
         return NavEstimate(
             self.robot,
             t,

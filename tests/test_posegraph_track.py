@@ -79,11 +79,12 @@ def test_a_corner_is_one_place_one_wall_and_a_mirrored_corner_are_not() -> None:
     assert unique_place(_corner_scan(), 1.0, np.array([1.0, 1.25]), 0.6, PlaneLandmarks.from_planes(twin)) is None
 
 
-def _broken_then(scan: np.ndarray, steps: int) -> tuple[GraphNav, list[Any]]:
+def _broken_then(scan: np.ndarray, steps: int, **gate: Any) -> tuple[GraphNav, list[Any]]:
     """A graph launched at (1, 1) whose track breaks at once (its break std below the launch sigma), fed ``scan``
-    without a fix ``steps`` times at 10 Hz, re-localization on."""
+    without a fix ``steps`` times at 10 Hz, re-localization on (and ``gate``'s other options)."""
     lm = PlaneLandmarks.from_planes(CORNER)
-    g = GraphNav("rov1", NavConfig(), GraphConfig(track_break_std_m=0.045, relocalize=True, relocalize_every_s=0.5))
+    cfg = GraphConfig(track_break_std_m=0.045, relocalize=True, relocalize_every_s=0.5, **gate)
+    g = GraphNav("rov1", NavConfig(), cfg)
     g.update(0, Pose(1.0, 1.0, 1.0, 0.0, 0.0, 0.0), scan, lm)
     ests = [g.update(k * 100_000_000, NOFIX, scan, lm) for k in range(1, steps + 1)]
     return g, ests
@@ -104,6 +105,18 @@ def test_a_broken_track_is_taken_up_again_only_where_the_scan_pins_one_place() -
     assert g1.track.relocalized == 0
     assert not any(e.placed for e in ests1)
     assert all(e.motion == "lost" for e in ests1)
+
+
+def test_a_track_no_scan_has_matched_to_one_place_for_a_while_is_not_placed() -> None:
+    # re-localized at once, then no verification (every 100 s): placed for 0.3 s after, then no more
+    g, ests = _broken_then(_corner_scan(), 10, verify_every_s=100.0, place_verified_s=0.3)
+    assert g.track.relocalized == 1
+    placed = [e.placed for e in ests]
+    assert any(placed[:4])
+    assert not any(placed[5:])
+    # verified every 0.2 s, the same track stays placed
+    _, ests2 = _broken_then(_corner_scan(), 10, verify_every_s=0.2, place_verified_s=0.3)
+    assert all(e.placed for e in ests2[2:])
 
 
 @pytest.fixture(scope="module")
