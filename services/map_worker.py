@@ -350,6 +350,7 @@ class MapWorker:
         self._epoch[msg.robot] = msg.epoch
         if msg.state:
             try:
+                self.nav.set_no_fix(msg.no_fix)
                 self.nav.restore(msg.robot, decode_state(msg.state))
                 return
             except (WireError, KeyError, TypeError, ValueError) as err:
@@ -373,6 +374,7 @@ class MapWorker:
         return rng.landmarks
 
     def _navigate(self, job: MapJob) -> NavStep:
+        self.nav.set_no_fix(job.no_fix)  # the base's --no-fix choice (a bad value fails the cloud, logged)
         step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self._landmarks_for(job))
         est = step.estimate
         if est is not None and self._pub is not None:
