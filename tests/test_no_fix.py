@@ -192,3 +192,38 @@ def test_the_base_places_a_depth_only_robot_by_its_gated_graph_and_says_so(depth
     for m in placed:
         p = truth[m["t_ns"]]
         assert math.hypot(m["north_m"] - p["north_m"], m["east_m"] - p["east_m"]) < 0.2, m
+
+
+@pytest.mark.slow
+def test_plane_workers_of_a_base_with_graph_place_a_depth_only_robot(depth_only: list[Any]) -> None:
+    import zenoh
+
+    from services.wire import CloudMsg
+
+    with TestNetwork("nofixwk") as net:
+        base = net.start_base(map_mode="on", navigation=True, remote_workers=True, no_fix="graph")
+        worker = MapWorker(net.session(), net.keys, "w0")  # knows nothing of the choice: the base's jobs say it
+        worker.start()
+        try:
+            pool = base.feed.pool
+            assert pool is not None
+            assert pool.wait_for_workers(1, 20)
+            pub = net.session().declare_publisher(
+                net.keys.cloud("rov1"), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            for i, f in enumerate(depth_only):
+                pts = f.points_body.astype(np.float32)
+                ones = np.ones(len(pts), np.float32)
+                pub.put(CloudMsg("rov1", i, f.t_ns, f.pose_est, pts, np.zeros(len(pts), np.uint8), ones).to_bytes())
+            assert wait_until(lambda: base.processed >= len(depth_only), 30.0)
+            assert base.drain(60)
+            base.flush_map(60)
+            status = base.status()
+            graph = worker.nav._navs["rov1"]
+        finally:
+            worker.close()
+    assert isinstance(graph, GraphNav)
+    assert graph.gcfg is TRACKED
+    nav = status["robots"]["rov1"]["nav"]
+    assert nav["placed"] + nav["unplaced"] == len(depth_only)
+    assert nav["placed"] >= len(depth_only) // 2, nav
