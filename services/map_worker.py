@@ -397,6 +397,9 @@ class MapWorker:
                     self._unplaced.setdefault(job.robot, []).append(job.seq)
                     if self.builder.uncommitted(job.robot) == 0:
                         return [self._observed(job.robot, [], job.t_ns)]
+                    due = self.builder.observe_time(job.robot, job.t_ns)
+                    if due is not None:  # the window's clouds are due by time: a lost robot's last clouds commit
+                        return [self._observed(job.robot, due, job.t_ns)]
                     # mid-window: committed now on its own, or the base, counting it in the window, would bound the
                     # window's next observation too early (and hold the merge and the snapshots back); no state:
                     # the one carried must follow the window's clouds, which are not committed yet
