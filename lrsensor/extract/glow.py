@@ -308,6 +308,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
     fit_me = np.zeros(n, np.bool_)
+    any_fit = False
     for t in range(n):
         nb = nb0[t]
         s_nb = max(sig[nb], lo_sig) if nb >= 0 else 0.0
@@ -317,6 +318,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
+        any_fit |= fit_me[t]
+    if not any_fit:  # (clear water): the common fits stand, and the rounds' tables are not even filled
+        return vv.copy(), sig.copy(), fit_me, amp.copy(), lnoise.copy()
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for
