@@ -193,7 +193,9 @@ def test_compiled_glow_stage_equals_the_reference(monkeypatch: pytest.MonkeyPatc
     np.testing.assert_allclose(v_road, v_ref, atol=1e-6)
     np.testing.assert_allclose(s_road, s_ref, atol=1e-6)
     np.testing.assert_allclose(a_road, a_ref, rtol=1e-6, atol=1e-6)  # the gate's amplitude and noise
-    np.testing.assert_allclose(n_road, n_ref, rtol=1e-6, atol=1e-6)
+    # (the residual noise of a fit that diverged, a glow and a stripe that cancel near the vanishing line, is the
+    # root of a sum of squares of 1e13 DN^2: the same to 1e-4, its centre and amplitude to 1e-9; the gate drops it)
+    np.testing.assert_allclose(n_road, n_ref, rtol=1e-4, atol=1e-6)
     monkeypatch.setattr(subpixel, "USE_REFERENCE", False)
     fast = subpixel.extract(frame.image, frame.calibration)
     kf = fast.laser * 10_000 + np.rint(fast.uv[:, 0]).astype(int)
@@ -377,3 +379,24 @@ def test_compiled_second_pass_equals_the_reference(
         fast = detect_band(frame.image, r0, r1, *args, bands.glow_side[li], 0)
         for x, y in zip((*fast[:3], fast[4]), (*ref[:3], ref[4]), strict=True):
             np.testing.assert_array_equal(x, y)
+
+
+def test_stripe_sigma_pools_blurred_stripes_only() -> None:
+    """A blurred stripe's dim columns take their width from the stripe (the larger of the local and the whole
+    stripe's median); a sharp stripe (clear water) keeps every column's own; the kernel equals the reference."""
+    rng = np.random.default_rng(3)
+    w = 200
+    cols = np.concatenate([np.arange(w), np.arange(w)])
+    laser = np.repeat([0, 1], w)
+    sg0 = np.concatenate([4.0 + 0.2 * rng.standard_normal(w), 1.0 + 0.1 * rng.standard_normal(w)])
+    sg0[150:170] = 1.5  # laser 0's dim end: noise-narrowed fits
+    cand = np.ones(2 * w, bool)
+    cand[10] = False
+    at = np.full((2, w), -1, np.int64)
+    at[laser, cols] = np.arange(2 * w)
+    ref = reference_glow._stripe_sigma(cols, laser, at, cand, sg0)
+    assert np.all(ref[150:170] >= np.median(sg0[:w][cand[:w]]) - 1e-12)  # the dim end takes the stripe's width
+    assert ref[10] == sg0[10]  # not a candidate: its own
+    np.testing.assert_array_equal(ref[w:], sg0[w:])  # the sharp stripe: untouched
+    if HAVE_NUMBA:
+        np.testing.assert_array_equal(glow.stripe_sigma(cols, laser, at, cand, sg0), ref)

@@ -180,6 +180,28 @@ def _neighbours(
     return nb
 
 
+def _stripe_sigma(cols: IntArray, laser: IntArray, at: IntArray, cand: BoolArray, sg0: FloatArray) -> FloatArray:
+    """What :func:`lrsensor.extract.glow.stripe_sigma` computes: at each candidate of a blurred stripe (the upper
+    median of ``sg0`` over its laser's candidates at least PAIR_MIN_SIGMA) the larger of that and the median over its
+    laser's candidates within POOL_COLS columns; ``sg0`` elsewhere."""
+    w = at.shape[1]
+    out = sg0.copy()
+    for li in range(at.shape[0]):
+        mine = cand & (laser == li)
+        if not mine.any():
+            continue
+        v = np.sort(sg0[mine])
+        whole = v[v.size // 2]
+        if whole < PAIR_MIN_SIGMA:
+            continue
+        for t in np.flatnonzero(mine):
+            j = at[li, max(cols[t] - POOL_COLS, 0) : min(cols[t] + POOL_COLS + 1, w)]
+            j = j[j >= 0]
+            loc = np.sort(sg0[j[cand[j]]])
+            out[t] = max(loc[loc.size // 2], whole)
+    return out
+
+
 def glow_refit(
     image: NDArray[np.uint8],
     cols: IntArray,
@@ -267,15 +289,23 @@ def glow_refit(
     glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
+    # (the stripes' widths pooled along them: glow.stripe_sigma)
+    sgp = _stripe_sigma(cols, laser, at, cand, sg0)
     idx = np.flatnonzero(cand & (nb0 >= 0))
     nbc = nb0[idx]
     with np.errstate(invalid="ignore"):
-        s_nb = np.maximum(sig[nbc], lo_sig)
-        near = (np.abs(vv[nbc] - vv[idx]) < PAIR_SIGMAS * (sg0[idx] + s_nb)) & (
-            np.minimum(sg0[idx], s_nb) >= PAIR_MIN_SIGMA
+        s_nb = sgp[nbc]
+        near = (np.abs(vv[nbc] - vv[idx]) < PAIR_SIGMAS * (sgp[idx] + s_nb)) & (
+            np.minimum(sgp[idx], s_nb) >= PAIR_MIN_SIGMA
         )
     paired = np.zeros(n, bool)
     paired[idx[near]] = True
+    # the fits start from the pooled width, on a window of that width (inside the image)
+    todo = glowing | paired
+    sg0 = np.where(todo, sgp, sg0)
+    hw = np.where(todo, np.minimum(np.ceil(WINDOW_SIGMAS * sg0).astype(np.int64) + 2, MAX_HALF_PX), hw)
+    todo &= (rc - hw >= 0) & (rc + hw <= h - 1)
+    reach = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)
 
     def rounds(
         ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray, n_rounds: int = ROUNDS
@@ -365,7 +395,7 @@ def glow_refit(
 
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, d0, st0 = rounds(False, glowing | paired, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo, vv, sig)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
