@@ -400,3 +400,19 @@ def test_stripe_sigma_pools_blurred_stripes_only() -> None:
     np.testing.assert_array_equal(ref[w:], sg0[w:])  # the sharp stripe: untouched
     if HAVE_NUMBA:
         np.testing.assert_array_equal(glow.stripe_sigma(cols, laser, at, cand, sg0), ref)
+
+
+def test_blurred_stripes_keep_only_sure_runs() -> None:
+    """On a blurred stripe a short, dim run (its line fit's ends a pixel off) is dropped and the long bright one kept;
+    a sharp stripe keeps both."""
+    from lrsensor.extract.finish import RUN_MAX_SD_PX, run_certain
+
+    lz = np.zeros(60, np.int64)
+    run_id = np.repeat([0, 1], [50, 10])
+    counts = np.array([50, 10])
+    snr = np.where(run_id == 0, 12.0, 2.5)
+    for sigma, want in ((4.0, [True, False]), (1.0, [True, True])):
+        sig = np.full(60, sigma)
+        assert run_certain(lz, sig, snr, run_id, counts, 2, 1).tolist() == want
+    # the dim run at 4 px: 2 * 1.06 * 2 / 2.5 / sqrt(10) = 0.54 px at its ends, over the bar
+    assert 2.0 * 1.0622 * 2.0 / 2.5 / math.sqrt(10) > RUN_MAX_SD_PX
