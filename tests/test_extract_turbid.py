@@ -382,37 +382,32 @@ def test_compiled_second_pass_equals_the_reference(
 
 
 def test_stripe_sigma_pools_blurred_stripes_only() -> None:
-    """A blurred stripe's dim columns take their width from the stripe (the larger of the local and the whole
-    stripe's median); a sharp stripe (clear water) keeps every column's own; the kernel equals the reference."""
+    """A blurred stripe's noise-narrowed dim columns take the stripe's mean width, its wider ones keep their own; a
+    sharp stripe (clear water) keeps every column's own (the reference's; the kernel's glow stage is compared with
+    the reference's whole above)."""
     rng = np.random.default_rng(3)
     w = 200
-    cols = np.concatenate([np.arange(w), np.arange(w)])
     laser = np.repeat([0, 1], w)
     sg0 = np.concatenate([4.0 + 0.2 * rng.standard_normal(w), 1.0 + 0.1 * rng.standard_normal(w)])
     sg0[150:170] = 1.5  # laser 0's dim end: noise-narrowed fits
     cand = np.ones(2 * w, bool)
     cand[10] = False
-    at = np.full((2, w), -1, np.int64)
-    at[laser, cols] = np.arange(2 * w)
-    ref = reference_glow._stripe_sigma(cols, laser, at, cand, sg0)
-    assert np.all(ref[150:170] >= np.median(sg0[:w][cand[:w]]) - 1e-12)  # the dim end takes the stripe's width
+    ref = reference_glow._stripe_sigma(laser, cand, sg0, 2)
+    mean0 = sg0[:w][cand[:w]].mean()
+    np.testing.assert_allclose(ref[150:170], mean0)  # the dim end takes the stripe's width
+    wide = cand[:w] & (sg0[:w] > mean0)
+    np.testing.assert_array_equal(ref[:w][wide], sg0[:w][wide])  # the wider columns keep their own
     assert ref[10] == sg0[10]  # not a candidate: its own
     np.testing.assert_array_equal(ref[w:], sg0[w:])  # the sharp stripe: untouched
-    if HAVE_NUMBA:
-        np.testing.assert_array_equal(glow.stripe_sigma(cols, laser, at, cand, sg0), ref)
 
 
 def test_blurred_stripes_keep_only_sure_runs() -> None:
-    """On a blurred stripe a short, dim run (its line fit's ends a pixel off) is dropped and the long bright one kept;
-    a sharp stripe keeps both."""
-    from lrsensor.extract.finish import RUN_MAX_SD_PX, run_certain
+    """On a blurred stripe a short, dim run (its line fit's ends half a pixel off) is dropped and a long bright one
+    kept; a sharp stripe keeps both."""
+    from lrsensor.extract.finish import RUN_MAX_SD_PX, run_sure
 
-    lz = np.zeros(60, np.int64)
-    run_id = np.repeat([0, 1], [50, 10])
-    counts = np.array([50, 10])
-    snr = np.where(run_id == 0, 12.0, 2.5)
-    for sigma, want in ((4.0, [True, False]), (1.0, [True, True])):
-        sig = np.full(60, sigma)
-        assert run_certain(lz, sig, snr, run_id, counts, 2, 1).tolist() == want
-    # the dim run at 4 px: 2 * 1.06 * 2 / 2.5 / sqrt(10) = 0.54 px at its ends, over the bar
+    # 10 points at 2.5x the noise: 2 * 1.06 * sqrt(4) / 2.5 / sqrt(10) = 0.54 px at the run's ends
+    assert not run_sure(4.0, 10 / 2.5, 10)
+    assert run_sure(4.0, 50 / 12.0, 50)
+    assert run_sure(1.0, 10 / 2.5, 10)  # sharp: kept
     assert 2.0 * 1.0622 * 2.0 / 2.5 / math.sqrt(10) > RUN_MAX_SD_PX

@@ -173,9 +173,9 @@ def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
     return out
 
 
-#: A blurred stripe (its laser's kept points' median sigma at least this, px: forward scatter; the glow stage's
+#: A blurred stripe (its laser's kept points' mean sigma at least this, px: forward scatter; the glow stage's
 #: pair test's width, :data:`lrsensor.extract.glow.PAIR_MIN_SIGMA`) keeps a run only where the line fitted along it is
-#: sure to RUN_MAX_SD_PX at its ends (:func:`run_certain`).
+#: sure to RUN_MAX_SD_PX at its ends (:func:`run_sure`).
 BLURRED_SIGMA_PX = 2.0
 RUN_MAX_SD_PX = 0.25
 #: A Gaussian stripe's centre from one column: its standard deviation is this times ``sqrt(sigma) / snr`` (the
@@ -184,40 +184,17 @@ CENTRE_SD = 1.0622
 
 
 @inline
-def run_certain(lz, sig, snr, run_id, counts, n_runs, n_l):  # type: ignore[no-untyped-def]
-    """Whether each run's line fit is sure enough (n_runs,) bool: on a blurred stripe (the median ``sig`` (N,) of its
-    laser's points in runs at least :data:`BLURRED_SIGMA_PX`) the standard deviation of a line fitted along the run
-    at its ends, ``2 CENTRE_SD sqrt(sigma) mean(1 / snr) / sqrt(k)`` over its ``k`` points (``sigma`` the laser's
-    median), at most :data:`RUN_MAX_SD_PX`; every run of a sharp stripe.
+def run_sure(sigma, inv_snr, k):  # type: ignore[no-untyped-def]
+    """Whether a run of ``k`` points on a stripe of width ``sigma`` (px; its laser's kept points' mean) is sure enough:
+    on a blurred stripe (``sigma`` at least :data:`BLURRED_SIGMA_PX`) the standard deviation of a line fitted along
+    it at its ends, ``2 CENTRE_SD sqrt(sigma) mean(1 / snr) / sqrt(k)`` (``inv_snr``: the sum of its points' ``1 /
+    snr``), is at most :data:`RUN_MAX_SD_PX`; every run of a sharp stripe is.
 
     At the dim ends of a blurred stripe the signal-to-noise gate leaves short pieces split by the columns it drops
     (3 m, 4 px of blur: peaks 1.6-3x the noise, 4-37 columns): their line fits are a pixel off at a third to all of
     their columns (5 % of range at 3 m is 0.46 px), while the stripe's long run holds its points to 0.3 %. Sharp
     stripes (clear water) keep every run as it was."""
-    sig_l = np.zeros(n_l)
-    vals = np.empty(lz.size)
-    for li in range(n_l):
-        m = 0
-        for t in range(lz.size):
-            if lz[t] == li and run_id[t] >= 0 and math.isfinite(sig[t]):
-                vals[m] = sig[t]
-                m += 1
-        if m > 0:
-            sig_l[li] = select(vals, m, m // 2)
-    inv = np.zeros(n_runs)
-    lr = np.zeros(n_runs, np.int64)
-    for t in range(lz.size):
-        ri = run_id[t]
-        if ri >= 0:
-            inv[ri] += 1.0 / max(snr[t], 1e-9)
-            lr[ri] = lz[t]
-    sure = np.ones(n_runs, np.bool_)
-    for ri in range(n_runs):
-        s_l = sig_l[lr[ri]]
-        if s_l >= BLURRED_SIGMA_PX:
-            k = counts[ri]
-            sure[ri] = 2.0 * CENTRE_SD * math.sqrt(s_l) * inv[ri] / k / math.sqrt(k) <= RUN_MAX_SD_PX
-    return sure
+    return sigma < BLURRED_SIGMA_PX or 2.0 * CENTRE_SD * math.sqrt(sigma) * inv_snr / k / math.sqrt(k) <= RUN_MAX_SD_PX
 
 
 @inline
@@ -353,6 +330,8 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
     counts = np.empty(n, np.int64)  # points per run (a run's count kept in a register while it grows)
     cur = 0
     r = -1
+    inv_run = np.zeros(n)  # each run's sum of 1 / snr, and each laser's kept points' sigmas summed and counted
+    sig_l = np.zeros((2, noise_l.size))
     last_col = -10
     last_chain = -1
     last_l = -1
@@ -370,6 +349,10 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
             cur = 0
         cur += 1
         run_id[t] = r
+        inv_run[r] += 1.0 / max(snr[t], 1e-9)
+        if math.isfinite(sig[t]):
+            sig_l[0, lz[t]] += sig[t]
+            sig_l[1, lz[t]] += 1.0
         last_col = col_v[t]
         last_chain = chain[t]
         last_l = lz[t]
@@ -378,14 +361,14 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
     if r >= 0:
         counts[r] = cur
     need = max(2, min_run // 2)
-    sure = run_certain(lz, sig, snr, run_id, counts, r + 1, noise_l.size)
     y = np.full(n_cols, np.nan)
     run = np.full(n_cols, -1, np.int64)
     long_ = np.empty(n, np.bool_)  # in a run long enough (and, on a blurred stripe, sure enough)
     m = 0
     for t in range(n):
         ri = run_id[t]
-        lg = ri >= 0 and counts[ri] >= need and sure[ri]
+        lg = ri >= 0 and counts[ri] >= need
+        lg = lg and run_sure(sig_l[0, lz[t]] / max(sig_l[1, lz[t]], 1.0), inv_run[ri], counts[ri])
         long_[t] = lg
         if lg:
             y[col_v[t]] = vv[t]

@@ -110,7 +110,6 @@ import numpy as np
 
 from ._jit import inline, njit
 from .glow_fit import ROUNDS, fit_rounds, neighbour
-from .sorting import select
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -227,6 +226,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     rc = np.zeros(n, np.int64)
     hw = np.zeros(n, np.int64)
     kt = np.zeros(n, np.int64)
+    width = np.zeros((2, n_l))  # the sigmas of each laser's candidates summed, and counted (the stripe's width)
     for t in range(n):
         usable[t] = ok[t] and math.isfinite(vv[t]) and (sat[t] or sig[t] <= max_sig)
         if not usable[t]:
@@ -239,6 +239,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         reach = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
         nb_ok[t] = not sat[t]
         cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
+        if cand[t]:
+            width[0, laser[t]] += sg0[t]
+            width[1, laser[t]] += 1.0
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
     # within POOL_COLS columns: first the step in green at every candidate
@@ -307,22 +310,28 @@ def glow_refit(  # type: ignore[no-untyped-def]
             glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
     glowing = _whole_stripe(glow_run, cand, laser, n_l)
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
-    # it (no glow term where none shows); the stripes' widths pooled along them (a dim column's own is noise)
-    sgp = stripe_sigma(cols, laser, at, cand, sg0)
+    # it (no glow term where none shows); on a blurred stripe (its candidates' mean sigma at least PAIR_MIN_SIGMA)
+    # each candidate's width is the larger of its own and that mean, the stripe's (a dim column's own is noise: at
+    # 3 m with 4 px of blur, true sigma 4.1 px, the common fit's sigma at peaks below 4x the noise has a median of
+    # 1.9-2.4 px, and the pair test failed there; the blur is the water's, the same along the stripe); sharp
+    # stripes (clear water) keep their own
+    for t in range(n):
+        li = laser[t]
+        if cand[t] and width[0, li] >= PAIR_MIN_SIGMA * width[1, li]:
+            sg0[t] = max(sg0[t], width[0, li] / width[1, li])
     fit_me = np.zeros(n, np.bool_)
     for t in range(n):
         nb = nb0[t]
-        s_nb = sgp[nb] if nb >= 0 else 0.0
+        s_nb = sg0[nb] if nb >= 0 else 0.0
         fit_me[t] = glowing[t] or (
             cand[t]
             and nb >= 0
-            and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sgp[t] + s_nb)
-            and min(sgp[t], s_nb) >= PAIR_MIN_SIGMA
+            and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
+            and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
-    # the fits start from the pooled width, on a window of that width (inside the image)
+    # the fits start from that width, on a window of that width (inside the image)
     for t in range(n):
         if fit_me[t]:
-            sg0[t] = sgp[t]
             hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
             fit_me[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
@@ -405,47 +414,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
             a_out[t] = _st3[0, t]
         n_out[t] = _residual_noise(rs, df, lnoise[t])
     return v_out, s_out, fitted, a_out, n_out
-
-
-@njit
-def stripe_sigma(cols, laser, at, cand, sg0):  # type: ignore[no-untyped-def]
-    """The stripes' widths pooled along them, px (N,): at each candidate (``cand``) of a blurred stripe (the median
-    of ``sg0`` (N,) over all of its laser's candidates at least :data:`PAIR_MIN_SIGMA`) the larger of that median
-    and the median over the candidates of its laser within :data:`POOL_COLS` columns either side (the upper median
-    of an even count); ``sg0`` elsewhere (sharp stripes: clear water keeps every fit as it was).
-
-    A single column's fitted sigma is noise where the stripe is dim: at 3 m with 4 px of blur (true sigma 4.1 px) the
-    common fit's sigma at peaks below 4x the noise has a median of 1.9-2.4 px. The blur of forward scatter is the
-    water's and the same along the stripe (the sheet's own width changes slowly with range), so the stripe's dim ends
-    take their width from the stripe: the pair test (:data:`PAIR_MIN_SIGMA`) and the fits' start and window then
-    see the stripe the dim ends belong to (without it, 3 m, no glow, 4 px: 3.9 % of the points more than 5 % off,
-    their common fits read 0.3-0.9 px outward)."""
-    n = cols.size
-    n_l = at.shape[0]
-    w = at.shape[1]
-    out = sg0.copy()
-    whole = np.zeros(n_l)
-    vals = np.empty(n)
-    for li in range(n_l):
-        m = 0
-        for t in range(n):
-            if cand[t] and laser[t] == li:
-                vals[m] = sg0[t]
-                m += 1
-        if m > 0:
-            whole[li] = select(vals, m, m // 2)
-    buf = np.empty(2 * POOL_COLS + 1)
-    for t in range(n):
-        if not cand[t] or whole[laser[t]] < PAIR_MIN_SIGMA:
-            continue
-        m = 0
-        for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
-            j = at[laser[t], cc]
-            if j >= 0 and cand[j]:
-                buf[m] = sg0[j]
-                m += 1
-        out[t] = max(select(buf, m, m // 2), whole[laser[t]])
-    return out
 
 
 @inline

@@ -246,7 +246,7 @@ def extract_frame(
         fin = sig[mine][np.isfinite(sig[mine])]
         if fin.size == 0:
             continue
-        s_l = float(np.sort(fin)[fin.size // 2])
+        s_l = float(fin.sum()) / fin.size
         if s_l < BLURRED_SIGMA_PX:
             continue
         inv = np.bincount(run_id[mine], weights=1.0 / np.maximum(snr[mine], 1e-9), minlength=counts.size)

@@ -180,26 +180,14 @@ def _neighbours(
     return nb
 
 
-def _stripe_sigma(cols: IntArray, laser: IntArray, at: IntArray, cand: BoolArray, sg0: FloatArray) -> FloatArray:
-    """What :func:`lrsensor.extract.glow.stripe_sigma` computes: at each candidate of a blurred stripe (the upper
-    median of ``sg0`` over its laser's candidates at least PAIR_MIN_SIGMA) the larger of that and the median over its
-    laser's candidates within POOL_COLS columns; ``sg0`` elsewhere."""
-    w = at.shape[1]
-    out = sg0.copy()
-    for li in range(at.shape[0]):
-        mine = cand & (laser == li)
-        if not mine.any():
-            continue
-        v = np.sort(sg0[mine])
-        whole = v[v.size // 2]
-        if whole < PAIR_MIN_SIGMA:
-            continue
-        for t in np.flatnonzero(mine):
-            j = at[li, max(cols[t] - POOL_COLS, 0) : min(cols[t] + POOL_COLS + 1, w)]
-            j = j[j >= 0]
-            loc = np.sort(sg0[j[cand[j]]])
-            out[t] = max(loc[loc.size // 2], whole)
-    return out
+def _stripe_sigma(laser: IntArray, cand: BoolArray, sg0: FloatArray, n_l: int) -> FloatArray:
+    """The widths :func:`lrsensor.extract.glow.glow_refit` fits with: at each candidate of a blurred stripe (the mean
+    of ``sg0`` over its laser's candidates at least PAIR_MIN_SIGMA) the larger of its own and that mean; ``sg0``
+    elsewhere."""
+    tot = np.bincount(laser[cand], weights=sg0[cand], minlength=n_l)
+    cnt = np.bincount(laser[cand], minlength=n_l)
+    whole = tot / np.maximum(cnt, 1)
+    return np.where(cand & (tot[laser] >= PAIR_MIN_SIGMA * cnt[laser]), np.maximum(sg0, whole[laser]), sg0)
 
 
 def glow_refit(
@@ -289,8 +277,8 @@ def glow_refit(
     glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
-    # (the stripes' widths pooled along them: glow.stripe_sigma)
-    sgp = _stripe_sigma(cols, laser, at, cand, sg0)
+    # (the stripes' widths taken along them: glow.glow_refit)
+    sgp = _stripe_sigma(laser, cand, sg0, n_l)
     idx = np.flatnonzero(cand & (nb0 >= 0))
     nbc = nb0[idx]
     with np.errstate(invalid="ignore"):
