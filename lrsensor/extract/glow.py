@@ -226,7 +226,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
     rc = np.zeros(n, np.int64)
     hw = np.zeros(n, np.int64)
     kt = np.zeros(n, np.int64)
-    width = np.zeros((2, n_l))  # the sigmas of each laser's candidates summed, and counted (the stripe's width)
     for t in range(n):
         usable[t] = ok[t] and math.isfinite(vv[t]) and (sat[t] or sig[t] <= max_sig)
         if not usable[t]:
@@ -239,9 +238,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
         reach = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
         nb_ok[t] = not sat[t]
         cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
-        if cand[t]:
-            width[0, laser[t]] += sg0[t]
-            width[1, laser[t]] += 1.0
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
     # within POOL_COLS columns: first the step in green at every candidate
@@ -315,10 +311,20 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # 3 m with 4 px of blur, true sigma 4.1 px, the common fit's sigma at peaks below 4x the noise has a median of
     # 1.9-2.4 px, and the pair test failed there; the blur is the water's, the same along the stripe); sharp
     # stripes (clear water) keep their own
-    for t in range(n):
-        li = laser[t]
-        if cand[t] and width[0, li] >= PAIR_MIN_SIGMA * width[1, li]:
-            sg0[t] = max(sg0[t], width[0, li] / width[1, li])
+    blurred = False
+    for li in range(n_l):
+        tot = 0.0  # the sigmas of the laser's candidates summed, and counted (registers: one pass per laser)
+        cnt = 0.0
+        for t in range(n):
+            mine = cand[t] and laser[t] == li
+            tot += sg0[t] if mine else 0.0
+            cnt += 1.0 if mine else 0.0
+        if cnt > 0.0 and tot >= PAIR_MIN_SIGMA * cnt:
+            blurred = True
+            for t in range(n):
+                if cand[t] and laser[t] == li:
+                    sg0[t] = max(sg0[t], tot / cnt)
+    # (the fits start from that width, on a window of that width inside the image)
     fit_me = np.zeros(n, np.bool_)
     for t in range(n):
         nb = nb0[t]
@@ -329,9 +335,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
             and abs(vv[nb] - vv[t]) < PAIR_SIGMAS * (sg0[t] + s_nb)
             and min(sg0[t], s_nb) >= PAIR_MIN_SIGMA
         )
-    # the fits start from that width, on a window of that width (inside the image)
-    for t in range(n):
-        if fit_me[t]:
+        if fit_me[t] and blurred:
             hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
             fit_me[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
