@@ -5,6 +5,7 @@
     python benchmarks/bench_extract.py --copies [--repeats 15]
     python benchmarks/bench_extract.py --stages FRAME [--seeds 1] [--repeats 15]
     python benchmarks/bench_extract.py --flank-gate [--seeds 1]
+    python benchmarks/bench_extract.py --against WORKTREE [--rounds 3] [--seeds 4]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -30,6 +31,11 @@ background flanks triggers a refit from ``NEIGHBOUR_FLANK_TAIL`` of its amplitud
 centroid reads) on walls at 3.5-6 m and the tank: refitted columns, accuracy, and how far the centres move. The
 thresholds are compiled into the kernels, so both are run in the numpy reference, which reads them at each call.
 
+``--against WORKTREE``: ``Sensor.process`` on wall_5.0 (the ``--stages`` figure, ``--seeds`` renders) and every
+speed frame's warm ``subpixel`` column of ``--copies``, of this tree and of another worktree of the repository (an
+earlier commit, its kernels compiled into its own ``.numba-cache``; its ``bench_extract.py`` run with the same
+options), the two alternately ``--rounds`` times on the same machine: the medians per frame and their ratio.
+
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
 """
@@ -38,6 +44,11 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -404,6 +415,75 @@ def stage_times(image: np.ndarray, sensor: Sensor, repeats: int) -> list[tuple[s
     return rows
 
 
+def _tree_run(tree: Path, cache: str, args: list[str]) -> str:
+    """The markdown that ``tree``'s bench_extract.py writes with ``args`` (its own code and numba cache)."""
+    env = dict(os.environ, PYTHONPATH=str(tree), NUMBA_CACHE_DIR=cache)
+    with tempfile.TemporaryDirectory(prefix="bench-against-") as tmp:
+        out = Path(tmp) / "out.md"
+        cmd = [sys.executable, str(tree / "benchmarks" / "bench_extract.py"), *args, "--out", str(out)]
+        subprocess.run(cmd, cwd=tree, env=env, check=True, capture_output=True)
+        return out.read_text()
+
+
+def _process_ms(stages_md: str) -> list[float]:
+    """The ``Sensor.process`` row of a ``--stages`` table, ms per render."""
+    row = next(line for line in stages_md.splitlines() if line.startswith("| Sensor.process"))
+    return [float(x) for x in row.strip(" |").split("|")[1:]]
+
+
+def _warm_ms(copies_md: str) -> dict[str, float]:
+    """The warm ``subpixel`` column of a ``--copies`` table, ms per frame."""
+    lines = copies_md.splitlines()
+    head = next(line for line in lines if line.startswith("| frame |"))
+    col = [c.strip() for c in head.strip(" |").split("|")].index("subpixel")
+    out: dict[str, float] = {}
+    for line in lines:
+        cells = [c.strip() for c in line.strip(" |").split("|")]
+        if len(cells) > col and cells[1:2] == ["warm"]:
+            out[cells[0]] = float(cells[col])
+    return out
+
+
+def against_table(other: Path, rounds: int, seeds: int) -> list[str]:
+    """``--against``: this tree and ``other`` alternately, ``rounds`` times (see the module documentation)."""
+    here = Path(__file__).resolve().parent.parent
+    trees = {
+        "this": (here, os.environ.get("NUMBA_CACHE_DIR", str(here / ".numba-cache"))),
+        "other": (other, str(other / ".numba-cache")),
+    }
+    process: dict[str, list[list[float]]] = {k: [] for k in trees}
+    warm: dict[str, list[dict[str, float]]] = {k: [] for k in trees}
+    loads = []
+    for _ in range(rounds):
+        for key, (tree, cache) in trees.items():
+            process[key].append(_process_ms(_tree_run(tree, cache, ["--stages", "wall_5.0", "--seeds", str(seeds)])))
+            warm[key].append(_warm_ms(_tree_run(tree, cache, ["--copies"])))
+            loads.append(os.getloadavg()[0])
+    commit = subprocess.run(["git", "-C", str(other), "log", "-1", "--format=%h"], capture_output=True, text=True)
+    lines = [
+        f"### Against the code of {commit.stdout.strip() or other.name} (ms per frame, one thread)",
+        "",
+        f"`python benchmarks/bench_extract.py --against WORKTREE --rounds {rounds} --seeds {seeds}`: per-thread CPU "
+        "ms of `Sensor.process`, this tree and the other one's code (its own benchmark, its kernels from its own "
+        f"cache) alternately {rounds} times on the same machine (1-minute load average {min(loads):.1f}-"
+        f"{max(loads):.1f}), medians of the rounds: wall_5.0 as `--stages` times it (a column per render), and the "
+        "warm `subpixel` column of `--copies` for every speed frame both trees time.",
+        "",
+        "| frame | this ms | other ms | this / other |",
+        "|---|---:|---:|---:|",
+    ]
+    for k in range(seeds):
+        a = statistics.median(r[k] for r in process["this"])
+        b = statistics.median(r[k] for r in process["other"])
+        lines.append(f"| wall_5.0 seed {k} (stages) | {a:.3f} | {b:.3f} | {a / b:.2f} |")
+    for name in SPEED_SCENES:
+        if all(name in r for r in warm["this"] + warm["other"]):
+            a = statistics.median(r[name] for r in warm["this"])
+            b = statistics.median(r[name] for r in warm["other"])
+            lines.append(f"| {name} (copies, warm) | {a:.2f} | {b:.2f} | {a / b:.2f} |")
+    return lines
+
+
 def main() -> int:
     """Run the benchmark, print the markdown tables and write them to ``--out``."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -437,7 +517,18 @@ def main() -> int:
         help="only the neighbour refits' flank threshold against 1 %% on walls at 3.5-6 m and the tank, --seeds "
         "renders each, in the numpy reference (default out: extract_flank_gate.md)",
     )
+    ap.add_argument(
+        "--against",
+        metavar="WORKTREE",
+        type=Path,
+        help="only Sensor.process of this tree and of another worktree, alternately (default out: "
+        "extract_against.md; the other tree's kernels compiled into WORKTREE/.numba-cache)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="alternations of --against (default 3)")
     args = ap.parse_args()
+    if args.against:
+        _publish(against_table(args.against.resolve(), args.rounds, args.seeds), args.out, "extract_against.md")
+        return 0
     for flag, frame in (("--cold-after", args.cold_after), ("--stages", args.stages)):
         if frame and frame not in SPEED_SCENES:
             ap.error(f"{flag}: unknown speed frame {frame!r}; expected one of {SPEED_SCENES}")

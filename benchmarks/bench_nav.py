@@ -18,16 +18,16 @@ Each dive is replayed into ``mapping.MapBuilder`` three times, as the base stati
 out), correcting them first with the filter (``mapping.navigation``, the base's default), and with the smoother
 (``mapping.smoother``: past poses re-estimated and their clouds re-placed in the map, a last smoothing at the end of
 the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
-``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``,
-off by default; ``mapping.posegraph``). The served map is scored against the tank's faces
-(``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames where both lasers hit it;
-*recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered, the worst angle and
-offset over the seen faces that have a plane (a seen face without one is counted in "missing"), duplicates,
-spurious planes, the clouds left unplaced, the robots' horizontal position error (of the poses the clouds are in
-the map with at the end, served in NED: largest, and the robots' last estimates), the share of scans whose
-registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
-smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run).
-"""
+``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``, off
+by default; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with the graphs' gates
+(``tracked``: ``mapping.posegraph.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
+scored against the tank's faces (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames
+where both lasers hit it; *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered,
+the worst angle and offset over the seen faces that have a plane (a seen face without one is counted in "missing"),
+duplicates, spurious planes, the clouds left unplaced, the robots' horizontal position error (of the poses the
+clouds are in the map with at the end, served in NED: largest, and the robots' last estimates), the share of scans
+whose registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
+smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run)."""
 
 from __future__ import annotations
 
@@ -102,6 +102,8 @@ def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
 NAV_OVERRIDES: dict[str, Any] = {}
 #: ``GraphConfig`` fields the ``graph`` replays of :func:`run_mode` take (``--graph-second-hypothesis``)
 GRAPH_OVERRIDES: dict[str, Any] = {}
+#: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
+TRACKED_ROWS: list[bool] = []
 
 
 def _bias_setup(feed: Any) -> None:
@@ -127,6 +129,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     hits = hit_faces(scene, frames)
     rows = []
     ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
+    if TRACKED_ROWS and mode in ("depth-only", "mixed"):
+        ways.append("tracked")
     for way in ways:
         navigate = way != "trusted"
         kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
@@ -136,6 +140,12 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": GraphConfig(**GRAPH_OVERRIDES)}  # fmt: skip
+        if way == "tracked":  # as graph, the gated graph (mapping.posegraph.TRACKED, opt-in)
+            from mapping.posegraph import TRACKED
+
+            kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
+                                     **NAV_OVERRIDES),
+                  "smoother": SmootherConfig(), "background": "wait", "graph_cfg": TRACKED}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart
@@ -211,7 +221,8 @@ def run_acceptance(
     size: str = "640x360",
     record: Path | None = None,
 ) -> Acceptance:
-    """``lrsensor base`` and one ``lrsensor rov --imu csv:FILE`` per robot of :data:`ACCEPTANCE` as processes on
+    """``lrsensor base --nav NAV`` (``nav`` may carry more of the base's flags: ``"on --no-fix graph"``) and one
+    ``lrsensor rov --imu csv:FILE`` per robot of :data:`ACCEPTANCE` as processes on
     loopback, each replaying its own recorded dive (``lrsensor.sim.dive.record_dive``: rendered images, the
     navigation's ``imu.csv``); the map served on ``lrs/<fleet>/map`` once every cloud is acknowledged, scored
     against the tank's true faces (``services.demo.score_map``: matched within 2 deg and 5 cm, and within the
@@ -251,7 +262,7 @@ def run_acceptance(
     logs = {name: (work / f"{name}.log").open("wb") for name in ("base", *ACCEPTANCE)}
     base = subprocess.Popen(
         [*lrs, "base", "--fleet", fleet, "--listen", f"tcp/127.0.0.1:{port}", "--state", str(work / "state"),
-         "--map", "on", "--nav", nav, "--status-every-s", "0"],
+         "--map", "on", "--nav", *nav.split(), "--status-every-s", "0"],
         stdout=logs["base"], stderr=subprocess.STDOUT, env=env,
     )  # fmt: skip
     rovs: dict[str, subprocess.Popen[bytes]] = {}
@@ -546,7 +557,20 @@ def main() -> int:
         action="store_true",
         help="the graph rows with GraphConfig.second_hypothesis (an option: ambiguous plane factors left out)",
     )
+    ap.add_argument(
+        "--graph-track",
+        action="store_true",
+        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.posegraph.TRACKED, "
+        "NavConfig.frame_graph_launches; an option)",
+    )
+    ap.add_argument(
+        "--no-fix-graph",
+        action="store_true",
+        help="with --acceptance, also a run of lrsensor base --nav on --no-fix graph (rov3's gated pose graph)",
+    )
     args = ap.parse_args()
+    if args.graph_track:
+        TRACKED_ROWS.append(True)
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -564,7 +588,7 @@ def main() -> int:
     if args.acceptance > 0:
         import tempfile
 
-        for nav in ("off", "filter", "on"):
+        for nav in ("off", "filter", "on", *(("on --no-fix graph",) if args.no_fix_graph else ())):
             with tempfile.TemporaryDirectory(prefix="nav-acceptance-") as tmp:
                 accepted.append((nav, run_acceptance(Path(tmp), seconds=args.acceptance, seed=args.seed, nav=nav)))
             print(acceptance_table(accepted[-1:]), flush=True)
@@ -583,58 +607,63 @@ def main() -> int:
     load1 = os.getloadavg()[0]
     corrected = [r for r in rows if r.way != "trusted" and math.isfinite(r.cost_ms_mean)]
     cost = max((r.cost_ms_mean for r in corrected), default=math.nan)
-    text = "\n".join(
+    acc_cmd = f"--modes '' --seed {args.seed} --acceptance {args.acceptance:g}" + (
+        " --no-fix-graph" if args.no_fix_graph else ""
+    )
+    acc_section = (
         [
-            f"## Trusted vs corrected poses (3 robots, {args.seconds:g} s at 10 Hz, seed {args.seed}; "
-            f"load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
+            f"### Acceptance through processes ({args.acceptance:g} s dives at 5 Hz, 640x360 rendered images)",
             "",
-            f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
-            + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
-            + (" --nav-bias" if args.nav_bias else "")
-            + (" --nav-bias-adaptive" if args.nav_bias_adaptive else "")
-            + (" --no-nav-bias" if args.no_nav_bias else "")
-            + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
-            + "`",
+            *([f"`python -m benchmarks.bench_nav {acc_cmd}`", ""] if not rows else []),
+            "`lrsensor base` and one "
+            "`lrsensor rov --imu csv:FILE` per robot (rov1 good, rov2 drift, rov3 depth-only), each replaying "
+            "its own recorded dive; the map served on `lrs/<fleet>/map` once every cloud is acknowledged, "
+            "scored against all 12 faces of the tank (a short dive sees a few).",
             "",
-            table(rows),
-            "",
-            "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
-            "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
-            "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "
-            "worst robot (- where a robot's position is unknown). Smoother: its wall time over the dive (re-filter, "
-            "smoothing, re-placing and rebuilding the map) per scan, and its longest single run (all robots; the end "
-            "of the dive's last run included); the runs during the dive go on a thread of their own, and the longest "
-            "map-thread hold is what one of them kept the map thread for (starting it and handing it over).",
-            "",
-            f"Navigation cost: at most {cost:.2f} ms (wall, mean) per scan (one thread, this machine), i.e. one map "
-            f"thread corrects about {1e3 / cost:.0f} scans/s"
-            if math.isfinite(cost)
-            else "",
+            acceptance_table(accepted),
             "",
         ]
-        + (
-            [
-                f"### Acceptance through processes ({args.acceptance:g} s dives at 5 Hz, 640x360 rendered images)",
-                "",
-                "`lrsensor base` and one "
-                "`lrsensor rov --imu csv:FILE` per robot (rov1 good, rov2 drift, rov3 depth-only), each replaying "
-                "its own recorded dive; the map served on `lrs/<fleet>/map` once every cloud is acknowledged, "
-                "scored against all 12 faces of the tank (a short dive sees a few).",
-                "",
-                acceptance_table(accepted),
-                "",
-            ]
-            if accepted
-            else []
-        )
-        + extra
+        if accepted
+        else []
     )
+    rows_lines = [
+        f"## Trusted vs corrected poses (3 robots, {args.seconds:g} s at 10 Hz, seed {args.seed}; "
+        f"load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)",
+        "",
+        f"`python benchmarks/bench_nav.py --seconds {args.seconds:g} --seed {args.seed}"
+        + (f" --acceptance {args.acceptance:g}" if args.acceptance > 0 else "")
+        + (" --nav-bias" if args.nav_bias else "")
+        + (" --nav-bias-adaptive" if args.nav_bias_adaptive else "")
+        + (" --no-nav-bias" if args.no_nav_bias else "")
+        + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
+        + (" --modes " + args.modes if args.modes != ap.get_default("modes") else "")
+        + (" --graph-track" if args.graph_track else "")
+        + (" --no-fix-graph" if args.no_fix_graph else "")
+        + "`",
+        "",
+        table(rows),
+        "",
+        "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
+        "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
+        "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "
+        "worst robot (- where a robot's position is unknown). Smoother: its wall time over the dive (re-filter, "
+        "smoothing, re-placing and rebuilding the map) per scan, and its longest single run (all robots; the end "
+        "of the dive's last run included); the runs during the dive go on a thread of their own, and the longest "
+        "map-thread hold is what one of them kept the map thread for (starting it and handing it over).",
+        "",
+        f"Navigation cost: at most {cost:.2f} ms (wall, mean) per scan (one thread, this machine), i.e. one map "
+        f"thread corrects about {1e3 / cost:.0f} scans/s"
+        if math.isfinite(cost)
+        else "",
+        "",
+    ]
+    text = "\n".join([*rows_lines, *acc_section, *extra])
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    if not rows and not accepted and args.out.exists():
+    if not rows and args.out.exists():
         # only the extra sections ran: they replace their own sections of the results, the rest stays
         old = args.out.read_text()
-        for section in "\n".join(extra).split("### ")[1:]:
+        for section in "\n".join(acc_section + extra).split("### ")[1:]:
             head = section.split("\n", 1)[0]
             start = old.find("### " + head)
             if start >= 0:

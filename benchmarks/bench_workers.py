@@ -130,6 +130,7 @@ def reference_planes(
                 lm = b.snapshot_landmarks(t_ns, round(snapshot_lag_s * 1e9), min_points)
             step = wn.step(robot, t_ns, raw, pts, mirror if lag_s > 0 else lm)
             if step.pose is None or not step.placed:
+                b.advance_time(robot, t_ns)  # as a worker does: the robot's pending clouds due by time
                 continue
             pose = step.pose
         b.add_cloud_body(robot, t_ns, pts.astype(np.float64), pose)

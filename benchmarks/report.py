@@ -95,6 +95,12 @@ SOURCES: tuple[Source, ...] = (
     Source("extract_cold_after_tank.md", "speed", f"{_EXTRACT} --cold-after tank"),
     Source("extract_cold_after_wall_0.3.md", "speed", f"{_EXTRACT} --cold-after wall_0.3 --repeats 30"),
     Source("extract_stages_wall_5.0.md", "speed", f"{_EXTRACT} --stages wall_5.0 --seeds 4"),
+    Source(
+        "extract_against.md",
+        "speed",
+        f"{_EXTRACT} --against WORKTREE --rounds 3 --seeds 4",
+        note="against the code the reshape (issue 29) started from, on the same machine",
+    ),
     Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 1", note="the one-time compile"),
     Source("extract_foreign.md", "independent", _FOREIGN),
     Source("extract_foreign_integrate_first.md", "independent", f"{_FOREIGN} --integrate-first"),

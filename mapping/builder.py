@@ -176,6 +176,29 @@ class MapBuilder:
             due = self._due(win)
         return self._observe(robot) if due else None
 
+    def advance_time(self, robot: str, t_ns: int) -> list[MapChange]:
+        """The robot's capture clock reached ``t_ns`` without a cloud for the map (navigation could not place it):
+        extract and merge its window's pending clouds once they span ``extract_every_s``, as a placed cloud would
+        have. Without it a robot that stops being placed keeps its last clouds out of the map until a flush (and a
+        plane worker never commits them: their acknowledgement waits). Returns the changes (empty when not due)."""
+        self._record_snapshots(int(t_ns))
+        records = self.observe_time(robot, t_ns)
+        changes = self.merge(records) if records else []
+        self._maybe_autosave()
+        return changes
+
+    def observe_time(self, robot: str, t_ns: int) -> list[PlaneRecord] | None:
+        """The per-robot half of :meth:`advance_time` (plane workers): the observations of the robot's pending
+        clouds when they are due by capture time, without merging them; None when nothing is due."""
+        with self._lock:
+            win = self._windows.get(robot)
+            if win is None or win.n_new == 0 or self.cfg.extract_every_s <= 0:
+                return None
+            first_new = win.clouds[len(win.clouds) - win.n_new]
+            if int(t_ns) - first_new.t_ns < self.cfg.extract_every_s * 1e9:
+                return None
+        return self._observe(robot)
+
     def merge(self, records: list[PlaneRecord]) -> list[MapChange]:
         """Fuse plane observations (of :meth:`observe_cloud`, here or in a plane worker) into the map; returns
         the changes. The merger's whole job: association and exact addition of statistics."""

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import MapInputError
+
 FloatArray = NDArray[np.float64]
 
 
@@ -122,3 +124,43 @@ def velocity_error(dt1: float, dt2: float) -> Any:
         return np.asarray(e, dtype=np.float64)
 
     return err
+
+
+def make_factor(g: Any, kind: str, keys: tuple[int, ...], data: tuple[Any, ...]) -> Any:
+    """The GTSAM factor of one of :class:`mapping.posegraph.GraphNav`'s factor specs (kind, keys, plain numbers)."""
+    if kind in ("prior", "map"):
+        # data: mean (3,) north/east/heading and information (3x3, global axes)
+        mean = np.asarray(data[0], dtype=np.float64)
+        info = local_info(np.asarray(data[1], dtype=np.float64).reshape(3, 3), float(mean[2]))
+        return g.PriorFactorPose2(keys[0], pose2(g, mean), g.noiseModel.Gaussian.Information(info))
+    if kind in ("between", "loop"):
+        # data: relative pose (3,) in the first pose's frame and its information (3x3, that pose's tangent)
+        rel = np.asarray(data[0], dtype=np.float64)
+        info = np.asarray(data[1], dtype=np.float64).reshape(3, 3)
+        return g.BetweenFactorPose2(keys[0], keys[1], pose2(g, rel), g.noiseModel.Gaussian.Information(info))
+    if kind == "velocity":
+        dt1, dt2, sigma = (float(v) for v in data)
+        return g.CustomFactor(g.noiseModel.Isotropic.Sigma(2, sigma), list(keys), velocity_error(dt1, dt2))
+    if kind == "plane":
+        pid, nx, ny, cx, cy, const, sigma = data
+        return g.CustomFactor(
+            robust(g, float(sigma)),
+            [keys[0], g.symbol("p", int(pid))],
+            plane_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
+        )
+    if kind == "anchored":
+        pid, nx, ny, cx, cy, const, sigma = data
+        return g.CustomFactor(
+            robust(g, float(sigma)),
+            [keys[0], keys[1], g.symbol("p", int(pid))],
+            anchored_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
+        )
+    if kind == "plane_prior":
+        pid, sigma = data
+        return g.PriorFactorVector(g.symbol("p", int(pid)), np.zeros(1), g.noiseModel.Isotropic.Sigma(1, float(sigma)))
+    if kind == "fix":
+        n, e, s = (float(v) for v in data)
+        info = np.diag([1.0 / s**2, 1.0 / s**2, 1e-8])
+        return g.PriorFactorPose2(keys[0], g.Pose2(n, e, 0.0), g.noiseModel.Gaussian.Information(info))
+    msg = f"unknown factor kind {kind!r}"
+    raise MapInputError(msg)

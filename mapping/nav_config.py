@@ -91,7 +91,11 @@ class NavConfig:
     instead of this filter, from its last launch cloud on. Off because the graphs track such a robot for tens of
     seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
     gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
-    stay unplaced: an empty part of the map rather than a wrong one.
+    stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
+    :data:`mapping.posegraph.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
+    ``frame_graph_launches``: the launch frame
+    (:meth:`Navigator.frame` with smoothing) takes a graph robot's launch as its graph places it (else its
+    smoother's, which no longer moves, and the mean heading correction turns the map).
     """
 
     max_points: int = 300
@@ -147,6 +151,7 @@ class NavConfig:
     gate_chi2: float = 0.0
     graph_without_fix: bool = False
     launch_window_s: float = 2.0
+    frame_graph_launches: bool = False
 
 
 @dataclass(frozen=True)

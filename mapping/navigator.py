@@ -55,7 +55,8 @@ class Navigator:
     def frame(self) -> NavFrame:
         """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
         constrained at least ``frame_min_scans`` times, about the first robot's start."""
-        if self.smoothers:
+        graphs = self.cfg.frame_graph_launches and any(hasattr(n, "start_map_ne") for n in self.robots.values())
+        if self.smoothers or graphs:
             return self._launch_frame()
         cs = [float(n.x[4]) for n in self.robots.values() if n.yaw_scans >= self.cfg.frame_min_scans]
         if not cs or self.origin_ne is None:
@@ -78,6 +79,13 @@ class Navigator:
             and not sm.nav.lost
             and float(np.hypot(*(np.asarray(sm.start_map_ne) - sm.nav.start_ne))) <= lim
         }
+        # a robot on its pose graph: its launch pose as the graph places it now, not its old smoother's
+        for name, nav in self.robots.items():
+            if hasattr(nav, "start_map_ne") and self.cfg.frame_graph_launches:
+                usable.pop(name, None)
+                start = nav.start_map_ne
+                if start is not None and float(np.hypot(*(np.asarray(start) - nav.start_ne))) <= lim:
+                    usable[name] = (start, nav.start_ne)
         # launches turn the map only where the map joins them: robots that never shared a plane each built their
         # own part of it, and a turn between their launch points would only be their fixes' noise
         linked = self.linked

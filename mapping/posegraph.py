@@ -45,17 +45,8 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .errors import MapInputError
-from .graph_factors import (
-    anchored_error,
-    global_cov,
-    isam2,
-    local_info,
-    plane_error,
-    pose2,
-    robust,
-    rot,
-    velocity_error,
-)
+from .graph_factors import global_cov, isam2, make_factor, pose2, rot
+from .graph_gate import LEVER_M, TrackGate, ambiguous, relocalize, verify
 from .landmarks import PlaneLandmarks, associate
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
 from .odometry import OdometryConfig, increment
@@ -95,7 +86,16 @@ class GraphConfig:
     within this (the heading at a 2 m lever); ``window_s`` / ``rebase_every_s``: the bounded window;
     ``place_std_m``: clouds are placed while the horizontal standard deviation is below it; ``lost_std_m``: beyond
     it no plane is registered. ``second_hypothesis`` (off): a plane factor is left out when another plane would
-    explain the scan's points on it within the pose's marginal (:meth:`GraphNav._ambiguous`).
+    explain the scan's points on it within the pose's marginal (:func:`mapping.graph_gate.ambiguous`).
+    ``track_break_std_m``: past this horizontal std the track is broken and nothing more is placed
+    (:class:`mapping.graph_gate.TrackGate`; ``inf``: never), and so it does where one scan moves the position
+    beyond ``track_jump_chi2`` (squared Mahalanobis, its marginal before the scan). ``relocalize``: a broken
+    track is taken up again
+    from a scan that matches one place alone (:func:`mapping.relocalize.unique_place`, tried every
+    ``relocalize_every_s``, within ``relocalize_max_m`` and the speed bound since the break), that place then a
+    prior of ``relocalize_sigma_m``. ``verify_every_s``: that often an unbroken track is checked the same way
+    (within ``verify_radius_m``); a unique place more than ``verify_tol_m`` from the estimate re-anchors it there.
+    ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
     """
 
     velocity_walk_m_s: float = 0.1
@@ -118,10 +118,22 @@ class GraphConfig:
     observed_std_m: float = 0.1
     plane_gate_m: float = 0.1
     second_hypothesis: bool = False
+    track_break_std_m: float = math.inf
+    track_jump_chi2: float = math.inf
+    relocalize: bool = False
+    relocalize_every_s: float = 2.0
+    relocalize_max_m: float = 1.5
+    relocalize_sigma_m: float = 0.03
+    verify_every_s: float = math.inf
+    verify_radius_m: float = 0.5
+    verify_tol_m: float = 0.08
+    place_verified_s: float = math.inf
 
 
-#: the lever (m) that turns a heading into a distance where directions over position and heading are compared
-_LEVER_M = 2.0
+#: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
+#: taken up again only where a scan matches one place alone, checked every 2 s; with
+#: ``NavConfig.frame_graph_launches``. An option: it does not meet the bar on both seeds measured.
+TRACKED = GraphConfig(second_hypothesis=True, track_break_std_m=0.1, relocalize=True, verify_every_s=2.0)
 
 
 class GraphNav:
@@ -147,6 +159,8 @@ class GraphNav:
         self.loops = 0
         #: plane factors left out because another plane was as likely (``GraphConfig.second_hypothesis``)
         self.ambiguous = 0
+        #: whether the track since the launch is unbroken (what may be placed), and the placed poses it froze
+        self.track = TrackGate(self.gcfg.track_break_std_m)
         self._reset()
 
     def _reset(self) -> None:
@@ -185,6 +199,14 @@ class GraphNav:
         """Capture time of the first pose the graph still holds (older ones are frozen)."""
         return self._t[self._first_key] if self._t else 0
 
+    @property
+    def start_map_ne(self) -> tuple[float, float] | None:
+        """The launch pose (north, east) as the graph places it now (as frozen, past a broken track)."""
+        if not self._t:
+            return None
+        x = self.track.frozen.get(self._t[0], self._est[0])
+        return (float(x[0]), float(x[1]))
+
     def revised_poses(self) -> dict[int, Pose]:
         """t_ns -> each pose of the window as the graph estimates it now (every scan so far re-estimated with the
         later ones: the map re-places the clouds whose pose moved)."""
@@ -194,7 +216,8 @@ class GraphNav:
         out = {}
         for k in range(self._first_key, len(self._t)):
             down, roll, pitch = self._att[k]
-            x = self._est[k]
+            # a pose placed before the track broke stays as it was then (a later lock would drag it)
+            x = self.track.frozen.get(self._t[k], self._est[k])
             out[self._t[k]] = Pose(float(x[0]), float(x[1]), down, roll, pitch, float(x[2]))
             # the map re-places this pose's cloud with it: its planes now hang on this estimate
             self._then[k] = x.copy()
@@ -221,6 +244,7 @@ class GraphNav:
             specs=[[kind, list(keys_), list(data)] for kind, keys_, data in self._specs],
             est=self._est.copy(),
             latest=self.latest,
+            track=self.track.state(),
         )
         return out
 
@@ -245,6 +269,7 @@ class GraphNav:
         self._specs = [(str(kind), tuple(int(k) for k in keys), tuple(data)) for kind, keys, data in snap["specs"]]
         self._est = np.asarray(snap["est"], dtype=np.float64).reshape(-1, 3)
         self.latest = snap["latest"]
+        self.track.load(snap.get("track", {}))
         if self._specs and solve:
             self._rebuild(self._first_key, None)
 
@@ -278,20 +303,37 @@ class GraphNav:
             s = cfg.fix_sigma_m
             self._add("fix", (key,), (float(fix[0]), float(fix[1]), s))
             self.lost = False
+            self.track.broken = False
         self._compass_prior(key, t)
         self._solve()
         cov = self._cov[0:2, 0:2]
         std = math.sqrt(max(float(cov[0, 0]), float(cov[1, 1])))
         if fix is None and std > self.gcfg.lost_std_m:
             self.lost = True
+        if fix is None and self.track.step(std, t):
+            self._refresh(all_keys=True)
+            self.track.freeze({self._t[k]: self._est[k] for k in range(self._first_key, key)})
         h3, inliers = np.zeros((3, 3)), 0
         used: tuple[int, ...] = ()
-        if self.lost:
+        if self.lost or (self.track.broken and self.gcfg.relocalize):
+            # a broken track takes no plane factor (a guess would lock it): only a unique re-localization
             motion = "lost"
         else:
+            x_pred, p_pred = self._est[key, 0:2].copy(), self._cov[0:2, 0:2].copy()
             h3, inliers, used = self._register(key, raw, pts, landmarks, t)
+            dx = self._est[key, 0:2] - x_pred
+            if fix is None and float(dx @ np.linalg.solve(p_pred, dx)) > self.gcfg.track_jump_chi2:
+                # a correction its marginal cannot explain: the association was a surprise, the track breaks
+                self.track.break_now(std, t)
+                self.track.freeze({self._t[k]: v for k, v in self._then.items() if k < key})
+        if self.track.broken and self.gcfg.relocalize and self._relocalize(key, t, raw, pts, landmarks):
+            motion = "relocalized"
+        elif not self.track.broken and t - self.track.tried_ns >= self.gcfg.verify_every_s * 1e9:
+            motion = self._verify(key, t, raw, pts, landmarks) or motion
         self._then[key] = self._est[key].copy()
         self._forget(key)
+        if self.track.broken:
+            motion = "lost"
         est = self._estimate(t, raw, h3, inliers, used, motion)
         self.yaw_scans += int(est.constrained["yaw"])
         self.latest = est
@@ -299,54 +341,19 @@ class GraphNav:
             self._rebase()
         return est
 
+    def _relocalize(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> bool:
+        """:func:`mapping.graph_gate.relocalize` of this graph's pose ``key``."""
+        return relocalize(self, key, t, raw, pts, lm)
+
+    def _verify(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> str | None:
+        """:func:`mapping.graph_gate.verify` of this graph's pose ``key``."""
+        return verify(self, key, t, raw, pts, lm)
+
     # -- building the graph ----------------------------------------------------------------------------------
 
     def _add(self, kind: str, keys: tuple[int, ...], data: tuple[Any, ...]) -> None:
         self._specs.append((kind, keys, data))
         self._pending.append((kind, keys, data))
-
-    def _factor(self, kind: str, keys: tuple[int, ...], data: tuple[Any, ...]) -> Any:
-        g = gtsam_module()
-        if kind in ("prior", "map"):
-            # data: mean (3,) north/east/heading and information (3x3, global axes)
-            mean = np.asarray(data[0], dtype=np.float64)
-            info = local_info(np.asarray(data[1], dtype=np.float64).reshape(3, 3), float(mean[2]))
-            return g.PriorFactorPose2(keys[0], pose2(g, mean), g.noiseModel.Gaussian.Information(info))
-        if kind in ("between", "loop"):
-            # data: relative pose (3,) in the first pose's frame and its information (3x3, that pose's tangent)
-            rel = np.asarray(data[0], dtype=np.float64)
-            info = np.asarray(data[1], dtype=np.float64).reshape(3, 3)
-            return g.BetweenFactorPose2(keys[0], keys[1], pose2(g, rel), g.noiseModel.Gaussian.Information(info))
-        if kind == "velocity":
-            dt1, dt2, sigma = (float(v) for v in data)
-            return g.CustomFactor(g.noiseModel.Isotropic.Sigma(2, sigma), list(keys), velocity_error(dt1, dt2))
-        if kind == "plane":
-            pid, nx, ny, cx, cy, const, sigma = data
-            return g.CustomFactor(
-                robust(g, float(sigma)),
-                [keys[0], g.symbol("p", int(pid))],
-                plane_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
-            )
-        if kind == "anchored":
-            pid, nx, ny, cx, cy, const, sigma = data
-            return g.CustomFactor(
-                robust(g, float(sigma)),
-                [keys[0], keys[1], g.symbol("p", int(pid))],
-                anchored_error(
-                    np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)
-                ),
-            )
-        if kind == "plane_prior":
-            pid, sigma = data
-            return g.PriorFactorVector(
-                g.symbol("p", int(pid)), np.zeros(1), g.noiseModel.Isotropic.Sigma(1, float(sigma))
-            )
-        if kind == "fix":
-            n, e, s = (float(v) for v in data)
-            info = np.diag([1.0 / s**2, 1.0 / s**2, 1e-8])
-            return g.PriorFactorPose2(keys[0], g.Pose2(n, e, 0.0), g.noiseModel.Gaussian.Information(info))
-        msg = f"unknown factor kind {kind!r}"
-        raise MapInputError(msg)
 
     def _launch(self, t: int, raw: Pose, pts: FloatArray, fix: FloatArray) -> None:
         g = gtsam_module()
@@ -445,7 +452,7 @@ class GraphNav:
         g = gtsam_module()
         graph = g.NonlinearFactorGraph()
         for kind, keys, data in self._pending:
-            graph.add(self._factor(kind, keys, data))
+            graph.add(make_factor(g, kind, keys, data))
         values = g.Values()
         for k, x in self._new_values.items():
             values.insert(k, pose2(g, x))
@@ -589,28 +596,9 @@ class GraphNav:
     def _ambiguous(
         self, pid: int, n: FloatArray, d: float, c: FloatArray, x: FloatArray, raw: Pose, lm: PlaneLandmarks
     ) -> bool:
-        """Whether another plane of ``lm`` (facing the same way, a different surface: more than 5 cm from plane
-        ``pid`` where the scan saw it) would explain the scan's points on ``pid`` as well, within the pose's marginal
-        (3 sigma along its normal + 5 cm, the heading at a 2 m lever): in a symmetric tank a robot that slid along a
-        wall finds a face where it thinks it is, and only the next candidate's distance tells the association is a
-        guess."""
-        p = np.array([*(x[0:2] + rot(float(x[2])) @ c[0:2]), raw.down_m + float(c[2])])
-        veh = np.array([x[0], x[1], raw.down_m])
-        own = float(n @ p) + d
-        dist = lm.normal @ p + lm.d
-        same_way = lm.normal @ n >= math.cos(math.radians(15.0))
-        facing = (veh - p) @ lm.normal.T > 0.0
-        rel = p[None, :] - lm.centroid
-        pu = np.einsum("pk,pk->p", rel, lm.u)
-        pv = np.einsum("pk,pk->p", rel, lm.v)
-        m, md = self.cfg.extent_margin_m, self.cfg.extent_margin_down_m
-        inside = (pu >= lm.u_range[:, 0] - m) & (pu <= lm.u_range[:, 1] + m)
-        inside &= (pv >= lm.v_range[:, 0] - md) & (pv <= lm.v_range[:, 1] + md)
-        nh = lm.normal[:, 0:2]
-        along = np.einsum("pi,ij,pj->p", nh, self._cov[0:2, 0:2], nh) + _LEVER_M**2 * self._cov[2, 2]
-        gate = 3.0 * np.sqrt(along) + 0.05
-        other = (lm.ids != pid) & same_way & facing & inside & (np.abs(dist - own) > 0.05)
-        return bool(np.any(other & (np.abs(dist) <= gate)))
+        """:func:`mapping.graph_gate.ambiguous` at this pose's marginal."""
+        margins = (self.cfg.extent_margin_m, self.cfg.extent_margin_down_m)
+        return ambiguous(pid, n, d, c, x, raw.down_m, self._cov, lm, margins)
 
     def _offset(self, pid: int) -> float:
         """The current estimate of plane ``pid``'s offset (0 before it has one)."""
@@ -685,7 +673,7 @@ class GraphNav:
         # the scan's own solution at the last linearisation (the prior taken out): H (z - x_lin) = -g, in the
         # directions the scan observes well enough (in metres, the heading at a 2 m lever): a weakly observed one
         # would carry the linearisation far off with a little information
-        unit = np.array([1.0, 1.0, 1.0 / _LEVER_M])
+        unit = np.array([1.0, 1.0, 1.0 / LEVER_M])
         hs = h3 * unit[:, None] * unit[None, :]
         lam, vec = np.linalg.eigh(0.5 * (hs + hs.T))
         keep = lam >= 1.0 / self.gcfg.observed_std_m**2
@@ -757,7 +745,9 @@ class GraphNav:
         # placed while the position is known well enough: pinned to the map in both directions by this scan, or
         # (before there is a map here: the first scans make it) within boot_std_m of the launch on odometry alone
         pinned_both = constrained["north"] and constrained["east"]
-        placed = not self.lost and worst <= self.gcfg.place_std_m and (pinned_both or worst <= self.gcfg.boot_std_m)
+        placed = not self.lost and not self.track.broken and worst <= self.gcfg.place_std_m
+        placed = placed and (pinned_both or worst <= self.gcfg.boot_std_m)
+        placed = placed and (t - max(self._t[0], self.track.verified_ns)) * 1e-9 <= self.gcfg.place_verified_s
         return NavEstimate(
             self.robot,
             t,

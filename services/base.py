@@ -98,6 +98,10 @@ class BaseStation:
         worker_endpoint: where local workers connect (the router's TCP endpoint, e.g. ``tcp/127.0.0.1:7447``).
         remote_workers: send the per-robot work to plane workers (of any machine) even when none is started
             here (:mod:`services.map_workers`); implied by ``map_workers`` > 0.
+        no_fix: with navigation, what becomes of a robot without a horizontal fix after its launch (``--no-fix``):
+            ``lost`` (default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
+            :data:`mapping.posegraph.TRACKED`, with the graphs' launch frame), in the map thread and in the plane
+            workers alike (:func:`services.map_worker_nav.no_fix_config`; docs/navigation.md, "Depth-only").
     """
 
     def __init__(
@@ -117,7 +121,14 @@ class BaseStation:
         map_workers: int = 0,
         worker_endpoint: str | None = None,
         remote_workers: bool = False,
+        no_fix: str = "lost",
     ) -> None:
+        from .map_worker_nav import NO_FIX_CHOICES
+
+        if no_fix not in NO_FIX_CHOICES:
+            msg = f"no_fix must be one of {', '.join(NO_FIX_CHOICES)}, got {no_fix!r}"
+            raise ServiceError(msg)
+        self.no_fix = no_fix
         self.session = session
         self.keys = keys
         self.state_dir = Path(state_dir) if state_dir is not None else None
@@ -156,6 +167,16 @@ class BaseStation:
             msg = "map workers need the endpoint they connect to (worker_endpoint, a tcp/ listen endpoint)"
             raise ServiceError(msg)
         self._worker_procs: list[Any] = []
+
+    def _apply_no_fix(self) -> None:
+        """The ``no_fix`` choice on the feed's navigator (after ``--nav filter`` or the plane workers chose its
+        configuration): its graphs' configuration, and the launch frame from the graphs' launches."""
+        nav = self.feed.navigator
+        if nav is None:
+            return
+        from .map_worker_nav import no_fix_config
+
+        nav.cfg, nav.graph_cfg = no_fix_config(nav.cfg, self.no_fix)
 
     # ------------------------------------------------------------------ the parts, by their old names
     @property
@@ -222,9 +243,11 @@ class BaseStation:
             assert self.map is not None
             pool = WorkerPool(s, self.keys, self.map, lambda robot, done, unplaced: None, lambda changes: None)
             self.feed.use_workers(pool)
+            pool.no_fix = self.no_fix
             pool.start()
             if self.n_map_workers and self.worker_endpoint is not None:
                 self._worker_procs = start_local_workers(self.n_map_workers, self.keys, self.worker_endpoint)
+        self._apply_no_fix()
         self.feed.start(map_pub.put, self._publish_nav)
         saver = threading.Thread(target=self.ledger.run_saver, args=(self._closing,), name="base-saver", daemon=True)
         saver.start()

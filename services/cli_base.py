@@ -33,6 +33,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "correct each cloud once (no re-placing); off: trust the poses (clouds without a horizontal fix are "
         "unplaced); docs/navigation.md",
     )
+    parser.add_argument(
+        "--no-fix",
+        choices=("lost", "graph"),
+        default="lost",
+        help="with --nav on/filter, a robot without a horizontal fix after its launch (attitude and depth only, e.g. "
+        "an ROV without a DVL): lost (default): reported lost, its clouds unplaced, an empty part of the map rather "
+        "than a wrong one; graph: navigated by its gated pose graph (needs GTSAM), which places most of its faces "
+        "but can place a face twice (two depth bands) or a spurious plane, most of all when every robot lacks a "
+        "fix; in the map thread and in plane workers alike; docs/navigation.md, 'Choosing --no-fix'",
+    )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
     parser.add_argument(
@@ -87,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
             map_workers=n_workers if endpoint is not None else 0,
             worker_endpoint=endpoint,
             remote_workers=args.remote_map_workers,
+            no_fix=args.no_fix,
         )
         if args.nav == "filter":
             station.feed.set_smoothing(False)

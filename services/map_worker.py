@@ -350,6 +350,7 @@ class MapWorker:
         self._epoch[msg.robot] = msg.epoch
         if msg.state:
             try:
+                self.nav.set_no_fix(msg.no_fix)
                 self.nav.restore(msg.robot, decode_state(msg.state))
                 return
             except (WireError, KeyError, TypeError, ValueError) as err:
@@ -373,6 +374,7 @@ class MapWorker:
         return rng.landmarks
 
     def _navigate(self, job: MapJob) -> NavStep:
+        self.nav.set_no_fix(job.no_fix)  # the base's --no-fix choice (a bad value fails the cloud, logged)
         step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self._landmarks_for(job))
         est = step.estimate
         if est is not None and self._pub is not None:
@@ -395,6 +397,9 @@ class MapWorker:
                     self._unplaced.setdefault(job.robot, []).append(job.seq)
                     if self.builder.uncommitted(job.robot) == 0:
                         return [self._observed(job.robot, [], job.t_ns)]
+                    due = self.builder.observe_time(job.robot, job.t_ns)
+                    if due is not None:  # the window's clouds are due by time: a lost robot's last clouds commit
+                        return [self._observed(job.robot, due, job.t_ns)]
                     # mid-window: committed now on its own, or the base, counting it in the window, would bound the
                     # window's next observation too early (and hold the merge and the snapshots back); no state:
                     # the one carried must follow the window's clouds, which are not committed yet

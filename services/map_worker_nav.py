@@ -60,6 +60,25 @@ REGISTER_EVERY_S = 0.19
 #: Without a fix, scans between registrations move on at the velocity of the last two registered positions when
 #: these are at most this far apart (capture time, seconds); otherwise they keep the latest position.
 EXTRAPOLATE_S = 0.5
+#: What the base does with a robot that has no horizontal fix after its launch (``lrsensor base --no-fix``):
+#: ``lost`` (the default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
+#: :data:`mapping.posegraph.TRACKED`, with the graphs' launch frame; docs/navigation.md, "Depth-only").
+NO_FIX_CHOICES = ("lost", "graph")
+
+
+def no_fix_config(cfg: Any, no_fix: str) -> tuple[Any, Any]:
+    """``(NavConfig, GraphConfig or None)`` for the choice ``no_fix`` of :data:`NO_FIX_CHOICES` on top of the
+    navigation's ``cfg``: ``lost`` leaves ``cfg`` as it is (no graph); ``graph`` turns on
+    ``graph_without_fix`` and ``frame_graph_launches`` with :data:`mapping.posegraph.TRACKED`. Raises
+    :class:`~services.errors.WireError` (a :class:`~services.errors.ServiceError`) on another value."""
+    if no_fix == "lost":
+        return cfg, None
+    if no_fix == "graph":
+        from mapping.posegraph import TRACKED
+
+        return dataclasses.replace(cfg, graph_without_fix=True, frame_graph_launches=True), TRACKED
+    msg = f"no-fix choice must be one of {', '.join(NO_FIX_CHOICES)}, got {no_fix!r}"
+    raise WireError(msg)
 
 
 # ---------------------------------------------------------------------------------------------- codec
@@ -209,12 +228,20 @@ class WorkerNav:
     Args:
         cfg: the navigation's configuration (default ``NavConfig()``, the base's ``--nav filter``).
         register_every_s: the stride, seconds of capture time (0: register every scan).
+        graph_cfg: the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`; None: its default).
+
+    The base's ``--no-fix`` choice comes with each job (:meth:`set_no_fix`): a worker started on another machine
+    navigates as the base says.
     """
 
-    def __init__(self, cfg: Any = None, register_every_s: float = REGISTER_EVERY_S) -> None:
+    def __init__(self, cfg: Any = None, register_every_s: float = REGISTER_EVERY_S, graph_cfg: Any = None) -> None:
         from mapping.navigation import NavConfig
 
         self.cfg = cfg or NavConfig()
+        self.graph_cfg = graph_cfg
+        #: the ``--no-fix`` choice applied last (:meth:`set_no_fix`), the configuration it was applied to
+        self.no_fix = "lost"
+        self._base_cfg = self.cfg
         self.register_every_s = register_every_s
         self._navs: dict[str, Any] = {}
         #: per robot: capture time of the last registered scan; the registered estimate before the latest
@@ -227,6 +254,14 @@ class WorkerNav:
         #: graph, mapping.posegraph, as in the map thread's Navigator)
         self._launch: dict[str, tuple[int, Pose, Any]] = {}
         self._first_fix: dict[str, int] = {}
+
+    def set_no_fix(self, no_fix: str) -> None:
+        """Apply the base's ``--no-fix`` choice (:data:`NO_FIX_CHOICES`, :func:`no_fix_config`) to the robots
+        whose estimator starts from now on; raises :class:`~services.errors.WireError` on an unknown value."""
+        if no_fix == self.no_fix:
+            return
+        self.cfg, self.graph_cfg = no_fix_config(self._base_cfg, no_fix)
+        self.no_fix = no_fix
 
     def _nav(self, robot: str) -> Any:
         nav = self._navs.get(robot)
@@ -246,7 +281,7 @@ class WorkerNav:
         from mapping.posegraph import start_graph
 
         try:
-            graph = self._navs[robot] = start_graph(robot, self.cfg, None, launch, landmarks)
+            graph = self._navs[robot] = start_graph(robot, self.cfg, self.graph_cfg, launch, landmarks)
         except MapInputError as err:
             log.warning("%s: %s; it keeps the filter", robot, err)
             return nav
@@ -307,7 +342,7 @@ class WorkerNav:
         from mapping.posegraph import GraphNav, is_graph_state
 
         if is_graph_state(state["nav"]):
-            self._navs[robot] = GraphNav(robot, self.cfg)
+            self._navs[robot] = GraphNav(robot, self.cfg, self.graph_cfg)
         self._nav(robot).restore(state["nav"])
         self._before[robot] = state.get("before")
         if state.get("last_reg") is None:

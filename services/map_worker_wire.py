@@ -68,6 +68,8 @@ class MapJob:
         lag_ns: with ``navigate``, the snapshot lag (ns): a registered scan uses ``snapshot(T)`` of the merged map,
             T = :func:`mapping.landmarks.snapshot_time` (``t_ns``, ``lag_ns``), waiting for it when needed; 0: the
             worker's mirror of the moment.
+        no_fix: with ``navigate``, the base's ``--no-fix`` choice (``lost`` or ``graph``,
+            :data:`services.map_worker_nav.NO_FIX_CHOICES`); absent on the wire: ``lost``.
     """
 
     robot: str
@@ -78,6 +80,7 @@ class MapJob:
     points_body: NDArray[np.float32]
     navigate: bool = False
     lag_ns: int = 0
+    no_fix: str = "lost"
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -94,6 +97,7 @@ class MapJob:
                 "points": np.ascontiguousarray(self.points_body, "<f4").tobytes(),
                 "nav": self.navigate,
                 "lag": self.lag_ns,
+                "nofix": self.no_fix,
             }
         )
 
@@ -103,18 +107,22 @@ class MapControl:
     """A control message: ``flush`` (extract every pending window now), ``drop`` (forget ``robot``'s window:
     it moved to another worker at ``epoch``) or ``adopt`` (``robot`` moved here at ``epoch``: continue its
     navigation from ``state``, :func:`services.map_worker_nav.encode_state` of the state after its last committed
-    cloud; the clouds not committed follow)."""
+    cloud; the clouds not committed follow). An ``adopt`` carries the base's ``--no-fix`` choice (``no_fix``), so
+    a pose graph's state is restored with the graph's configuration."""
 
     kind: str
     robot: str = ""
     epoch: int = 0
     state: bytes = b""
+    no_fix: str = "lost"
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
-        d = {"v": SCHEMA, "type": self.kind, "robot": self.robot, "epoch": self.epoch}
+        d: dict[str, Any] = {"v": SCHEMA, "type": self.kind, "robot": self.robot, "epoch": self.epoch}
         if self.state:
             d["state"] = self.state
+        if self.no_fix != "lost":
+            d["nofix"] = self.no_fix
         return msgpack.packb(d)
 
 
@@ -242,9 +250,16 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
                 pts.reshape(-1, 3),
                 bool(d.get("nav", False)),
                 int(d.get("lag", 0)),
+                str(d.get("nofix", "lost")),
             )
         if kind in ("flush", "drop", "adopt"):
-            return MapControl(kind, str(d.get("robot", "")), int(d.get("epoch", 0)), bytes(d.get("state", b"")))
+            return MapControl(
+                kind,
+                str(d.get("robot", "")),
+                int(d.get("epoch", 0)),
+                bytes(d.get("state", b"")),
+                str(d.get("nofix", "lost")),
+            )
     except (KeyError, TypeError, ValueError) as err:
         msg = f"map work: malformed: {err!r}"
         raise WireError(msg) from err

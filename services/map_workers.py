@@ -135,6 +135,8 @@ class WorkerPool:
         landmark_min_points: with ``navigate``, planes with fewer points are not sent to the workers.
         snapshot_lag_s: with ``navigate``, the snapshot rule's lag (docs/scaling.md; 0: the workers register
             against a mirror of the planes of the moment, sent at most every ``LANDMARKS_EVERY_S``).
+        no_fix: with ``navigate``, the base's ``--no-fix`` choice (``lost`` or ``graph``), sent with every job and
+            adoption: the workers navigate a robot without a fix as the base says.
     """
 
     def __init__(
@@ -148,6 +150,7 @@ class WorkerPool:
         navigate: bool = False,
         landmark_min_points: int = 0,
         snapshot_lag_s: float = SNAPSHOT_LAG_S,
+        no_fix: str = "lost",
     ) -> None:
         self.session = session
         self.keys = keys
@@ -158,6 +161,7 @@ class WorkerPool:
         self.navigate = navigate
         self.landmark_min_points = landmark_min_points
         self.snapshot_lag_ns = round(snapshot_lag_s * 1e9)
+        self.no_fix = no_fix
         #: the snapshot rule (merger thread): this merger's name, the last grid time published, keys up to which
         #: the published snapshots are not exact, the ranges kept for a joining worker
         self._base_id = uuid.uuid4().hex[:12]
@@ -348,7 +352,7 @@ class WorkerPool:
         epoch = self._epoch[robot]
         lag = self.snapshot_lag_ns if self.navigate else 0
         for it in items:
-            job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag)
+            job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag, self.no_fix)
             self._put(w, job.to_bytes())
 
     def _reassign(self) -> None:
@@ -366,7 +370,7 @@ class WorkerPool:
             self.resent += len(items) if new is not None else 0
             if self.navigate and new is not None:  # its navigation continues after its last committed cloud
                 state = self._nav_state.get(robot, b"")
-                self._put(new, MapControl("adopt", robot, self._epoch[robot], state).to_bytes())
+                self._put(new, MapControl("adopt", robot, self._epoch[robot], state, self.no_fix).to_bytes())
             self._send(robot, items)
             log.info("robot %s moves from map worker %s to %s (%d clouds again)", robot, old, new, len(items))
 

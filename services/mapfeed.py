@@ -414,6 +414,10 @@ class MapFeed:
                     if est.pose is None
                     else "navigation's position is too uncertain",
                 )
+                changes = self.builder.advance_time(msg.robot, msg.t_ns)  # its placed clouds due by time
+                if self.builder.uncommitted(msg.robot) == 0:
+                    self._commit(msg.robot)
+                self._publish_changes(msg, changes)
                 return False
             pose = est.pose
             with self._nav_lock:

@@ -449,6 +449,46 @@ def test_clouds_navigation_cannot_place_are_committed_without_planes_and_said_un
     assert all(o.nav_state for o in out)  # the state travels even before the robot has a position
 
 
+
+def test_a_robot_that_stops_being_placed_still_commits_its_placed_clouds() -> None:
+    """A depth-only robot: its launch cloud is placed, then navigation loses it. The placed clouds wait in the
+    window for a trigger no placed cloud brings; the unplaced ones bring it by time (``extract_every_s``), so
+    every cloud is committed (and acknowledged) without a flush, and one process merges the same."""
+    from dataclasses import replace
+
+    frames = [f for f in _frames(2.0, rate_hz=5.0) if f.robot == "rov1"]
+    worker = MapWorker(None, FleetKeys("t"), "w1")
+    single = MapBuilder(MapConfig())
+    out: list[PlaneObservations] = []
+    for seq, f in enumerate(frames):
+        raw = f.pose_est if seq == 0 else replace(f.pose_est, north_m=float("nan"), east_m=float("nan"))
+        out += worker.handle(MapJob("rov1", seq, f.t_ns, 0, raw, f.points_body.astype(np.float32), navigate=True))
+    committed = sorted(s for o in out for s in o.seqs)
+    unplaced = {s for o in out for s in o.unplaced}
+    assert committed == list(range(len(frames))), (committed, unplaced)
+    assert 0 not in unplaced  # the launch cloud, placed by its fix
+    # one process does the same: the unplaced clouds' times extract the pending window
+    for s, f in enumerate(frames):
+        if s in unplaced:
+            single.advance_time("rov1", f.t_ns)
+        else:
+            single.add_cloud_body("rov1", f.t_ns, f.points_body.astype(np.float32).astype(np.float64), f.pose_est)
+    assert single.uncommitted("rov1") == 0
+
+
+def test_advance_time_extracts_a_window_only_once_its_clouds_span_the_time_rule() -> None:
+    frames = [f for f in _frames(1.5, rate_hz=5.0) if f.robot == "rov1"]
+    b = MapBuilder(MapConfig())
+    first = frames[0]
+    b.add_cloud_body("rov1", first.t_ns, first.points_body.astype(np.float64), first.pose_est)
+    assert b.uncommitted("rov1") == 1
+    assert b.advance_time("rov1", first.t_ns + 900_000_000) == []  # not yet due
+    assert b.uncommitted("rov1") == 1
+    b.advance_time("rov1", first.t_ns + 1_000_000_000)
+    assert b.uncommitted("rov1") == 0
+    assert b.advance_time("rov2", first.t_ns) == []  # a robot without a window: nothing
+
+
 # ---------------------------------------------------------------------- the same map with navigation
 def _one_process_nav(frames: list[DiveFrame], robots: list[str], per: int, lag_ns: int) -> MapBuilder:
     """One process by the workers' rule: each robot's ``WorkerNav`` (the stride, the filter), a registered scan
@@ -466,6 +506,7 @@ def _one_process_nav(frames: list[DiveFrame], robots: list[str], per: int, lag_n
             pts = f.points_body.astype(np.float32)
             step = wn.step(r, f.t_ns, f.pose_est, pts, single.snapshot_landmarks(f.t_ns, lag_ns, min_points))
             if step.pose is None or not step.placed:
+                single.advance_time(r, f.t_ns)  # as a worker does: the robot's pending clouds due by time
                 continue
             single.add_cloud_body(r, f.t_ns, pts.astype(np.float64), step.pose)
     single.flush()

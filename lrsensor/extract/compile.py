@@ -16,9 +16,11 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only) and all of the triangulation (the width limits
-  the fit needs and the placing of the points, two calls of their own), the second the glow, gates and
-  smoothing, whose turbid-water fits are the largest single kernel; and the thin stages that mostly call kernels
+  of :mod:`lrsensor.extract.fit` compiles in this part only) and the width limits the fit needs (a call of its
+  own, with the triangulation), the second the glow, gates and smoothing, whose turbid-water fits are the
+  largest single kernel, and the placing of the points (the port's triangulation, which the smoothing's central
+  view needs, compiles in both parts; the helper starts after the child's imports, so its part is the lighter);
+  and the thin stages that mostly call kernels
   (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
   into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
   kernels of their own (inlined, they make their callers' functions so large that LLVM takes longer over them
@@ -100,7 +102,8 @@ def entry_points() -> tuple[object, ...]:
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the frame's detection and fits, and its finish and triangulation, of about equal compile time.
+#: the frame's detection, fits and width limits, and its finish and the placing of the points, of about equal
+#: compile time.
 PARTS = ("locate", "finish")
 
 
@@ -132,10 +135,10 @@ def _build(part: str | None = None) -> None:
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         max_fwhm_at(i64, i64, i64, 1.0, 1.0, g)
-        place_points(f64, f64, i64, f64, settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
+        place_points(f64, f64, i64, f64, settings, g, True)
     if part is None:  # (the parts compile them as callees)
         triangulate_points(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,

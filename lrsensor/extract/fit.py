@@ -379,7 +379,6 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     ex = np.empty(n, np.float32)
     for t in range(n):
         g2[t] = math.exp(np.float32(-2.0 * inv2[t]))
-    in_window = np.flatnonzero(window)
     for _ in range(iterations):
         lo = m  # the rows any Gaussian weight reaches
         hi = 0
@@ -407,7 +406,9 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
                 s1[t] += wa * d if inr else 0.0
                 w[t] = w[t] * ratio[t] if inr else w[t]
                 ratio[t] = ratio[t] * g2[t] if inr else ratio[t]
-        for tw in in_window:  # (few: saturated and flat-topped profiles)
+        for tw in range(n):  # (few: saturated and flat-topped profiles)
+            if not window[tw]:
+                continue
             s0[tw] = 0.0
             s1[tw] = 0.0
             for q in range(q0[tw], q1[tw]):

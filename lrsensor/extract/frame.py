@@ -222,13 +222,20 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
         if idx.size == 0:
             break
         refit_columns(image, cols, rows, idx, nb_v, nb_a, nb_s, half, sig_med, s, max_fwhm, res)
+        n_look = 0
         for i in range(idx.size):
             t = idx[i]
             good[t] = ok[t] and not sat[t]
-            touched[cols[t]] = True
-        look = np.flatnonzero(touched)
-        for c in look:
-            touched[c] = False
+            if not touched[cols[t]]:
+                n_look += 1
+                touched[cols[t]] = True
+        look = np.empty(n_look, np.int64)
+        k = 0
+        for c in range(w):  # (in order: refit_targets keeps the points' order)
+            if touched[c]:
+                look[k] = c
+                k += 1
+                touched[c] = False
 
 
 @inline
@@ -484,14 +491,20 @@ def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-
             uv[t, 0] = u[t]
             uv[t, 1] = v[t]
         return uv, laser, quality, xyz
-    idx = np.flatnonzero(keep)
     xyz_k = np.empty((kept, 3))
-    for j in range(kept):
-        uv[j, 0] = u[idx[j]]
-        uv[j, 1] = v[idx[j]]
-        for a in range(3):
-            xyz_k[j, a] = xyz[idx[j], a]
-    return uv, take(laser, idx), take(quality, idx), xyz_k
+    laser_k = np.empty(kept, np.int64)
+    quality_k = np.empty(kept)
+    j = 0
+    for t in range(m):
+        if keep[t]:
+            uv[j, 0] = u[t]
+            uv[j, 1] = v[t]
+            for a in range(3):
+                xyz_k[j, a] = xyz[t, a]
+            laser_k[j] = laser[t]
+            quality_k[j] = quality[t]
+            j += 1
+    return uv, laser_k, quality_k, xyz_k
 
 
 FloatArray = NDArray[np.float64]
