@@ -45,7 +45,7 @@ from ..triangulation import triangulate as _triangulate
 from . import reference_finish, reference_glow, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import GLOW_PASS_MIN, noise_col_step
-from .finish import STRIPE_NOISE_MIN
+from .finish import BLURRED_SIGMA_PX, CENTRE_SD, RUN_MAX_SD_PX, STRIPE_NOISE_MIN
 from .fit import flank_offset
 from .frame import STATS_POINTS
 from .reference_finish import pooled_gates, smooth, smooth_through_port
@@ -238,7 +238,21 @@ def extract_frame(
     new = np.ones(col_v.size, bool)
     new[1:] = (np.diff(col_v) > 3) | (lz[1:] != lz[:-1]) | ~joined
     run_id = np.cumsum(new) - 1
-    keep = np.bincount(run_id)[run_id] >= max(2, s.min_run_cols // 2)
+    counts = np.bincount(run_id)
+    keep = counts[run_id] >= max(2, s.min_run_cols // 2)
+    # on a blurred stripe, the runs whose line fit is sure enough at its ends (finish.run_certain)
+    for li in range(n_l):
+        mine = lz == li
+        fin = sig[mine][np.isfinite(sig[mine])]
+        if fin.size == 0:
+            continue
+        s_l = float(fin.sum()) / fin.size
+        if s_l < BLURRED_SIGMA_PX:
+            continue
+        inv = np.bincount(run_id[mine], weights=1.0 / np.maximum(snr[mine], 1e-9), minlength=counts.size)
+        k = np.maximum(counts, 1)
+        sd = 2.0 * CENTRE_SD * math.sqrt(s_l) * inv / k / np.sqrt(k)
+        keep[mine] &= sd[run_id[mine]] <= RUN_MAX_SD_PX
     col_v, vv, sig, chain_len, run_id, snr = col_v[keep], vv[keep], sig[keep], chain_len[keep], run_id[keep], snr[keep]
     # along-stripe smoothing
     scales = tuple(int(k) for k in s.smooth_scales)

@@ -180,6 +180,16 @@ def _neighbours(
     return nb
 
 
+def _stripe_sigma(laser: IntArray, cand: BoolArray, sg0: FloatArray, n_l: int) -> FloatArray:
+    """The widths :func:`lrsensor.extract.glow.glow_refit` fits with: at each candidate of a blurred stripe (the mean
+    of ``sg0`` over its laser's candidates at least PAIR_MIN_SIGMA) the larger of its own and that mean; ``sg0``
+    elsewhere."""
+    tot = np.bincount(laser[cand], weights=sg0[cand], minlength=n_l)
+    cnt = np.bincount(laser[cand], minlength=n_l)
+    whole = tot / np.maximum(cnt, 1)
+    return np.where(cand & (tot[laser] >= PAIR_MIN_SIGMA * cnt[laser]), np.maximum(sg0, whole[laser]), sg0)
+
+
 def glow_refit(
     image: NDArray[np.uint8],
     cols: IntArray,
@@ -267,15 +277,23 @@ def glow_refit(
     glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
+    # (the stripes' widths taken along them: glow.glow_refit)
+    sgp = _stripe_sigma(laser, cand, sg0, n_l)
     idx = np.flatnonzero(cand & (nb0 >= 0))
     nbc = nb0[idx]
     with np.errstate(invalid="ignore"):
-        s_nb = np.maximum(sig[nbc], lo_sig)
-        near = (np.abs(vv[nbc] - vv[idx]) < PAIR_SIGMAS * (sg0[idx] + s_nb)) & (
-            np.minimum(sg0[idx], s_nb) >= PAIR_MIN_SIGMA
+        s_nb = sgp[nbc]
+        near = (np.abs(vv[nbc] - vv[idx]) < PAIR_SIGMAS * (sgp[idx] + s_nb)) & (
+            np.minimum(sgp[idx], s_nb) >= PAIR_MIN_SIGMA
         )
     paired = np.zeros(n, bool)
     paired[idx[near]] = True
+    # the fits start from the pooled width, on a window of that width (inside the image)
+    todo = glowing | paired
+    sg0 = np.where(todo, sgp, sg0)
+    hw = np.where(todo, np.minimum(np.ceil(WINDOW_SIGMAS * sg0).astype(np.int64) + 2, MAX_HALF_PX), hw)
+    todo &= (rc - hw >= 0) & (rc + hw <= h - 1)
+    reach = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)
 
     def rounds(
         ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray, n_rounds: int = ROUNDS
@@ -365,7 +383,7 @@ def glow_refit(
 
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, d0, st0 = rounds(False, glowing | paired, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo, vv, sig)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
