@@ -174,15 +174,27 @@ def _raw_step(image, rc, col, out, kt, ch):  # type: ignore[no-untyped-def]
 @inline
 def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
     """:func:`_raw_step` of a unit Gaussian of ``1 / inv_s`` px centred ``x0`` rows before ``rc``: the other laser's
-    stripe in the step, subtracted (rows beyond 9 sigmas of it, below ``e^-40``, left out)."""
-    far = 2 * kt + 1
+    stripe in the step, subtracted (runs of rows all beyond 9 sigmas of it, below ``e^-40``, left out). Along a run
+    of consecutive rows the Gaussian is a product: with ``e`` the rows' offsets in sigmas and ``d`` their step,
+    ``g(e + d) = g(e) r`` where ``r = exp(-d e - d^2 / 2)`` is itself multiplied by ``exp(-d^2)`` row by row: two
+    exponentials a run, not one a row."""
+    q = math.exp(-inv_s * inv_s)
     s = 0.0
-    for i in range(TRIGGER_ROWS):
-        for k, wgt in ((kt + i, 2.0), (far + i, -1.0)):
-            for sgn in (1, -1):
-                e = (x0 + sgn * out * k) * inv_s
-                if abs(e) < 9.0:
-                    s += wgt * sgn * math.exp(-0.5 * e * e)
+    for k0, wgt in ((kt, 2.0), (2 * kt + 1, -1.0)):
+        for sgn in (1, -1):
+            d = sgn * out * inv_s
+            e = (x0 + sgn * out * k0) * inv_s
+            e_end = e + (TRIGGER_ROWS - 1) * d
+            if e * e_end > 0.0 and min(abs(e), abs(e_end)) >= 9.0:
+                continue
+            g = math.exp(-0.5 * e * e)
+            r = math.exp(-d * e - 0.5 * d * d)
+            run = g
+            for _ in range(TRIGGER_ROWS - 1):
+                g *= r
+                r *= q
+                run += g
+            s += wgt * sgn * run
     return s
 
 
