@@ -45,6 +45,7 @@ from mapping.navigation import NavConfig
 from mapping.planes import open3d
 from mapping.smoother import SMOOTHED_NAV, SmootherConfig
 from mapping.synth import DiveMap, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
+from mapping.types import MapConfig
 
 MODES: dict[str, str | dict[str, str]] = {
     "good": "good",
@@ -104,6 +105,10 @@ NAV_OVERRIDES: dict[str, Any] = {}
 GRAPH_OVERRIDES: dict[str, Any] = {}
 #: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
 TRACKED_ROWS: list[bool] = []
+#: MapConfig fields every replay's map takes (--merge-bands)
+MAP_OVERRIDES: dict[str, Any] = {}
+#: --merge-bands: how far apart along down two bands of one vertical face may be (m)
+MERGE_BANDS_GAP_M = 3.0
 
 
 def _bias_setup(feed: Any) -> None:
@@ -151,6 +156,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             # figures are reproducible and the map thread's hold is measured apart
             kw = {"nav_cfg": replace(SMOOTHED_NAV, **NAV_OVERRIDES), "smoother": SmootherConfig(),
                   "background": "wait"}  # fmt: skip
+        if MAP_OVERRIDES:
+            kw["cfg"] = replace(MapConfig(), **MAP_OVERRIDES)
         t0 = time.perf_counter()
         run = replay_dive(frames, navigate=navigate, **kw)
         wall = time.perf_counter() - t0
@@ -564,6 +571,12 @@ def main() -> int:
         "NavConfig.frame_graph_launches; an option)",
     )
     ap.add_argument(
+        "--merge-bands",
+        action="store_true",
+        help="every replay's map joins bands of one vertical face across depth gaps (MapConfig."
+        "merge_band_gap_down_m 3.0; an option)",
+    )
+    ap.add_argument(
         "--no-fix-graph",
         action="store_true",
         help="with --acceptance, also a run of lrsensor base --nav on --no-fix graph (rov3's gated pose graph)",
@@ -571,6 +584,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.graph_track:
         TRACKED_ROWS.append(True)
+    if args.merge_bands:
+        MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -638,6 +653,7 @@ def main() -> int:
         + (" --graph-second-hypothesis" if args.graph_second_hypothesis else "")
         + (" --modes " + args.modes if args.modes != ap.get_default("modes") else "")
         + (" --graph-track" if args.graph_track else "")
+        + (" --merge-bands" if args.merge_bands else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",

@@ -6,7 +6,11 @@ An observation (the points one robot's window gave one plane) joins a map plane 
   faces of a thin wall point in opposite directions and never fuse),
 * the observation's centroid lies within ``merge_offset_m`` of the map plane,
 * their bounding boxes, inflated by ``merge_gap_m`` (``merge_gap_down_m`` along down, since the horizontal laser
-  sheets scan faces in horizontal bands), overlap or touch (coplanar faces that are apart stay apart),
+  sheets scan faces in horizontal bands), overlap or touch (coplanar faces that are apart stay apart); two
+  *bands* of one vertical face (:meth:`PlaneMap.bands`: both normals within ``merge_band_tilt_deg`` of horizontal
+  and within ``merge_band_angle_deg`` of each other, points within ``merge_band_offset_m``) may be up to
+  ``merge_band_gap_down_m`` apart along down instead: a robot that crossed a face at two depths leaves a gap between
+  its bands as wide as its change of depth, yet a vertical face is one plane over its whole height,
 * and the fused plane is still thin (RMS <= ``merge_max_rms_m``).
 
 Two planes that fail those tests may still be one surface: seen from poses that disagree by more than
@@ -322,14 +326,18 @@ class PlaneMap:
         self._boxes = _Boxes()
         q = cfg.quantum_m
         self._gaps = np.array([cfg.merge_gap_m / q, cfg.merge_gap_m / q, cfg.merge_gap_down_m / q])
+        # candidates for matches(): the bands' longer reach along down (matches() decides which rule applies)
+        down = max(cfg.merge_gap_down_m, cfg.merge_band_gap_down_m)
+        self._match_gaps = np.array([cfg.merge_gap_m / q, cfg.merge_gap_m / q, down / q])
 
-    def _touching(self, rec: PlaneRecord) -> list[int]:
-        """Ids (ascending) of the planes :meth:`_touch` accepts against ``rec``."""
+    def _touching(self, rec: PlaneRecord, gaps: FloatArray | None = None) -> list[int]:
+        """Ids (ascending) of the planes :meth:`_touch` accepts against ``rec`` (with ``gaps``, quanta per axis:
+        those whose boxes come that near)."""
         if len(self._boxes.row) != len(self.planes):
             self._boxes = _Boxes()
             for pid in sorted(self.planes):
                 self._boxes.put(pid, self.planes[pid].record)
-        return self._boxes.touching(rec, self._gaps)
+        return self._boxes.touching(rec, self._gaps if gaps is None else gaps)
 
     def _put(self, plane: MapPlane) -> None:
         self.planes[plane.id] = plane
@@ -342,9 +350,12 @@ class PlaneMap:
     def __len__(self) -> int:
         return len(self.planes)
 
-    def _touch(self, a: PlaneRecord, b: PlaneRecord) -> bool:
+    def _touch(self, a: PlaneRecord, b: PlaneRecord, gap_down_m: float | None = None) -> bool:
+        """Whether the boxes touch, inflated by ``merge_gap_m`` and along down by ``gap_down_m`` (by default
+        ``merge_gap_down_m``)."""
         q = self.cfg.quantum_m
-        gaps = (self.cfg.merge_gap_m / q, self.cfg.merge_gap_m / q, self.cfg.merge_gap_down_m / q)
+        down = self.cfg.merge_gap_down_m if gap_down_m is None else gap_down_m
+        gaps = (self.cfg.merge_gap_m / q, self.cfg.merge_gap_m / q, down / q)
         return all(
             a.aabb_min[i] - gaps[i] <= b.aabb_max[i] and b.aabb_min[i] - gaps[i] <= a.aabb_max[i] for i in range(3)
         )
@@ -360,12 +371,12 @@ class PlaneMap:
         determined still joins the plane its points lie on.
         """
         cfg = self.cfg
-        if not self._touch(a, b):
-            return False
         na = fa.normal if a_normal is None else a_normal
-        if _angle_deg(na, fb.normal) > cfg.merge_angle_deg:
-            return False
-        if min(rms_distance(fa, fb), rms_distance(fb, fa)) > cfg.merge_offset_m:
+        if self._touch(a, b):
+            off = min(rms_distance(fa, fb), rms_distance(fb, fa))
+            if _angle_deg(na, fb.normal) > cfg.merge_angle_deg or off > cfg.merge_offset_m:
+                return False
+        elif not self.bands(a, fa, b, fb, na):
             return False
         merged = fit_parts(
             a.stats + b.stats,
@@ -375,6 +386,35 @@ class PlaneMap:
             cfg.between_window_weight,
         )
         return merged.rms_m <= cfg.merge_max_rms_m
+
+    def bands(
+        self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None
+    ) -> bool:
+        """Whether two planes whose boxes are too far apart along down to touch are bands of one vertical face.
+
+        The horizontal laser sheets scan a vertical face in one band per robot depth; a face crossed at depths
+        more than ``merge_gap_down_m`` apart leaves bands whose boxes do not touch, though the face is one plane
+        over its height. They are one face when the boxes still touch in north and east (inflated by
+        ``merge_gap_m``: the same stretch of face), their gap along down is at most ``merge_band_gap_down_m``,
+        both normals lie within ``merge_band_tilt_deg`` of horizontal and within ``merge_band_angle_deg`` of each
+        other, either plane's points lie within ``merge_band_offset_m`` (RMS) of the other, and both are confirmed
+        (``min_obs_publish``: one odd window must not stretch a face over the tank's depth). Those tolerances
+        are tighter than ``merge_angle_deg`` and ``merge_offset_m``: two accurate bands of one face agree to a few
+        centimetres, while a copy that a pose error set a decimetre off the face must stay apart (navigation
+        registers to it and the benchmark counts it). ``merge_band_gap_down_m`` 0 (the default) turns the rule off.
+        """
+        cfg = self.cfg
+        if cfg.merge_band_gap_down_m <= 0 or not self._touch(a, b, cfg.merge_band_gap_down_m):
+            return False
+        if not (self._published(a) and self._published(b)):
+            return False
+        na = fa.normal if a_normal is None else a_normal
+        max_down = math.sin(math.radians(cfg.merge_band_tilt_deg))
+        if abs(float(na[2])) > max_down or abs(float(fb.normal[2])) > max_down:
+            return False
+        if _angle_deg(na, fb.normal) > cfg.merge_band_angle_deg:
+            return False
+        return min(rms_distance(fa, fb), rms_distance(fb, fa)) <= cfg.merge_band_offset_m
 
     def same_face(self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit) -> bool:
         """Whether two touching planes are one surface seen from poses that disagree (see :mod:`mapping.same_face`):
@@ -433,7 +473,7 @@ class PlaneMap:
         hint = np.array(obs.hint_normal) if obs.hint_normal is not None else None
         hits = [
             pid
-            for pid in self._touching(obs)
+            for pid in self._touching(obs, self._match_gaps)
             if self.matches(obs, f_obs, self.planes[pid].record, self.planes[pid].fit, hint)
         ]
         same = False
@@ -464,13 +504,13 @@ class PlaneMap:
         while True:
             grown = MapPlane(keep, rec, cfg)
             more: list[tuple[int, bool]] = []
-            for pid in self._touching(rec):
+            for pid in self._touching(rec, self._match_gaps):
                 if pid == keep:
                     continue
                 other, f_other = self.planes[pid].record, self.planes[pid].fit
                 if self.matches(rec, grown.fit, other, f_other):
                     more.append((pid, False))
-                elif self.same_face(rec, grown.fit, other, f_other):
+                elif self._touch(rec, other) and self.same_face(rec, grown.fit, other, f_other):
                     more.append((pid, True))
             if not more:
                 break

@@ -92,6 +92,13 @@ class MapConfig:
         merge_gap_m: bounding boxes (inflated by this in north and east) must overlap or touch.
         merge_gap_down_m: the same along down: the horizontal laser sheets scan a face in horizontal bands
             (one per robot depth), so bands of one face seen at different depths are expected to leave gaps.
+        merge_band_gap_down_m, merge_band_tilt_deg, merge_band_angle_deg, merge_band_offset_m: two planes whose
+            boxes are farther apart along down than ``merge_gap_down_m`` (but at most ``merge_band_gap_down_m``;
+            0 turns the rule off) and touch in north and east are bands of one vertical face when both normals
+            are within ``merge_band_tilt_deg`` of horizontal and ``merge_band_angle_deg`` of each other and their
+            points within ``merge_band_offset_m`` (RMS, either way round) of the other plane
+            (:meth:`mapping.plane_map.PlaneMap.bands`; both planes confirmed: a single window's band never joins).
+            Off by default (docs/mapping.md, "Bands of one face"); 3.0 turns it on.
         merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
         same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
             planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
@@ -146,6 +153,10 @@ class MapConfig:
     merge_offset_m: float = 0.06
     merge_gap_m: float = 0.3
     merge_gap_down_m: float = 1.0
+    merge_band_gap_down_m: float = 0.0
+    merge_band_tilt_deg: float = 10.0
+    merge_band_angle_deg: float = 3.0
+    merge_band_offset_m: float = 0.045
     merge_max_rms_m: float = 0.03
     same_face_offset_m: float = 0.0
     same_face_angle_deg: float = 3.0
@@ -176,6 +187,7 @@ class MapConfig:
                     "max_cloud_rate_hz",
                     "between_window_weight",
                     "same_face_offset_m",
+                    "merge_band_gap_down_m",
                 )
                 and value <= 0
             ):
