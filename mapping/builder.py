@@ -276,6 +276,15 @@ class MapBuilder:
             changes.extend(self.merge(self._observe(robot)))
         return changes
 
+    def flush_robot_observations(self, robot: str) -> list[PlaneRecord]:
+        """The observations of ``robot``'s pending clouds now, without merging (a plane worker whose robot went
+        silent: its last window has no trigger to come); empty when nothing is pending."""
+        with self._lock:
+            win = self._windows.get(robot)
+            if win is None or win.n_new == 0:
+                return []
+        return self._observe(robot)
+
     def flush_observations(self) -> dict[str, list[PlaneRecord]]:
         """Like :meth:`flush` without merging: robot -> the observations of its pending clouds (plane workers)."""
         with self._lock:

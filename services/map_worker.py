@@ -236,7 +236,12 @@ class MapWorker:
         out: list[PlaneObservations] = []
         early: list[PlaneObservations] = []
         if isinstance(msg, MapControl):
-            if msg.kind == "flush":
+            if msg.kind == "flush" and msg.robot:  # the base saw the robot go silent: its last window
+                if self._epoch.get(msg.robot, -1) == msg.epoch and not self._waiting.get(msg.robot):
+                    records = self.builder.flush_robot_observations(msg.robot)
+                    if self._pending.get(msg.robot):
+                        out.append(self._observed(msg.robot, records, FLUSH_KEY))
+            elif msg.kind == "flush":
                 early = self._retry(until_done=True)  # the waiting jobs first (published): before the flush
                 for robot, records in self.builder.flush_observations().items():
                     out.append(self._observed(robot, records, FLUSH_KEY))

@@ -104,7 +104,8 @@ class MapJob:
 
 @dataclass(frozen=True)
 class MapControl:
-    """A control message: ``flush`` (extract every pending window now), ``drop`` (forget ``robot``'s window:
+    """A control message: ``flush`` (extract every pending window now; with ``robot``, only that robot's, if it
+    is served here under ``epoch`` and has no scan waiting for its snapshot), ``drop`` (forget ``robot``'s window:
     it moved to another worker at ``epoch``) or ``adopt`` (``robot`` moved here at ``epoch``: continue its
     navigation from ``state``, :func:`services.map_worker_nav.encode_state` of the state after its last committed
     cloud; the clouds not committed follow). An ``adopt`` carries the base's ``--no-fix`` choice (``no_fix``), so

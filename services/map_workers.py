@@ -104,6 +104,11 @@ def owner(robot: str, workers: Iterable[str]) -> str | None:
 #: worker's window (extracted only at the next flush) must not stall the others' merge. A robot with nothing
 #: dispatched and nothing committed for this long holds neither the merge nor the snapshots back.
 MAX_HOLD_S = 2.0
+#: A robot with clouds in flight and nothing dispatched for this long (seconds) has gone silent (the end of its
+#: dive, an outage): its worker is asked to extract its last window, which no later cloud will trigger, so that
+#: its clouds are committed and acknowledged (the robot waits for them). Longer than a stream's gaps; shorter than
+#: a robot's patience (``lrsensor rov`` gives up after 60 s without progress).
+IDLE_FLUSH_S = 5.0
 #: The merger keeps its snapshots this far back (capture time, ns) to send them to a worker that joins.
 SNAPSHOTS_KEEP_NS = 5_000_000_000
 
@@ -171,6 +176,11 @@ class WorkerPool:
         #: per robot: when it last had a cloud dispatched or committed (monotonic s); the newest capture time sent
         self._active: dict[str, float] = {}
         self._newest_t: int | None = None
+        #: per robot: when its worker was last asked to extract a silent robot's last window (monotonic s); when
+        #: the merger last looked for silent robots; how many such asks were sent
+        self._silent_asked: dict[str, float] = {}
+        self._silent_checked = 0.0
+        self.silent_flushes = 0
         #: observations merged after a snapshot that should hold them was published (a robot late past the hold),
         #: observations merged past their hold cap; per worker: its snapshot counters (waited, longest wait ms,
         #: not exact)
@@ -274,6 +284,7 @@ class WorkerPool:
                 "stale": self.stale,
                 "moves": self.moves,
                 "resent": self.resent,
+                "silent_flushes": self.silent_flushes,
             }
             if self.navigate and self.snapshot_lag_ns > 0:
                 counts = [self._snap_counts.get(w, (0, 0, 0)) for w in sorted(self._workers)]
@@ -355,6 +366,24 @@ class WorkerPool:
             job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag, self.no_fix)
             self._put(w, job.to_bytes())
 
+    def _flush_silent(self) -> None:
+        """Under the lock: ask the owner of each robot silent for :data:`IDLE_FLUSH_S` with clouds in flight to
+        extract its last window (again every :data:`IDLE_FLUSH_S` while it stays so: a worker declines while the
+        robot has a scan waiting for its snapshot)."""
+        now = time.monotonic()
+        self._silent_checked = now
+        for robot, table in self._in_flight.items():
+            if not table or now - self._active.get(robot, now) < IDLE_FLUSH_S:
+                continue
+            if now - self._silent_asked.get(robot, 0.0) < IDLE_FLUSH_S:
+                continue
+            w = self._owner.get(robot)
+            if w is None:
+                continue
+            self._silent_asked[robot] = now
+            self.silent_flushes += 1
+            self._put(w, MapControl("flush", robot, self._epoch[robot]).to_bytes())
+
     def _reassign(self) -> None:
         """Move every robot whose rendezvous owner changed; re-send its in-flight clouds to the new owner."""
         for robot, old in list(self._owner.items()):
@@ -381,11 +410,15 @@ class WorkerPool:
                 ev = self._events.get(timeout=0.25 if not self.navigate else LANDMARKS_EVERY_S)
             except queue.Empty:
                 with self._cond:
+                    self._flush_silent()
                     ready, frontier = self._ready()
                 self._merge(ready, frontier)
                 continue
             if ev is None:
                 return
+            if time.monotonic() - self._silent_checked >= 0.5:  # a busy fleet never leaves the queue empty
+                with self._cond:
+                    self._flush_silent()
             kind, sample = ev
             try:
                 if kind == "alive":

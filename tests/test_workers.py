@@ -19,7 +19,7 @@ from mapping import MapBuilder, MapConfig
 from mapping.synth import DiveFrame, simulate_dive, tank, two_rov_plans
 from services.keys import FleetKeys
 from services.map_worker import MapWorker
-from services.map_worker_wire import MapControl, MapJob, PlaneObservations
+from services.map_worker_wire import FLUSH_KEY, MapControl, MapJob, PlaneObservations, decode_work
 from services.map_workers import owner
 from services.testnet import TestNetwork
 from services.wire import CloudMsg
@@ -72,6 +72,44 @@ def test_worker_commits_each_cloud_once_and_forgets_a_robot_that_moved() -> None
     assert again[0].epoch == 2
     worker.handle(MapControl("drop", "rov1", 3))
     assert worker.handle(MapControl("flush")) == []
+
+
+def test_a_silent_robots_last_window_is_extracted_when_the_base_asks() -> None:
+    """The end of a dive: a robot's last clouds wait in its window for a trigger no later cloud brings; the base
+    asks its worker to extract that robot's window alone (the others' stay), once it has been silent."""
+    worker = MapWorker(None, FleetKeys("t"), "w1")
+    frames = [f for f in _frames(1.0) if f.robot == "rov1"]
+    out: list[PlaneObservations] = []
+    for seq, f in enumerate(frames[:4]):
+        out += worker.handle(_job("rov1", seq, 0, f))
+        out += worker.handle(_job("rov2", seq, 0, f))
+    assert out == []  # 4 clouds each: no trigger yet
+    assert worker.handle(MapControl("flush", "rov1", 1)) == []  # not the epoch it is served under here
+    got = worker.handle(MapControl("flush", "rov1", 0))
+    assert [(o.robot, o.seqs, o.key_ns) for o in got] == [("rov1", (0, 1, 2, 3), FLUSH_KEY)]
+    assert worker.handle(MapControl("flush", "rov1", 0)) == []  # nothing left of rov1's
+    assert [(o.robot, o.seqs) for o in worker.handle(MapControl("flush"))] == [("rov2", (0, 1, 2, 3))]
+
+
+def test_the_pool_asks_only_for_robots_silent_long_enough() -> None:
+    from lrsensor.frames import Pose
+    from services.map_workers import IDLE_FLUSH_S, WorkerPool, _InFlight
+
+    pool = WorkerPool(None, FleetKeys("t"), MapBuilder(MapConfig()), lambda *a: None, lambda c: None)
+    sent: list[tuple[str, bytes]] = []
+    pool._put = lambda w, payload: sent.append((w, payload))  # type: ignore[method-assign]
+    pose = Pose(0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    now = time.monotonic()
+    for robot, quiet_s in (("old", IDLE_FLUSH_S + 1.0), ("busy", 0.1)):
+        pool._in_flight[robot] = {0: _InFlight(0, 1000, pose, np.zeros((3, 3), np.float32))}
+        pool._owner[robot] = "w1"
+        pool._epoch[robot] = 2
+        pool._active[robot] = now - quiet_s
+    pool._flush_silent()
+    assert [(w, decode_work(p)) for w, p in sent] == [("w1", MapControl("flush", "old", 2))]
+    pool._flush_silent()  # asked a moment ago: not again yet
+    assert len(sent) == 1
+    assert pool.silent_flushes == 1
 
 
 def test_observations_survive_the_wire_and_merge_like_the_builders_own() -> None:
@@ -447,7 +485,6 @@ def test_clouds_navigation_cannot_place_are_committed_without_planes_and_said_un
         out += worker.handle(job)
     assert [(o.seqs, o.unplaced, o.records) for o in out] == [((s,), (s,), ()) for s in range(5)]  # each at once
     assert all(o.nav_state for o in out)  # the state travels even before the robot has a position
-
 
 
 def test_a_robot_that_stops_being_placed_still_commits_its_placed_clouds() -> None:
