@@ -16,12 +16,11 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the two
-  triangulations, the second the glow, gates and smoothing, whose turbid-water fits are the largest single
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
+  triangulation, the second the glow, gates and smoothing, whose turbid-water fits are the largest single
   kernel, and the placing of the points. The triangulations are calls of their own from Python
   (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the width limits and for the points), so no other
-  kernel links them in and compiles them again; the smoothing's central view inlines the port's (its one copy in
-  the second part);
+  kernel but the smoothing's central view (the port's) links them in and compiles them again;
   and the thin stages that mostly call kernels
   (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
   into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
@@ -141,14 +140,15 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
-        triangulate_points_port(
-            f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
-            g.points_body, g.port,
-        )  # fmt: skip
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
         place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
+        # (the central view's callee: compiled in this part either way)
+        triangulate_points_port(
+            f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
+            g.points_body, g.port,
+        )  # fmt: skip
 
 
 @dataclass

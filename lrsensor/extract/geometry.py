@@ -190,14 +190,6 @@ def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, 
         into the water (ray parallel to or away from the port, total internal reflection), the water ray is
         parallel to the plane or meets it behind the port.
     """
-    return _triangulate_port(u, v, laser, cam, dist, R, origin, normals, points, port)
-
-
-@inline
-def _triangulate_port(u, v, laser, cam, dist, R, origin, normals, points, port):  # type: ignore[no-untyped-def]
-    """The body of :func:`triangulate_points_port`, inlined into :func:`central_view`: the part of the compile
-    that has the central view then compiles no library of the port's triangulation (the other part does,
-    :mod:`lrsensor.extract.compile`)."""
     n = u.size
     out = np.empty((n, 3))
     xs, ys = _undistort(u, v, cam, dist)
@@ -269,7 +261,7 @@ def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
             uu[3 * t + j] = u[t]
             vv[3 * t + j] = v[t] + (j - 1) * h
             ll[3 * t + j] = laser[t]
-    pts = _triangulate_port(
+    pts = triangulate_points_port(
         uu, vv, ll, cam, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body, port
     )
     R = geo.R_cam_body
