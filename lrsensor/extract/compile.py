@@ -16,10 +16,11 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only) and the width limits the fit needs (a call of its
-  own, with the triangulation), the second the glow, gates and smoothing, whose turbid-water fits are the
-  largest single kernel, and the placing of the points (the port's triangulation, which the smoothing's central
-  view needs, compiles in both parts; the helper starts after the child's imports, so its part is the lighter);
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
+  triangulation, the second the glow, gates and smoothing, whose turbid-water fits are the largest single
+  kernel, and the placing of the points. The triangulations are calls of their own from Python
+  (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the width limits and for the points), so no other
+  kernel but the smoothing's central view (the port's) links them in and compiles them again;
   and the thin stages that mostly call kernels
   (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
   into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
@@ -93,10 +94,10 @@ def entry_points() -> tuple[object, ...]:
     """The kernels the Python side calls (each loaded from the cache on its own): the five calls of the frame
     and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
     from .frame import fit_points, locate_candidates, place_points, refine_and_finish
-    from .geometry import max_fwhm_at, triangulate_points, triangulate_points_port
+    from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
 
     return (
-        locate_candidates, max_fwhm_at, fit_points, refine_and_finish, place_points, triangulate_points,
+        locate_candidates, fwhm_from_points, fit_points, refine_and_finish, place_points, triangulate_points,
         triangulate_points_port,
     )  # fmt: skip
 
@@ -124,7 +125,7 @@ def _build(part: str | None = None) -> None:
     from ..calibration import Calibration
     from .config import SubpixelConfig
     from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
-    from .geometry import max_fwhm_at, triangulate_points, triangulate_points_port
+    from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
@@ -134,16 +135,16 @@ def _build(part: str | None = None) -> None:
     if part in (None, "locate"):
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
-        max_fwhm_at(i64, i64, i64, 1.0, 1.0, g)
-    if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
-        located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        refine_and_finish(image, located, bands.glow_side, settings, g)
-        place_points(f64, f64, i64, f64, settings, g, True)
-    if part is None:  # (the parts compile them as callees)
+        fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
         triangulate_points(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
+    if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
+        located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
+        refine_and_finish(image, located, bands.glow_side, settings, g)
+        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
+        # (the central view's callee: compiled in this part either way)
         triangulate_points_port(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body, g.port,

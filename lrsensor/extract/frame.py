@@ -8,7 +8,8 @@
      one row of virtual columns ``laser * width_d + column_d``;
   2. continuity (:func:`.chains.select_candidates`, :func:`.chains.expand_half`): one candidate per column;
 
-- :func:`.geometry.max_fwhm_at`: the width limit of every point (the laser sheet's thickness at its depth);
+- :func:`.geometry.max_fwhm_at`: the width limit of every point (the laser sheet's thickness at its depth; the
+  points' triangulation and the widths, two calls);
 
 - :func:`fit_points`:
 
@@ -22,7 +23,7 @@
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
 
-- :func:`place_points`:
+- :func:`.geometry.triangulate_geo` and :func:`place_points`:
 
   6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
      one) and the range-limit gate on camera depth.
@@ -34,7 +35,8 @@ body-frame points (M, 3) in metres (empty without ``triangulate``) and the band 
 Why five calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
 stage again; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`: the
-triangulation, which the width limits and the points both need, in one of them only), and their hand-overs
+triangulation, which the width limits and the points both need, is a call of its own, compiled once), and
+their hand-overs
 (:class:`Picked`, :class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
 Python call per stage would cost as much again. The numpy reference
 (:mod:`lrsensor.extract.reference`) implements the same algorithm readably for tests and for machines without
@@ -462,9 +464,10 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
 
 
 @njit
-def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-untyped-def]
-    """Step 6 of :func:`extract_frame`: with ``triangulate`` the body-frame points of the pixels ``(u, v)`` (M,) of
-    ``laser`` (M,) and the range-limit gate on camera depth (NaN points dropped), else the pixels as they are.
+def place_points(u, v, laser, quality, xyz, s, geo, triangulate):  # type: ignore[no-untyped-def]
+    """Step 6 of :func:`extract_frame`: with ``triangulate`` the range-limit gate on the camera depth of the
+    body-frame points ``xyz`` (M, 3) (:func:`.geometry.triangulate_geo` of the pixels ``(u, v)`` (M,) of ``laser``
+    (M,); NaN points dropped), else the pixels as they are (``xyz`` unused).
 
     Returns:
         ``(uv, laser, quality, xyz)``: the kept points' pixel coordinates (K, 2), laser (K,), quality (K,) and
@@ -477,7 +480,6 @@ def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-
             uv[t, 0] = u[t]
             uv[t, 1] = v[t]
         return uv, laser, quality, np.empty((0, 3))
-    xyz = triangulate_geo(u, v, laser, geo)
     r_z = geo.R_cam_body[2]
     keep = np.empty(m, np.bool_)
     kept = 0
@@ -509,6 +511,8 @@ def place_points(u, v, laser, quality, s, geo, triangulate):  # type: ignore[no-
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+#: The points :func:`place_points` gets without ``triangulate`` (not read).
+_NO_XYZ = np.empty((0, 3))
 
 
 def extract_frame(
@@ -532,5 +536,7 @@ def extract_frame(
     mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
     located = fit_points(image, picked, mfw, s)
     u, v, laser, quality = refine_and_finish(image, located, bands.glow_side, s, geo)
-    uv, laser, quality, xyz = place_points(u, v, laser, quality, s, geo, triangulate)
+    # the points in a call of their own: a kernel that triangulated would compile the triangulation again
+    xyz = triangulate_geo(u, v, laser, geo) if triangulate else _NO_XYZ
+    uv, laser, quality, xyz = place_points(u, v, laser, quality, xyz, s, geo, triangulate)
     return uv, laser, quality, xyz, located.noise

@@ -19,10 +19,18 @@ The calibration is passed as :class:`Geometry` (arrays; :func:`lrsensor.triangul
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._jit import inline, njit
+
+if TYPE_CHECKING:
+    from .settings import Geometry
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
 @inline
@@ -209,17 +217,19 @@ def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, 
     return out
 
 
-@inline
-def triangulate_geo(u, v, laser, geo):  # type: ignore[no-untyped-def]
-    """Pixels (N,) ``u, v`` of lasers ``laser`` (N,) to body-frame points (N, 3), metres, with the
-    :class:`~lrsensor.extract.settings.Geometry` ``geo``: through its port when it has one
-    (:func:`triangulate_points_port`), else the pinhole (:func:`triangulate_points`)."""
+def triangulate_geo(u: FloatArray, v: FloatArray, laser: IntArray, geo: Geometry) -> FloatArray:
+    """Pixels (N,) ``u, v`` (float64) of lasers ``laser`` (N,) (int64) to body-frame points (N, 3), metres, with
+    the :class:`~lrsensor.extract.settings.Geometry` ``geo``: through its port when it has one
+    (:func:`triangulate_points_port`), else the pinhole (:func:`triangulate_points`).
+
+    A Python call of one of the two kernels, not a kernel: a kernel that called them would compile both again
+    into its own machine code (:mod:`lrsensor.extract.compile`)."""
     if geo.port.present:
-        return triangulate_points_port(
+        return triangulate_points_port(  # type: ignore[no-any-return]
             u, v, laser, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body,
             geo.points_body, geo.port,
         )  # fmt: skip
-    return triangulate_points(
+    return triangulate_points(  # type: ignore[no-any-return]
         u, v, laser, geo.camera, geo.distortion, geo.R_cam_body, geo.origin_body, geo.normals_body, geo.points_body
     )
 
@@ -276,24 +286,29 @@ def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
     return cols, rows, slope
 
 
-@njit
-def max_fwhm_at(cols, rows, laser, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
+def max_fwhm_at(
+    cols: IntArray, rows: IntArray, laser: IntArray, floor: float, sheet_mm: float, geo: Geometry
+) -> FloatArray:
     """The widest plausible stripe (half-level width, px) at each pixel ``(cols, rows)`` (N,) of ``laser`` (N,).
 
     ``floor``: the width limit where the ray misses the plane (and the least limit), px; ``sheet_mm``: the thickest
-    sheet, mm (<= 0: the floor everywhere); ``geo``: the :class:`~lrsensor.extract.settings.Geometry`.
+    sheet, mm (<= 0: the floor everywhere); ``geo``: the :class:`~lrsensor.extract.settings.Geometry`. The pixels'
+    points come from :func:`triangulate_geo`, the widths from :func:`fwhm_from_points`.
     """
-    cam, origin, axis = geo.camera, geo.origin_body, geo.axis_body
     n = cols.size
-    out = np.full(n, floor)
     if n == 0 or sheet_mm <= 0:
-        return out
-    u = np.empty(n)
-    v = np.empty(n)
-    for t in range(n):
-        u[t] = cols[t]
-        v[t] = rows[t]
-    pts = triangulate_geo(u, v, laser, geo)
+        return np.full(n, floor)
+    pts = triangulate_geo(cols.astype(np.float64), rows.astype(np.float64), laser, geo)
+    return fwhm_from_points(pts, floor, sheet_mm, geo)  # type: ignore[no-any-return]
+
+
+@njit
+def fwhm_from_points(pts, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
+    """The widths of :func:`max_fwhm_at` (N,), px, of the body-frame points ``pts`` (N, 3), metres, that the
+    pixels triangulate to (NaN rows: the floor)."""
+    cam, origin, axis = geo.camera, geo.origin_body, geo.axis_body
+    n = pts.shape[0]
+    out = np.full(n, floor)
     for t in range(n):
         depth = (
             (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]
