@@ -192,10 +192,7 @@ class MapBuilder:
         clouds when they are due by capture time, without merging them; None when nothing is due."""
         with self._lock:
             win = self._windows.get(robot)
-            if win is None or win.n_new == 0 or self.cfg.extract_every_s <= 0:
-                return None
-            first_new = win.clouds[len(win.clouds) - win.n_new]
-            if int(t_ns) - first_new.t_ns < self.cfg.extract_every_s * 1e9:
+            if win is None or win.n_new == 0 or not self._spans_time(win, int(t_ns)):
                 return None
         return self._observe(robot)
 
@@ -262,10 +259,15 @@ class MapBuilder:
         cfg = self.cfg
         if win.n_new >= cfg.extract_every_clouds or win.new_points >= cfg.extract_every_points:
             return True
-        if cfg.extract_every_s > 0 and win.n_new >= 2:
-            first_new = win.clouds[len(win.clouds) - win.n_new]
-            return win.clouds[-1].t_ns - first_new.t_ns >= cfg.extract_every_s * 1e9
-        return False
+        return win.n_new >= 2 and self._spans_time(win, win.clouds[-1].t_ns)
+
+    def _spans_time(self, win: _Window, t_ns: int) -> bool:
+        """Whether the window's new clouds, up to capture time ``t_ns``, span ``extract_every_s`` (the time rule
+        of an extraction; off when it is 0)."""
+        if self.cfg.extract_every_s <= 0 or win.n_new == 0:
+            return False
+        first_new = win.clouds[len(win.clouds) - win.n_new]
+        return t_ns - first_new.t_ns >= self.cfg.extract_every_s * 1e9
 
     def flush(self) -> list[MapChange]:
         """Run the pending extraction of every robot now (end of a dive, tests); returns the changes."""
