@@ -452,6 +452,8 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
+            geo.glow_vanish,
+            geo.glow_path,
         )
         # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
         # takes part of the glow's step as a slope)

@@ -146,6 +146,14 @@ RAMP_EVERY = 4
 #: ... and fitted at every point of the stretches whose sampled F statistic exceeds this share of F_SELECT (the
 #: sampled test decides alone where the ramp is plainly not asked for; near the bar, the whole stretch decides).
 RAMP_MARGIN = 0.5
+#: The water's attenuation (1/m) that shapes the glow (:func:`.glow_fit.sheet_edge`) is the one of these whose step
+#: fits at every ALPHA_EVERY-th column's glowing points have the least residual sum of squares, refined by a
+#: parabola through it and its neighbours (0: a flat glow, the plain step; turbid harbour water is 0.5-2 /m).
+ALPHA_GRID = (0.0, 0.1, 0.2, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2)
+ALPHA_EVERY = 16
+#: ... among the attenuations at which at least this share of those points fit.
+ALPHA_SHARE = 0.75
+LOGSUM = True
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -200,7 +208,8 @@ def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
 
 @njit
 def glow_refit(  # type: ignore[no-untyped-def]
-    image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio
+    image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio,
+    vanish, path_k,
 ):
     """The joint stripe-and-glow fit of every point whose profile shows a glow (see the module's documentation).
 
@@ -213,6 +222,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         min_sig, max_sig: the accepted sigmas, px; sat_dn: green samples at or above it are clipped (left out of
             the fits: a clipped stripe is fitted on its flanks); green_ratio: a glow's step in green exceeds its steps
             in red and blue by this factor (the stripe's colour test).
+        vanish, path_k: (L, W) float64, the row of each laser sheet's vanishing line per column and ``2 s D`` (px m:
+            ``D`` the sheet's range times its rows from that line, ``s`` the path's obliqueness; 0: unknown, the glow a
+            plain step), :func:`lrsensor.extract.settings.glow_geometry`.
 
     Returns:
         ``(centre_row, sigma, fitted, amplitude, noise)``: (N,) each; the common fit's centre and sigma where
@@ -361,6 +373,18 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
     ramp_on = np.array([False, True])
     n_rounds = np.array([1, ROUNDS])
+    # the glow's shape: the sheet's, with the water's attenuation one number for the frame (:func:`_attenuation`)
+    d_rc = np.ones(n)
+    k_pt = np.zeros(n)
+    for t in range(n):
+        if fit_me[t]:
+            d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
+            k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
+    alpha = _attenuation(
+        image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
+        sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
+    )  # fmt: skip
+    kap_k = alpha * k_pt
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image,
         cols,
@@ -384,7 +408,41 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sat_dn,
         ramp_on[0],
         n_rounds[1],
+        d_rc,
+        kap_k,
     )
+    if alpha > 0.0:  # the blur is the water's: the glowing fits refitted with the width their stripes share
+        n_g = 0
+        for t in range(n):
+            n_g += f0[t] and glowing[t]
+        if n_g >= 16:
+            pool = np.empty(n_g)
+            k = 0
+            for t in range(n):
+                if f0[t] and glowing[t]:
+                    pool[k] = s0[t]
+                    k += 1
+            s_w = np.median(pool)
+            hold = fit_me & glowing
+            for t in range(n):
+                if hold[t]:
+                    sg0[t] = s_w
+                    hw[t] = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
+                    hold[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
+            v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
+                image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
+                s_w, s_w, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+            )  # fmt: skip
+            for t in range(n):
+                if hold[t]:
+                    f0[t] = f_h[t]
+                    if f_h[t]:
+                        v0[t] = v_h[t]
+                        s0[t] = s_h[t]
+                        rss0[t] = rss_h[t]
+                        _d0[t] = d_h[t]
+                        st0[0, t] = st_h[0, t]
+                        st0[1, t] = st_h[1, t]
     strong = np.zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -408,12 +466,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
     _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[0],
+        max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
     )  # fmt: skip
     maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
     v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
         image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[1],
+        max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
     )  # fmt: skip
     take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
@@ -434,6 +492,78 @@ def glow_refit(  # type: ignore[no-untyped-def]
             a_out[t] = _st3[0, t]
         n_out[t] = _residual_noise(rs, df, lnoise[t])
     return v_out, s_out, fitted, a_out, n_out
+
+
+@njit
+def _attenuation(  # type: ignore[no-untyped-def]
+    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
+    sat_dn, ramp, n_rounds, d_rc, k_pt,
+):
+    """The water's attenuation (1/m) for the glow's shape (0: none can be told, a plain step): the step model fitted
+    at the glowing points of every :data:`ALPHA_EVERY`-th column with each of :data:`ALPHA_GRID` (``n_rounds[1]``
+    rounds, so that close pairs settle, then one more from there: a fit's residual sum is its last step's start),
+    compared over the points fitted at every attenuation that most of them fit at (too strong a growth fails the
+    fits) by the sum of the logarithms of their residual sums (a particle's column weighs no more than another);
+    the least, refined by a parabola through it and its neighbours."""
+    n = cols.size
+    sample = np.zeros(n, np.bool_)
+    n_s = 0
+    for t in range(n):
+        sample[t] = fit_me[t] and glowing[t] and k_pt[t] > 0.0 and cols[t] % ALPHA_EVERY == 0
+        n_s += sample[t]
+    if n_s == 0:
+        return 0.0
+    n_a = len(ALPHA_GRID)
+    grid = np.empty(n_a)
+    rss_a = np.zeros((n_a, n))
+    fit_a = np.zeros((n_a, n), np.bool_)
+    use = np.zeros(n_a, np.bool_)
+    for i in range(n_a):
+        grid[i] = ALPHA_GRID[i]
+        kap = grid[i] * k_pt
+        v1, s1, f1, _r, _d, _st = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap,
+        )  # fmt: skip
+        for t in range(n):
+            if not f1[t]:
+                v1[t] = vv[t]
+                s1[t] = sg0[t]
+        _v, _s, f2, rss, _d, _st = fit_rounds(
+            image, cols, laser, at, v1, sig, v1, s1, nb_ok, nb0, sample & f1, glowing, side, rc, hw, reach_rows, s1,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap,
+        )  # fmt: skip
+        n_f = 0
+        for t in range(n):
+            fit_a[i, t] = sample[t] and f1[t] and f2[t] and rss[t] > 0.0
+            rss_a[i, t] = rss[t]
+            n_f += fit_a[i, t]
+        use[i] = n_f >= ALPHA_SHARE * n_s
+    tot = np.full(n_a, np.inf)
+    for t in range(n):
+        every = sample[t]
+        for i in range(n_a):
+            every = every and (fit_a[i, t] or not use[i])
+        if not every:
+            continue
+        for i in range(n_a):
+            if use[i]:
+                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + (math.log(rss_a[i, t]) if LOGSUM else rss_a[i, t])
+    b = 0
+    for i in range(1, n_a):
+        if tot[i] < tot[b]:
+            b = i
+    if math.isinf(tot[b]):
+        return 0.0
+    if b == 0 or b == n_a - 1 or not (use[b - 1] and use[b + 1]):
+        return grid[b]
+    x0, x1, x2 = grid[b - 1], grid[b], grid[b + 1]
+    y0, y1, y2 = tot[b - 1], tot[b], tot[b + 1]
+    # the parabola's vertex (within the neighbours: the middle one is the least)
+    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+    pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+    return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
 
 
 @inline

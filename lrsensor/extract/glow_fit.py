@@ -47,6 +47,51 @@ def upper_tail(a, gauss):  # type: ignore[no-untyped-def]
 
 
 @inline
+def sheet_edge(t, u, f, ph, sg, d, kap):  # type: ignore[no-untyped-def]
+    """The sheet's glow at ``t`` px outward of its edge, blurred by a Gaussian of ``sg`` px, and its derivatives in
+    ``t`` and ``sg``: ``(B, dB/dt, dB/dsg)``; 1 at the edge before the blur (scalars or arrays alike: the reference
+    calls it on arrays). ``u = t / sg``, ``f = Phi(u)``, ``ph = phi(u)`` (the fit has them); ``d``: the edge's rows
+    from the sheet's vanishing row (> 0); ``kap``: the attenuation's growth (:func:`.glow.glow_refit`).
+
+    Seen ``t`` rows outward of the stripe, the sheet lies at range ``x_w d / (d + t)`` (``x_w`` the wall's), and its
+    single-scatter radiance grows only by the shorter path in and out (the sheet's area a pixel sees, the fan's
+    ``1 / r`` and the light's ``1 / R^2`` cancel): ``h(t) = exp(kap t / (d + t))``, ``kap = 2 alpha s x_w`` (``alpha``
+    the water's attenuation, ``s`` the path's obliqueness). Blurred: ``h`` expanded to second order about
+    ``max(t, 0)`` under the Gaussian over ``t' >= 0`` (within 1.4 % of the edge's value at 3 m with 4 px of blur,
+    0.1 % with 1.5 px). ``kap = 0``: the blurred step ``Phi(u)`` of the step model."""
+    te = np.maximum(t, 0.0)
+    pos = np.sign(te)  # 1 outward of the edge (h follows t), 0 inward (h expanded at the edge)
+    dt = t - te
+    e = 1.0 / (d + te)
+    g1 = kap * d * e * e
+    g2 = -2.0 * g1 * e
+    g3 = -3.0 * g2 * e
+    h = np.exp(kap * te * e)
+    h1 = h * g1
+    h2 = h * (g1 * g1 + g2)
+    h3 = h * (g1 * g1 * g1 + 3.0 * g1 * g2 + g3)
+    m1 = sg * ph
+    m2 = sg * sg * (f - u * ph)
+    mm1 = m1 + dt * f
+    mm2 = m2 + dt * (2.0 * m1 + dt * f)
+    b = h * f + h1 * mm1 + 0.5 * h2 * mm2
+    # in t: the moments' own change, and outward h's
+    m0_t = ph / sg
+    m1_t = -u * ph
+    m2_t = sg * u * u * ph
+    inw = 1.0 - pos
+    mm1_t = m1_t + inw * f + dt * m0_t
+    mm2_t = m2_t + 2.0 * inw * (m1 + dt * f) + dt * (2.0 * m1_t + dt * m0_t)
+    b_t = h * m0_t + h1 * mm1_t + 0.5 * h2 * mm2_t + pos * (h1 * f + h2 * mm1 + 0.5 * h3 * mm2)
+    # in sg
+    m0_s = -u * ph / sg
+    m1_s = ph * (1.0 + u * u)
+    m2_s = 2.0 * sg * (f - u * ph) - sg * u * u * u * ph
+    b_s = h * m0_s + h1 * (m1_s + dt * m0_s) + 0.5 * h2 * (m2_s + dt * (2.0 * m1_s + dt * m0_s))
+    return b, b_t, b_s
+
+
+@inline
 def _dot(x, y, n):  # type: ignore[no-untyped-def]
     """``sum(x[:n] * y[:n])`` in four sums (a single one would wait on every add)."""
     s0 = 0.0
@@ -135,13 +180,15 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 
 
 @njit
-def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
+def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, d_rc=1.0, kap_k=0.0):  # type: ignore[no-untyped-def]
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
     centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
     the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
     another one, no glow); ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c,
     sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares (at the last Gauss-Newton step's start) and
-    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out."""
+    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out. ``d_rc``, ``kap_k``: the window's
+    middle row's distance from the sheet's vanishing row (px, towards the glow) and the attenuation's growth times
+    the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step)."""
     kk = N_LIN + 2
     return fit_into(
         y,
@@ -164,12 +211,15 @@ def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_
         np.empty(kk, np.int64),
         np.empty((N_LIN + 5, y.size)),
         False,
+        d_rc,
+        kap_k,
     )
 
 
 @njit
 def fit_into(  # type: ignore[no-untyped-def]
-    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm
+    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm,
+    d_rc, kap_k,
 ):
     """:func:`fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
     (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
@@ -181,7 +231,8 @@ def fit_into(  # type: ignore[no-untyped-def]
     them, fewer where the centre's and sigma's step falls to :data:`STOP_PX`; each pass builds the normal equations
     row by row, in the parameters the profile's model has, and sums the squared residuals at its start (the last
     pass's sum is the fit's: a converged step changes it by its square, and a pass of its own would cost as much as
-    a step)."""
+    a step). With ``kap_k > 0`` the glow's column is the sheet's shape (:func:`sheet_edge`) at the edge's distance
+    from the vanishing row at each step (its change with the centre left out of the Jacobian)."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
     nb_glow = has_nb and nb_side != 0.0
@@ -219,6 +270,10 @@ def fit_into(  # type: ignore[no-untyped-def]
         inv_sg = 1.0 / sg
         n_s = 0  # the samples taken (unclipped)
         _gauss_rows(g_own, q[0], k_rows, c, inv_sg)
+        d_e = max(d_rc + side * c, 1.0)
+        kap = kap_k / d_e
+        b_t = 0.0
+        b_s = 0.0
         for i in range(k_rows):
             if y[i] >= sat_dn:
                 continue
@@ -236,6 +291,8 @@ def fit_into(  # type: ignore[no-untyped-def]
                 f = 1.0 - tail if u >= 0.0 else tail
                 ph = gz * _INV_SQRT_2PI
                 xr[3] = f
+                if kap_k > 0.0:
+                    xr[3], b_t, b_s = sheet_edge(u * sg, u, f, ph, sg, d_e, kap)
                 if ramp:
                     rmp = sg * (u * f + ph)
                     xr[4] = rmp
@@ -252,10 +309,14 @@ def fit_into(  # type: ignore[no-untyped-def]
                 for j in range(N_LIN):
                     r -= xr[j] * lin[j]
                 r2 += r * r
-                xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
-                xr[N_LIN + 1] = (
-                    (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
-                )
+                if kap_k > 0.0 and glow_on:  # the sheet's shape (sheet_edge) in t = side (q - c)
+                    xr[N_LIN] = lin[2] * gz * z * inv_sg - side * (lin[3] * b_t + lin[4] * f + 2.0 * lin[5] * rmp)
+                    xr[N_LIN + 1] = lin[2] * gz * z * z * inv_sg + lin[3] * b_s + lin[4] * ph + 2.0 * lin[5] * sg * f
+                else:
+                    xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
+                    xr[N_LIN + 1] = (
+                        (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
+                    )
             for a in range(m_):
                 jac[a, n_s] = xr[par[a]]
             res[n_s] = r
@@ -331,6 +392,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     sat_dn,
     ramp,
     n_rounds,
+    d_rc,
+    kap_k,
 ):
     """The joint fits of the points ``fit_me`` (:func:`.glow.glow_refit`'s arrays; ``reach`` (N,): the rows within
     which another stripe is looked for), with the glow's ramp or without: ``n_rounds`` rounds (at most
@@ -342,6 +405,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     step lands within the rounds' tolerance of a whole refit, a third of its cost); a glowing point is refitted whole
     from the common fit (where the glow's model is poor, far walls with much blur, its fits do not converge in
     :data:`ITERATIONS` steps, and continuing them moved the single columns' median by 0.05-0.1 px there).
+    ``d_rc``, ``kap_k`` (N,): each point's window's distance from its sheet's vanishing row and its glow's growth
+    (:func:`fit_one`).
     Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
     steps (2, N)."""
     n = cols.size
@@ -423,6 +488,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 par,
                 work,
                 warm,
+                d_rc[t],
+                kap_k[t],
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c

@@ -212,6 +212,8 @@ def extract_frame(
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
+            geo.glow_vanish,
+            geo.glow_path,
         )
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)

@@ -206,6 +206,8 @@ def glow_refit(
     max_sig: float,
     sat_dn: float,
     green_ratio: float,
+    vanish: FloatArray,
+    path_k: FloatArray,
 ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
