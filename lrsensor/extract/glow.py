@@ -151,9 +151,11 @@ RAMP_MARGIN = 0.5
 #: parabola through it and its neighbours (0: a flat glow, the plain step; turbid harbour water is 0.5-2 /m).
 ALPHA_GRID = (0.0, 0.1, 0.2, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2)
 ALPHA_EVERY = 16
+#: ... on windows of at least this many rows either side (at 3 m with 4 px of blur, the stripe's own 14 read 0.16 /m
+#: for the model's 0.3, 20-26 rows 0.30-0.31).
+ALPHA_HALF_PX = 22
 #: ... among the attenuations at which at least this share of those points fit.
 ALPHA_SHARE = 0.75
-LOGSUM = True
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -506,20 +508,68 @@ def _attenuation(  # type: ignore[no-untyped-def]
     fits) by the sum of the logarithms of their residual sums (a particle's column weighs no more than another);
     the least, refined by a parabola through it and its neighbours."""
     n = cols.size
+    h = image.shape[0]
     sample = np.zeros(n, np.bool_)
+    hw = hw.copy()
     n_s = 0
     for t in range(n):
         sample[t] = fit_me[t] and glowing[t] and k_pt[t] > 0.0 and cols[t] % ALPHA_EVERY == 0
+        if sample[t]:  # a window long enough to show the glow's growth (a short one trades it for the width)
+            hw[t] = max(hw[t], ALPHA_HALF_PX)
+            sample[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
         n_s += sample[t]
     if n_s == 0:
         return 0.0
     n_a = len(ALPHA_GRID)
     grid = np.empty(n_a)
+    for i in range(n_a):
+        grid[i] = ALPHA_GRID[i]
+    tot, use = _alpha_scores(
+        grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
+        lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+    )  # fmt: skip
+    b = 0
+    for i in range(1, n_a):
+        if tot[i] < tot[b]:
+            b = i
+    if math.isinf(tot[b]):
+        return 0.0
+    if b == 0 or b == n_a - 1 or not (use[b - 1] and use[b + 1]):
+        return grid[b]
+    # finer: the midpoints either side of the least, then a parabola through the least of the five and its neighbours
+    fine = np.array([grid[b - 1], 0.5 * (grid[b - 1] + grid[b]), grid[b], 0.5 * (grid[b] + grid[b + 1]), grid[b + 1]])
+    tot, use = _alpha_scores(
+        fine, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
+        lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+    )  # fmt: skip
+    b = 1
+    for i in (2, 3):
+        if tot[i] < tot[b]:
+            b = i
+    if math.isinf(tot[b]) or not (use[b - 1] and use[b + 1]):
+        return fine[b]
+    x0, x1, x2 = fine[b - 1], fine[b], fine[b + 1]
+    y0, y1, y2 = tot[b - 1], tot[b], tot[b + 1]
+    # the parabola's vertex (within the neighbours: the middle one is the least)
+    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+    pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+    return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
+
+
+@njit
+def _alpha_scores(  # type: ignore[no-untyped-def]
+    grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+    max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+):
+    """:func:`_attenuation`'s score of each attenuation in ``grid``: the summed log residuals over the sample's points
+    fitted at every attenuation that most of them fit at (``use``); inf where none is."""
+    n = cols.size
+    n_a = grid.size
     rss_a = np.zeros((n_a, n))
     fit_a = np.zeros((n_a, n), np.bool_)
     use = np.zeros(n_a, np.bool_)
     for i in range(n_a):
-        grid[i] = ALPHA_GRID[i]
         kap = grid[i] * k_pt
         v1, s1, f1, _r, _d, _st = fit_rounds(
             image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
@@ -548,22 +598,8 @@ def _attenuation(  # type: ignore[no-untyped-def]
             continue
         for i in range(n_a):
             if use[i]:
-                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + (math.log(rss_a[i, t]) if LOGSUM else rss_a[i, t])
-    b = 0
-    for i in range(1, n_a):
-        if tot[i] < tot[b]:
-            b = i
-    if math.isinf(tot[b]):
-        return 0.0
-    if b == 0 or b == n_a - 1 or not (use[b - 1] and use[b + 1]):
-        return grid[b]
-    x0, x1, x2 = grid[b - 1], grid[b], grid[b + 1]
-    y0, y1, y2 = tot[b - 1], tot[b], tot[b + 1]
-    # the parabola's vertex (within the neighbours: the middle one is the least)
-    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-    pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
-    pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
-    return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
+                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + math.log(rss_a[i, t])
+    return tot, use
 
 
 @inline
