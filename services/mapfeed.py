@@ -83,6 +83,8 @@ log = logging.getLogger(__name__)
 CLOSE_TIMEOUT_S = 60.0
 #: Marker in the map queue: flush the map.
 _FLUSH: Any = object()
+#: how often an idle map thread looks for silent robots whose clouds wait in their hold (s)
+SILENT_CHECK_S = 1.0
 #: Publish a robot's corrected pose at most this often (seconds of capture time).
 NAV_PUBLISH_S = 0.2
 
@@ -218,8 +220,10 @@ class MapFeed:
         #: per robot: the latest estimate (turned to NED), clouds placed / not placed, last publication
         self._nav_latest: dict[str, NavEstimate] = {}
         self._nav_counts: dict[str, list[int]] = {}
-        #: per robot, the held clouds its pose graph dropped so far (counted as unplaced)
+        #: per robot, the held clouds its pose graph dropped so far (counted as unplaced), and when a cloud of it
+        #: last came (monotonic s: a silent robot's held clouds are settled, _settle_silent)
         self._dropped: dict[str, int] = {}
+        self._last_seen: dict[str, float] = {}
         self._nav_published: dict[str, int] = {}
 
     def set_smoothing(self, on: bool) -> None:
@@ -368,7 +372,15 @@ class MapFeed:
     def _worker(self) -> None:
         """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
         while True:
-            msg = self._queue.get()
+            try:
+                msg = self._queue.get(timeout=SILENT_CHECK_S)
+            except queue.Empty:
+                try:
+                    self._settle_silent()
+                except Exception as err:  # the map must never stop the ingest
+                    self.errors += 1
+                    log.exception("settling a silent robot's held clouds failed: %s", err)
+                continue
             deferred = False
             try:
                 if msg is None:
@@ -412,6 +424,7 @@ class MapFeed:
             self._frame = self.navigator.frame()
             self._nav_publish(est.turned(self._frame))
             self._place_released(msg.robot, self.navigator.released(msg.robot))
+            self._last_seen[msg.robot] = time.monotonic()
             if est.held:  # received; it goes into the map once its track's next check passes (mapping.graph_hold)
                 self._publish_changes(msg, self.builder.advance_time(msg.robot, msg.t_ns))
                 return False
@@ -472,6 +485,24 @@ class MapFeed:
             if self.builder.uncommitted(robot) == 0:
                 self._commit(robot)
             self._publish_changes(None, changes)
+
+    def _settle_silent(self) -> None:
+        """Without plane workers: each robot silent for ``IDLE_FLUSH_S`` whose clouds wait in its hold gets them
+        checked alone (no later check will come), and its window extracted."""
+        if self.builder is None or self.navigator is None or self.pool is not None:
+            return
+        from .map_workers import IDLE_FLUSH_S
+
+        now = time.monotonic()
+        for robot, nav in sorted(self.navigator.robots.items()):
+            hold = getattr(nav, "hold", None)
+            if hold is None or not hold.clouds or now - self._last_seen.get(robot, now) < IDLE_FLUSH_S:
+                continue
+            nav.settle(self.builder.landmarks(self.navigator.cfg.min_landmark_points))
+            self._place_released(robot, hold.take())
+            self._publish_changes(None, self.builder.merge(self.builder.flush_robot_observations(robot)))
+            if self.builder.uncommitted(robot) == 0:
+                self._commit(robot)
 
     def _settle(self) -> None:
         """The end of a dive: each robot's held clouds checked alone, those vouched for into the map."""

@@ -146,3 +146,40 @@ def test_tracked_holds_and_the_plain_graph_does_not() -> None:
     assert TRACKED.hold_until_verified
     assert not GraphConfig().hold_until_verified
     assert not replace(TRACKED, hold_until_verified=False).hold_until_verified
+
+
+def test_the_map_thread_settles_a_silent_robots_held_clouds() -> None:
+    """Without plane workers: a robot silent for IDLE_FLUSH_S whose clouds wait in its hold gets them checked
+    (no later check comes) and those that go in reach the map, counted as placed."""
+    import time
+
+    from mapping import MapBuilder
+    from services.map_workers import IDLE_FLUSH_S
+    from services.mapfeed import MapFeed
+
+    feed = MapFeed(MapBuilder(), lambda robot, seq: None, navigation=True)
+    assert feed.navigator is not None
+    g = FakeGraph()
+    _step(g, 1, verified=True)
+    g.hold.take()
+    for k in range(2, 5):
+        _step(g, k)
+
+    def settle(landmarks: object) -> None:  # as check_held with every held cloud confirmed
+        for c in g.hold.clouds:
+            g.hold.out.append((c.t_ns, Pose(1.0, 1.0, 1.0, 0.0, 0.0, 0.0), c.points))
+        g.hold.replaced += len(g.hold.clouds)
+        g.hold.clouds = []
+
+    g.settle = settle  # type: ignore[attr-defined]
+    feed.navigator.robots["rov3"] = g  # type: ignore[assignment]
+    feed._last_seen["rov3"] = time.monotonic() - 1.0
+    feed._settle_silent()  # not silent long enough
+    assert len(g.hold.clouds) == 3
+    feed._last_seen["rov3"] = time.monotonic() - IDLE_FLUSH_S - 1.0
+    feed._settle_silent()
+    assert not g.hold.clouds
+    assert feed.clouds == 3
+    assert feed.builder is not None
+    assert feed.builder.uncommitted("rov3") == 0  # its window extracted: nothing waits for a later cloud
+    assert feed._nav_counts["rov3"][0] == 3
