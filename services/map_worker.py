@@ -401,6 +401,7 @@ class MapWorker:
         self.jobs += 1
         self._pending.setdefault(job.robot, []).append(job.seq)
         pose = job.pose
+        held: list[Any] = []
         try:
             if job.navigate:
                 step = self._navigate(job)
@@ -427,6 +428,8 @@ class MapWorker:
                 pose = step.pose
             pts = job.points_body.astype(np.float64)
             records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, pose), pose)
+            if held:  # (a placed cloud and released ones together: not expected, not lost)
+                records = held + (records or [])
         except Exception as err:  # done with, not stuck in flight at the base: commit what is pending, no planes
             self.errors += 1
             log.warning("map worker %s: cloud %s#%d not mapped: %s", self.name, job.robot, job.seq, err)

@@ -426,7 +426,10 @@ class MapFeed:
             self._place_released(msg.robot, self.navigator.released(msg.robot))
             self._last_seen[msg.robot] = time.monotonic()
             if est.held:  # received; it goes into the map once its track's next check passes (mapping.graph_hold)
-                self._publish_changes(msg, self.builder.advance_time(msg.robot, msg.t_ns))
+                changes = self.builder.advance_time(msg.robot, msg.t_ns)  # released clouds due by time
+                if self.builder.uncommitted(msg.robot) == 0:
+                    self._commit(msg.robot)
+                self._publish_changes(msg, changes)
                 return False
             if est.pose is None or not est.placed:
                 self._count_unplaced(
