@@ -150,6 +150,40 @@ def _flank_line(p, o, flank):  # type: ignore[no-untyped-def]
 
 
 @inline
+def _flank_lines(P, o, flank, line, noise):  # type: ignore[no-untyped-def]
+    """:func:`_flank_line` of every column of the profiles ``P`` (m, n) at the flank offset ``o``, into ``line``
+    (3, n) and ``noise`` (n,): the same arithmetic in the same order, row by row over all the columns (the loops run
+    over contiguous rows of ``P`` and vectorize; a column at a time reads a row of ``P`` per sample)."""
+    m, n = P.shape
+    R = m // 2
+    a = line[0]
+    slope = line[1]
+    xl = R - o - 0.5 * (flank - 1)
+    b = np.zeros(n)
+    a[:] = 0.0
+    for q in range(flank):
+        pa = P[R - o - q]
+        pb = P[R + o + q]
+        for t in range(n):
+            a[t] += pa[t]
+            b[t] += pb[t]
+    ss = np.zeros(n)
+    for t in range(n):
+        a[t] /= flank
+        slope[t] = (b[t] / flank - a[t]) / (2.0 * o + flank - 1)
+        line[2, t] = xl
+    for q in range(flank):
+        pa = P[R - o - q]
+        pb = P[R + o + q]
+        for t in range(n):
+            r1 = pa[t] - (a[t] + slope[t] * (R - o - q - xl))
+            r2 = pb[t] - (a[t] + slope[t] * (R + o + q - xl))
+            ss[t] += r1 * r1 + r2 * r2
+    for t in range(n):
+        noise[t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
+
+
+@inline
 def _crossings(S, level):  # type: ignore[no-untyped-def]
     """The first crossings below ``level`` of the profile ``S`` (m,) left and right of its middle sample, linearly
     interpolated: ``(xa, xb)`` in rows (-1 where there is none)."""
@@ -259,8 +293,11 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
         off[t] = flank_offset(sigma_hint, n_sat[t] if n_sat[t] >= 2 else 0, R, flank)
     line = np.empty((3, n))
     noise = np.empty(n)
+    o_c = flank_offset(sigma_hint, 0, R, flank)  # every column's but those of clipped runs
+    _flank_lines(P, o_c, flank, line, noise)
     for t in range(n):
-        line[0, t], line[1, t], line[2, t], noise[t] = _flank_line(P[:, t], off[t], flank)
+        if off[t] != o_c:
+            line[0, t], line[1, t], line[2, t], noise[t] = _flank_line(P[:, t], off[t], flank)
     A = np.empty((m, n))
     _subtract_lines(P, line, A)
     # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
@@ -390,12 +427,12 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
             q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
             d0 = q0[t] - c[t] if gauss else 0.0
-            ex[t] = math.exp(np.float32(-(2.0 * d0 + 1.0) * inv2[t]))  # (scalar expf, as the logarithms)
+            ex[t] = np.float32(-(2.0 * d0 + 1.0) * inv2[t])
             lo = min(lo, q0[t] if gauss else m)
             hi = max(hi, q1[t] if gauss else 0)
-        for t in range(n):
+        for t in range(n):  # (the exponentials in a loop of their own: the loop above then vectorizes)
             w[t] = 1.0  # the first row's weight: the centroid takes the weights' ratios only
-            ratio[t] = ex[t]
+            ratio[t] = math.exp(ex[t])  # (scalar expf, as the logarithms)
         for q in range(lo, hi):  # every column with Gaussian weights (the window columns' sums are taken below)
             aq = A[q]
             for t in range(n):

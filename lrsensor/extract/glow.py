@@ -110,6 +110,7 @@ import numpy as np
 
 from ._jit import inline, njit
 from .glow_fit import ROUNDS, fit_rounds, neighbour
+from .refit import rows_overlap
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -255,10 +256,16 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # within POOL_COLS columns: first the step in green at every candidate
     nb0 = np.full(n, -1, np.int64)
     diff = np.zeros(n)
+    # (looked for only where two lasers' rows come that close at all, far walls: nb_ok points have sigmas of at
+    # most max_sig)
+    reach_max = 0
+    for t in range(n):
+        reach_max = max(reach_max, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS) if cand[t] else 0)
+    close = rows_overlap(laser, vv, usable, n_l, reach_max + 3.0 * max_sig)
     for t in range(n):
         if not cand[t]:
             continue
-        nb = neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
+        nb = neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)) if close else -1
         nb0[t] = nb
         d = _raw_step(image, rc[t], cols[t], int(side[t]), kt[t], 1)
         if nb >= 0:
@@ -400,22 +407,27 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the ramp's F test, first per stretch: the ramp fitted at the strong points of every RAMP_EVERY-th column (both
     # lasers' points of a column together: close stripes are fitted in pairs); then at every strong point whose
     # stretch's sampled F statistic comes within RAMP_MARGIN of the bar, and taken where the F statistic pooled over
-    # all of them passes it
-    sample = np.zeros(n, np.bool_)
-    for t in range(n):
-        sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
-    # (the sampled test in one round, with the other stripes where the step model put them: it decides only which
-    # stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
-    _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[0],
-    )  # fmt: skip
-    maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[1],
-    )  # fmt: skip
-    take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
+    # all of them passes it (none strong, as beside another laser's stripe without a glow: the step model stands)
+    take = np.zeros(n, np.bool_)
+    v3, s3, rss3, dof3, _st3 = v0, s0, rss0, _d0, st0
+    if strong.any():
+        sample = np.zeros(n, np.bool_)
+        for t in range(n):
+            sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
+        # (the sampled test in one round, with the other stripes where the step model put them: it decides only
+        # which stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
+        _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
+            image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0],
+        )  # fmt: skip
+        maybe = strong & (
+            _pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT
+        )
+        v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
+            image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1],
+        )  # fmt: skip
+        take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
     s_out = s0
     fitted = f0.copy()
