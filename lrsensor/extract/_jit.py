@@ -7,10 +7,10 @@ Every kernel of :mod:`lrsensor.extract` is decorated with :data:`njit` (compiled
 agree with the numpy reference (:mod:`lrsensor.extract.reference`) to rounding, not bit for bit; the detection is
 integer arithmetic and stays bit for bit.
 
-The kernels make their arrays with :func:`empty`, :func:`zeros` and :func:`full` (numpy's, with the dtype always
-given): numba compiles its own ``np.empty``, ``np.zeros`` and ``np.full`` as a library per spelling of shape and
-dtype (``np.zeros(n)``, ``np.zeros(n, np.float64)`` and ``np.zeros(n, float)`` three times over), in each process
-that compiles, while these three are built in place in the calling kernel, like its arithmetic
+The kernels make their arrays with :func:`empty`, :func:`zeros`, :func:`full` and :func:`arange` (numpy's, with the
+dtype always given): numba compiles its own ``np.empty``, ``np.zeros``, ``np.full`` and ``np.arange`` as a library
+per spelling of shape and dtype (``np.zeros(n)``, ``np.zeros(n, np.float64)`` and ``np.zeros(n, float)`` three times
+over), in each process that compiles, while these four are built in place in the calling kernel, like its arithmetic
 (:mod:`lrsensor.extract.compile`).
 
 Without numba (:data:`HAVE_NUMBA` False) the decorators return the function unchanged: the kernels are then
@@ -37,6 +37,11 @@ def zeros(shape: Any, dtype: Any) -> Any:
 def full(shape: Any, value: Any, dtype: Any) -> Any:
     """``np.full(shape, value, dtype)``: ``value`` converted to ``dtype`` as numpy converts it."""
     return np.full(shape, value, dtype)
+
+
+def arange(n: Any, dtype: Any) -> Any:
+    """``np.arange(n, dtype=dtype)``: 0, 1, ..., n - 1."""
+    return np.arange(n, dtype=dtype)
 
 
 try:  # pragma: no cover - depends on the platform
@@ -67,9 +72,9 @@ except ImportError:  # pragma: no cover
 
 
 def _build_in_place() -> None:  # pragma: no cover - depends on the platform
-    """Teach numba :func:`empty`, :func:`zeros` and :func:`full`: typed from the shape and the dtype, and lowered in
-    the calling kernel with numba's own allocation (numba's internals: where they moved, each is an overload that
-    calls numpy's, compiled per signature as numba's own are)."""
+    """Teach numba :func:`empty`, :func:`zeros`, :func:`full` and :func:`arange`: typed from the shape and the
+    dtype, and lowered in the calling kernel with numba's own allocation (numba's internals: where they moved, each
+    is an overload that calls numpy's, compiled per signature as numba's own are)."""
     from numba.core import cgutils, types
     from numba.core.typing import npydecl
     from numba.extending import lower_builtin, overload, type_callable
@@ -83,6 +88,7 @@ def _build_in_place() -> None:  # pragma: no cover - depends on the platform
         register(empty)(lambda shape, dtype: lambda shape, dtype: np.empty(shape, dtype))
         register(zeros)(lambda shape, dtype: lambda shape, dtype: np.zeros(shape, dtype))
         register(full)(lambda shape, value, dtype: lambda shape, value, dtype: np.full(shape, value, dtype))
+        register(arange)(lambda n, dtype: lambda n, dtype: np.arange(n, dtype=dtype))
         return
     typer: Any = type_callable
     lower: Any = lower_builtin
@@ -97,6 +103,7 @@ def _build_in_place() -> None:  # pragma: no cover - depends on the platform
     typer(empty)(lambda context: array_type)
     typer(zeros)(lambda context: array_type)
     typer(full)(lambda context: full_type)
+    typer(arange)(lambda context: lambda n, dtype: array_type(n, dtype) if isinstance(n, types.Integer) else None)
 
     def allocate(context: Any, builder: Any, sig: Any, shape: Any) -> Any:
         dims = arrays._parse_shape(context, builder, sig.args[0], shape)
@@ -118,9 +125,18 @@ def _build_in_place() -> None:  # pragma: no cover - depends on the platform
             arrays.store_item(context, builder, array_type, value, builder.gep(array.data, [loop.index]))
         return array._getvalue()
 
+    def lower_arange(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        array_type = sig.return_type
+        array = allocate(context, builder, sig, args[0])
+        with cg.for_range(builder, array.nitems) as loop:
+            value = context.cast(builder, loop.index, types.intp, array_type.dtype)
+            arrays.store_item(context, builder, array_type, value, builder.gep(array.data, [loop.index]))
+        return array._getvalue()
+
     lower(empty, types.Any, types.Any)(lower_empty)
     lower(zeros, types.Any, types.Any)(lower_zeros)
     lower(full, types.Any, types.Any, types.Any)(lower_full)
+    lower(arange, types.Any, types.Any)(lower_arange)
 
 
 if HAVE_NUMBA:

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, inline, njit, zeros
+from ._jit import arange, empty, inline, njit, zeros
 
 
 @njit
@@ -97,7 +97,7 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
             prevT[q, c] = c * K + q
     has_next = zeros((K, n_cols), np.uint8)
     has_prev = zeros((K, n_cols), np.uint8)
-    blk = sorted_blocks(np.arange(n_cols), block)  # the block (laser) of each column, no division per link
+    blk = sorted_blocks(arange(n_cols, np.int64), block)  # the block (laser) of each column, no division per link
     one = zeros(n_cols, np.uint8)  # exactly one candidate
     multi = empty(n_cols, np.int64)  # the columns with more than one
     n_multi = 0

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import arange, empty, full, inline, njit, zeros
 from .geometry import central_view
 from .smooth import smooth_runs_at
 from .sorting import select
@@ -115,7 +115,7 @@ def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
             run_w[idx[j]] = -1
     # the columns' coordinates: the view's where seen, linear in the index between them and constant beyond the
     # first and the last (np.interp's arithmetic, in a loop that compiles in a fraction of its time)
-    x = np.arange(y.size).astype(np.float64)
+    x = arange(y.size, np.float64)
     known = idx[seen]
     fk = cols[seen]
     if known.size:
@@ -379,7 +379,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
         if geo.port.present:
             yw, x, run_w, idx, rows_w, slope_w = port_view(y, run, w, geo)
         else:
-            yw, x, run_w = y, np.arange(n_cols).astype(np.float64), run
+            yw, x, run_w = y, arange(n_cols, np.float64), run
             idx, rows_w, slope_w = empty(0, np.int64), empty(0, np.float64), empty(0, np.float64)
         ys = smooth_runs_at(yw, x, run_w, scales)
         if geo.port.present:

@@ -51,7 +51,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import arange, empty, full, inline, njit, zeros
 from .chains import expand_half, select_candidates, sorted_blocks
 from .columns import take
 from .detect import detect_band
@@ -217,7 +217,7 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
     )
     last = full((3, n), np.nan, np.float64)  # the neighbour each point was last refitted with
     at = point_table(laser, cols, n_l, w)
-    look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
+    look = arange(w, np.int64)  # the columns where a neighbour can have changed: all, then the refits'
     touched = zeros(w, np.bool_)
     for _ in range(NEIGHBOUR_REFITS):
         idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)

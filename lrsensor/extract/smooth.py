@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import arange, empty, full, inline, njit, zeros
 from .sorting import median
 
 #: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
@@ -116,7 +116,7 @@ def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, va
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`):
     :func:`smooth_runs_at` with the columns' own indices as their coordinates."""
-    return smooth_runs_at(y, np.arange(y.size).astype(np.float64), run, scales)
+    return smooth_runs_at(y, arange(y.size, np.float64), run, scales)
 
 
 @njit
