@@ -127,7 +127,7 @@ def _build(part: str | None = None) -> None:
     from ..calibration import Calibration
     from .config import SubpixelConfig
     from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
-    from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
+    from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
@@ -135,6 +135,9 @@ def _build(part: str | None = None) -> None:
     f64 = np.zeros(4)
     i64 = np.zeros(4, np.int64)
     if part in (None, "locate"):
+        # (first: the finish part links the port's central view late in its compile and loads it from the cache
+        # when this part has written it there by then, else compiles it itself)
+        central_view(f64, f64, i64, g)
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
