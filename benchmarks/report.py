@@ -98,8 +98,9 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "extract_against.md",
         "speed",
-        f"{_EXTRACT} --against WORKTREE --rounds 3 --seeds 4",
-        note="against the code the reshape (issue 29) started from, on the same machine",
+        f"{_EXTRACT} --against WORKTREE WORKTREE --rounds 2 --seeds 4",
+        note="against the code the reshape (issue 29) started from (2072e3e) and the reshape alone (8e92924), "
+        "on the same machine",
     ),
     Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 1", note="the one-time compile"),
     Source("extract_foreign.md", "independent", _FOREIGN),
