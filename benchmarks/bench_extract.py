@@ -5,7 +5,7 @@
     python benchmarks/bench_extract.py --copies [--repeats 15]
     python benchmarks/bench_extract.py --stages FRAME [--seeds 1] [--repeats 15]
     python benchmarks/bench_extract.py --flank-gate [--seeds 1]
-    python benchmarks/bench_extract.py --against WORKTREE [--rounds 3] [--seeds 4]
+    python benchmarks/bench_extract.py --against WORKTREE [WORKTREE ...] [--rounds 3] [--seeds 4]
 
 Accuracy (both methods, every named body-frame scene, 1920x1080, f = 554 px, b = 0.1 m):
 - relative range error per point ``|r_est - r_true| / r_true`` with ``r`` the distance from the camera centre and
@@ -31,10 +31,11 @@ background flanks triggers a refit from ``NEIGHBOUR_FLANK_TAIL`` of its amplitud
 centroid reads) on walls at 3.5-6 m and the tank: refitted columns, accuracy, and how far the centres move. The
 thresholds are compiled into the kernels, so both are run in the numpy reference, which reads them at each call.
 
-``--against WORKTREE``: ``Sensor.process`` on wall_5.0 (the ``--stages`` figure, ``--seeds`` renders) and every
-speed frame's warm ``subpixel`` column of ``--copies``, of this tree and of another worktree of the repository (an
-earlier commit, its kernels compiled into its own ``.numba-cache``; its ``bench_extract.py`` run with the same
-options), the two alternately ``--rounds`` times on the same machine: the medians per frame and their ratio.
+``--against WORKTREE [WORKTREE ...]``: ``Sensor.process`` on wall_5.0 (the ``--stages`` figure, ``--seeds`` renders)
+and every speed frame's warm ``subpixel`` column of ``--copies``, of this tree and of other worktrees of the
+repository (earlier commits, each with its kernels compiled into its own ``.numba-cache``; its ``bench_extract.py``
+run with the same options), all alternately ``--rounds`` times on the same machine: the medians per frame and their
+ratios to the first worktree.
 
 ``--cold-after FRAME``: only cold calls of ``Sensor.process`` and the uint8 reference on one speed frame, by the
 function called just before the cache flush (the flush leaves the branch predictors as that function left them).
@@ -369,9 +370,7 @@ def _stage_clock(totals: dict[str, float]) -> Iterator[Callable[..., object]]:
     clock: the per-thread CPU time spent in each of :data:`STAGES` adds up in ``totals`` (s)."""
     names = vars(frame_module)
     saved = {name: names[name] for stage in STAGES.values() for name in stage}
-    halves = {
-        name: names[name] for name in ("locate_candidates", "fit_points", "refine_and_finish", "place_points")
-    }
+    halves = {name: names[name] for name in ("locate_candidates", "fit_points", "refine_and_finish", "place_points")}
     for stage, stage_names in STAGES.items():
         for name in stage_names:
             f = saved[name]
@@ -444,13 +443,16 @@ def _warm_ms(copies_md: str) -> dict[str, float]:
     return out
 
 
-def against_table(other: Path, rounds: int, seeds: int) -> list[str]:
-    """``--against``: this tree and ``other`` alternately, ``rounds`` times (see the module documentation)."""
+def against_table(others: list[Path], rounds: int, seeds: int) -> list[str]:
+    """``--against``: this tree and ``others`` alternately, ``rounds`` times; ratios to the first of ``others``
+    (see the module documentation)."""
     here = Path(__file__).resolve().parent.parent
-    trees = {
-        "this": (here, os.environ.get("NUMBA_CACHE_DIR", str(here / ".numba-cache"))),
-        "other": (other, str(other / ".numba-cache")),
-    }
+    trees = {"this": (here, os.environ.get("NUMBA_CACHE_DIR", str(here / ".numba-cache")))}
+    for other in others:
+        log = subprocess.run(["git", "-C", str(other), "log", "-1", "--format=%h"], capture_output=True, text=True)
+        trees[log.stdout.strip() or other.name] = (other, str(other / ".numba-cache"))
+    names = list(trees)
+    ref = names[1]
     process: dict[str, list[list[float]]] = {k: [] for k in trees}
     warm: dict[str, list[dict[str, float]]] = {k: [] for k in trees}
     loads = []
@@ -459,28 +461,34 @@ def against_table(other: Path, rounds: int, seeds: int) -> list[str]:
             process[key].append(_process_ms(_tree_run(tree, cache, ["--stages", "wall_5.0", "--seeds", str(seeds)])))
             warm[key].append(_warm_ms(_tree_run(tree, cache, ["--copies"])))
             loads.append(os.getloadavg()[0])
-    commit = subprocess.run(["git", "-C", str(other), "log", "-1", "--format=%h"], capture_output=True, text=True)
+    shown = [k for k in names if k != ref]
     lines = [
-        f"### Against the code of {commit.stdout.strip() or other.name} (ms per frame, one thread)",
+        f"### Against the code of {', '.join(names[1:])} (ms per frame, one thread)",
         "",
-        f"`python benchmarks/bench_extract.py --against WORKTREE --rounds {rounds} --seeds {seeds}`: per-thread CPU "
-        "ms of `Sensor.process`, this tree and the other one's code (its own benchmark, its kernels from its own "
-        f"cache) alternately {rounds} times on the same machine (1-minute load average {min(loads):.1f}-"
-        f"{max(loads):.1f}), medians of the rounds: wall_5.0 as `--stages` times it (a column per render), and the "
-        "warm `subpixel` column of `--copies` for every speed frame both trees time.",
+        f"`python benchmarks/bench_extract.py --against {' '.join(['WORKTREE'] * len(others))} --rounds {rounds} "
+        f"--seeds {seeds}`: per-thread CPU ms of `Sensor.process`, this tree and the other trees' code (each its own "
+        f"benchmark, its kernels from its own cache) alternately {rounds} times on the same machine (1-minute load "
+        f"average {min(loads):.1f}-{max(loads):.1f}), medians of the rounds: wall_5.0 as `--stages` times it (a "
+        f"column per render), and the warm `subpixel` column of `--copies` for every speed frame all trees time; "
+        f"ratios to {ref}.",
         "",
-        "| frame | this ms | other ms | this / other |",
-        "|---|---:|---:|---:|",
+        "| frame | " + " | ".join(f"{k} ms" for k in names) + " | " + " | ".join(f"{k} / {ref}" for k in shown) + " |",
+        "|---|" + "---:|" * (len(names) + len(shown)),
     ]
-    for k in range(seeds):
-        a = statistics.median(r[k] for r in process["this"])
-        b = statistics.median(r[k] for r in process["other"])
-        lines.append(f"| wall_5.0 seed {k} (stages) | {a:.3f} | {b:.3f} | {a / b:.2f} |")
-    for name in SPEED_SCENES:
-        if all(name in r for r in warm["this"] + warm["other"]):
-            a = statistics.median(r[name] for r in warm["this"])
-            b = statistics.median(r[name] for r in warm["other"])
-            lines.append(f"| {name} (copies, warm) | {a:.2f} | {b:.2f} | {a / b:.2f} |")
+
+    def row(label: str, ms: dict[str, float], digits: int) -> str:
+        cells = [f"{ms[k]:.{digits}f}" for k in names] + [f"{ms[k] / ms[ref]:.2f}" for k in shown]
+        return f"| {label} | " + " | ".join(cells) + " |"
+
+    for i in range(seeds):
+        lines.append(
+            row(f"wall_5.0 seed {i} (stages)", {k: statistics.median(r[i] for r in process[k]) for k in names}, 3)
+        )
+    for scene in SPEED_SCENES:
+        if all(scene in r for k in names for r in warm[k]):
+            lines.append(
+                row(f"{scene} (copies, warm)", {k: statistics.median(r[scene] for r in warm[k]) for k in names}, 2)
+            )
     return lines
 
 
@@ -521,13 +529,16 @@ def main() -> int:
         "--against",
         metavar="WORKTREE",
         type=Path,
-        help="only Sensor.process of this tree and of another worktree, alternately (default out: "
-        "extract_against.md; the other tree's kernels compiled into WORKTREE/.numba-cache)",
+        nargs="+",
+        help="only Sensor.process of this tree and of other worktrees, alternately, with ratios to the first "
+        "(default out: extract_against.md; each tree's kernels compiled into WORKTREE/.numba-cache)",
     )
     ap.add_argument("--rounds", type=int, default=3, help="alternations of --against (default 3)")
     args = ap.parse_args()
     if args.against:
-        _publish(against_table(args.against.resolve(), args.rounds, args.seeds), args.out, "extract_against.md")
+        _publish(
+            against_table([p.resolve() for p in args.against], args.rounds, args.seeds), args.out, "extract_against.md"
+        )
         return 0
     for flag, frame in (("--cold-after", args.cold_after), ("--stages", args.stages)):
         if frame and frame not in SPEED_SCENES:

@@ -105,6 +105,10 @@ NAV_OVERRIDES: dict[str, Any] = {}
 GRAPH_OVERRIDES: dict[str, Any] = {}
 #: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
 TRACKED_ROWS: list[bool] = []
+#: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``)
+TRACKED_OVERRIDES: dict[str, Any] = {}
+#: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
+HOLDS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
 MAP_OVERRIDES: dict[str, Any] = {}
 #: --merge-bands: how far apart along down two bands of one vertical face may be (m)
@@ -150,7 +154,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
                                      **NAV_OVERRIDES),
-                  "smoother": SmootherConfig(), "background": "wait", "graph_cfg": TRACKED}  # fmt: skip
+                  "smoother": SmootherConfig(), "background": "wait",
+                  "graph_cfg": replace(TRACKED, **TRACKED_OVERRIDES)}  # fmt: skip
         if way == "smoothed":
             # the runs split as lrsensor base --nav on splits them (a thread of their own), each waited for, so the
             # figures are reproducible and the map thread's hold is measured apart
@@ -192,6 +197,9 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             )
         )
         print(rows[-1], flush=True)
+        for robot, h in sorted(run.hold.items()):
+            HOLDS.append(f"| {mode} | {way} | {robot} | {h['committed']:.0f} | {h['replaced']:.0f} | "
+                         f"{h['dropped']:.0f} | {h['lag_mean_s']:.2f} | {h['lag_max_s']:.1f} |")  # fmt: skip
     return rows
 
 
@@ -516,6 +524,22 @@ def table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def hold_lines() -> list[str]:
+    """The held clouds' table of the tracked rows (empty without one)."""
+    if not HOLDS:
+        return []
+    return [
+        "Held clouds of the tracked rows (placed only once their track's next check passed; mapping.graph_hold): "
+        "committed at a passed check, re-placed after a slide or a break (checked alone), dropped; how long a "
+        "placed cloud waited (capture time of the scan that released it minus its own).",
+        "",
+        "| mode | way | robot | committed | re-placed | dropped | wait mean (s) | wait max (s) |",
+        "|---|---|---|---|---|---|---|---|",
+        *HOLDS,
+        "",
+    ]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=90.0, help="simulated dive length")
@@ -571,6 +595,12 @@ def main() -> int:
         "NavConfig.frame_graph_launches; an option)",
     )
     ap.add_argument(
+        "--no-hold",
+        action="store_true",
+        help="the tracked rows without GraphConfig.hold_until_verified (clouds placed before their track's next "
+        "check, as before the hold)",
+    )
+    ap.add_argument(
         "--merge-bands",
         action="store_true",
         help="every replay's map joins bands of one vertical face across depth gaps (MapConfig."
@@ -586,6 +616,8 @@ def main() -> int:
         TRACKED_ROWS.append(True)
     if args.merge_bands:
         MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
+    if args.no_hold:
+        TRACKED_OVERRIDES["hold_until_verified"] = False
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -654,11 +686,13 @@ def main() -> int:
         + (" --modes " + args.modes if args.modes != ap.get_default("modes") else "")
         + (" --graph-track" if args.graph_track else "")
         + (" --merge-bands" if args.merge_bands else "")
+        + (" --no-hold" if args.no_hold else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",
         table(rows),
         "",
+        *hold_lines(),
         "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
         "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
         "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "

@@ -98,8 +98,9 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "extract_against.md",
         "speed",
-        f"{_EXTRACT} --against WORKTREE --rounds 3 --seeds 4",
-        note="against the code the reshape (issue 29) started from, on the same machine",
+        f"{_EXTRACT} --against WORKTREE WORKTREE --rounds 2 --seeds 4",
+        note="against the code the reshape (issue 29) started from (2072e3e) and the reshape alone (8e92924), "
+        "on the same machine",
     ),
     Source("compile.md", "speed", "python benchmarks/bench_compile.py --repeats 1", note="the one-time compile"),
     Source("extract_foreign.md", "independent", _FOREIGN),
@@ -110,6 +111,12 @@ SOURCES: tuple[Source, ...] = (
     Source("extract_foreign_jpeg85_444.md", "independent", f"{_FOREIGN} --jpeg 85 --jpeg-444"),
     Source("extract_foreign_jpeg85_luma.md", "independent", f"{_FOREIGN} --jpeg 85 --channel luma"),
     Source("extract_turbid.md", "independent", "python benchmarks/bench_turbid.py"),
+    Source(
+        "glow_shape.md",
+        "independent",
+        "python benchmarks/glow_shape.py --cells 3:0.5:4 3:0.3:4 3:0.1:4 2:0.5:4 --seed 1 --every 24",
+        note="single columns of the turbidity model fitted with the step, the ramp and the sheet's glow shape",
+    ),
     Source("port.md", "port", "python benchmarks/bench_port.py"),
     Source("calib.md", "calibration", "python benchmarks/bench_calib.py"),
     Source("sim.md", "simulator", "python benchmarks/bench_sim.py --repeat 3"),

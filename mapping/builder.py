@@ -12,7 +12,9 @@ the expensive extraction runs outside it.
 
 Output: :meth:`add_cloud` and :meth:`flush` return typed :class:`~mapping.types.MapChange` values (a plane's new
 state, or its removal into another plane), at most one per plane per call, in the order they happened. Applied
-in order to the previous :meth:`map_json`, they give the new one; turning them into JSON is the publisher's job.
+in order to the previous map's planes, they give the new ones; turning them into JSON is the publisher's job.
+(:meth:`map_json` serves the planes with bands of one face joined, :mod:`mapping.served`; the changes and the
+landmarks are the planes as built.)
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
 from .replace import Placement, PlacementSnapshot, move_placement, rebuild
+from .served import served_planes
 from .stats import Contribution, VoxelSet
 from .store import JSON_FILE, load_state, save_json, save_state
 from .types import MapChange, MapConfig, PlaneStats
@@ -442,7 +445,8 @@ class MapBuilder:
         Tentative planes (seen in fewer than ``min_obs_publish`` windows) are left out unless asked for.
         """
         with self._lock:
-            out: dict[str, Any] = {"frame": "NED", "planes": self._map.to_json(include_tentative)}
+            # bands of one face joined in what is served only (mapping.served); landmarks() keeps the map's planes
+            out: dict[str, Any] = {"frame": "NED", "planes": served_planes(self._map, include_tentative)}
             if include_tracks:
                 out["tracks"] = {r: [list(s) for s in tr] for r, tr in sorted(self._tracks.items())}
             return out

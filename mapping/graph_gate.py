@@ -97,6 +97,8 @@ class TrackGate:
         self.tried_ns = -(10**18)
         #: when a scan last matched one place alone (a re-localization or a verification), ns
         self.verified_ns = -(10**18)
+        #: when a check first passed (None: not yet; until then the launch fix vouches for the placed clouds)
+        self.first_verified_ns: int | None = None
 
     def step(self, std_m: float, t_ns: int) -> bool:
         """The marginal's horizontal std after the scan at ``t_ns``; returns True when this scan broke the track."""
@@ -137,6 +139,7 @@ class TrackGate:
             "std_at_break": self.std_at_break,
             "tried_ns": self.tried_ns,
             "verified_ns": self.verified_ns,
+            "first_verified_ns": self.first_verified_ns,
             "frozen_t": sorted(self.frozen),
             "frozen": [self.frozen[t].tolist() for t in sorted(self.frozen)],
         }
@@ -150,6 +153,8 @@ class TrackGate:
         self.std_at_break = float(snap.get("std_at_break", 0.0))  # type: ignore[arg-type]
         self.tried_ns = int(snap.get("tried_ns", -(10**18)))  # type: ignore[call-overload]
         self.verified_ns = int(snap.get("verified_ns", -(10**18)))  # type: ignore[call-overload]
+        first = snap.get("first_verified_ns")
+        self.first_verified_ns = None if first is None else int(first)  # type: ignore[call-overload]
         ts = snap.get("frozen_t", [])
         xs = snap.get("frozen", [])
         self.frozen = {int(t): np.asarray(x, dtype=np.float64) for t, x in zip(ts, xs, strict=True)}  # type: ignore[call-overload]

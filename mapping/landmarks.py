@@ -186,3 +186,19 @@ class LandmarkSnapshots:
     def clear(self) -> None:
         """Forget every range (a restarted merger's times start afresh)."""
         self._ranges = []
+
+
+def take_planes(lm: PlaneLandmarks, sel: NDArray[np.bool_]) -> PlaneLandmarks:
+    """The planes of ``lm`` where ``sel`` (P,) is True (their contributors too, when known)."""
+    idx = np.flatnonzero(sel)
+    return PlaneLandmarks(
+        lm.ids[idx],
+        lm.normal[idx],
+        lm.d[idx],
+        lm.centroid[idx],
+        lm.u[idx],
+        lm.v[idx],
+        lm.u_range[idx],
+        lm.v_range[idx],
+        tuple(lm.contrib[i] for i in idx) if lm.contrib else (),
+    )

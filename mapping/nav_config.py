@@ -174,6 +174,8 @@ class NavEstimate:
             information's eigenvectors, so an oblique wall counts as one too).
         free_bearing_deg: with one pinned direction (degenerate geometry: one flat wall, parallel walls), the
             bearing of the free one (deg from north, 0-180): the position along it is not observed; else None.
+        held: the cloud may be placed but waits for its track's next check (``placed`` is then False: what goes
+            into the map comes later, :mod:`mapping.graph_hold`).
     """
 
     robot: str
@@ -188,6 +190,7 @@ class NavEstimate:
     correction: dict[str, float] = field(default_factory=dict)
     pinned: int = 0
     free_bearing_deg: float | None = None
+    held: bool = False
 
     def turned(self, frame: NavFrame) -> NavEstimate:
         """This estimate with its pose turned from the map frame to NED (see :class:`NavFrame`)."""

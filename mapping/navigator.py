@@ -171,6 +171,33 @@ class Navigator:
         self.robots[robot] = graph
         return graph
 
+    def released(self, robot: str) -> list[tuple[int, Pose, Any]]:
+        """``robot``'s held clouds released to the map since the last call (t_ns, pose in the map frame, body
+        points (M, 3)), in capture order; empty unless its pose graph holds clouds (:mod:`mapping.graph_hold`)."""
+        hold = getattr(self.robots.get(robot), "hold", None)
+        return hold.take() if hold is not None else []
+
+    def settle(self, landmarks: PlaneLandmarks) -> dict[str, list[tuple[int, Pose, Any]]]:
+        """The end of a dive: every pose graph's held clouds checked alone; robot -> those released (as
+        :meth:`released`)."""
+        out = {}
+        for name, nav in sorted(self.robots.items()):
+            if getattr(nav, "hold", None) is not None:
+                nav.settle(landmarks)
+                got = nav.hold.take()
+                if got:
+                    out[name] = got
+        return out
+
+    def hold_counts(self, robot: str) -> dict[str, float] | None:
+        """What ``robot``'s hold did (:meth:`mapping.graph_hold.CloudHold.counts`); None when it holds nothing."""
+        nav: Any = self.robots.get(robot)
+        hold = getattr(nav, "hold", None)
+        if hold is None or not nav.gcfg.hold_until_verified:
+            return None
+        counts: dict[str, float] = hold.counts()
+        return counts
+
     def latest(self) -> dict[str, NavEstimate]:
         """Robot -> its latest estimate."""
         return {r: n.latest for r, n in sorted(self.robots.items()) if n.latest is not None}

@@ -47,7 +47,8 @@ from lrsensor.frames import Pose, R_ned_from_body
 from .errors import MapInputError
 from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import LEVER_M, TrackGate, ambiguous, relocalize, verify
-from .landmarks import PlaneLandmarks, associate
+from .graph_hold import CloudHold, check_due, check_held, hold_step
+from .landmarks import PlaneLandmarks, associate, take_planes
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
 from .odometry import OdometryConfig, increment
 
@@ -96,6 +97,9 @@ class GraphConfig:
     prior of ``relocalize_sigma_m``. ``verify_every_s``: that often an unbroken track is checked the same way
     (within ``verify_radius_m``); a unique place more than ``verify_tol_m`` from the estimate re-anchors it there.
     ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
+    ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
+    or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
+    place is tried again after ``hold_retry_s``).
     """
 
     velocity_walk_m_s: float = 0.1
@@ -128,12 +132,17 @@ class GraphConfig:
     verify_radius_m: float = 0.5
     verify_tol_m: float = 0.08
     place_verified_s: float = math.inf
+    hold_until_verified: bool = False
+    hold_check_radius_m: float = 0.3
+    hold_retry_s: float = 0.5
 
 
 #: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
 #: taken up again only where a scan matches one place alone, checked every 2 s; with
 #: ``NavConfig.frame_graph_launches``. An option: it does not meet the bar on both seeds measured.
-TRACKED = GraphConfig(second_hypothesis=True, track_break_std_m=0.1, relocalize=True, verify_every_s=2.0)
+TRACKED = GraphConfig(
+    second_hypothesis=True, track_break_std_m=0.1, relocalize=True, verify_every_s=2.0, hold_until_verified=True
+)
 
 
 class GraphNav:
@@ -161,6 +170,8 @@ class GraphNav:
         self.ambiguous = 0
         #: whether the track since the launch is unbroken (what may be placed), and the placed poses it froze
         self.track = TrackGate(self.gcfg.track_break_std_m)
+        #: the clouds held until the next check passes (``GraphConfig.hold_until_verified``)
+        self.hold = CloudHold()
         self._reset()
 
     def _reset(self) -> None:
@@ -245,6 +256,7 @@ class GraphNav:
             est=self._est.copy(),
             latest=self.latest,
             track=self.track.state(),
+            hold=self.hold.state(),
         )
         return out
 
@@ -270,6 +282,7 @@ class GraphNav:
         self._est = np.asarray(snap["est"], dtype=np.float64).reshape(-1, 3)
         self.latest = snap["latest"]
         self.track.load(snap.get("track", {}))
+        self.hold.load(snap.get("hold", {}))
         if self._specs and solve:
             self._rebuild(self._first_key, None)
 
@@ -326,28 +339,30 @@ class GraphNav:
                 # a correction its marginal cannot explain: the association was a surprise, the track breaks
                 self.track.break_now(std, t)
                 self.track.freeze({self._t[k]: v for k, v in self._then.items() if k < key})
-        if self.track.broken and self.gcfg.relocalize and self._relocalize(key, t, raw, pts, landmarks):
-            motion = "relocalized"
-        elif not self.track.broken and t - self.track.tried_ns >= self.gcfg.verify_every_s * 1e9:
-            motion = self._verify(key, t, raw, pts, landmarks) or motion
+        moved = None
+        if self.track.broken and self.gcfg.relocalize and relocalize(self, key, t, raw, pts, landmarks):
+            motion = moved = "relocalized"
+        elif not self.track.broken and check_due(self, t):
+            moved = verify(self, key, t, raw, pts, landmarks)
+            motion = moved or motion
         self._then[key] = self._est[key].copy()
         self._forget(key)
         if self.track.broken:
             motion = "lost"
         est = self._estimate(t, raw, h3, inliers, used, motion)
+        if self.gcfg.hold_until_verified:
+            est = hold_step(self, key, t, raw, points_body, est, landmarks, moved is not None)
         self.yaw_scans += int(est.constrained["yaw"])
         self.latest = est
         if t - self._t[self._first_key] > (self.gcfg.window_s + self.gcfg.rebase_every_s) * 1e9:
             self._rebase()
         return est
 
-    def _relocalize(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> bool:
-        """:func:`mapping.graph_gate.relocalize` of this graph's pose ``key``."""
-        return relocalize(self, key, t, raw, pts, lm)
-
-    def _verify(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> str | None:
-        """:func:`mapping.graph_gate.verify` of this graph's pose ``key``."""
-        return verify(self, key, t, raw, pts, lm)
+    def settle(self, landmarks: PlaneLandmarks) -> None:
+        """The end (a flush, the robot silent): each held cloud checked alone (:func:`mapping.graph_hold.check_held`);
+        :meth:`CloudHold.take` then gives those that go into the map."""
+        if self._t:
+            check_held(self, self._t[-1], landmarks)
 
     # -- building the graph ----------------------------------------------------------------------------------
 
@@ -524,7 +539,7 @@ class GraphNav:
         usable = use | (own_anchor >= self._first_key)
         if not usable.any():
             return np.zeros((3, 3)), 0, ()
-        res = self._fit(key, raw, pts, _take(lm, usable), self.gcfg.map_min_sigma_m)
+        res = self._fit(key, raw, pts, take_planes(lm, usable), self.gcfg.map_min_sigma_m)
         if res is None:
             return np.zeros((3, 3)), 0, ()
         _, info, inliers, used, per_plane = res
@@ -781,19 +796,3 @@ def start_graph(
 def is_graph_state(snap: Any) -> bool:
     """Whether an estimator's :meth:`snapshot` is a :class:`GraphNav`'s (else a filter's)."""
     return isinstance(snap, dict) and bool(snap.get("graph"))
-
-
-def _take(lm: PlaneLandmarks, sel: NDArray[np.bool_]) -> PlaneLandmarks:
-    """The planes of ``lm`` where ``sel``."""
-    idx = np.flatnonzero(sel)
-    return PlaneLandmarks(
-        lm.ids[idx],
-        lm.normal[idx],
-        lm.d[idx],
-        lm.centroid[idx],
-        lm.u[idx],
-        lm.v[idx],
-        lm.u_range[idx],
-        lm.v_range[idx],
-        tuple(lm.contrib[i] for i in idx) if lm.contrib else (),
-    )

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .landmarks import PlaneLandmarks
+from .landmarks import PlaneLandmarks, take_planes
 
 FloatArray = NDArray[np.float64]
 
@@ -93,13 +93,9 @@ def unique_place(
     (M, 3, relative to the vehicle at depth ``veh_down``, NED) fit the map's wall-like planes, or None when no
     place fits well enough or more than one does (see the module docstring)."""
     cfg = cfg or RelocConfig()
-    walls = np.flatnonzero(np.abs(lm.normal[:, 2]) < 0.5) if len(lm) else np.zeros(0, dtype=np.int64)
-    if walls.size < 2 or rel.shape[0] < cfg.min_points:
+    lm_w = _walls(lm)
+    if len(lm_w) < 2 or rel.shape[0] < cfg.min_points:
         return None
-    lm_w = PlaneLandmarks(
-        lm.ids[walls], lm.normal[walls], lm.d[walls], lm.centroid[walls], lm.u[walls], lm.v[walls],
-        lm.u_range[walls], lm.v_range[walls],
-    )  # fmt: skip
     if rel.shape[0] > cfg.max_points:
         rel = rel[np.linspace(0, rel.shape[0] - 1, cfg.max_points).astype(np.int64)]
     cand = _grid(np.asarray(center, dtype=np.float64), max(radius_m, cfg.step_m), cfg.step_m)
@@ -120,3 +116,25 @@ def unique_place(
         return None
     top = fine[sf >= sf.max()]
     return np.asarray(top.mean(axis=0), dtype=np.float64)
+
+
+def fits_at(
+    rel: FloatArray, veh_down: float, at: FloatArray, lm: PlaneLandmarks, cfg: RelocConfig | None = None
+) -> bool:
+    """Whether the scan's points ``rel`` (as :func:`unique_place`'s) fit the map's wall-like planes with the vehicle
+    at ``at`` (north, east): as many of them within ``fine_tol_m`` of a plane facing it, inside its extent, as a
+    unique place must explain. Where the scan pins one direction only (one wall) this says nothing along it, but a
+    cloud that fits adds no copy of a face the map has."""
+    cfg = cfg or RelocConfig()
+    lm_w = _walls(lm)
+    if len(lm_w) == 0 or rel.shape[0] < cfg.min_points:
+        return False
+    if rel.shape[0] > cfg.max_points:
+        rel = rel[np.linspace(0, rel.shape[0] - 1, cfg.max_points).astype(np.int64)]
+    s = _scores(rel, veh_down, np.asarray(at, dtype=np.float64).reshape(1, 2), lm_w, cfg.fine_tol_m, cfg)
+    return bool(s[0] >= max(cfg.min_points, cfg.min_share * rel.shape[0]))
+
+
+def _walls(lm: PlaneLandmarks) -> PlaneLandmarks:
+    """The wall-like planes of ``lm`` (normal within 30 deg of horizontal)."""
+    return take_planes(lm, np.abs(lm.normal[:, 2]) < 0.5)

@@ -478,6 +478,9 @@ class DiveMap:
     placed: dict[str, dict[int, Pose]] = field(default_factory=dict)
     #: each frame's time on the map thread (s): the smoother's step, navigation and placing the cloud
     step_s: list[float] = field(default_factory=list)
+    #: per robot whose clouds were held until verified, what the hold did (``CloudHold.counts``; its dropped
+    #: clouds are in ``unplaced`` too)
+    hold: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def planes(self) -> list[dict[str, Any]]:
         """The served map's planes (in NED: turned by the navigation's frame when there is one)."""
@@ -530,6 +533,18 @@ def replay_dive(
         for robot, poses in fleet.poses.items():
             placed.setdefault(robot, {}).update(poses)
 
+    def place(robot: str, t_ns: int, pose: Pose, pts: Any) -> None:
+        b.add_cloud(robot, t_ns, pts, pose)
+        if fleet is not None:
+            fleet.placed(robot, t_ns, pose)
+        placed.setdefault(robot, {})[t_ns] = pose
+        served = nav.frame().pose(pose) if nav is not None else pose
+        tp = truth[(robot, t_ns)]
+        out.position_error_m.setdefault(robot, []).append(math.hypot(served.north_m - tp.north_m,
+                                                                     served.east_m - tp.east_m))  # fmt: skip
+        dyaw = math.degrees(math.remainder(served.yaw_rad - tp.yaw_rad, 2 * math.pi))
+        out.yaw_error_deg.setdefault(robot, []).append(dyaw)
+
     wall0 = time.perf_counter()
     step0 = 0.0
     for f in frames:
@@ -549,8 +564,11 @@ def replay_dive(
             out.nav_cost_s.append(time.perf_counter() - t0)
             out.estimates[f.robot] = est
             out.constrained_scans += int(est.constrained["north"] and est.constrained["east"])
+            for t_held, p_held, pts_held in nav.released(f.robot):  # a held robot's clouds its check vouched for
+                place(f.robot, t_held, p_held, body_to_ned(pts_held, p_held))
             if est.pose is None or not est.placed:
-                out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
+                if not est.held:
+                    out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
                 out.step_s.append(time.perf_counter() - step0)
                 continue
             pose = est.pose
@@ -560,16 +578,17 @@ def replay_dive(
                 out.unplaced[f.robot] = out.unplaced.get(f.robot, 0) + 1
                 continue
             pts = f.points_ned_est
-        b.add_cloud(f.robot, f.t_ns, pts, pose)
-        if fleet is not None:
-            fleet.placed(f.robot, f.t_ns, pose)
-        placed.setdefault(f.robot, {})[f.t_ns] = pose
+        place(f.robot, f.t_ns, pose, pts)
         out.step_s.append(time.perf_counter() - step0)
-        served = nav.frame().pose(pose) if nav is not None else pose
-        err = math.hypot(served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m)
-        out.position_error_m.setdefault(f.robot, []).append(err)
-        dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
-        out.yaw_error_deg.setdefault(f.robot, []).append(dyaw)
+    if nav is not None:  # the end: held clouds checked alone
+        for robot, rel in nav.settle(b.landmarks(min_pts)).items():
+            for t_held, p_held, pts_held in rel:
+                place(robot, t_held, p_held, body_to_ned(pts_held, p_held))
+        for robot in nav.robots:
+            counts = nav.hold_counts(robot)
+            if counts is not None:
+                out.hold[robot] = counts
+                out.unplaced[robot] = out.unplaced.get(robot, 0) + int(counts["dropped"])
     b.flush()
     if fleet is not None:
         fleet.step("", 0, force=True)  # the end of the dive: the map as the last smoothing leaves it

@@ -99,6 +99,8 @@ class MapConfig:
             points within ``merge_band_offset_m`` (RMS, either way round) of the other plane
             (:meth:`mapping.plane_map.PlaneMap.bands`; both planes confirmed: a single window's band never joins).
             Off by default (docs/mapping.md, "Bands of one face"); 3.0 turns it on.
+        serve_band_gap_down_m: the same rule (up to this far apart along down; 0: off) applied only to the map as
+            served (:mod:`mapping.served`: ``map_json``), not to the planes navigation registers against.
         merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
         same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
             planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
@@ -157,6 +159,7 @@ class MapConfig:
     merge_band_tilt_deg: float = 10.0
     merge_band_angle_deg: float = 3.0
     merge_band_offset_m: float = 0.045
+    serve_band_gap_down_m: float = 3.0
     merge_max_rms_m: float = 0.03
     same_face_offset_m: float = 0.0
     same_face_angle_deg: float = 3.0
@@ -188,6 +191,7 @@ class MapConfig:
                     "between_window_weight",
                     "same_face_offset_m",
                     "merge_band_gap_down_m",
+                    "serve_band_gap_down_m",
                 )
                 and value <= 0
             ):

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from lrsensor.frames import body_to_ned
+from lrsensor.frames import Pose, body_to_ned
 
 from .errors import WireError
 from .keys import FleetKeys
@@ -238,11 +238,17 @@ class MapWorker:
         if isinstance(msg, MapControl):
             if msg.kind == "flush" and msg.robot:  # the base saw the robot go silent: its last window
                 if self._epoch.get(msg.robot, -1) == msg.epoch and not self._waiting.get(msg.robot):
-                    records = self.builder.flush_robot_observations(msg.robot)
-                    if self._pending.get(msg.robot):
+                    # its held clouds too (mapping.graph_hold): no later check will come for them
+                    held = self._settle(msg.robot)
+                    records = held + self.builder.flush_robot_observations(msg.robot)
+                    if self._pending.get(msg.robot) or records:
                         out.append(self._observed(msg.robot, records, FLUSH_KEY))
             elif msg.kind == "flush":
                 early = self._retry(until_done=True)  # the waiting jobs first (published): before the flush
+                for robot in self.nav.robots():
+                    held = self._settle(robot)
+                    if held:
+                        out.append(self._observed(robot, held, FLUSH_KEY))
                 for robot, records in self.builder.flush_observations().items():
                     out.append(self._observed(robot, records, FLUSH_KEY))
                 for robot in sorted(r for r, seqs in self._pending.items() if seqs):  # nothing left to extract
@@ -395,25 +401,35 @@ class MapWorker:
         self.jobs += 1
         self._pending.setdefault(job.robot, []).append(job.seq)
         pose = job.pose
+        held: list[Any] = []
         try:
             if job.navigate:
                 step = self._navigate(job)
-                if step.pose is None or not step.placed:  # done with, without planes
-                    self._unplaced.setdefault(job.robot, []).append(job.seq)
+                # a held robot's clouds its check vouched for (mapping.graph_hold); acknowledged when they came
+                held = self._place_released(job.robot, self.nav.released(job.robot))
+                if step.pose is None or not step.placed:  # done with, without planes (or held: placed later)
+                    done = (job.seq,) if not (step.estimate is not None and step.estimate.held) else ()
+                    self._unplaced.setdefault(job.robot, []).extend(done)
                     if self.builder.uncommitted(job.robot) == 0:
-                        return [self._observed(job.robot, [], job.t_ns)]
+                        return [self._observed(job.robot, held, job.t_ns)]
                     due = self.builder.observe_time(job.robot, job.t_ns)
                     if due is not None:  # the window's clouds are due by time: a lost robot's last clouds commit
-                        return [self._observed(job.robot, due, job.t_ns)]
+                        return [self._observed(job.robot, held + due, job.t_ns)]
                     # mid-window: committed now on its own, or the base, counting it in the window, would bound the
                     # window's next observation too early (and hold the merge and the snapshots back); no state:
                     # the one carried must follow the window's clouds, which are not committed yet
                     self._pending[job.robot].remove(job.seq)
-                    self._unplaced[job.robot].remove(job.seq)
-                    return [self._observations(job.robot, (job.seq,), [], job.t_ns, (job.seq,), b"")]
+                    for seq in done:
+                        self._unplaced[job.robot].remove(seq)
+                    from mapping.plane_map import record_to_wire
+
+                    wire = [record_to_wire(r) for r in held]
+                    return [self._observations(job.robot, (job.seq,), wire, job.t_ns, done, b"")]
                 pose = step.pose
             pts = job.points_body.astype(np.float64)
             records = self.builder.observe_cloud(job.robot, job.t_ns, body_to_ned(pts, pose), pose)
+            if held:  # (a placed cloud and released ones together: not expected, not lost)
+                records = held + (records or [])
         except Exception as err:  # done with, not stuck in flight at the base: commit what is pending, no planes
             self.errors += 1
             log.warning("map worker %s: cloud %s#%d not mapped: %s", self.name, job.robot, job.seq, err)
@@ -423,6 +439,19 @@ class MapWorker:
                 return [self._observed(job.robot, [], job.t_ns)]
             return []
         return [self._observed(job.robot, records, job.t_ns)]
+
+    def _place_released(self, robot: str, released: list[tuple[int, Pose, Any]]) -> list[Any]:
+        """Put released held clouds into the robot's window; the plane observations their extractions gave."""
+        records: list[Any] = []
+        for t_ns, pose, pts in released:
+            got = self.builder.observe_cloud(robot, t_ns, body_to_ned(pts.astype(np.float64), pose), pose)
+            records.extend(got or [])
+        return records
+
+    def _settle(self, robot: str) -> list[Any]:
+        """The robot's held clouds checked alone (silent robot, end of the dive): the observations of those that
+        go into the map."""
+        return self._place_released(robot, self.nav.settle(robot, self.landmarks))
 
     def _observed(self, robot: str, records: list[Any], key_ns: int) -> PlaneObservations:
         from mapping.plane_map import record_to_wire

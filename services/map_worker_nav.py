@@ -330,6 +330,25 @@ class WorkerNav:
         self.strided += 1
         return NavStep(corrected(latest, raw, self._before.get(robot), t_ns), bool(latest.placed))
 
+    def released(self, robot: str) -> list[tuple[int, Pose, Any]]:
+        """``robot``'s held clouds its pose graph's last check released to the map (t_ns, pose, body points), in
+        capture order (:mod:`mapping.graph_hold`); empty for any other robot."""
+        hold = getattr(self._navs.get(robot), "hold", None)
+        return hold.take() if hold is not None else []
+
+    def settle(self, robot: str, landmarks: Any) -> list[tuple[int, Pose, Any]]:
+        """The robot went silent or the dive ends: its held clouds checked alone; those released (as
+        :meth:`released`)."""
+        nav = self._navs.get(robot)
+        if getattr(nav, "hold", None) is None:
+            return []
+        nav.settle(landmarks)  # type: ignore[union-attr]
+        return self.released(robot)
+
+    def robots(self) -> list[str]:
+        """The robots navigated here."""
+        return sorted(self._navs)
+
     def snapshot(self, robot: str) -> dict[str, Any] | None:
         """The robot's whole navigation state (None: it has none here)."""
         nav = self._navs.get(robot)

@@ -179,6 +179,8 @@ class WorkerPool:
         #: per robot: when its worker was last asked to extract a silent robot's last window (monotonic s); when
         #: the merger last looked for silent robots; how many such asks were sent
         self._silent_asked: dict[str, float] = {}
+        #: robots whose clouds wait in their owner's hold (see :meth:`holding`)
+        self._holding: set[str] = set()
         self._silent_checked = 0.0
         self.silent_flushes = 0
         #: observations merged after a snapshot that should hold them was published (a robot late past the hold),
@@ -372,8 +374,9 @@ class WorkerPool:
         robot has a scan waiting for its snapshot)."""
         now = time.monotonic()
         self._silent_checked = now
-        for robot, table in self._in_flight.items():
-            if not table or now - self._active.get(robot, now) < IDLE_FLUSH_S:
+        for robot in sorted(set(self._in_flight) | self._holding):
+            table = self._in_flight.get(robot)
+            if not (table or robot in self._holding) or now - self._active.get(robot, now) < IDLE_FLUSH_S:
                 continue
             if now - self._silent_asked.get(robot, 0.0) < IDLE_FLUSH_S:
                 continue
@@ -381,8 +384,19 @@ class WorkerPool:
             if w is None:
                 continue
             self._silent_asked[robot] = now
+            self._holding.discard(robot)  # asked once: a newer state says so again if it still holds
             self.silent_flushes += 1
             self._put(w, MapControl("flush", robot, self._epoch[robot]).to_bytes())
+
+    def holding(self, robot: str, held: bool) -> None:
+        """Whether ``robot``'s newest navigation state holds clouds until its track's next check
+        (:mod:`mapping.graph_hold`): its clouds are acknowledged, none is in flight, yet once it goes silent its
+        owner must be asked to settle them as for a silent robot's last window."""
+        with self._cond:
+            if held:
+                self._holding.add(robot)
+            else:
+                self._holding.discard(robot)
 
     def _reassign(self) -> None:
         """Move every robot whose rendezvous owner changed; re-send its in-flight clouds to the new owner."""

@@ -83,6 +83,8 @@ log = logging.getLogger(__name__)
 CLOSE_TIMEOUT_S = 60.0
 #: Marker in the map queue: flush the map.
 _FLUSH: Any = object()
+#: how often an idle map thread looks for silent robots whose clouds wait in their hold (s)
+SILENT_CHECK_S = 1.0
 #: Publish a robot's corrected pose at most this often (seconds of capture time).
 NAV_PUBLISH_S = 0.2
 
@@ -218,6 +220,10 @@ class MapFeed:
         #: per robot: the latest estimate (turned to NED), clouds placed / not placed, last publication
         self._nav_latest: dict[str, NavEstimate] = {}
         self._nav_counts: dict[str, list[int]] = {}
+        #: per robot, the held clouds its pose graph dropped so far (counted as unplaced), and when a cloud of it
+        #: last came (monotonic s: a silent robot's held clouds are settled, _settle_silent)
+        self._dropped: dict[str, int] = {}
+        self._last_seen: dict[str, float] = {}
         self._nav_published: dict[str, int] = {}
 
     def set_smoothing(self, on: bool) -> None:
@@ -366,12 +372,22 @@ class MapFeed:
     def _worker(self) -> None:
         """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
         while True:
-            msg = self._queue.get()
+            try:
+                msg = self._queue.get(timeout=SILENT_CHECK_S)
+            except queue.Empty:
+                try:
+                    self._settle_silent()
+                except Exception as err:  # the map must never stop the ingest
+                    self.errors += 1
+                    log.exception("settling a silent robot's held clouds failed: %s", err)
+                continue
             deferred = False
             try:
                 if msg is None:
                     return
                 if msg is _FLUSH:
+                    if self.builder is not None:
+                        self._settle()
                     self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
                     if self.fleet is not None:  # the end of a dive: the map as the last smoothing leaves it
                         self._publish_changes(None, self.fleet.step("", 0, force=True))
@@ -407,6 +423,14 @@ class MapFeed:
             est = self.navigator.update(msg.robot, msg.t_ns, msg.pose, points_body, lm)
             self._frame = self.navigator.frame()
             self._nav_publish(est.turned(self._frame))
+            self._place_released(msg.robot, self.navigator.released(msg.robot))
+            self._last_seen[msg.robot] = time.monotonic()
+            if est.held:  # received; it goes into the map once its track's next check passes (mapping.graph_hold)
+                changes = self.builder.advance_time(msg.robot, msg.t_ns)  # released clouds due by time
+                if self.builder.uncommitted(msg.robot) == 0:
+                    self._commit(msg.robot)
+                self._publish_changes(msg, changes)
+                return False
             if est.pose is None or not est.placed:
                 self._count_unplaced(
                     msg,
@@ -439,6 +463,59 @@ class MapFeed:
                 self._commit(msg.robot)
         self._publish_changes(msg, changes)
         return False
+
+    def _place_released(self, robot: str, released: list[tuple[int, Any, Any]]) -> None:
+        """Put a held robot's clouds its last check vouched for into the map (they were acknowledged when they
+        came: counted as placed, timed from their capture when their window commits)."""
+        assert self.builder is not None
+        hold = self.navigator.hold_counts(robot) if self.navigator is not None else None
+        dropped = int(hold["dropped"]) if hold is not None else 0
+        gone = dropped - self._dropped.get(robot, 0)
+        if gone > 0:  # held clouds no check vouched for: never placed, counted as unplaced now
+            self._dropped[robot] = dropped
+            self.unplaced += gone
+            with self._nav_lock:
+                self._nav_counts.setdefault(robot, [0, 0])[1] += gone
+        for t_ns, pose, pts in released:
+            self.clouds += 1
+            changes = self.builder.add_cloud(robot, t_ns, body_to_ned(pts.astype(np.float64), pose), pose)
+            if self.fleet is not None:
+                self.fleet.placed(robot, t_ns, pose)
+            with self._nav_lock:
+                self._nav_counts.setdefault(robot, [0, 0])[0] += 1
+            with self._count_lock:
+                self._pending.setdefault(robot, []).append((-1, t_ns))
+            if self.builder.uncommitted(robot) == 0:
+                self._commit(robot)
+            self._publish_changes(None, changes)
+
+    def _settle_silent(self) -> None:
+        """Without plane workers: each robot silent for ``IDLE_FLUSH_S`` whose clouds wait in its hold gets them
+        checked alone (no later check will come), and its window extracted."""
+        if self.builder is None or self.navigator is None or self.pool is not None:
+            return
+        from .map_workers import IDLE_FLUSH_S
+
+        now = time.monotonic()
+        for robot, nav in sorted(self.navigator.robots.items()):
+            hold = getattr(nav, "hold", None)
+            if hold is None or not hold.clouds or now - self._last_seen.get(robot, now) < IDLE_FLUSH_S:
+                continue
+            nav.settle(self.builder.landmarks(self.navigator.cfg.min_landmark_points))
+            self._place_released(robot, hold.take())
+            self._publish_changes(None, self.builder.merge(self.builder.flush_robot_observations(robot)))
+            if self.builder.uncommitted(robot) == 0:
+                self._commit(robot)
+
+    def _settle(self) -> None:
+        """The end of a dive: each robot's held clouds checked alone, those vouched for into the map."""
+        assert self.builder is not None
+        if self.navigator is None or self.pool is not None:
+            return
+        lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
+        released = self.navigator.settle(lm)
+        for robot in sorted(self.navigator.robots):
+            self._place_released(robot, released.get(robot, []))
 
     def _commit(self, robot: str) -> None:
         """The robot's pending clouds reached the map (their window was extracted): count them, time them."""
@@ -491,9 +568,12 @@ class MapFeed:
         if is_graph_state(snap) != isinstance(rn, GraphNav):
             rn = None
         if rn is None:
-            rn = nav.robots[robot] = GraphNav(robot, nav.cfg) if is_graph_state(snap) else RobotNav(robot, nav.cfg)
+            graph = is_graph_state(snap)
+            rn = nav.robots[robot] = GraphNav(robot, nav.cfg, nav.graph_cfg) if graph else RobotNav(robot, nav.cfg)
         if isinstance(rn, GraphNav):
             rn.restore(snap, solve=False)  # read for the frame only: the worker runs the graph
+            if self.pool is not None:
+                self.pool.holding(robot, bool(rn.hold.clouds))
         else:
             rn.restore(snap)
         if nav.origin_ne is None and rn.started:
@@ -619,8 +699,10 @@ class MapFeed:
         constrain now, ``position`` (``constrained``, ``partly`` (one horizontal direction: ``degenerate`` then
         gives the free one's bearing, ``{"free_bearing_deg"}``, e.g. along one flat wall), ``unconstrained``,
         ``lost`` (no fix and too uncertain to trust its scans until the next fix), ``unknown``), the horizontal
-        and heading standard deviations, how it moved (``motion``). None when navigation is off or the robot sent
-        nothing yet."""
+        and heading standard deviations, how it moved (``motion``); for a robot whose clouds wait for its track's
+        checks (``GraphConfig.hold_until_verified``), ``hold``: clouds ``held`` now, ``committed``, ``replaced``,
+        ``dropped`` (never placed: no check vouched for them), the mean and largest wait ``lag_mean_s``,
+        ``lag_max_s``. None when navigation is off or the robot sent nothing yet."""
         with self._nav_lock:
             est = self._nav_latest.get(robot)
             counts = list(self._nav_counts.get(robot, [0, 0]))
@@ -632,7 +714,11 @@ class MapFeed:
         position = "unknown" if est.pose is None else ("constrained", "partly", "unconstrained")[2 - n_axes]
         if est.motion == "lost":
             position = "lost"
-        return {
+        hold = self.navigator.hold_counts(robot)
+        held = (
+            {} if hold is None else {"hold": {k: round(v, 2) if isinstance(v, float) else v for k, v in hold.items()}}
+        )
+        return held | {
             "placed": counts[0],
             "unplaced": counts[1],
             "position": position,

@@ -213,3 +213,38 @@ def test_a_cache_compiled_from_other_sources_is_cleared_not_loaded(
     kernels._write_stamp()
     assert (tmp_path / kernels.STAMP_NAME).read_text().strip() == kernels.source_fingerprint()
     assert kernels._stamp_current()
+
+
+def test_the_kernels_constructors_give_numpys_arrays() -> None:
+    """empty, zeros, full and arange, built in place in a kernel, give numpy's shapes, dtypes and values (the
+    value of ``full`` converted as numpy converts it), and call numpy's from Python."""
+    import numba
+    import numpy as np
+
+    from lrsensor.extract._jit import arange, empty, full, zeros
+
+    @numba.njit(cache=False)
+    def made(n):  # type: ignore[no-untyped-def]
+        return (
+            zeros(n, np.float64), zeros((n, 3), np.int64), zeros(n, np.bool_), full(n, np.nan, np.float32),
+            full((2, n), -1, np.int32), full(n, True, np.bool_), full(n, 2.75, np.int64), full(n, 7, np.uint8),
+            arange(n, np.float64), arange(n, np.int64), empty((n, 2), np.uint16).shape, empty(n, np.float64).dtype,
+        )  # fmt: skip
+
+    for n in (0, 1, 5):
+        expected = (
+            np.zeros(n), np.zeros((n, 3), np.int64), np.zeros(n, np.bool_), np.full(n, np.nan, np.float32),
+            np.full((2, n), -1, np.int32), np.full(n, True), np.full(n, 2, np.int64), np.full(n, 7, np.uint8),
+            np.arange(n, dtype=np.float64), np.arange(n), (n, 2), np.dtype(np.float64),
+        )  # fmt: skip
+        got = made(n)
+        for value, want in zip(got[:10], expected[:10], strict=True):
+            assert value.dtype == want.dtype
+            assert value.shape == want.shape
+            assert value.flags.c_contiguous
+            np.testing.assert_array_equal(value, want)
+        assert got[10:] == expected[10:]
+        assert full(n, -1, np.int32).dtype == np.int32
+        assert zeros((n, 2), np.uint8).shape == (n, 2)
+        assert empty(n, np.int64).dtype == np.int64
+        assert arange(n, np.float64).dtype == np.float64

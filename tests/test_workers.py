@@ -112,6 +112,49 @@ def test_the_pool_asks_only_for_robots_silent_long_enough() -> None:
     assert pool.silent_flushes == 1
 
 
+def test_the_pool_asks_for_a_silent_robot_whose_clouds_wait_in_its_hold() -> None:
+    """A depth-only robot's held clouds (mapping.graph_hold) are acknowledged, so none is in flight; once it is
+    silent its owner must still be asked to settle them, once per report that it holds some."""
+    from services.map_workers import IDLE_FLUSH_S, WorkerPool
+
+    pool = WorkerPool(None, FleetKeys("t"), MapBuilder(MapConfig()), lambda *a: None, lambda c: None)
+    sent: list[tuple[str, bytes]] = []
+    pool._put = lambda w, payload: sent.append((w, payload))  # type: ignore[method-assign]
+    now = time.monotonic()
+    for robot in ("held", "done"):
+        pool._owner[robot] = "w1"
+        pool._epoch[robot] = 1
+        pool._active[robot] = now - IDLE_FLUSH_S - 1.0
+    pool.holding("held", True)
+    pool.holding("done", True)
+    pool.holding("done", False)  # its newer state holds nothing
+    pool._flush_silent()
+    assert [(w, decode_work(p)) for w, p in sent] == [("w1", MapControl("flush", "held", 1))]
+    pool._silent_asked.clear()
+    pool._flush_silent()  # asked once: not again until a newer state says it still holds clouds
+    assert len(sent) == 1
+
+
+def test_a_silent_flush_settles_a_robots_held_clouds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker asked to flush a silent robot checks its held clouds too; those that go in are observed."""
+    worker = MapWorker(None, FleetKeys("t"), "w1")
+    frames = [f for f in _frames(1.0) if f.robot == "rov1"]
+    worker._epoch["rov1"] = 0
+    settled: list[str] = []
+
+    def settle(robot: str, landmarks: object) -> list[tuple[int, object, object]]:
+        settled.append(robot)
+        return [(f.t_ns, f.pose_est, f.points_body.astype(np.float32)) for f in frames[:12]]
+
+    monkeypatch.setattr(worker.nav, "settle", settle)
+    got = worker.handle(MapControl("flush", "rov1", 0))
+    assert settled == ["rov1"]
+    assert len(got) == 1
+    assert got[0].robot == "rov1"
+    assert got[0].seqs == ()  # acknowledged when they came
+    assert got[0].records  # the released clouds' planes
+
+
 def test_observations_survive_the_wire_and_merge_like_the_builders_own() -> None:
     from mapping.plane_map import record_from_wire
 

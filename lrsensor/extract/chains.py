@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import arange, empty, inline, njit, zeros
 
 
 @njit
@@ -38,9 +38,9 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     """
     n = u.size
     # 1. merge plateaus: maxima of one column closer than 3 rows
-    mu = np.empty(n, np.int64)
-    mv = np.empty(n, np.float64)
-    ma = np.empty(n, np.float64)
+    mu = empty(n, np.int64)
+    mv = empty(n, np.float64)
+    ma = empty(n, np.float64)
     m = 0
     i = 0
     while i < n:
@@ -59,9 +59,9 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
         i = j + 1
     # 2. k strongest per column, stored by rank: VT[q, c], AT[q, c] (entries q >= cnt[c] are never read)
     K = k_max
-    VT = np.empty((K, n_cols))
-    AT = np.empty((K, n_cols))
-    cnt = np.zeros(n_cols, np.int64)  # candidates per column
+    VT = empty((K, n_cols), np.float64)
+    AT = empty((K, n_cols), np.float64)
+    cnt = zeros(n_cols, np.int64)  # candidates per column
     t = 0
     while t < m:
         c = mu[t]
@@ -91,15 +91,15 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     # previous" flags and links), so each lag takes the columns with one candidate on both sides in one
     # branch-free pass and the others one by one. Flags and links by rank: [q, c]; links hold node ids c K + q.
     nn = n_cols * K
-    prevT = np.empty((K, n_cols), np.int64)
+    prevT = empty((K, n_cols), np.int64)
     for q in range(K):
         for c in range(n_cols):
             prevT[q, c] = c * K + q
-    has_next = np.zeros((K, n_cols), np.uint8)
-    has_prev = np.zeros((K, n_cols), np.uint8)
-    blk = sorted_blocks(np.arange(n_cols), block)  # the block (laser) of each column, no division per link
-    one = np.zeros(n_cols, np.uint8)  # exactly one candidate
-    multi = np.empty(n_cols, np.int64)  # the columns with more than one
+    has_next = zeros((K, n_cols), np.uint8)
+    has_prev = zeros((K, n_cols), np.uint8)
+    blk = sorted_blocks(arange(n_cols, np.int64), block)  # the block (laser) of each column, no division per link
+    one = zeros(n_cols, np.uint8)  # exactly one candidate
+    multi = empty(n_cols, np.int64)  # the columns with more than one
     n_multi = 0
     for c in range(n_cols):
         one[c] = cnt[c] == 1
@@ -170,9 +170,9 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
     # current chain's length and strength stay in registers while its nodes follow each other (the common case),
     # not read back from memory node after node; stored when another chain's node comes (the same additions in the
     # same order)
-    root = np.empty(nn, np.int64)
-    length = np.zeros(nn, np.int64)
-    strength = np.zeros(nn)
+    root = empty(nn, np.int64)
+    length = zeros(nn, np.int64)
+    strength = zeros(nn, np.float64)
     r_cur = -1
     l_cur = 0
     s_cur = 0.0
@@ -195,10 +195,10 @@ def select_candidates(u, v, a, n_cols, k_max, max_jump, block, max_gap, min_run)
         length[r_cur] = l_cur
         strength[r_cur] = s_cur
     # 4. per column the candidate on the strongest long-enough chain
-    cols = np.empty(n_cols, np.int64)
-    rows = np.empty(n_cols, np.float64)
-    chain = np.empty(n_cols, np.int64)
-    clen = np.empty(n_cols, np.int64)
+    cols = empty(n_cols, np.int64)
+    rows = empty(n_cols, np.float64)
+    chain = empty(n_cols, np.int64)
+    clen = empty(n_cols, np.int64)
     out = 0
     for c in range(n_cols):
         if cnt[c] == 1:  # the common case, without branches: stored, and counted if its chain is long enough
@@ -232,7 +232,7 @@ def sorted_blocks(col_v, width):  # type: ignore[no-untyped-def]
     """The block ``col_v // width`` of each sorted virtual column (N,) int64, without a division per element
     (block ``l`` holds ``[l width, (l + 1) width)``: a laser's columns, at full or detection resolution)."""
     n = col_v.size
-    out = np.empty(n, np.int64)
+    out = empty(n, np.int64)
     b = 0
     for t in range(n):
         while col_v[t] >= (b + 1) * width:
@@ -249,10 +249,10 @@ def expand_half(col_d, rows_f, chain, chain_len, wd, w):  # type: ignore[no-unty
     sorted by (virtual) column; ``chain_len`` is doubled (full columns).
     """
     n = col_d.size
-    cols = np.empty(2 * n, np.int64)
-    rows = np.empty(2 * n, np.float64)
-    ch = np.empty(2 * n, np.int64)
-    cl = np.empty(2 * n, np.int64)
+    cols = empty(2 * n, np.int64)
+    rows = empty(2 * n, np.float64)
+    ch = empty(2 * n, np.int64)
+    cl = empty(2 * n, np.int64)
     k = 0
     lasers = sorted_blocks(col_d, wd)
     for i in range(n):

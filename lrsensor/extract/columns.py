@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import empty, inline, njit
 
 
 @njit
@@ -35,7 +35,7 @@ def gather_green(image, cols, top, out):  # type: ignore[no-untyped-def]
                 out[k, t] = flat[(rr * wid + cols[t]) * 3 + 1]
         return
     stride = np.uint64(wid * 3)
-    base = np.empty(n, np.uint64)
+    base = empty(n, np.uint64)
     for t in range(n):
         base[t] = np.uint64((top[t] * wid + cols[t]) * 3 + 1)
     k = 0
@@ -93,7 +93,7 @@ def colour_rises(image, cols, pk_rows, half, channels, rise):  # type: ignore[no
 def take(a, idx):  # type: ignore[no-untyped-def]
     """``a[idx]`` of a 1-D array ``a`` and indices ``idx`` (K,), in a loop: numba's fancy indexing compiles its
     general machinery (any dimensions, broadcasting, negative indices) at every place it is used."""
-    out = np.empty(idx.size, a.dtype)
+    out = empty(idx.size, a.dtype)
     for i in range(idx.size):
         out[i] = a[idx[i]]
     return out

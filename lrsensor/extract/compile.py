@@ -16,12 +16,12 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
-  triangulation, the second the glow, gates and smoothing, whose turbid-water fits are the largest single
-  kernel, and the placing of the points. The triangulations are calls of their own from Python
-  (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the width limits and for the points), so no other
-  kernel but the smoothing's central view (the port's) links them in and compiles them again;
-  and the thin stages that mostly call kernels
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs, the pinhole
+  triangulation and the placing of the points, the second the glow, gates and smoothing, whose turbid-water fits
+  are the largest single kernel (the helper starts after the child's imports, so its part is the lighter). The
+  triangulations are calls of their own from Python (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the
+  width limits and for the points), so no other kernel but the smoothing's central view (the port's) links them
+  in and compiles them again; and the thin stages that mostly call kernels
   (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
   into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
   kernels of their own (inlined, they make their callers' functions so large that LLVM takes longer over them
@@ -29,7 +29,9 @@ second. This module decides when that compile happens and where:
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
   kernels avoid numpy conveniences that compile far more code than they run (array-to-array assignments, which
   bring numpy's broadcasting and its messages; fancy indexing, whose one-dimensional case is a loop,
-  :func:`~lrsensor.extract.columns.take`; a sort where a selection gives the order statistic), and a kernel
+  :func:`~lrsensor.extract.columns.take`; a sort where a selection gives the order statistic; numba's array
+  constructors, a library per spelling of shape and dtype in each process: the kernels build their arrays in
+  place, :func:`~lrsensor.extract._jit.empty` and its kin), and a kernel
   called with a constant argument compiles once for each constant (numba types a constant as a literal of its
   value: the glow's rounds compiled twice, for ``False`` and ``True``), so flags reach kernels as values.
   ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
@@ -103,7 +105,7 @@ def entry_points() -> tuple[object, ...]:
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the frame's detection, fits and width limits, and its finish and the placing of the points, of about equal
+#: the frame's detection, fits, width limits and the placing of the points, and its finish, of about equal
 #: compile time.
 PARTS = ("locate", "finish")
 
@@ -125,7 +127,7 @@ def _build(part: str | None = None) -> None:
     from ..calibration import Calibration
     from .config import SubpixelConfig
     from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
-    from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
+    from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
     from .settings import frame_settings
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
@@ -133,6 +135,9 @@ def _build(part: str | None = None) -> None:
     f64 = np.zeros(4)
     i64 = np.zeros(4, np.int64)
     if part in (None, "locate"):
+        # (first: the finish part links the port's central view late in its compile and loads it from the cache
+        # when this part has written it there by then, else compiles it itself)
+        central_view(f64, f64, i64, g)
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
@@ -140,10 +145,10 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
+        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g)
-        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
         # (the central view's callee: compiled in this part either way)
         triangulate_points_port(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,

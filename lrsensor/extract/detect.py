@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit, trailing_zeros
+from ._jit import empty, inline, njit, trailing_zeros, zeros
 
 #: Noise of the detection response over the pixel noise: 2x2 average (1/2), then a 3-column box (1/sqrt(3)).
 AREA_NOISE = 0.5 / math.sqrt(3.0)
@@ -60,7 +60,7 @@ def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type:
     if rows < 5:
         return 1.0
     # four interleaved histograms: consecutive equal bins do not wait on each other's increments
-    h4 = np.zeros((4, 1024), np.int64)
+    h4 = zeros((4, 1024), np.int64)
     n = (rows - 4 + step - 1) // step
     cs = noise_col_step(n, cols)
     ns = (cols + cs - 1) // cs
@@ -80,7 +80,7 @@ def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type:
 def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
     integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.reference._noise_dn`)."""
-    hist = np.empty(1024, np.int64)
+    hist = empty(1024, np.int64)
     total = 0
     for k in range(1024):
         hist[k] = h4[0, k] + h4[1, k] + h4[2, k] + h4[3, k]
@@ -179,7 +179,7 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     rows_g = a1 - a0 + top + bot
     rows_g += rows_g % 2
     # padded green row i -> image row src[i] (replicated border)
-    src = np.empty(rows_g, np.int64)
+    src = empty(rows_g, np.int64)
     for i in range(rows_g):
         src[i] = min(max(a0 - top + i, a0), a1 - 1)
     # 2x2 area average straight from the image (green bytes 3 apart; an odd last column is paired with itself),
@@ -187,8 +187,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     gh = rows_g // 2
     wo = (w + 1) // 2
     w2 = w // 2
-    B = np.empty((gh, wo), np.uint8)
-    A = np.empty(wo + 2, np.int32)
+    B = empty((gh, wo), np.uint8)
+    A = empty(wo + 2, np.int32)
     two = np.uint16(2)
     third = np.uint64(3)
     for y in range(gh):
@@ -227,10 +227,10 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     thr = max(thr_min, snr_thr * (noise * area_noise))
     t8 = min(max(int(math.floor(thr)), 0), 255)  # noqa: RUF046 (v > thr for an integer v)
     if ho <= 0:
-        e_i = np.empty(0, np.int64)
-        return e_i, e_i, np.empty(0), noise, e_i
+        e_i = empty(0, np.int64)
+        return e_i, e_i, empty(0, np.float64), noise, e_i
     # in uint8, saturating (the response of ``c - max(..)`` clipped at 0 is ``c - min(c, ..)``): 32 lanes
-    resp = np.empty((ho, wo), np.uint8)
+    resp = empty((ho, wo), np.uint8)
     for y in range(ho):
         bc = B[y + ds]
         b0 = B[y]
@@ -250,8 +250,8 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
                 c = bc[ux]
                 ry[ux] = c - min(c, max(b0[ux], b1[ux]))
     # vertical local maxima inside the band: counted per column, then placed column by column
-    y0 = np.empty(wo, np.uint16)
-    y1 = np.empty(wo, np.uint16)
+    y0 = empty(wo, np.uint16)
+    y1 = empty(wo, np.uint16)
     for x in range(wo):
         uf = min(2 * x, w - 1)
         lo = v_lo[uf]
@@ -262,11 +262,11 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
         else:
             y0[x] = min(max((lo - r0 + 1) // 2, 0), 65535)
             y1[x] = min(max(min((hi - r0) // 2 + 1, ho), 0), 65535)
-    cnt16 = np.zeros(wo, np.uint16)
+    cnt16 = zeros(wo, np.uint16)
     w8 = (wo + 7) // 8 * 8  # rows of the peak mask padded to whole 8-byte words
-    pk = np.zeros((ho, w8), np.uint8)
+    pk = zeros((ho, w8), np.uint8)
     tu = np.uint8(t8)
-    row_pk = np.empty(ho, np.uint8)  # any peak in the row: the rows without any are skipped below
+    row_pk = empty(ho, np.uint8)  # any peak in the row: the rows without any are skipped below
     for y in range(ho):
         rm = resp[max(y - 1, 0)]
         rc = resp[y]
@@ -288,14 +288,14 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
     # the row d / 4 inward by more than the threshold; in clear water both are background, in turbid water the glow's
     # edge lies between them), the second pass's too (the candidates listed once more: one call site of each part)
     for pass_ in range(2):
-        cnt = np.zeros(wo + 1, np.int64)  # running count: the first candidate of each column
+        cnt = zeros(wo + 1, np.int64)  # running count: the first candidate of each column
         for x in range(wo):
             cnt[x + 1] = cnt[x] + np.int64(cnt16[x])
         n = cnt[wo]
-        cu = np.empty(n, np.int64)
-        cv = np.empty(n, np.int64)
-        ca = np.empty(n)
-        c2 = np.empty(n, np.int64)
+        cu = empty(n, np.int64)
+        cv = empty(n, np.int64)
+        ca = empty(n, np.float64)
+        c2 = empty(n, np.int64)
         pos = cnt[:wo].copy()
         words = pk.reshape(-1).view(np.uint64)
         nw8 = w8 // 8

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import arange, empty, full, inline, njit, zeros
 from .geometry import central_view
 from .smooth import smooth_runs_at
 from .sorting import select
@@ -44,7 +44,7 @@ def sorting_network(n):  # type: ignore[no-untyped-def]
     """Compare-exchange pairs (P, 2) that sort ``n`` values: :data:`SORT9` for 9, else odd-even transposition."""
     if n == 9:
         return SORT9.copy()
-    pairs = np.empty((n * (n // 2), 2), np.int64)
+    pairs = empty((n * (n // 2), 2), np.int64)
     p = 0
     for r in range(n):
         for j in range(r % 2, n - 1, 2):
@@ -63,8 +63,8 @@ def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
     ``0.5 (v[k / 2 - 1] + v[k / 2])`` for an even count ``k`` (inf for none): (nd,) float64."""
     # the pooled windows of every column: (2 pool + 1, n_cols), missing values (+inf) sorted last by
     # branch-free odd-even transposition compare-exchanges that run over all columns at once
-    vals = np.empty((nw, nd), np.float32)
-    cnt_d = np.zeros(nd, np.int32)
+    vals = empty((nw, nd), np.float32)
+    cnt_d = zeros(nd, np.int32)
     inf32 = np.float32(np.inf)
     for j in range(nw):
         cj = ch[j : j + nd]
@@ -83,7 +83,7 @@ def pooled_median(ch, ds, own, nw, nd):  # type: ignore[no-untyped-def]
             lo = min(va[q], vb[q])
             vb[q] = max(va[q], vb[q])
             va[q] = lo
-    med = np.empty(nd)
+    med = empty(nd, np.float64)
     for q in range(nd):
         k = cnt_d[q]
         med[q] = float(vals[k // 2, q]) if k % 2 else 0.5 * (float(vals[k // 2 - 1, q]) + float(vals[k // 2, q]))
@@ -105,7 +105,7 @@ def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
     """
     idx = np.flatnonzero(np.isfinite(y))
     cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
-    yw = np.full(y.size, np.nan)
+    yw = full(y.size, np.nan, np.float64)
     run_w = run.copy()
     seen = np.isfinite(rows) & np.isfinite(cols)
     for j in range(idx.size):
@@ -115,7 +115,7 @@ def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
             run_w[idx[j]] = -1
     # the columns' coordinates: the view's where seen, linear in the index between them and constant beyond the
     # first and the last (np.interp's arithmetic, in a loop that compiles in a fraction of its time)
-    x = np.arange(y.size).astype(np.float64)
+    x = arange(y.size, np.float64)
     known = idx[seen]
     fk = cols[seen]
     if known.size:
@@ -163,7 +163,7 @@ def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
             cnt += own[t] and lz[t] == li and math.isfinite(lnoise[t])
         if cnt < STRIPE_NOISE_MIN:
             continue
-        vals = np.empty(cnt)
+        vals = empty(cnt, np.float64)
         k = 0
         for t in range(lz.size):
             if own[t] and lz[t] == li and math.isfinite(lnoise[t]):
@@ -236,12 +236,12 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
     max_jump = s.max_jump_px
     wide_sigma = s.wide_fwhm_px / 2.3548200450309493
     n = col_v.size
-    snr = np.empty(n)
+    snr = empty(n, np.float64)
     # dense per (virtual) column, padded by pool: chain (-1 = none), rises of fitted columns, ratios
-    ch = np.full(n_cols + 2 * pool, -1, np.int32)  # chain ids < n_cols * k: 16 lanes in the float32 pooling
+    ch = full(n_cols + 2 * pool, -1, np.int32)  # chain ids < n_cols * k: 16 lanes in the float32 pooling
     # the rises are halves of integers below 256 in magnitude: their sums over the window are exact in float32
     # (twice the vector lanes of float64)
-    dr = np.zeros((3, n_cols + 2 * pool), np.float32)
+    dr = zeros((3, n_cols + 2 * pool), np.float32)
     zero = np.float32(0.0)
     d_b = dr[0]
     d_g = dr[1]
@@ -260,7 +260,7 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
     # the dense arrays, no branches (vectorizes); the sums add the same terms in the same order as per point
     nw = 2 * pool + 1
     nd = n_cols
-    sums = np.zeros((3, nd), np.float32)
+    sums = zeros((3, nd), np.float32)
     own = ch[pool : pool + nd]
     sb = sums[0]
     sg = sums[1]
@@ -307,17 +307,17 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
                 uq = np.uint64(q)
                 sc[uq] += dc[uq + uj] if ch[uq + uj] == own[uq] else zero
         j += 1
-    good = np.empty(n, np.bool_)
-    ds = np.full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
+    good = empty(n, np.bool_)
+    ds = full(n_cols + 2 * pool, np.nan, np.float32)  # float32: twice the lanes in the sorting network
     nan32 = np.float32(np.nan)
     for t in range(n):  # the colour gate and the passing ratios, one branch-free pass
         qc = np.uint64(col_v[t])
         g = ok[t] & (sat[t] | (float(sg[qc]) >= green_ratio * float(max(sb[qc], sr[qc]))))
         good[t] = g
         ds[qc + np.uint64(pool)] = np.float32(snr[t]) if g else nan32
-    keep = np.empty(n, np.bool_)
+    keep = empty(n, np.bool_)
     medv = pooled_median(ch, ds, own, nw, nd)
-    e_arg = np.empty(n, np.float32)
+    e_arg = empty(n, np.float32)
     for t in range(n):  # branch-free: the pooled ratio of the points that pass the colour gate, and the gates
         g = good[t]
         s = min(medv[np.uint64(col_v[t])], snr[t] / floor_frac) if g else snr[t]
@@ -326,12 +326,12 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
         e_arg[t] = -s / 8.0
     # runs: kept columns of one laser with gaps of at most 3 columns, on one chain, or both wide (saturated or
     # flat-topped: their candidate rows wander on the top and split the chains) and within max_jump rows
-    run_id = np.full(n, -1, np.int64)
-    counts = np.empty(n, np.int64)  # points per run (a run's count kept in a register while it grows)
+    run_id = full(n, -1, np.int64)
+    counts = empty(n, np.int64)  # points per run (a run's count kept in a register while it grows)
     cur = 0
     r = -1
-    inv_run = np.zeros(n)  # each run's sum of 1 / snr, and each laser's kept points' sigmas summed and counted
-    sig_l = np.zeros((2, noise_l.size))
+    inv_run = zeros(n, np.float64)  # each run's sum of 1 / snr, and each laser's kept points' sigmas summed and counted
+    sig_l = zeros((2, noise_l.size), np.float64)
     last_col = -10
     last_chain = -1
     last_l = -1
@@ -361,9 +361,9 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
     if r >= 0:
         counts[r] = cur
     need = max(2, min_run // 2)
-    y = np.full(n_cols, np.nan)
-    run = np.full(n_cols, -1, np.int64)
-    long_ = np.empty(n, np.bool_)  # in a run long enough (and, on a blurred stripe, sure enough)
+    y = full(n_cols, np.nan, np.float64)
+    run = full(n_cols, -1, np.int64)
+    long_ = empty(n, np.bool_)  # in a run long enough (and, on a blurred stripe, sure enough)
     m = 0
     for t in range(n):
         ri = run_id[t]
@@ -379,17 +379,17 @@ def finish_points(col_v, lz, fits, chain, chain_len, noise_l, w, s, geo, own_noi
         if geo.port.present:
             yw, x, run_w, idx, rows_w, slope_w = port_view(y, run, w, geo)
         else:
-            yw, x, run_w = y, np.arange(n_cols).astype(np.float64), run
-            idx, rows_w, slope_w = np.empty(0, np.int64), np.empty(0), np.empty(0)
+            yw, x, run_w = y, arange(n_cols, np.float64), run
+            idx, rows_w, slope_w = empty(0, np.int64), empty(0, np.float64), empty(0, np.float64)
         ys = smooth_runs_at(yw, x, run_w, scales)
         if geo.port.present:
             ys = from_port_view(y, ys, idx, rows_w, slope_w)
-    u_out = np.empty(m)
-    v_out = np.empty(m)
-    l_out = np.empty(m, np.int64)
-    q_out = np.empty(m)
+    u_out = empty(m, np.float64)
+    v_out = empty(m, np.float64)
+    l_out = empty(m, np.int64)
+    q_out = empty(m, np.float64)
     e_snr = np.exp(e_arg)  # float32 is plenty for a score
-    qual = np.empty(n)
+    qual = empty(n, np.float64)
     for t in range(n):  # every point's quality, branch-free (vectorizes), before the kept ones are packed
         s = sig[t] if math.isfinite(sig[t]) else max_sigma
         q_snr = 1.0 - float(e_snr[t])

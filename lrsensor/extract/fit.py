@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._jit import inline, njit
+from ._jit import empty, full, inline, njit, zeros
 from .columns import colour_rises, gather_green
 
 #: Rows either side of the picked row within which a profile is re-centred on its integer peak.
@@ -79,15 +79,15 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     Three ``exp`` per column: each column's Gaussian by recurrence from the first row where it exceeds ``e^-30``
     of its peak (a start further out could underflow to zero and stay there); none where nothing is subtracted."""
     n = cols.size
-    P = np.empty((k_rows, n))
+    P = empty((k_rows, n), np.float64)
     gather_green(image, cols, top, P)
     nb_any = False
     for t in range(n):
         nb_any |= amp[t] != 0.0
     if not nb_any:  # nothing to subtract (the first fit of every point)
         return P
-    qs = np.empty(n, np.int64)
-    ex = np.empty(2 * n)
+    qs = empty(n, np.int64)
+    ex = empty(2 * n, np.float64)
     for t in range(n):
         r30 = math.sqrt(30.0 / inv[t])
         q0 = min(max(int(math.ceil(mu[t] - r30 - top[t])), 0), k_rows) if amp[t] != 0.0 else k_rows  # noqa: RUF046
@@ -113,9 +113,9 @@ def _clipped_runs(P, sat_dn):  # type: ignore[no-untyped-def]
     """Per column of the profiles ``P`` (k, n): how many samples are clipped (at least ``sat_dn``) and the rows of
     the first and the last of them, (n,) int64 each (first ``k`` and last -1 where none)."""
     k, n = P.shape
-    cnt = np.zeros(n, np.int64)
-    first = np.full(n, k)
-    last = np.full(n, -1)
+    cnt = zeros(n, np.int64)
+    first = full(n, k, np.int64)
+    last = full(n, -1, np.int64)
     for q in range(k):
         pq = P[q]
         for t in range(n):
@@ -147,6 +147,40 @@ def _flank_line(p, o, flank):  # type: ignore[no-untyped-def]
         r2 = p[R + o + q] - (a + slope * (R + o + q - xl))
         ss += r1 * r1 + r2 * r2
     return a, slope, xl, math.sqrt(ss / max(2 * flank - 2, 1))
+
+
+@inline
+def _flank_lines(P, o, flank, line, noise):  # type: ignore[no-untyped-def]
+    """:func:`_flank_line` of every column of the profiles ``P`` (m, n) at the flank offset ``o``, into ``line``
+    (3, n) and ``noise`` (n,): the same arithmetic in the same order, row by row over all the columns (the loops run
+    over contiguous rows of ``P`` and vectorize; a column at a time reads a row of ``P`` per sample)."""
+    m, n = P.shape
+    R = m // 2
+    a = line[0]
+    slope = line[1]
+    xl = R - o - 0.5 * (flank - 1)
+    b = zeros(n, np.float64)
+    a[:] = 0.0
+    for q in range(flank):
+        pa = P[R - o - q]
+        pb = P[R + o + q]
+        for t in range(n):
+            a[t] += pa[t]
+            b[t] += pb[t]
+    ss = zeros(n, np.float64)
+    for t in range(n):
+        a[t] /= flank
+        slope[t] = (b[t] / flank - a[t]) / (2.0 * o + flank - 1)
+        line[2, t] = xl
+    for q in range(flank):
+        pa = P[R - o - q]
+        pb = P[R + o + q]
+        for t in range(n):
+            r1 = pa[t] - (a[t] + slope[t] * (R - o - q - xl))
+            r2 = pb[t] - (a[t] + slope[t] * (R + o + q - xl))
+            ss[t] += r1 * r1 + r2 * r2
+    for t in range(n):
+        noise[t] = math.sqrt(ss[t] / max(2 * flank - 2, 1))
 
 
 @inline
@@ -183,7 +217,7 @@ def _is_flat(a, a0, fw):  # type: ignore[no-untyped-def]
     box-smoothed over ``2 FLAT_SMOOTH + 1`` rows (noise on a plateau must not decide)."""
     m = a.size
     k = FLAT_SMOOTH
-    S = np.empty(m)
+    S = empty(m, np.float64)
     for q in range(m):
         acc = 0.0
         for j in range(max(q - k, 0), min(q + k, m - 1) + 1):
@@ -220,9 +254,9 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     max_sig = s.max_sigma_px
     wide_fwhm = s.wide_fwhm_px
     # the neighbour's Gaussian: amplitude, 1 / (2 sigma^2) and exp(-2 / (2 sigma^2)) per column (amplitude 0: none)
-    amp_nb = np.empty(n)
-    inv_nb = np.empty(n)
-    g2_nb = np.empty(n)
+    amp_nb = empty(n, np.float64)
+    inv_nb = empty(n, np.float64)
+    g2_nb = empty(n, np.float64)
     for t in range(n):
         has = math.isfinite(nb_v[t])
         amp_nb[t] = nb_a[t] if has else 0.0
@@ -230,12 +264,12 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
         g2_nb[t] = math.exp(-2.0 * inv_nb[t]) if has else 1.0
     # 1. re-centre on the integer peak of rows - e ... rows + e: the middle of its clipped run, else the first
     # maximum
-    top = np.empty(n, np.int64)
+    top = empty(n, np.int64)
     for t in range(n):
         top[t] = rows[t] - e
     C = _profiles(image, cols, top, 2 * e + 1, nb_v, amp_nb, inv_nb, g2_nb)
-    bv = np.full(n, -1.0)
-    arg = np.full(n, e)  # (nothing above -1, as can happen less a neighbour: the picked row)
+    bv = full(n, -1.0, np.float64)
+    arg = full(n, e, np.int64)  # (nothing above -1, as can happen less a neighbour: the picked row)
     for q in range(2 * e + 1):
         cq = C[q]
         for t in range(n):
@@ -243,7 +277,7 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
             bv[t] = cq[t] if up else bv[t]
             arg[t] = q if up else arg[t]
     _, c_first, c_last = _clipped_runs(C, sat_dn)
-    pk = np.empty(n, np.int64)
+    pk = empty(n, np.int64)
     for t in range(n):
         mid = (c_first[t] + c_last[t]) // 2 if c_first[t] <= c_last[t] else arg[t]
         pk[t] = rows[t] - e + mid
@@ -252,32 +286,35 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     # 2. saturation and the background line (beyond half of a clipped run: a single clipped sample is a peak
     # just reaching the top of the range, not a run)
     n_sat, q_first, q_last = _clipped_runs(P, sat_dn)
-    saturated = np.empty(n, np.bool_)
-    off = np.empty(n, np.int64)
+    saturated = empty(n, np.bool_)
+    off = empty(n, np.int64)
     for t in range(n):
         saturated[t] = P[R, t] >= sat_dn and n_sat[t] >= 2
         off[t] = flank_offset(sigma_hint, n_sat[t] if n_sat[t] >= 2 else 0, R, flank)
-    line = np.empty((3, n))
-    noise = np.empty(n)
+    line = empty((3, n), np.float64)
+    noise = empty(n, np.float64)
+    o_c = flank_offset(sigma_hint, 0, R, flank)  # every column's but those of clipped runs
+    _flank_lines(P, o_c, flank, line, noise)
     for t in range(n):
-        line[0, t], line[1, t], line[2, t], noise[t] = _flank_line(P[:, t], off[t], flank)
-    A = np.empty((m, n))
+        if off[t] != o_c:
+            line[0, t], line[1, t], line[2, t], noise[t] = _flank_line(P[:, t], off[t], flank)
+    A = empty((m, n), np.float64)
     _subtract_lines(P, line, A)
     # 3. the start: log-parabola at a spacing matched to the width; saturated: the middle of the clipped run
     sp = max(1, int(round(0.8 * sigma_hint)))  # noqa: RUF046 (numba: round() of a float is a float)
     # of the samples a_-, a_0, a_+ (at least 0.5): ln(a_- / a_+), ln(a_- a_+ / a_0^2), in float32 (the centroid
     # iterations take the start to 1e-7 px; sigma, the width limits' and the quality's, to 1e-5 of itself)
     # (scalar logf: numpy's logarithm of a float32 array would compile its ufunc loop for that type too)
-    lv = np.empty(2 * n, np.float32)
+    lv = empty(2 * n, np.float32)
     for t in range(n):
         am = max(A[R - sp, t], 0.5)
         a0 = max(A[R, t], 0.5)
         ap = max(A[R + sp, t], 0.5)
         lv[t] = math.log(np.float32(am / ap))
         lv[n + t] = math.log(np.float32((am / a0) * (ap / a0)))
-    c = np.empty(n)
-    sigma = np.empty(n)
-    ok = np.empty(n, np.bool_)
+    c = empty(n, np.float64)
+    sigma = empty(n, np.float64)
+    ok = empty(n, np.bool_)
     for t in range(n):
         odd = float(lv[t])
         den = float(lv[n + t])
@@ -292,8 +329,8 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
     # half-level widths (not saturated): wide profiles start from the middle of their crossings; flat-topped ones
     # (few) also take the window centroid, their flanks beyond the top
     window = saturated.copy()  # the columns of the window centroid (else Gaussian weights)
-    hs = np.empty(n)  # its half-width
-    lim_c = np.empty(n)  # the largest accepted distance of the centre from the peak row
+    hs = empty(n, np.float64)  # its half-width
+    lim_c = empty(n, np.float64)  # the largest accepted distance of the centre from the peak row
     # (a profile below half level k_w rows either side of the peak row is narrower than 2 k_w <= wide_fwhm: most
     # are, and skip the search for their crossings)
     k_w = min(max(int(0.5 * wide_fwhm), 0), R)
@@ -322,9 +359,9 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
             for q in range(m):
                 A[q, t] = P[q, t] - (bl + slope * (q - xl))
     # 4. centroid iterations
-    inv2 = np.empty(n)
-    gain = np.empty(n)
-    reach = np.empty(n)
+    inv2 = empty(n, np.float64)
+    gain = empty(n, np.float64)
+    reach = empty(n, np.float64)
     for t in range(n):
         sig_p = min(max(sigma[t] if math.isfinite(sigma[t]) else sigma_hint, min_sig), max_sig)
         sig_w = max(sig_p, 1.1)  # narrower Gaussian weights alias on the pixel grid (a biased first moment)
@@ -333,14 +370,14 @@ def fit_columns(image, cols, rows, half, sigma_hint, s, nb_v, nb_a, nb_s, max_fw
         reach[t] = 4.0 * sig_w + 1.0  # Gaussian weights beyond are below exp(-8)
     _centroids(A, c, window, hs, inv2, gain, reach, s.iterations)
     # 5. acceptance and the results
-    centre = np.empty(n)
-    amp = np.empty(n)
+    centre = empty(n, np.float64)
+    amp = empty(n, np.float64)
     for t in range(n):
         amp[t] = A[R, t]
         good = ok[t] and math.isfinite(c[t]) and abs(c[t] - R) <= lim_c[t] and amp[t] > 0
         ok[t] = good
         centre[t] = pk[t] - half + c[t] if good else np.nan
-    rise = np.empty((3, n))
+    rise = empty((3, n), np.float64)
     colour_rises(image, cols, pk, half, (0, 1, 2), rise)
     return Fits(centre, amp, sigma, saturated, ok, noise, rise)
 
@@ -369,14 +406,14 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
     about 1e-6 of a px), the step times ``gain``. A step is at most a row;
     a column whose centre is not finite stays so."""
     m, n = A.shape
-    q0 = np.empty(n, np.int64)
-    q1 = np.empty(n, np.int64)
-    w = np.empty(n)
-    ratio = np.empty(n)
-    g2 = np.empty(n)
-    s0 = np.empty(n)
-    s1 = np.empty(n)
-    ex = np.empty(n, np.float32)
+    q0 = empty(n, np.int64)
+    q1 = empty(n, np.int64)
+    w = empty(n, np.float64)
+    ratio = empty(n, np.float64)
+    g2 = empty(n, np.float64)
+    s0 = empty(n, np.float64)
+    s1 = empty(n, np.float64)
+    ex = empty(n, np.float32)
     for t in range(n):
         g2[t] = math.exp(np.float32(-2.0 * inv2[t]))
     for _ in range(iterations):
@@ -390,12 +427,12 @@ def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore
             q0[t] = max(int(math.floor(c[t] - reach[t])), 0) if gauss else 0  # noqa: RUF046
             q1[t] = min(int(math.ceil(c[t] + reach[t])) + 1, m) if gauss else (m if fin else 0)  # noqa: RUF046
             d0 = q0[t] - c[t] if gauss else 0.0
-            ex[t] = math.exp(np.float32(-(2.0 * d0 + 1.0) * inv2[t]))  # (scalar expf, as the logarithms)
+            ex[t] = np.float32(-(2.0 * d0 + 1.0) * inv2[t])
             lo = min(lo, q0[t] if gauss else m)
             hi = max(hi, q1[t] if gauss else 0)
-        for t in range(n):
+        for t in range(n):  # (the exponentials in a loop of their own: the loop above then vectorizes)
             w[t] = 1.0  # the first row's weight: the centroid takes the weights' ratios only
-            ratio[t] = ex[t]
+            ratio[t] = math.exp(ex[t])  # (scalar expf, as the logarithms)
         for q in range(lo, hi):  # every column with Gaussian weights (the window columns' sums are taken below)
             aq = A[q]
             for t in range(n):

@@ -51,7 +51,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._jit import inline, njit
+from ._jit import arange, empty, full, inline, njit, zeros
 from .chains import expand_half, select_candidates, sorted_blocks
 from .columns import take
 from .detect import detect_band
@@ -127,9 +127,9 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
     m = 2 * half + 1
     R = m // 2
     q = max(2, m // 4)
-    X = np.empty(m)
-    widths = np.empty(n)
-    n_sat = np.empty(n)
+    X = empty(m, np.float64)
+    widths = empty(n, np.float64)
+    n_sat = empty(n, np.float64)
     nw = 0
     for t in range(n):
         ns = 0
@@ -181,9 +181,9 @@ def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  
 @inline
 def no_points(noise, half):  # type: ignore[no-untyped-def]
     """The :class:`Located` of a frame without candidates."""
-    e_i = np.empty(0, np.int64)
-    e_f = np.empty(0)
-    e_b = np.empty(0, np.bool_)
+    e_i = empty(0, np.int64)
+    e_f = empty(0, np.float64)
+    e_b = empty(0, np.bool_)
     return Located(
         col_v=e_i,
         laser=e_i,
@@ -191,7 +191,7 @@ def no_points(noise, half):  # type: ignore[no-untyped-def]
         rows=e_i,
         chain=e_i,
         chain_len=e_i,
-        fits=Fits(e_f, e_f, e_f, e_b, e_b, e_f, np.empty((3, 0))),
+        fits=Fits(e_f, e_f, e_f, e_b, e_b, e_f, empty((3, 0), np.float64)),
         max_fwhm=e_f,
         half=half,
         sigma_px=1.0,
@@ -215,10 +215,10 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
         half + 1.0,
         s.wide_fwhm_px / FWHM_PER_SIGMA,
     )
-    last = np.full((3, n), np.nan)  # the neighbour each point was last refitted with
+    last = full((3, n), np.nan, np.float64)  # the neighbour each point was last refitted with
     at = point_table(laser, cols, n_l, w)
-    look = np.arange(w)  # the columns where a neighbour can have changed: all, then the refits'
-    touched = np.zeros(w, np.bool_)
+    look = arange(w, np.int64)  # the columns where a neighbour can have changed: all, then the refits'
+    touched = zeros(w, np.bool_)
     for _ in range(NEIGHBOUR_REFITS):
         idx, nb_v, nb_a, nb_s = refit_targets(laser, cols, vv, amp, sig, sat, good, at, max_d, read, look, last)
         if idx.size == 0:
@@ -231,7 +231,7 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
             if not touched[cols[t]]:
                 n_look += 1
                 touched[cols[t]] = True
-        look = np.empty(n_look, np.int64)
+        look = empty(n_look, np.int64)
         k = 0
         for c in range(w):  # (in order: refit_targets keeps the points' order)
             if touched[c]:
@@ -243,7 +243,7 @@ def refit_neighbours(image, cols, rows, laser, n_l, good, max_d, half, sig_med, 
 @inline
 def _no_candidates(noise):  # type: ignore[no-untyped-def]
     """The :class:`Picked` of a frame without candidates."""
-    e_i = np.empty(0, np.int64)
+    e_i = empty(0, np.int64)
     return Picked(col_v=e_i, laser=e_i, cols=e_i, rows=e_i, chain=e_i, chain_len=e_i, noise=noise, second=e_i)
 
 
@@ -262,7 +262,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     w = image.shape[1]
     wd = (w + 1) // 2  # detection at half resolution: column c stands for 2c and 2c + 1
     # 1. detection
-    noise = np.ones(n_l)
+    noise = full(n_l, 1.0, np.float64)
     parts_u = []
     parts_v = []
     parts_a = []
@@ -291,10 +291,10 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
         parts_a.append(a)
         parts_s.append(sec)
         total += u.size
-    U = np.empty(total, np.int64)
-    Vr = np.empty(total, np.int64)
-    Ar = np.empty(total)
-    Sr = np.empty(total, np.int64)
+    U = empty(total, np.int64)
+    Vr = empty(total, np.int64)
+    Ar = empty(total, np.float64)
+    Sr = empty(total, np.int64)
     k = 0
     for j in range(len(parts_u)):
         for t in range(parts_u[j].size):
@@ -310,7 +310,7 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     n_cols_d = n_l * wd
     jump = s.max_jump_px * 1.5
     min_run = max(2, (min_run_cols + 1) // 2)
-    cnt = np.zeros(n_cols_d, np.int64)
+    cnt = zeros(n_cols_d, np.int64)
     kk = 0
     for t in range(U.size):
         cnt[U[t]] += 1
@@ -320,8 +320,8 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     if col_d.size == 0:
         return _no_candidates(noise)
     # whether each pick is the second pass's: the candidate of its column nearest its row (the first of a tie)
-    sec_d = np.zeros(n_cols_d, np.int64)
-    start = np.zeros(n_cols_d + 1, np.int64)
+    sec_d = zeros(n_cols_d, np.int64)
+    start = zeros(n_cols_d + 1, np.int64)
     for c in range(n_cols_d):
         start[c + 1] = start[c] + cnt[c]
     for i in range(col_d.size):
@@ -335,9 +335,9 @@ def locate_candidates(image, bands, s):  # type: ignore[no-untyped-def]
     col_v, rows_f, chain, chain_len = expand_half(col_d, rows_f, chain, chain_len, wd, w)
     n = col_v.size
     laser = sorted_blocks(col_v, w)
-    rows = np.empty(n, np.int64)
-    cols = np.empty(n, np.int64)
-    second = np.empty(n, np.int64)
+    rows = empty(n, np.int64)
+    cols = empty(n, np.int64)
+    second = empty(n, np.int64)
     for t in range(n):
         rows[t] = int(np.rint(rows_f[t]))
         cols[t] = col_v[t] - laser[t] * w
@@ -368,7 +368,7 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
     # frame statistics (window length), then the fit of every point; the statistics from the first detection pass's
     # points where it has STATS_POINTS of them: the second pass's lie on the glow's rising side, whose step widens
     # their profiles' half-maximum width, and with it every fit's window and the glow stage's fits (docs/water.md)
-    pool = np.empty(n, np.int64)
+    pool = empty(n, np.int64)
     n_pool = 0
     for t in range(n):
         if p.second[t] == 0:
@@ -379,7 +379,7 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
             pool[t] = t
         n_pool = n
     m_sub = min(n_pool, STATS_POINTS)
-    sub = np.empty(m_sub, np.int64)
+    sub = empty(m_sub, np.int64)
     if m_sub == 1:
         sub[0] = pool[0]
     else:
@@ -391,11 +391,11 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
         image, take(cols, sub), take(rows, sub), half0, sat_dn, max_sigma, take(mfw, sub)
     )
     half = int(min(max(half0, math.ceil(wide_lim) + 4), math.ceil(3.0 * sig_med + 0.5 * plateau + 4)))
-    nan = np.full(n, np.nan)
+    nan = full(n, np.nan, np.float64)
     fits = fit_columns(image, cols, rows, half, sig_med, s, nan, nan, nan, mfw)
     if n_l > 1:  # stripes of two lasers close together (long range): refit each with the other subtracted
         max_d = half + 3.0 * sig_med + 2.0
-        good = np.empty(n, np.bool_)  # the points that can be a neighbour
+        good = empty(n, np.bool_)  # the points that can be a neighbour
         for t in range(n):
             good[t] = fits.ok[t] and not fits.saturated[t]
         if rows_overlap(laser, fits.centre, good, n_l, max_d):  # else the common case: stripes far apart
@@ -429,12 +429,12 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
     w = image.shape[1]
     n = p.cols.size
     if n == 0:
-        return np.empty(0), np.empty(0), np.empty(0, np.int64), np.empty(0)
+        return empty(0, np.float64), empty(0, np.float64), empty(0, np.int64), empty(0, np.float64)
     cols, laser = p.cols, p.laser
     res = p.fits
     vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
     # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
-    own = np.zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
+    own = zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
     if s.glow_fit:
         v_g, _s_g, own, a_g, n_g = glow_refit(
             image,
@@ -477,27 +477,27 @@ def place_points(u, v, laser, quality, xyz, s, geo, triangulate):  # type: ignor
     """
     m = u.size
     if not triangulate:
-        uv = np.empty((m, 2))
+        uv = empty((m, 2), np.float64)
         for t in range(m):
             uv[t, 0] = u[t]
             uv[t, 1] = v[t]
-        return uv, laser, quality, np.empty((0, 3))
+        return uv, laser, quality, empty((0, 3), np.float64)
     r_z = geo.R_cam_body[2]
-    keep = np.empty(m, np.bool_)
+    keep = empty(m, np.bool_)
     kept = 0
     for t in range(m):
         depth = xyz[t, 0] * r_z[0] + xyz[t, 1] * r_z[1] + xyz[t, 2] * r_z[2] + geo.cam_z_offset_m
         keep[t] = depth >= s.min_range_m and depth <= s.max_range_m  # NaN fails both
         kept += keep[t]
-    uv = np.empty((kept, 2))
+    uv = empty((kept, 2), np.float64)
     if kept == m:
         for t in range(m):
             uv[t, 0] = u[t]
             uv[t, 1] = v[t]
         return uv, laser, quality, xyz
-    xyz_k = np.empty((kept, 3))
-    laser_k = np.empty(kept, np.int64)
-    quality_k = np.empty(kept)
+    xyz_k = empty((kept, 3), np.float64)
+    laser_k = empty(kept, np.int64)
+    quality_k = empty(kept, np.float64)
     j = 0
     for t in range(m):
         if keep[t]:
@@ -514,7 +514,7 @@ def place_points(u, v, laser, quality, xyz, s, geo, triangulate):  # type: ignor
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 #: The points :func:`place_points` gets without ``triangulate`` (not read).
-_NO_XYZ = np.empty((0, 3))
+_NO_XYZ = empty((0, 3), np.float64)
 
 
 def extract_frame(

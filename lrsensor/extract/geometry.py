@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from ._jit import inline, njit
+from ._jit import empty, full, inline, njit
 
 if TYPE_CHECKING:
     from .settings import Geometry
@@ -54,8 +54,8 @@ def _undistort(u, v, cam, dist):  # type: ignore[no-untyped-def]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
-    xs = np.empty(n)  # normalized undistorted image coordinates
-    ys = np.empty(n)
+    xs = empty(n, np.float64)  # normalized undistorted image coordinates
+    ys = empty(n, np.float64)
     for t in range(n):
         xs[t] = (u[t] - cx) / fx
         ys[t] = (v[t] - cy) / fy
@@ -64,7 +64,7 @@ def _undistort(u, v, cam, dist):  # type: ignore[no-untyped-def]
         # step is below 1e-15 (converged quadratically), exactly as it would on its own
         xd = xs.copy()
         yd = ys.copy()
-        act = np.ones(n, np.bool_)
+        act = full(n, True, np.bool_)
         for _ in range(8):
             left = 0
             for t in range(n):
@@ -108,9 +108,9 @@ def triangulate_points(u, v, laser, cam, dist, R, origin, normals, points):  # t
         to the plane or meets it behind the camera.
     """
     n = u.size
-    out = np.empty((n, 3))
+    out = empty((n, 3), np.float64)
     n_l = normals.shape[0]
-    off = np.empty(n_l)
+    off = empty(n_l, np.float64)
     for i in range(n_l):
         off[i] = (
             (points[i, 0] - origin[0]) * normals[i, 0]
@@ -191,7 +191,7 @@ def triangulate_points_port(u, v, laser, cam, dist, R, origin, normals, points, 
         parallel to the plane or meets it behind the port.
     """
     n = u.size
-    out = np.empty((n, 3))
+    out = empty((n, 3), np.float64)
     xs, ys = _undistort(u, v, cam, dist)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     for t in range(n):
@@ -253,9 +253,9 @@ def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
     cam = geo.camera
     ratio = port.n_water / port.n_air
     h = CENTRAL_VIEW_STEP_PX
-    uu = np.empty(3 * n)
-    vv = np.empty(3 * n)
-    ll = np.empty(3 * n, np.int64)
+    uu = empty(3 * n, np.float64)
+    vv = empty(3 * n, np.float64)
+    ll = empty(3 * n, np.int64)
     for t in range(n):
         for j in range(3):
             uu[3 * t + j] = u[t]
@@ -266,8 +266,8 @@ def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
     )
     R = geo.R_cam_body
     o = geo.origin_body
-    g = np.empty(3 * n)
-    cols = np.empty(n)
+    g = empty(3 * n, np.float64)
+    cols = empty(n, np.float64)
     for t in range(3 * n):
         dx = pts[t, 0] - o[0]
         dy = pts[t, 1] - o[1]
@@ -278,8 +278,8 @@ def central_view(u, v, laser, geo):  # type: ignore[no-untyped-def]
         g[t] = cam[3] + cam[1] * ratio * y / z
         if t % 3 == 1:
             cols[t // 3] = cam[2] + cam[0] * ratio * x / z
-    rows = np.empty(n)
-    slope = np.empty(n)
+    rows = empty(n, np.float64)
+    slope = empty(n, np.float64)
     for t in range(n):
         rows[t] = g[3 * t + 1]
         slope[t] = (g[3 * t + 2] - g[3 * t]) / (2.0 * h)
@@ -297,7 +297,7 @@ def max_fwhm_at(
     """
     n = cols.size
     if n == 0 or sheet_mm <= 0:
-        return np.full(n, floor)
+        return full(n, floor, np.float64)
     pts = triangulate_geo(cols.astype(np.float64), rows.astype(np.float64), laser, geo)
     return fwhm_from_points(pts, floor, sheet_mm, geo)  # type: ignore[no-any-return]
 
@@ -308,7 +308,7 @@ def fwhm_from_points(pts, floor, sheet_mm, geo):  # type: ignore[no-untyped-def]
     pixels triangulate to (NaN rows: the floor)."""
     cam, origin, axis = geo.camera, geo.origin_body, geo.axis_body
     n = pts.shape[0]
-    out = np.full(n, floor)
+    out = full(n, floor, np.float64)
     for t in range(n):
         depth = (
             (pts[t, 0] - origin[0]) * axis[0] + (pts[t, 1] - origin[1]) * axis[1] + (pts[t, 2] - origin[2]) * axis[2]

@@ -108,8 +108,9 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
+from .refit import rows_overlap
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -239,19 +240,19 @@ def glow_refit(  # type: ignore[no-untyped-def]
     w = image.shape[1]
     n = cols.size
     n_l = side_tab.shape[0]
-    at = np.full((n_l, w), -1, np.int64)
+    at = full((n_l, w), -1, np.int64)
     for t in range(n):
         at[laser[t], cols[t]] = t
     lo_sig = max(min_sig, MIN_SIGMA_PX)
     # the points that can take the fit: window and trigger rows inside the image, the glow's side known
-    usable = np.zeros(n, np.bool_)
-    cand = np.zeros(n, np.bool_)
-    nb_ok = np.zeros(n, np.bool_)
-    side = np.zeros(n)
-    sg0 = np.ones(n)
-    rc = np.zeros(n, np.int64)
-    hw = np.zeros(n, np.int64)
-    kt = np.zeros(n, np.int64)
+    usable = zeros(n, np.bool_)
+    cand = zeros(n, np.bool_)
+    nb_ok = zeros(n, np.bool_)
+    side = zeros(n, np.float64)
+    sg0 = full(n, 1.0, np.float64)
+    rc = zeros(n, np.int64)
+    hw = zeros(n, np.int64)
+    kt = zeros(n, np.int64)
     for t in range(n):
         usable[t] = ok[t] and math.isfinite(vv[t]) and (sat[t] or sig[t] <= max_sig)
         if not usable[t]:
@@ -267,12 +268,18 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
     # within POOL_COLS columns: first the step in green at every candidate
-    nb0 = np.full(n, -1, np.int64)
-    diff = np.zeros(n)
+    nb0 = full(n, -1, np.int64)
+    diff = zeros(n, np.float64)
+    # (looked for only where two lasers' rows come that close at all, far walls: nb_ok points have sigmas of at
+    # most max_sig)
+    reach_max = 0
+    for t in range(n):
+        reach_max = max(reach_max, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS) if cand[t] else 0)
+    close = rows_overlap(laser, vv, usable, n_l, reach_max + 3.0 * max_sig)
     for t in range(n):
         if not cand[t]:
             continue
-        nb = neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS))
+        nb = neighbour(t, at, cols, laser, nb_ok, vv, sig, max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)) if close else -1
         nb0[t] = nb
         d = _raw_step(image, rc[t], cols[t], int(side[t]), kt[t], 1)
         if nb >= 0:
@@ -281,15 +288,15 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the median step exceeds the threshold (more than half of the steps around do): prefix counts along each laser's
     # columns of the candidates and of their steps above the lowest threshold any point can have (a whole pool's), so
     # that the steps are compared one by one only where a majority is possible (in clear water, at few points)
-    n_cand = np.zeros((n_l, w + 1), np.int64)
-    n_over = np.zeros((n_l, w + 1), np.int64)
+    n_cand = zeros((n_l, w + 1), np.int64)
+    n_over = zeros((n_l, w + 1), np.int64)
     for li in range(n_l):
         low = TRIGGER_SNR * _pool_noise(noise_l[li], 2 * POOL_COLS + 1)
         for cc in range(w):
             j = at[li, cc]
             n_cand[li, cc + 1] = n_cand[li, cc] + (j >= 0 and cand[j])
             n_over[li, cc + 1] = n_over[li, cc] + (j >= 0 and cand[j] and diff[j] > low)
-    glowing = np.zeros(n, np.bool_)
+    glowing = zeros(n, np.bool_)
     for t in range(n):
         if not cand[t]:
             continue
@@ -308,11 +315,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # where it does, the raw step pooled the same way has the laser's colour: green over red and blue as the stripe's
     # colour test asks (a step of the wall's or the water's colour is not a glow; raw, since a neighbour stripe close
     # by is subtracted in green only, and it has the laser's colour too), read only there
-    rgb = np.full((3, n), np.nan)  # the raw step in green, red and blue (nothing subtracted)
+    rgb = full((3, n), np.nan, np.float64)  # the raw step in green, red and blue (nothing subtracted)
     for t in range(n):
         if not glowing[t]:
             continue
-        sums = np.zeros(3)
+        sums = zeros(3, np.float64)
         for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
             j = at[laser[t], cc]
             if j >= 0 and cand[j]:
@@ -322,7 +329,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                     sums[k] += rgb[k, j]
         glowing[t] = sums[0] > green_ratio * sums[1] and sums[0] > green_ratio * sums[2]
     # and so does the majority of the points around: a glow lies along the stripe, not at a few columns
-    glow_run = np.zeros(n, np.bool_)
+    glow_run = zeros(n, np.bool_)
     for t in range(n):
         if glowing[t]:
             li, lo_c, hi_c = laser[t], max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)
@@ -351,7 +358,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 if cand[t] and laser[t] == li:
                     sg0[t] = max(sg0[t], tot / cnt)
     # (the fits start from that width, on a window of that width inside the image)
-    fit_me = np.zeros(n, np.bool_)
+    fit_me = zeros(n, np.bool_)
     any_fit = False
     for t in range(n):
         nb = nb0[t]
@@ -445,7 +452,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                         _d0[t] = d_h[t]
                         st0[0, t] = st_h[0, t]
                         st0[1, t] = st_h[1, t]
-    strong = np.zeros(n, np.bool_)
+    strong = zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
             continue
@@ -460,22 +467,27 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the ramp's F test, first per stretch: the ramp fitted at the strong points of every RAMP_EVERY-th column (both
     # lasers' points of a column together: close stripes are fitted in pairs); then at every strong point whose
     # stretch's sampled F statistic comes within RAMP_MARGIN of the bar, and taken where the F statistic pooled over
-    # all of them passes it
-    sample = np.zeros(n, np.bool_)
-    for t in range(n):
-        sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
-    # (the sampled test in one round, with the other stripes where the step model put them: it decides only which
-    # stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
-    _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
-    )  # fmt: skip
-    maybe = strong & (_pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
-        image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
-    )  # fmt: skip
-    take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
+    # all of them passes it (none strong, as beside another laser's stripe without a glow: the step model stands)
+    take = zeros(n, np.bool_)
+    v3, s3, rss3, dof3, _st3 = v0, s0, rss0, _d0, st0
+    if strong.any():
+        sample = zeros(n, np.bool_)
+        for t in range(n):
+            sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
+        # (the sampled test in one round, with the other stripes where the step model put them: it decides only
+        # which stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
+        _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
+            image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
+        )  # fmt: skip
+        maybe = strong & (
+            _pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT
+        )
+        v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
+            image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
+        )  # fmt: skip
+        take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
     s_out = s0
     fitted = f0.copy()
@@ -621,8 +633,8 @@ def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
     :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the same proportion
     to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and the common fit
     there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
-    n_c = np.zeros(n_l, np.int64)
-    n_g = np.zeros(n_l, np.int64)
+    n_c = zeros(n_l, np.int64)
+    n_g = zeros(n_l, np.int64)
     for t in range(laser.size):
         if cand[t]:
             n_c[laser[t]] += 1
@@ -641,7 +653,7 @@ def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # typ
     the residual sum of squares per parameter over the residual variance with it; 0 where none is fitted."""
     n = cols.size
     w = at.shape[1]
-    out = np.zeros(n)
+    out = zeros(n, np.float64)
     for t in range(n):
         if not where[t]:
             continue

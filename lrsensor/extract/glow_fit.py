@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import empty, full, inline, njit, zeros
 
 #: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
 ITERATIONS = 4
@@ -204,12 +204,12 @@ def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_
         min_sig,
         max_sig,
         sat_dn,
-        np.empty((kk, kk)),
-        np.empty(kk),
-        np.empty(kk),
-        np.empty(N_LIN),
-        np.empty(kk, np.int64),
-        np.empty((N_LIN + 5, y.size)),
+        empty((kk, kk), np.float64),
+        empty(kk, np.float64),
+        empty(kk, np.float64),
+        empty(N_LIN, np.float64),
+        empty(kk, np.int64),
+        empty((N_LIN + 5, y.size), np.float64),
         False,
         d_rc,
         kap_k,
@@ -412,26 +412,26 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     n = cols.size
     v_out = v_init.copy()
     s_out = s_init.copy()
-    fitted = np.zeros(n, np.bool_)
-    last_c = np.full(n, np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
-    last_s = np.full(n, np.nan)
-    last_side = np.zeros(n)
-    lin_t = np.zeros((n, N_LIN))  # each point's last fit's linear parameters
-    rss = np.full(n, np.nan)
-    dof = np.full(n, np.nan)
-    steps = np.zeros((2, n))
+    fitted = zeros(n, np.bool_)
+    last_c = full(n, np.nan, np.float64)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
+    last_s = full(n, np.nan, np.float64)
+    last_side = zeros(n, np.float64)
+    lin_t = zeros((n, N_LIN), np.float64)  # each point's last fit's linear parameters
+    rss = full(n, np.nan, np.float64)
+    dof = full(n, np.nan, np.float64)
+    steps = zeros((2, n), np.float64)
     k_max = 1  # the longest window's rows
     for t in range(n):
         k_max = max(k_max, 2 * hw[t] + 1)
-    y = np.empty(k_max)
-    q = np.empty(k_max)
+    y = empty(k_max, np.float64)
+    q = empty(k_max, np.float64)
     kk = N_LIN + 2
-    M = np.empty((kk, kk))
-    b = np.empty(kk)
-    xr = np.empty(kk)
-    lin = np.empty(N_LIN)
-    par = np.empty(kk, np.int64)
-    work = np.empty((N_LIN + 5, k_max))
+    M = empty((kk, kk), np.float64)
+    b = empty(kk, np.float64)
+    xr = empty(kk, np.float64)
+    lin = empty(N_LIN, np.float64)
+    par = empty(kk, np.int64)
+    work = empty((N_LIN + 5, k_max), np.float64)
     for rnd in range(n_rounds):
         v1 = v_out.copy()
         s1 = s_out.copy()

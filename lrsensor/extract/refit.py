@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import empty, full, inline, njit
 from .columns import put_fit, take
 from .fit import fit_columns
 
@@ -27,8 +27,8 @@ from .fit import fit_columns
 def rows_overlap(laser, v, good, n_lasers, max_dist):  # type: ignore[no-untyped-def]
     """Whether the row ranges of two lasers' ``good`` points come within ``max_dist`` of each other (else no point
     has an other-laser neighbour for :func:`refit_targets`: a cheap test that spares its dense arrays)."""
-    lo = np.full(n_lasers, np.inf)
-    hi = np.full(n_lasers, -np.inf)
+    lo = full(n_lasers, np.inf, np.float64)
+    hi = full(n_lasers, -np.inf, np.float64)
     n = v.size
     t = 0
     while t < n:  # runs of one laser (the points are sorted by laser): each run's bounds kept in registers
@@ -100,7 +100,7 @@ def read_reach(sig, sat, near, far, wide_sigma):  # type: ignore[no-untyped-def]
 def point_table(laser, cols, n_lasers, width):  # type: ignore[no-untyped-def]
     """The index of the point of each laser and column, (L, W) int32 (-1 = none; the points of
     :func:`lrsensor.extract.frame.locate_candidates` are one per laser and column)."""
-    at = np.full((n_lasers, width), -1, np.int32)
+    at = full((n_lasers, width), -1, np.int32)
     for t in range(laser.size):
         at[laser[t], cols[t]] = t
     return at
@@ -131,9 +131,9 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     near, far, wide_sigma = read
     n_lasers = at.shape[0]
     n = min(v.size, n_lasers * look.size)
-    cand = np.empty(n, np.int64)
-    nbj = np.empty(n, np.int64)
-    arg = np.empty(n)  # the log of the neighbour's Gaussian at the nearest row read, the flanks' scaled
+    cand = empty(n, np.int64)
+    nbj = empty(n, np.int64)
+    arg = empty(n, np.float64)  # the log of the neighbour's Gaussian at the nearest row read, the flanks' scaled
     m = 0
     for li in range(n_lasers):  # laser by laser, columns in order: the points' order
         for c in look:
@@ -166,10 +166,10 @@ def refit_targets(laser, cols, v, amp, sig, sat, good, at, max_dist, read, look,
     for i in range(m):
         amp_top = max(amp_top, amp[nbj[i]])
     lowest = math.log(NEIGHBOUR_TAIL / amp_top) - 1e-6 if amp_top > 0.0 else np.inf
-    idx = np.empty(m, np.int64)
-    nb_v = np.empty(m)
-    nb_a = np.empty(m)
-    nb_s = np.empty(m)
+    idx = empty(m, np.int64)
+    nb_v = empty(m, np.float64)
+    nb_a = empty(m, np.float64)
+    nb_s = empty(m, np.float64)
     k = 0
     for i in range(m):
         t = cand[i]

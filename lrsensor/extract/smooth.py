@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ._jit import inline, njit
+from ._jit import arange, empty, full, inline, njit, zeros
 from .sorting import median
 
 #: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
@@ -116,7 +116,7 @@ def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, va
 def smooth_runs(y, run, scales):  # type: ignore[no-untyped-def]
     """Edge-preserving local linear smoothing (the reference's is :func:`lrsensor.extract.reference_finish.smooth`):
     :func:`smooth_runs_at` with the columns' own indices as their coordinates."""
-    return smooth_runs_at(y, np.arange(y.size).astype(np.float64), run, scales)
+    return smooth_runs_at(y, arange(y.size, np.float64), run, scales)
 
 
 @njit
@@ -140,8 +140,8 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
     for q in range(n):
         n_run = max(n_run, run[q] + 1)
         n_have += run[q] >= 0
-    first = np.full(max(n_run, 1), n, np.int64)
-    last = np.full(max(n_run, 1), -1, np.int64)
+    first = full(max(n_run, 1), n, np.int64)
+    last = full(max(n_run, 1), -1, np.int64)
     prev = -1
     for q in range(n):  # (a run's first column where its label first appears: no load of what was just stored)
         r = run[q]
@@ -152,8 +152,8 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
             last[r] = q
     # local noise: lag-4 second differences inside runs (branch-free over all columns; compacted for the pooled
     # median only where a window needs it)
-    d2 = np.zeros(n)
-    cnt2 = np.zeros(n)
+    d2 = zeros(n, np.float64)
+    cnt2 = zeros(n, np.float64)
     ul = np.uint64(lag)
     nv = 0
     for q in range(lag, n - lag):  # unsigned indices: no wrap-around test, the loop vectorizes
@@ -167,14 +167,14 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
     if nv < 8:
         return out
     var_all = np.nan  # the pooled noise: only windows with fewer than 5 samples of their own use it (computed then)
-    c_m = np.empty(n + 1)  # running sums: every element is written below
-    c_mx = np.empty(n + 1)
-    c_mxx = np.empty(n + 1)
-    c_z = np.empty(n + 1)
-    c_zx = np.empty(n + 1)
-    c_zz = np.empty(n + 1)
-    c_d2 = np.empty(n + 1)
-    c_n2 = np.empty(n + 1)
+    c_m = empty(n + 1, np.float64)  # running sums: every element is written below
+    c_mx = empty(n + 1, np.float64)
+    c_mxx = empty(n + 1, np.float64)
+    c_z = empty(n + 1, np.float64)
+    c_zx = empty(n + 1, np.float64)
+    c_zz = empty(n + 1, np.float64)
+    c_d2 = empty(n + 1, np.float64)
+    c_n2 = empty(n + 1, np.float64)
     c_m[0] = c_mx[0] = c_mxx[0] = c_z[0] = c_zx[0] = c_zz[0] = c_d2[0] = c_n2[0] = 0.0
     # the sums run in registers (read back from the arrays, each would wait on its own store); values relative to
     # the first of their run
@@ -202,10 +202,10 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
         c_d2[q + 1] = s_d2
         c_n2[q + 1] = s_n2
     done = ~have
-    a_c = np.empty(n)
-    b_c = np.empty(n)
-    rss_c = np.empty(n)
-    acc_c = np.zeros(n, np.bool_)
+    a_c = empty(n, np.float64)
+    b_c = empty(n, np.float64)
+    rss_c = empty(n, np.float64)
+    acc_c = zeros(n, np.bool_)
     left = n_have  # columns still to do
     for k in scales:
         if left == 0:
@@ -237,7 +237,7 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
                 for i in range(i0, i1):
                     few |= c_n2[i + 2 * k + 1] - c_n2[i] < 5
                 if few:
-                    vals = np.empty(n)
+                    vals = empty(n, np.float64)
                     m = 0
                     for q in range(lag, n - lag):
                         if cnt2[q] > 0.0:
@@ -261,8 +261,8 @@ def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, x, 
     vectorize.
     """
     span = u_hi - u_lo + 1
-    best = np.full(span, np.inf)
-    val = np.full(span, np.nan)
+    best = full(span, np.inf, np.float64)
+    val = full(span, np.nan, np.float64)
     for sh in (0, -k, k):
         a0 = max(u_lo, k - sh, f + k - sh)  # window of centre c = u + sh from c - k >= max(0, f)
         a1 = min(u_hi + 1, n - k - sh, la - k - sh + 1)  # to c + k <= min(n - 1, la)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import inline
+from ._jit import empty, inline
 
 
 @inline
@@ -51,7 +51,7 @@ def median(a):  # type: ignore[no-untyped-def]
     """``np.median`` of a non-empty 1-D array ``a`` as numba computes it (NaN ordered last): the middle value, or
     the mean of the two middle values, of its sorted order (:func:`select` on a copy of its values)."""
     n = a.size
-    x = np.empty(n)
+    x = empty(n, np.float64)
     m = 0
     for i in range(n):  # NaN last: the values first
         if a[i] == a[i]:
