@@ -108,7 +108,7 @@ import math
 
 import numpy as np
 
-from ._jit import full, inline, njit, zeros
+from ._jit import empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
 
@@ -148,10 +148,13 @@ RAMP_EVERY = 4
 #: sampled test decides alone where the ramp is plainly not asked for; near the bar, the whole stretch decides).
 RAMP_MARGIN = 0.5
 #: The water's attenuation (1/m) that shapes the glow (:func:`.glow_fit.sheet_edge`) is the one of these whose step
-#: fits at every ALPHA_EVERY-th column's glowing points have the least residual sum of squares, refined by a
+#: fits at a sample of the glowing points have the least residual sum of squares, refined by a
 #: parabola through it and its neighbours (0: a flat glow, the plain step; turbid harbour water is 0.5-2 /m).
 ALPHA_GRID = (0.0, 0.1, 0.2, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2)
-ALPHA_EVERY = 16
+#: ... at ALPHA_SAMPLE points of each laser's stripe (the strongest of as many stretches of its glowing columns): the
+#: attenuation and the stripe's width are the water's, one each for the frame, so a sample tells them and every
+#: point is then fitted once with both held.
+ALPHA_SAMPLE = 32
 #: ... on windows of at least this many rows either side (at 3 m with 4 px of blur, the stripe's own 14 read 0.16 /m
 #: for the model's 0.3, 20-26 rows 0.30-0.31).
 ALPHA_HALF_PX = 22
@@ -383,75 +386,47 @@ def glow_refit(  # type: ignore[no-untyped-def]
     ramp_on = np.array([False, True])
     n_rounds = np.array([1, ROUNDS])
     # the glow's shape: the sheet's, with the water's attenuation one number for the frame (:func:`_attenuation`)
-    d_rc = np.ones(n)
-    k_pt = np.zeros(n)
+    d_rc = full(n, 1.0, np.float64)
+    k_pt = zeros(n, np.float64)
     for t in range(n):
         if fit_me[t]:
             d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
             k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
-    alpha = _attenuation(
-        image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
-        sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
+    alpha, s_w = _attenuation(
+        image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
     )  # fmt: skip
     kap_k = alpha * k_pt
-    v0, s0, f0, rss0, _d0, st0 = fit_rounds(
-        image,
-        cols,
-        laser,
-        at,
-        vv,
-        sig,
-        vv,
-        sig,
-        nb_ok,
-        nb0,
-        fit_me,
-        glowing,
-        side,
-        rc,
-        hw,
-        reach_rows,
-        sg0,
-        lo_sig,
-        max_sig,
-        sat_dn,
-        ramp_on[0],
-        n_rounds[1],
-        d_rc,
-        kap_k,
-    )
-    if alpha > 0.0:  # the blur is the water's: the glowing fits refitted with the width their stripes share
-        n_g = 0
+    # the glowing points fitted with the stripe's width held at the sample's (the blur is the water's: a free width
+    # trades itself for the glow's growth at the dim columns), the others (stripes beside another's) free
+    hold = zeros(n, np.bool_)
+    if s_w > 0.0:
         for t in range(n):
-            n_g += f0[t] and glowing[t]
-        if n_g >= 16:
-            pool = np.empty(n_g)
-            k = 0
-            for t in range(n):
-                if f0[t] and glowing[t]:
-                    pool[k] = s0[t]
-                    k += 1
-            s_w = np.median(pool)
-            hold = fit_me & glowing
-            for t in range(n):
-                if hold[t]:
+            if fit_me[t] and glowing[t]:
+                hw_t = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
+                if rc[t] - hw_t >= 0 and rc[t] + hw_t <= h - 1:
+                    hold[t] = True
                     sg0[t] = s_w
-                    hw[t] = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
-                    hold[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
-            v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
-                image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
-                s_w, s_w, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
-            )  # fmt: skip
-            for t in range(n):
-                if hold[t]:
-                    f0[t] = f_h[t]
-                    if f_h[t]:
-                        v0[t] = v_h[t]
-                        s0[t] = s_h[t]
-                        rss0[t] = rss_h[t]
-                        _d0[t] = d_h[t]
-                        st0[0, t] = st_h[0, t]
-                        st0[1, t] = st_h[1, t]
+                    hw[t] = hw_t
+    free = fit_me & ~hold
+    v0, s0, f0, rss0, _d0, st0 = fit_rounds(
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+    )  # fmt: skip
+    if s_w > 0.0:
+        v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+        )  # fmt: skip
+        for t in range(n):
+            if hold[t]:
+                f0[t] = f_h[t]
+                v0[t] = v_h[t]
+                s0[t] = s_h[t]
+                rss0[t] = rss_h[t]
+                _d0[t] = d_h[t]
+                st0[0, t] = st_h[0, t]
+                st0[1, t] = st_h[1, t]
     strong = zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -470,7 +445,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # all of them passes it (none strong, as beside another laser's stripe without a glow: the step model stands)
     take = zeros(n, np.bool_)
     v3, s3, rss3, dof3, _st3 = v0, s0, rss0, _d0, st0
-    if strong.any():
+    if strong.any() and alpha <= 0.0:  # (the sheet's shape, where it is known, is the glow's growth)
         sample = zeros(n, np.bool_)
         for t in range(n):
             sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
@@ -510,77 +485,139 @@ def glow_refit(  # type: ignore[no-untyped-def]
 
 @njit
 def _attenuation(  # type: ignore[no-untyped-def]
-    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
-    sat_dn, ramp, n_rounds, d_rc, k_pt,
+    image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+    max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
 ):
-    """The water's attenuation (1/m) for the glow's shape (0: none can be told, a plain step): the step model fitted
-    at the glowing points of every :data:`ALPHA_EVERY`-th column with each of :data:`ALPHA_GRID` (``n_rounds[1]``
-    rounds, so that close pairs settle, then one more from there: a fit's residual sum is its last step's start),
-    compared over the points fitted at every attenuation that most of them fit at (too strong a growth fails the
-    fits) by the sum of the logarithms of their residual sums (a particle's column weighs no more than another);
-    the least, refined by a parabola through it and its neighbours."""
+    """``(alpha, sigma)``: the water's attenuation (1/m) for the glow's shape and the stripe's width, px, for the
+    frame (0, 0: none can be told; a plain step, each point's own width). Told at a sample: on each laser's stripe the
+    strongest glowing point of each of :data:`ALPHA_SAMPLE` stretches of its glowing columns, on windows of at least
+    :data:`ALPHA_HALF_PX` rows either side (a short window trades the glow's growth for the width). There the step
+    model is fitted with each of :data:`ALPHA_GRID` (``n_rounds[1]`` rounds, so that close pairs settle, then one
+    more from there: a fit's residual sum is its last step's start), compared over the points fitted at every
+    attenuation that most of them fit at (too strong a growth fails the fits) by the sum of the logarithms of their
+    residual sums (a particle's column weighs no more than another); the least, refined at the midpoints either side
+    and by a parabola through the least and its neighbours. The width is the median of the sample's fits with it."""
     n = cols.size
     h = image.shape[0]
-    sample = np.zeros(n, np.bool_)
+    n_l = at.shape[0]
+    w = at.shape[1]
+    sample = zeros(n, np.bool_)
+    elig = zeros(n, np.bool_)
     hw = hw.copy()
     n_s = 0
+    for li in range(n_l):
+        m = 0
+        for cc in range(w):
+            t = at[li, cc]
+            if t >= 0 and fit_me[t] and glowing[t] and k_pt[t] > 0.0:
+                h_t = max(hw[t], ALPHA_HALF_PX)
+                elig[t] = rc[t] - h_t >= 0 and rc[t] + h_t <= h - 1
+                m += elig[t]
+        if m == 0:
+            continue
+        k = 0
+        best = -1
+        b_prev = 0
+        for cc in range(w):
+            t = at[li, cc]
+            if t < 0 or not elig[t]:
+                continue
+            bin_k = k * ALPHA_SAMPLE // m
+            if bin_k != b_prev and best >= 0:
+                sample[best] = True
+                best = -1
+            b_prev = bin_k
+            if best < 0 or amp[t] > amp[best]:
+                best = t
+            k += 1
+        if best >= 0:
+            sample[best] = True
     for t in range(n):
-        sample[t] = fit_me[t] and glowing[t] and k_pt[t] > 0.0 and cols[t] % ALPHA_EVERY == 0
-        if sample[t]:  # a window long enough to show the glow's growth (a short one trades it for the width)
+        if sample[t]:
             hw[t] = max(hw[t], ALPHA_HALF_PX)
-            sample[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
-        n_s += sample[t]
+            n_s += 1
     if n_s == 0:
-        return 0.0
+        return 0.0, 0.0
     n_a = len(ALPHA_GRID)
-    grid = np.empty(n_a)
+    grid = empty(n_a, np.float64)
     for i in range(n_a):
         grid[i] = ALPHA_GRID[i]
-    tot, use = _alpha_scores(
+    rss_a, fit_a, use = _alpha_fits(
         grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
         lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
     )  # fmt: skip
+    tot = _alpha_total(rss_a, fit_a, use, sample)
     b = 0
     for i in range(1, n_a):
         if tot[i] < tot[b]:
             b = i
     if math.isinf(tot[b]):
-        return 0.0
-    if b == 0 or b == n_a - 1 or not (use[b - 1] and use[b + 1]):
-        return grid[b]
-    # finer: the midpoints either side of the least, then a parabola through the least of the five and its neighbours
-    fine = np.array([grid[b - 1], 0.5 * (grid[b - 1] + grid[b]), grid[b], 0.5 * (grid[b] + grid[b + 1]), grid[b + 1]])
-    tot, use = _alpha_scores(
-        fine, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
-        lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+        return 0.0, 0.0
+    alpha = grid[b]
+    if 0 < b < n_a - 1 and use[b - 1] and use[b + 1]:
+        # finer: the midpoints either side of the least fitted too, the five scored together (the sums run over
+        # the points fitted at each), then a parabola through the least of them and its neighbours
+        fine = empty(5, np.float64)
+        fine[0], fine[2], fine[4] = grid[b - 1], grid[b], grid[b + 1]
+        fine[1] = 0.5 * (grid[b - 1] + grid[b])
+        fine[3] = 0.5 * (grid[b] + grid[b + 1])
+        rss_m, fit_m, use_m = _alpha_fits(
+            fine[1::2].copy(), image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw,
+            reach_rows, sg0, lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+        )  # fmt: skip
+        rss_f = empty((5, n), np.float64)
+        fit_f = empty((5, n), np.bool_)
+        f_use = empty(5, np.bool_)
+        for i in range(5):
+            src = b - 1 + i // 2
+            rss_f[i] = rss_m[i // 2] if i % 2 else rss_a[src]
+            fit_f[i] = fit_m[i // 2] if i % 2 else fit_a[src]
+            f_use[i] = use_m[i // 2] if i % 2 else use[src]
+        f_tot = _alpha_total(rss_f, fit_f, f_use, sample)
+        c = 1
+        for i in (2, 3):
+            if f_tot[i] < f_tot[c]:
+                c = i
+        alpha = fine[c]
+        if not math.isinf(f_tot[c]) and f_use[c - 1] and f_use[c + 1]:
+            x0, x1, x2 = fine[c - 1], fine[c], fine[c + 1]
+            y0, y1, y2 = f_tot[c - 1], f_tot[c], f_tot[c + 1]
+            # the parabola's vertex (within the neighbours: the middle one is the least)
+            den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+            pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+            pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+            alpha = min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
+    # the stripe's width: the sample fitted with that attenuation
+    _v, s1, f1, _r, _d, _st = fit_rounds(
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt,
     )  # fmt: skip
-    b = 1
-    for i in (2, 3):
-        if tot[i] < tot[b]:
-            b = i
-    if math.isinf(tot[b]) or not (use[b - 1] and use[b + 1]):
-        return fine[b]
-    x0, x1, x2 = fine[b - 1], fine[b], fine[b + 1]
-    y0, y1, y2 = tot[b - 1], tot[b], tot[b + 1]
-    # the parabola's vertex (within the neighbours: the middle one is the least)
-    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-    pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
-    pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
-    return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
+    n_f = 0
+    for t in range(n):
+        n_f += f1[t]
+    if alpha <= 0.0 or n_f < 16:
+        return alpha, 0.0
+    pool = empty(n_f, np.float64)
+    k = 0
+    for t in range(n):
+        if f1[t]:
+            pool[k] = s1[t]
+            k += 1
+    return alpha, float(np.median(pool))
 
 
 @njit
-def _alpha_scores(  # type: ignore[no-untyped-def]
+def _alpha_fits(  # type: ignore[no-untyped-def]
     grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
 ):
-    """:func:`_attenuation`'s score of each attenuation in ``grid``: the summed log residuals over the sample's points
-    fitted at every attenuation that most of them fit at (``use``); inf where none is."""
+    """:func:`_attenuation`'s fits at each attenuation in ``grid``: ``(rss, fitted, use)``, (A, N) each and (A,):
+    the residual sums, the fits taken and whether most of the sample fits at that attenuation."""
     n = cols.size
     n_a = grid.size
-    rss_a = np.zeros((n_a, n))
-    fit_a = np.zeros((n_a, n), np.bool_)
-    use = np.zeros(n_a, np.bool_)
+    rss_a = zeros((n_a, n), np.float64)
+    fit_a = zeros((n_a, n), np.bool_)
+    use = zeros(n_a, np.bool_)
     for i in range(n_a):
         kap = grid[i] * k_pt
         v1, s1, f1, _r, _d, _st = fit_rounds(
@@ -601,7 +638,15 @@ def _alpha_scores(  # type: ignore[no-untyped-def]
             rss_a[i, t] = rss[t]
             n_f += fit_a[i, t]
         use[i] = n_f >= ALPHA_SHARE * n_s
-    tot = np.full(n_a, np.inf)
+    return rss_a, fit_a, use
+
+
+@njit
+def _alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
+    """The scores of :func:`_alpha_fits`' rows: summed log residuals over the sample's points fitted at every row
+    that most of them fit at (``use``); inf where none is."""
+    n_a, n = rss_a.shape
+    tot = full(n_a, np.inf, np.float64)
     for t in range(n):
         every = sample[t]
         for i in range(n_a):
@@ -611,7 +656,7 @@ def _alpha_scores(  # type: ignore[no-untyped-def]
         for i in range(n_a):
             if use[i]:
                 tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + math.log(rss_a[i, t])
-    return tot, use
+    return tot
 
 
 @inline

@@ -245,9 +245,11 @@ def fit_into(  # type: ignore[no-untyped-def]
             continue
         par[n_lin] = a
         n_lin += 1
+    # (a held width, min_sig == max_sig, is no parameter: the centre's step is then the one with the width fixed)
+    free_s = min_sig < max_sig
     par[n_lin] = N_LIN
     par[n_lin + 1] = N_LIN + 1
-    kk = n_lin + 2
+    kk = n_lin + 2 if free_s else n_lin + 1
     for a in range(N_LIN + 2):
         xr[a] = 0.0
     if not warm:
@@ -313,7 +315,9 @@ def fit_into(  # type: ignore[no-untyped-def]
                     xr[N_LIN] = lin[2] * gz * z * inv_sg - side * (lin[3] * b_t + lin[4] * f + 2.0 * lin[5] * rmp)
                     xr[N_LIN + 1] = lin[2] * gz * z * z * inv_sg + lin[3] * b_s + lin[4] * ph + 2.0 * lin[5] * sg * f
                 else:
-                    xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
+                    xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (
+                        lin[4] * f + 2.0 * lin[5] * rmp
+                    )
                     xr[N_LIN + 1] = (
                         (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
                     )
@@ -338,7 +342,7 @@ def fit_into(  # type: ignore[no-untyped-def]
         for a in range(n_lin):
             lin[par[a]] += b[a]
         dc = min(max(b[n_lin], -MAX_STEP_PX), MAX_STEP_PX)
-        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg
+        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg if free_s else 0.0
         c += dc
         sg += ds
         if abs(dc) <= STOP_PX and abs(ds) <= STOP_PX:
