@@ -304,6 +304,7 @@ def test_the_gate_takes_the_joint_fits_amplitude_and_noise() -> None:
     out = reference_glow.glow_refit(
         image, cols, np.zeros(n, np.int64), np.zeros((1, 8), np.int64), np.full(n, 30.0), np.full(n, 20.0),
         np.full(n, 2.0), np.zeros(n, bool), np.ones(n, bool), np.full(n, 1.5), np.array([1.0]), 0.5, 8.0, 250.0, 1.5,
+        np.zeros((1, 8)), np.zeros((1, 8)),
     )  # fmt: skip
     assert not out[2].any()
     np.testing.assert_array_equal(out[3], 20.0)

@@ -160,6 +160,10 @@ ALPHA_SAMPLE = 32
 ALPHA_HALF_PX = 22
 #: ... among the attenuations at which at least this share of those points fit.
 ALPHA_SHARE = 0.75
+#: The sheet's shape is fitted only where the glowing stripes' mean width is at least this, px (on a narrower
+#: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
+#: for the model's 0.3, and the step with its ramp read the wall better).
+SHAPE_MIN_SIGMA = 3.0
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -392,10 +396,18 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if fit_me[t]:
             d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
             k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
-    alpha, s_w = _attenuation(
-        image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
-    )  # fmt: skip
+    s_sum = 0.0  # (only on blurred stripes: SHAPE_MIN_SIGMA)
+    s_cnt = 0.0
+    for t in range(n):
+        if fit_me[t] and glowing[t]:
+            s_sum += sg0[t]
+            s_cnt += 1.0
+    alpha, s_w = 0.0, 0.0
+    if s_cnt > 0.0 and s_sum >= SHAPE_MIN_SIGMA * s_cnt:
+        alpha, s_w = _attenuation(
+            image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+            max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
+        )  # fmt: skip
     kap_k = alpha * k_pt
     # the glowing points fitted with the stripe's width held at the sample's (the blur is the water's: a free width
     # trades itself for the glow's growth at the dim columns), the others (stripes beside another's) free

@@ -13,6 +13,10 @@ from numpy.typing import NDArray
 
 from . import glow_fit
 from .glow import (
+    ALPHA_GRID,
+    ALPHA_HALF_PX,
+    ALPHA_SAMPLE,
+    ALPHA_SHARE,
     F_SELECT,
     MAX_HALF_PX,
     MEDIAN_VAR,
@@ -23,6 +27,7 @@ from .glow import (
     RAMP_EVERY,
     RAMP_MARGIN,
     RAMP_MIN_STEP,
+    SHAPE_MIN_SIGMA,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
@@ -38,6 +43,7 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _upper_tail: Any = getattr(glow_fit.upper_tail, "py_func", glow_fit.upper_tail)
+_sheet_edge: Any = getattr(glow_fit.sheet_edge, "py_func", glow_fit.sheet_edge)
 _INV_SQRT_2PI = 0.3989422804014327
 #: Columns of the linear parameters: background level and slope, stripe, glow step, glow ramp, neighbour.
 _A, _G, _R, _Q, _N, _NG = 2, 3, 4, 5, 6, 7
@@ -75,6 +81,8 @@ def fit_profiles(
     ramp: bool = True,
     lin0: FloatArray | None = None,
     warm: BoolArray | None = None,
+    d_rc: FloatArray | None = None,
+    kap_k: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
@@ -85,8 +93,12 @@ def fit_profiles(
     the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
     Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
     (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom and linear
-    parameters."""
+    parameters. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape (:func:`lrsensor.extract.glow_fit.fit_one`; default
+    none, the plain step); ``min_sig == max_sig``: the width held, no parameter."""
     n, k_rows = Y.shape
+    d_rc = np.ones(n) if d_rc is None else d_rc
+    kap_k = np.zeros(n) if kap_k is None else kap_k
+    shaped = (kap_k > 0.0)[:, None]
     glow_on = np.ones(n, bool) if use_glow is None else use_glow
     mask = mask * (sat_dn > Y)  # clipped samples left out
     q = (np.arange(k_rows) - k_rows // 2).astype(np.float64)[None, :]
@@ -103,6 +115,8 @@ def fit_profiles(
         active[np.ix_(drop, np.array(cols))] = False
     if not ramp:
         active[:, [_R, _Q]] = False
+    if not min_sig < max_sig:
+        active[:, N_LIN + 1] = False
     warm = np.zeros(n, bool) if warm is None else warm
     live = np.ones(n, bool)  # the fits still stepping (the others' steps are below STOP_PX: they stay)
     rss = np.full(n, np.nan)
@@ -115,18 +129,25 @@ def fit_profiles(
         ph = gz * _INV_SQRT_2PI
         R = sg[:, None] * (u * F + ph)  # the blurred edge of a glow that grows linearly outward (px)
         Qd = sg[:, None] ** 2 * ((u * u + 1.0) * F + u * ph)  # ... quadratically
+        d_e = np.maximum(d_rc + side * c, 1.0)[:, None]
+        with np.errstate(invalid="ignore", over="ignore"):
+            B, B_t, B_s = _sheet_edge(u * sg[:, None], u, F, ph, sg[:, None], d_e, (kap_k[:, None] / d_e))
+        G = np.where(shaped, B, F)  # the glow's column: the sheet's shape where it is known
         d = (q - np.where(has_nb, nb_c, 0.0)[:, None]) / nb_s[:, None]
         N = np.where(has_nb[:, None], np.exp(-0.5 * d * d), 0.0)
         ud = np.where(has_nb[:, None], nb_sd[:, None] * d, 0.0)  # the neighbour's own glow edge
         tail_d = _upper_tail(np.abs(ud), np.exp(-0.5 * ud * ud))
         NG = np.where(ud >= 0.0, 1.0 - tail_d, tail_d)
-        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, F, R, Qd, N, NG], axis=2)
+        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, G, R, Qd, N, NG], axis=2)
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
         else:  # a Gauss-Newton step in all of them
             A, g, gr, gq = lin[:, _A : _A + 1], lin[:, _G : _G + 1], lin[:, _R : _R + 1], lin[:, _Q : _Q + 1]
             dc = (A * gz * z - g * ph * s) / sg[:, None] - gr * s * F - 2.0 * gq * s * R
             ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
+            sh = shaped & glow_on[:, None]
+            dc = np.where(sh, A * gz * z / sg[:, None] - s * (g * B_t + gr * F + 2.0 * gq * R), dc)
+            ds = np.where(sh, A * gz * z * z / sg[:, None] + g * B_s + gr * ph + 2.0 * gq * sg[:, None] * F, ds)
             J = np.concatenate([X, dc[:, :, None], ds[:, :, None]], axis=2)
             r = Y - np.einsum("nik,nk->ni", X, lin)
             rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow_fit.fit_into says why)
@@ -298,8 +319,19 @@ def glow_refit(
     reach = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)
 
     def rounds(
-        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray, n_rounds: int = ROUNDS
+        ramp: bool,
+        todo: BoolArray,
+        v_init: FloatArray,
+        s_init: FloatArray,
+        n_rounds: int = ROUNDS,
+        kap: FloatArray | None = None,
+        hw: IntArray = hw,
+        vv: FloatArray = vv,
+        sg0: FloatArray = sg0,
+        lo_sig: float = lo_sig,
+        max_sig: float = max_sig,
     ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+        kap = kap_k if kap is None else kap
         v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
         steps = np.zeros((2, n))
@@ -360,6 +392,8 @@ def glow_refit(
                 ramp,
                 lin_t[idx],
                 warm,
+                d_rc[idx],
+                kap[idx],
             )
             with np.errstate(invalid="ignore"):
                 keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
@@ -383,9 +417,29 @@ def glow_refit(
             acc += np.where(j >= 0, values[:, np.maximum(j, 0)], 0.0)
         return acc
 
+    # the glow's shape: the sheet's, with the water's attenuation and the stripe's width told at a sample
+    # (glow._attenuation)
+    d_rc = np.where(todo, side * (rc - vanish[laser, cols]), 1.0)
+    k_pt = np.where(todo & (d_rc > 1.0), path_k[laser, cols], 0.0)
+    kap_k = np.zeros(n)
+    g_fit = todo & glowing
+    alpha, s_w = 0.0, 0.0
+    if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
+        alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+    kap_k = alpha * k_pt
+    hold = np.zeros(n, bool)
+    if s_w > 0.0:
+        hw_t = min(int(np.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)
+        hold = todo & glowing & (rc - hw_t >= 0) & (rc + hw_t <= h - 1)
+        sg0 = np.where(hold, s_w, sg0)
+        hw = np.where(hold, hw_t, hw)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, d0, st0 = rounds(False, todo, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0)
+    if s_w > 0.0:
+        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(False, hold, vv, sig, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w)
+        v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
+        rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
@@ -401,10 +455,14 @@ def glow_refit(
     # the ramp's F test, first per stretch at every RAMP_EVERY-th column's strong points; then at every strong point
     # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
     # (the sampled test in one round: glow_refit)
-    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0, 1)
-    maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0)
-    f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    # (not where the sheet's shape is in use: it is the glow's growth)
+    if alpha <= 0.0:
+        _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0, 1, hw=hw, sg0=sg0)
+        maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
+        v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0, hw=hw, sg0=sg0)
+        f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    else:
+        v3, s3, f3, rss3, dof3, st3 = v0, s0, np.zeros(n, bool), rss0, d0, st0
     # the gate's amplitude and noise: the fit taken's (glow.glow_refit)
     with np.errstate(divide="ignore", invalid="ignore"):
         n0 = np.sqrt(np.where(d0 > 0.0, rss0 / d0, np.nan))
@@ -413,3 +471,99 @@ def glow_refit(
     n_out = np.where(f3, n3, np.where(f0, n0, lnoise))
     n_out = np.where(np.isfinite(n_out), n_out, lnoise)
     return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3, a_out, n_out
+
+
+def _attenuation(
+    rounds: Any,
+    vv: FloatArray,
+    sig: FloatArray,
+    cols: IntArray,
+    laser: IntArray,
+    at: IntArray,
+    amp: FloatArray,
+    todo: BoolArray,
+    glowing: BoolArray,
+    k_pt: FloatArray,
+    rc: IntArray,
+    hw: IntArray,
+    sg0: FloatArray,
+    h: int,
+) -> tuple[float, float]:
+    """:func:`lrsensor.extract.glow._attenuation`: ``(alpha, sigma)`` of the frame from a sample (``rounds``: the
+    reference's fits)."""
+    n = cols.size
+    n_l = at.shape[0]
+    sample = np.zeros(n, bool)
+    h_a = np.maximum(hw, ALPHA_HALF_PX)
+    elig = todo & glowing & (k_pt > 0.0) & (rc - h_a >= 0) & (rc + h_a <= h - 1)
+    for li in range(n_l):
+        pts = at[li][at[li] >= 0]
+        pts = pts[elig[pts]]  # along the stripe's columns
+        m = pts.size
+        if m == 0:
+            continue
+        bins = np.arange(m) * ALPHA_SAMPLE // m
+        for b in np.unique(bins):
+            in_b = pts[bins == b]
+            sample[in_b[int(np.argmax(amp[in_b]))]] = True
+    n_s = int(sample.sum())
+    if n_s == 0:
+        return 0.0, 0.0
+    hw_s = np.where(sample, h_a, hw)
+
+    def fits(grid: FloatArray) -> tuple[FloatArray, BoolArray, BoolArray]:
+        rss_a = np.full((grid.size, n), np.nan)
+        fit_a = np.zeros((grid.size, n), bool)
+        for i, a in enumerate(grid):
+            kap = a * k_pt
+            v1, s1, f1, _r, _d, _st = rounds(False, sample, vv, sig, ROUNDS, kap, hw_s)
+            v1 = np.where(f1, v1, vv)
+            s1 = np.where(f1, s1, sg0)
+            _v, _s, f2, rss, _d2, _st2 = rounds(False, sample & f1, v1, s1, 1, kap, hw_s, v1, s1)
+            with np.errstate(invalid="ignore"):
+                fit_a[i] = sample & f1 & f2 & (rss > 0.0)
+            rss_a[i] = rss
+        return rss_a, fit_a, fit_a.sum(axis=1) >= ALPHA_SHARE * n_s
+
+    def total(rss_a: FloatArray, fit_a: BoolArray, use: BoolArray) -> FloatArray:
+        every = sample & np.all(fit_a | ~use[:, None], axis=0)
+        tot = np.full(use.size, np.inf)
+        if every.any():
+            with np.errstate(invalid="ignore"):
+                sums = np.log(np.where(every[None, :], rss_a, 1.0)).sum(axis=1)
+            tot = np.where(use, sums, np.inf)
+        return tot
+
+    grid = np.array(ALPHA_GRID, np.float64)
+    rss_a, fit_a, use = fits(grid)
+    tot = total(rss_a, fit_a, use)
+    b = int(np.argmin(tot))
+    if np.isinf(tot[b]):
+        return 0.0, 0.0
+    alpha = float(grid[b])
+    if 0 < b < grid.size - 1 and use[b - 1] and use[b + 1]:
+        fine = np.array(
+            [grid[b - 1], 0.5 * (grid[b - 1] + grid[b]), grid[b], 0.5 * (grid[b] + grid[b + 1]), grid[b + 1]]
+        )
+        rss_m, fit_m, use_m = fits(fine[1::2])
+        order = [(rss_a, fit_a, use, b - 1), (rss_m, fit_m, use_m, 0), (rss_a, fit_a, use, b), (rss_m, fit_m, use_m, 1),
+                 (rss_a, fit_a, use, b + 1)]  # fmt: skip
+        f_tot = total(
+            np.stack([r[k] for r, _f, _u, k in order]),
+            np.stack([f[k] for _r, f, _u, k in order]),
+            np.array([u[k] for _r, _f, u, k in order]),
+        )
+        f_use = np.array([u[k] for _r, _f, u, k in order])
+        c = 1 + int(np.argmin(f_tot[1:4]))
+        alpha = float(fine[c])
+        if not np.isinf(f_tot[c]) and f_use[c - 1] and f_use[c + 1]:
+            x0, x1, x2 = fine[c - 1], fine[c], fine[c + 1]
+            y0, y1, y2 = f_tot[c - 1], f_tot[c], f_tot[c + 1]
+            den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+            pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+            pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+            alpha = float(min(max(-pb / (2.0 * pa), x0), x2)) if pa > 0.0 else float(x1)
+    _v, s1, f1, _r, _d, _st = rounds(False, sample, vv, sig, ROUNDS, alpha * k_pt, hw_s)
+    if alpha <= 0.0 or f1.sum() < 16:
+        return alpha, 0.0
+    return alpha, float(np.median(s1[f1]))
