@@ -164,6 +164,9 @@ ALPHA_SHARE = 0.75
 #: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
 #: for the model's 0.3, and the step with its ramp read the wall better).
 SHAPE_MIN_SIGMA = 3.0
+#: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
+#: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
+SHAPE_MIN_STEP = 0.2
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -600,21 +603,25 @@ def _attenuation(  # type: ignore[no-untyped-def]
             pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
             alpha = min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
     # the stripe's width: the sample fitted with that attenuation
-    _v, s1, f1, _r, _d, _st = fit_rounds(
+    _v, s1, f1, _r, _d, st1 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
         max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt,
     )  # fmt: skip
     n_f = 0
     for t in range(n):
-        n_f += f1[t]
+        n_f += f1[t] and st1[0, t] > 0.0
     if alpha <= 0.0 or n_f < 16:
         return alpha, 0.0
     pool = empty(n_f, np.float64)
+    frac = empty(n_f, np.float64)
     k = 0
     for t in range(n):
-        if f1[t]:
+        if f1[t] and st1[0, t] > 0.0:
             pool[k] = s1[t]
+            frac[k] = st1[1, t] / st1[0, t]
             k += 1
+    if np.median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
+        return 0.0, 0.0
     return alpha, float(np.median(pool))
 
 

@@ -28,6 +28,7 @@ from .glow import (
     RAMP_MARGIN,
     RAMP_MIN_STEP,
     SHAPE_MIN_SIGMA,
+    SHAPE_MIN_STEP,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
@@ -563,7 +564,10 @@ def _attenuation(
             pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
             pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
             alpha = float(min(max(-pb / (2.0 * pa), x0), x2)) if pa > 0.0 else float(x1)
-    _v, s1, f1, _r, _d, _st = rounds(False, sample, vv, sig, ROUNDS, alpha * k_pt, hw_s)
+    _v, s1, f1, _r, _d, st1 = rounds(False, sample, vv, sig, ROUNDS, alpha * k_pt, hw_s)
+    f1 = f1 & (st1[0] > 0.0)
     if alpha <= 0.0 or f1.sum() < 16:
         return alpha, 0.0
+    if np.median(st1[1, f1] / st1[0, f1]) < SHAPE_MIN_STEP:  # a weak glow (glow.SHAPE_MIN_STEP)
+        return 0.0, 0.0
     return alpha, float(np.median(s1[f1]))
