@@ -167,6 +167,8 @@ SHAPE_MIN_SIGMA = 3.0
 #: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
 #: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
 SHAPE_MIN_STEP = 0.2
+#: Rounds of the fits with the width held (the other stripes start at the held width: the rounds settle sooner).
+HOLD_ROUNDS = 2
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -391,7 +393,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
     # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
     ramp_on = np.array([False, True])
-    n_rounds = np.array([1, ROUNDS])
+    n_rounds = np.array([1, ROUNDS, HOLD_ROUNDS])
     # the glow's shape: the sheet's, with the water's attenuation one number for the frame (:func:`_attenuation`)
     d_rc = full(n, 1.0, np.float64)
     k_pt = zeros(n, np.float64)
@@ -429,9 +431,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
         max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
     )  # fmt: skip
     if s_w > 0.0:
+        # (the other stripes with the held width from the first round: a common fit's width of a dim column is noise)
+        s_in = sig.copy()
+        for t in range(n):
+            if hold[t]:
+                s_in[t] = s_w
         v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
-            image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
-            s_w, s_w, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k,
         )  # fmt: skip
         for t in range(n):
             if hold[t]:

@@ -180,7 +180,10 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 
 
 @njit
-def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, d_rc=1.0, kap_k=0.0):  # type: ignore[no-untyped-def]
+def fit_one(  # type: ignore[no-untyped-def]
+    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, d_rc=1.0, kap_k=0.0, nb_d=1.0,
+    nb_kk=0.0,
+):
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
     centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
     the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
@@ -188,7 +191,8 @@ def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_
     sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares (at the last Gauss-Newton step's start) and
     degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out. ``d_rc``, ``kap_k``: the window's
     middle row's distance from the sheet's vanishing row (px, towards the glow) and the attenuation's growth times
-    the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step)."""
+    the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step); ``nb_d``, ``nb_kk``:
+    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``)."""
     kk = N_LIN + 2
     return fit_into(
         y,
@@ -213,13 +217,15 @@ def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_
         False,
         d_rc,
         kap_k,
+        nb_d,
+        nb_kk,
     )
 
 
 @njit
 def fit_into(  # type: ignore[no-untyped-def]
     y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm,
-    d_rc, kap_k,
+    d_rc, kap_k, nb_d, nb_kk,
 ):
     """:func:`fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
     (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
@@ -232,7 +238,9 @@ def fit_into(  # type: ignore[no-untyped-def]
     row by row, in the parameters the profile's model has, and sums the squared residuals at its start (the last
     pass's sum is the fit's: a converged step changes it by its square, and a pass of its own would cost as much as
     a step). With ``kap_k > 0`` the glow's column is the sheet's shape (:func:`sheet_edge`) at the edge's distance
-    from the vanishing row at each step (its change with the centre left out of the Jacobian)."""
+    from the vanishing row at each step (its change with the centre left out of the Jacobian); with ``nb_kk > 0`` the
+    other stripe's glow too (its edge ``nb_d`` px from its vanishing row: at 3 m its glow, outward of it, grows within
+    this window as fast as this stripe's)."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
     nb_glow = has_nb and nb_side != 0.0
@@ -261,6 +269,8 @@ def fit_into(  # type: ignore[no-untyped-def]
     g_nb = work[N_LIN + 4]
     if has_nb:  # the other stripe's Gaussian: held in the fit
         _gauss_rows(g_nb, q[0], k_rows, nb_c, 1.0 / nb_s)
+    nb_de = max(nb_d, 1.0)
+    nb_kap = nb_kk / nb_de
     rss = np.nan
     dof = -kk
     for i in range(k_rows):
@@ -305,7 +315,10 @@ def fit_into(  # type: ignore[no-untyped-def]
                 if nb_glow:
                     ud = nb_side * (q[i] - nb_c) / nb_s
                     td = upper_tail(abs(ud), gd)
-                    xr[7] = 1.0 - td if ud >= 0.0 else td
+                    fd = 1.0 - td if ud >= 0.0 else td
+                    if nb_kk > 0.0:  # (the other stripe is held: its shape's derivatives are not needed)
+                        fd = sheet_edge(ud * nb_s, ud, fd, gd * _INV_SQRT_2PI, nb_s, nb_de, nb_kap)[0]
+                    xr[7] = fd
             r = y[i]
             if full:
                 for j in range(N_LIN):
@@ -494,6 +507,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 warm,
                 d_rc[t],
                 kap_k[t],
+                d_rc[nb] + side[nb] * (v1[nb] - rc[nb]) if nb >= 0 else 1.0,
+                kap_k[nb] if nb >= 0 else 0.0,
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c

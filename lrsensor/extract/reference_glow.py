@@ -18,6 +18,7 @@ from .glow import (
     ALPHA_SAMPLE,
     ALPHA_SHARE,
     F_SELECT,
+    HOLD_ROUNDS,
     MAX_HALF_PX,
     MEDIAN_VAR,
     MIN_SIGMA_PX,
@@ -84,6 +85,8 @@ def fit_profiles(
     warm: BoolArray | None = None,
     d_rc: FloatArray | None = None,
     kap_k: FloatArray | None = None,
+    nb_d: FloatArray | None = None,
+    nb_kap: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
@@ -95,7 +98,9 @@ def fit_profiles(
     Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
     (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom and linear
     parameters. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape (:func:`lrsensor.extract.glow_fit.fit_one`; default
-    none, the plain step); ``min_sig == max_sig``: the width held, no parameter."""
+    none, the plain step); ``nb_d``, ``nb_kap`` (n,): the same for the other stripe's glow (its edge's distance from
+    its sheet's vanishing row and its ``kap d``; default none); ``min_sig == max_sig``: the width held, no
+    parameter."""
     n, k_rows = Y.shape
     d_rc = np.ones(n) if d_rc is None else d_rc
     kap_k = np.zeros(n) if kap_k is None else kap_k
@@ -139,6 +144,12 @@ def fit_profiles(
         ud = np.where(has_nb[:, None], nb_sd[:, None] * d, 0.0)  # the neighbour's own glow edge
         tail_d = _upper_tail(np.abs(ud), np.exp(-0.5 * ud * ud))
         NG = np.where(ud >= 0.0, 1.0 - tail_d, tail_d)
+        if nb_kap is not None and nb_d is not None:  # the other stripe's glow in the sheet's shape too
+            nd = np.maximum(nb_d, 1.0)[:, None]
+            with np.errstate(invalid="ignore", over="ignore"):
+                NB = _sheet_edge(ud * nb_s[:, None], ud, NG, np.exp(-0.5 * ud * ud) * _INV_SQRT_2PI, nb_s[:, None], nd,
+                                 nb_kap[:, None] / nd)[0]  # fmt: skip
+            NG = np.where((nb_kap > 0.0)[:, None], NB, NG)
         X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, G, R, Qd, N, NG], axis=2)
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
@@ -395,6 +406,8 @@ def glow_refit(
                 warm,
                 d_rc[idx],
                 kap[idx],
+                np.where(have, d_rc[nbc] + side[nbc] * (v1[nbc] - rc[nbc]), 1.0),
+                np.where(have, kap[nbc], 0.0),
             )
             with np.errstate(invalid="ignore"):
                 keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
@@ -438,7 +451,9 @@ def glow_refit(
     # over the stripe's peak), with the other stripes where the step model put them
     v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0)
     if s_w > 0.0:
-        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(False, hold, vv, sig, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w)
+        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
+            False, hold, vv, np.where(hold, s_w, sig), HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w
+        )
         v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
         rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)
     g_on = f0 & glowing
