@@ -32,6 +32,9 @@ class Sensor:
         stall): compile them in the background while the numpy reference processes the frames (said in the
         log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`."""
         self.calibration = calibration
+        # what the frames told of turbid water (the glow's attenuation and the stripe's width): the water changes
+        # slowly, so later frames take it (lrsensor.extract.glow.glow_refit)
+        self._water = np.array([0.0, 0.0, np.inf])
         if wait_for_kernels:
             _kernels.ensure()
         else:
@@ -55,7 +58,7 @@ class Sensor:
         """
         img = check_image(image, self.calibration)
         if method == "subpixel":  # the compiled kernels triangulate in the same call
-            det, xyz = (_POINTS or _load_points())(img, self.calibration, **options)
+            det, xyz = (_POINTS or _load_points())(img, self.calibration, water=self._water, **options)
             if xyz is not None:  # triangulated and depth-gated in the compiled call
                 return Scan(xyz, det.laser, det.uv, det.quality, method)
         else:

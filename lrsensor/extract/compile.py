@@ -148,7 +148,7 @@ def _build(part: str | None = None) -> None:
         place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        refine_and_finish(image, located, bands.glow_side, settings, g)
+        refine_and_finish(image, located, bands.glow_side, settings, g, np.zeros(3))
         # (the central view's callee: compiled in this part either way)
         triangulate_points_port(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,

@@ -35,6 +35,7 @@ from .glow import (
     TRIGGER_ROWS,
     TRIGGER_SIGMAS,
     TRIGGER_SNR,
+    WATER_FRAMES,
     WHOLE_STRIPE_FRAC,
     WINDOW_SIGMAS,
 )
@@ -241,6 +242,7 @@ def glow_refit(
     green_ratio: float,
     vanish: FloatArray,
     path_k: FloatArray,
+    water: FloatArray,
 ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
@@ -439,7 +441,12 @@ def glow_refit(
     g_fit = todo & glowing
     alpha, s_w = 0.0, 0.0
     if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
-        alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+        if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
+            alpha, s_w = float(water[0]), float(water[1])
+        else:
+            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+            water[:] = (alpha, s_w, 0.0)
+        water[2] += 1.0
     kap_k = alpha * k_pt
     hold = np.zeros(n, bool)
     if s_w > 0.0:
