@@ -111,6 +111,8 @@ import numpy as np
 from ._jit import empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
+from .water import alpha_total as _alpha_total
+from .water import retell, vertex
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -597,38 +599,8 @@ def _attenuation(  # type: ignore[no-untyped-def]
         return 0.0, 0.0
     alpha = grid[b]
     if 0 < b < n_a - 1 and use[b - 1] and use[b + 1]:
-        # finer: the midpoints either side of the least fitted too, the five scored together (the sums run over
-        # the points fitted at each), then a parabola through the least of them and its neighbours
-        fine = empty(5, np.float64)
-        fine[0], fine[2], fine[4] = grid[b - 1], grid[b], grid[b + 1]
-        fine[1] = 0.5 * (grid[b - 1] + grid[b])
-        fine[3] = 0.5 * (grid[b] + grid[b + 1])
-        rss_m, fit_m, use_m = _alpha_fits(
-            fine[1::2].copy(), image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw,
-            reach_rows, sg0, lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
-        )  # fmt: skip
-        rss_f = empty((5, n), np.float64)
-        fit_f = empty((5, n), np.bool_)
-        f_use = empty(5, np.bool_)
-        for i in range(5):
-            src = b - 1 + i // 2
-            rss_f[i] = rss_m[i // 2] if i % 2 else rss_a[src]
-            fit_f[i] = fit_m[i // 2] if i % 2 else fit_a[src]
-            f_use[i] = use_m[i // 2] if i % 2 else use[src]
-        f_tot = _alpha_total(rss_f, fit_f, f_use, sample)
-        c = 1
-        for i in (2, 3):
-            if f_tot[i] < f_tot[c]:
-                c = i
-        alpha = fine[c]
-        if not math.isinf(f_tot[c]) and f_use[c - 1] and f_use[c + 1]:
-            x0, x1, x2 = fine[c - 1], fine[c], fine[c + 1]
-            y0, y1, y2 = f_tot[c - 1], f_tot[c], f_tot[c + 1]
-            # the parabola's vertex (within the neighbours: the middle one is the least)
-            den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-            pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
-            pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
-            alpha = min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
+        # finer: the vertex of a parabola through the least and its neighbours (retell refines it)
+        alpha = vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1])
     # the stripe's width: the sample fitted with that attenuation
     _v, s1, f1, _r, _d, st1 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
@@ -649,7 +621,12 @@ def _attenuation(  # type: ignore[no-untyped-def]
             k += 1
     if np.median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
         return 0.0, 0.0
-    return alpha, float(np.median(pool))
+    s_w = float(np.median(pool))
+    hw_p = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
+    return retell(
+        image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
+        sat_dn, ramp, n_rounds, d_rc, k_pt, sample, n_s, alpha, s_w, hw_p, ALPHA_SHARE,
+    )  # fmt: skip
 
 
 @njit
@@ -685,24 +662,6 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
             n_f += fit_a[i, t]
         use[i] = n_f >= ALPHA_SHARE * n_s
     return rss_a, fit_a, use
-
-
-@njit
-def _alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
-    """The scores of :func:`_alpha_fits`' rows: summed log residuals over the sample's points fitted at every row
-    that most of them fit at (``use``); inf where none is."""
-    n_a, n = rss_a.shape
-    tot = full(n_a, np.inf, np.float64)
-    for t in range(n):
-        every = sample[t]
-        for i in range(n_a):
-            every = every and (fit_a[i, t] or not use[i])
-        if not every:
-            continue
-        for i in range(n_a):
-            if use[i]:
-                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + math.log(rss_a[i, t])
-    return tot
 
 
 @inline

@@ -40,12 +40,14 @@ from .glow import (
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
+from .water import WATER_POINTS, WATER_STEP, vertex
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _upper_tail: Any = getattr(glow_fit.upper_tail, "py_func", glow_fit.upper_tail)
+_vertex: Any = getattr(vertex, "py_func", vertex)
 _sheet_edge: Any = getattr(glow_fit.sheet_edge, "py_func", glow_fit.sheet_edge)
 _INV_SQRT_2PI = 0.3989422804014327
 #: Columns of the linear parameters: background level and slope, stripe, glow step, glow ramp, neighbour.
@@ -565,31 +567,78 @@ def _attenuation(
         return 0.0, 0.0
     alpha = float(grid[b])
     if 0 < b < grid.size - 1 and use[b - 1] and use[b + 1]:
-        fine = np.array(
-            [grid[b - 1], 0.5 * (grid[b - 1] + grid[b]), grid[b], 0.5 * (grid[b] + grid[b + 1]), grid[b + 1]]
-        )
-        rss_m, fit_m, use_m = fits(fine[1::2])
-        order = [(rss_a, fit_a, use, b - 1), (rss_m, fit_m, use_m, 0), (rss_a, fit_a, use, b), (rss_m, fit_m, use_m, 1),
-                 (rss_a, fit_a, use, b + 1)]  # fmt: skip
-        f_tot = total(
-            np.stack([r[k] for r, _f, _u, k in order]),
-            np.stack([f[k] for _r, f, _u, k in order]),
-            np.array([u[k] for _r, _f, u, k in order]),
-        )
-        f_use = np.array([u[k] for _r, _f, u, k in order])
-        c = 1 + int(np.argmin(f_tot[1:4]))
-        alpha = float(fine[c])
-        if not np.isinf(f_tot[c]) and f_use[c - 1] and f_use[c + 1]:
-            x0, x1, x2 = fine[c - 1], fine[c], fine[c + 1]
-            y0, y1, y2 = f_tot[c - 1], f_tot[c], f_tot[c + 1]
-            den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-            pa = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
-            pb = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
-            alpha = float(min(max(-pb / (2.0 * pa), x0), x2)) if pa > 0.0 else float(x1)
+        alpha = float(_vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1]))
     _v, s1, f1, _r, _d, st1 = rounds(False, sample, vv, sig, ROUNDS, alpha * k_pt, hw_s)
     f1 = f1 & (st1[0] > 0.0)
     if alpha <= 0.0 or f1.sum() < 16:
         return alpha, 0.0
     if np.median(st1[1, f1] / st1[0, f1]) < SHAPE_MIN_STEP:  # a weak glow (glow.SHAPE_MIN_STEP)
         return 0.0, 0.0
-    return alpha, float(np.median(s1[f1]))
+    return _retell(rounds, vv, sig, cols, at, todo, glowing, k_pt, rc, sg0, h, sample, n_s, hw_s, alpha,
+                   float(np.median(s1[f1])), total)  # fmt: skip
+
+
+def _retell(
+    rounds: Any,
+    vv: FloatArray,
+    sig: FloatArray,
+    cols: IntArray,
+    at: IntArray,
+    todo: BoolArray,
+    glowing: BoolArray,
+    k_pt: FloatArray,
+    rc: IntArray,
+    sg0: FloatArray,
+    h: int,
+    sample: BoolArray,
+    n_s: int,
+    hw_s: IntArray,
+    alpha: float,
+    s_w: float,
+    total: Any,
+) -> tuple[float, float]:
+    """:func:`lrsensor.extract.water.retell`: the attenuation and width told again with the sample's other stripes
+    where the told water puts them."""
+    n = cols.size
+    part = np.zeros(n, bool)
+    for li in range(at.shape[0]):
+        j = at[li, cols[sample]]
+        part[j[j >= 0]] = True
+    hw_p = min(int(np.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)
+    part &= todo & glowing & ~sample & (rc - hw_p >= 0) & (rc + hw_p <= h - 1)
+    hw_o = np.where(part, hw_p, hw_s)
+    vp, sp, fp, _r, _d, _st = rounds(
+        False, part, vv, np.where(part, s_w, sig), HOLD_ROUNDS, alpha * k_pt, hw_o, vv, np.where(part, s_w, sg0), s_w,
+        s_w,
+    )  # fmt: skip
+    v_o = np.where(fp, vp, vv)
+    s_o = np.where(fp, sp, sig)
+    sig_h = np.where(sample, s_w, s_o)
+    sg0_h = np.where(sample, s_w, sg0)
+    fine = alpha + WATER_STEP * (np.arange(WATER_POINTS) - WATER_POINTS // 2)
+    rss_a = np.full((fine.size, n), np.nan)
+    fit_a = np.zeros((fine.size, n), bool)
+    for i, a in enumerate(fine):
+        if a <= 0.0:
+            continue
+        kap = a * k_pt
+        v1, s1, f1, _r, _d, _st = rounds(False, sample, v_o, sig_h, ROUNDS, kap, hw_s, v_o, sg0_h, s_w, s_w)
+        v1 = np.where(f1, v1, v_o)
+        s1 = np.where(f1, s1, sg0_h)
+        _v, _s, f2, rss, _d2, _st2 = rounds(False, sample & f1, v1, sig_h, 1, kap, hw_s, v1, s1, s_w, s_w)
+        with np.errstate(invalid="ignore"):
+            fit_a[i] = sample & f1 & f2 & (rss > 0.0)
+        rss_a[i] = rss
+    use = fit_a.sum(axis=1) >= ALPHA_SHARE * n_s
+    tot = total(rss_a, fit_a, use)
+    c = int(np.argmin(tot))
+    if np.isinf(tot[c]):
+        return alpha, s_w
+    a2 = float(fine[c])
+    if 0 < c < fine.size - 1 and use[c - 1] and use[c + 1]:
+        a2 = float(_vertex(fine[c - 1], fine[c], fine[c + 1], tot[c - 1], tot[c], tot[c + 1]))
+    _v, s2, f2, _r, _d, st2 = rounds(False, sample, v_o, s_o, ROUNDS, a2 * k_pt, hw_s)
+    f2 = f2 & (st2[0] > 0.0)
+    if f2.sum() < 16:
+        return a2, s_w
+    return a2, float(np.median(s2[f2]))
