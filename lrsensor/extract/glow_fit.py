@@ -424,8 +424,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     :data:`ITERATIONS` steps, and continuing them moved the single columns' median by 0.05-0.1 px there).
     ``d_rc``, ``kap_k`` (N,): each point's window's distance from its sheet's vanishing row and its glow's growth
     (:func:`fit_one`).
-    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
-    steps (2, N)."""
+    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes, glow
+    steps and the log-determinants of the fits' last normal matrices (3, N; :func:`.water.retell` scores with them)."""
     n = cols.size
     v_out = v_init.copy()
     s_out = s_init.copy()
@@ -436,7 +436,7 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     lin_t = zeros((n, N_LIN), np.float64)  # each point's last fit's linear parameters
     rss = full(n, np.nan, np.float64)
     dof = full(n, np.nan, np.float64)
-    steps = zeros((2, n), np.float64)
+    steps = zeros((3, n), np.float64)
     k_max = 1  # the longest window's rows
     for t in range(n):
         k_max = max(k_max, 2 * hw[t] + 1)
@@ -517,6 +517,14 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 dof[t] = df
                 steps[0, t] = a_fit
                 steps[1, t] = g_fit
+                # (M holds the last step's Cholesky factor in its first n - dof rows: n the unclipped samples)
+                n_m = -int(df)
+                for i in range(k_rows):
+                    n_m += y[i] < sat_dn
+                ld = 0.0
+                for j in range(n_m):
+                    ld += 2.0 * math.log(M[j, j])
+                steps[2, t] = ld
                 fitted[t] = True
                 taken = True
                 for a in range(N_LIN):

@@ -90,7 +90,9 @@ def fit_profiles(
     kap_k: FloatArray | None = None,
     nb_d: FloatArray | None = None,
     nb_kap: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+) -> tuple[
+    FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray
+]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
     relative to the window's middle), glow side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``,
@@ -98,12 +100,12 @@ def fit_profiles(
     stripe beside another one, no glow), ``nb_side`` (n,) the side of the other stripe's glow (0: none, default),
     ``ramp``: the glow's linear and quadratic growth outward in the model; ``warm`` (n,): one Gauss-Newton step from
     the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
-    Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
-    (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom and linear
-    parameters. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape (:func:`lrsensor.extract.glow_fit.fit_one`; default
-    none, the plain step); ``nb_d``, ``nb_kap`` (n,): the same for the other stripe's glow (its edge's distance from
-    its sheet's vanishing row and its ``kap d``; default none); ``min_sig == max_sig``: the width held, no
-    parameter."""
+    Returns ``(c, sigma, A, g, ok, rss, dof, lin, ldet)``, (n,) each, (n, N_LIN) and (n,): the fit, its residual sum of
+    squares (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom, linear
+    parameters and the log-determinant of its last normal matrix. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape
+    (:func:`lrsensor.extract.glow_fit.fit_one`; default none, the plain step); ``nb_d``, ``nb_kap`` (n,): the same for
+    the other stripe's glow (its edge's distance from its sheet's vanishing row and its ``kap d``; default none);
+    ``min_sig == max_sig``: the width held, no parameter."""
     n, k_rows = Y.shape
     d_rc = np.ones(n) if d_rc is None else d_rc
     kap_k = np.zeros(n) if kap_k is None else kap_k
@@ -128,6 +130,7 @@ def fit_profiles(
         active[:, N_LIN + 1] = False
     warm = np.zeros(n, bool) if warm is None else warm
     live = np.ones(n, bool)  # the fits still stepping (the others' steps are below STOP_PX: they stay)
+    ldet = np.full(n, np.nan)  # the log-determinant of each fit's last normal matrix
     rss = np.full(n, np.nan)
     for it in range(ITERATIONS + 1):
         z = (q - c[:, None]) / sg[:, None]
@@ -171,6 +174,8 @@ def fit_profiles(
         J = J * act[:, None, :]
         M = np.einsum("nik,nij->nkj", J, J) + np.eye(J.shape[2])[None] * ~act[:, :, None]
         b = np.einsum("nik,ni->nk", J, r * mask)
+        if it > 0:
+            ldet = np.where(live, np.linalg.slogdet(M)[1], ldet)
         step, solved = _solve(M, b)
         good &= solved | (warm & (it == 0))
         step = np.where((good & live)[:, None], step, 0.0)
@@ -188,7 +193,7 @@ def fit_profiles(
     x2 = 2.0 * sg
     g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
     good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > GLOW_MIN_FRAC * lin[:, _A]))
-    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin
+    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin, ldet
 
 
 def _neighbours(
@@ -350,7 +355,7 @@ def glow_refit(
         kap = kap_k if kap is None else kap
         v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
-        steps = np.zeros((2, n))
+        steps = np.zeros((3, n))
         rss = np.full(n, np.nan)
         dof = np.full(n, np.nan)
         last = np.full((3, n), np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
@@ -392,7 +397,7 @@ def glow_refit(
             Y = green[rr, cols[idx][:, None]].astype(np.float64)
             # the common fit, then each point's last fit (glowing points: the common fit again, glow_fit.fit_rounds)
             start = (np.where(cold, vv[idx], v_out[idx]), np.where(cold, sg0[idx], s_out[idx]))
-            c, sg, a_, g_, good, rs, df, lin = fit_profiles(
+            c, sg, a_, g_, good, rs, df, lin, ld = fit_profiles(
                 Y,
                 mask,
                 side[idx],
@@ -419,7 +424,7 @@ def glow_refit(
             v_out[sel] = rc[sel] + c[keep]
             s_out[sel] = sg[keep]
             rss[sel] = rs[keep]
-            steps[:, sel] = np.stack([a_[keep], g_[keep]])
+            steps[:, sel] = np.stack([a_[keep], g_[keep], ld[keep]])
             dof[sel] = df[keep]
             fitted[sel] = True
             lin_t[sel] = lin[keep]
@@ -575,7 +580,7 @@ def _attenuation(
     if np.median(st1[1, f1] / st1[0, f1]) < SHAPE_MIN_STEP:  # a weak glow (glow.SHAPE_MIN_STEP)
         return 0.0, 0.0
     return _retell(rounds, vv, sig, cols, at, todo, glowing, k_pt, rc, sg0, h, sample, n_s, hw_s, alpha,
-                   float(np.median(s1[f1])), total)  # fmt: skip
+                   float(np.median(s1[f1])))  # fmt: skip
 
 
 def _retell(
@@ -595,7 +600,6 @@ def _retell(
     hw_s: IntArray,
     alpha: float,
     s_w: float,
-    total: Any,
 ) -> tuple[float, float]:
     """:func:`lrsensor.extract.water.retell`: the attenuation and width told again with the sample's other stripes
     where the told water puts them."""
@@ -618,6 +622,7 @@ def _retell(
     fine = alpha + WATER_STEP * (np.arange(WATER_POINTS) - WATER_POINTS // 2)
     rss_a = np.full((fine.size, n), np.nan)
     fit_a = np.zeros((fine.size, n), bool)
+    cr_a = np.zeros((fine.size, n))
     for i, a in enumerate(fine):
         if a <= 0.0:
             continue
@@ -625,12 +630,14 @@ def _retell(
         v1, s1, f1, _r, _d, _st = rounds(False, sample, v_o, sig_h, ROUNDS, kap, hw_s, v_o, sg0_h, s_w, s_w)
         v1 = np.where(f1, v1, v_o)
         s1 = np.where(f1, s1, sg0_h)
-        _v, _s, f2, rss, _d2, _st2 = rounds(False, sample & f1, v1, sig_h, 1, kap, hw_s, v1, s1, s_w, s_w)
+        _v, _s, f2, rss, d2, st2 = rounds(False, sample & f1, v1, sig_h, 1, kap, hw_s, v1, s1, s_w, s_w)
         with np.errstate(invalid="ignore"):
             fit_a[i] = sample & f1 & f2 & (rss > 0.0)
+            cr_a[i] = np.where(fit_a[i], d2 * np.log(np.where(fit_a[i], rss, 1.0)) + st2[2], 0.0)
         rss_a[i] = rss
     use = fit_a.sum(axis=1) >= ALPHA_SHARE * n_s
-    tot = total(rss_a, fit_a, use)
+    every = sample & np.all(fit_a | ~use[:, None], axis=0)
+    tot = np.where(use & every.any(), np.where(every[None, :], cr_a, 0.0).sum(axis=1), np.inf)
     c = int(np.argmin(tot))
     if np.isinf(tot[c]):
         return alpha, s_w

@@ -41,6 +41,24 @@ def alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
 
 
 @njit
+def _adjusted_total(cr_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
+    """:func:`retell`'s scores: the sums of ``cr_a`` (A, N) over the sample's points fitted at every row that most
+    of them fit at (``use``); inf at the others, and everywhere when no point is fitted at all of them."""
+    n_a, n = cr_a.shape
+    tot = full(n_a, np.inf, np.float64)
+    for t in range(n):
+        every = sample[t]
+        for i in range(n_a):
+            every = every and (fit_a[i, t] or not use[i])
+        if not every:
+            continue
+        for i in range(n_a):
+            if use[i]:
+                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + cr_a[i, t]
+    return tot
+
+
+@njit
 def vertex(x0, x1, x2, y0, y1, y2):  # type: ignore[no-untyped-def]
     """The vertex of the parabola through ``(x0, y0), (x1, y1), (x2, y2)`` (``x0 < x1 < x2``, ``y1`` the least of
     the three), within ``[x0, x2]``; ``x1`` where the three do not curve upward."""
@@ -85,8 +103,11 @@ def retell(  # type: ignore[no-untyped-def]
     share a column with the ``sample`` (of ``n_s`` points, on windows ``hw_s``) fitted with the first telling's
     ``alpha`` and width ``s_w`` held (``n_rounds[2]`` rounds, windows ``hw_p``); then the sample fitted at each of
     :data:`WATER_POINTS` attenuations about ``alpha`` with its width held at ``s_w`` and those stripes beside it,
-    scored as :func:`.glow._attenuation` scores its grid (among those at least ``share`` of the sample fits at), the
-    least refined by a parabola through it and its neighbours; the width the median of the sample's fits with it.
+    scored by a Cox-Reid adjusted profile likelihood (each point's ``dof log(rss)`` plus the log-determinant of its
+    fit's normal matrix: the noise a point's own parameters take up changes with the attenuation, which biased the
+    plain sums of log residuals high) over the points fitted at each of those that at least ``share`` of the sample
+    fits at, the least refined by a parabola through it and its neighbours; the width the median of the sample's
+    fits with it.
     The other arguments are :func:`.glow._attenuation`'s."""
     n = cols.size
     h = image.shape[0]
@@ -125,7 +146,7 @@ def retell(  # type: ignore[no-untyped-def]
     fine = np.empty(n_f, np.float64)
     for i in range(n_f):
         fine[i] = alpha + WATER_STEP * (i - n_f // 2)
-    rss_a = zeros((n_f, n), np.float64)
+    cr_a = zeros((n_f, n), np.float64)
     fit_a = zeros((n_f, n), np.bool_)
     use = zeros(n_f, np.bool_)
     for i in range(n_f):
@@ -140,17 +161,18 @@ def retell(  # type: ignore[no-untyped-def]
             if not f1[t]:
                 v1[t] = v_o[t]
                 s1[t] = sg0_h[t]
-        _v, _s, f2, rss, _d, _st = fit_rounds(
+        _v, _s, f2, rss, d2, st2 = fit_rounds(
             image, cols, laser, at, v1, sig_h, v1, sig_h, nb_ok, nb0, sample & f1, glowing, side, rc, hw_s, reach_rows,
             s1, s_w, s_w, sat_dn, ramp, n_rounds[0], d_rc, kap,
         )  # fmt: skip
         k = 0
         for t in range(n):
             fit_a[i, t] = sample[t] and f1[t] and f2[t] and rss[t] > 0.0
-            rss_a[i, t] = rss[t]
+            if fit_a[i, t]:
+                cr_a[i, t] = d2[t] * math.log(rss[t]) + st2[2, t]
             k += fit_a[i, t]
         use[i] = k >= share * n_s
-    tot = alpha_total(rss_a, fit_a, use, sample)
+    tot = _adjusted_total(cr_a, fit_a, use, sample)
     c = 0
     for i in range(1, n_f):
         if tot[i] < tot[c]:
