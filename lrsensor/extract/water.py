@@ -6,7 +6,8 @@ the other stripe lies 18 rows off, inside the sample's windows). The misplaced n
 attenuation takes up: on noise-free layers of the turbidity model the first telling reads 0.33 /m for 0.30, with the
 neighbours at their true rows and width 0.300. :func:`retell` fits those neighbours with the told water held, then
 tells the attenuation again on a fine grid about the first, the sample's width held (a free width trades itself for
-the glow's growth), and the width again at the new attenuation."""
+the glow's growth), scored so that the noise the points' own parameters take up does not bias it, and the width
+again at the new attenuation."""
 
 from __future__ import annotations
 
