@@ -105,7 +105,7 @@ NAV_OVERRIDES: dict[str, Any] = {}
 GRAPH_OVERRIDES: dict[str, Any] = {}
 #: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
 TRACKED_ROWS: list[bool] = []
-#: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``)
+#: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``, ``--heading-check``)
 TRACKED_OVERRIDES: dict[str, Any] = {}
 #: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
 HOLDS: list[str] = []
@@ -595,6 +595,14 @@ def main() -> int:
         "NavConfig.frame_graph_launches; an option)",
     )
     ap.add_argument(
+        "--heading-check",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="the tracked rows with GraphConfig.heading_check: each check also takes the heading from the walls "
+        "the robot contributed at most SHARE of the points to (0: the others' walls only; 0.99: all but its own)",
+    )
+    ap.add_argument(
         "--no-hold",
         action="store_true",
         help="the tracked rows without GraphConfig.hold_until_verified (clouds placed before their track's next "
@@ -618,6 +626,8 @@ def main() -> int:
         MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
     if args.no_hold:
         TRACKED_OVERRIDES["hold_until_verified"] = False
+    if args.heading_check is not None:
+        TRACKED_OVERRIDES.update(heading_check=True, heading_own_share=args.heading_check)
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -687,6 +697,7 @@ def main() -> int:
         + (" --graph-track" if args.graph_track else "")
         + (" --merge-bands" if args.merge_bands else "")
         + (" --no-hold" if args.no_hold else "")
+        + (f" --heading-check {args.heading_check:g}" if args.heading_check is not None else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",

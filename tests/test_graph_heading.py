@@ -1,0 +1,59 @@
+"""The heading of a depth-only robot checked against one wall's direction (mapping.graph_heading)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lrsensor.frames import Pose
+from mapping.graph_heading import heading_offset
+from mapping.landmarks import PlaneLandmarks
+from mapping.nav_config import NavConfig
+
+
+def _north_wall() -> PlaneLandmarks:
+    """The wall north = 3 m, east -2..2 m, down 0..2 m, facing south (toward a vehicle at the origin)."""
+    return PlaneLandmarks(
+        ids=np.array([7], dtype=np.int64),
+        normal=np.array([[-1.0, 0.0, 0.0]]),
+        d=np.array([3.0]),
+        centroid=np.array([[3.0, 0.0, 1.0]]),
+        u=np.array([[0.0, 1.0, 0.0]]),
+        v=np.array([[0.0, 0.0, 1.0]]),
+        u_range=np.array([[-2.0, 2.0]]),
+        v_range=np.array([[-1.0, 1.0]]),
+    )
+
+
+def _scan(rng: np.random.Generator) -> np.ndarray:
+    """Points on the wall relative to a vehicle at (0, 0, 1) heading north, level (body = NED here)."""
+    east = rng.uniform(-1.2, 1.2, 300)
+    down = rng.uniform(-0.4, 0.4, 300)
+    north = 3.0 + 0.005 * rng.standard_normal(300)
+    return np.stack([north, east, down], axis=1)
+
+
+def test_one_wall_gives_the_heading_error_whatever_the_position_along_it() -> None:
+    rng = np.random.default_rng(3)
+    pts = _scan(rng)
+    raw = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0)
+    for along in (0.0, 0.4):  # the position along the wall is unobservable; the heading is not
+        for err_deg in (-1.5, 0.0, 2.0):
+            x = np.array([0.02, along, math.radians(err_deg)])
+            got = heading_offset(pts, raw, x, _north_wall(), NavConfig())
+            assert got is not None
+            off, sd, used = got
+            assert used == 1
+            assert abs(math.degrees(off) - err_deg) < 0.1
+            assert 0.0 < math.degrees(sd) < 0.5
+
+
+def test_no_wall_or_a_narrow_patch_says_nothing() -> None:
+    rng = np.random.default_rng(4)
+    pts = _scan(rng)
+    raw = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0)
+    far = np.array([-2.0, 0.0, 0.0])  # the wall out of the gate
+    assert heading_offset(pts, raw, far, _north_wall(), NavConfig()) is None
+    narrow = pts[np.abs(pts[:, 1]) < 0.2]  # too short a line to tell a direction
+    assert heading_offset(narrow, raw, np.zeros(3), _north_wall(), NavConfig()) is None
