@@ -177,17 +177,14 @@ class Navigator:
         hold = getattr(self.robots.get(robot), "hold", None)
         return hold.take() if hold is not None else []
 
-    def settle(self, landmarks: PlaneLandmarks) -> dict[str, list[tuple[int, Pose, Any]]]:
-        """The end of a dive: every pose graph's held clouds checked alone; robot -> those released (as
+    def settle(self, robot: str, landmarks: PlaneLandmarks) -> list[tuple[int, Pose, Any]]:
+        """``robot`` went silent or the dive ends: its pose graph's held clouds checked alone; those released (as
         :meth:`released`)."""
-        out = {}
-        for name, nav in sorted(self.robots.items()):
-            if getattr(nav, "hold", None) is not None:
-                nav.settle(landmarks)
-                got = nav.hold.take()
-                if got:
-                    out[name] = got
-        return out
+        nav: Any = self.robots.get(robot)
+        if getattr(nav, "hold", None) is None:
+            return []
+        nav.settle(landmarks)
+        return self.released(robot)
 
     def hold_counts(self, robot: str) -> dict[str, float] | None:
         """What ``robot``'s hold did (:meth:`mapping.graph_hold.CloudHold.counts`); None when it holds nothing."""

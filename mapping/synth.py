@@ -581,8 +581,9 @@ def replay_dive(
         place(f.robot, f.t_ns, pose, pts)
         out.step_s.append(time.perf_counter() - step0)
     if nav is not None:  # the end: held clouds checked alone
-        for robot, rel in nav.settle(b.landmarks(min_pts)).items():
-            for t_held, p_held, pts_held in rel:
+        held_lm = b.landmarks(min_pts)
+        for robot in sorted(nav.robots):
+            for t_held, p_held, pts_held in nav.settle(robot, held_lm):
                 place(robot, t_held, p_held, body_to_ned(pts_held, p_held))
         for robot in nav.robots:
             counts = nav.hold_counts(robot)

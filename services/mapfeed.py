@@ -501,8 +501,8 @@ class MapFeed:
             hold = getattr(nav, "hold", None)
             if hold is None or not hold.clouds or now - self._last_seen.get(robot, now) < IDLE_FLUSH_S:
                 continue
-            nav.settle(self.builder.landmarks(self.navigator.cfg.min_landmark_points))
-            self._place_released(robot, hold.take())
+            lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
+            self._place_released(robot, self.navigator.settle(robot, lm))
             self._publish_changes(None, self.builder.merge(self.builder.flush_robot_observations(robot)))
             if self.builder.uncommitted(robot) == 0:
                 self._commit(robot)
@@ -513,9 +513,8 @@ class MapFeed:
         if self.navigator is None or self.pool is not None:
             return
         lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
-        released = self.navigator.settle(lm)
         for robot in sorted(self.navigator.robots):
-            self._place_released(robot, released.get(robot, []))
+            self._place_released(robot, self.navigator.settle(robot, lm))
 
     def _commit(self, robot: str) -> None:
         """The robot's pending clouds reached the map (their window was extracted): count them, time them."""
