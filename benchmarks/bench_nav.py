@@ -107,6 +107,8 @@ GRAPH_OVERRIDES: dict[str, Any] = {}
 TRACKED_ROWS: list[bool] = []
 #: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``, ``--heading-check``)
 TRACKED_OVERRIDES: dict[str, Any] = {}
+#: NavConfig fields the ``tracked`` replays take on top of the others' (``--fleet-compass``)
+TRACKED_NAV_OVERRIDES: dict[str, Any] = {}
 #: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
 HOLDS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
@@ -153,7 +155,7 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             from mapping.posegraph import TRACKED
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
-                                     **NAV_OVERRIDES),
+                                     **NAV_OVERRIDES, **TRACKED_NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": replace(TRACKED, **TRACKED_OVERRIDES)}  # fmt: skip
         if way == "smoothed":
@@ -603,6 +605,11 @@ def main() -> int:
         "the robot contributed at most SHARE of the points to (0: the others' walls only; 0.99: all but its own)",
     )
     ap.add_argument(
+        "--fleet-compass",
+        action="store_true",
+        help="the tracked rows with NavConfig.frame_fleet_compass: the served map turned to the fleet's mean compass",
+    )
+    ap.add_argument(
         "--no-hold",
         action="store_true",
         help="the tracked rows without GraphConfig.hold_until_verified (clouds placed before their track's next "
@@ -626,6 +633,8 @@ def main() -> int:
         MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
     if args.no_hold:
         TRACKED_OVERRIDES["hold_until_verified"] = False
+    if args.fleet_compass:
+        TRACKED_NAV_OVERRIDES["frame_fleet_compass"] = True
     if args.heading_check is not None:
         TRACKED_OVERRIDES.update(heading_check=True, heading_own_share=args.heading_check)
     if args.nav_bias:
@@ -698,6 +707,7 @@ def main() -> int:
         + (" --merge-bands" if args.merge_bands else "")
         + (" --no-hold" if args.no_hold else "")
         + (f" --heading-check {args.heading_check:g}" if args.heading_check is not None else "")
+        + (" --fleet-compass" if args.fleet_compass else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",

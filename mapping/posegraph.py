@@ -251,6 +251,17 @@ class GraphNav:
             self._then[k] = x.copy()
         return out
 
+    def mean_correction(self) -> tuple[float, int] | None:
+        """The mean over the window's poses of the heading as estimated minus the compass (radians, the mean of the
+        wrapped differences) and the poses counted; None before the launch. Nothing is solved: the estimates as
+        last refreshed."""
+        n = min(len(self._t), self._est.shape[0])
+        if n <= self._first_key:
+            return None
+        c = np.remainder(self._est[self._first_key : n, 2] - np.asarray(self._compass[self._first_key : n]) + math.pi,
+                         2 * math.pi) - math.pi  # fmt: skip
+        return float(c.mean()), int(c.size)
+
     _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t", "_last_heading_t", "headings")
 
     def snapshot(self) -> dict[str, Any]:

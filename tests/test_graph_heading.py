@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from lrsensor.frames import Pose
 from mapping.graph_heading import heading_offset
@@ -57,3 +58,53 @@ def test_no_wall_or_a_narrow_patch_says_nothing() -> None:
     assert heading_offset(pts, raw, far, _north_wall(), NavConfig()) is None
     narrow = pts[np.abs(pts[:, 1]) < 0.2]  # too short a line to tell a direction
     assert heading_offset(narrow, raw, np.zeros(3), _north_wall(), NavConfig()) is None
+
+
+class _Graph:
+    """A pose graph's face to the fleet frame: its launch (map frame, fix) and its mean heading correction."""
+
+    def __init__(self, start: tuple[float, float], corr_deg: float, poses: int = 50) -> None:
+        self.start_map_ne = start
+        self.start_ne = np.array(start)
+        self.lost = False
+        self.x = np.zeros(5)
+        self.yaw_scans = 0
+        self._corr = (math.radians(corr_deg), poses)
+
+    def mean_correction(self) -> tuple[float, int]:
+        return self._corr
+
+
+def test_a_graph_s_mean_correction_is_its_estimated_heading_minus_its_compass() -> None:
+    from mapping.posegraph import GraphNav
+
+    g = GraphNav("rov1")
+    assert g.mean_correction() is None
+    g._t = [0, 1, 2, 3]
+    g._compass = [math.pi - 0.01, -math.pi + 0.01, 0.5, 0.5]
+    # estimates 1 deg to the east of each compass reading; the first two across the +-pi wrap
+    g._est = np.array([[0.0, 0.0, c + math.radians(1.0)] for c in g._compass])
+    got = g.mean_correction()
+    assert got is not None
+    assert abs(math.degrees(got[0]) - 1.0) < 1e-9
+    assert got[1] == 4
+    g._first_key = 2  # poses before the window no longer count
+    assert g.mean_correction() == (pytest.approx(math.radians(1.0)), 2)
+
+
+def test_the_fleet_compass_turns_the_frame_by_the_robots_mean_correction() -> None:
+    from mapping.navigator import Navigator
+
+    launches = {"rov1": ((1.2, 1.2), -3.0), "rov2": ((3.3, 4.8), 0.2), "rov3": ((2.0, 1.3), 0.4, 5)}
+    for fleet in (False, True):
+        nav = Navigator(NavConfig(frame_graph_launches=True, frame_fleet_compass=fleet))
+        for name, spec in launches.items():
+            nav.robots[name] = _Graph(*spec)  # type: ignore[arg-type]
+        frame = nav.frame()
+        if not fleet:
+            # the launches sit on their fixes: the launch frame does not turn
+            assert abs(frame.yaw_rad) < 1e-12
+        else:
+            # rov3 has too few poses to count; each robot once: (-3.0 + 0.2) / 2
+            assert math.degrees(frame.yaw_rad) == pytest.approx(-1.4)
+            assert frame.pivot_ne == pytest.approx((2.1666667, 2.4333333))
