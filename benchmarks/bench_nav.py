@@ -44,7 +44,16 @@ import numpy as np
 from mapping.navigation import NavConfig
 from mapping.planes import open3d
 from mapping.smoother import SMOOTHED_NAV, SmootherConfig
-from mapping.synth import DiveMap, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
+from mapping.synth import (
+    DiveMap,
+    hit_faces,
+    replay_dive,
+    score_map,
+    simulate_dive,
+    tank,
+    three_rov_plans,
+    wall_yaw_deg,
+)
 from mapping.types import MapConfig
 
 MODES: dict[str, str | dict[str, str]] = {
@@ -111,6 +120,8 @@ TRACKED_OVERRIDES: dict[str, Any] = {}
 TRACKED_NAV_OVERRIDES: dict[str, Any] = {}
 #: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
 HOLDS: list[str] = []
+#: per tracked replay and robot, its heading against the truth (a markdown row; heading_lines)
+HEADINGS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
 MAP_OVERRIDES: dict[str, Any] = {}
 #: --merge-bands: how far apart along down two bands of one vertical face may be (m)
@@ -199,6 +210,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             )
         )
         print(rows[-1], flush=True)
+        if way == "tracked":
+            HEADINGS.extend(_heading_rows(mode, seed, frames, run, wall_yaw_deg(run.planes(), score)))
         for robot, h in sorted(run.hold.items()):
             HOLDS.append(f"| {mode} | {way} | {robot} | {h['committed']:.0f} | {h['replaced']:.0f} | "
                          f"{h['dropped']:.0f} | {h['lag_mean_s']:.2f} | {h['lag_max_s']:.1f} |")  # fmt: skip
@@ -526,6 +539,41 @@ def table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def _heading_rows(mode: str, seed: int, frames: list[Any], run: DiveMap, yaws: list[float]) -> list[str]:
+    """Per robot of a tracked replay: its compass bias (reported minus true heading, mean over the dive), the heading
+    error of the poses its clouds were placed with (served, mean and largest magnitude), and the map's heading
+    error (the median yaw error of its wall planes), degrees."""
+    rows = []
+    map_yaw = f"{float(np.median(yaws)):+.2f}" if yaws else "-"
+    for robot in sorted({f.robot for f in frames}):
+        bias = [
+            math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames if f.robot == robot
+        ]
+        err = np.array(run.yaw_error_deg.get(robot, []))
+        placed = f"{err.mean():+.2f} / {np.abs(err).max():.2f}" if err.size else "-"
+        rows.append(
+            f"| {mode} (seed {seed}) | {robot} | {math.degrees(float(np.mean(bias))):+.2f} | {placed} | {map_yaw} |"
+        )
+    return rows
+
+
+def heading_lines() -> list[str]:
+    """The headings' table of the tracked rows (empty without one)."""
+    if not HEADINGS:
+        return []
+    return [
+        "Headings of the tracked rows against the truth (deg): each robot's compass bias (reported minus true "
+        "heading, mean over the dive), the heading error of the poses its clouds were placed with (served; mean, "
+        "largest magnitude), and the map's (the median yaw error of its wall planes; positive turns north towards "
+        "east).",
+        "",
+        "| mode | robot | compass bias mean | placed heading error mean / max | map heading error |",
+        "|---|---|---|---|---|",
+        *HEADINGS,
+        "",
+    ]
+
+
 def hold_lines() -> list[str]:
     """The held clouds' table of the tracked rows (empty without one)."""
     if not HOLDS:
@@ -714,6 +762,7 @@ def main() -> int:
         table(rows),
         "",
         *hold_lines(),
+        *heading_lines(),
         "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
         "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
         "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -108,3 +109,26 @@ def test_the_fleet_compass_turns_the_frame_by_the_robots_mean_correction() -> No
             # rov3 has too few poses to count; each robot once: (-3.0 + 0.2) / 2
             assert math.degrees(frame.yaw_rad) == pytest.approx(-1.4)
             assert frame.pivot_ne == pytest.approx((2.1666667, 2.4333333))
+
+
+def _turned_plane(face: Any, pid: int, deg: float) -> dict[str, Any]:
+    """A map plane (``map_json`` layout) of ``face`` turned by ``deg`` about its centre (north towards east)."""
+    a = math.radians(deg)
+    r = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    c = np.array(face.center)
+    u, v = r @ np.array(face.u), r @ face.v
+    corners = [c + su * face.half_u * u + sv * face.half_v * v for su in (-1, 1) for sv in (-1, 1)]
+    n = r @ np.array(face.normal)
+    return {"id": pid, "normal": list(n), "d": float(-n @ c),
+            "extent": {"centroid": list(c), "corners": [list(p) for p in corners]}}  # fmt: skip
+
+
+def test_the_map_s_walls_say_its_heading_error_with_its_sign() -> None:
+    from mapping.synth import hit_faces, score_map, tank, wall_yaw_deg
+
+    scene = tank()
+    faces = {f.name: f for f in scene.faces}
+    planes = [_turned_plane(faces["wall.west"], 1, 1.0), _turned_plane(faces["wall.south"], 2, -0.5)]
+    planes.append(_turned_plane(faces["wall.east"], 3, 1.0))
+    score = score_map(planes, scene, hit_faces(scene, []))
+    assert sorted(wall_yaw_deg(planes, score)) == pytest.approx([-0.5, 1.0, 1.0])
