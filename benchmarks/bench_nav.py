@@ -120,6 +120,24 @@ TRACKED_OVERRIDES: dict[str, Any] = {}
 TRACKED_NAV_OVERRIDES: dict[str, Any] = {}
 #: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
 HOLDS: list[str] = []
+#: --fleet-unbiased: the compasses' mean bias over the fleet and the dive removed from every reading (a what-if)
+FLEET_UNBIASED: list[bool] = []
+
+
+def unbias_fleet(frames: list[Any]) -> list[Any]:
+    """The dive as if its compasses' biases averaged to zero over the robots and the dive: their mean (reported
+    minus true heading over every frame) taken off every frame's reported heading (``--fleet-unbiased``). Each
+    robot keeps its own bias about that mean, and its wander."""
+    from lrsensor.frames import body_to_ned
+
+    mean = float(np.mean([math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames]))
+    out = []
+    for f in frames:
+        est = replace(f.pose_est, yaw_rad=f.pose_est.yaw_rad - mean)
+        out.append(replace(f, pose_est=est, points_ned_est=body_to_ned(f.points_body, est)))
+    return out
+
+
 #: per tracked replay and robot, its heading against the truth (a markdown row; heading_lines)
 HEADINGS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
@@ -148,6 +166,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     frames = simulate_dive(
         scene, three_rov_plans(), duration_s=seconds, rate_hz=10.0, n_rays=400, seed=seed, navigation=MODES[mode]
     )
+    if FLEET_UNBIASED:
+        frames = unbias_fleet(frames)
     hits = hit_faces(scene, frames)
     rows = []
     ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
@@ -658,6 +678,11 @@ def main() -> int:
         help="the tracked rows with NavConfig.frame_fleet_compass: the served map turned to the fleet's mean compass",
     )
     ap.add_argument(
+        "--fleet-unbiased",
+        action="store_true",
+        help="a what-if: the dives' compasses with their mean bias over the fleet and the dive removed",
+    )
+    ap.add_argument(
         "--no-hold",
         action="store_true",
         help="the tracked rows without GraphConfig.hold_until_verified (clouds placed before their track's next "
@@ -681,6 +706,8 @@ def main() -> int:
         MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
     if args.no_hold:
         TRACKED_OVERRIDES["hold_until_verified"] = False
+    if args.fleet_unbiased:
+        FLEET_UNBIASED.append(True)
     if args.fleet_compass:
         TRACKED_NAV_OVERRIDES["frame_fleet_compass"] = True
     if args.heading_check is not None:
@@ -756,6 +783,7 @@ def main() -> int:
         + (" --no-hold" if args.no_hold else "")
         + (f" --heading-check {args.heading_check:g}" if args.heading_check is not None else "")
         + (" --fleet-compass" if args.fleet_compass else "")
+        + (" --fleet-unbiased" if args.fleet_unbiased else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",

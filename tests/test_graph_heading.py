@@ -132,3 +132,23 @@ def test_the_map_s_walls_say_its_heading_error_with_its_sign() -> None:
     planes.append(_turned_plane(faces["wall.east"], 3, 1.0))
     score = score_map(planes, scene, hit_faces(scene, []))
     assert sorted(wall_yaw_deg(planes, score)) == pytest.approx([-0.5, 1.0, 1.0])
+
+
+def test_the_unbiased_fleet_keeps_each_robot_s_bias_about_a_zero_mean() -> None:
+    from benchmarks.bench_nav import unbias_fleet
+    from mapping.synth import simulate_dive, tank, three_rov_plans
+
+    frames = simulate_dive(tank(), three_rov_plans(), duration_s=2.0, rate_hz=5.0, n_rays=40, seed=3,
+                           navigation="depth-only")  # fmt: skip
+
+    def bias(fs: list[Any]) -> dict[str, float]:
+        out: dict[str, list[float]] = {}
+        for f in fs:
+            out.setdefault(f.robot, []).append(math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
+        return {r: float(np.mean(v)) for r, v in out.items()}
+
+    before, after = bias(frames), bias(unbias_fleet(frames))
+    shift = {r: before[r] - after[r] for r in before}
+    assert abs(float(np.mean([after[r] for r in after]))) < 1e-3  # the robots weigh alike here (same frame rate)
+    assert max(shift.values()) - min(shift.values()) < 1e-12  # one shift for all: each keeps its own bias
+    assert abs(math.degrees(next(iter(shift.values())))) > 0.1
