@@ -99,7 +99,8 @@ class NavConfig:
     ``frame_fleet_compass`` (off): with pose graphs, the frame's heading is instead the fleet's mean compass: the
     mean over the graph robots of each one's mean heading correction over its window
     (:meth:`mapping.posegraph.GraphNav.mean_correction`), as if the compasses' biases averaged to zero over the
-    robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not).
+    robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not); only
+    while every robot is on its pose graph (a robot with fixes gives the map its heading).
     """
 
     max_points: int = 300

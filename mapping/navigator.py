@@ -119,11 +119,12 @@ class Navigator:
         """The fleet's mean compass as the frame's heading (``NavConfig.frame_fleet_compass``): each graph robot's
         mean heading correction over its window (poses estimated minus compass, radians), averaged over the robots
         with at least ``frame_min_scans`` poses, each robot once (its bias is its own, whatever its scan count);
-        ``yaw`` when there is none."""
+        ``yaw`` when there is none, or when a robot has fixes (on the filter: its fixes give the map its heading)."""
+        if any(getattr(nav, "mean_correction", None) is None for nav in self.robots.values()):
+            return yaw
         cs = []
         for nav in self.robots.values():
-            mean_correction = getattr(nav, "mean_correction", None)
-            got = mean_correction() if mean_correction is not None else None
+            got = nav.mean_correction()
             if got is not None and got[1] >= self.cfg.frame_min_scans:
                 cs.append(got[0])
         return float(np.mean(cs)) if cs else yaw

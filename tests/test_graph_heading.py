@@ -94,6 +94,7 @@ def test_a_graph_s_mean_correction_is_its_estimated_heading_minus_its_compass() 
 
 
 def test_the_fleet_compass_turns_the_frame_by_the_robots_mean_correction() -> None:
+    from mapping.nav_filter import RobotNav
     from mapping.navigator import Navigator
 
     launches = {"rov1": ((1.2, 1.2), -3.0), "rov2": ((3.3, 4.8), 0.2), "rov3": ((2.0, 1.3), 0.4, 5)}
@@ -109,6 +110,12 @@ def test_the_fleet_compass_turns_the_frame_by_the_robots_mean_correction() -> No
             # rov3 has too few poses to count; each robot once: (-3.0 + 0.2) / 2
             assert math.degrees(frame.yaw_rad) == pytest.approx(-1.4)
             assert frame.pivot_ne == pytest.approx((2.1666667, 2.4333333))
+    # a robot with fixes (on the filter, no mean correction) gives the map its heading: no turn
+    nav = Navigator(NavConfig(frame_graph_launches=True, frame_fleet_compass=True))
+    for name, spec in launches.items():
+        nav.robots[name] = _Graph(*spec)  # type: ignore[arg-type]
+    nav.robots["rov4"] = RobotNav("rov4", nav.cfg)
+    assert abs(nav.frame().yaw_rad) < 1e-12
 
 
 def _turned_plane(face: Any, pid: int, deg: float) -> dict[str, Any]:
