@@ -47,6 +47,7 @@ from lrsensor.frames import Pose, R_ned_from_body
 from .errors import MapInputError
 from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import LEVER_M, TrackGate, ambiguous, relocalize, verify
+from .graph_heading import heading_offset
 from .graph_hold import CloudHold, check_due, check_held, hold_step
 from .landmarks import PlaneLandmarks, associate, take_planes
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
@@ -100,6 +101,10 @@ class GraphConfig:
     ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
     or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
     place is tried again after ``hold_retry_s``).
+    ``heading_check`` (off): at the checks, at most every ``heading_every_s``, the heading is also taken from the
+    direction of the walls the scan sees (:mod:`mapping.graph_heading`), against the planes the robot contributed
+    at most ``heading_own_share`` of the points to (0: the others' alone); a prior on that pose's heading, its
+    standard deviation ``heading_floor_deg`` at least; an offset beyond ``heading_max_deg`` is left out.
     """
 
     velocity_walk_m_s: float = 0.1
@@ -135,13 +140,22 @@ class GraphConfig:
     hold_until_verified: bool = False
     hold_check_radius_m: float = 0.3
     hold_retry_s: float = 0.5
+    heading_check: bool = False
+    heading_every_s: float = 2.0
+    heading_floor_deg: float = 0.3
+    heading_max_deg: float = 5.0
+    heading_own_share: float = 0.99
 
 
 #: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
 #: taken up again only where a scan matches one place alone, checked every 2 s; with
 #: ``NavConfig.frame_graph_launches``. An option: it does not meet the bar on both seeds measured.
 TRACKED = GraphConfig(
-    second_hypothesis=True, track_break_std_m=0.1, relocalize=True, verify_every_s=2.0, hold_until_verified=True
+    second_hypothesis=True,
+    track_break_std_m=0.1,
+    relocalize=True,
+    verify_every_s=2.0,
+    hold_until_verified=True,
 )
 
 
@@ -172,6 +186,8 @@ class GraphNav:
         self.track = TrackGate(self.gcfg.track_break_std_m)
         #: the clouds held until the next check passes (``GraphConfig.hold_until_verified``)
         self.hold = CloudHold()
+        #: heading checks that added a prior (``GraphConfig.heading_check``)
+        self.headings = 0
         self._reset()
 
     def _reset(self) -> None:
@@ -187,6 +203,7 @@ class GraphNav:
         self._specs: list[tuple[str, tuple[int, ...], tuple[Any, ...]]] = []
         self._first_key = 0
         self._last_compass_t: int | None = None
+        self._last_heading_t: int | None = None
         self._isam: Any = None
         self._est: FloatArray = np.zeros((0, 3))
         self._cov = np.eye(3)
@@ -234,7 +251,18 @@ class GraphNav:
             self._then[k] = x.copy()
         return out
 
-    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t")
+    def mean_correction(self) -> tuple[float, int] | None:
+        """The mean over the window's poses of the heading as estimated minus the compass (radians, the mean of the
+        wrapped differences) and the poses counted; None before the launch. Nothing is solved: the estimates as
+        last refreshed."""
+        n = min(len(self._t), self._est.shape[0])
+        if n <= self._first_key:
+            return None
+        c = np.remainder(self._est[self._first_key : n, 2] - np.asarray(self._compass[self._first_key : n]) + math.pi,
+                         2 * math.pi) - math.pi  # fmt: skip
+        return float(c.mean()), int(c.size)
+
+    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t", "_last_heading_t", "headings")
 
     def snapshot(self) -> dict[str, Any]:
         """The estimator's whole state as plain numbers: the window's factors and estimates, the scans kept."""
@@ -265,7 +293,7 @@ class GraphNav:
         ``solve`` False: the state is then only read, as the map thread reads a plane worker's for the frame)."""
         self._reset()
         for k in self._STATE:
-            setattr(self, k, snap[k])
+            setattr(self, k, snap.get(k, getattr(self, k)))
         self.start_ne = np.asarray(snap["start_ne"], dtype=np.float64)
         self.x = np.asarray(snap["x"], dtype=np.float64)
         self._t = [int(t) for t in snap["t"]]
@@ -343,6 +371,8 @@ class GraphNav:
         if self.track.broken and self.gcfg.relocalize and relocalize(self, key, t, raw, pts, landmarks):
             motion = moved = "relocalized"
         elif not self.track.broken and check_due(self, t):
+            if self.gcfg.heading_check:
+                self._check_heading(key, t, raw, pts, landmarks)
             moved = verify(self, key, t, raw, pts, landmarks)
             motion = moved or motion
         self._then[key] = self._est[key].copy()
@@ -452,6 +482,37 @@ class GraphNav:
         guess[2] = x_prev[2] + dyaw
         self._new_values = {key: guess}
         return motion
+
+    def _check_heading(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> None:
+        """The heading of pose ``key`` checked against the walls (:mod:`mapping.graph_heading`) the robot contributed
+        at most ``heading_own_share`` of the points to, every ``heading_every_s``: a prior on it at the heading the
+        walls say, ``heading_floor_deg`` at least. Its own walls would carry its own heading error back.
+        """
+        gcfg = self.gcfg
+        if self._last_heading_t is not None and t - self._last_heading_t < gcfg.heading_every_s * 1e9:
+            return
+        if len(lm) == 0:
+            return
+        use = np.ones(len(lm), dtype=bool)
+        for i, c in enumerate(lm.contrib or ()):
+            mine = c.get(self.robot)
+            if mine is not None and mine[0] > gcfg.heading_own_share * sum(v[0] for v in c.values()):
+                use[i] = False
+        if not use.any():
+            return
+        x = self._est[key]
+        got = heading_offset(pts, raw, x, take_planes(lm, use), self.cfg)
+        if got is None:
+            return
+        off, sd, _ = got
+        if abs(off) > math.radians(gcfg.heading_max_deg):
+            return
+        self._last_heading_t = t
+        sd = max(sd, math.radians(gcfg.heading_floor_deg))
+        mean = np.array([float(x[0]), float(x[1]), float(x[2]) - off])
+        self._add("prior", (key,), (mean, np.diag([1e-10, 1e-10, 1.0 / sd**2])))
+        self.headings += 1
+        self._solve()
 
     def _compass_prior(self, key: int, t: int) -> None:
         gcfg = self.gcfg

@@ -447,6 +447,22 @@ def score_map(
     return MapScore(scores, spurious)
 
 
+def wall_yaw_deg(planes: list[dict[str, Any]], score: MapScore) -> list[float]:
+    """The yaw error (deg; positive turns north towards east, the yaw's sense) of each plane of ``planes`` that
+    ``score`` matched to a vertical face: the angle from the face's horizontal normal to the plane's. A map built at
+    a heading off by a common angle has its walls turned by it."""
+    by_id = {int(p["id"]): p for p in planes}
+    out = []
+    for fs in score.faces:
+        fn = np.array(fs.face.normal, dtype=float)
+        if abs(float(fn[2])) > 0.5:
+            continue
+        for pid in fs.plane_ids:
+            n = np.array(by_id[pid]["normal"], dtype=float)
+            out.append(math.degrees(math.atan2(fn[0] * n[1] - fn[1] * n[0], fn[0] * n[0] + fn[1] * n[1])))
+    return out
+
+
 def three_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePlan]:
     """:func:`two_rov_plans` and a third robot on a tighter loop at 2.5 m, around the pillars."""
     L, W = length_m, width_m
