@@ -20,7 +20,7 @@ out), correcting them first with the filter (``mapping.navigation``, the base's 
 the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
 ``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``, off
 by default; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with the graphs' gates
-(``tracked``: ``mapping.posegraph.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
+(``tracked``: ``mapping.graph_config.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
 scored against the tank's faces (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames
 where both lasers hit it; *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered,
 the worst angle and offset over the seen faces that have a plane (a seen face without one is counted in "missing"),
@@ -177,13 +177,13 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
         navigate = way != "trusted"
         kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
         if way == "graph":  # as smoothed, the robots without a fix on their pose graphs (opt-in)
-            from mapping.posegraph import GraphConfig
+            from mapping.graph_config import GraphConfig
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": GraphConfig(**GRAPH_OVERRIDES)}  # fmt: skip
-        if way == "tracked":  # as graph, the gated graph (mapping.posegraph.TRACKED, opt-in)
-            from mapping.posegraph import TRACKED
+        if way == "tracked":  # as graph, the gated graph (mapping.graph_config.TRACKED, opt-in)
+            from mapping.graph_config import TRACKED
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
                                      **NAV_OVERRIDES, **TRACKED_NAV_OVERRIDES),
@@ -661,7 +661,7 @@ def main() -> int:
     ap.add_argument(
         "--graph-track",
         action="store_true",
-        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.posegraph.TRACKED, "
+        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.graph_config.TRACKED, "
         "NavConfig.frame_graph_launches; an option)",
     )
     ap.add_argument(

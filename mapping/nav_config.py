@@ -92,7 +92,7 @@ class NavConfig:
     seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
     gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
     stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
-    :data:`mapping.posegraph.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
+    :data:`mapping.graph_config.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
     ``frame_graph_launches``: the launch frame
     (:meth:`Navigator.frame` with smoothing) takes a graph robot's launch as its graph places it (else its
     smoother's, which no longer moves, and the mean heading correction turns the map).

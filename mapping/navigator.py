@@ -45,7 +45,7 @@ class Navigator:
         self.linked: dict[str, frozenset[str]] | None = None
         self._linked_of: PlaneLandmarks | None = None
         #: with ``graph_without_fix``: each robot's launch cloud (t_ns, raw, points), until its next cloud says
-        #: whether it has fixes; the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`, None: default)
+        #: whether it has fixes; the pose graphs' tuning (:class:`mapping.graph_config.GraphConfig`, None: default)
         self._launches: dict[str, tuple[int, Pose, Any]] = {}
         self._first_fix: dict[str, int] = {}
         self.graph_cfg: Any = None

@@ -524,7 +524,7 @@ def replay_dive(
     ``realtime``: each frame is fed at its capture time (from the first frame's, on the wall clock), as a base
     station receives a live dive: background runs then truly overlap the feed; :attr:`DiveMap.step_s` keeps each
     frame's time on the map thread (smoother step, navigation and placing). ``graph_cfg``: the pose graphs' tuning
-    (:class:`mapping.posegraph.GraphConfig`) for robots without a fix, with ``NavConfig.graph_without_fix``.
+    (:class:`mapping.graph_config.GraphConfig`) for robots without a fix, with ``NavConfig.graph_without_fix``.
     """
     import time
 
@@ -536,7 +536,7 @@ def replay_dive(
     b = MapBuilder(cfg or MapConfig())
     nav = Navigator(nav_cfg, smoother) if navigate else None
     if nav is not None:
-        nav.graph_cfg = graph_cfg  # the pose graphs' tuning (mapping.posegraph.GraphConfig; None: its default)
+        nav.graph_cfg = graph_cfg  # the pose graphs' tuning (mapping.graph_config.GraphConfig; None: its default)
     out = DiveMap(b)
     min_pts = nav.cfg.min_landmark_points if nav is not None else 0
     placed: dict[str, dict[int, Pose]] = {}
