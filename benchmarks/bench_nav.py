@@ -20,7 +20,7 @@ out), correcting them first with the filter (``mapping.navigation``, the base's 
 the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
 ``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``, off
 by default; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with the graphs' gates
-(``tracked``: ``mapping.posegraph.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
+(``tracked``: ``mapping.graph_config.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
 scored against the tank's faces (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames
 where both lasers hit it; *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered,
 the worst angle and offset over the seen faces that have a plane (a seen face without one is counted in "missing"),
@@ -44,7 +44,16 @@ import numpy as np
 from mapping.navigation import NavConfig
 from mapping.planes import open3d
 from mapping.smoother import SMOOTHED_NAV, SmootherConfig
-from mapping.synth import DiveMap, hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans
+from mapping.synth import (
+    DiveMap,
+    hit_faces,
+    replay_dive,
+    score_map,
+    simulate_dive,
+    tank,
+    three_rov_plans,
+    wall_yaw_deg,
+)
 from mapping.types import MapConfig
 
 MODES: dict[str, str | dict[str, str]] = {
@@ -105,10 +114,32 @@ NAV_OVERRIDES: dict[str, Any] = {}
 GRAPH_OVERRIDES: dict[str, Any] = {}
 #: whether depth-only and mixed dives get a fifth replay, ``tracked`` (``--graph-track``)
 TRACKED_ROWS: list[bool] = []
-#: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``)
+#: GraphConfig fields the ``tracked`` replays take on top of TRACKED (``--no-hold``, ``--heading-check``)
 TRACKED_OVERRIDES: dict[str, Any] = {}
+#: NavConfig fields the ``tracked`` replays take on top of the others' (``--fleet-compass``)
+TRACKED_NAV_OVERRIDES: dict[str, Any] = {}
 #: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
 HOLDS: list[str] = []
+#: --fleet-unbiased: the compasses' mean bias over the fleet and the dive removed from every reading (a what-if)
+FLEET_UNBIASED: list[bool] = []
+
+
+def unbias_fleet(frames: list[Any]) -> list[Any]:
+    """The dive as if its compasses' biases averaged to zero over the robots and the dive: their mean (reported
+    minus true heading over every frame) taken off every frame's reported heading (``--fleet-unbiased``). Each
+    robot keeps its own bias about that mean, and its wander."""
+    from lrsensor.frames import body_to_ned
+
+    mean = float(np.mean([math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames]))
+    out = []
+    for f in frames:
+        est = replace(f.pose_est, yaw_rad=f.pose_est.yaw_rad - mean)
+        out.append(replace(f, pose_est=est, points_ned_est=body_to_ned(f.points_body, est)))
+    return out
+
+
+#: per tracked replay and robot, its heading against the truth (a markdown row; heading_lines)
+HEADINGS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
 MAP_OVERRIDES: dict[str, Any] = {}
 #: --merge-bands: how far apart along down two bands of one vertical face may be (m)
@@ -135,6 +166,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
     frames = simulate_dive(
         scene, three_rov_plans(), duration_s=seconds, rate_hz=10.0, n_rays=400, seed=seed, navigation=MODES[mode]
     )
+    if FLEET_UNBIASED:
+        frames = unbias_fleet(frames)
     hits = hit_faces(scene, frames)
     rows = []
     ways = ["trusted", "corrected", "smoothed"] + (["graph"] if mode in ("depth-only", "mixed") else [])
@@ -144,16 +177,16 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
         navigate = way != "trusted"
         kw: dict[str, Any] = {"nav_cfg": replace(NavConfig(), **NAV_OVERRIDES)} if navigate else {}
         if way == "graph":  # as smoothed, the robots without a fix on their pose graphs (opt-in)
-            from mapping.posegraph import GraphConfig
+            from mapping.graph_config import GraphConfig
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, **NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": GraphConfig(**GRAPH_OVERRIDES)}  # fmt: skip
-        if way == "tracked":  # as graph, the gated graph (mapping.posegraph.TRACKED, opt-in)
-            from mapping.posegraph import TRACKED
+        if way == "tracked":  # as graph, the gated graph (mapping.graph_config.TRACKED, opt-in)
+            from mapping.graph_config import TRACKED
 
             kw = {"nav_cfg": replace(SMOOTHED_NAV, graph_without_fix=True, frame_graph_launches=True,
-                                     **NAV_OVERRIDES),
+                                     **NAV_OVERRIDES, **TRACKED_NAV_OVERRIDES),
                   "smoother": SmootherConfig(), "background": "wait",
                   "graph_cfg": replace(TRACKED, **TRACKED_OVERRIDES)}  # fmt: skip
         if way == "smoothed":
@@ -197,6 +230,8 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             )
         )
         print(rows[-1], flush=True)
+        if way == "tracked":
+            HEADINGS.extend(_heading_rows(mode, seed, frames, run, wall_yaw_deg(run.planes(), score)))
         for robot, h in sorted(run.hold.items()):
             HOLDS.append(f"| {mode} | {way} | {robot} | {h['committed']:.0f} | {h['replaced']:.0f} | "
                          f"{h['dropped']:.0f} | {h['lag_mean_s']:.2f} | {h['lag_max_s']:.1f} |")  # fmt: skip
@@ -524,6 +559,41 @@ def table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def _heading_rows(mode: str, seed: int, frames: list[Any], run: DiveMap, yaws: list[float]) -> list[str]:
+    """Per robot of a tracked replay: its compass bias (reported minus true heading, mean over the dive), the heading
+    error of the poses its clouds were placed with (served, mean and largest magnitude), and the map's heading
+    error (the median yaw error of its wall planes), degrees."""
+    rows = []
+    map_yaw = f"{float(np.median(yaws)):+.2f}" if yaws else "-"
+    for robot in sorted({f.robot for f in frames}):
+        bias = [
+            math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames if f.robot == robot
+        ]
+        err = np.array(run.yaw_error_deg.get(robot, []))
+        placed = f"{err.mean():+.2f} / {np.abs(err).max():.2f}" if err.size else "-"
+        rows.append(
+            f"| {mode} (seed {seed}) | {robot} | {math.degrees(float(np.mean(bias))):+.2f} | {placed} | {map_yaw} |"
+        )
+    return rows
+
+
+def heading_lines() -> list[str]:
+    """The headings' table of the tracked rows (empty without one)."""
+    if not HEADINGS:
+        return []
+    return [
+        "Headings of the tracked rows against the truth (deg): each robot's compass bias (reported minus true "
+        "heading, mean over the dive), the heading error of the poses its clouds were placed with (served; mean, "
+        "largest magnitude), and the map's (the median yaw error of its wall planes; positive turns north towards "
+        "east).",
+        "",
+        "| mode | robot | compass bias mean | placed heading error mean / max | map heading error |",
+        "|---|---|---|---|---|",
+        *HEADINGS,
+        "",
+    ]
+
+
 def hold_lines() -> list[str]:
     """The held clouds' table of the tracked rows (empty without one)."""
     if not HOLDS:
@@ -591,8 +661,26 @@ def main() -> int:
     ap.add_argument(
         "--graph-track",
         action="store_true",
-        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.posegraph.TRACKED, "
+        help="depth-only and mixed dives also replayed with the gated graph ('tracked': mapping.graph_config.TRACKED, "
         "NavConfig.frame_graph_launches; an option)",
+    )
+    ap.add_argument(
+        "--heading-check",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="the tracked rows with GraphConfig.heading_check: each check also takes the heading from the walls "
+        "the robot contributed at most SHARE of the points to (0: the others' walls only; 0.99: all but its own)",
+    )
+    ap.add_argument(
+        "--fleet-compass",
+        action="store_true",
+        help="the tracked rows with NavConfig.frame_fleet_compass: the served map turned to the fleet's mean compass",
+    )
+    ap.add_argument(
+        "--fleet-unbiased",
+        action="store_true",
+        help="a what-if: the dives' compasses with their mean bias over the fleet and the dive removed",
     )
     ap.add_argument(
         "--no-hold",
@@ -618,6 +706,12 @@ def main() -> int:
         MAP_OVERRIDES["merge_band_gap_down_m"] = MERGE_BANDS_GAP_M
     if args.no_hold:
         TRACKED_OVERRIDES["hold_until_verified"] = False
+    if args.fleet_unbiased:
+        FLEET_UNBIASED.append(True)
+    if args.fleet_compass:
+        TRACKED_NAV_OVERRIDES["frame_fleet_compass"] = True
+    if args.heading_check is not None:
+        TRACKED_OVERRIDES.update(heading_check=True, heading_own_share=args.heading_check)
     if args.nav_bias:
         NAV_OVERRIDES.update(dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
     if args.nav_bias_adaptive:
@@ -687,12 +781,16 @@ def main() -> int:
         + (" --graph-track" if args.graph_track else "")
         + (" --merge-bands" if args.merge_bands else "")
         + (" --no-hold" if args.no_hold else "")
+        + (f" --heading-check {args.heading_check:g}" if args.heading_check is not None else "")
+        + (" --fleet-compass" if args.fleet_compass else "")
+        + (" --fleet-unbiased" if args.fleet_unbiased else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
         "",
         table(rows),
         "",
         *hold_lines(),
+        *heading_lines(),
         "Worst angle and offset are over the seen faces that have a plane; a face with a plane outside 2 deg or "
         "5 cm is seen but not recovered. Position errors are of the poses the clouds are in the map with at the "
         "end (with navigation: served in NED, turned by the fleet frame); final: each robot's last estimate, the "

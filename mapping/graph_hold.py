@@ -1,6 +1,6 @@
 """A depth-only robot's clouds go into the map only once its track is verified (``GraphConfig.hold_until_verified``).
 
-A tracked pose graph (:data:`mapping.posegraph.TRACKED`) is checked every ``verify_every_s``: the scan's points
+A tracked pose graph (:data:`mapping.graph_config.TRACKED`) is checked every ``verify_every_s``: the scan's points
 must match one place of the map alone, within ``verify_tol_m`` of the estimate. Between two checks the robot can
 slide along a wall its scans do not pin while its marginal says a few centimetres; the check finds the slide, but
 the clouds placed meanwhile would stay in the map as copies of its faces, and the other robots would lock onto

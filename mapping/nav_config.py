@@ -92,10 +92,15 @@ class NavConfig:
     seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
     gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
     stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
-    :data:`mapping.posegraph.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
+    :data:`mapping.graph_config.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
     ``frame_graph_launches``: the launch frame
     (:meth:`Navigator.frame` with smoothing) takes a graph robot's launch as its graph places it (else its
     smoother's, which no longer moves, and the mean heading correction turns the map).
+    ``frame_fleet_compass`` (off): with pose graphs, the frame's heading is instead the fleet's mean compass: the
+    mean over the graph robots of each one's mean heading correction over its window
+    (:meth:`mapping.posegraph.GraphNav.mean_correction`), as if the compasses' biases averaged to zero over the
+    robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not); only
+    while every robot is on its pose graph (a robot with fixes gives the map its heading).
     """
 
     max_points: int = 300
@@ -152,6 +157,7 @@ class NavConfig:
     graph_without_fix: bool = False
     launch_window_s: float = 2.0
     frame_graph_launches: bool = False
+    frame_fleet_compass: bool = False
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ class Navigator:
         self.linked: dict[str, frozenset[str]] | None = None
         self._linked_of: PlaneLandmarks | None = None
         #: with ``graph_without_fix``: each robot's launch cloud (t_ns, raw, points), until its next cloud says
-        #: whether it has fixes; the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`, None: default)
+        #: whether it has fixes; the pose graphs' tuning (:class:`mapping.graph_config.GraphConfig`, None: default)
         self._launches: dict[str, tuple[int, Pose, Any]] = {}
         self._first_fix: dict[str, int] = {}
         self.graph_cfg: Any = None
@@ -110,8 +110,24 @@ class Navigator:
         else:
             cs = [float(n.x[4]) for n in self.robots.values() if n.yaw_scans >= self.cfg.frame_min_scans]
             yaw = float(np.mean(cs)) if cs else 0.0
+        if self.cfg.frame_fleet_compass:
+            yaw = self._fleet_compass(yaw)
         shift = cb - ca
         return NavFrame(yaw, (float(ca[0]), float(ca[1])), (float(shift[0]), float(shift[1])))
+
+    def _fleet_compass(self, yaw: float) -> float:
+        """The fleet's mean compass as the frame's heading (``NavConfig.frame_fleet_compass``): each graph robot's
+        mean heading correction over its window (poses estimated minus compass, radians), averaged over the robots
+        with at least ``frame_min_scans`` poses, each robot once (its bias is its own, whatever its scan count);
+        ``yaw`` when there is none, or when a robot has fixes (on the filter: its fixes give the map its heading)."""
+        if any(getattr(nav, "mean_correction", None) is None for nav in self.robots.values()):
+            return yaw
+        cs = []
+        for nav in self.robots.values():
+            got = nav.mean_correction()
+            if got is not None and got[1] >= self.cfg.frame_min_scans:
+                cs.append(got[0])
+        return float(np.mean(cs)) if cs else yaw
 
     def update(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
         """One cloud of ``robot`` (see :meth:`RobotNav.update`)."""

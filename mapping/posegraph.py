@@ -36,7 +36,6 @@ GTSAM (``gtsam``, the ``graph`` extra of pyproject.toml) is imported on first us
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -45,8 +44,10 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .errors import MapInputError
+from .graph_config import GraphConfig
 from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import LEVER_M, TrackGate, ambiguous, relocalize, verify
+from .graph_heading import heading_offset
 from .graph_hold import CloudHold, check_due, check_held, hold_step
 from .landmarks import PlaneLandmarks, associate, take_planes
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
@@ -71,78 +72,6 @@ def gtsam_module() -> Any:
             raise MapInputError(msg) from err
         _GTSAM = gtsam
     return _GTSAM
-
-
-@dataclass(frozen=True)
-class GraphConfig:
-    """Tuning of :class:`GraphNav` (metres, seconds, degrees where named ``_deg``).
-
-    ``velocity_walk_m_s``: the velocity's random walk (m/s per sqrt(s)); ``max_speed_m_s`` bounds one scan's move
-    (a weak isotropic prior on each increment); ``compass_every_s`` / ``compass_bias_deg``: a heading prior that
-    often, that wide; ``map_gate_chi2``: a registration whose correction lies beyond the marginal covariance (3
-    degrees of freedom) is a wrong association and left out; ``map_min_sigma_m``: floor of a plane's residual
-    sigma (planes are not exact); ``own_min_age_s``: own planes first seen at least that long before count as loop
-    closures (younger ones carry what the odometry already says); ``own_sigma_m``: their residual sigma (a plane
-    made from several poses); ``observed_std_m``: a registration's direction counts where it alone pins the pose
-    within this (the heading at a 2 m lever); ``window_s`` / ``rebase_every_s``: the bounded window;
-    ``place_std_m``: clouds are placed while the horizontal standard deviation is below it; ``lost_std_m``: beyond
-    it no plane is registered. ``second_hypothesis`` (off): a plane factor is left out when another plane would
-    explain the scan's points on it within the pose's marginal (:func:`mapping.graph_gate.ambiguous`).
-    ``track_break_std_m``: past this horizontal std the track is broken and nothing more is placed
-    (:class:`mapping.graph_gate.TrackGate`; ``inf``: never), and so it does where one scan moves the position
-    beyond ``track_jump_chi2`` (squared Mahalanobis, its marginal before the scan). ``relocalize``: a broken
-    track is taken up again
-    from a scan that matches one place alone (:func:`mapping.relocalize.unique_place`, tried every
-    ``relocalize_every_s``, within ``relocalize_max_m`` and the speed bound since the break), that place then a
-    prior of ``relocalize_sigma_m``. ``verify_every_s``: that often an unbroken track is checked the same way
-    (within ``verify_radius_m``); a unique place more than ``verify_tol_m`` from the estimate re-anchors it there.
-    ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
-    ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
-    or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
-    place is tried again after ``hold_retry_s``).
-    """
-
-    velocity_walk_m_s: float = 0.1
-    odometry_info_scale: float = 0.3
-    max_speed_m_s: float = 0.6
-    compass_every_s: float = 5.0
-    compass_bias_deg: float = 3.0
-    map_gate_chi2: float = 16.0
-    map_min_sigma_m: float = 0.02
-    map_plane_sigma_m: float = 0.05
-    map_plane_sigma_deg: float = 1.0
-    own_min_age_s: float = 15.0
-    own_sigma_m: float = 0.03
-    own_planes: bool = True
-    window_s: float = 120.0
-    rebase_every_s: float = 30.0
-    place_std_m: float = 0.1
-    boot_std_m: float = 1.0
-    lost_std_m: float = 0.3
-    observed_std_m: float = 0.1
-    plane_gate_m: float = 0.1
-    second_hypothesis: bool = False
-    track_break_std_m: float = math.inf
-    track_jump_chi2: float = math.inf
-    relocalize: bool = False
-    relocalize_every_s: float = 2.0
-    relocalize_max_m: float = 1.5
-    relocalize_sigma_m: float = 0.03
-    verify_every_s: float = math.inf
-    verify_radius_m: float = 0.5
-    verify_tol_m: float = 0.08
-    place_verified_s: float = math.inf
-    hold_until_verified: bool = False
-    hold_check_radius_m: float = 0.3
-    hold_retry_s: float = 0.5
-
-
-#: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
-#: taken up again only where a scan matches one place alone, checked every 2 s; with
-#: ``NavConfig.frame_graph_launches``. An option: it does not meet the bar on both seeds measured.
-TRACKED = GraphConfig(
-    second_hypothesis=True, track_break_std_m=0.1, relocalize=True, verify_every_s=2.0, hold_until_verified=True
-)
 
 
 class GraphNav:
@@ -172,6 +101,8 @@ class GraphNav:
         self.track = TrackGate(self.gcfg.track_break_std_m)
         #: the clouds held until the next check passes (``GraphConfig.hold_until_verified``)
         self.hold = CloudHold()
+        #: heading checks that added a prior (``GraphConfig.heading_check``)
+        self.headings = 0
         self._reset()
 
     def _reset(self) -> None:
@@ -187,6 +118,7 @@ class GraphNav:
         self._specs: list[tuple[str, tuple[int, ...], tuple[Any, ...]]] = []
         self._first_key = 0
         self._last_compass_t: int | None = None
+        self._last_heading_t: int | None = None
         self._isam: Any = None
         self._est: FloatArray = np.zeros((0, 3))
         self._cov = np.eye(3)
@@ -234,7 +166,18 @@ class GraphNav:
             self._then[k] = x.copy()
         return out
 
-    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t")
+    def mean_correction(self) -> tuple[float, int] | None:
+        """The mean over the window's poses of the heading as estimated minus the compass (radians, the mean of the
+        wrapped differences) and the poses counted; None before the launch. Nothing is solved: the estimates as
+        last refreshed."""
+        n = min(len(self._t), self._est.shape[0])
+        if n <= self._first_key:
+            return None
+        c = np.remainder(self._est[self._first_key : n, 2] - np.asarray(self._compass[self._first_key : n]) + math.pi,
+                         2 * math.pi) - math.pi  # fmt: skip
+        return float(c.mean()), int(c.size)
+
+    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t", "_last_heading_t", "headings")
 
     def snapshot(self) -> dict[str, Any]:
         """The estimator's whole state as plain numbers: the window's factors and estimates, the scans kept."""
@@ -265,7 +208,7 @@ class GraphNav:
         ``solve`` False: the state is then only read, as the map thread reads a plane worker's for the frame)."""
         self._reset()
         for k in self._STATE:
-            setattr(self, k, snap[k])
+            setattr(self, k, snap.get(k, getattr(self, k)))
         self.start_ne = np.asarray(snap["start_ne"], dtype=np.float64)
         self.x = np.asarray(snap["x"], dtype=np.float64)
         self._t = [int(t) for t in snap["t"]]
@@ -343,6 +286,8 @@ class GraphNav:
         if self.track.broken and self.gcfg.relocalize and relocalize(self, key, t, raw, pts, landmarks):
             motion = moved = "relocalized"
         elif not self.track.broken and check_due(self, t):
+            if self.gcfg.heading_check:
+                self._check_heading(key, t, raw, pts, landmarks)
             moved = verify(self, key, t, raw, pts, landmarks)
             motion = moved or motion
         self._then[key] = self._est[key].copy()
@@ -452,6 +397,37 @@ class GraphNav:
         guess[2] = x_prev[2] + dyaw
         self._new_values = {key: guess}
         return motion
+
+    def _check_heading(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> None:
+        """The heading of pose ``key`` checked against the walls (:mod:`mapping.graph_heading`) the robot contributed
+        at most ``heading_own_share`` of the points to, every ``heading_every_s``: a prior on it at the heading the
+        walls say, ``heading_floor_deg`` at least. Its own walls would carry its own heading error back.
+        """
+        gcfg = self.gcfg
+        if self._last_heading_t is not None and t - self._last_heading_t < gcfg.heading_every_s * 1e9:
+            return
+        if len(lm) == 0:
+            return
+        use = np.ones(len(lm), dtype=bool)
+        for i, c in enumerate(lm.contrib or ()):
+            mine = c.get(self.robot)
+            if mine is not None and mine[0] > gcfg.heading_own_share * sum(v[0] for v in c.values()):
+                use[i] = False
+        if not use.any():
+            return
+        x = self._est[key]
+        got = heading_offset(pts, raw, x, take_planes(lm, use), self.cfg)
+        if got is None:
+            return
+        off, sd, _ = got
+        if abs(off) > math.radians(gcfg.heading_max_deg):
+            return
+        self._last_heading_t = t
+        sd = max(sd, math.radians(gcfg.heading_floor_deg))
+        mean = np.array([float(x[0]), float(x[1]), float(x[2]) - off])
+        self._add("prior", (key,), (mean, np.diag([1e-10, 1e-10, 1.0 / sd**2])))
+        self.headings += 1
+        self._solve()
 
     def _compass_prior(self, key: int, t: int) -> None:
         gcfg = self.gcfg

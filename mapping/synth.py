@@ -447,6 +447,22 @@ def score_map(
     return MapScore(scores, spurious)
 
 
+def wall_yaw_deg(planes: list[dict[str, Any]], score: MapScore) -> list[float]:
+    """The yaw error (deg; positive turns north towards east, the yaw's sense) of each plane of ``planes`` that
+    ``score`` matched to a vertical face: the angle from the face's horizontal normal to the plane's. A map built at
+    a heading off by a common angle has its walls turned by it."""
+    by_id = {int(p["id"]): p for p in planes}
+    out = []
+    for fs in score.faces:
+        fn = np.array(fs.face.normal, dtype=float)
+        if abs(float(fn[2])) > 0.5:
+            continue
+        for pid in fs.plane_ids:
+            n = np.array(by_id[pid]["normal"], dtype=float)
+            out.append(math.degrees(math.atan2(fn[0] * n[1] - fn[1] * n[0], fn[0] * n[0] + fn[1] * n[1])))
+    return out
+
+
 def three_rov_plans(length_m: float = 8.0, width_m: float = 6.0) -> list[DivePlan]:
     """:func:`two_rov_plans` and a third robot on a tighter loop at 2.5 m, around the pillars."""
     L, W = length_m, width_m
@@ -508,7 +524,7 @@ def replay_dive(
     ``realtime``: each frame is fed at its capture time (from the first frame's, on the wall clock), as a base
     station receives a live dive: background runs then truly overlap the feed; :attr:`DiveMap.step_s` keeps each
     frame's time on the map thread (smoother step, navigation and placing). ``graph_cfg``: the pose graphs' tuning
-    (:class:`mapping.posegraph.GraphConfig`) for robots without a fix, with ``NavConfig.graph_without_fix``.
+    (:class:`mapping.graph_config.GraphConfig`) for robots without a fix, with ``NavConfig.graph_without_fix``.
     """
     import time
 
@@ -520,7 +536,7 @@ def replay_dive(
     b = MapBuilder(cfg or MapConfig())
     nav = Navigator(nav_cfg, smoother) if navigate else None
     if nav is not None:
-        nav.graph_cfg = graph_cfg  # the pose graphs' tuning (mapping.posegraph.GraphConfig; None: its default)
+        nav.graph_cfg = graph_cfg  # the pose graphs' tuning (mapping.graph_config.GraphConfig; None: its default)
     out = DiveMap(b)
     min_pts = nav.cfg.min_landmark_points if nav is not None else 0
     placed: dict[str, dict[int, Pose]] = {}

@@ -100,7 +100,7 @@ class BaseStation:
             here (:mod:`services.map_workers`); implied by ``map_workers`` > 0.
         no_fix: with navigation, what becomes of a robot without a horizontal fix after its launch (``--no-fix``):
             ``lost`` (default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
-            :data:`mapping.posegraph.TRACKED`, with the graphs' launch frame), in the map thread and in the plane
+            :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame), in the map thread and in the plane
             workers alike (:func:`services.map_worker_nav.no_fix_config`; docs/navigation.md, "Depth-only").
     """
 

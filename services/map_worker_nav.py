@@ -62,19 +62,19 @@ REGISTER_EVERY_S = 0.19
 EXTRAPOLATE_S = 0.5
 #: What the base does with a robot that has no horizontal fix after its launch (``lrsensor base --no-fix``):
 #: ``lost`` (the default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
-#: :data:`mapping.posegraph.TRACKED`, with the graphs' launch frame; docs/navigation.md, "Depth-only").
+#: :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame; docs/navigation.md, "Depth-only").
 NO_FIX_CHOICES = ("lost", "graph")
 
 
 def no_fix_config(cfg: Any, no_fix: str) -> tuple[Any, Any]:
     """``(NavConfig, GraphConfig or None)`` for the choice ``no_fix`` of :data:`NO_FIX_CHOICES` on top of the
     navigation's ``cfg``: ``lost`` leaves ``cfg`` as it is (no graph); ``graph`` turns on
-    ``graph_without_fix`` and ``frame_graph_launches`` with :data:`mapping.posegraph.TRACKED`. Raises
+    ``graph_without_fix`` and ``frame_graph_launches`` with :data:`mapping.graph_config.TRACKED`. Raises
     :class:`~services.errors.WireError` (a :class:`~services.errors.ServiceError`) on another value."""
     if no_fix == "lost":
         return cfg, None
     if no_fix == "graph":
-        from mapping.posegraph import TRACKED
+        from mapping.graph_config import TRACKED
 
         return dataclasses.replace(cfg, graph_without_fix=True, frame_graph_launches=True), TRACKED
     msg = f"no-fix choice must be one of {', '.join(NO_FIX_CHOICES)}, got {no_fix!r}"
@@ -228,7 +228,7 @@ class WorkerNav:
     Args:
         cfg: the navigation's configuration (default ``NavConfig()``, the base's ``--nav filter``).
         register_every_s: the stride, seconds of capture time (0: register every scan).
-        graph_cfg: the pose graphs' tuning (:class:`mapping.posegraph.GraphConfig`; None: its default).
+        graph_cfg: the pose graphs' tuning (:class:`mapping.graph_config.GraphConfig`; None: its default).
 
     The base's ``--no-fix`` choice comes with each job (:meth:`set_no_fix`): a worker started on another machine
     navigates as the base says.

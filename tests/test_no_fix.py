@@ -17,7 +17,8 @@ from waiting import wait_until
 from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose
 from lrsensor.sim.dive import record_dive
-from mapping.posegraph import TRACKED, GraphNav
+from mapping.graph_config import TRACKED
+from mapping.posegraph import GraphNav
 from mapping.synth import simulate_dive, tank, three_rov_plans
 from services import cli_base
 from services.base import BaseStation

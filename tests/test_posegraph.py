@@ -19,7 +19,8 @@ from mapping.synth import simulate_dive, tank, three_rov_plans
 pytest.importorskip("gtsam")
 
 from mapping import posegraph
-from mapping.posegraph import GraphConfig, GraphNav
+from mapping.graph_config import GraphConfig
+from mapping.posegraph import GraphNav
 
 #: the pose graph is opt-in (NavConfig.graph_without_fix, off by default)
 GRAPH = NavConfig(graph_without_fix=True)

@@ -12,11 +12,11 @@ import pytest
 
 from lrsensor.frames import Pose
 from mapping import graph_hold
+from mapping.graph_config import TRACKED, GraphConfig
 from mapping.graph_gate import TrackGate
 from mapping.graph_hold import CloudHold, check_held, hold_step
 from mapping.landmarks import PlaneLandmarks
 from mapping.nav_config import AXES, NavConfig, NavEstimate
-from mapping.posegraph import TRACKED, GraphConfig
 
 S = 1_000_000_000
 

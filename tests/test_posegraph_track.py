@@ -19,7 +19,8 @@ from mapping.synth import simulate_dive, tank, three_rov_plans
 
 pytest.importorskip("gtsam")
 
-from mapping.posegraph import GraphConfig, GraphNav
+from mapping.graph_config import GraphConfig
+from mapping.posegraph import GraphNav
 
 NOFIX = Pose(math.nan, math.nan, 1.0, 0.0, 0.0, 0.0)
 
