@@ -24,17 +24,25 @@ class Sensor:
     >>> scan.points                                      # (N, 3) body frame, metres
     """
 
-    def __init__(self, calibration: Calibration, *, wait_for_kernels: bool = True) -> None:
+    def __init__(self, calibration: Calibration, *, wait_for_kernels: bool = True, stream: bool = False) -> None:
         """A sensor with ``calibration``; readies the compiled extractor now rather than in the first frame.
 
         ``wait_for_kernels``: load the compiled kernels from numba's cache (about a second, once per process) or,
         on a first use, compile them once now (about 20 s, said in the log). False (a live camera that must not
         stall): compile them in the background while the numpy reference processes the frames (said in the
-        log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`."""
+        log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`.
+
+        ``stream``: the frames come in order from one camera in one water (a live camera, a video). In turbid
+        water a frame tells the water's attenuation and the stripe's width that shape the glow; with ``stream``
+        the next frames take them and tell them again once every
+        :data:`~lrsensor.extract.glow.WATER_FRAMES` frames (a third of a glowing frame's time saved). Without
+        (the default: images that may each come from other water), every frame tells its own."""
         self.calibration = calibration
-        # what the frames told of turbid water (the glow's attenuation and the stripe's width): the water changes
-        # slowly, so later frames take it (lrsensor.extract.glow.glow_refit)
-        self._water = np.array([0.0, 0.0, np.inf])
+        self._water = None
+        if stream:
+            from .extract.glow import new_water
+
+            self._water = new_water()
         if wait_for_kernels:
             _kernels.ensure()
         else:

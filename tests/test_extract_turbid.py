@@ -420,7 +420,8 @@ def test_the_water_told_on_one_frame_is_carried_to_the_next(
     monkeypatch: pytest.MonkeyPatch, use_reference: bool
 ) -> None:
     """The attenuation and width a glowing frame tells are taken by the next frames (``water``), until
-    :data:`~lrsensor.extract.glow.WATER_FRAMES` frames have; then a frame tells them again. A sensor carries them."""
+    :data:`~lrsensor.extract.glow.WATER_FRAMES` frames have; then a frame tells them again. A sensor of a stream carries
+    them; a sensor of stills (the default) does not."""
     if not use_reference and not HAVE_NUMBA:
         pytest.skip("numba is not installed: only the reference exists")
     if not use_reference:
@@ -445,10 +446,13 @@ def test_the_water_told_on_one_frame_is_carried_to_the_next(
     water[2] = glow.WATER_FRAMES  # due: told again
     np.testing.assert_array_equal(points(water), first)
     np.testing.assert_array_equal(water, told)
-    sensor = Sensor(frame.calibration)
+    sensor = Sensor(frame.calibration, stream=True)
     sensor.process(frame.image)
     sensor.process(frame.image)
     np.testing.assert_array_equal(sensor._water, [told[0], told[1], 2.0])
+    stills = Sensor(frame.calibration)  # images that may each come from other water: each tells its own
+    stills.process(frame.image)
+    assert stills._water is None
 
 
 @pytest.mark.parametrize("use_reference", [False, True], ids=["compiled", "reference"])
