@@ -108,9 +108,10 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
+from .sorting import median
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -525,7 +526,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     return v_out, s_out, fitted, a_out, n_out
 
 
-@njit
+@callee
 def _attenuation(  # type: ignore[no-untyped-def]
     image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
@@ -612,8 +613,9 @@ def _attenuation(  # type: ignore[no-untyped-def]
         f_use = empty(5, np.bool_)
         for i in range(5):
             src = b - 1 + i // 2
-            rss_f[i] = rss_m[i // 2] if i % 2 else rss_a[src]
-            fit_f[i] = fit_m[i // 2] if i % 2 else fit_a[src]
+            for t in range(n):  # (element by element: a row assigned whole compiles numpy's broadcasting)
+                rss_f[i, t] = rss_m[i // 2, t] if i % 2 else rss_a[src, t]
+                fit_f[i, t] = fit_m[i // 2, t] if i % 2 else fit_a[src, t]
             f_use[i] = use_m[i // 2] if i % 2 else use[src]
         f_tot = _alpha_total(rss_f, fit_f, f_use, sample)
         c = 1
@@ -647,12 +649,12 @@ def _attenuation(  # type: ignore[no-untyped-def]
             pool[k] = s1[t]
             frac[k] = st1[1, t] / st1[0, t]
             k += 1
-    if np.median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
+    if median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
         return 0.0, 0.0
-    return alpha, float(np.median(pool))
+    return alpha, float(median(pool))
 
 
-@njit
+@inline
 def _alpha_fits(  # type: ignore[no-untyped-def]
     grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
@@ -687,7 +689,7 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
     return rss_a, fit_a, use
 
 
-@njit
+@callee
 def _alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
     """The scores of :func:`_alpha_fits`' rows: summed log residuals over the sample's points fitted at every row
     that most of them fit at (``use``); inf where none is."""
@@ -737,7 +739,7 @@ def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@callee
 def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # type: ignore[no-untyped-def]
     """At the points ``where`` (N,): the F statistic of the glow's ramp (its two parameters), pooled over the glowing
     points of the same laser within :data:`POOL_COLS` columns fitted with it (``f2``) and without (``f0``): the drop of
