@@ -108,9 +108,10 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
+from .sorting import median
 from .water import alpha_total as _alpha_total
 from .water import retell, vertex
 
@@ -527,7 +528,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     return v_out, s_out, fitted, a_out, n_out
 
 
-@njit
+@callee
 def _attenuation(  # type: ignore[no-untyped-def]
     image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
@@ -619,9 +620,9 @@ def _attenuation(  # type: ignore[no-untyped-def]
             pool[k] = s1[t]
             frac[k] = st1[1, t] / st1[0, t]
             k += 1
-    if np.median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
+    if median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
         return 0.0, 0.0
-    s_w = float(np.median(pool))
+    s_w = float(median(pool))
     hw_p = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
     return retell(
         image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
@@ -629,7 +630,7 @@ def _attenuation(  # type: ignore[no-untyped-def]
     )  # fmt: skip
 
 
-@njit
+@inline
 def _alpha_fits(  # type: ignore[no-untyped-def]
     grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
@@ -696,7 +697,7 @@ def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@callee
 def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # type: ignore[no-untyped-def]
     """At the points ``where`` (N,): the F statistic of the glow's ramp (its two parameters), pooled over the glowing
     points of the same laser within :data:`POOL_COLS` columns fitted with it (``f2``) and without (``f0``): the drop of

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 
 #: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
 ITERATIONS = 4
@@ -147,7 +147,7 @@ def reach_weight(nb_c, nb_s, hw):  # type: ignore[no-untyped-def]
     return math.exp(-0.5 * e * e)
 
 
-@njit
+@callee
 def _solve(M, b, k):  # type: ignore[no-untyped-def]
     """Solve ``M[:k, :k] x = b[:k]`` in place for a symmetric positive definite ``M`` (normal equations; Cholesky,
     half the work of an elimination with pivots: the solves were a third of a fit's time); False when singular (a
@@ -222,7 +222,7 @@ def fit_one(  # type: ignore[no-untyped-def]
     )
 
 
-@njit
+@callee
 def fit_into(  # type: ignore[no-untyped-def]
     y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm,
     d_rc, kap_k, nb_d, nb_kk,
@@ -366,7 +366,7 @@ def fit_into(  # type: ignore[no-untyped-def]
     return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
-@njit
+@callee
 def neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
     """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
     (centre ``v_nb``, sigma ``s_nb``) reaches within ``reach`` rows of the point's centre ``v_nb[t]`` by 3 sigma;
@@ -385,7 +385,7 @@ def neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-
     return nb
 
 
-@njit
+@callee
 def fit_rounds(  # type: ignore[no-untyped-def]
     image,
     cols,

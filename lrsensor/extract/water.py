@@ -15,15 +15,16 @@ import math
 
 import numpy as np
 
-from ._jit import full, njit, zeros
+from ._jit import callee, empty, full, inline, zeros
 from .glow_fit import fit_rounds
+from .sorting import median
 
 #: The fine grid of :func:`retell`: WATER_POINTS attenuations WATER_STEP (1/m) apart, centred on the first telling's.
 WATER_STEP = 0.02
 WATER_POINTS = 5
 
 
-@njit
+@callee
 def alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
     """The scores of :func:`.glow._alpha_fits`' rows (and :func:`retell`'s): summed log residuals over the sample's
     points fitted at every row that most of them fit at (``use``); inf where none is."""
@@ -41,7 +42,7 @@ def alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
     return tot
 
 
-@njit
+@callee
 def _adjusted_total(cr_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
     """:func:`retell`'s scores: the sums of ``cr_a`` (A, N) over the sample's points fitted at every row that most
     of them fit at (``use``); inf at the others, and everywhere when no point is fitted at all of them."""
@@ -59,7 +60,7 @@ def _adjusted_total(cr_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
     return tot
 
 
-@njit
+@inline
 def vertex(x0, x1, x2, y0, y1, y2):  # type: ignore[no-untyped-def]
     """The vertex of the parabola through ``(x0, y0), (x1, y1), (x2, y2)`` (``x0 < x1 < x2``, ``y1`` the least of
     the three), within ``[x0, x2]``; ``x1`` where the three do not curve upward."""
@@ -69,7 +70,7 @@ def vertex(x0, x1, x2, y0, y1, y2):  # type: ignore[no-untyped-def]
     return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
 
 
-@njit
+@callee
 def retell(  # type: ignore[no-untyped-def]
     image,
     cols,
@@ -144,7 +145,7 @@ def retell(  # type: ignore[no-untyped-def]
         sig_h[t] = s_w if sample[t] else s_o[t]
         sg0_h[t] = s_w if sample[t] else sg0[t]
     n_f = WATER_POINTS
-    fine = np.empty(n_f, np.float64)
+    fine = empty(n_f, np.float64)
     for i in range(n_f):
         fine[i] = alpha + WATER_STEP * (i - n_f // 2)
     cr_a = zeros((n_f, n), np.float64)
@@ -192,10 +193,10 @@ def retell(  # type: ignore[no-untyped-def]
         m += f2[t] and st2[0, t] > 0.0
     if m < 16:
         return a2, s_w
-    pool = np.empty(m, np.float64)
+    pool = empty(m, np.float64)
     m = 0
     for t in range(n):
         if f2[t] and st2[0, t] > 0.0:
             pool[m] = s2[t]
             m += 1
-    return a2, float(np.median(pool))
+    return a2, float(median(pool))
