@@ -436,18 +436,26 @@ COST_CELLS = ((1.0, 0.0, 1.5), (1.0, 0.5, 1.5), (2.0, 0.5, 4.0), (3.0, 0.0, 4.0)
 
 def frame_cost(repeats: int = 5, seed: int = 1) -> list[str]:
     """CPU time per frame of ``Sensor(calibration).process`` (median of ``repeats`` after one warm call,
-    ``time.process_time``: the process's CPU, not the wall) on the frames of :data:`COST_CELLS`; the table rows."""
-    rows = ["| range m | glow step | blur px | CPU ms/frame | points |", "|---:|---:|---:|---:|---:|"]
+    ``time.process_time``: the process's CPU, not the wall) on the frames of :data:`COST_CELLS`, for stills (each
+    frame tells the water) and for a stream (``Sensor(calibration, stream=True)``: the water told by the warm call is
+    carried); the table rows."""
+    rows = [
+        "| range m | glow step | blur px | CPU ms/frame, stills | CPU ms/frame, stream | points |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
     for d, g, b in COST_CELLS:
         frame = render(Turbid(distance_m=d, glow_step=g, blur_px=b, seed=seed))
-        sensor = Sensor(frame.calibration)
-        scan = sensor.process(frame.image)
-        times = []
-        for _ in range(repeats):
-            t0 = time.process_time()
-            sensor.process(frame.image)
-            times.append(time.process_time() - t0)
-        rows.append(f"| {d:.1f} | {g:.1f} | {b:.1f} | {1e3 * float(np.median(times)):.1f} | {scan.laser.size} |")
+        ms = []
+        for stream in (False, True):
+            sensor = Sensor(frame.calibration, stream=stream)
+            scan = sensor.process(frame.image)
+            times = []
+            for _ in range(repeats):
+                t0 = time.process_time()
+                sensor.process(frame.image)
+                times.append(time.process_time() - t0)
+            ms.append(1e3 * float(np.median(times)))
+        rows.append(f"| {d:.1f} | {g:.1f} | {b:.1f} | {ms[0]:.1f} | {ms[1]:.1f} | {scan.laser.size} |")
     return rows
 
 

@@ -24,14 +24,25 @@ class Sensor:
     >>> scan.points                                      # (N, 3) body frame, metres
     """
 
-    def __init__(self, calibration: Calibration, *, wait_for_kernels: bool = True) -> None:
+    def __init__(self, calibration: Calibration, *, wait_for_kernels: bool = True, stream: bool = False) -> None:
         """A sensor with ``calibration``; readies the compiled extractor now rather than in the first frame.
 
         ``wait_for_kernels``: load the compiled kernels from numba's cache (about a second, once per process) or,
         on a first use, compile them once now (about 20 s, said in the log). False (a live camera that must not
         stall): compile them in the background while the numpy reference processes the frames (said in the
-        log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`."""
+        log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`.
+
+        ``stream``: the frames come in order from one camera in one water (a live camera, a video). In turbid
+        water a frame tells the water's attenuation and the stripe's width that shape the glow; with ``stream``
+        the next frames take them and tell them again once every
+        :data:`~lrsensor.extract.glow.WATER_FRAMES` frames (a third of a glowing frame's time saved). Without
+        (the default: images that may each come from other water), every frame tells its own."""
         self.calibration = calibration
+        self._water = None
+        if stream:
+            from .extract.glow import new_water
+
+            self._water = new_water()
         if wait_for_kernels:
             _kernels.ensure()
         else:
@@ -55,7 +66,7 @@ class Sensor:
         """
         img = check_image(image, self.calibration)
         if method == "subpixel":  # the compiled kernels triangulate in the same call
-            det, xyz = (_POINTS or _load_points())(img, self.calibration, **options)
+            det, xyz = (_POINTS or _load_points())(img, self.calibration, water=self._water, **options)
             if xyz is not None:  # triangulated and depth-gated in the compiled call
                 return Scan(xyz, det.laser, det.uv, det.quality, method)
         else:

@@ -242,7 +242,7 @@ class RovService:
         self.imu = imu
         self.calibration = calibration
         # a live camera must not stall for a first compile: the numpy reference runs meanwhile (said in the log)
-        self.sensor = Sensor(calibration, wait_for_kernels=False)
+        self.sensor = Sensor(calibration, wait_for_kernels=False, stream=True)
         self.rate_hz = rate_hz
         self.method = method
         self.process_options, self.channel_note = channel_choice(source, method, process_options or {})

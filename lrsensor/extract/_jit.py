@@ -55,6 +55,11 @@ try:  # pragma: no cover - depends on the platform
     #: typing, and it takes its callers' options): one library less, whose call tree LLVM would otherwise optimise
     #: and compile once more (:mod:`lrsensor.extract.compile`).
     inline: Any = numba.njit(inline="always", error_model="numpy")
+    #: Compile a kernel that only other kernels call (as :data:`njit`), without the wrappers through which Python
+    #: and C would call it: numba builds both into every kernel's library, where LLVM optimises and compiles them,
+    #: and no caller links them (:mod:`lrsensor.extract.compile`).
+    _no_wrappers: dict[str, Any] = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+    callee: Any = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"}, **_no_wrappers)
     trailing_zeros: Any = _ctz  # the number of trailing zero bits of an unsigned integer (one instruction)
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
@@ -63,6 +68,7 @@ except ImportError:  # pragma: no cover
         return f
 
     inline = njit
+    callee = njit
 
     def _trailing_zeros_py(x: Any) -> int:
         """The number of trailing zero bits of a positive integer."""

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import empty, inline, njit
+from ._jit import callee, empty, inline
 
 
-@njit
+@callee
 def gather_green(image, cols, top, out):  # type: ignore[no-untyped-def]
     """Green samples of ``out.shape[0]`` consecutive rows per column into ``out`` (K, N), any dtype: sample ``k``
     of column ``t`` is row ``top[t] + k`` (clamped to the image) of column ``cols[t]``. Where all of them lie in

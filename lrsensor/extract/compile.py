@@ -23,7 +23,8 @@ second. This module decides when that compile happens and where:
   width limits and for the points), so no other kernel but the smoothing's central view (the port's) links them
   in and compiles them again; and the thin stages that mostly call kernels
   (:func:`~lrsensor.extract.refit.refit_columns`, :func:`~lrsensor.extract.smooth.smooth_runs`, ...) are inlined
-  into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each. The larger stages stay
+  into their callers (:data:`~lrsensor.extract._jit.inline`), one library less each, and the kernels only other
+  kernels call have no wrappers for Python (:data:`~lrsensor.extract._jit.callee`). The larger stages stay
   kernels of their own (inlined, they make their callers' functions so large that LLVM takes longer over them
   than over the libraries they would save). The child and its
   helper compile at LLVM's optimisation level 1 (``NUMBA_OPT=1``, unless the caller set ``NUMBA_OPT``). The
@@ -148,7 +149,7 @@ def _build(part: str | None = None) -> None:
         place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        refine_and_finish(image, located, bands.glow_side, settings, g)
+        refine_and_finish(image, located, bands.glow_side, settings, g, np.zeros(3))
         # (the central view's callee: compiled in this part either way)
         triangulate_points_port(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, inline, njit, trailing_zeros, zeros
+from ._jit import callee, empty, inline, njit, trailing_zeros, zeros
 
 #: Noise of the detection response over the pixel noise: 2x2 average (1/2), then a 3-column box (1/sqrt(3)).
 AREA_NOISE = 0.5 / math.sqrt(3.0)
@@ -52,7 +52,7 @@ def noise_dn_rows(flat, width, src, step):  # type: ignore[no-untyped-def]
     return _noise_samples(flat, 3 * width, 3, 1, src, width + width % 2, step)
 
 
-@njit
+@callee
 def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type: ignore[no-untyped-def]
     """The noise of :func:`noise_dn` from the rows ``src`` (R,) of a flat byte image: sample ``x`` of row ``r`` is
     ``flat[src[r] * row_bytes + offset + px_bytes * x]``; ``cols`` (the band's width) sets the column step."""

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 from .columns import colour_rises, gather_green
 
 #: Rows either side of the picked row within which a profile is re-centred on its integer peak.
@@ -70,7 +70,7 @@ def flank_offset(sigma_hint, n_sat, half, flank):  # type: ignore[no-untyped-def
     return int(min(math.ceil(3.0 * sigma_hint + 0.5 * n_sat + 1.0), half - flank + 1))
 
 
-@njit
+@callee
 def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-untyped-def]
     """The green profiles of rows ``top ... top + k_rows - 1`` (clamped to the image) of columns ``cols`` less the
     Gaussian ``amp exp(-(row - mu)^2 inv)`` of each column (``g2 = exp(-2 inv)``; (N,) each; ``amp`` 0: none):
@@ -108,7 +108,7 @@ def _profiles(image, cols, top, k_rows, mu, amp, inv, g2):  # type: ignore[no-un
     return P
 
 
-@njit
+@callee
 def _clipped_runs(P, sat_dn):  # type: ignore[no-untyped-def]
     """Per column of the profiles ``P`` (k, n): how many samples are clipped (at least ``sat_dn``) and the rows of
     the first and the last of them, (n,) int64 each (first ``k`` and last -1 where none)."""
@@ -396,7 +396,7 @@ def _subtract_lines(P, line, A):  # type: ignore[no-untyped-def]
             aq[t] = pq[t] - (bl[t] + slope[t] * (q - xl[t]))
 
 
-@njit
+@callee
 def _centroids(A, c, window, hs, inv2, gain, reach, iterations):  # type: ignore[no-untyped-def]
     """Centroid iterations on the background-free profiles ``A`` (m, n) from the centres ``c`` (n,) (window
     rows, updated in place): where ``window``, the plain centroid with weights 1 within ``hs - 1`` rows of the

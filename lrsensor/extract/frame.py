@@ -58,7 +58,7 @@ from .detect import detect_band
 from .finish import finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
-from .glow import glow_refit
+from .glow import glow_refit, new_water
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
 from .sorting import kth, median
@@ -416,12 +416,13 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
 
 
 @njit
-def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-def]
+def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-untyped-def]
     """Steps 4-5 of :func:`extract_frame` (glow fits, gates, smoothing, quality).
 
     Args:
         image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`fit_points`;
-            glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`.
+            glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`;
+            water: (3,) float64, :func:`lrsensor.extract.glow.glow_refit`'s (read and updated).
 
     Returns:
         ``(u, v, laser, quality)``: (M,) each, the points' pixel columns and rows, laser and quality in [0, 1].
@@ -452,6 +453,9 @@ def refine_and_finish(image, p, glow_side, s, geo):  # type: ignore[no-untyped-d
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
+            geo.glow_vanish,
+            geo.glow_path,
+            water,
         )
         # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
         # takes part of the glow's step as a slope)
@@ -516,7 +520,12 @@ _NO_XYZ = empty((0, 3), np.float64)
 
 
 def extract_frame(
-    image: NDArray[np.uint8], bands: Bands, s: Settings, geo: Geometry, triangulate: bool
+    image: NDArray[np.uint8],
+    bands: Bands,
+    s: Settings,
+    geo: Geometry,
+    triangulate: bool,
+    water: FloatArray | None = None,
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray, FloatArray]:
     """The whole default extractor on one frame in five compiled calls (see the module documentation).
 
@@ -526,6 +535,8 @@ def extract_frame(
             geo: :class:`~lrsensor.extract.settings.Geometry`.
         triangulate: also triangulate the points and keep only those whose camera depth is within
             ``[s.min_range_m, s.max_range_m]`` (NaN points dropped); else no points and no depth gate.
+        water: the turbid water's attenuation and width as a camera's earlier frames told them, read and updated
+            (:func:`lrsensor.extract.glow.glow_refit`; None: told on this frame alone).
 
     Returns:
         ``(uv, laser, quality, xyz, noise)``: the kept points' pixel coordinates (M, 2), laser (M,), quality (M,)
@@ -535,7 +546,9 @@ def extract_frame(
     # the width limit of every point (the refits need any of them), compiled beside the triangulation
     mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
     located = fit_points(image, picked, mfw, s)
-    u, v, laser, quality = refine_and_finish(image, located, bands.glow_side, s, geo)
+    u, v, laser, quality = refine_and_finish(
+        image, located, bands.glow_side, s, geo, new_water() if water is None else water
+    )
     # the points in a call of their own: a kernel that triangulated would compile the triangulation again
     xyz = triangulate_geo(u, v, laser, geo) if triangulate else _NO_XYZ
     uv, laser, quality, xyz = place_points(u, v, laser, quality, xyz, s, geo, triangulate)

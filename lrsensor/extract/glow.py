@@ -108,9 +108,12 @@ import math
 
 import numpy as np
 
-from ._jit import full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
+from .sorting import median
+from .water import alpha_total as _alpha_total
+from .water import retell, vertex
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -147,8 +150,40 @@ RAMP_EVERY = 4
 #: ... and fitted at every point of the stretches whose sampled F statistic exceeds this share of F_SELECT (the
 #: sampled test decides alone where the ramp is plainly not asked for; near the bar, the whole stretch decides).
 RAMP_MARGIN = 0.5
+#: The water's attenuation (1/m) that shapes the glow (:func:`.glow_fit.sheet_edge`) is the one of these whose step
+#: fits at a sample of the glowing points have the least residual sum of squares, refined by a
+#: parabola through it and its neighbours (0: a flat glow, the plain step; turbid harbour water is 0.5-2 /m).
+ALPHA_GRID = (0.0, 0.1, 0.2, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2)
+#: ... at ALPHA_SAMPLE points of each laser's stripe (the strongest of as many stretches of its glowing columns): the
+#: attenuation and the stripe's width are the water's, one each for the frame, so a sample tells them and every
+#: point is then fitted once with both held.
+ALPHA_SAMPLE = 32
+#: ... on windows of at least this many rows either side (at 3 m with 4 px of blur, the stripe's own 14 read 0.16 /m
+#: for the model's 0.3, 20-26 rows 0.30-0.31).
+ALPHA_HALF_PX = 22
+#: ... among the attenuations at which at least this share of those points fit.
+ALPHA_SHARE = 0.75
+#: The sheet's shape is fitted only where the glowing stripes' mean width is at least this, px (on a narrower
+#: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
+#: for the model's 0.3, and the step with its ramp read the wall better).
+SHAPE_MIN_SIGMA = 3.0
+#: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
+#: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
+SHAPE_MIN_STEP = 0.2
+#: Rounds of the fits with the width held: one, the other stripes where the common fit put them, at the held width
+#: (a dim column's own width is noise). Further rounds, each refitting nearly every glowing point whole, moved the
+#: 3 m medians by a few hundredths of a percent either way and cost half the glowing frame.
+HOLD_ROUNDS = 1
+#: The attenuation and the width told on a frame are taken on this many frames (the first of them tells them again;
+#: ``glow_refit``'s ``water``): at 30 Hz, once a second.
+WATER_FRAMES = 30
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
+
+
+def new_water() -> np.ndarray:
+    """A :func:`glow_refit` ``water`` record that has told nothing yet (the next glowing frame tells it)."""
+    return np.array([0.0, 0.0, np.inf])
 
 
 @inline
@@ -201,7 +236,8 @@ def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
 
 @njit
 def glow_refit(  # type: ignore[no-untyped-def]
-    image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio
+    image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio,
+    vanish, path_k, water,
 ):
     """The joint stripe-and-glow fit of every point whose profile shows a glow (see the module's documentation).
 
@@ -214,6 +250,12 @@ def glow_refit(  # type: ignore[no-untyped-def]
         min_sig, max_sig: the accepted sigmas, px; sat_dn: green samples at or above it are clipped (left out of
             the fits: a clipped stripe is fitted on its flanks); green_ratio: a glow's step in green exceeds its steps
             in red and blue by this factor (the stripe's colour test).
+        vanish, path_k: (L, W) float64, the row of each laser sheet's vanishing line per column and ``2 s D`` (px m:
+            ``D`` the sheet's range times its rows from that line, ``s`` the path's obliqueness; 0: unknown, the glow a
+            plain step), :func:`lrsensor.extract.settings.glow_geometry`.
+        water: (3,) float64, read and updated: the water's attenuation (1/m) and the stripe's width (px) as last told
+            (:func:`_attenuation`) and the frames since (:data:`WATER_FRAMES`; :func:`new_water`: none told yet). A
+            camera's frames share one: the water changes slowly, and the telling is a third of a glowing frame.
 
     Returns:
         ``(centre_row, sigma, fitted, amplitude, noise)``: (N,) each; the common fit's centre and sigma where
@@ -367,31 +409,69 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
     # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
     ramp_on = np.array([False, True])
-    n_rounds = np.array([1, ROUNDS])
+    n_rounds = np.array([1, ROUNDS, HOLD_ROUNDS])
+    # the glow's shape: the sheet's, with the water's attenuation one number for the frame (:func:`_attenuation`)
+    d_rc = full(n, 1.0, np.float64)
+    k_pt = zeros(n, np.float64)
+    for t in range(n):
+        if fit_me[t]:
+            d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
+            k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
+    s_sum = 0.0  # (only on blurred stripes: SHAPE_MIN_SIGMA)
+    s_cnt = 0.0
+    for t in range(n):
+        if fit_me[t] and glowing[t]:
+            s_sum += sg0[t]
+            s_cnt += 1.0
+    alpha, s_w = 0.0, 0.0
+    if s_cnt > 0.0 and s_sum >= SHAPE_MIN_SIGMA * s_cnt:
+        if water[2] < WATER_FRAMES:  # told a few frames ago: the water changes slowly
+            alpha, s_w = water[0], water[1]
+        else:
+            alpha, s_w = _attenuation(
+                image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0,
+                lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
+            )  # fmt: skip
+            water[0] = alpha
+            water[1] = s_w
+            water[2] = 0.0
+        water[2] += 1.0
+    kap_k = alpha * k_pt
+    # the glowing points fitted with the stripe's width held at the sample's (the blur is the water's: a free width
+    # trades itself for the glow's growth at the dim columns), the others (stripes beside another's) free
+    hold = zeros(n, np.bool_)
+    if s_w > 0.0:
+        for t in range(n):
+            if fit_me[t] and glowing[t]:
+                hw_t = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
+                if rc[t] - hw_t >= 0 and rc[t] + hw_t <= h - 1:
+                    hold[t] = True
+                    sg0[t] = s_w
+                    hw[t] = hw_t
+    free = fit_me & ~hold
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
-        image,
-        cols,
-        laser,
-        at,
-        vv,
-        sig,
-        vv,
-        sig,
-        nb_ok,
-        nb0,
-        fit_me,
-        glowing,
-        side,
-        rc,
-        hw,
-        reach_rows,
-        sg0,
-        lo_sig,
-        max_sig,
-        sat_dn,
-        ramp_on[0],
-        n_rounds[1],
-    )
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+    )  # fmt: skip
+    if s_w > 0.0:
+        # (the other stripes with the held width from the first round: a common fit's width of a dim column is noise)
+        s_in = sig.copy()
+        for t in range(n):
+            if hold[t]:
+                s_in[t] = s_w
+        v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k,
+        )  # fmt: skip
+        for t in range(n):
+            if hold[t]:
+                f0[t] = f_h[t]
+                v0[t] = v_h[t]
+                s0[t] = s_h[t]
+                rss0[t] = rss_h[t]
+                _d0[t] = d_h[t]
+                st0[0, t] = st_h[0, t]
+                st0[1, t] = st_h[1, t]
     strong = zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -410,7 +490,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # all of them passes it (none strong, as beside another laser's stripe without a glow: the step model stands)
     take = zeros(n, np.bool_)
     v3, s3, rss3, dof3, _st3 = v0, s0, rss0, _d0, st0
-    if strong.any():
+    if strong.any() and alpha <= 0.0:  # (the sheet's shape, where it is known, is the glow's growth)
         sample = zeros(n, np.bool_)
         for t in range(n):
             sample[t] = strong[t] and cols[t] % RAMP_EVERY == 0
@@ -418,14 +498,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
         # which stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
         _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0],
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
         )  # fmt: skip
         maybe = strong & (
             _pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT
         )
         v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1],
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
         )  # fmt: skip
         take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
@@ -446,6 +526,143 @@ def glow_refit(  # type: ignore[no-untyped-def]
             a_out[t] = _st3[0, t]
         n_out[t] = _residual_noise(rs, df, lnoise[t])
     return v_out, s_out, fitted, a_out, n_out
+
+
+@callee
+def _attenuation(  # type: ignore[no-untyped-def]
+    image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+    max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+):
+    """``(alpha, sigma)``: the water's attenuation (1/m) for the glow's shape and the stripe's width, px, for the
+    frame (0, 0: none can be told; a plain step, each point's own width). Told at a sample: on each laser's stripe the
+    strongest glowing point of each of :data:`ALPHA_SAMPLE` stretches of its glowing columns, on windows of at least
+    :data:`ALPHA_HALF_PX` rows either side (a short window trades the glow's growth for the width). There the step
+    model is fitted with each of :data:`ALPHA_GRID` (``n_rounds[1]`` rounds, so that close pairs settle, then one
+    more from there: a fit's residual sum is its last step's start), compared over the points fitted at every
+    attenuation that most of them fit at (too strong a growth fails the fits) by the sum of the logarithms of their
+    residual sums (a particle's column weighs no more than another); the least, refined at the midpoints either side
+    and by a parabola through the least and its neighbours. The width is the median of the sample's fits with it."""
+    n = cols.size
+    h = image.shape[0]
+    n_l = at.shape[0]
+    w = at.shape[1]
+    sample = zeros(n, np.bool_)
+    elig = zeros(n, np.bool_)
+    hw = hw.copy()
+    n_s = 0
+    for li in range(n_l):
+        m = 0
+        for cc in range(w):
+            t = at[li, cc]
+            if t >= 0 and fit_me[t] and glowing[t] and k_pt[t] > 0.0:
+                h_t = max(hw[t], ALPHA_HALF_PX)
+                elig[t] = rc[t] - h_t >= 0 and rc[t] + h_t <= h - 1
+                m += elig[t]
+        if m == 0:
+            continue
+        k = 0
+        best = -1
+        b_prev = 0
+        for cc in range(w):
+            t = at[li, cc]
+            if t < 0 or not elig[t]:
+                continue
+            bin_k = k * ALPHA_SAMPLE // m
+            if bin_k != b_prev and best >= 0:
+                sample[best] = True
+                best = -1
+            b_prev = bin_k
+            if best < 0 or amp[t] > amp[best]:
+                best = t
+            k += 1
+        if best >= 0:
+            sample[best] = True
+    for t in range(n):
+        if sample[t]:
+            hw[t] = max(hw[t], ALPHA_HALF_PX)
+            n_s += 1
+    if n_s == 0:
+        return 0.0, 0.0
+    n_a = len(ALPHA_GRID)
+    grid = empty(n_a, np.float64)
+    for i in range(n_a):
+        grid[i] = ALPHA_GRID[i]
+    rss_a, fit_a, use = _alpha_fits(
+        grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
+        lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+    )  # fmt: skip
+    tot = _alpha_total(rss_a, fit_a, use, sample)
+    b = 0
+    for i in range(1, n_a):
+        if tot[i] < tot[b]:
+            b = i
+    if math.isinf(tot[b]):
+        return 0.0, 0.0
+    alpha = grid[b]
+    if 0 < b < n_a - 1 and use[b - 1] and use[b + 1]:
+        # finer: the vertex of a parabola through the least and its neighbours (retell refines it)
+        alpha = vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1])
+    # the stripe's width: the sample fitted with that attenuation
+    _v, s1, f1, _r, _d, st1 = fit_rounds(
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt,
+    )  # fmt: skip
+    n_f = 0
+    for t in range(n):
+        n_f += f1[t] and st1[0, t] > 0.0
+    if alpha <= 0.0 or n_f < 16:
+        return alpha, 0.0
+    pool = empty(n_f, np.float64)
+    frac = empty(n_f, np.float64)
+    k = 0
+    for t in range(n):
+        if f1[t] and st1[0, t] > 0.0:
+            pool[k] = s1[t]
+            frac[k] = st1[1, t] / st1[0, t]
+            k += 1
+    if median(frac) < SHAPE_MIN_STEP:  # a weak glow: the step model reads the wall better
+        return 0.0, 0.0
+    s_w = float(median(pool))
+    hw_p = min(int(math.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)  # noqa: RUF046
+    return retell(
+        image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0, lo_sig, max_sig,
+        sat_dn, ramp, n_rounds, d_rc, k_pt, sample, n_s, alpha, s_w, hw_p, ALPHA_SHARE,
+    )  # fmt: skip
+
+
+@inline
+def _alpha_fits(  # type: ignore[no-untyped-def]
+    grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
+    max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
+):
+    """:func:`_attenuation`'s fits at each attenuation in ``grid``: ``(rss, fitted, use)``, (A, N) each and (A,):
+    the residual sums, the fits taken and whether most of the sample fits at that attenuation."""
+    n = cols.size
+    n_a = grid.size
+    rss_a = zeros((n_a, n), np.float64)
+    fit_a = zeros((n_a, n), np.bool_)
+    use = zeros(n_a, np.bool_)
+    for i in range(n_a):
+        kap = grid[i] * k_pt
+        v1, s1, f1, _r, _d, _st = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap,
+        )  # fmt: skip
+        for t in range(n):
+            if not f1[t]:
+                v1[t] = vv[t]
+                s1[t] = sg0[t]
+        _v, _s, f2, rss, _d, _st = fit_rounds(
+            image, cols, laser, at, v1, sig, v1, s1, nb_ok, nb0, sample & f1, glowing, side, rc, hw, reach_rows, s1,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap,
+        )  # fmt: skip
+        n_f = 0
+        for t in range(n):
+            fit_a[i, t] = sample[t] and f1[t] and f2[t] and rss[t] > 0.0
+            rss_a[i, t] = rss[t]
+            n_f += fit_a[i, t]
+        use[i] = n_f >= ALPHA_SHARE * n_s
+    return rss_a, fit_a, use
 
 
 @inline
@@ -480,7 +697,7 @@ def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@callee
 def _pooled_f(cols, laser, at, where, glowing, f0, f2, rss0, rss2, dof2):  # type: ignore[no-untyped-def]
     """At the points ``where`` (N,): the F statistic of the glow's ramp (its two parameters), pooled over the glowing
     points of the same laser within :data:`POOL_COLS` columns fitted with it (``f2``) and without (``f0``): the drop of

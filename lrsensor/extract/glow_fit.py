@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ._jit import empty, full, inline, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 
 #: Gauss-Newton steps after the linear start, and the largest step of the centre and of sigma per iteration, px.
 ITERATIONS = 4
@@ -44,6 +44,51 @@ def upper_tail(a, gauss):  # type: ignore[no-untyped-def]
     t = 1.0 / (1.0 + _AS_P * a)
     poly = t * (0.319381530 + t * (-0.356563782 + t * (1.781477937 + t * (-1.821255978 + t * 1.330274429))))
     return gauss * _INV_SQRT_2PI * poly
+
+
+@inline
+def sheet_edge(t, u, f, ph, sg, d, kap):  # type: ignore[no-untyped-def]
+    """The sheet's glow at ``t`` px outward of its edge, blurred by a Gaussian of ``sg`` px, and its derivatives in
+    ``t`` and ``sg``: ``(B, dB/dt, dB/dsg)``; 1 at the edge before the blur (scalars or arrays alike: the reference
+    calls it on arrays). ``u = t / sg``, ``f = Phi(u)``, ``ph = phi(u)`` (the fit has them); ``d``: the edge's rows
+    from the sheet's vanishing row (> 0); ``kap``: the attenuation's growth (:func:`.glow.glow_refit`).
+
+    Seen ``t`` rows outward of the stripe, the sheet lies at range ``x_w d / (d + t)`` (``x_w`` the wall's), and its
+    single-scatter radiance grows only by the shorter path in and out (the sheet's area a pixel sees, the fan's
+    ``1 / r`` and the light's ``1 / R^2`` cancel): ``h(t) = exp(kap t / (d + t))``, ``kap = 2 alpha s x_w`` (``alpha``
+    the water's attenuation, ``s`` the path's obliqueness). Blurred: ``h`` expanded to second order about
+    ``max(t, 0)`` under the Gaussian over ``t' >= 0`` (within 1.4 % of the edge's value at 3 m with 4 px of blur,
+    0.1 % with 1.5 px). ``kap = 0``: the blurred step ``Phi(u)`` of the step model."""
+    te = np.maximum(t, 0.0)
+    pos = np.sign(te)  # 1 outward of the edge (h follows t), 0 inward (h expanded at the edge)
+    dt = t - te
+    e = 1.0 / (d + te)
+    g1 = kap * d * e * e
+    g2 = -2.0 * g1 * e
+    g3 = -3.0 * g2 * e
+    h = np.exp(kap * te * e)
+    h1 = h * g1
+    h2 = h * (g1 * g1 + g2)
+    h3 = h * (g1 * g1 * g1 + 3.0 * g1 * g2 + g3)
+    m1 = sg * ph
+    m2 = sg * sg * (f - u * ph)
+    mm1 = m1 + dt * f
+    mm2 = m2 + dt * (2.0 * m1 + dt * f)
+    b = h * f + h1 * mm1 + 0.5 * h2 * mm2
+    # in t: the moments' own change, and outward h's
+    m0_t = ph / sg
+    m1_t = -u * ph
+    m2_t = sg * u * u * ph
+    inw = 1.0 - pos
+    mm1_t = m1_t + inw * f + dt * m0_t
+    mm2_t = m2_t + 2.0 * inw * (m1 + dt * f) + dt * (2.0 * m1_t + dt * m0_t)
+    b_t = h * m0_t + h1 * mm1_t + 0.5 * h2 * mm2_t + pos * (h1 * f + h2 * mm1 + 0.5 * h3 * mm2)
+    # in sg
+    m0_s = -u * ph / sg
+    m1_s = ph * (1.0 + u * u)
+    m2_s = 2.0 * sg * (f - u * ph) - sg * u * u * u * ph
+    b_s = h * m0_s + h1 * (m1_s + dt * m0_s) + 0.5 * h2 * (m2_s + dt * (2.0 * m1_s + dt * m0_s))
+    return b, b_t, b_s
 
 
 @inline
@@ -102,7 +147,7 @@ def reach_weight(nb_c, nb_s, hw):  # type: ignore[no-untyped-def]
     return math.exp(-0.5 * e * e)
 
 
-@njit
+@callee
 def _solve(M, b, k):  # type: ignore[no-untyped-def]
     """Solve ``M[:k, :k] x = b[:k]`` in place for a symmetric positive definite ``M`` (normal equations; Cholesky,
     half the work of an elimination with pivots: the solves were a third of a fit's time); False when singular (a
@@ -135,13 +180,19 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 
 
 @njit
-def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn):  # type: ignore[no-untyped-def]
+def fit_one(  # type: ignore[no-untyped-def]
+    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, d_rc=1.0, kap_k=0.0, nb_d=1.0,
+    nb_kk=0.0,
+):
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
     centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
     the side of its glow (0: none shows); ``glow_on``: this stripe's glow in the model (False: a stripe beside
     another one, no glow); ``ramp``: the glow's linear and quadratic growth outward in the model. Returns ``(c,
     sigma, A, g, ok, rss, dof)``: the fit, its residual sum of squares (at the last Gauss-Newton step's start) and
-    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out."""
+    degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out. ``d_rc``, ``kap_k``: the window's
+    middle row's distance from the sheet's vanishing row (px, towards the glow) and the attenuation's growth times
+    the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step); ``nb_d``, ``nb_kk``:
+    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``)."""
     kk = N_LIN + 2
     return fit_into(
         y,
@@ -164,12 +215,17 @@ def fit_one(y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_
         empty(kk, np.int64),
         empty((N_LIN + 5, y.size), np.float64),
         False,
+        d_rc,
+        kap_k,
+        nb_d,
+        nb_kk,
     )
 
 
-@njit
+@callee
 def fit_into(  # type: ignore[no-untyped-def]
-    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm
+    y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm,
+    d_rc, kap_k, nb_d, nb_kk,
 ):
     """:func:`fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
     (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
@@ -181,7 +237,10 @@ def fit_into(  # type: ignore[no-untyped-def]
     them, fewer where the centre's and sigma's step falls to :data:`STOP_PX`; each pass builds the normal equations
     row by row, in the parameters the profile's model has, and sums the squared residuals at its start (the last
     pass's sum is the fit's: a converged step changes it by its square, and a pass of its own would cost as much as
-    a step)."""
+    a step). With ``kap_k > 0`` the glow's column is the sheet's shape (:func:`sheet_edge`) at the edge's distance
+    from the vanishing row at each step (its change with the centre left out of the Jacobian); with ``nb_kk > 0`` the
+    other stripe's glow too (its edge ``nb_d`` px from its vanishing row: at 3 m its glow, outward of it, grows within
+    this window as fast as this stripe's)."""
     k_rows = y.size
     has_nb = math.isfinite(nb_c)
     nb_glow = has_nb and nb_side != 0.0
@@ -194,9 +253,11 @@ def fit_into(  # type: ignore[no-untyped-def]
             continue
         par[n_lin] = a
         n_lin += 1
+    # (a held width, min_sig == max_sig, is no parameter: the centre's step is then the one with the width fixed)
+    free_s = min_sig < max_sig
     par[n_lin] = N_LIN
     par[n_lin + 1] = N_LIN + 1
-    kk = n_lin + 2
+    kk = n_lin + 2 if free_s else n_lin + 1
     for a in range(N_LIN + 2):
         xr[a] = 0.0
     if not warm:
@@ -208,6 +269,8 @@ def fit_into(  # type: ignore[no-untyped-def]
     g_nb = work[N_LIN + 4]
     if has_nb:  # the other stripe's Gaussian: held in the fit
         _gauss_rows(g_nb, q[0], k_rows, nb_c, 1.0 / nb_s)
+    nb_de = max(nb_d, 1.0)
+    nb_kap = nb_kk / nb_de
     rss = np.nan
     dof = -kk
     for i in range(k_rows):
@@ -219,6 +282,10 @@ def fit_into(  # type: ignore[no-untyped-def]
         inv_sg = 1.0 / sg
         n_s = 0  # the samples taken (unclipped)
         _gauss_rows(g_own, q[0], k_rows, c, inv_sg)
+        d_e = max(d_rc + side * c, 1.0)
+        kap = kap_k / d_e
+        b_t = 0.0
+        b_s = 0.0
         for i in range(k_rows):
             if y[i] >= sat_dn:
                 continue
@@ -236,6 +303,8 @@ def fit_into(  # type: ignore[no-untyped-def]
                 f = 1.0 - tail if u >= 0.0 else tail
                 ph = gz * _INV_SQRT_2PI
                 xr[3] = f
+                if kap_k > 0.0:
+                    xr[3], b_t, b_s = sheet_edge(u * sg, u, f, ph, sg, d_e, kap)
                 if ramp:
                     rmp = sg * (u * f + ph)
                     xr[4] = rmp
@@ -246,16 +315,25 @@ def fit_into(  # type: ignore[no-untyped-def]
                 if nb_glow:
                     ud = nb_side * (q[i] - nb_c) / nb_s
                     td = upper_tail(abs(ud), gd)
-                    xr[7] = 1.0 - td if ud >= 0.0 else td
+                    fd = 1.0 - td if ud >= 0.0 else td
+                    if nb_kk > 0.0:  # (the other stripe is held: its shape's derivatives are not needed)
+                        fd = sheet_edge(ud * nb_s, ud, fd, gd * _INV_SQRT_2PI, nb_s, nb_de, nb_kap)[0]
+                    xr[7] = fd
             r = y[i]
             if full:
                 for j in range(N_LIN):
                     r -= xr[j] * lin[j]
                 r2 += r * r
-                xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
-                xr[N_LIN + 1] = (
-                    (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
-                )
+                if kap_k > 0.0 and glow_on:  # the sheet's shape (sheet_edge) in t = side (q - c)
+                    xr[N_LIN] = lin[2] * gz * z * inv_sg - side * (lin[3] * b_t + lin[4] * f + 2.0 * lin[5] * rmp)
+                    xr[N_LIN + 1] = lin[2] * gz * z * z * inv_sg + lin[3] * b_s + lin[4] * ph + 2.0 * lin[5] * sg * f
+                else:
+                    xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (
+                        lin[4] * f + 2.0 * lin[5] * rmp
+                    )
+                    xr[N_LIN + 1] = (
+                        (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
+                    )
             for a in range(m_):
                 jac[a, n_s] = xr[par[a]]
             res[n_s] = r
@@ -277,7 +355,7 @@ def fit_into(  # type: ignore[no-untyped-def]
         for a in range(n_lin):
             lin[par[a]] += b[a]
         dc = min(max(b[n_lin], -MAX_STEP_PX), MAX_STEP_PX)
-        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg
+        ds = min(max(sg + min(max(b[n_lin + 1], -MAX_STEP_PX), MAX_STEP_PX), min_sig), max_sig) - sg if free_s else 0.0
         c += dc
         sg += ds
         if abs(dc) <= STOP_PX and abs(ds) <= STOP_PX:
@@ -288,7 +366,7 @@ def fit_into(  # type: ignore[no-untyped-def]
     return c, sg, lin[2], lin[3], ok, rss, float(dof)
 
 
-@njit
+@callee
 def neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-untyped-def]
     """The nearest point of another laser (``nb_ok``: an unclipped fit) in the column of point ``t`` whose stripe
     (centre ``v_nb``, sigma ``s_nb``) reaches within ``reach`` rows of the point's centre ``v_nb[t]`` by 3 sigma;
@@ -307,7 +385,7 @@ def neighbour(t, at, cols, laser, nb_ok, v_nb, s_nb, reach):  # type: ignore[no-
     return nb
 
 
-@njit
+@callee
 def fit_rounds(  # type: ignore[no-untyped-def]
     image,
     cols,
@@ -331,6 +409,8 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     sat_dn,
     ramp,
     n_rounds,
+    d_rc,
+    kap_k,
 ):
     """The joint fits of the points ``fit_me`` (:func:`.glow.glow_refit`'s arrays; ``reach`` (N,): the rows within
     which another stripe is looked for), with the glow's ramp or without: ``n_rounds`` rounds (at most
@@ -342,8 +422,10 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     step lands within the rounds' tolerance of a whole refit, a third of its cost); a glowing point is refitted whole
     from the common fit (where the glow's model is poor, far walls with much blur, its fits do not converge in
     :data:`ITERATIONS` steps, and continuing them moved the single columns' median by 0.05-0.1 px there).
-    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes and glow
-    steps (2, N)."""
+    ``d_rc``, ``kap_k`` (N,): each point's window's distance from its sheet's vanishing row and its glow's growth
+    (:func:`fit_one`).
+    Returns ``(centre_row, sigma, fitted, rss, dof, steps)``: (N,) each and the fitted stripe amplitudes, glow
+    steps and the log-determinants of the fits' last normal matrices (3, N; :func:`.water.retell` scores with them)."""
     n = cols.size
     v_out = v_init.copy()
     s_out = s_init.copy()
@@ -354,7 +436,7 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     lin_t = zeros((n, N_LIN), np.float64)  # each point's last fit's linear parameters
     rss = full(n, np.nan, np.float64)
     dof = full(n, np.nan, np.float64)
-    steps = zeros((2, n), np.float64)
+    steps = zeros((3, n), np.float64)
     k_max = 1  # the longest window's rows
     for t in range(n):
         k_max = max(k_max, 2 * hw[t] + 1)
@@ -423,6 +505,10 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 par,
                 work,
                 warm,
+                d_rc[t],
+                kap_k[t],
+                d_rc[nb] + side[nb] * (v1[nb] - rc[nb]) if nb >= 0 else 1.0,
+                kap_k[nb] if nb >= 0 else 0.0,
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c
@@ -431,6 +517,14 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 dof[t] = df
                 steps[0, t] = a_fit
                 steps[1, t] = g_fit
+                # (M holds the last step's Cholesky factor in its first n - dof rows: n the unclipped samples)
+                n_m = -int(df)
+                for i in range(k_rows):
+                    n_m += y[i] < sat_dn
+                ld = 0.0
+                for j in range(n_m):
+                    ld += 2.0 * math.log(M[j, j])
+                steps[2, t] = ld
                 fitted[t] = True
                 taken = True
                 for a in range(N_LIN):

@@ -48,6 +48,7 @@ from .detect import GLOW_PASS_MIN, noise_col_step
 from .finish import BLURRED_SIGMA_PX, CENTRE_SD, RUN_MAX_SD_PX, STRIPE_NOISE_MIN
 from .fit import flank_offset
 from .frame import STATS_POINTS
+from .glow import new_water
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
 
@@ -70,7 +71,13 @@ def _nothing() -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
 
 
 def extract_frame(
-    image: NDArray[np.uint8], calibration: Calibration, bands: Bands, s: Settings, geo: Geometry, triangulate: bool
+    image: NDArray[np.uint8],
+    calibration: Calibration,
+    bands: Bands,
+    s: Settings,
+    geo: Geometry,
+    triangulate: bool,
+    water: FloatArray | None = None,
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
     """The whole extractor on one frame in numpy and OpenCV: what :func:`lrsensor.extract.frame.extract_frame`
     computes (same arguments; ``calibration`` for the triangulation).
@@ -212,6 +219,9 @@ def extract_frame(
             s.max_sigma_px,
             s.saturation_dn,
             s.min_green_ratio,
+            geo.glow_vanish,
+            geo.glow_path,
+            new_water() if water is None else water,
         )
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)

@@ -13,7 +13,12 @@ from numpy.typing import NDArray
 
 from . import glow_fit
 from .glow import (
+    ALPHA_GRID,
+    ALPHA_HALF_PX,
+    ALPHA_SAMPLE,
+    ALPHA_SHARE,
     F_SELECT,
+    HOLD_ROUNDS,
     MAX_HALF_PX,
     MEDIAN_VAR,
     MIN_SIGMA_PX,
@@ -23,21 +28,27 @@ from .glow import (
     RAMP_EVERY,
     RAMP_MARGIN,
     RAMP_MIN_STEP,
+    SHAPE_MIN_SIGMA,
+    SHAPE_MIN_STEP,
     TREND_VAR,
     TRIGGER_FRAC,
     TRIGGER_ROWS,
     TRIGGER_SIGMAS,
     TRIGGER_SNR,
+    WATER_FRAMES,
     WHOLE_STRIPE_FRAC,
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
+from .water import WATER_POINTS, WATER_STEP, vertex
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _upper_tail: Any = getattr(glow_fit.upper_tail, "py_func", glow_fit.upper_tail)
+_vertex: Any = getattr(vertex, "py_func", vertex)
+_sheet_edge: Any = getattr(glow_fit.sheet_edge, "py_func", glow_fit.sheet_edge)
 _INV_SQRT_2PI = 0.3989422804014327
 #: Columns of the linear parameters: background level and slope, stripe, glow step, glow ramp, neighbour.
 _A, _G, _R, _Q, _N, _NG = 2, 3, 4, 5, 6, 7
@@ -75,7 +86,13 @@ def fit_profiles(
     ramp: bool = True,
     lin0: FloatArray | None = None,
     warm: BoolArray | None = None,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+    d_rc: FloatArray | None = None,
+    kap_k: FloatArray | None = None,
+    nb_d: FloatArray | None = None,
+    nb_kap: FloatArray | None = None,
+) -> tuple[
+    FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray
+]:
     """The joint fit of ``n`` profiles ``Y`` (n, K) on rows ``q = -(K // 2) ... K // 2`` (those where ``mask`` (n, K) is
     0 left out, and the clipped ones, at or above ``sat_dn``), from centres ``c`` and sigmas ``sg`` (n,) (rows
     relative to the window's middle), glow side ``side`` (n,) +-1, another stripe's centre and sigma ``nb_c``,
@@ -83,10 +100,16 @@ def fit_profiles(
     stripe beside another one, no glow), ``nb_side`` (n,) the side of the other stripe's glow (0: none, default),
     ``ramp``: the glow's linear and quadratic growth outward in the model; ``warm`` (n,): one Gauss-Newton step from
     the linear parameters ``lin0`` (n, N_LIN) (an earlier fit of the same model at ``c``, ``sg``), no linear start.
-    Returns ``(c, sigma, A, g, ok, rss, dof, lin)``, (n,) each and (n, N_LIN): the fit, its residual sum of squares
-    (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom and linear
-    parameters."""
+    Returns ``(c, sigma, A, g, ok, rss, dof, lin, ldet)``, (n,) each, (n, N_LIN) and (n,): the fit, its residual sum of
+    squares (at the last step's start, as :func:`lrsensor.extract.glow_fit.fit_into`), degrees of freedom, linear
+    parameters and the log-determinant of its last normal matrix. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape
+    (:func:`lrsensor.extract.glow_fit.fit_one`; default none, the plain step); ``nb_d``, ``nb_kap`` (n,): the same for
+    the other stripe's glow (its edge's distance from its sheet's vanishing row and its ``kap d``; default none);
+    ``min_sig == max_sig``: the width held, no parameter."""
     n, k_rows = Y.shape
+    d_rc = np.ones(n) if d_rc is None else d_rc
+    kap_k = np.zeros(n) if kap_k is None else kap_k
+    shaped = (kap_k > 0.0)[:, None]
     glow_on = np.ones(n, bool) if use_glow is None else use_glow
     mask = mask * (sat_dn > Y)  # clipped samples left out
     q = (np.arange(k_rows) - k_rows // 2).astype(np.float64)[None, :]
@@ -103,8 +126,11 @@ def fit_profiles(
         active[np.ix_(drop, np.array(cols))] = False
     if not ramp:
         active[:, [_R, _Q]] = False
+    if not min_sig < max_sig:
+        active[:, N_LIN + 1] = False
     warm = np.zeros(n, bool) if warm is None else warm
     live = np.ones(n, bool)  # the fits still stepping (the others' steps are below STOP_PX: they stay)
+    ldet = np.full(n, np.nan)  # the log-determinant of each fit's last normal matrix
     rss = np.full(n, np.nan)
     for it in range(ITERATIONS + 1):
         z = (q - c[:, None]) / sg[:, None]
@@ -115,18 +141,31 @@ def fit_profiles(
         ph = gz * _INV_SQRT_2PI
         R = sg[:, None] * (u * F + ph)  # the blurred edge of a glow that grows linearly outward (px)
         Qd = sg[:, None] ** 2 * ((u * u + 1.0) * F + u * ph)  # ... quadratically
+        d_e = np.maximum(d_rc + side * c, 1.0)[:, None]
+        with np.errstate(invalid="ignore", over="ignore"):
+            B, B_t, B_s = _sheet_edge(u * sg[:, None], u, F, ph, sg[:, None], d_e, (kap_k[:, None] / d_e))
+        G = np.where(shaped, B, F)  # the glow's column: the sheet's shape where it is known
         d = (q - np.where(has_nb, nb_c, 0.0)[:, None]) / nb_s[:, None]
         N = np.where(has_nb[:, None], np.exp(-0.5 * d * d), 0.0)
         ud = np.where(has_nb[:, None], nb_sd[:, None] * d, 0.0)  # the neighbour's own glow edge
         tail_d = _upper_tail(np.abs(ud), np.exp(-0.5 * ud * ud))
         NG = np.where(ud >= 0.0, 1.0 - tail_d, tail_d)
-        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, F, R, Qd, N, NG], axis=2)
+        if nb_kap is not None and nb_d is not None:  # the other stripe's glow in the sheet's shape too
+            nd = np.maximum(nb_d, 1.0)[:, None]
+            with np.errstate(invalid="ignore", over="ignore"):
+                NB = _sheet_edge(ud * nb_s[:, None], ud, NG, np.exp(-0.5 * ud * ud) * _INV_SQRT_2PI, nb_s[:, None], nd,
+                                 nb_kap[:, None] / nd)[0]  # fmt: skip
+            NG = np.where((nb_kap > 0.0)[:, None], NB, NG)
+        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, G, R, Qd, N, NG], axis=2)
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
         else:  # a Gauss-Newton step in all of them
             A, g, gr, gq = lin[:, _A : _A + 1], lin[:, _G : _G + 1], lin[:, _R : _R + 1], lin[:, _Q : _Q + 1]
             dc = (A * gz * z - g * ph * s) / sg[:, None] - gr * s * F - 2.0 * gq * s * R
             ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
+            sh = shaped & glow_on[:, None]
+            dc = np.where(sh, A * gz * z / sg[:, None] - s * (g * B_t + gr * F + 2.0 * gq * R), dc)
+            ds = np.where(sh, A * gz * z * z / sg[:, None] + g * B_s + gr * ph + 2.0 * gq * sg[:, None] * F, ds)
             J = np.concatenate([X, dc[:, :, None], ds[:, :, None]], axis=2)
             r = Y - np.einsum("nik,nk->ni", X, lin)
             rss = np.where(live, ((r * mask) ** 2).sum(axis=1), rss)  # at the step's start (glow_fit.fit_into says why)
@@ -135,6 +174,8 @@ def fit_profiles(
         J = J * act[:, None, :]
         M = np.einsum("nik,nij->nkj", J, J) + np.eye(J.shape[2])[None] * ~act[:, :, None]
         b = np.einsum("nik,ni->nk", J, r * mask)
+        if it > 0:
+            ldet = np.where(live, np.linalg.slogdet(M)[1], ldet)
         step, solved = _solve(M, b)
         good &= solved | (warm & (it == 0))
         step = np.where((good & live)[:, None], step, 0.0)
@@ -152,7 +193,7 @@ def fit_profiles(
     x2 = 2.0 * sg
     g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
     good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > GLOW_MIN_FRAC * lin[:, _A]))
-    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin
+    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin, ldet
 
 
 def _neighbours(
@@ -206,6 +247,9 @@ def glow_refit(
     max_sig: float,
     sat_dn: float,
     green_ratio: float,
+    vanish: FloatArray,
+    path_k: FloatArray,
+    water: FloatArray,
 ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
     """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
     h, w = image.shape[:2]
@@ -296,11 +340,22 @@ def glow_refit(
     reach = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)
 
     def rounds(
-        ramp: bool, todo: BoolArray, v_init: FloatArray, s_init: FloatArray, n_rounds: int = ROUNDS
+        ramp: bool,
+        todo: BoolArray,
+        v_init: FloatArray,
+        s_init: FloatArray,
+        n_rounds: int = ROUNDS,
+        kap: FloatArray | None = None,
+        hw: IntArray = hw,
+        vv: FloatArray = vv,
+        sg0: FloatArray = sg0,
+        lo_sig: float = lo_sig,
+        max_sig: float = max_sig,
     ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
+        kap = kap_k if kap is None else kap
         v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
-        steps = np.zeros((2, n))
+        steps = np.zeros((3, n))
         rss = np.full(n, np.nan)
         dof = np.full(n, np.nan)
         last = np.full((3, n), np.nan)  # the other stripe (centre, sigma, its glow's side) in each point's last fit
@@ -342,7 +397,7 @@ def glow_refit(
             Y = green[rr, cols[idx][:, None]].astype(np.float64)
             # the common fit, then each point's last fit (glowing points: the common fit again, glow_fit.fit_rounds)
             start = (np.where(cold, vv[idx], v_out[idx]), np.where(cold, sg0[idx], s_out[idx]))
-            c, sg, a_, g_, good, rs, df, lin = fit_profiles(
+            c, sg, a_, g_, good, rs, df, lin, ld = fit_profiles(
                 Y,
                 mask,
                 side[idx],
@@ -358,6 +413,10 @@ def glow_refit(
                 ramp,
                 lin_t[idx],
                 warm,
+                d_rc[idx],
+                kap[idx],
+                np.where(have, d_rc[nbc] + side[nbc] * (v1[nbc] - rc[nbc]), 1.0),
+                np.where(have, kap[nbc], 0.0),
             )
             with np.errstate(invalid="ignore"):
                 keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
@@ -365,7 +424,7 @@ def glow_refit(
             v_out[sel] = rc[sel] + c[keep]
             s_out[sel] = sg[keep]
             rss[sel] = rs[keep]
-            steps[:, sel] = np.stack([a_[keep], g_[keep]])
+            steps[:, sel] = np.stack([a_[keep], g_[keep], ld[keep]])
             dof[sel] = df[keep]
             fitted[sel] = True
             lin_t[sel] = lin[keep]
@@ -381,9 +440,36 @@ def glow_refit(
             acc += np.where(j >= 0, values[:, np.maximum(j, 0)], 0.0)
         return acc
 
+    # the glow's shape: the sheet's, with the water's attenuation and the stripe's width told at a sample
+    # (glow._attenuation)
+    d_rc = np.where(todo, side * (rc - vanish[laser, cols]), 1.0)
+    k_pt = np.where(todo & (d_rc > 1.0), path_k[laser, cols], 0.0)
+    kap_k = np.zeros(n)
+    g_fit = todo & glowing
+    alpha, s_w = 0.0, 0.0
+    if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
+        if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
+            alpha, s_w = float(water[0]), float(water[1])
+        else:
+            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+            water[:] = (alpha, s_w, 0.0)
+        water[2] += 1.0
+    kap_k = alpha * k_pt
+    hold = np.zeros(n, bool)
+    if s_w > 0.0:
+        hw_t = min(int(np.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)
+        hold = todo & glowing & (rc - hw_t >= 0) & (rc + hw_t <= h - 1)
+        sg0 = np.where(hold, s_w, sg0)
+        hw = np.where(hold, hw_t, hw)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, d0, st0 = rounds(False, todo, vv, sig)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0)
+    if s_w > 0.0:
+        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
+            False, hold, vv, np.where(hold, s_w, sig), HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w
+        )
+        v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
+        rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
@@ -399,10 +485,14 @@ def glow_refit(
     # the ramp's F test, first per stretch at every RAMP_EVERY-th column's strong points; then at every strong point
     # of the stretches that come within RAMP_MARGIN of the bar, taken where the F pooled over all of them passes it
     # (the sampled test in one round: glow_refit)
-    _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0, 1)
-    maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
-    v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0)
-    f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    # (not where the sheet's shape is in use: it is the glow's growth)
+    if alpha <= 0.0:
+        _v2, _s2, f2, rss2, dof2, _st2 = rounds(True, strong & (cols % RAMP_EVERY == 0), v0, s0, 1, hw=hw, sg0=sg0)
+        maybe = strong & (pooled_f(f2, rss2, dof2) > RAMP_MARGIN * F_SELECT)
+        v3, s3, f3, rss3, dof3, st3 = rounds(True, maybe, v0, s0, hw=hw, sg0=sg0)
+        f3 &= pooled_f(f3, rss3, dof3) > F_SELECT
+    else:
+        v3, s3, f3, rss3, dof3, st3 = v0, s0, np.zeros(n, bool), rss0, d0, st0
     # the gate's amplitude and noise: the fit taken's (glow.glow_refit)
     with np.errstate(divide="ignore", invalid="ignore"):
         n0 = np.sqrt(np.where(d0 > 0.0, rss0 / d0, np.nan))
@@ -411,3 +501,151 @@ def glow_refit(
     n_out = np.where(f3, n3, np.where(f0, n0, lnoise))
     n_out = np.where(np.isfinite(n_out), n_out, lnoise)
     return np.where(f3, v3, v0), np.where(f3, s3, s0), f0 | f3, a_out, n_out
+
+
+def _attenuation(
+    rounds: Any,
+    vv: FloatArray,
+    sig: FloatArray,
+    cols: IntArray,
+    laser: IntArray,
+    at: IntArray,
+    amp: FloatArray,
+    todo: BoolArray,
+    glowing: BoolArray,
+    k_pt: FloatArray,
+    rc: IntArray,
+    hw: IntArray,
+    sg0: FloatArray,
+    h: int,
+) -> tuple[float, float]:
+    """:func:`lrsensor.extract.glow._attenuation`: ``(alpha, sigma)`` of the frame from a sample (``rounds``: the
+    reference's fits)."""
+    n = cols.size
+    n_l = at.shape[0]
+    sample = np.zeros(n, bool)
+    h_a = np.maximum(hw, ALPHA_HALF_PX)
+    elig = todo & glowing & (k_pt > 0.0) & (rc - h_a >= 0) & (rc + h_a <= h - 1)
+    for li in range(n_l):
+        pts = at[li][at[li] >= 0]
+        pts = pts[elig[pts]]  # along the stripe's columns
+        m = pts.size
+        if m == 0:
+            continue
+        bins = np.arange(m) * ALPHA_SAMPLE // m
+        for b in np.unique(bins):
+            in_b = pts[bins == b]
+            sample[in_b[int(np.argmax(amp[in_b]))]] = True
+    n_s = int(sample.sum())
+    if n_s == 0:
+        return 0.0, 0.0
+    hw_s = np.where(sample, h_a, hw)
+
+    def fits(grid: FloatArray) -> tuple[FloatArray, BoolArray, BoolArray]:
+        rss_a = np.full((grid.size, n), np.nan)
+        fit_a = np.zeros((grid.size, n), bool)
+        for i, a in enumerate(grid):
+            kap = a * k_pt
+            v1, s1, f1, _r, _d, _st = rounds(False, sample, vv, sig, ROUNDS, kap, hw_s)
+            v1 = np.where(f1, v1, vv)
+            s1 = np.where(f1, s1, sg0)
+            _v, _s, f2, rss, _d2, _st2 = rounds(False, sample & f1, v1, s1, 1, kap, hw_s, v1, s1)
+            with np.errstate(invalid="ignore"):
+                fit_a[i] = sample & f1 & f2 & (rss > 0.0)
+            rss_a[i] = rss
+        return rss_a, fit_a, fit_a.sum(axis=1) >= ALPHA_SHARE * n_s
+
+    def total(rss_a: FloatArray, fit_a: BoolArray, use: BoolArray) -> FloatArray:
+        every = sample & np.all(fit_a | ~use[:, None], axis=0)
+        tot = np.full(use.size, np.inf)
+        if every.any():
+            with np.errstate(invalid="ignore"):
+                sums = np.log(np.where(every[None, :], rss_a, 1.0)).sum(axis=1)
+            tot = np.where(use, sums, np.inf)
+        return tot
+
+    grid = np.array(ALPHA_GRID, np.float64)
+    rss_a, fit_a, use = fits(grid)
+    tot = total(rss_a, fit_a, use)
+    b = int(np.argmin(tot))
+    if np.isinf(tot[b]):
+        return 0.0, 0.0
+    alpha = float(grid[b])
+    if 0 < b < grid.size - 1 and use[b - 1] and use[b + 1]:
+        alpha = float(_vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1]))
+    _v, s1, f1, _r, _d, st1 = rounds(False, sample, vv, sig, ROUNDS, alpha * k_pt, hw_s)
+    f1 = f1 & (st1[0] > 0.0)
+    if alpha <= 0.0 or f1.sum() < 16:
+        return alpha, 0.0
+    if np.median(st1[1, f1] / st1[0, f1]) < SHAPE_MIN_STEP:  # a weak glow (glow.SHAPE_MIN_STEP)
+        return 0.0, 0.0
+    return _retell(rounds, vv, sig, cols, at, todo, glowing, k_pt, rc, sg0, h, sample, n_s, hw_s, alpha,
+                   float(np.median(s1[f1])))  # fmt: skip
+
+
+def _retell(
+    rounds: Any,
+    vv: FloatArray,
+    sig: FloatArray,
+    cols: IntArray,
+    at: IntArray,
+    todo: BoolArray,
+    glowing: BoolArray,
+    k_pt: FloatArray,
+    rc: IntArray,
+    sg0: FloatArray,
+    h: int,
+    sample: BoolArray,
+    n_s: int,
+    hw_s: IntArray,
+    alpha: float,
+    s_w: float,
+) -> tuple[float, float]:
+    """:func:`lrsensor.extract.water.retell`: the attenuation and width told again with the sample's other stripes
+    where the told water puts them."""
+    n = cols.size
+    part = np.zeros(n, bool)
+    for li in range(at.shape[0]):
+        j = at[li, cols[sample]]
+        part[j[j >= 0]] = True
+    hw_p = min(int(np.ceil(WINDOW_SIGMAS * s_w)) + 2, MAX_HALF_PX)
+    part &= todo & glowing & ~sample & (rc - hw_p >= 0) & (rc + hw_p <= h - 1)
+    hw_o = np.where(part, hw_p, hw_s)
+    vp, sp, fp, _r, _d, _st = rounds(
+        False, part, vv, np.where(part, s_w, sig), HOLD_ROUNDS, alpha * k_pt, hw_o, vv, np.where(part, s_w, sg0), s_w,
+        s_w,
+    )  # fmt: skip
+    v_o = np.where(fp, vp, vv)
+    s_o = np.where(fp, sp, sig)
+    sig_h = np.where(sample, s_w, s_o)
+    sg0_h = np.where(sample, s_w, sg0)
+    fine = alpha + WATER_STEP * (np.arange(WATER_POINTS) - WATER_POINTS // 2)
+    rss_a = np.full((fine.size, n), np.nan)
+    fit_a = np.zeros((fine.size, n), bool)
+    cr_a = np.zeros((fine.size, n))
+    for i, a in enumerate(fine):
+        if a <= 0.0:
+            continue
+        kap = a * k_pt
+        v1, s1, f1, _r, _d, _st = rounds(False, sample, v_o, sig_h, ROUNDS, kap, hw_s, v_o, sg0_h, s_w, s_w)
+        v1 = np.where(f1, v1, v_o)
+        s1 = np.where(f1, s1, sg0_h)
+        _v, _s, f2, rss, d2, st2 = rounds(False, sample & f1, v1, sig_h, 1, kap, hw_s, v1, s1, s_w, s_w)
+        with np.errstate(invalid="ignore"):
+            fit_a[i] = sample & f1 & f2 & (rss > 0.0)
+            cr_a[i] = np.where(fit_a[i], d2 * np.log(np.where(fit_a[i], rss, 1.0)) + st2[2], 0.0)
+        rss_a[i] = rss
+    use = fit_a.sum(axis=1) >= ALPHA_SHARE * n_s
+    every = sample & np.all(fit_a | ~use[:, None], axis=0)
+    tot = np.where(use & every.any(), np.where(every[None, :], cr_a, 0.0).sum(axis=1), np.inf)
+    c = int(np.argmin(tot))
+    if np.isinf(tot[c]):
+        return alpha, s_w
+    a2 = float(fine[c])
+    if 0 < c < fine.size - 1 and use[c - 1] and use[c + 1]:
+        a2 = float(_vertex(fine[c - 1], fine[c], fine[c + 1], tot[c - 1], tot[c], tot[c + 1]))
+    _v, s2, f2, _r, _d, st2 = rounds(False, sample, v_o, s_o, ROUNDS, a2 * k_pt, hw_s)
+    f2 = f2 & (st2[0] > 0.0)
+    if f2.sum() < 16:
+        return a2, s_w
+    return a2, float(np.median(s2[f2]))

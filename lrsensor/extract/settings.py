@@ -152,6 +152,11 @@ class Geometry(NamedTuple):
     cam_z_offset_m: float
     #: The flat port the camera looks through (``port.present`` False: none).
     port: Port
+    #: (L, W) per laser and column, the row of the laser sheet's vanishing line, px, and ``2 s D``, px m: ``D`` the
+    #: sheet's range times its rows from that line, ``s = sqrt(1 + xn^2)`` the path's obliqueness (0: unknown): the
+    #: shape of the sheet's glow in turbid water (:func:`glow_geometry`, :func:`lrsensor.extract.glow_fit.sheet_edge`).
+    glow_vanish: FloatArray
+    glow_path: FloatArray
 
 
 def glow_sides(calibration: Calibration, near_m: float, far_m: float) -> IntArray:
@@ -169,6 +174,29 @@ def glow_sides(calibration: Calibration, near_m: float, far_m: float) -> IntArra
         with np.errstate(invalid="ignore"):
             out[i] = np.where(np.isfinite(v_near) & np.isfinite(v_far), np.sign(v_near - v_far), 0).astype(np.int64)
     return out
+
+
+def glow_geometry(calibration: Calibration, near_m: float, far_m: float) -> tuple[FloatArray, FloatArray]:
+    """``(vanish, path)`` (L, W) float64 of :class:`Geometry`: in each column the sheet images at ``v = v_inf + D /
+    z`` (a plane seen by a pinhole; ``z`` its depth along the optical axis), taken from its rows at depths
+    ``near_m`` and ``far_m`` (distortion and a port bend this a little: the glow's shape, not a centre); ``path = 2
+    sqrt(1 + xn^2) |D|``, 0 where the column sees neither depth."""
+    cam = calibration.camera
+    n_l = len(calibration.lasers)
+    vanish = np.zeros((n_l, cam.width))
+    path = np.zeros((n_l, cam.width))
+    xn = (np.arange(cam.width) - cam.cx) / cam.fx
+    for i in range(n_l):
+        uv, z = band_samples(calibration, i, near_m, far_m, n_depths=2)
+        if uv.shape[0] == 0:
+            continue
+        v_near = _column_extent(uv[z <= near_m * 1.0001], cam.width)[0]
+        v_far = _column_extent(uv[z >= far_m * 0.9999], cam.width)[0]
+        d = (v_near - v_far) / (1.0 / near_m - 1.0 / far_m)
+        good = np.isfinite(d) & (np.abs(d) > 1.0)
+        vanish[i] = np.where(good, v_far - np.where(good, d, 0.0) / far_m, 0.0)
+        path[i] = np.where(good, 2.0 * np.sqrt(1.0 + xn * xn) * np.abs(np.where(good, d, 0.0)), 0.0)
+    return vanish, path
 
 
 @lru_cache(maxsize=16)
@@ -225,5 +253,6 @@ def frame_settings(calibration: Calibration, cfg: SubpixelConfig) -> tuple[Bands
         axis / np.linalg.norm(axis),
         float(calibration.t_cam_body[2]),
         port_record(calibration.port),
+        *glow_geometry(calibration, cfg.min_range_m, cfg.max_range_m),
     )
     return bands, settings, geometry

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ._jit import arange, empty, full, inline, njit, zeros
+from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .sorting import median
 
 #: Smallest half-width of the along-stripe line fits whose four quarters are tested on their own too (a kink
@@ -45,7 +45,7 @@ def _quarter_ok(p0, p1, c, a, b, vv, c_m, c_mx, c_mxx, c_z, c_zx, c_zz):  # type
     return (q0 < 1.0) | (ex <= 0.0) | (ex * ex <= (2.0 * SUBBLOCK_SIGMAS * SUBBLOCK_SIGMAS) * (vv * vv * q1))
 
 
-@njit
+@callee
 def _fit_windows(k, i0, i1, x, c_m, c_mx, c_mxx, c_z, c_zx, c_zz, c_d2, c_n2, var_all, a_c, b_c, rss_c, acc_c):  # type: ignore[no-untyped-def]
     """The line fits of :func:`smooth_runs` over every window ``[c - k, c + k]`` (same arithmetic), without
     branches: fills ``a_c``, ``b_c``, ``rss_c`` (N,) and ``acc_c`` (N,) bool for the centres ``c = i + k``,
@@ -249,7 +249,7 @@ def smooth_runs_at(y, x, run, scales):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit
+@callee
 def _pick_windows(k, u_lo, u_hi, f, la, n, done, acc_c, rss_c, a_c, b_c, y0, x, out):  # type: ignore[no-untyped-def]
     """For the columns ``[u_lo, u_hi]`` still to do (``done`` False) of the run ``[f, la]`` (whose values are
     relative to its first, ``y0``): the value of the best accepted line of :func:`smooth_runs` at scale ``k``

@@ -105,16 +105,21 @@ def extract_points(
     config: SubpixelConfig | None = None,
     *,
     triangulate: bool = True,
+    water: FloatArray | None = None,
     **options: Any,
 ) -> tuple[Detections, FloatArray | None]:
     """:func:`extract`, and with ``triangulate`` the body-frame points (N, 3) of the detections, metres, computed
     in the same call and depth-gated: only the points whose camera depth is within the range limits are returned
-    (detections included). Without ``triangulate``: no depth gate, and None for the points."""
+    (detections included). Without ``triangulate``: no depth gate, and None for the points. ``water``: (3,) float64,
+    what a camera's earlier frames told of turbid water (:func:`lrsensor.extract.glow.new_water`, read and updated;
+    None: this frame alone tells it)."""
     cfg = SubpixelConfig.from_options(config, **options)
     image = np.ascontiguousarray(image) if cfg.channel == "green" else luma_as_green(image)
     bands, settings, geometry = frame_settings(calibration, cfg)
     if not USE_REFERENCE and usable():
-        uv, laser, quality, xyz, _ = extract_frame(image, bands, settings, geometry, triangulate)
+        uv, laser, quality, xyz, _ = extract_frame(image, bands, settings, geometry, triangulate, water)
     else:
-        uv, laser, quality, xyz = reference.extract_frame(image, calibration, bands, settings, geometry, triangulate)
+        uv, laser, quality, xyz = reference.extract_frame(
+            image, calibration, bands, settings, geometry, triangulate, water
+        )
     return Detections(uv, laser, quality), (xyz if triangulate else None)
