@@ -673,6 +673,14 @@ def main() -> int:
         "the robot contributed at most SHARE of the points to (0: the others' walls only; 0.99: all but its own)",
     )
     ap.add_argument(
+        "--verify-anchor",
+        type=float,
+        default=None,
+        metavar="M",
+        help="the tracked rows with GraphConfig.verify_anchor_m: a passed check whose place lies more than M from "
+        "the estimate also anchors the pose there before the held clouds are committed",
+    )
+    ap.add_argument(
         "--fleet-compass",
         action="store_true",
         help="the tracked rows with NavConfig.frame_fleet_compass: the served map turned to the fleet's mean compass",
@@ -710,6 +718,8 @@ def main() -> int:
         FLEET_UNBIASED.append(True)
     if args.fleet_compass:
         TRACKED_NAV_OVERRIDES["frame_fleet_compass"] = True
+    if args.verify_anchor is not None:
+        TRACKED_OVERRIDES["verify_anchor_m"] = args.verify_anchor
     if args.heading_check is not None:
         TRACKED_OVERRIDES.update(heading_check=True, heading_own_share=args.heading_check)
     if args.nav_bias:

@@ -30,6 +30,9 @@ class GraphConfig:
     ``relocalize_every_s``, within ``relocalize_max_m`` and the speed bound since the break), that place then a
     prior of ``relocalize_sigma_m``. ``verify_every_s``: that often an unbroken track is checked the same way
     (within ``verify_radius_m``); a unique place more than ``verify_tol_m`` from the estimate re-anchors it there.
+    ``verify_anchor_m`` (off: ``inf``): a passed check whose place lies more than this from the estimate (but
+    within ``verify_tol_m``) also becomes a prior of ``relocalize_sigma_m`` on that pose before the held clouds
+    are committed, so they go in where the map has the faces rather than a few centimetres beside them.
     ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
     ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
     or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
@@ -69,6 +72,7 @@ class GraphConfig:
     verify_every_s: float = math.inf
     verify_radius_m: float = 0.5
     verify_tol_m: float = 0.08
+    verify_anchor_m: float = math.inf
     place_verified_s: float = math.inf
     hold_until_verified: bool = False
     hold_check_radius_m: float = 0.3

@@ -195,7 +195,11 @@ def verify(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandma
     if place is None:
         return None
     g.track.verified_ns = t
-    if float(np.hypot(*(place - x[0:2]))) <= g.gcfg.verify_tol_m:
+    off = float(np.hypot(*(place - x[0:2])))
+    if off <= g.gcfg.verify_tol_m:
+        if off > g.gcfg.verify_anchor_m:  # passed, yet beside the map's faces: the held clouds go in on them
+            g._add("fix", (key,), (float(place[0]), float(place[1]), g.gcfg.relocalize_sigma_m))
+            g._solve()
         return None
     g._add("fix", (key,), (float(place[0]), float(place[1]), g.gcfg.relocalize_sigma_m))
     g._solve()

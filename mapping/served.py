@@ -18,8 +18,11 @@ joined plane is the exact sum of the members' statistics and keeps the smallest 
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Any
+
+import numpy as np
 
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .types import MapConfig
@@ -29,7 +32,8 @@ def served_planes(pm: PlaneMap, include_tentative: bool = False) -> list[dict[st
     """``pm``'s planes as :meth:`PlaneMap.to_json` gives them, with bands of one face joined (see the module
     docstring); tentative planes (when asked for) are served as they are."""
     cfg = pm.cfg
-    if cfg.serve_band_gap_down_m <= 0 or cfg.merge_band_gap_down_m > 0:
+    bands = cfg.serve_band_gap_down_m > 0 and cfg.merge_band_gap_down_m <= 0
+    if not bands and cfg.serve_copy_offset_m <= 0:
         return pm.to_json(include_tentative)
     groups = join_bands([pm.planes[pid] for pid in sorted(pm.planes)], cfg)
     out = []
@@ -48,7 +52,8 @@ def served_planes(pm: PlaneMap, include_tentative: bool = False) -> list[dict[st
 def join_bands(planes: list[MapPlane], cfg: MapConfig) -> list[list[MapPlane]]:
     """The planes (by id) grouped into the bands of one face each (a plane alone where it joins none); tentative
     planes stay alone."""
-    band = PlaneMap(replace(cfg, merge_band_gap_down_m=cfg.serve_band_gap_down_m))
+    gap = cfg.serve_band_gap_down_m if cfg.merge_band_gap_down_m <= 0 else 0.0
+    band = PlaneMap(replace(cfg, merge_band_gap_down_m=gap))
     own = PlaneMap(cfg)
     groups: list[list[MapPlane]] = []
     joined: list[MapPlane] = []  # per group, its members' sum (fit cached)
@@ -58,10 +63,11 @@ def join_bands(planes: list[MapPlane], cfg: MapConfig) -> list[list[MapPlane]]:
             joined.append(mp)
             continue
         for k, group in enumerate(groups):
-            if not _joins(band, own, group, mp):
+            kind = _joins(band, own, group, mp)
+            if kind is None:
                 continue
             whole = MapPlane(group[0].id, joined[k].record + mp.record, cfg)
-            if whole.fit.rms_m > cfg.merge_max_rms_m:
+            if whole.fit.rms_m > (cfg.merge_max_rms_m if kind == "band" else cfg.serve_copy_max_rms_m):
                 continue
             group.append(mp)
             joined[k] = whole
@@ -72,14 +78,32 @@ def join_bands(planes: list[MapPlane], cfg: MapConfig) -> list[list[MapPlane]]:
     return groups
 
 
-def _joins(band: PlaneMap, own: PlaneMap, group: list[MapPlane], mp: MapPlane) -> bool:
-    """Whether ``mp`` is a band of the face of every member of ``group`` (and touches none of them at the map's own
-    gap along down)."""
-    if group[0].record.n_obs < band.cfg.min_obs_publish:
-        return False
+def _joins(band: PlaneMap, own: PlaneMap, group: list[MapPlane], mp: MapPlane) -> str | None:
+    """How ``mp`` joins ``group``: ``"band"`` when it is a band of the face of every member (and touches none of
+    them at the map's own gap along down), ``"copy"`` when some member touches it and every member is a band of
+    it or a copy (:func:`_copy`); else None."""
+    cfg = band.cfg
+    if group[0].record.n_obs < cfg.min_obs_publish:
+        return None
+    kind = "band"
     for m in group:
         if own._touch(m.record, mp.record):
-            return False
-        if not band.bands(m.record, m.fit, mp.record, mp.fit):
-            return False
-    return True
+            if not _copy(cfg, m, mp):
+                return None
+            kind = "copy"
+        elif not band.bands(m.record, m.fit, mp.record, mp.fit):
+            return None
+    return kind
+
+
+def _copy(cfg: MapConfig, a: MapPlane, b: MapPlane) -> bool:
+    """Whether two touching planes are one face's copies a few centimetres apart (``serve_copy_offset_m``)."""
+    if cfg.serve_copy_offset_m <= 0:
+        return False
+    fa, fb = a.fit, b.fit
+    cos = float(np.clip(fa.normal @ fb.normal, -1.0, 1.0))
+    if math.degrees(math.acos(cos)) > cfg.serve_copy_angle_deg:
+        return False
+    off_a = abs(float(fb.normal @ fa.centroid + fb.d))
+    off_b = abs(float(fa.normal @ fb.centroid + fa.d))
+    return max(off_a, off_b) <= cfg.serve_copy_offset_m

@@ -101,6 +101,11 @@ class MapConfig:
             Off by default (docs/mapping.md, "Bands of one face"); 3.0 turns it on.
         serve_band_gap_down_m: the same rule (up to this far apart along down; 0: off) applied only to the map as
             served (:mod:`mapping.served`: ``map_json``), not to the planes navigation registers against.
+        serve_copy_offset_m, serve_copy_angle_deg, serve_copy_max_rms_m: also only as served (0: off), two confirmed
+            planes whose boxes touch (the same depths) join when their normals lie within ``serve_copy_angle_deg``
+            and each one's centroid within ``serve_copy_offset_m`` of the other's plane, up to a joined RMS of
+            ``serve_copy_max_rms_m``: copies the map kept apart only because the fused plane would pass
+            ``merge_max_rms_m``.
         merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
         same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
             planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
@@ -160,6 +165,9 @@ class MapConfig:
     merge_band_angle_deg: float = 3.0
     merge_band_offset_m: float = 0.045
     serve_band_gap_down_m: float = 3.0
+    serve_copy_offset_m: float = 0.0
+    serve_copy_angle_deg: float = 1.0
+    serve_copy_max_rms_m: float = 0.05
     merge_max_rms_m: float = 0.03
     same_face_offset_m: float = 0.0
     same_face_angle_deg: float = 3.0
@@ -192,6 +200,7 @@ class MapConfig:
                     "same_face_offset_m",
                     "merge_band_gap_down_m",
                     "serve_band_gap_down_m",
+                    "serve_copy_offset_m",
                 )
                 and value <= 0
             ):

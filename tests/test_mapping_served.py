@@ -61,3 +61,23 @@ def test_the_builder_serves_joined_bands_and_registers_to_the_planes_as_built() 
     b.flush()
     assert len(b.landmarks()) == 2
     assert len(b.map_json()["planes"]) == 1
+
+
+def test_copies_a_few_centimetres_apart_over_the_same_depths_are_served_as_one_when_asked() -> None:
+    # the map kept them apart (offset gate 2 cm here); serve_copy_offset_m joins them in the served view only,
+    # while a copy a decimetre off stays apart
+    def built(gap: float, **served: float) -> tuple[PlaneMap, list[dict[str, object]]]:
+        rng = np.random.default_rng(3)
+        pm = PlaneMap(replace(MapConfig(), merge_offset_m=0.02, **served))
+        for t in range(3):
+            pm.add(_band(rng, 3.0, (0.0, 0.5), (0.7, 1.2), t + 1))
+        for t in range(3):
+            pm.add(_band(rng, 3.0 + gap, (0.0, 0.5), (0.8, 1.3), t + 10))
+        return pm, served_planes(pm)
+
+    pm, served = built(0.03, serve_copy_offset_m=0.04)
+    assert len(pm) == 2
+    assert len(served) == 1
+    assert served[0]["n_points"] == sum(p.record.stats.n for p in pm.planes.values())
+    assert len(built(0.03)[1]) == 2  # off (the default)
+    assert len(built(0.10, serve_copy_offset_m=0.04)[1]) == 2

@@ -162,3 +162,22 @@ def test_the_launch_frame_takes_the_graphs_launches_when_asked() -> None:
         frames[flag] = nav.frame()
     assert frames[False].shift_ne == (0.0, 0.0)
     assert frames[True].shift_ne[0] == pytest.approx(-0.1, abs=1e-6)
+
+
+def test_a_passed_check_beside_the_place_anchors_the_track_there_when_asked() -> None:
+    # launched 6 cm north of where it is (the corner scan is seen from (1, 1)); each check finds (1, 1) within
+    # verify_tol_m: it passes, and with verify_anchor_m the place also becomes a prior on the checked pose
+    lm = PlaneLandmarks.from_planes(CORNER)
+
+    def north_error(**gate: Any) -> float:
+        cfg = GraphConfig(track_break_std_m=0.1, relocalize=True, verify_every_s=0.2, **gate)
+        g = GraphNav("rov1", NavConfig(), cfg)
+        g.update(0, Pose(1.06, 1.0, 1.0, 0.0, 0.0, 0.0), _corner_scan(), lm)
+        ests = [g.update(k * 100_000_000, NOFIX, _corner_scan(), lm) for k in range(1, 11)]
+        assert g.track.relocalized == 0  # every check passed
+        assert ests[-1].pose is not None
+        return abs(ests[-1].pose.north_m - 1.0)
+
+    free, anchored = north_error(), north_error(verify_anchor_m=0.01)
+    assert anchored < free
+    assert anchored < 0.015
