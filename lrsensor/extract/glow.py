@@ -112,8 +112,7 @@ from ._jit import callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
 from .sorting import median
-from .water import alpha_total as _alpha_total
-from .water import retell, vertex
+from .water import retell, sample_total, vertex
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -587,11 +586,11 @@ def _attenuation(  # type: ignore[no-untyped-def]
     grid = empty(n_a, np.float64)
     for i in range(n_a):
         grid[i] = ALPHA_GRID[i]
-    rss_a, fit_a, use = _alpha_fits(
+    score_a, fit_a, use = _alpha_fits(
         grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
         lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
     )  # fmt: skip
-    tot = _alpha_total(rss_a, fit_a, use, sample)
+    tot = sample_total(score_a, fit_a, use, sample)  # the summed log residuals
     b = 0
     for i in range(1, n_a):
         if tot[i] < tot[b]:
@@ -635,11 +634,12 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
     grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
     max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
 ):
-    """:func:`_attenuation`'s fits at each attenuation in ``grid``: ``(rss, fitted, use)``, (A, N) each and (A,):
-    the residual sums, the fits taken and whether most of the sample fits at that attenuation."""
+    """:func:`_attenuation`'s fits at each attenuation in ``grid``: ``(score, fitted, use)``, (A, N) each and (A,):
+    the log residual sums of the fits taken (0 elsewhere), the fits taken and whether most of the sample fits at
+    that attenuation."""
     n = cols.size
     n_a = grid.size
-    rss_a = zeros((n_a, n), np.float64)
+    score_a = zeros((n_a, n), np.float64)
     fit_a = zeros((n_a, n), np.bool_)
     use = zeros(n_a, np.bool_)
     for i in range(n_a):
@@ -659,10 +659,11 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
         n_f = 0
         for t in range(n):
             fit_a[i, t] = sample[t] and f1[t] and f2[t] and rss[t] > 0.0
-            rss_a[i, t] = rss[t]
+            if fit_a[i, t]:
+                score_a[i, t] = math.log(rss[t])
             n_f += fit_a[i, t]
         use[i] = n_f >= ALPHA_SHARE * n_s
-    return rss_a, fit_a, use
+    return score_a, fit_a, use
 
 
 @inline

@@ -25,10 +25,11 @@ WATER_POINTS = 5
 
 
 @callee
-def alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
-    """The scores of :func:`.glow._alpha_fits`' rows (and :func:`retell`'s): summed log residuals over the sample's
-    points fitted at every row that most of them fit at (``use``); inf where none is."""
-    n_a, n = rss_a.shape
+def sample_total(score_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
+    """The scores of the attenuations tried (:func:`.glow._alpha_fits`, :func:`retell`): the sums of ``score_a``
+    (A, N) over the sample's points fitted at every row that most of them fit at (``use``); inf at the others, and
+    everywhere when no point is fitted at all of them."""
+    n_a, n = score_a.shape
     tot = full(n_a, np.inf, np.float64)
     for t in range(n):
         every = sample[t]
@@ -38,25 +39,7 @@ def alpha_total(rss_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
             continue
         for i in range(n_a):
             if use[i]:
-                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + math.log(rss_a[i, t])
-    return tot
-
-
-@callee
-def _adjusted_total(cr_a, fit_a, use, sample):  # type: ignore[no-untyped-def]
-    """:func:`retell`'s scores: the sums of ``cr_a`` (A, N) over the sample's points fitted at every row that most
-    of them fit at (``use``); inf at the others, and everywhere when no point is fitted at all of them."""
-    n_a, n = cr_a.shape
-    tot = full(n_a, np.inf, np.float64)
-    for t in range(n):
-        every = sample[t]
-        for i in range(n_a):
-            every = every and (fit_a[i, t] or not use[i])
-        if not every:
-            continue
-        for i in range(n_a):
-            if use[i]:
-                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + cr_a[i, t]
+                tot[i] = (0.0 if math.isinf(tot[i]) else tot[i]) + score_a[i, t]
     return tot
 
 
@@ -174,7 +157,7 @@ def retell(  # type: ignore[no-untyped-def]
                 cr_a[i, t] = d2[t] * math.log(rss[t]) + st2[2, t]
             k += fit_a[i, t]
         use[i] = k >= share * n_s
-    tot = _adjusted_total(cr_a, fit_a, use, sample)
+    tot = sample_total(cr_a, fit_a, use, sample)
     c = 0
     for i in range(1, n_f):
         if tot[i] < tot[c]:
