@@ -774,7 +774,7 @@ def test_glow_test_decides_as_the_reference_where_stripes_overlap(seed: int) -> 
     args = (
         r.image, p.cols, p.laser, bands.glow_side, f.centre, f.amplitude, f.sigma, f.saturated, f.ok, f.local_noise,
         p.noise, s.min_fwhm_px / compiled.FWHM_PER_SIGMA, s.max_sigma_px, s.saturation_dn, s.min_green_ratio,
-        geo.glow_vanish, geo.glow_path, glow.new_water(),
+        geo.glow_vanish, geo.glow_path, glow.new_water(), np.zeros(p.cols.size, np.bool_),
     )  # fmt: skip
     v_road, s_road, f_road = glow.glow_refit(*(a.copy() if isinstance(a, np.ndarray) else a for a in args))[:3]
     v_ref, s_ref, f_ref = reference_glow.glow_refit(*(a.copy() if isinstance(a, np.ndarray) else a for a in args))[:3]

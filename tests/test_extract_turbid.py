@@ -186,9 +186,9 @@ def test_compiled_glow_stage_equals_the_reference(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(subpixel, "USE_REFERENCE", True)
     slow = subpixel.extract(frame.image, frame.calibration)
     (args,) = captured
-    args = args[:-1]  # (each call below tells the water afresh, as the frame did)
-    v_ref, s_ref, f_ref, a_ref, n_ref = real(*args, glow.new_water())  # type: ignore[arg-type]
-    v_road, s_road, f_road, a_road, n_road = glow.glow_refit(*args, glow.new_water())
+    args, retry = args[:-2], args[-1]  # (each call below tells the water afresh, as the frame did)
+    v_ref, s_ref, f_ref, a_ref, n_ref = real(*args, glow.new_water(), retry)  # type: ignore[arg-type]
+    v_road, s_road, f_road, a_road, n_road = glow.glow_refit(*args, glow.new_water(), retry)
     assert f_ref.sum() > 0.8 * np.count_nonzero(args[8])  # most points show the glow and take the joint fit
     np.testing.assert_array_equal(f_road, f_ref)
     np.testing.assert_allclose(v_road, v_ref, atol=1e-6)

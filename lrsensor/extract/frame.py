@@ -67,6 +67,10 @@ from .sorting import kth, median
 FWHM_PER_SIGMA = 2.3548200450309493
 #: Profiles sampled for the frame statistics (:func:`frame_profile_stats`).
 STATS_POINTS = 48
+#: The points whose profile the common fit refused (no curved three-point start, a width outside the limits, the
+#: centre away from the peak: noise at a dim column of a blurred stripe) enter the glow stage at their candidate row
+#: with the frame's typical width, and are kept where their joint fit is taken (docs/water.md).
+RETRY_REFUSED = True
 
 
 class Located(NamedTuple):
@@ -437,16 +441,28 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
     # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     own = zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
     if s.glow_fit:
-        v_g, _s_g, own, a_g, n_g = glow_refit(
+        # the points the common fit refused enter at their candidate row with the frame's width (see RETRY_REFUSED)
+        retry = zeros(n, np.bool_)
+        v_in = vv.copy()
+        s_in = sig.copy()
+        ok_in = ok.copy()
+        if RETRY_REFUSED:
+            for t in range(n):
+                retry[t] = not ok[t] and not sat[t]
+                if retry[t]:
+                    v_in[t] = float(p.rows[t])
+                    s_in[t] = p.sigma_px
+                    ok_in[t] = True
+        v_g, s_g, own, a_g, n_g = glow_refit(
             image,
             cols,
             laser,
             glow_side,
-            vv,
+            v_in,
             amp,
-            sig,
+            s_in,
             sat,
-            ok,
+            ok_in,
             res.local_noise,
             p.noise,
             s.min_fwhm_px / FWHM_PER_SIGMA,
@@ -456,10 +472,16 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
             geo.glow_vanish,
             geo.glow_path,
             water,
+            retry,
         )
         # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
         # takes part of the glow's step as a slope)
         for t in range(n):
+            if retry[t]:  # taken only where its joint fit is
+                if not own[t]:
+                    continue
+                ok[t] = True
+                sig[t] = s_g[t]
             vv[t] = v_g[t]
             amp[t] = a_g[t]
             res.local_noise[t] = n_g[t]

@@ -236,7 +236,7 @@ def _gauss_step(x0, out, kt, inv_s):  # type: ignore[no-untyped-def]
 @njit
 def glow_refit(  # type: ignore[no-untyped-def]
     image, cols, laser, side_tab, vv, amp, sig, sat, ok, lnoise, noise_l, min_sig, max_sig, sat_dn, green_ratio,
-    vanish, path_k, water,
+    vanish, path_k, water, retry,
 ):
     """The joint stripe-and-glow fit of every point whose profile shows a glow (see the module's documentation).
 
@@ -255,6 +255,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
         water: (3,) float64, read and updated: the water's attenuation (1/m) and the stripe's width (px) as last told
             (:func:`_attenuation`) and the frames since (:data:`WATER_FRAMES`; :func:`new_water`: none told yet). A
             camera's frames share one: the water changes slowly, and the telling is a third of a glowing frame.
+        retry: (N,) bool, the points the common fit refused, here at their candidate row with the frame's width
+            (:data:`lrsensor.extract.frame.RETRY_REFUSED`): fitted like the others where their stripe glows or
+            pairs, but they take no part in what the stripe's points decide together (another stripe's position
+            in the fits, the stripe's width, whether the whole stripe glows, the water's telling), which stays
+            the common fits'.
 
     Returns:
         ``(centre_row, sigma, fitted, amplitude, noise)``: (N,) each; the common fit's centre and sigma where
@@ -290,7 +295,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
         kt[t] = int(math.ceil(TRIGGER_SIGMAS * sg0[t])) + 1  # noqa: RUF046
         reach = max(hw[t], 2 * kt[t] + 1 + TRIGGER_ROWS)
-        nb_ok[t] = not sat[t]
+        nb_ok[t] = not sat[t] and not retry[t]
         cand[t] = side[t] != 0.0 and rc[t] - reach >= 0 and rc[t] + reach <= h - 1
     # does a glow show? the outer rows over the inner ones (another laser's stripe close by subtracted), at kt rows
     # from the centre and twice as far (a linear background cancels), pooled over the candidates of the same laser
@@ -364,7 +369,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
             for cc in range(lo_c, hi_c):
                 both += at[li, cc] >= 0 and glowing[at[li, cc]]
             glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
-    glowing = _whole_stripe(glow_run, cand, laser, n_l)
+    glowing = _whole_stripe(glow_run, cand, retry, laser, n_l)
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows); on a blurred stripe (its candidates' mean sigma at least PAIR_MIN_SIGMA)
     # each candidate's width is the larger of its own and that mean, the stripe's (a dim column's own is noise: at
@@ -376,7 +381,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         tot = 0.0  # the sigmas of the laser's candidates summed, and counted (registers: one pass per laser)
         cnt = 0.0
         for t in range(n):
-            mine = cand[t] and laser[t] == li
+            mine = cand[t] and laser[t] == li and not retry[t]
             tot += sg0[t] if mine else 0.0
             cnt += 1.0 if mine else 0.0
         if cnt > 0.0 and tot >= PAIR_MIN_SIGMA * cnt:
@@ -419,7 +424,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     s_sum = 0.0  # (only on blurred stripes: SHAPE_MIN_SIGMA)
     s_cnt = 0.0
     for t in range(n):
-        if fit_me[t] and glowing[t]:
+        if fit_me[t] and glowing[t] and not retry[t]:
             s_sum += sg0[t]
             s_cnt += 1.0
     alpha, s_w = 0.0, 0.0
@@ -428,7 +433,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
             alpha, s_w = water[0], water[1]
         else:
             alpha, s_w = _attenuation(
-                image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0,
+                image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing & ~retry, side, rc, hw, reach_rows, sg0,
                 lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
             )  # fmt: skip
             water[0] = alpha
@@ -680,15 +685,15 @@ WHOLE_STRIPE_FRAC = 0.8
 
 
 @njit
-def _whole_stripe(glowing, cand, laser, n_l):  # type: ignore[no-untyped-def]
-    """``glowing`` (N,) and, where nearly all of a laser's candidates (``cand``) show the glow (more than
-    :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the same proportion
+def _whole_stripe(glowing, cand, retry, laser, n_l):  # type: ignore[no-untyped-def]
+    """``glowing`` (N,) and, where nearly all of a laser's candidates (``cand``; those not ``retry`` counted) show
+    the glow (more than :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the same proportion
     to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and the common fit
     there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
     n_c = zeros(n_l, np.int64)
     n_g = zeros(n_l, np.int64)
     for t in range(laser.size):
-        if cand[t]:
+        if cand[t] and not retry[t]:
             n_c[laser[t]] += 1
             n_g[laser[t]] += glowing[t]
     out = glowing.copy()

@@ -47,7 +47,7 @@ from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import GLOW_PASS_MIN, noise_col_step
 from .finish import BLURRED_SIGMA_PX, CENTRE_SD, RUN_MAX_SD_PX, STRIPE_NOISE_MIN
 from .fit import flank_offset
-from .frame import STATS_POINTS
+from .frame import RETRY_REFUSED, STATS_POINTS
 from .glow import new_water
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
@@ -203,16 +203,18 @@ def extract_frame(
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     own = np.zeros(cols.size, bool)
     if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
-        vv, _sg, own, amp, lnoise = reference_glow.glow_refit(
+        # the points the common fit refused enter at their candidate row with the frame's width (frame.RETRY_REFUSED)
+        retry = ~ok & ~_sat if RETRY_REFUSED else np.zeros(cols.size, bool)
+        v_g, s_g, own, a_g, n_g = reference_glow.glow_refit(
             image,
             cols,
             laser,
             bands.glow_side,
-            vv,
+            np.where(retry, rows.astype(np.float64), vv),
             amp,
-            sig,
+            np.where(retry, sig_med, sig),
             _sat,
-            ok,
+            ok | retry,
             lnoise,
             noise,
             s.min_fwhm_px / FWHM_PER_SIGMA,
@@ -222,7 +224,12 @@ def extract_frame(
             geo.glow_vanish,
             geo.glow_path,
             new_water() if water is None else water,
+            retry,
         )
+        take = ~retry | own  # a refused point only where its joint fit is taken
+        vv, amp, lnoise = np.where(take, v_g, vv), np.where(take, a_g, amp), np.where(take, n_g, lnoise)
+        ok = ok | (retry & own)
+        sig = np.where(retry & own, s_g, sig)
     # signal-to-noise per point: the local noise (flanks) where it exceeds the band's (shot noise on bright
     # backgrounds, speckle, haze)
     # (where the glow stage's joint fit is taken, its residual noise alone: finish.finish_points)

@@ -221,12 +221,15 @@ def _neighbours(
     return nb
 
 
-def _stripe_sigma(laser: IntArray, cand: BoolArray, sg0: FloatArray, n_l: int) -> FloatArray:
+def _stripe_sigma(
+    laser: IntArray, cand: BoolArray, sg0: FloatArray, n_l: int, counted: BoolArray | None = None
+) -> FloatArray:
     """The widths :func:`lrsensor.extract.glow.glow_refit` fits with: at each candidate of a blurred stripe (the mean
-    of ``sg0`` over its laser's candidates at least PAIR_MIN_SIGMA) the larger of its own and that mean; ``sg0``
-    elsewhere."""
-    tot = np.bincount(laser[cand], weights=sg0[cand], minlength=n_l)
-    cnt = np.bincount(laser[cand], minlength=n_l)
+    of ``sg0`` over its laser's candidates, those in ``counted`` if given, at least PAIR_MIN_SIGMA) the larger of its
+    own and that mean; ``sg0`` elsewhere."""
+    cn = cand if counted is None else cand & counted
+    tot = np.bincount(laser[cn], weights=sg0[cn], minlength=n_l)
+    cnt = np.bincount(laser[cn], minlength=n_l)
     whole = tot / np.maximum(cnt, 1)
     return np.where(cand & (tot[laser] >= PAIR_MIN_SIGMA * cnt[laser]), np.maximum(sg0, whole[laser]), sg0)
 
@@ -250,8 +253,10 @@ def glow_refit(
     vanish: FloatArray,
     path_k: FloatArray,
     water: FloatArray,
+    retry: BoolArray | None = None,
 ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
-    """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results), in numpy."""
+    """What :func:`lrsensor.extract.glow.glow_refit` computes (same arguments and results; ``retry`` None: none), in
+    numpy."""
     h, w = image.shape[:2]
     n = cols.size
     n_l = side_tab.shape[0]
@@ -261,7 +266,8 @@ def glow_refit(
     lo_sig = max(min_sig, MIN_SIGMA_PX)
     with np.errstate(invalid="ignore"):
         usable = ok & np.isfinite(vv) & (sat | (sig <= max_sig))
-    nb_ok = usable & ~sat  # neighbours: unclipped fits
+    retry = np.zeros(n, bool) if retry is None else retry
+    nb_ok = usable & ~sat & ~retry  # neighbours: unclipped fits (not the common fit's refused: glow.glow_refit)
     side = np.where(usable, side_tab[laser, cols], 0).astype(np.float64)
     sg0 = np.clip(np.where(usable, sig, 1.0), lo_sig, max_sig)
     rc = np.floor(np.where(usable, vv, 0.0) + 0.5).astype(np.int64)
@@ -316,13 +322,13 @@ def glow_refit(
         both += (j >= 0) & cand[jc] & glowing[jc]
     glowing[idx] &= 2 * both > cnt
     # the whole stripe where most of it glows (glow._whole_stripe)
-    n_c = np.bincount(laser[cand], minlength=n_l)
-    n_g = np.bincount(laser[cand & glowing], minlength=n_l)
+    n_c = np.bincount(laser[cand & ~retry], minlength=n_l)
+    n_g = np.bincount(laser[cand & glowing & ~retry], minlength=n_l)
     glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
     # (the stripes' widths taken along them: glow.glow_refit)
-    sgp = _stripe_sigma(laser, cand, sg0, n_l)
+    sgp = _stripe_sigma(laser, cand, sg0, n_l, ~retry)
     idx = np.flatnonzero(cand & (nb0 >= 0))
     nbc = nb0[idx]
     with np.errstate(invalid="ignore"):
@@ -445,13 +451,13 @@ def glow_refit(
     d_rc = np.where(todo, side * (rc - vanish[laser, cols]), 1.0)
     k_pt = np.where(todo & (d_rc > 1.0), path_k[laser, cols], 0.0)
     kap_k = np.zeros(n)
-    g_fit = todo & glowing
+    g_fit = todo & glowing & ~retry
     alpha, s_w = 0.0, 0.0
     if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
         if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
             alpha, s_w = float(water[0]), float(water[1])
         else:
-            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing & ~retry, k_pt, rc, hw, sg0, h)
             water[:] = (alpha, s_w, 0.0)
         water[2] += 1.0
     kap_k = alpha * k_pt
