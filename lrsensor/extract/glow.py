@@ -432,8 +432,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if water[2] < WATER_FRAMES:  # told a few frames ago: the water changes slowly
             alpha, s_w = water[0], water[1]
         else:
+            told = glowing & ~retry  # (the common fits' points tell the water)
             alpha, s_w = _attenuation(
-                image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing & ~retry, side, rc, hw, reach_rows, sg0,
+                image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, told, side, rc, hw, reach_rows, sg0,
                 lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
             )  # fmt: skip
             water[0] = alpha
@@ -687,9 +688,9 @@ WHOLE_STRIPE_FRAC = 0.8
 @njit
 def _whole_stripe(glowing, cand, retry, laser, n_l):  # type: ignore[no-untyped-def]
     """``glowing`` (N,) and, where nearly all of a laser's candidates (``cand``; those not ``retry`` counted) show
-    the glow (more than :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the same proportion
-    to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and the common fit
-    there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
+    the glow (more than :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the
+    same proportion to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and
+    the common fit there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
     n_c = zeros(n_l, np.int64)
     n_g = zeros(n_l, np.int64)
     for t in range(laser.size):

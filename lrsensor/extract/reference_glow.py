@@ -457,7 +457,8 @@ def glow_refit(
         if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
             alpha, s_w = float(water[0]), float(water[1])
         else:
-            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing & ~retry, k_pt, rc, hw, sg0, h)
+            told = glowing & ~retry
+            alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, told, k_pt, rc, hw, sg0, h)
             water[:] = (alpha, s_w, 0.0)
         water[2] += 1.0
     kap_k = alpha * k_pt
