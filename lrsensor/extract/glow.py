@@ -93,10 +93,10 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
-Where a stripe shows the glow as a whole (:func:`_whole_stripe`: its median step over all its points, in proportion
-to its amplitude), all of its points are fitted with it (its dim ends, and a weak glow's points, where the glow does
-not show above the noise). The stage also returns the stripe amplitude and residual
-noise of each fit taken, which the signal-to-noise gate uses (:func:`lrsensor.extract.finish.finish_points`).
+Where a stripe shows the glow as a whole (:func:`_whole_stripe`), all of its points are fitted with it (its dim ends,
+and a weak glow's points, where the glow does not show above the noise). The stage also returns the stripe amplitude
+and residual noise of each fit taken, which the signal-to-noise gate uses
+(:func:`lrsensor.extract.finish.finish_points`).
 
 The compiled kernel is :func:`glow_refit`; the fits and their rounds are in :mod:`lrsensor.extract.glow_fit`; the
 reference's is :func:`lrsensor.extract.reference_glow.glow_refit` (numpy, vectorized over the points). Both read
@@ -165,10 +165,8 @@ ALPHA_HALF_PX = 22
 ALPHA_SHARE = 0.75
 #: The sheet's shape is fitted only where the glowing stripes' mean width is at least this, px (on a narrower
 #: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
-#: for the model's 0.3, and the step with its ramp read the wall better). The width is their candidates' (the
-#: common fits', each at least its stripe's mean), which the glow narrows: with 1.5 px of blur at most 2.3 px at
-#: 0.5-3 m (true 1.5-2.2), with 4 px 2.75-4.2 (true 4.0-4.3); at 3.0 a glowing 2 m frame with 4 px of blur (2.75)
-#: kept the step model, whose dim ends read a pixel outward.
+#: for the model's 0.3, and the step with its ramp read the wall better). The glow narrows the common fits: 1.5 px of
+#: blur read at most 2.3 px at 0.5-3 m, 4 px 2.75-4.2 (2 m, glow 0.5: 2.75, and at 3.0 its dim ends read 1 px out).
 SHAPE_MIN_SIGMA = 2.5
 #: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
 #: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
@@ -679,43 +677,19 @@ def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
 
 @njit
 def _whole_stripe(glowing, cand, laser, n_l, diff, amp, noise_l):  # type: ignore[no-untyped-def]
-    """``glowing`` (N,) and all the candidates (``cand``) of every laser whose stripe shows the glow as a whole: at
-    least a pool's worth of them (``2 POOL_COLS + 1``) show it (``glowing``: the step, its colour and the majority
-    around), and the median of the green step (``diff`` (N,), DN, the other stripe subtracted) over ALL its
-    candidates exceeds :data:`TRIGGER_FRAC` times the median of their amplitudes (``amp``, DN) and
-    :data:`TRIGGER_SNR` times that median's noise (``noise_l`` (L,): the bands' noise).
-
-    The glow is the water's: the sheet glows wherever it runs through the water, in proportion to the stripe it
-    ends at, so where the stripe shows it as a whole it lies along all of it. At the stripe's dim ends and, with a
-    weak glow, at every other point, the glow does not show above the noise, and those points kept the common fit
-    about a pixel outward, between points fitted with the glow (a hard share of the points showing the glow, 0.8,
-    missed both: 68-79 % showed it at 2 m with a glow step of 0.5 and at 3 m with 0.1, and half at 0.5 m with 0.1,
-    both lasers, 4 px of blur; the whole stripe's step over its amplitude there is 0.1-1.15, and about zero in
-    clear water)."""
-    n_c = zeros(n_l, np.int64)
-    n_g = zeros(n_l, np.int64)
-    for t in range(laser.size):
-        if cand[t]:
-            n_c[laser[t]] += 1
-            n_g[laser[t]] += glowing[t]
-    whole = zeros(n_l, np.bool_)
-    for li in range(n_l):
-        k = n_c[li]
-        if n_g[li] < 2 * POOL_COLS + 1:
-            continue
-        d_l = empty(k, np.float64)
-        a_l = empty(k, np.float64)
-        j = 0
-        for t in range(laser.size):
-            if cand[t] and laser[t] == li:
-                d_l[j] = diff[t]
-                a_l[j] = amp[t]
-                j += 1
-        whole[li] = median(d_l) > max(TRIGGER_SNR * _pool_noise(noise_l[li], k), TRIGGER_FRAC * median(a_l))
+    """``glowing`` (N,) and all the candidates (``cand``) of each laser whose stripe shows the glow as a whole: a
+    pool's worth of them show it, and their median green step (``diff``, DN) exceeds :data:`TRIGGER_FRAC` times their
+    median amplitude (``amp``) and :data:`TRIGGER_SNR` times that median's noise (``noise_l`` (L,)). The glow is the
+    water's, along all the stripe in proportion to it; at its dim ends, and at most points of a weak glow, it does not
+    show above the noise, and the common fit there read a pixel outward (docs/water.md)."""
     out = glowing.copy()
-    for t in range(laser.size):
-        if cand[t] and whole[laser[t]]:
-            out[t] = True
+    for li in range(n_l):
+        mine = cand & (laser == li)
+        k = mine.sum()
+        if (glowing & mine).sum() >= 2 * POOL_COLS + 1 and median(diff[mine]) > max(
+            TRIGGER_SNR * _pool_noise(noise_l[li], k), TRIGGER_FRAC * median(amp[mine])
+        ):
+            out |= mine
     return out
 
 
