@@ -475,6 +475,30 @@ def test_the_water_told_on_one_frame_is_carried_to_the_next(
 
 
 @pytest.mark.parametrize("use_reference", [False, True], ids=["compiled", "reference"])
+def test_the_shape_is_used_where_the_told_width_is_blurred(
+    monkeypatch: pytest.MonkeyPatch, use_reference: bool
+) -> None:
+    """The shape's gate is the width told with it (glow.SHAPE_MIN_SIGMA), not the common fits' (which the glow
+    narrows: 2.16 px at 2 m, glow 0.5, 4 px, seed 3, for a true 4.0): that frame takes the shape; a sharp stripe
+    (1 m, glow 0.5, 1.5 px of blur: told about 1.7 px) keeps the step model, and its water says so (0, 0)."""
+    if not use_reference and not HAVE_NUMBA:
+        pytest.skip("numba is not installed: only the reference exists")
+    if not use_reference:
+        warm_up()
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", use_reference)
+    for d, b, blurred in ((2.0, 4.0, True), (1.0, 1.5, False)):
+        frame = render(Turbid(distance_m=d, glow_step=0.5, blur_px=b, seed=3))
+        water = glow.new_water()
+        subpixel.extract_points(frame.image, frame.calibration, water=water)
+        assert water[2] == 1.0  # told
+        if blurred:
+            assert 0.2 < water[0] < 0.5
+            assert 3.5 < water[1] < 4.5
+        else:
+            np.testing.assert_array_equal(water[:2], 0.0)
+
+
+@pytest.mark.parametrize("use_reference", [False, True], ids=["compiled", "reference"])
 def test_the_water_is_told_with_the_other_stripe_in_place(monkeypatch: pytest.MonkeyPatch, use_reference: bool) -> None:
     """At 3 m the other laser's stripe lies 18 rows off, in the telling's windows: told with it where the common fit
     put it (pulled by its own glow, and narrower), a noise-free frame read 0.33-0.35 /m for the model's 0.3 /m; told

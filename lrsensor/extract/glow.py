@@ -163,11 +163,11 @@ ALPHA_SAMPLE = 32
 ALPHA_HALF_PX = 22
 #: ... among the attenuations at which at least this share of those points fit.
 ALPHA_SHARE = 0.75
-#: The sheet's shape is fitted only where the glowing stripes' mean width is at least this, px (on a narrower
+#: The sheet's shape is fitted only where the stripe's width told with it is at least this, px (on a narrower
 #: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
-#: for the model's 0.3, and the step with its ramp read the wall better). The glow narrows the common fits: 1.5 px of
-#: blur read at most 2.3 px at 0.5-3 m, 4 px 2.75-4.2 (2 m, glow 0.5: 2.75, and at 3.0 its dim ends read 1 px out).
-SHAPE_MIN_SIGMA = 2.5
+#: for the model's 0.3, and the step with its ramp read the wall better). Told: 1.50-2.22 px with 1.5 px of blur at
+#: 0.5-3 m, 3.7-4.2 with 4 px; the common fits' widths, which the glow narrows, read 2.16 px at 2 m with 4 px.
+SHAPE_MIN_SIGMA = 3.0
 #: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
 #: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
 SHAPE_MIN_STEP = 0.2
@@ -418,14 +418,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if fit_me[t]:
             d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
             k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
-    s_sum = 0.0  # (only on blurred stripes: SHAPE_MIN_SIGMA)
-    s_cnt = 0.0
+    s_cnt = 0
     for t in range(n):
-        if fit_me[t] and glowing[t]:
-            s_sum += sg0[t]
-            s_cnt += 1.0
+        s_cnt += fit_me[t] and glowing[t]
     alpha, s_w = 0.0, 0.0
-    if s_cnt > 0.0 and s_sum >= SHAPE_MIN_SIGMA * s_cnt:
+    if s_cnt >= ALPHA_SAMPLE:  # (a sample's worth of glowing points)
         if water[2] < WATER_FRAMES:  # told a few frames ago: the water changes slowly
             alpha, s_w = water[0], water[1]
         else:
@@ -433,6 +430,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, glowing, side, rc, hw, reach_rows, sg0,
                 lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
             )  # fmt: skip
+            if s_w < SHAPE_MIN_SIGMA:  # a sharp stripe: the step and its ramp
+                alpha, s_w = 0.0, 0.0
             water[0] = alpha
             water[1] = s_w
             water[2] = 0.0

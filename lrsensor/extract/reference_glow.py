@@ -452,11 +452,13 @@ def glow_refit(
     kap_k = np.zeros(n)
     g_fit = todo & glowing
     alpha, s_w = 0.0, 0.0
-    if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
+    if g_fit.sum() >= ALPHA_SAMPLE:
         if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
             alpha, s_w = float(water[0]), float(water[1])
         else:
             alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, glowing, k_pt, rc, hw, sg0, h)
+            if s_w < SHAPE_MIN_SIGMA:  # a sharp stripe: the step and its ramp (glow.SHAPE_MIN_SIGMA)
+                alpha, s_w = 0.0, 0.0
             water[:] = (alpha, s_w, 0.0)
         water[2] += 1.0
     kap_k = alpha * k_pt
