@@ -9,7 +9,7 @@ encode time (scan to bytes) and decode time (bytes to the base's float32 points:
 triangulation), best of ``--repeat``; and the points the base triangulates from schema 2 against the sensor's
 own, as the relative difference ``|p_base - p_sensor| / |p_sensor|`` (median and max over the cloud, %). The
 bar of issue 30: at least 4x fewer bytes and no point off by more than 0.01 % of its range. A last column gives
-what zlib (level 6) would still save on the schema-2 payload (not used: see ``services/wire.py``).
+what zlib (level 6) would still save on the schema-2 payload (not used: see ``services/wire_stripe.py``).
 """
 
 from __future__ import annotations

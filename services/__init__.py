@@ -3,7 +3,8 @@
 Modules:
 
 * :mod:`services.wire` msgpack wire messages (``CloudMsg``, ``StripeMsg``, ``CalibMsg``, ``StatusMsg``), strict
-  decoding;
+  decoding; its parts: :mod:`services.wire_fields` (packing, field checks, pose maps), :mod:`services.wire_cloud`
+  (cloud schema 1), :mod:`services.wire_stripe` (the compact cloud schema 2, the calibration fingerprint);
 * :mod:`services.keys` the fleet's key expressions (``FleetKeys``);
 * :mod:`services.zconfig` ``--mode/--connect/--listen/--config`` -> ``zenoh.Config`` (multicast scouting off);
 * :mod:`services.imu`, :mod:`services.posetrack` IMU sources (sim, CSV, OpenROV serial) and pose interpolation;

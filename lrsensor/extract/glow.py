@@ -93,9 +93,10 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   majority along the stripe, steps in the background's shade (the same in every channel) were taken for glow: up to
   360 columns of a frame, medians up to 0.0075 points off.
 
-Where more than :data:`WHOLE_STRIPE_FRAC` of a stripe's points show the glow, all of them are fitted with it (its
-dim ends, where the glow does not show above the noise). The stage also returns the stripe amplitude and residual
-noise of each fit taken, which the signal-to-noise gate uses (:func:`lrsensor.extract.finish.finish_points`).
+Where a stripe shows the glow as a whole (:func:`_whole_stripe`), all of its points are fitted with it (its dim ends,
+and a weak glow's points, where the glow does not show above the noise). The stage also returns the stripe amplitude
+and residual noise of each fit taken, which the signal-to-noise gate uses
+(:func:`lrsensor.extract.finish.finish_points`).
 
 The compiled kernel is :func:`glow_refit`; the fits and their rounds are in :mod:`lrsensor.extract.glow_fit`; the
 reference's is :func:`lrsensor.extract.reference_glow.glow_refit` (numpy, vectorized over the points). Both read
@@ -162,9 +163,10 @@ ALPHA_SAMPLE = 32
 ALPHA_HALF_PX = 22
 #: ... among the attenuations at which at least this share of those points fit.
 ALPHA_SHARE = 0.75
-#: The sheet's shape is fitted only where the glowing stripes' mean width is at least this, px (on a narrower
+#: The sheet's shape is fitted only where the stripe's width told with it is at least this, px (on a narrower
 #: stripe the window is too short to tell the attenuation from the width: at 3 m with 1.5 px of blur it read 0.33 /m
-#: for the model's 0.3, and the step with its ramp read the wall better).
+#: for the model's 0.3, and the step with its ramp read the wall better). Told: 1.50-2.22 px with 1.5 px of blur at
+#: 0.5-3 m, 3.7-4.2 with 4 px; the common fits' widths, which the glow narrows, read 2.16 px at 2 m with 4 px.
 SHAPE_MIN_SIGMA = 3.0
 #: ... and where the sample's glow step is at least this share of its stripe's amplitude (median; with a weaker glow
 #: the attenuation's estimate is noise, and the shape read walls at 2-3 m with a glow step of 0.1 worse than the step).
@@ -369,7 +371,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
             for cc in range(lo_c, hi_c):
                 both += at[li, cc] >= 0 and glowing[at[li, cc]]
             glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
-    glowing = _whole_stripe(glow_run, cand, retry, laser, n_l)
+    glowing = _whole_stripe(glow_run, cand, laser, n_l, diff, amp, noise_l, retry)
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows); on a blurred stripe (its candidates' mean sigma at least PAIR_MIN_SIGMA)
     # each candidate's width is the larger of its own and that mean, the stripe's (a dim column's own is noise: at
@@ -421,14 +423,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if fit_me[t]:
             d_rc[t] = side[t] * (rc[t] - vanish[laser[t], cols[t]])
             k_pt[t] = path_k[laser[t], cols[t]] if d_rc[t] > 1.0 else 0.0
-    s_sum = 0.0  # (only on blurred stripes: SHAPE_MIN_SIGMA)
-    s_cnt = 0.0
+    s_cnt = 0
     for t in range(n):
-        if fit_me[t] and glowing[t] and not retry[t]:
-            s_sum += sg0[t]
-            s_cnt += 1.0
+        s_cnt += fit_me[t] and glowing[t] and not retry[t]
     alpha, s_w = 0.0, 0.0
-    if s_cnt > 0.0 and s_sum >= SHAPE_MIN_SIGMA * s_cnt:
+    if s_cnt >= ALPHA_SAMPLE:  # (a sample's worth of glowing points)
         if water[2] < WATER_FRAMES:  # told a few frames ago: the water changes slowly
             alpha, s_w = water[0], water[1]
         else:
@@ -437,6 +436,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 image, cols, laser, at, vv, sig, amp, nb_ok, nb0, fit_me, told, side, rc, hw, reach_rows, sg0,
                 lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, k_pt,
             )  # fmt: skip
+            if s_w < SHAPE_MIN_SIGMA:  # a sharp stripe: the step and its ramp
+                alpha, s_w = 0.0, 0.0
             water[0] = alpha
             water[1] = s_w
             water[2] = 0.0
@@ -679,28 +680,23 @@ def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
     return r if math.isfinite(r) else fallback
 
 
-#: A stripe's glow is fitted along all of it where more than this share of its points show the glow (a weak glow,
-#: shown by fewer, fitted at the dim ends too, read walls at 2 m with 4 px of blur and a step of 0.1 worse: outliers
-#: 0.7 -> 2.0 %).
-WHOLE_STRIPE_FRAC = 0.8
-
-
 @njit
-def _whole_stripe(glowing, cand, retry, laser, n_l):  # type: ignore[no-untyped-def]
-    """``glowing`` (N,) and, where nearly all of a laser's candidates (``cand``; those not ``retry`` counted) show
-    the glow (more than :data:`WHOLE_STRIPE_FRAC`), all of its candidates: the glow lies along the whole stripe in the
-    same proportion to it, but at the stripe's dim ends (peaks 3-6x the noise) it does not show above the noise, and
-    the common fit there read the stripe about a pixel outward (the outliers of walls at 2 m with 4 px of blur)."""
-    n_c = zeros(n_l, np.int64)
-    n_g = zeros(n_l, np.int64)
-    for t in range(laser.size):
-        if cand[t] and not retry[t]:
-            n_c[laser[t]] += 1
-            n_g[laser[t]] += glowing[t]
+def _whole_stripe(glowing, cand, laser, n_l, diff, amp, noise_l, retry):  # type: ignore[no-untyped-def]
+    """``glowing`` (N,) and all the candidates (``cand``) of each laser whose stripe shows the glow as a whole: a
+    pool's worth of them show it, and their median green step (``diff``, DN) exceeds :data:`TRIGGER_FRAC` times their
+    median amplitude (``amp``) and :data:`TRIGGER_SNR` times that median's noise (``noise_l`` (L,)), the candidates
+    in ``retry`` (the common fit's refused, :func:`glow_refit`) left out of that test. The glow is the water's, along
+    all the stripe in proportion to it; at its dim ends, and at most points of a weak glow, it does not show above the
+    noise, and the common fit there read a pixel outward (docs/water.md)."""
     out = glowing.copy()
-    for t in range(laser.size):
-        if cand[t] and n_g[laser[t]] > WHOLE_STRIPE_FRAC * n_c[laser[t]]:
-            out[t] = True
+    for li in range(n_l):
+        on = cand & (laser == li)
+        mine = on & ~retry
+        k = mine.sum()
+        if (glowing & mine).sum() >= 2 * POOL_COLS + 1 and median(diff[mine]) > max(
+            TRIGGER_SNR * _pool_noise(noise_l[li], k), TRIGGER_FRAC * median(amp[mine])
+        ):
+            out |= on
     return out
 
 

@@ -36,7 +36,6 @@ from .glow import (
     TRIGGER_SIGMAS,
     TRIGGER_SNR,
     WATER_FRAMES,
-    WHOLE_STRIPE_FRAC,
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
@@ -321,10 +320,17 @@ def glow_refit(
         jc = np.maximum(j, 0)
         both += (j >= 0) & cand[jc] & glowing[jc]
     glowing[idx] &= 2 * both > cnt
-    # the whole stripe where most of it glows (glow._whole_stripe)
+    # the whole stripe where it shows the glow as a whole (glow._whole_stripe): a pool's worth of its points show it,
+    # and its median step over all its points exceeds the trigger's share of their median amplitude and its noise
+    # (the common fit's refused points left out of the test)
     n_c = np.bincount(laser[cand & ~retry], minlength=n_l)
     n_g = np.bincount(laser[cand & glowing & ~retry], minlength=n_l)
-    glowing |= cand & (n_g > WHOLE_STRIPE_FRAC * n_c)[laser]
+    whole = np.zeros(n_l, bool)
+    for li in np.flatnonzero(n_g >= 2 * POOL_COLS + 1):
+        sel = cand & ~retry & (laser == li)
+        noise_m = noise_l[li] * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / n_c[li])
+        whole[li] = np.median(diff[0, sel]) > max(TRIGGER_SNR * noise_m, TRIGGER_FRAC * np.median(amp[sel]))
+    glowing |= cand & whole[laser]
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with
     # it (no glow term where none shows)
     # (the stripes' widths taken along them: glow.glow_refit)
@@ -453,12 +459,14 @@ def glow_refit(
     kap_k = np.zeros(n)
     g_fit = todo & glowing & ~retry
     alpha, s_w = 0.0, 0.0
-    if g_fit.any() and sg0[g_fit].sum() >= SHAPE_MIN_SIGMA * g_fit.sum():
+    if g_fit.sum() >= ALPHA_SAMPLE:
         if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
             alpha, s_w = float(water[0]), float(water[1])
         else:
             told = glowing & ~retry
             alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, told, k_pt, rc, hw, sg0, h)
+            if s_w < SHAPE_MIN_SIGMA:  # a sharp stripe: the step and its ramp (glow.SHAPE_MIN_SIGMA)
+                alpha, s_w = 0.0, 0.0
             water[:] = (alpha, s_w, 0.0)
         water[2] += 1.0
     kap_k = alpha * k_pt
