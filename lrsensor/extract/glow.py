@@ -328,8 +328,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         low = TRIGGER_SNR * _pool_noise(noise_l[li], 2 * POOL_COLS + 1)
         for cc in range(w):
             j = at[li, cc]
-            n_cand[li, cc + 1] = n_cand[li, cc] + (j >= 0 and cand[j])
-            n_over[li, cc + 1] = n_over[li, cc] + (j >= 0 and cand[j] and diff[j] > low)
+            use = j >= 0 and cand[j] and not retry[j]  # (the common fit's refused points take no part)
+            n_cand[li, cc + 1] = n_cand[li, cc] + use
+            n_over[li, cc + 1] = n_over[li, cc] + (use and diff[j] > low)
     glowing = zeros(n, np.bool_)
     for t in range(n):
         if not cand[t]:
@@ -344,7 +345,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         above = 0
         for cc in range(lo_c, hi_c):
             j = at[li, cc]
-            above += j >= 0 and cand[j] and diff[j] > thr
+            above += j >= 0 and cand[j] and not retry[j] and diff[j] > thr
         glowing[t] = 2 * above > cnt
     # where it does, the raw step pooled the same way has the laser's colour: green over red and blue as the stripe's
     # colour test asks (a step of the wall's or the water's colour is not a glow; raw, since a neighbour stripe close
@@ -356,7 +357,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
         sums = zeros(3, np.float64)
         for cc in range(max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)):
             j = at[laser[t], cc]
-            if j >= 0 and cand[j]:
+            if j >= 0 and cand[j] and not retry[j]:
                 for k in range(3):
                     if math.isnan(rgb[k, j]):
                         rgb[k, j] = _raw_step(image, rc[j], cols[j], int(side[j]), kt[j], (1, 2, 0)[k]) / TRIGGER_ROWS
@@ -369,7 +370,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
             li, lo_c, hi_c = laser[t], max(cols[t] - POOL_COLS, 0), min(cols[t] + POOL_COLS + 1, w)
             both = 0
             for cc in range(lo_c, hi_c):
-                both += at[li, cc] >= 0 and glowing[at[li, cc]]
+                j = at[li, cc]
+                both += j >= 0 and glowing[j] and not retry[j]
             glow_run[t] = 2 * both > n_cand[li, hi_c] - n_cand[li, lo_c]
     glowing = _whole_stripe(glow_run, cand, laser, n_l, diff, amp, noise_l, retry)
     # the blurred stripes beside another laser's whose Gaussians overlap within PAIR_SIGMAS sigmas each: fitted with

@@ -300,10 +300,11 @@ def glow_refit(
         cc = cols[idx] + off
         inside = (cc >= 0) & (cc < w)
         j = np.where(inside, at[laser[idx], np.clip(cc, 0, w - 1)], -1)
-        use = (j >= 0) & cand[np.maximum(j, 0)]
+        # (the common fit's refused points take no part: glow.glow_refit)
+        use = (j >= 0) & cand[np.maximum(j, 0)] & ~retry[np.maximum(j, 0)]
         pool[:, :, k] = np.where(use, diff[:, np.maximum(j, 0)], np.nan)
     cnt = np.isfinite(pool[0]).sum(axis=1)
-    noise = noise_l[laser[idx]] * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / cnt)
+    noise = noise_l[laser[idx]] * np.sqrt(2.0 * TREND_VAR / TRIGGER_ROWS * MEDIAN_VAR / np.maximum(cnt, 1))
     thr = np.maximum(TRIGGER_SNR * noise, TRIGGER_FRAC * amp[idx])
     with np.errstate(invalid="ignore"):
         above = (pool[0] > thr[:, None]).sum(axis=1)
@@ -318,7 +319,7 @@ def glow_refit(
         inside = (cc >= 0) & (cc < w)
         j = np.where(inside, at[laser[idx], np.clip(cc, 0, w - 1)], -1)
         jc = np.maximum(j, 0)
-        both += (j >= 0) & cand[jc] & glowing[jc]
+        both += (j >= 0) & cand[jc] & glowing[jc] & ~retry[jc]
     glowing[idx] &= 2 * both > cnt
     # the whole stripe where it shows the glow as a whole (glow._whole_stripe): a pool's worth of its points show it,
     # and its median step over all its points exceeds the trigger's share of their median amplitude and its noise
