@@ -55,7 +55,7 @@ from ._jit import arange, empty, full, inline, njit, zeros
 from .chains import expand_half, select_candidates, sorted_blocks
 from .columns import take
 from .detect import detect_band
-from .finish import finish_points
+from .finish import BLURRED_SIGMA_PX, finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit, new_water
@@ -69,7 +69,10 @@ FWHM_PER_SIGMA = 2.3548200450309493
 STATS_POINTS = 48
 #: The points whose profile the common fit refused (no curved three-point start, a width outside the limits, the
 #: centre away from the peak: noise at a dim column of a blurred stripe) enter the glow stage at their candidate row
-#: with the frame's typical width, and are kept where their joint fit is taken (docs/water.md).
+#: with the frame's typical width, and are kept where their joint fit is taken (docs/water.md); on blurred frames
+#: only (the typical sigma at least :data:`~lrsensor.extract.finish.BLURRED_SIGMA_PX`: forward scatter), where the
+#: start's three samples 0.8 sigma apart read the noise of a dim column. Clear water's few refusals (0-8 a frame on
+#: the named scenes) are left as they were, and its frames keep their cost.
 RETRY_REFUSED = True
 
 
@@ -443,12 +446,17 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
     if s.glow_fit:
         # the points the common fit refused enter at their candidate row with the frame's width (see RETRY_REFUSED)
         retry = zeros(n, np.bool_)
-        v_in = vv.copy()
-        s_in = sig.copy()
-        ok_in = ok.copy()
-        if RETRY_REFUSED:
+        n_retry = 0
+        if RETRY_REFUSED and p.sigma_px >= BLURRED_SIGMA_PX:
             for t in range(n):
                 retry[t] = not ok[t] and not sat[t]
+                n_retry += retry[t]
+        v_in, s_in, ok_in = vv, sig, ok  # (no copies in the common case: clear water refuses few or none)
+        if n_retry > 0:
+            v_in = vv.copy()
+            s_in = sig.copy()
+            ok_in = ok.copy()
+            for t in range(n):
                 if retry[t]:
                     v_in[t] = float(p.rows[t])
                     s_in[t] = p.sigma_px
@@ -477,14 +485,16 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
         # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
         # takes part of the glow's step as a slope)
         for t in range(n):
-            if retry[t]:  # taken only where its joint fit is
-                if not own[t]:
-                    continue
-                ok[t] = True
-                sig[t] = s_g[t]
             vv[t] = v_g[t]
             amp[t] = a_g[t]
             res.local_noise[t] = n_g[t]
+        if n_retry > 0:  # a refused point only where its joint fit is taken
+            for t in range(n):
+                if retry[t] and own[t]:
+                    ok[t] = True
+                    sig[t] = s_g[t]
+                elif retry[t]:  # (the glow stage hands back its start, the candidate row)
+                    vv[t] = np.nan
     # gates, runs, smoothing, quality
     return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
 

@@ -408,9 +408,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
         if fit_me[t] and blurred:
             hw[t] = min(int(math.ceil(WINDOW_SIGMAS * sg0[t])) + 2, MAX_HALF_PX)  # noqa: RUF046
             fit_me[t] = rc[t] - hw[t] >= 0 and rc[t] + hw[t] <= h - 1
-        any_fit |= fit_me[t]
+        any_fit |= fit_me[t] and not retry[t]
     if not any_fit:  # (clear water): the common fits stand, and the rounds' tables are not even filled
-        return vv.copy(), sig.copy(), fit_me, amp.copy(), lnoise.copy()
+        # (the refused points are fitted only where the common fits' points are: clear water keeps its cost)
+        return vv.copy(), sig.copy(), zeros(n, np.bool_), amp.copy(), lnoise.copy()
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for

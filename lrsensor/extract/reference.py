@@ -204,7 +204,7 @@ def extract_frame(
     own = np.zeros(cols.size, bool)
     if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
         # the points the common fit refused enter at their candidate row with the frame's width (frame.RETRY_REFUSED)
-        retry = ~ok & ~_sat if RETRY_REFUSED else np.zeros(cols.size, bool)
+        retry = ~ok & ~_sat if RETRY_REFUSED and sig_med >= BLURRED_SIGMA_PX else np.zeros(cols.size, bool)
         v_g, s_g, own, a_g, n_g = reference_glow.glow_refit(
             image,
             cols,

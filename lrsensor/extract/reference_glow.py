@@ -350,6 +350,8 @@ def glow_refit(
     sg0 = np.where(todo, sgp, sg0)
     hw = np.where(todo, np.minimum(np.ceil(WINDOW_SIGMAS * sg0).astype(np.int64) + 2, MAX_HALF_PX), hw)
     todo &= (rc - hw >= 0) & (rc + hw <= h - 1)
+    if not (todo & ~retry).any():  # the refused points only where the common fits' are fitted (glow.glow_refit)
+        todo[:] = False
     reach = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)
 
     def rounds(
