@@ -291,7 +291,7 @@ def _solve(
         x += step
         if float(np.abs(step).max()) < 1e-9:
             break
-    return x[:n_robots], np.linalg.inv(h + np.eye(dim) * 1e-12)
+    return x[:n_robots], np.asarray(np.linalg.inv(h + np.eye(dim) * 1e-12), dtype=np.float64)
 
 
 def estimate(views: list[View], cfg: FleetHeadingConfig | None = None) -> FleetHeading:

@@ -122,9 +122,11 @@ class FleetHeadingTracker:
         """Estimate the biases from the views kept and give each graph robot its own (:func:`retune`)."""
         result = estimate([v for _, vs in self.views.values() for v in vs], self.est_cfg)
         self.result = result
+        prior = math.radians(self.est_cfg.bias_prior_deg)
         for robot in self.views:
             nav = robots.get(robot)
-            if nav is not None and hasattr(nav, "compass_bias"):
+            # a robot that shares no wall keeps its graph as it is (its compass, its prior)
+            if nav is not None and hasattr(nav, "compass_bias") and result.sd_rad[robot] < 0.99 * prior:
                 retune(nav, result.bias_rad[robot], result.sd_rad[robot])
         self.views = {}
         return result
