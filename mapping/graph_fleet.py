@@ -21,6 +21,7 @@ unconstrained).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -28,7 +29,8 @@ import numpy as np
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .fleet_heading import FleetHeading, FleetHeadingConfig, View, estimate
-from .nav_config import NavConfig
+from .graph_hold import commit_held, hold_cloud
+from .nav_config import NavConfig, NavEstimate
 
 #: how a view's place relative to the launch fix loses precision with the time since (m/s: the scan odometry's)
 ODOMETRY_DRIFT_M_S = 0.01
@@ -118,8 +120,28 @@ class FleetHeadingTracker:
         made."""
         return self.result is None and bool(self.views) and all(r in self._done for r in self.views)
 
-    def apply(self, robots: dict[str, Any]) -> FleetHeading:
-        """Estimate the biases from the views kept and give each graph robot its own (:func:`retune`)."""
+    def step(
+        self, robot: str, t_ns: int, raw: Pose, points_body: Any, robots: dict[str, Any], est: NavEstimate
+    ) -> NavEstimate:
+        """A cloud of graph robot ``robot`` (its estimator ``robots[robot]``, the fleet's ``robots``) after its
+        graph's update (estimate ``est``): kept (:meth:`observe`), and
+        while the fleet's biases are still to be estimated its cloud is held (:mod:`mapping.graph_hold`: the map's
+        first planes would carry the compasses' biases); once every robot has its span the biases are estimated and
+        given to the graphs, and the held clouds committed at the poses the graphs then give them. Returns ``est``,
+        held (``placed`` False, ``held`` True) while the estimate waits."""
+        nav = robots[robot]
+        collecting = self.result is None and robot in self.views
+        self.observe(robot, t_ns, raw, points_body, nav)
+        if collecting and est.placed and est.pose is not None and getattr(nav, "hold", None) is not None:
+            hold_cloud(nav, len(nav._t) - 1, t_ns, raw, points_body, est.pinned)
+            est = replace(est, placed=False, held=True)
+        if self.due():
+            self.apply(robots, t_ns)
+        return est
+
+    def apply(self, robots: dict[str, Any], t_ns: int = 0) -> FleetHeading:
+        """Estimate the biases from the views kept, give each graph robot its own (:func:`retune`) and commit the
+        clouds held meanwhile."""
         result = estimate([v for _, vs in self.views.values() for v in vs], self.est_cfg)
         self.result = result
         prior = math.radians(self.est_cfg.bias_prior_deg)
@@ -128,6 +150,8 @@ class FleetHeadingTracker:
             # a robot that shares no wall keeps its graph as it is (its compass, its prior)
             if nav is not None and hasattr(nav, "compass_bias") and result.sd_rad[robot] < 0.99 * prior:
                 retune(nav, result.bias_rad[robot], result.sd_rad[robot])
+            if nav is not None and getattr(nav, "hold", None) is not None and nav.hold.clouds:
+                commit_held(nav, t_ns or (nav.t_ns or 0))
         self.views = {}
         return result
 

@@ -168,13 +168,14 @@ class Navigator:
         return est
 
     def _heading(self, robot: str, nav: Any, t_ns: int, raw: Pose, points_body: Any, est: NavEstimate) -> NavEstimate:
-        """A graph robot's cloud: its first scans kept for the fleet's compass biases, given to the graphs once every
-        robot has its span (``fleet_heading``); the estimate says what the robot's heading rests on."""
+        """A graph robot's cloud: its first scans kept (and its clouds held) for the fleet's compass biases, given to
+        the graphs once every robot has its span (``fleet_heading``); the estimate says what the robot's heading
+        rests on."""
         fh = self.fleet_heading
-        if fh is not None:
-            fh.observe(robot, t_ns, raw, points_body, nav)
-            if fh.due():
-                got = fh.apply(self.robots)
+        if fh is not None and fh.result is None:
+            est = fh.step(robot, t_ns, raw, points_body, self.robots, est)
+            got = fh.result
+            if got is not None:
                 biases = ", ".join(f"{r} {math.degrees(b):+.2f}" for r, b in sorted(got.bias_rad.items()))
                 log.info("fleet heading from %d shared walls: compass biases %s deg (common +-%.2f deg)", got.walls,
                          biases, math.degrees(got.common_sd_rad))  # fmt: skip
