@@ -61,7 +61,8 @@ def true_bias(frames: list[Any], robot: str, upto_s: float | None) -> float:
 def replay(seed: int, seconds: float, nav: dict[str, Any], graph: dict[str, Any], unbiased: bool) -> str:
     """``bench_nav``'s ``tracked`` replay of the depth-only dive (``--graph-track``) with these ``NavConfig`` and
     ``GraphConfig`` fields: a markdown row (faces within 2 deg and 5 cm, duplicates, spurious, the map's heading
-    error as ``bench_nav`` gives it, the worst face, unplaced clouds)."""
+    error as ``bench_nav`` gives it, the worst face, unplaced clouds, the served frame's turn, each robot's placed
+    poses' heading error)."""
     from dataclasses import replace
 
     from benchmarks.bench_nav import unbias_fleet
@@ -89,11 +90,12 @@ def replay(seed: int, seconds: float, nav: dict[str, Any], graph: dict[str, Any]
     yaws = wall_yaw_deg(run.planes(), score)
     worst_a = max((f.angle_deg for f in with_plane), default=math.nan)
     worst_o = 100 * max((f.offset_m for f in with_plane), default=math.nan)
+    placed = ", ".join(f"{float(np.mean(v)):+.2f}" for _, v in sorted(run.yaw_error_deg.items()) if v)
     return (
         f"| {seed} | {len(seen) - len(score.missing())} of {len(seen)} | {len(score.duplicates())} | "
         f"{len(score.spurious)} | {float(np.median(yaws)) if yaws else math.nan:+.2f} | "
         f"{worst_a:.2f} / {worst_o:.1f} | "
-        f"{sum(run.unplaced.values())} |"
+        f"{sum(run.unplaced.values())} | {math.degrees(run.frame.yaw_rad):+.2f} | {placed} |"
     )
 
 
@@ -121,8 +123,9 @@ def main() -> int:
             key, val = kv.split("=", 1)
             where, name = key.split(".", 1)
             (nav if where == "nav" else graph)[name] = bool(int(val)) if name == "fleet_heading" else float(val)
-        rows = ["| seed | faces in the bar | duplicates | spurious | map heading (deg) | worst deg / cm | unplaced |",
-                "|---|---|---|---|---|---|---|"]  # fmt: skip
+        rows = ["| seed | faces in the bar | duplicates | spurious | map heading (deg) | worst deg / cm | unplaced | "
+                "frame turn (deg) | placed heading error per robot (deg, mean) |",
+                "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for seed in (int(s) for s in args.seeds.split(",")):
             rows.append(replay(seed, args.dive_s, nav, graph, args.fleet_unbiased))
             print(rows[-1], flush=True)
