@@ -8,14 +8,18 @@ the compasses' mean error. :class:`FleetHeadingTracker` keeps every graph robot'
 turned into its compass frame), estimates the biases jointly from the walls two robots see
 (:func:`mapping.fleet_heading.estimate`) once every robot has that span, and gives each graph its bias
 (:func:`retune`): its launch heading prior becomes the compass minus the bias with the estimate's standard deviation,
-its later compass priors the compass minus the bias; the graph is re-solved from its factors. The clouds placed
-before (the first second) are re-placed with the smoother's next run, as every graph robot's are.
+its later compass priors the compass minus the bias; the graph is re-solved from its factors. Meanwhile the graph
+robots' clouds are held (:func:`mapping.graph_hold.hold_cloud`) and then committed at the poses the retuned graphs
+give them: placed at once, they made the map's first planes at the compasses' headings. Once the estimate pins the
+common heading, the fleet frame (:meth:`mapping.navigator.Navigator.frame`) no longer turns the map by the launch
+points as the graphs place them (their 5 cm prior, moved by the planes: a turn of their noise).
 
-Robots launched after the estimate keep their compass; a robot that shares no wall with another keeps the prior
-(bias 0, 3 deg), and :meth:`FleetHeadingTracker.heading` says which heading a robot has: ``fixes`` (a robot of the
-fleet has fixes after its launch: the map's heading comes from its track), ``launch-walls`` (the estimate pinned this
-robot's bias within 1 deg), or ``compass`` (the compass alone: the published ``nav`` then lists ``yaw`` as
-unconstrained).
+Robots launched after the estimate keep their compass, as does a robot that shares no wall with another (bias 0, 3
+deg: its graph is left as it is). :func:`heading_source` says what a robot's heading rests on: ``fixes`` (a robot of
+the fleet has fixes after its launch: the map's heading comes from its track), ``launch-walls`` (the estimate pinned
+this robot's bias within 1 deg), or ``compass`` (the compass alone: the published ``nav`` then lists ``yaw`` as
+unconstrained). What the launch cannot give is the compasses' later wander (the simulator's: 0.5 deg over 30-150 s):
+the graphs carry it from their compass turns.
 """
 
 from __future__ import annotations
@@ -130,7 +134,8 @@ class FleetHeadingTracker:
         given to the graphs, and the held clouds committed at the poses the graphs then give them. Returns ``est``,
         held (``placed`` False, ``held`` True) while the estimate waits."""
         nav = robots[robot]
-        collecting = self.result is None and robot in self.views
+        # held only where another graph robot may share its walls (a robot alone keeps its compass: nothing to wait for)
+        collecting = self.result is None and robot in self.views and len(self.views) >= 2
         self.observe(robot, t_ns, raw, points_body, nav)
         if collecting and est.placed and est.pose is not None and getattr(nav, "hold", None) is not None:
             hold_cloud(nav, len(nav._t) - 1, t_ns, raw, points_body, est.pinned)
