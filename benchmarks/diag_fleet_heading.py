@@ -58,21 +58,23 @@ def true_bias(frames: list[Any], robot: str, upto_s: float | None) -> float:
     return float(np.mean(b))
 
 
-def replay(seed: int, seconds: float, nav: dict[str, Any], graph: dict[str, Any], unbiased: bool) -> str:
+def replay(
+    seed: int, seconds: float, nav: dict[str, Any], graph: dict[str, Any], unbiased: bool, mode: str = "depth-only"
+) -> str:
     """``bench_nav``'s ``tracked`` replay of the depth-only dive (``--graph-track``) with these ``NavConfig`` and
     ``GraphConfig`` fields: a markdown row (faces within 2 deg and 5 cm, duplicates, spurious, the map's heading
     error as ``bench_nav`` gives it, the worst face, unplaced clouds, the served frame's turn, each robot's placed
     poses' heading error)."""
     from dataclasses import replace
 
-    from benchmarks.bench_nav import unbias_fleet
+    from benchmarks.bench_nav import MODES, unbias_fleet
     from mapping.graph_config import TRACKED
     from mapping.smoother import SMOOTHED_NAV, SmootherConfig
     from mapping.synth import hit_faces, replay_dive, score_map, wall_yaw_deg
 
     scene = tank()
     frames = simulate_dive(scene, three_rov_plans(), duration_s=seconds, rate_hz=10.0, n_rays=400, seed=seed,
-                           navigation="depth-only")  # fmt: skip
+                           navigation=MODES[mode])  # fmt: skip
     if unbiased:
         frames = unbias_fleet(frames)
     hits = hit_faces(scene, frames)
@@ -111,6 +113,7 @@ def main() -> int:
         help="instead: bench_nav's tracked replay per seed (faces, duplicates, spurious, map heading error)",
     )
     ap.add_argument("--fleet-unbiased", action="store_true", help="with --replay: bench_nav's what-if")
+    ap.add_argument("--mode", default="depth-only", choices=["depth-only", "mixed"], help="with --replay")
     ap.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="with --replay: a NavConfig (nav.KEY) or GraphConfig (graph.KEY) field, e.g. nav.fleet_heading=1",
@@ -127,9 +130,9 @@ def main() -> int:
                 "frame turn (deg) | placed heading error per robot (deg, mean) |",
                 "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for seed in (int(s) for s in args.seeds.split(",")):
-            rows.append(replay(seed, args.dive_s, nav, graph, args.fleet_unbiased))
+            rows.append(replay(seed, args.dive_s, nav, graph, args.fleet_unbiased, args.mode))
             print(rows[-1], flush=True)
-        text = f"settings: {' '.join(args.set) or 'TRACKED'}\n\n" + "\n".join(rows) + "\n"
+        text = f"{args.mode}, settings: {' '.join(args.set) or 'TRACKED'}\n\n" + "\n".join(rows) + "\n"
         print(text)
         if args.out is not None:
             args.out.write_text(text)
