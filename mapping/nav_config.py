@@ -101,10 +101,11 @@ class NavConfig:
     (:meth:`mapping.posegraph.GraphNav.mean_correction`), as if the compasses' biases averaged to zero over the
     robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not); only
     while every robot is on its pose graph (a robot with fixes gives the map its heading).
-    ``fleet_heading`` (off): the graph robots' compass biases estimated jointly from their scans of the first
-    ``fleet_heading_s`` after their launches and the walls two of them see, their launch fixes taken to be within
-    ``fleet_heading_fix_sigma_m`` (:mod:`mapping.graph_fleet`); each graph then starts from its compass minus its
-    bias.
+    ``fleet_heading`` (on; it acts only where two robots or more are on pose graphs): the graph robots' compass
+    biases estimated jointly from their scans of the first ``fleet_heading_s`` after their launches and the walls
+    two of them see, their launch fixes taken to be within ``fleet_heading_fix_sigma_m``
+    (:mod:`mapping.graph_fleet`); each graph then starts from its compass minus its bias, and its clouds of that
+    span wait for the estimate.
     """
 
     max_points: int = 300
@@ -162,7 +163,7 @@ class NavConfig:
     launch_window_s: float = 2.0
     frame_graph_launches: bool = False
     frame_fleet_compass: bool = False
-    fleet_heading: bool = False
+    fleet_heading: bool = True
     fleet_heading_s: float = 1.0
     fleet_heading_fix_sigma_m: float = 0.005
 
