@@ -175,7 +175,7 @@ def test_the_graphs_start_from_their_compasses_minus_the_fleet_s_biases() -> Non
     try:
         run_on = replay_dive(frames, navigate=True, nav_cfg=NavConfig(graph_without_fix=True, fleet_heading=True))
         nav_on = seen["nav"]
-        run_off = replay_dive(frames, navigate=True, nav_cfg=NavConfig(graph_without_fix=True))
+        run_off = replay_dive(frames, navigate=True, nav_cfg=NavConfig(graph_without_fix=True, fleet_heading=False))
     finally:
         navigator_module.Navigator.update = original  # type: ignore[method-assign]
     assert nav_on.fleet_heading.result is not None
