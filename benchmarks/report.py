@@ -137,7 +137,7 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "fleet_heading.md",
         "mapping",
-        "python -m benchmarks.diag_fleet_heading --seeds 1,2,3,5 --seconds 0,1,2,3",
+        "python benchmarks/diag_fleet_heading.py --seeds 1,2,3,5 --seconds 0,1,2,3",
         note="the depth-only fleet's compass biases from the launch fixes and shared walls (issue 27)",
     ),
     Source(
