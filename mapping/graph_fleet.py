@@ -128,11 +128,11 @@ class FleetHeadingTracker:
         self, robot: str, t_ns: int, raw: Pose, points_body: Any, robots: dict[str, Any], est: NavEstimate
     ) -> NavEstimate:
         """A cloud of graph robot ``robot`` (its estimator ``robots[robot]``, the fleet's ``robots``) after its
-        graph's update (estimate ``est``): kept (:meth:`observe`), and
-        while the fleet's biases are still to be estimated its cloud is held (:mod:`mapping.graph_hold`: the map's
-        first planes would carry the compasses' biases); once every robot has its span the biases are estimated and
-        given to the graphs, and the held clouds committed at the poses the graphs then give them. Returns ``est``,
-        held (``placed`` False, ``held`` True) while the estimate waits."""
+        graph's update (estimate ``est``): kept (:meth:`observe`), and while the fleet's biases are still to be
+        estimated its cloud is held (:mod:`mapping.graph_hold`: the map's first planes would carry the compasses'
+        biases); once every robot has its span the biases are estimated and given to the graphs, and the held clouds
+        committed at the poses the graphs then give them (with the checks' hold, those held since a check passed
+        in that second too). Returns ``est``, held (``placed`` False, ``held`` True) while the estimate waits."""
         nav = robots[robot]
         # held only where another graph robot may share its walls (a robot alone keeps its compass: nothing to wait for)
         collecting = self.result is None and robot in self.views and len(self.views) >= 2
@@ -144,7 +144,7 @@ class FleetHeadingTracker:
             self.apply(robots, t_ns)
         return est
 
-    def apply(self, robots: dict[str, Any], t_ns: int = 0) -> FleetHeading:
+    def apply(self, robots: dict[str, Any], t_ns: int) -> FleetHeading:
         """Estimate the biases from the views kept, give each graph robot its own (:func:`retune`) and commit the
         clouds held meanwhile."""
         result = estimate([v for _, vs in self.views.values() for v in vs], self.est_cfg)
@@ -156,7 +156,7 @@ class FleetHeadingTracker:
             if nav is not None and hasattr(nav, "compass_bias") and result.sd_rad[robot] < 0.99 * prior:
                 retune(nav, result.bias_rad[robot], result.sd_rad[robot])
             if nav is not None and getattr(nav, "hold", None) is not None and nav.hold.clouds:
-                commit_held(nav, t_ns or (nav.t_ns or 0))
+                commit_held(nav, t_ns)
         self.views = {}
         return result
 
