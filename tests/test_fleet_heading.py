@@ -5,6 +5,7 @@ deviations, the prior kept where no wall is shared, and each graph robot's nav s
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -173,9 +174,10 @@ def test_the_graphs_start_from_their_compasses_minus_the_fleet_s_biases() -> Non
 
     navigator_module.Navigator.update = update  # type: ignore[method-assign]
     try:
-        run_on = replay_dive(frames, navigate=True, nav_cfg=NavConfig(graph_without_fix=True, fleet_heading=True))
+        on = NavConfig(graph_without_fix=True, frame_graph_launches=True, fleet_heading=True)
+        run_on = replay_dive(frames, navigate=True, nav_cfg=on)
         nav_on = seen["nav"]
-        run_off = replay_dive(frames, navigate=True, nav_cfg=NavConfig(graph_without_fix=True, fleet_heading=False))
+        run_off = replay_dive(frames, navigate=True, nav_cfg=replace(on, fleet_heading=False))
     finally:
         navigator_module.Navigator.update = original  # type: ignore[method-assign]
     assert nav_on.fleet_heading.result is not None
@@ -187,3 +189,9 @@ def test_the_graphs_start_from_their_compasses_minus_the_fleet_s_biases() -> Non
         assert abs(graph.x[4] + b) < math.radians(0.5), (robot, math.degrees(graph.x[4]))
         assert run_on.estimates[robot].heading == "launch-walls"
         assert run_off.estimates[robot].heading == "compass"
+    # the first second's clouds waited for the estimate and then went in
+    assert sum(run_on.unplaced.values()) <= sum(run_off.unplaced.values()) + 3, (run_on.unplaced, run_off.unplaced)
+    assert sum(len(v) for v in run_on.placed.values()) > 0.8 * len(frames)
+    # the map's heading is the estimate's: the graphs' launch points no longer turn it
+    assert run_on.frame.yaw_rad == 0.0
+    assert run_off.frame.yaw_rad != 0.0
