@@ -77,8 +77,8 @@ def test_the_biases_and_the_common_heading_come_out_within_their_predicted_sprea
 
 
 def test_the_estimate_is_no_better_than_the_fixes_allow() -> None:
-    # launch fixes 5 cm off instead of 5 mm, the estimator told 5 mm: the errors grow far beyond the sd it gives,
-    # and told the truth (5 cm) its sd grows with them
+    # launch fixes 5 cm off instead of 5 mm, and the estimator told so: its standard deviation grows with the
+    # fixes' (the baselines turn 5 cm into degrees) and still covers the errors
     from mapping.fleet_heading import FleetHeadingConfig
 
     biases = dict.fromkeys(LAUNCHES, math.radians(1.5))
