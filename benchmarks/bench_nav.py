@@ -686,11 +686,6 @@ def main() -> int:
         help="the tracked rows with NavConfig.frame_fleet_compass: the served map turned to the fleet's mean compass",
     )
     ap.add_argument(
-        "--fleet-heading",
-        action="store_true",
-        help="the tracked rows with NavConfig.fleet_heading: the compass biases from the launch fixes and shared walls",
-    )
-    ap.add_argument(
         "--fleet-unbiased",
         action="store_true",
         help="a what-if: the dives' compasses with their mean bias over the fleet and the dive removed",
@@ -723,8 +718,6 @@ def main() -> int:
         FLEET_UNBIASED.append(True)
     if args.fleet_compass:
         TRACKED_NAV_OVERRIDES["frame_fleet_compass"] = True
-    if args.fleet_heading:
-        TRACKED_NAV_OVERRIDES["fleet_heading"] = True
     if args.verify_anchor is not None:
         TRACKED_OVERRIDES["verify_anchor_m"] = args.verify_anchor
     if args.heading_check is not None:
@@ -800,7 +793,6 @@ def main() -> int:
         + (" --no-hold" if args.no_hold else "")
         + (f" --heading-check {args.heading_check:g}" if args.heading_check is not None else "")
         + (" --fleet-compass" if args.fleet_compass else "")
-        + (" --fleet-heading" if args.fleet_heading else "")
         + (" --fleet-unbiased" if args.fleet_unbiased else "")
         + (" --no-fix-graph" if args.no_fix_graph else "")
         + "`",
