@@ -135,6 +135,12 @@ SOURCES: tuple[Source, ...] = (
         "(issue 27)",
     ),
     Source(
+        "fleet_heading.md",
+        "mapping",
+        "python benchmarks/diag_fleet_heading.py --seeds 1,2,3,5 --seconds 0,1,2,3",
+        note="the depth-only fleet's compass biases from the launch fixes and shared walls (issue 27)",
+    ),
+    Source(
         "workers.md",
         "mapping",
         "python benchmarks/bench_workers.py",

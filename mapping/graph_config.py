@@ -85,12 +85,15 @@ class GraphConfig:
 
 
 #: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
-#: taken up again only where a scan matches one place alone, checked every 2 s; with
-#: ``NavConfig.frame_graph_launches``. An option: it does not meet the bar on both seeds measured.
+#: taken up again only where a scan matches one place alone, checked every 2 s, a passed check more than 3 cm from its
+#: place anchoring the pose there (within 6 cm: "The common heading from the launch fixes and shared walls"); with
+#: ``NavConfig.frame_graph_launches``. An option (``lrsensor base --no-fix graph``).
 TRACKED = GraphConfig(
     second_hypothesis=True,
     track_break_std_m=0.1,
     relocalize=True,
     verify_every_s=2.0,
+    verify_tol_m=0.06,
+    verify_anchor_m=0.03,
     hold_until_verified=True,
 )

@@ -101,6 +101,11 @@ class NavConfig:
     (:meth:`mapping.posegraph.GraphNav.mean_correction`), as if the compasses' biases averaged to zero over the
     robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not); only
     while every robot is on its pose graph (a robot with fixes gives the map its heading).
+    ``fleet_heading`` (on; it acts only where two robots or more are on pose graphs): the graph robots' compass
+    biases estimated jointly from their scans of the first ``fleet_heading_s`` after their launches and the walls
+    two of them see, their launch fixes taken to be within ``fleet_heading_fix_sigma_m``
+    (:mod:`mapping.graph_fleet`); each graph then starts from its compass minus its bias, and its clouds of that
+    span wait for the estimate.
     """
 
     max_points: int = 300
@@ -158,6 +163,9 @@ class NavConfig:
     launch_window_s: float = 2.0
     frame_graph_launches: bool = False
     frame_fleet_compass: bool = False
+    fleet_heading: bool = True
+    fleet_heading_s: float = 1.0
+    fleet_heading_fix_sigma_m: float = 0.005
 
 
 @dataclass(frozen=True)
@@ -182,6 +190,10 @@ class NavEstimate:
             bearing of the free one (deg from north, 0-180): the position along it is not observed; else None.
         held: the cloud may be placed but waits for its track's next check (``placed`` is then False: what goes
             into the map comes later, :mod:`mapping.graph_hold`).
+        heading: for a robot on its pose graph, what its absolute heading rests on
+            (:func:`mapping.graph_fleet.heading_source`: ``fixes``, ``launch-walls``, ``compass``); None on the
+            filter. With ``compass`` the JSON lists ``yaw`` as unconstrained whatever the scan pinned: the map's
+            heading is then the compasses'.
     """
 
     robot: str
@@ -197,6 +209,7 @@ class NavEstimate:
     pinned: int = 0
     free_bearing_deg: float | None = None
     held: bool = False
+    heading: str | None = None
 
     def turned(self, frame: NavFrame) -> NavEstimate:
         """This estimate with its pose turned from the map frame to NED (see :class:`NavFrame`)."""
@@ -222,8 +235,11 @@ class NavEstimate:
         }
         for k, v in self.std.items():
             out[f"{k}_std"] = v if math.isfinite(v) else None
-        out["constrained"] = [a for a in AXES if self.constrained.get(a)]
-        out["unconstrained"] = [a for a in AXES if not self.constrained.get(a)]
+        # a heading pinned against a map whose own heading is the compasses' is not an absolute heading
+        pinned = {a: bool(self.constrained.get(a)) and not (a == "yaw" and self.heading == "compass") for a in AXES}
+        out["constrained"] = [a for a in AXES if pinned[a]]
+        out["unconstrained"] = [a for a in AXES if not pinned[a]]
+        out["heading"] = self.heading
         out.update(placed=self.placed, motion=self.motion, inliers=self.inliers, planes=list(self.planes))
         out["correction"] = dict(self.correction)
         out["degenerate"] = {"free_bearing_deg": self.free_bearing_deg} if self.free_bearing_deg is not None else None

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -15,6 +16,7 @@ import numpy as np
 from lrsensor.frames import Pose
 
 from .errors import MapInputError
+from .graph_fleet import FleetHeadingTracker, heading_source
 from .landmarks import PlaneLandmarks
 from .nav_config import NavConfig, NavEstimate
 from .nav_filter import RobotNav
@@ -51,6 +53,9 @@ class Navigator:
         self.graph_cfg: Any = None
         #: robots whose pose graph could not start (GTSAM missing): they keep the filter
         self.graph_failed: set[str] = set()
+        #: with ``fleet_heading``: the graph robots' first scans and the fleet's compass biases from them (made on
+        #: first use: the base sets ``cfg`` after making the navigator)
+        self.fleet_heading: FleetHeadingTracker | None = None
 
     def frame(self) -> NavFrame:
         """The map frame's turn to NED: the mean yaw correction of the robots whose heading the scans have
@@ -112,6 +117,11 @@ class Navigator:
             yaw = float(np.mean(cs)) if cs else 0.0
         if self.cfg.frame_fleet_compass:
             yaw = self._fleet_compass(yaw)
+        fh = self.fleet_heading
+        if fh is not None and fh.result is not None and fh.result.common_sd_rad <= math.radians(1.0):
+            # the graphs started at the heading the launch fixes and shared walls gave: the launch points as the
+            # graphs now place them (their prior 5 cm, moved by the planes) would only turn it by their noise
+            yaw = 0.0
         shift = cb - ca
         return NavFrame(yaw, (float(ca[0]), float(ca[1])), (float(shift[0]), float(shift[1])))
 
@@ -157,9 +167,33 @@ class Navigator:
             est = nav.update(t_ns, raw, points_body, landmarks)
         if self.cfg.graph_without_fix and fixed and isinstance(nav, RobotNav) and nav.started:
             self._keep_launch(robot, int(t_ns), raw, points_body)
+        if not isinstance(nav, RobotNav):
+            est = self._heading(robot, nav, int(t_ns), raw, points_body, est)
         if self.origin_ne is None and nav.started:
             self.origin_ne = (float(nav.start_ne[0]), float(nav.start_ne[1]))
         return est
+
+    def _heading(self, robot: str, nav: Any, t_ns: int, raw: Pose, points_body: Any, est: NavEstimate) -> NavEstimate:
+        """A graph robot's cloud: its first scans kept (and its clouds held) for the fleet's compass biases, given to
+        the graphs once every robot has its span (``fleet_heading``); the estimate says what the robot's heading
+        rests on."""
+        fh = self._tracker()
+        if fh is not None and fh.result is None:
+            est = fh.step(robot, t_ns, raw, points_body, self.robots, est)
+            got = fh.result
+            if got is not None:
+                biases = ", ".join(f"{r} {math.degrees(b):+.2f}" for r, b in sorted(got.bias_rad.items()))
+                log.info("fleet heading from %d shared walls: compass biases %s deg (common +-%.2f deg)", got.walls,
+                         biases, math.degrees(got.common_sd_rad))  # fmt: skip
+        has_fixes = any(
+            isinstance(n, RobotNav) and n.started and name not in self._launches for name, n in self.robots.items()
+        )
+        return replace(est, heading=heading_source(robot, has_fixes, fh.result if fh is not None else None))
+
+    def _tracker(self) -> FleetHeadingTracker | None:
+        if self.fleet_heading is None and self.cfg.fleet_heading:
+            self.fleet_heading = FleetHeadingTracker(self.cfg)
+        return self.fleet_heading
 
     def _keep_launch(self, robot: str, t_ns: int, raw: Pose, points_body: Any) -> None:
         """A cloud with a fix: while the robot's fixes are only those of its launch (within ``launch_window_s`` of
@@ -168,6 +202,9 @@ class Navigator:
         first = self._first_fix.setdefault(robot, t_ns)
         if t_ns - first <= self.cfg.launch_window_s * 1e9:
             self._launches[robot] = (t_ns, raw, points_body)
+            fh = self._tracker()
+            if fh is not None:
+                fh.launch(robot, t_ns, raw, points_body)
         else:
             self._launches.pop(robot, None)
 
@@ -185,6 +222,8 @@ class Navigator:
             return nav
         self.smoothers.pop(robot, None)
         self.robots[robot] = graph
+        if self.fleet_heading is not None:
+            self.fleet_heading.started(robot)
         return graph
 
     def released(self, robot: str) -> list[tuple[int, Pose, Any]]:

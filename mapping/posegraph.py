@@ -103,6 +103,8 @@ class GraphNav:
         self.hold = CloudHold()
         #: heading checks that added a prior (``GraphConfig.heading_check``)
         self.headings = 0
+        #: the compass's bias (rad) and its standard deviation as the fleet estimated them (mapping.graph_fleet)
+        self.compass_bias: tuple[float, float] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -177,7 +179,8 @@ class GraphNav:
                          2 * math.pi) - math.pi  # fmt: skip
         return float(c.mean()), int(c.size)
 
-    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t", "_last_heading_t", "headings")
+    _STATE = ("lost", "yaw_scans", "gated", "loops", "_first_key", "_last_compass_t", "_last_heading_t", "headings",
+              "compass_bias")  # fmt: skip
 
     def snapshot(self) -> dict[str, Any]:
         """The estimator's whole state as plain numbers: the window's factors and estimates, the scans kept."""
@@ -325,9 +328,9 @@ class GraphNav:
         self._compass.append(raw.yaw_rad)
         self._att.append((raw.down_m, raw.roll_rad, raw.pitch_rad))
         self._scan[0] = (self._level(raw, pts), raw.down_m)
-        mean = np.array([fix[0], fix[1], raw.yaw_rad])
+        b, s_th = self.compass_bias or (0.0, math.radians(self.cfg.compass_bias_deg))
+        mean = np.array([fix[0], fix[1], raw.yaw_rad - b])
         s_xy = self.cfg.launch_sigma_m
-        s_th = math.radians(self.cfg.compass_bias_deg)
         self._add("prior", (0,), (mean, np.diag([1 / s_xy**2, 1 / s_xy**2, 1 / s_th**2])))
         self._last_compass_t = t
         self._new_values = {0: mean}
@@ -435,7 +438,7 @@ class GraphNav:
             return
         self._last_compass_t = t
         s = math.radians(gcfg.compass_bias_deg)
-        mean = np.array([0.0, 0.0, self._compass[key]])
+        mean = np.array([0.0, 0.0, self._compass[key] - (self.compass_bias or (0.0,))[0]])
         self._add("prior", (key,), (mean, np.diag([1e-10, 1e-10, 1.0 / s**2])))
 
     def _solve(self, all_keys: bool = False) -> None:
@@ -739,20 +742,9 @@ class GraphNav:
         placed = not self.lost and not self.track.broken and worst <= self.gcfg.place_std_m
         placed = placed and (pinned_both or worst <= self.gcfg.boot_std_m)
         placed = placed and (t - max(self._t[0], self.track.verified_ns)) * 1e-9 <= self.gcfg.place_verified_s
-        return NavEstimate(
-            self.robot,
-            t,
-            pose,
-            std,
-            constrained,
-            placed,
-            motion,
-            inliers,
-            used,
-            {"yaw_deg": math.degrees(corr)},
-            pinned,
-            free_bearing,
-        )
+        corr_deg = {"yaw_deg": math.degrees(corr)}
+        return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr_deg, pinned,
+                           free_bearing)  # fmt: skip
 
 
 def start_graph(

@@ -701,7 +701,9 @@ class MapFeed:
         and heading standard deviations, how it moved (``motion``); for a robot whose clouds wait for its track's
         checks (``GraphConfig.hold_until_verified``), ``hold``: clouds ``held`` now, ``committed``, ``replaced``,
         ``dropped`` (never placed: no check vouched for them), the mean and largest wait ``lag_mean_s``,
-        ``lag_max_s``. None when navigation is off or the robot sent nothing yet."""
+        ``lag_max_s``; ``heading``: for a robot on its pose graph, what its absolute heading rests on (``fixes``,
+        ``launch-walls``, ``compass``: :func:`mapping.graph_fleet.heading_source`), else None. None when navigation
+        is off or the robot sent nothing yet."""
         with self._nav_lock:
             est = self._nav_latest.get(robot)
             counts = list(self._nav_counts.get(robot, [0, 0]))
@@ -727,6 +729,7 @@ class MapFeed:
             "east_m_std": js.get("east_m_std"),
             "yaw_deg_std": js.get("yaw_deg_std"),
             "motion": est.motion,
+            "heading": js["heading"],
             "degenerate": js["degenerate"],
             "t_ns": est.t_ns,
         }
