@@ -548,7 +548,7 @@ def _attenuation(  # type: ignore[no-untyped-def]
     sample = zeros(n, np.bool_)
     elig = zeros(n, np.bool_)
     hw = hw.copy()
-    n_s = 0
+    n_s = np.int64(0)  # (not the literal 0: numba would type retell's call for it too, a second compile)
     for li in range(n_l):
         m = 0
         for cc in range(w):
