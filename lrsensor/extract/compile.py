@@ -34,8 +34,12 @@ second. This module decides when that compile happens and where:
   constructors, a library per spelling of shape and dtype in each process: the kernels build their arrays in
   place, :func:`~lrsensor.extract._jit.empty` and its kin), and a kernel
   called with a constant argument compiles once for each constant (numba types a constant as a literal of its
-  value: the glow's rounds compiled twice, for ``False`` and ``True``), so flags reach kernels as values.
-  ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
+  value: the glow's rounds compiled twice, for ``False`` and ``True``; a count started at the literal 0 typed
+  the water's retelling twice), so flags reach kernels as values. Numba's typing and lowering allocate millions
+  of small objects in reference cycles (its IR), and Python's cyclic garbage collector, at its default thresholds,
+  walked all of them again in each full collection, about a sixth of the compile's time: the child and its
+  helper collect less often (:data:`COMPILE_GC_THRESHOLDS`; their memory grows by about a tenth and is given back
+  when they end). ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
   (docs/performance.md).
 - **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
   the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
@@ -51,6 +55,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import gc
 import hashlib
 import logging
 import os
@@ -87,6 +92,10 @@ log = logging.getLogger(__name__)
 COMPILE_TIME_HINT = "about 30 s"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
+#: The cyclic garbage collector's thresholds in the child and its helper (:func:`gc.set_threshold`; Python's are
+#: 700, 10, 10): the youngest objects collected every 20 000 allocations less deallocations, and the oldest
+#: generation, which holds the compiled kernels' IR, in effect never (see the module documentation).
+COMPILE_GC_THRESHOLDS = (20_000, 20, 1_000)
 
 
 class CompileError(ExtractionError):
@@ -488,6 +497,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if "--child" in args:
         _die_with_parent()
+        gc.set_threshold(*COMPILE_GC_THRESHOLDS)
     if not HAVE_NUMBA:
         print("numba is not installed: nothing to compile", file=sys.stderr)
         return 1
