@@ -136,18 +136,24 @@ def _build(part: str | None = None) -> None:
 
     from ..calibration import Calibration
     from .config import SubpixelConfig
+    from .finish import pooled_median
     from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
     from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
     from .settings import frame_settings
+    from .smooth import smooth_runs_at
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
     image = np.zeros((48, 64, 3), np.uint8)
     f64 = np.zeros(4)
     i64 = np.zeros(4, np.int64)
     if part in (None, "locate"):
-        # (first: the finish part links the port's central view late in its compile and loads it from the cache
-        # when this part has written it there by then, else compiles it itself)
+        # (first: the finish part links the port's central view, the gate's pooled median and the smoothing late in
+        # its compile and loads them from the cache when this part has written them there by then, else compiles
+        # them itself)
         central_view(f64, f64, i64, g)
+        i32 = np.zeros(4, np.int32)
+        pooled_median(i32, np.zeros(4, np.float32), i32, 1, 4)
+        smooth_runs_at(f64, f64, i64, i64)
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
@@ -155,7 +161,6 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
-        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g, np.zeros(3))
@@ -164,6 +169,7 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body, g.port,
         )  # fmt: skip
+        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
 
 
 @dataclass
