@@ -16,9 +16,11 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs, the pinhole
-  triangulation and the placing of the points, the second the glow, gates and smoothing, whose turbid-water fits
-  are the largest single kernel (the helper starts after the child's imports, so its part is the lighter). The
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
+  triangulation, the second the glow, gates, smoothing and the placing of the points; the turbid-water fits are
+  the largest single kernel. The second part links the port's central view, the gate's pooled median and the
+  smoothing late, after the glow's whole call tree: the first part compiles those first, and the second loads
+  them from the cache (were it there first, it would compile them itself, the same kernels). The
   triangulations are calls of their own from Python (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the
   width limits and for the points), so no other kernel but the smoothing's central view (the port's) links them
   in and compiles them again; and the thin stages that mostly call kernels
@@ -89,7 +91,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
-COMPILE_TIME_HINT = "about 30 s"
+COMPILE_TIME_HINT = "about 20 s"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
 #: The cyclic garbage collector's thresholds in the child and its helper (:func:`gc.set_threshold`; Python's are
