@@ -69,6 +69,10 @@ def test_setup_then_process_runs_the_compiled_road(frame: tuple[Path, Path], tmp
     setup = subprocess.run(lrsensor_cmd("setup"), env=env, capture_output=True, text=True, timeout=600)
     assert setup.returncode == 0, setup.stdout + setup.stderr
     assert "compiled in" in setup.stdout
+    # each kernel typed for one signature: a second (a literal argument, an array's other layout) compiles its whole
+    # call tree again, into a second data file beside the first
+    compiled_twice = sorted(path.name for path in (tmp_path / "cache").rglob("*.2.nbc"))
+    assert not compiled_twice, compiled_twice
     again = subprocess.run(lrsensor_cmd("setup"), env=env, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stdout + again.stderr
     assert "compiled already" in again.stdout, again.stdout

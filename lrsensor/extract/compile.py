@@ -16,9 +16,11 @@ second. This module decides when that compile happens and where:
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs, the pinhole
-  triangulation and the placing of the points, the second the glow, gates and smoothing, whose turbid-water fits
-  are the largest single kernel (the helper starts after the child's imports, so its part is the lighter). The
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
+  triangulation, the second the glow, gates, smoothing and the placing of the points; the turbid-water fits are
+  the largest single kernel. The second part links the port's central view, the gate's pooled median and the
+  smoothing late, after the glow's whole call tree: the first part compiles those first, and the second loads
+  them from the cache (were it there first, it would compile them itself, the same kernels). The
   triangulations are calls of their own from Python (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the
   width limits and for the points), so no other kernel but the smoothing's central view (the port's) links them
   in and compiles them again; and the thin stages that mostly call kernels
@@ -34,8 +36,12 @@ second. This module decides when that compile happens and where:
   constructors, a library per spelling of shape and dtype in each process: the kernels build their arrays in
   place, :func:`~lrsensor.extract._jit.empty` and its kin), and a kernel
   called with a constant argument compiles once for each constant (numba types a constant as a literal of its
-  value: the glow's rounds compiled twice, for ``False`` and ``True``), so flags reach kernels as values.
-  ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
+  value: the glow's rounds compiled twice, for ``False`` and ``True``; a count started at the literal 0 typed
+  the water's retelling twice), so flags reach kernels as values. Numba's typing and lowering allocate millions
+  of small objects in reference cycles (its IR), and Python's cyclic garbage collector, at its default thresholds,
+  walked all of them again in each full collection, about a sixth of the compile's time: the child and its
+  helper collect less often (:data:`COMPILE_GC_THRESHOLDS`; their memory grows by about a tenth and is given back
+  when they end). ``python -m benchmarks.bench_compile`` measures the compile and what its level costs a frame
   (docs/performance.md).
 - **Three ways in.** :func:`ensure` (the default of :class:`lrsensor.Sensor`, and any first use): loaded from
   the cache, or compiled now in the foreground with a warning that says so and how long it takes. :func:`begin`
@@ -51,6 +57,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import gc
 import hashlib
 import logging
 import os
@@ -84,9 +91,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
-COMPILE_TIME_HINT = "about 30 s"
+COMPILE_TIME_HINT = "about 20 s"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
+#: The cyclic garbage collector's thresholds in the child and its helper (:func:`gc.set_threshold`; Python's are
+#: 700, 10, 10): the youngest objects collected every 20 000 allocations less deallocations, and the oldest
+#: generation, which holds the compiled kernels' IR, in effect never (see the module documentation).
+COMPILE_GC_THRESHOLDS = (20_000, 20, 1_000)
 
 
 class CompileError(ExtractionError):
@@ -127,18 +138,24 @@ def _build(part: str | None = None) -> None:
 
     from ..calibration import Calibration
     from .config import SubpixelConfig
+    from .finish import pooled_median
     from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
     from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
     from .settings import frame_settings
+    from .smooth import smooth_runs_at
 
     bands, settings, g = frame_settings(Calibration.paper(0.1, 64, 48), SubpixelConfig())
     image = np.zeros((48, 64, 3), np.uint8)
     f64 = np.zeros(4)
     i64 = np.zeros(4, np.int64)
     if part in (None, "locate"):
-        # (first: the finish part links the port's central view late in its compile and loads it from the cache
-        # when this part has written it there by then, else compiles it itself)
+        # (first: the finish part links the port's central view, the gate's pooled median and the smoothing late in
+        # its compile and loads them from the cache when this part has written them there by then, else compiles
+        # them itself)
         central_view(f64, f64, i64, g)
+        i32 = np.zeros(4, np.int32)
+        pooled_median(i32, np.zeros(4, np.float32), i32, 1, 4)
+        smooth_runs_at(f64, f64, i64, i64)
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
@@ -146,7 +163,6 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
-        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
         refine_and_finish(image, located, bands.glow_side, settings, g, np.zeros(3))
@@ -155,6 +171,7 @@ def _build(part: str | None = None) -> None:
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body, g.port,
         )  # fmt: skip
+        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
 
 
 @dataclass
@@ -488,6 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if "--child" in args:
         _die_with_parent()
+        gc.set_threshold(*COMPILE_GC_THRESHOLDS)
     if not HAVE_NUMBA:
         print("numba is not installed: nothing to compile", file=sys.stderr)
         return 1

@@ -103,21 +103,43 @@ def port_view(y, run, w, geo):  # type: ignore[no-untyped-def]
         seen, interpolated by the index between them), the runs (N,); the measured columns (M,), their rows in
         the view and its derivative by the image row (M,), for :func:`from_port_view`.
     """
-    idx = np.flatnonzero(np.isfinite(y))
-    cols, rows, slope = central_view((idx % w).astype(np.float64), y[idx], idx // w, geo)
+    # (loops, not np.flatnonzero, fancy or masked indexing and astype: each of those compiles numpy's own helpers)
+    n_fin = 0
+    for q in range(y.size):
+        n_fin += math.isfinite(y[q])
+    idx = empty(n_fin, np.int64)
+    u_fin = empty(n_fin, np.float64)
+    v_fin = empty(n_fin, np.float64)
+    l_fin = empty(n_fin, np.int64)
+    i_fin = 0
+    for q in range(y.size):
+        if math.isfinite(y[q]):
+            idx[i_fin] = q
+            u_fin[i_fin] = q % w
+            v_fin[i_fin] = y[q]
+            l_fin[i_fin] = q // w
+            i_fin += 1
+    cols, rows, slope = central_view(u_fin, v_fin, l_fin, geo)
     yw = full(y.size, np.nan, np.float64)
     run_w = run.copy()
-    seen = np.isfinite(rows) & np.isfinite(cols)
-    for j in range(idx.size):
-        if seen[j]:
+    n_seen = 0
+    for j in range(n_fin):
+        if math.isfinite(rows[j]) and math.isfinite(cols[j]):
             yw[idx[j]] = rows[j]
+            n_seen += 1
         else:
             run_w[idx[j]] = -1
     # the columns' coordinates: the view's where seen, linear in the index between them and constant beyond the
     # first and the last (np.interp's arithmetic, in a loop that compiles in a fraction of its time)
     x = arange(y.size, np.float64)
-    known = idx[seen]
-    fk = cols[seen]
+    known = empty(n_seen, np.int64)
+    fk = empty(n_seen, np.float64)
+    i_fin = 0
+    for j in range(n_fin):
+        if math.isfinite(rows[j]) and math.isfinite(cols[j]):
+            known[i_fin] = idx[j]
+            fk[i_fin] = cols[j]
+            i_fin += 1
     if known.size:
         for q in range(known[0]):
             x[q] = fk[0]

@@ -109,7 +109,7 @@ import math
 
 import numpy as np
 
-from ._jit import callee, empty, full, inline, njit, zeros
+from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
 from .sorting import median
@@ -415,10 +415,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
     reach_rows = np.maximum(hw, 2 * kt + 1 + TRIGGER_ROWS)  # where another stripe is looked for
-    # the rounds' options as run-time values: numba compiles a function once for every literal argument it is called
-    # with (a constant True, False, 1 or ROUNDS), and the fits' functions are the largest part of this stage's compile
-    ramp_on = np.array([False, True])
-    n_rounds = np.array([1, ROUNDS, HOLD_ROUNDS])
+    # the rounds' options as run-time values built in place (a literal argument compiles a function once per value)
+    ramp_on = arange(2, np.bool_)  # False, True
+    n_rounds = full(3, HOLD_ROUNDS, np.int64)
+    n_rounds[0], n_rounds[1] = 1, ROUNDS
     # the glow's shape: the sheet's, with the water's attenuation one number for the frame (:func:`_attenuation`)
     d_rc = full(n, 1.0, np.float64)
     k_pt = zeros(n, np.float64)
@@ -558,7 +558,7 @@ def _attenuation(  # type: ignore[no-untyped-def]
     sample = zeros(n, np.bool_)
     elig = zeros(n, np.bool_)
     hw = hw.copy()
-    n_s = 0
+    n_s = np.int64(0)  # (not the literal 0: numba would type retell's call for it too, a second compile)
     for li in range(n_l):
         m = 0
         for cc in range(w):
