@@ -10,8 +10,9 @@ than one plane: each plane's robots (points, capture span), its signed offset fr
 face's normal into the water), its depth band; then for the copy (every plane but the face's best), per cloud
 whose points lie on it (within 2 cm of the copy and nearer it than the face's best plane, inside its box): the
 robot, the capture time, how the cloud was placed, the placed pose's error along the face's normal (cm, final
-pose minus truth), the estimate's horizontal std (cm) at that scan. Prints markdown; a diagnostic, not a figure
-of merit."""
+pose minus truth), the estimate's horizontal std (cm) at that scan. Each spurious plane (matched to no face)
+gets its nearest face by normal and the same table of the clouds on it (pose error along its own normal). Prints
+markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
 
