@@ -10,8 +10,9 @@ than one plane: each plane's robots (points, capture span), its signed offset fr
 face's normal into the water), its depth band; then for the copy (every plane but the face's best), per cloud
 whose points lie on it (within 2 cm of the copy and nearer it than the face's best plane, inside its box): the
 robot, the capture time, how the cloud was placed, the placed pose's error along the face's normal (cm, final
-pose minus truth), the estimate's horizontal std (cm) at that scan. Prints markdown; a diagnostic, not a figure
-of merit."""
+pose minus truth), the estimate's horizontal std (cm) at that scan. Each spurious plane (matched to no face)
+gets its nearest face by normal and the same table of the clouds on it (pose error along its own normal). Prints
+markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
 
@@ -103,6 +104,83 @@ def _why_apart(builder: Any, a: int, b: int) -> str:
     )
 
 
+def _spurious_rows(ids: list[int], by_id: dict[int, Any], scene: Any, t0: int) -> list[str]:
+    """Markdown rows for the planes the scorer matched to no face: the nearest face by normal (within 15 deg; else
+    none), the plane's largest corner distance from it (cm) and angle (deg), its robots (points, capture span)."""
+    if not ids:
+        return []
+    lines = [
+        "## spurious planes",
+        "",
+        "| plane | points | nearest face | corners off (cm, max) | angle (deg) | robots: points, span (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for pid in ids:
+        p = by_id[pid]
+        n = np.array(p["normal"], dtype=float)
+        corners = np.array(p["extent"]["corners"], dtype=float)
+        near: tuple[float, str, float] | None = None  # (corners off, cm; face; angle, deg)
+        for face in scene.faces:
+            fn = np.array(face.normal)
+            ang = math.degrees(math.acos(max(-1.0, min(1.0, float(n @ fn)))))
+            off = 100 * float(np.max(np.abs(corners @ fn + face.d)))
+            if ang <= 15.0 and (near is None or off < near[0]):
+                near = (off, face.name, ang)
+        contrib = ", ".join(
+            f"{r} {c['n_points']} {(c['first_ns'] - t0) * 1e-9:.1f}-{(c['last_ns'] - t0) * 1e-9:.1f}"
+            for r, c in sorted(p["contributions"].items())
+        )
+        where = f"{near[1]} | {near[0]:.1f} | {near[2]:.2f}" if near else "none | - | -"
+        lines.append(f"| {pid} | {p['n_points']} | {where} | {contrib} |")
+    return [*lines, ""]
+
+
+def _cloud_rows(
+    run: Any, by_key: dict[Any, Any], t0: int, p: dict[str, Any], q: dict[str, Any] | None, fn: Any
+) -> list[str]:
+    """Per robot, a markdown row on the placed clouds whose points lie on plane ``p`` (at least 20 points within 2 cm
+    of it, inside its box, and nearer it than plane ``q`` when given): clouds, capture span, points, how placed,
+    release lag, the placed pose's error along ``fn`` (3,) (cm), yaw error (deg), the estimate's std (cm), motions."""
+    frame = run.frame
+    n_c, d_c = np.array(p["normal"]), float(p["d"])
+    n_b, d_b = (np.array(q["normal"]), float(q["d"])) if q is not None else (n_c, math.inf)
+    lo, hi = np.array(p["extent"]["aabb_min"]) - 0.02, np.array(p["extent"]["aabb_max"]) + 0.02
+    rows = defaultdict(list)
+    for robot, poses in run.placed.items():
+        for t, pose in poses.items():
+            f = by_key[(robot, t)]
+            served = frame.pose(pose)
+            pts = body_to_ned(f.points_body, served)
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+            inbox = np.all((pts >= lo) & (pts <= hi), axis=1)
+            dc = np.abs(pts @ n_c + d_c)
+            db = np.abs(pts @ n_b + d_b)  # inf without q
+            on = inbox & (dc < 0.02) & (dc < db)
+            if int(on.sum()) < 20:
+                continue
+            est = EST.get((robot, t))
+            std = math.hypot(est.std.get("north_m", math.nan), est.std.get("east_m", math.nan)) if est else math.nan
+            way = WAY.get((robot, t), ("direct", t))
+            err = np.array([served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m, 0.0])
+            dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
+            rows[robot].append((t, int(on.sum()), way, float(err @ fn), dyaw, std, est.motion if est else "-"))
+    lines = []
+    for robot, rs in sorted(rows.items()):
+        ts = [(r[0] - t0) * 1e-9 for r in rs]
+        ways = [r[2][0] for r in rs]
+        lags = [(r[2][1] - r[0]) * 1e-9 for r in rs if r[2][0] != "direct"]
+        e = [100 * r[3] for r in rs]
+        stds = [100 * r[5] for r in rs]
+        mot = " ".join(sorted({r[6] for r in rs}))
+        n_way = "/".join(str(ways.count(w)) for w in ("direct", "committed", "replaced", "replaced1"))
+        lines.append(
+            f"| {robot} | {len(rs)} | {min(ts):.1f}-{max(ts):.1f} | {sum(r[1] for r in rs)} | {n_way} | "
+            f"{np.mean(lags) if lags else 0:.1f} | {np.mean(e):+.1f}, {min(e):+.1f}..{max(e):+.1f} | "
+            f"{np.mean([r[4] for r in rs]):+.2f} | {np.nanmean(stds):.1f}, {np.nanmax(stds):.1f} | {mot} |"
+        )
+    return lines
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=90.0)
@@ -164,6 +242,18 @@ def main() -> int:
             f"spurious {sc.spurious}"
         )
     lines.append("")
+    lines += _spurious_rows(score.spurious, by_id, scene, t0)
+    for pid in score.spurious:
+        p = by_id[pid]
+        lines += [
+            f"spurious {pid}: clouds on it (pose error along its own normal)",
+            "",
+            "| robot | clouds | span (s) | points | ways (direct/committed/replaced/one wall) | release lag (s) | "
+            "pose error along normal (cm) mean, range | yaw err (deg) | std (cm) mean, max | motions |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            *_cloud_rows(run, by_key, t0, p, None, np.array(p["normal"])),
+            "",
+        ]
     for fs in score.faces:
         if len(fs.plane_ids) < 2:
             continue
@@ -196,32 +286,6 @@ def main() -> int:
             if pid == best:
                 continue
             p, q = by_id[pid], by_id[best]
-            n_c, d_c = np.array(p["normal"]), float(p["d"])
-            n_b, d_b = np.array(q["normal"]), float(q["d"])
-            lo, hi = np.array(p["extent"]["aabb_min"]) - 0.02, np.array(p["extent"]["aabb_max"]) + 0.02
-            rows = defaultdict(list)
-            for robot, poses in run.placed.items():
-                for t, pose in poses.items():
-                    f = by_key[(robot, t)]
-                    served = frame.pose(pose)
-                    pts = body_to_ned(f.points_body, served)
-                    pts = pts[np.all(np.isfinite(pts), axis=1)]
-                    inbox = np.all((pts >= lo) & (pts <= hi), axis=1)
-                    dc = np.abs(pts @ n_c + d_c)
-                    db = np.abs(pts @ n_b + d_b)
-                    on = inbox & (dc < 0.02) & (dc < db)
-                    if int(on.sum()) < 20:
-                        continue
-                    est = EST.get((robot, t))
-                    std = (
-                        math.hypot(est.std.get("north_m", math.nan), est.std.get("east_m", math.nan))
-                        if est
-                        else math.nan
-                    )
-                    way = WAY.get((robot, t), ("direct", t))
-                    err = np.array([served.north_m - f.pose_true.north_m, served.east_m - f.pose_true.east_m, 0.0])
-                    dyaw = math.degrees(math.remainder(served.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi))
-                    rows[robot].append((t, int(on.sum()), way, float(err @ fn), dyaw, std, est.motion if est else "-"))
             lines += [
                 f"copy {pid} ({100 * (offs[pid] - offs[best]):+.1f} cm from plane {best}; "
                 f"{_why_apart(run.builder, pid, best)}): clouds on it",
@@ -230,20 +294,7 @@ def main() -> int:
                 "pose error along normal (cm) mean, range | yaw err (deg) | std (cm) mean, max | motions |",
                 "|---|---|---|---|---|---|---|---|---|---|",
             ]
-            for robot, rs in sorted(rows.items()):
-                ts = [(r[0] - t0) * 1e-9 for r in rs]
-                ways = [r[2][0] for r in rs]
-                lags = [(r[2][1] - r[0]) * 1e-9 for r in rs if r[2][0] != "direct"]
-                e = [100 * r[3] for r in rs]
-                stds = [100 * r[5] for r in rs]
-                mot = " ".join(sorted({r[6] for r in rs}))
-                n_way = "/".join(str(ways.count(w)) for w in ("direct", "committed", "replaced", "replaced1"))
-                lines.append(
-                    f"| {robot} | {len(rs)} | {min(ts):.1f}-{max(ts):.1f} | {sum(r[1] for r in rs)} | "
-                    f"{n_way} | "
-                    f"{np.mean(lags) if lags else 0:.1f} | {np.mean(e):+.1f}, {min(e):+.1f}..{max(e):+.1f} | "
-                    f"{np.mean([r[4] for r in rs]):+.2f} | {np.nanmean(stds):.1f}, {np.nanmax(stds):.1f} | {mot} |"
-                )
+            lines += _cloud_rows(run, by_key, t0, p, q, fn)
             lines.append("")
     text = "\n".join(lines) + "\n"
     print(text)

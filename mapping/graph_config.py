@@ -33,10 +33,13 @@ class GraphConfig:
     ``verify_anchor_m`` (off: ``inf``): a passed check whose place lies more than this from the estimate (but
     within ``verify_tol_m``) also becomes a prior of ``relocalize_sigma_m`` on that pose before the held clouds
     are committed, so they go in where the map has the faces rather than a few centimetres beside them.
+    ``verify_own_share`` (off: 1): the checks (and the hold's checks of each held cloud) leave out the planes the
+    robot contributed more than this share of the points to (its own copies would vouch for its slide).
     ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
     ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
     or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
-    place is tried again after ``hold_retry_s``).
+    place is tried again after ``hold_retry_s``; a held cloud whose scan pinned one wall goes in only where at least
+    ``hold_one_wall_share`` of its points fit the map's planes: the rest may be a face along the free direction).
     ``heading_check`` (off): at the checks, at most every ``heading_every_s``, the heading is also taken from the
     direction of the walls the scan sees (:mod:`mapping.graph_heading`), against the planes the robot contributed
     at most ``heading_own_share`` of the points to (0: the others' alone); a prior on that pose's heading, its
@@ -73,10 +76,12 @@ class GraphConfig:
     verify_radius_m: float = 0.5
     verify_tol_m: float = 0.08
     verify_anchor_m: float = math.inf
+    verify_own_share: float = 1.0
     place_verified_s: float = math.inf
     hold_until_verified: bool = False
     hold_check_radius_m: float = 0.3
     hold_retry_s: float = 0.5
+    hold_one_wall_share: float = 0.6
     heading_check: bool = False
     heading_every_s: float = 2.0
     heading_floor_deg: float = 0.3

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from lrsensor.frames import Pose, R_ned_from_body
 
 from .graph_factors import rot
-from .landmarks import PlaneLandmarks
+from .landmarks import PlaneLandmarks, take_planes
 from .relocalize import unique_place
 
 FloatArray = NDArray[np.float64]
@@ -191,7 +191,7 @@ def verify(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandma
     g.track.tried_ns = t
     x = g._est[key]
     rel = pts @ R_ned_from_body(raw.roll_rad, raw.pitch_rad, float(x[2])).T
-    place = unique_place(rel, raw.down_m, x[0:2], g.gcfg.verify_radius_m, lm)
+    place = unique_place(rel, raw.down_m, x[0:2], g.gcfg.verify_radius_m, check_planes(lm, g.robot, g.gcfg))
     if place is None:
         return None
     g.track.verified_ns = t
@@ -205,3 +205,21 @@ def verify(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandma
     g._solve()
     g.track.relocalized += 1
     return "relocalized"
+
+
+def check_planes(lm: PlaneLandmarks, robot: str, gcfg: Any) -> PlaneLandmarks:
+    """The planes a check of ``robot``'s track is made against (:func:`verify`, the hold's
+    :func:`mapping.graph_hold.check_held`): every plane but those it contributed more than
+    ``GraphConfig.verify_own_share`` of the points to. A robot that slid builds copies of the faces it sees where
+    it believes it is; checked against them, it finds itself where it believes it is, and its clouds are
+    committed beside the others' faces. ``lm`` unchanged where the share is 1 or more or the contributors are
+    unknown."""
+    share = float(gcfg.verify_own_share)
+    if share >= 1.0 or not lm.contrib:
+        return lm
+    keep = np.ones(len(lm), dtype=bool)
+    for i, c in enumerate(lm.contrib):
+        mine = c.get(robot)
+        if mine is not None and mine[0] > share * sum(v[0] for v in c.values()):
+            keep[i] = False
+    return lm if keep.all() else take_planes(lm, keep)

@@ -35,9 +35,10 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose, R_ned_from_body
 
+from .graph_gate import check_planes
 from .landmarks import PlaneLandmarks
 from .nav_config import registration_points
-from .relocalize import fits_at, unique_place
+from .relocalize import RelocConfig, fits_at, unique_place
 
 FloatArray = NDArray[np.float64]
 
@@ -187,6 +188,8 @@ def check_held(g: Any, t: int, lm: PlaneLandmarks) -> None:
         return
     poses = g.revised_poses()
     gcfg = g.gcfg
+    lm = check_planes(lm, g.robot, gcfg)
+    one_wall = RelocConfig(min_share=gcfg.hold_one_wall_share)
     for c in hold.clouds:
         pose = poses.get(c.t_ns)
         if pose is None:
@@ -201,7 +204,7 @@ def check_held(g: Any, t: int, lm: PlaneLandmarks) -> None:
         else:
             # no unique place: a scan that pinned one direction (one wall) sees surfaces facing that way only, so a
             # slide along the free one copies none of them; it goes in where its points fit the map's planes
-            ok = c.pinned == 1 and fits_at(rel, c.raw.down_m, at, lm)
+            ok = c.pinned == 1 and fits_at(rel, c.raw.down_m, at, lm, one_wall)
         if not ok:
             hold.dropped += 1
             continue

@@ -117,6 +117,22 @@ def test_a_one_wall_scan_without_a_unique_place_goes_in_where_it_fits_the_map(mo
     assert g.hold.dropped == 1
 
 
+@pytest.mark.parametrize(("share", "placed"), [(0.6, [2]), (0.9, [])])
+def test_a_one_wall_cloud_must_fit_the_map_with_the_share_asked(
+    monkeypatch: Any, share: float, placed: list[int]
+) -> None:
+    # 70 % of its points on the map's planes: the rest may be a face along the free direction, placed off by the slide
+    g = FakeGraph()
+    g.gcfg = replace(TRACKED, hold_one_wall_share=share)
+    _step(g, 1, verified=True)
+    g.hold.take()
+    _step(g, 2, pinned=1)
+    monkeypatch.setattr(graph_hold, "unique_place", lambda *a: None)
+    monkeypatch.setattr(graph_hold, "fits_at", lambda rel, down, at, lm, cfg: cfg.min_share <= 0.7)
+    check_held(g, 3 * S // 10, PlaneLandmarks.empty())
+    assert [t * 10 // S for t, _, _ in g.hold.take()] == placed
+
+
 def test_a_broken_track_settles_its_held_clouds_at_once(monkeypatch: Any) -> None:
     g = FakeGraph()
     _step(g, 1, verified=True)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lrsensor.frames import Pose
-from mapping.graph_gate import TrackGate
+from mapping.graph_gate import TrackGate, check_planes
 from mapping.landmarks import PlaneLandmarks
 from mapping.navigation import NavConfig, Navigator
 from mapping.relocalize import unique_place
@@ -181,3 +181,16 @@ def test_a_passed_check_beside_the_place_anchors_the_track_there_when_asked() ->
     free, anchored = north_error(), north_error(verify_anchor_m=0.01)
     assert anchored < free
     assert anchored < 0.015
+
+
+def test_the_checks_leave_out_the_planes_a_robot_made_mostly_itself_when_asked() -> None:
+    # a slid robot's own copy of a face would vouch for its slide: with a share below 1 its check does without it
+    walls = [_wall(1, (-1.0, 0.0), -2.0, (2.0, 1.0)), _wall(2, (0.0, -1.0), -2.0, (1.0, 2.0)),
+             _wall(3, (-1.0, 0.0), -2.07, (2.07, 1.0))]  # fmt: skip
+    walls[1]["contributions"] = {"other": {"n_points": 3000, "first_ns": 0}, "me": {"n_points": 7000, "first_ns": 0}}
+    walls[2]["contributions"] = {"me": {"n_points": 10_000, "first_ns": 0}}
+    lm = PlaneLandmarks.from_planes(walls)
+    assert check_planes(lm, "me", GraphConfig()) is lm  # off (1): every plane
+    assert check_planes(lm, "new", GraphConfig(verify_own_share=0.5)).ids.tolist() == [1, 2, 3]
+    assert check_planes(lm, "me", GraphConfig(verify_own_share=0.9)).ids.tolist() == [1, 2]
+    assert check_planes(lm, "me", GraphConfig(verify_own_share=0.5)).ids.tolist() == [1]
