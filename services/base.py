@@ -99,9 +99,11 @@ class BaseStation:
         remote_workers: send the per-robot work to plane workers (of any machine) even when none is started
             here (:mod:`services.map_workers`); implied by ``map_workers`` > 0.
         no_fix: with navigation, what becomes of a robot without a horizontal fix after its launch (``--no-fix``):
-            ``lost`` (default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
-            :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame), in the map thread and in the plane
-            workers alike (:func:`services.map_worker_nav.no_fix_config`; docs/navigation.md, "Depth-only").
+            ``graph`` (its gated pose graph, :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame;
+            needs GTSAM) or ``lost`` (reported lost, its clouds unplaced), in the map thread and in the plane
+            workers alike (:func:`services.map_worker_nav.no_fix_config`; docs/navigation.md, "Choosing
+            ``--no-fix``"). None (the default): ``graph``, or ``lost`` with a warning where GTSAM is missing
+            (:func:`services.map_worker_nav.resolve_no_fix`); the choice made is :attr:`no_fix`.
     """
 
     def __init__(
@@ -121,14 +123,11 @@ class BaseStation:
         map_workers: int = 0,
         worker_endpoint: str | None = None,
         remote_workers: bool = False,
-        no_fix: str = "lost",
+        no_fix: str | None = None,
     ) -> None:
-        from .map_worker_nav import NO_FIX_CHOICES
+        from .map_worker_nav import resolve_no_fix
 
-        if no_fix not in NO_FIX_CHOICES:
-            msg = f"no_fix must be one of {', '.join(NO_FIX_CHOICES)}, got {no_fix!r}"
-            raise ServiceError(msg)
-        self.no_fix = no_fix
+        self.no_fix = resolve_no_fix(no_fix, navigated=False)  # the value checked first; GTSAM once the map is known
         self.session = session
         self.keys = keys
         self.state_dir = Path(state_dir) if state_dir is not None else None
@@ -159,6 +158,7 @@ class BaseStation:
         self.feed = MapFeed(
             self.map, self.ledger.mark_mapped, queue_size=queue_size, map_wait_s=map_wait_s, navigation=navigation
         )
+        self.no_fix = resolve_no_fix(no_fix, navigated=self.feed.navigator is not None)
         self.calibrations = CalibrationBook(self.ledger.calibration_path, self._fetch_robot_calibration)
         self.n_map_workers = max(0, map_workers)
         self.worker_endpoint = worker_endpoint

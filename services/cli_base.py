@@ -35,13 +35,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--no-fix",
-        choices=("lost", "graph"),
-        default="lost",
+        choices=("graph", "lost"),
+        default=None,
         help="with --nav on/filter, a robot without a horizontal fix after its launch (attitude and depth only, e.g. "
-        "an ROV without a DVL): lost (default): reported lost, its clouds unplaced, an empty part of the map rather "
-        "than a wrong one; graph: navigated by its gated pose graph (needs GTSAM), which places most of its faces "
-        "but can place a face twice (two depth bands) or a spurious plane, most of all when every robot lacks a "
-        "fix; in the map thread and in plane workers alike; docs/navigation.md, 'Choosing --no-fix'",
+        "an ROV without a DVL): graph (default): navigated by its gated pose graph (needs GTSAM: pip install "
+        "'lrsensor[graph]'; without it the default is lost, with a warning), which places its faces but can "
+        "place a face twice or a spurious plane when every robot lacks a fix; lost: reported lost, its clouds "
+        "unplaced, an empty part of the map rather than a wrong one; in the map thread and in plane workers "
+        "alike; docs/navigation.md, 'Choosing --no-fix'",
     )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")

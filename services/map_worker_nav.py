@@ -40,7 +40,7 @@ import numpy as np
 
 from lrsensor.frames import Pose
 
-from .errors import WireError
+from .errors import ServiceError, WireError
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +61,42 @@ REGISTER_EVERY_S = 0.19
 #: these are at most this far apart (capture time, seconds); otherwise they keep the latest position.
 EXTRAPOLATE_S = 0.5
 #: What the base does with a robot that has no horizontal fix after its launch (``lrsensor base --no-fix``):
-#: ``lost`` (the default: reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
+#: ``lost`` (reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
 #: :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame; docs/navigation.md, "Depth-only").
 NO_FIX_CHOICES = ("lost", "graph")
+#: The base's choice when none is given (:func:`resolve_no_fix`; ``lost`` where GTSAM is missing). A worker reads a
+#: job without the choice as ``lost`` (:class:`services.map_worker_wire.MapJob`): the base always sends it.
+NO_FIX_DEFAULT = "graph"
+
+
+def resolve_no_fix(no_fix: str | None, navigated: bool = True) -> str:
+    """The base's ``--no-fix`` choice (:data:`NO_FIX_CHOICES`) from the one asked for, ``no_fix`` (None: the
+    default, :data:`NO_FIX_DEFAULT`).
+
+    ``graph`` needs GTSAM (the ``graph`` extra). By default, where it does not import, the base falls back to
+    ``lost`` with one warning naming the extra: a base installed without it still runs, and a depth-only robot's
+    clouds stay unplaced rather than crash it. Asked for explicitly, ``graph`` without GTSAM raises
+    :class:`~services.errors.ServiceError`: the choice would otherwise leave each such robot on the filter, lost,
+    with only a warning when its first clouds arrive. ``navigated`` False (``--nav off`` or no map: no navigator
+    runs) skips the check, and the choice stays as asked. Another value raises ``ServiceError``."""
+    if no_fix is not None and no_fix not in NO_FIX_CHOICES:
+        msg = f"no_fix must be one of {', '.join(NO_FIX_CHOICES)}, got {no_fix!r}"
+        raise ServiceError(msg)
+    choice = NO_FIX_DEFAULT if no_fix is None else no_fix
+    if choice != "graph" or not navigated:
+        return choice
+    from mapping import posegraph
+    from mapping.errors import MapInputError
+
+    try:
+        posegraph.gtsam_module()
+    except MapInputError as err:
+        if no_fix is not None:
+            msg = f"--no-fix graph: {err}"
+            raise ServiceError(msg) from err
+        log.warning("--no-fix defaults to lost (robots without a horizontal fix unplaced): %s", err)
+        return "lost"
+    return choice
 
 
 def no_fix_config(cfg: Any, no_fix: str) -> tuple[Any, Any]:

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,8 @@ from waiting import wait_until
 from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose
 from lrsensor.sim.dive import record_dive
+from mapping import posegraph
+from mapping.errors import MapInputError
 from mapping.graph_config import TRACKED
 from mapping.posegraph import GraphNav
 from mapping.synth import simulate_dive, tank, three_rov_plans
@@ -40,14 +44,58 @@ def _parse(*argv: str) -> argparse.Namespace:
 
 
 # ---------------------------------------------------------------------- the flag and the base's navigator
-def test_the_flag_parses_defaults_to_lost_and_refuses_other_values(capsys: pytest.CaptureFixture[str]) -> None:
-    assert _parse().no_fix == "lost"
+def test_the_flag_parses_defaults_to_graph_and_refuses_other_values(capsys: pytest.CaptureFixture[str]) -> None:
+    assert _parse().no_fix is None  # the base's default, resolved where the GTSAM check can run
     assert _parse("--no-fix", "graph").no_fix == "graph"
+    assert _parse("--no-fix", "lost").no_fix == "lost"
     with pytest.raises(SystemExit):
         _parse("--no-fix", "kalman")
     assert "invalid choice: 'kalman'" in capsys.readouterr().err
     with pytest.raises(ServiceError, match="no_fix must be one of lost, graph"):
         BaseStation(None, FleetKeys("t"), map_mode="off", no_fix="kalman")
+    station = BaseStation(None, FleetKeys("t"), map_mode="on", no_fix=_parse().no_fix)
+    assert station.no_fix == "graph"
+    station._apply_no_fix()
+    assert station.feed.navigator is not None
+    assert station.feed.navigator.cfg.graph_without_fix
+    assert station.feed.navigator.graph_cfg is TRACKED
+
+
+def _without_gtsam(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``import gtsam`` fails from now on, as in a base installed without the ``graph`` extra."""
+    monkeypatch.setattr(posegraph, "_GTSAM", None)
+    monkeypatch.setitem(sys.modules, "gtsam", None)  # an ImportError on import
+    with pytest.raises(MapInputError):
+        posegraph.gtsam_module()
+
+
+def test_without_gtsam_the_default_falls_back_to_lost_with_one_warning(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    _without_gtsam(monkeypatch)
+    with caplog.at_level(logging.WARNING):
+        station = BaseStation(None, FleetKeys("t"), map_mode="on", no_fix=_parse().no_fix)
+    assert station.no_fix == "lost"
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert "defaults to lost" in warnings[0]
+    assert "pip install 'lrsensor[graph]'" in warnings[0]
+    station._apply_no_fix()
+    assert station.feed.navigator is not None
+    assert not station.feed.navigator.cfg.graph_without_fix
+    assert station.feed.navigator.graph_cfg is None
+    # lost asked for: no GTSAM needed, no warning; no navigation: GTSAM not looked for
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert BaseStation(None, FleetKeys("t"), map_mode="on", no_fix="lost").no_fix == "lost"
+        assert BaseStation(None, FleetKeys("t"), map_mode="on", navigation=False).no_fix == "graph"
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_without_gtsam_an_explicit_graph_is_an_error_naming_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    _without_gtsam(monkeypatch)
+    with pytest.raises(ServiceError, match=r"--no-fix graph: .*pip install 'lrsensor\[graph\]'"):
+        BaseStation(None, FleetKeys("t"), map_mode="on", no_fix=_parse("--no-fix", "graph").no_fix)
 
 
 @pytest.mark.parametrize("nav", ["on", "filter"])
