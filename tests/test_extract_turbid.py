@@ -166,8 +166,9 @@ def test_clear_water_is_untouched() -> None:
     [
         Turbid(distance_m=3.0, glow_step=0.5, blur_px=1.5, seed=0),  # two stripes close: the neighbour in the fit
         Turbid(distance_m=1.0, tilt_deg=30.0, glow_step=0.5, blur_px=4.0, seed=0),  # clipped and wide profiles
+        Turbid(distance_m=3.0, glow_step=0.1, blur_px=4.0, seed=0),  # a weak glow: its step held
     ],
-    ids=["3m-neighbours", "1m-tilt30-clipped"],
+    ids=["3m-neighbours", "1m-tilt30-clipped", "3m-weak-glow-held"],
 )
 def test_compiled_glow_stage_equals_the_reference(monkeypatch: pytest.MonkeyPatch, turbid: Turbid) -> None:
     """The kernel and the reference on the same inputs (the reference's own common fits), then on whole frames."""

@@ -110,7 +110,7 @@ import math
 import numpy as np
 
 from ._jit import callee, empty, full, inline, njit, zeros
-from .glow_fit import ROUNDS, fit_rounds, neighbour
+from .glow_fit import GLOW_MIN_FRAC, ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
 from .sorting import median
 from .water import retell, sample_total, vertex
@@ -178,6 +178,12 @@ HOLD_ROUNDS = 1
 #: The attenuation and the width told on a frame are taken on this many frames (the first of them tells them again;
 #: ``glow_refit``'s ``water``): at 30 Hz, once a second.
 WATER_FRAMES = 30
+#: The glowing points are fitted again with the glow's step held at the stripe's proportion (below).
+HELD_STEP = True
+#: ... told from at least this many step fits of the laser's stripe...
+HELD_MIN_FITS = 16
+#: ... where that proportion is at most this.
+HELD_MAX_STEP = 0.2
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -458,9 +464,17 @@ def glow_refit(  # type: ignore[no-untyped-def]
                     sg0[t] = s_w
                     hw[t] = hw_t
     free = fit_me & ~hold
+    no_rho = zeros(n, np.float64)
+    # (the step fits of the stripes that glow all along untested: the stripe's proportion is told from them all, then
+    # they are tested; other stripes, as a clutter's few glowing columns, keep the tested step fits)
+    whole = _glows_along(cand, glowing, laser, n_l) if HELD_STEP else zeros(n_l, np.bool_)
+    rho_0 = zeros(n, np.float64)
+    for t in range(n):
+        if glowing[t] and whole[laser[t]]:
+            rho_0[t] = -1.0
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k, rho_0,
     )  # fmt: skip
     if s_w > 0.0:
         # (the other stripes with the held width from the first round: a common fit's width of a dim column is noise)
@@ -470,7 +484,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 s_in[t] = s_w
         v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
             image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
-            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0,
         )  # fmt: skip
         for t in range(n):
             if hold[t]:
@@ -481,6 +495,11 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 _d0[t] = d_h[t]
                 st0[0, t] = st_h[0, t]
                 st0[1, t] = st_h[1, t]
+    if HELD_STEP:
+        _held_step(
+            image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, side, rc, hw, reach_rows, sg0,
+            lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w, whole, v0, s0, f0, rss0, _d0, st0,
+        )  # fmt: skip
     strong = zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -507,14 +526,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
         # which stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
         _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k, no_rho,
         )  # fmt: skip
         maybe = strong & (
             _pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT
         )
         v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k, no_rho,
         )  # fmt: skip
         take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
@@ -614,7 +633,7 @@ def _attenuation(  # type: ignore[no-untyped-def]
     # the stripe's width: the sample fitted with that attenuation
     _v, s1, f1, _r, _d, st1 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt, 0.0 * d_rc,
     )  # fmt: skip
     n_f = 0
     for t in range(n):
@@ -656,7 +675,7 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
         kap = grid[i] * k_pt
         v1, s1, f1, _r, _d, _st = fit_rounds(
             image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         for t in range(n):
             if not f1[t]:
@@ -664,7 +683,7 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
                 s1[t] = sg0[t]
         _v, _s, f2, rss, _d, _st = fit_rounds(
             image, cols, laser, at, v1, sig, v1, s1, nb_ok, nb0, sample & f1, glowing, side, rc, hw, reach_rows, s1,
-            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         n_f = 0
         for t in range(n):
@@ -676,11 +695,88 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
     return score_a, fit_a, use
 
 
+@callee
+def _held_step(  # type: ignore[no-untyped-def]
+    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, side, rc, hw, reach_rows, sg0, lo_sig,
+    max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w, whole, v0, s0, f0, rss0, d0, st0,
+):
+    """The glowing points refitted with the glow's step held at the stripe's proportion of the stripe's amplitude
+    (one number a laser: the median ratio of the step fits taken), updating ``v0 ... st0`` in place where the held
+    fit converges."""
+    n = cols.size
+    n_l = at.shape[0]
+    rho = zeros(n, np.float64)
+    for li in range(n_l):
+        if not whole[li]:
+            continue
+        k = 0
+        for t in range(n):
+            k += laser[t] == li and f0[t] and glowing[t] and not retry[t] and st0[0, t] > 0.0
+        if k < HELD_MIN_FITS:
+            continue
+        ratio = empty(k, np.float64)
+        k = 0
+        for t in range(n):
+            if laser[t] == li and f0[t] and glowing[t] and not retry[t] and st0[0, t] > 0.0:
+                ratio[k] = st0[1, t] / st0[0, t]
+                k += 1
+        r_l = median(ratio)
+        if not r_l <= HELD_MAX_STEP:
+            continue
+        for t in range(n):
+            if laser[t] == li and fit_me[t] and glowing[t]:
+                rho[t] = max(r_l, 1e-3)
+    on = rho > 0.0
+    free = on & ~hold
+    v1, s1, f1, r1, d1, st1 = fit_rounds(
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0,
+        lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap_k, rho,
+    )  # fmt: skip
+    held = on & hold
+    if held.any():
+        s_in = sig.copy()
+        for t in range(n):
+            if hold[t]:
+                s_in[t] = s_w
+        v2, s2, f2, r2, d2, st2 = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, held, glowing, side, rc, hw, reach_rows, sg0,
+            s_w, s_w, sat_dn, ramp, n_rounds[2], d_rc, kap_k, rho,
+        )  # fmt: skip
+        for t in range(n):
+            if held[t]:
+                v1[t], s1[t], f1[t], r1[t], d1[t] = v2[t], s2[t], f2[t], r2[t], d2[t]
+                st1[0, t], st1[1, t] = st2[0, t], st2[1, t]
+    for t in range(n):
+        if on[t] and f1[t]:
+            v0[t], s0[t], f0[t], rss0[t], d0[t] = v1[t], s1[t], True, r1[t], d1[t]
+            st0[0, t], st0[1, t] = st1[0, t], st1[1, t]
+        elif whole[laser[t]] and f0[t] and glowing[t] and not st0[1, t] > GLOW_MIN_FRAC * st0[0, t]:
+            # the step fit's own test where no held fit is taken: its glow two sigmas outward (no ramp: its step)
+            f0[t] = False
+            v0[t] = vv[t]
+            s0[t] = sig[t]
+
+
 @inline
 def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
     """A fit's residual noise, DN: ``sqrt(rss / dof)``, ``fallback`` where that is not finite."""
     r = math.sqrt(rss / dof) if dof > 0.0 else np.nan
     return r if math.isfinite(r) else fallback
+
+
+@callee
+def _glows_along(cand, glowing, laser, n_l):  # type: ignore[no-untyped-def]
+    """(L,) bool: each laser's stripe glows all along: at least a pool's worth of candidates (``cand`` (N,)), every one
+    of them ``glowing`` (N,) (:func:`_whole_stripe` made them so, or each showed it)."""
+    n_c = zeros(n_l, np.int64)
+    ok = full(n_l, True, np.bool_)
+    for t in range(cand.size):
+        if cand[t]:
+            n_c[laser[t]] += 1
+            ok[laser[t]] &= glowing[t]
+    for li in range(n_l):
+        ok[li] &= n_c[li] >= 2 * POOL_COLS + 1
+    return ok
 
 
 @njit
