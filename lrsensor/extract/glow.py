@@ -110,7 +110,7 @@ import math
 import numpy as np
 
 from ._jit import callee, empty, full, inline, njit, zeros
-from .glow_fit import GLOW_MIN_FRAC, ROUNDS, fit_rounds, neighbour
+from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .refit import rows_overlap
 from .sorting import median
 from .water import retell, sample_total, vertex
@@ -180,7 +180,8 @@ HOLD_ROUNDS = 1
 WATER_FRAMES = 30
 #: The glowing points are fitted again with the glow's step held at the stripe's proportion (below).
 HELD_STEP = True
-#: ... told from at least this many step fits of the laser's stripe...
+#: ... told from the step fits at every HELD_EVERY-th column (at least HELD_MIN_FITS of them)...
+HELD_EVERY = 4
 HELD_MIN_FITS = 16
 #: ... where that proportion is at most this.
 HELD_MAX_STEP = 0.2
@@ -465,13 +466,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
                     hw[t] = hw_t
     free = fit_me & ~hold
     no_rho = zeros(n, np.float64)
-    # (the step fits of the stripes that glow all along untested: the stripe's proportion is told from them all, then
-    # they are tested; other stripes, as a clutter's few glowing columns, keep the tested step fits)
-    whole = _glows_along(cand, glowing, laser, n_l) if HELD_STEP else zeros(n_l, np.bool_)
-    rho_0 = zeros(n, np.float64)
-    for t in range(n):
-        if glowing[t] and whole[laser[t]]:
-            rho_0[t] = -1.0
+    # a weak glow's step held at its stripe's proportion, told at a sample (only on stripes that glow all along: a
+    # clutter's few glowing columns keep the free step)
+    rho_0 = no_rho
+    if HELD_STEP:
+        rho_0 = _held_share(
+            image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows,
+            sg0, lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w,
+        )  # fmt: skip
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
         max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k, rho_0,
@@ -495,11 +497,6 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 _d0[t] = d_h[t]
                 st0[0, t] = st_h[0, t]
                 st0[1, t] = st_h[1, t]
-    if HELD_STEP:
-        _held_step(
-            image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w, whole, v0, s0, f0, rss0, _d0, st0,
-        )  # fmt: skip
     strong = zeros(n, np.bool_)
     for t in range(n):
         if not glowing[t]:
@@ -696,29 +693,56 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
 
 
 @callee
-def _held_step(  # type: ignore[no-untyped-def]
-    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, side, rc, hw, reach_rows, sg0, lo_sig,
-    max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w, whole, v0, s0, f0, rss0, d0, st0,
+def _held_share(  # type: ignore[no-untyped-def]
+    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows, sg0,
+    lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w,
 ):
-    """The glowing points refitted with the glow's step held at the stripe's proportion of the stripe's amplitude
-    (one number a laser: the median ratio of the step fits taken), updating ``v0 ... st0`` in place where the held
-    fit converges."""
+    """(N,) the share of the stripe's amplitude the glow's step is held at in each point's fit (0: a free step). On
+    each laser's stripe that glows all along (:func:`_glows_along`), the step model is fitted at every
+    :data:`HELD_EVERY`-th column's glowing points with the step free and untested (a test would select the fits
+    whose step came out large); where the median of their steps over their amplitudes is at most
+    :data:`HELD_MAX_STEP`, the stripe's glowing points take it."""
     n = cols.size
     n_l = at.shape[0]
     rho = zeros(n, np.float64)
+    whole = _glows_along(cand, glowing, laser, n_l)
+    if not whole.any():
+        return rho
+    sample = zeros(n, np.bool_)
+    for t in range(n):
+        sample[t] = fit_me[t] and glowing[t] and whole[laser[t]] and not retry[t] and cols[t] % HELD_EVERY == 0
+        rho[t] = -1.0 if sample[t] else 0.0
+    _v, _s, f1, _r, _d, st1 = fit_rounds(
+        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample & ~hold, glowing, side, rc, hw, reach_rows, sg0,
+        lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap_k, rho,
+    )  # fmt: skip
+    if (sample & hold).any():  # (the stripe's width held where the water told it)
+        s_in = sig.copy()
+        for t in range(n):
+            if hold[t]:
+                s_in[t] = s_w
+        _v, _s, f2, _r, _d, st2 = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, sample & hold, glowing, side, rc, hw, reach_rows,
+            sg0, s_w, s_w, sat_dn, ramp, n_rounds[2], d_rc, kap_k, rho,
+        )  # fmt: skip
+        for t in range(n):
+            if hold[t]:
+                f1[t] = f2[t]
+                st1[0, t] = st2[0, t]
+                st1[1, t] = st2[1, t]
+    for t in range(n):
+        rho[t] = 0.0
     for li in range(n_l):
-        if not whole[li]:
-            continue
         k = 0
         for t in range(n):
-            k += laser[t] == li and f0[t] and glowing[t] and not retry[t] and st0[0, t] > 0.0
+            k += sample[t] and laser[t] == li and f1[t] and st1[0, t] > 0.0
         if k < HELD_MIN_FITS:
             continue
         ratio = empty(k, np.float64)
         k = 0
         for t in range(n):
-            if laser[t] == li and f0[t] and glowing[t] and not retry[t] and st0[0, t] > 0.0:
-                ratio[k] = st0[1, t] / st0[0, t]
+            if sample[t] and laser[t] == li and f1[t] and st1[0, t] > 0.0:
+                ratio[k] = st1[1, t] / st1[0, t]
                 k += 1
         r_l = median(ratio)
         if not r_l <= HELD_MAX_STEP:
@@ -726,35 +750,7 @@ def _held_step(  # type: ignore[no-untyped-def]
         for t in range(n):
             if laser[t] == li and fit_me[t] and glowing[t]:
                 rho[t] = max(r_l, 1e-3)
-    on = rho > 0.0
-    free = on & ~hold
-    v1, s1, f1, r1, d1, st1 = fit_rounds(
-        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0,
-        lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap_k, rho,
-    )  # fmt: skip
-    held = on & hold
-    if held.any():
-        s_in = sig.copy()
-        for t in range(n):
-            if hold[t]:
-                s_in[t] = s_w
-        v2, s2, f2, r2, d2, st2 = fit_rounds(
-            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, held, glowing, side, rc, hw, reach_rows, sg0,
-            s_w, s_w, sat_dn, ramp, n_rounds[2], d_rc, kap_k, rho,
-        )  # fmt: skip
-        for t in range(n):
-            if held[t]:
-                v1[t], s1[t], f1[t], r1[t], d1[t] = v2[t], s2[t], f2[t], r2[t], d2[t]
-                st1[0, t], st1[1, t] = st2[0, t], st2[1, t]
-    for t in range(n):
-        if on[t] and f1[t]:
-            v0[t], s0[t], f0[t], rss0[t], d0[t] = v1[t], s1[t], True, r1[t], d1[t]
-            st0[0, t], st0[1, t] = st1[0, t], st1[1, t]
-        elif whole[laser[t]] and f0[t] and glowing[t] and not st0[1, t] > GLOW_MIN_FRAC * st0[0, t]:
-            # the step fit's own test where no held fit is taken: its glow two sigmas outward (no ramp: its step)
-            f0[t] = False
-            v0[t] = vv[t]
-            s0[t] = sig[t]
+    return rho
 
 
 @inline

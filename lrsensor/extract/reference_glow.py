@@ -18,6 +18,7 @@ from .glow import (
     ALPHA_SAMPLE,
     ALPHA_SHARE,
     F_SELECT,
+    HELD_EVERY,
     HELD_MAX_STEP,
     HELD_MIN_FITS,
     HELD_STEP,
@@ -495,46 +496,36 @@ def glow_refit(
         hw = np.where(hold, hw_t, hw)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    # (the glowing points' step fits untested where the stripe's proportion is told from them: glow.HELD_STEP)
-    # (only the stripes that glow all along: every candidate glowing, at least a pool's worth: glow._glows_along)
-    n_cl = np.bincount(laser[cand], minlength=n_l)
-    along = (n_cl >= 2 * POOL_COLS + 1) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0) & HELD_STEP
-    rho_0 = np.where(glowing & along[laser], -1.0, 0.0)
-    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho_0)
     s_h_in = np.where(hold, s_w, sig)
-    if s_w > 0.0:
-        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
-            False, hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=rho_0
-        )
-        v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
-        rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)
-    if HELD_STEP:
-        # the glowing points again with the step held at the stripe's proportion (glow._held_step)
-        rho = np.zeros(n)
-        told = f0 & glowing & ~retry & (st0[0] > 0.0)
-        for li in np.flatnonzero(along):
+    # a weak glow's step held at its stripe's proportion, told at a sample of the stripes that glow all along
+    # (glow._held_share)
+    rho = np.zeros(n)
+    n_cl = np.bincount(laser[cand], minlength=n_l)
+    along = (n_cl >= 2 * POOL_COLS + 1) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0)
+    if HELD_STEP and along.any():
+        sample = todo & glowing & along[laser] & ~retry & (cols % HELD_EVERY == 0)
+        r_s = np.where(sample, -1.0, 0.0)
+        _v, _s, f1, _r, _d, st1 = rounds(False, sample & ~hold, vv, sig, hw=hw, sg0=sg0, rho=r_s)
+        if (sample & hold).any():
+            _v, _s, f2, _r, _d, st2 = rounds(
+                False, sample & hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=r_s
+            )
+            f1, st1 = np.where(hold, f2, f1), np.where(hold, st2, st1)
+        told = sample & f1 & (st1[0] > 0.0)
+        for li in range(n_l):
             mine = told & (laser == li)
             if mine.sum() < HELD_MIN_FITS:
                 continue
-            r_l = float(np.median(st0[1, mine] / st0[0, mine]))
+            r_l = float(np.median(st1[1, mine] / st1[0, mine]))
             if r_l <= HELD_MAX_STEP:
                 rho[todo & glowing & (laser == li)] = max(r_l, 1e-3)
-        on = rho > 0.0
-        v1, s1, f1, r1, d1, st1 = rounds(False, on & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho)
-        if (on & hold).any():
-            v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
-                False, on & hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=rho
-            )
-            v1, s1, f1 = np.where(hold, v_h, v1), np.where(hold, s_h, s1), np.where(hold, f_h, f1)
-            r1, d1, st1 = np.where(hold, rss_h, r1), np.where(hold, d_h, d1), np.where(hold, st_h, st1)
-        take = on & f1
-        v0, s0, rss0, d0 = (np.where(take, x, y) for x, y in ((v1, v0), (s1, s0), (r1, rss0), (d1, d0)))
-        st0 = np.where(take, st1, st0)
-        # the step fit's own test where no held fit is taken (glow_fit.GLOW_MIN_FRAC: without the ramp, its step)
-        with np.errstate(invalid="ignore"):
-            drop = ~take & f0 & glowing & along[laser] & ~(st0[1] > GLOW_MIN_FRAC * st0[0])
-        f0 = (f0 | take) & ~drop
-        v0, s0 = np.where(drop, vv, v0), np.where(drop, sig, s0)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho)
+    if s_w > 0.0:
+        v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
+            False, hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=rho
+        )
+        v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
+        rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)
     g_on = f0 & glowing
     a_g = pooled(np.stack([np.where(g_on, st0[0], 0.0), np.where(g_on, st0[1], 0.0)]))
     strong = glowing & (a_g[0] > 0.0) & (a_g[1] >= RAMP_MIN_STEP * a_g[0])
