@@ -94,7 +94,12 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   360 columns of a frame, medians up to 0.0075 points off.
 
 Where a stripe shows the glow as a whole (:func:`_whole_stripe`), all of its points are fitted with it (its dim ends,
-and a weak glow's points, where the glow does not show above the noise). The stage also returns the stripe amplitude
+and a weak glow's points, where the glow does not show above the noise).
+Where every point of a stripe glows, the glow's share of the stripe's amplitude is told once
+(:func:`lrsensor.extract.held.held_share`: the median of untested step fits at every few columns) and,
+where it is at most 0.2 (a weak glow), each point is fitted with its step held at that share: a free step per column
+trades with the stripe's edge, and the fits that pass their own glow test are the ones whose step came out large.
+The stage also returns the stripe amplitude
 and residual noise of each fit taken, which the signal-to-noise gate uses
 (:func:`lrsensor.extract.finish.finish_points`).
 
@@ -111,6 +116,7 @@ import numpy as np
 
 from ._jit import callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
+from .held import HELD_STEP, held_share
 from .refit import rows_overlap
 from .sorting import median
 from .water import retell, sample_total, vertex
@@ -178,13 +184,6 @@ HOLD_ROUNDS = 1
 #: The attenuation and the width told on a frame are taken on this many frames (the first of them tells them again;
 #: ``glow_refit``'s ``water``): at 30 Hz, once a second.
 WATER_FRAMES = 30
-#: The glowing points are fitted again with the glow's step held at the stripe's proportion (below).
-HELD_STEP = True
-#: ... told from the step fits at every HELD_EVERY-th column (at least HELD_MIN_FITS of them)...
-HELD_EVERY = 4
-HELD_MIN_FITS = 16
-#: ... where that proportion is at most this.
-HELD_MAX_STEP = 0.2
 #: Narrowest sigma the fit may take, px (a glow's edge narrower than this is not resolved by the pixels).
 MIN_SIGMA_PX = 0.5
 
@@ -470,7 +469,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # clutter's few glowing columns keep the free step)
     rho_0 = no_rho
     if HELD_STEP:
-        rho_0 = _held_share(
+        rho_0 = held_share(
             image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows,
             sg0, lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w,
         )  # fmt: skip
@@ -692,87 +691,11 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
     return score_a, fit_a, use
 
 
-@callee
-def _held_share(  # type: ignore[no-untyped-def]
-    image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows, sg0,
-    lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w,
-):
-    """(N,) the share of the stripe's amplitude the glow's step is held at in each point's fit (0: a free step). On
-    each laser's stripe that glows all along (:func:`_glows_along`), the step model is fitted at every
-    :data:`HELD_EVERY`-th column's glowing points with the step free and untested (a test would select the fits
-    whose step came out large); where the median of their steps over their amplitudes is at most
-    :data:`HELD_MAX_STEP`, the stripe's glowing points take it."""
-    n = cols.size
-    n_l = at.shape[0]
-    rho = zeros(n, np.float64)
-    whole = _glows_along(cand, glowing, laser, n_l)
-    if not whole.any():
-        return rho
-    sample = zeros(n, np.bool_)
-    for t in range(n):
-        sample[t] = fit_me[t] and glowing[t] and whole[laser[t]] and not retry[t] and cols[t] % HELD_EVERY == 0
-        rho[t] = -1.0 if sample[t] else 0.0
-    _v, _s, f1, _r, _d, st1 = fit_rounds(
-        image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample & ~hold, glowing, side, rc, hw, reach_rows, sg0,
-        lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap_k, rho,
-    )  # fmt: skip
-    if (sample & hold).any():  # (the stripe's width held where the water told it)
-        s_in = sig.copy()
-        for t in range(n):
-            if hold[t]:
-                s_in[t] = s_w
-        _v, _s, f2, _r, _d, st2 = fit_rounds(
-            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, sample & hold, glowing, side, rc, hw, reach_rows,
-            sg0, s_w, s_w, sat_dn, ramp, n_rounds[2], d_rc, kap_k, rho,
-        )  # fmt: skip
-        for t in range(n):
-            if hold[t]:
-                f1[t] = f2[t]
-                st1[0, t] = st2[0, t]
-                st1[1, t] = st2[1, t]
-    for t in range(n):
-        rho[t] = 0.0
-    for li in range(n_l):
-        k = 0
-        for t in range(n):
-            k += sample[t] and laser[t] == li and f1[t] and st1[0, t] > 0.0
-        if k < HELD_MIN_FITS:
-            continue
-        ratio = empty(k, np.float64)
-        k = 0
-        for t in range(n):
-            if sample[t] and laser[t] == li and f1[t] and st1[0, t] > 0.0:
-                ratio[k] = st1[1, t] / st1[0, t]
-                k += 1
-        r_l = median(ratio)
-        if not r_l <= HELD_MAX_STEP:
-            continue
-        for t in range(n):
-            if laser[t] == li and fit_me[t] and glowing[t]:
-                rho[t] = max(r_l, 1e-3)
-    return rho
-
-
 @inline
 def _residual_noise(rss, dof, fallback):  # type: ignore[no-untyped-def]
     """A fit's residual noise, DN: ``sqrt(rss / dof)``, ``fallback`` where that is not finite."""
     r = math.sqrt(rss / dof) if dof > 0.0 else np.nan
     return r if math.isfinite(r) else fallback
-
-
-@callee
-def _glows_along(cand, glowing, laser, n_l):  # type: ignore[no-untyped-def]
-    """(L,) bool: each laser's stripe glows all along: at least a pool's worth of candidates (``cand`` (N,)), every one
-    of them ``glowing`` (N,) (:func:`_whole_stripe` made them so, or each showed it)."""
-    n_c = zeros(n_l, np.int64)
-    ok = full(n_l, True, np.bool_)
-    for t in range(cand.size):
-        if cand[t]:
-            n_c[laser[t]] += 1
-            ok[laser[t]] &= glowing[t]
-    for li in range(n_l):
-        ok[li] &= n_c[li] >= 2 * POOL_COLS + 1
-    return ok
 
 
 @njit

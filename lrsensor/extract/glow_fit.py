@@ -192,7 +192,9 @@ def fit_one(  # type: ignore[no-untyped-def]
     degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out. ``d_rc``, ``kap_k``: the window's
     middle row's distance from the sheet's vanishing row (px, towards the glow) and the attenuation's growth times
     the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step); ``nb_d``, ``nb_kk``:
-    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``)."""
+    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``);
+    ``rho``: where positive, the glow's step held at that share of the stripe's amplitude (no parameter of its own,
+    no glow test: ``g = rho A``), where negative, free and untested (the caller pools the steps); 0: free, tested."""
     kk = N_LIN + 2
     return fit_into(
         y,

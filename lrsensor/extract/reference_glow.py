@@ -18,10 +18,6 @@ from .glow import (
     ALPHA_SAMPLE,
     ALPHA_SHARE,
     F_SELECT,
-    HELD_EVERY,
-    HELD_MAX_STEP,
-    HELD_MIN_FITS,
-    HELD_STEP,
     HOLD_ROUNDS,
     MAX_HALF_PX,
     MEDIAN_VAR,
@@ -43,6 +39,7 @@ from .glow import (
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
+from .held import ALONG_MIN, HELD_EVERY, HELD_MAX_STEP, HELD_MIN_FITS, HELD_STEP
 from .water import WATER_POINTS, WATER_STEP, vertex
 
 FloatArray = NDArray[np.float64]
@@ -498,10 +495,10 @@ def glow_refit(
     # over the stripe's peak), with the other stripes where the step model put them
     s_h_in = np.where(hold, s_w, sig)
     # a weak glow's step held at its stripe's proportion, told at a sample of the stripes that glow all along
-    # (glow._held_share)
+    # (held.held_share)
     rho = np.zeros(n)
     n_cl = np.bincount(laser[cand], minlength=n_l)
-    along = (n_cl >= 2 * POOL_COLS + 1) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0)
+    along = (n_cl >= ALONG_MIN) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0)
     if HELD_STEP and along.any():
         sample = todo & glowing & along[laser] & ~retry & (cols % HELD_EVERY == 0)
         r_s = np.where(sample, -1.0, 0.0)
@@ -512,13 +509,13 @@ def glow_refit(
             )
             f1, st1 = np.where(hold, f2, f1), np.where(hold, st2, st1)
         told = sample & f1 & (st1[0] > 0.0)
-        for li in range(n_l):
-            mine = told & (laser == li)
+        for lh in range(n_l):
+            mine = told & (laser == lh)
             if mine.sum() < HELD_MIN_FITS:
                 continue
             r_l = float(np.median(st1[1, mine] / st1[0, mine]))
             if r_l <= HELD_MAX_STEP:
-                rho[todo & glowing & (laser == li)] = max(r_l, 1e-3)
+                rho[todo & glowing & (laser == lh)] = max(r_l, 1e-3)
     v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho)
     if s_w > 0.0:
         v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
