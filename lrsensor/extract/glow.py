@@ -94,7 +94,12 @@ Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water
   360 columns of a frame, medians up to 0.0075 points off.
 
 Where a stripe shows the glow as a whole (:func:`_whole_stripe`), all of its points are fitted with it (its dim ends,
-and a weak glow's points, where the glow does not show above the noise). The stage also returns the stripe amplitude
+and a weak glow's points, where the glow does not show above the noise).
+Where every point of a stripe glows, the glow's share of the stripe's amplitude is told once
+(:func:`lrsensor.extract.held.held_share`: the median of untested step fits at every few columns) and,
+where it is at most 0.2 (a weak glow), each point is fitted with its step held at that share: a free step per column
+trades with the stripe's edge, and the fits that pass their own glow test are the ones whose step came out large.
+The stage also returns the stripe amplitude
 and residual noise of each fit taken, which the signal-to-noise gate uses
 (:func:`lrsensor.extract.finish.finish_points`).
 
@@ -111,6 +116,7 @@ import numpy as np
 
 from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
+from .held import HELD_STEP, held_share
 from .refit import rows_overlap
 from .sorting import median
 from .water import retell, sample_total, vertex
@@ -458,9 +464,18 @@ def glow_refit(  # type: ignore[no-untyped-def]
                     sg0[t] = s_w
                     hw[t] = hw_t
     free = fit_me & ~hold
+    no_rho = zeros(n, np.float64)
+    # a weak glow's step held at its stripe's proportion, told at a sample (only on stripes that glow all along: a
+    # clutter's few glowing columns keep the free step)
+    rho_0 = no_rho
+    if HELD_STEP:
+        rho_0 = held_share(
+            image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows,
+            sg0, lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w,
+        )  # fmt: skip
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k,
+        max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k, rho_0,
     )  # fmt: skip
     if s_w > 0.0:
         # (the other stripes with the held width from the first round: a common fit's width of a dim column is noise)
@@ -470,7 +485,7 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 s_in[t] = s_w
         v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
             image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
-            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0,
         )  # fmt: skip
         for t in range(n):
             if hold[t]:
@@ -507,14 +522,14 @@ def glow_refit(  # type: ignore[no-untyped-def]
         # which stretches the ramp is fitted along, and its further rounds were a fifth of the ramp's fits at 2 m)
         _v2, _s2, f2, rss2, dof2, _st2 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[0], d_rc, kap_k, no_rho,
         )  # fmt: skip
         maybe = strong & (
             _pooled_f(cols, laser, at, strong, glowing, f0, f2, rss0, rss2, dof2) > RAMP_MARGIN * F_SELECT
         )
         v3, s3, f3, rss3, dof3, _st3 = fit_rounds(
             image, cols, laser, at, vv, sig, v0, s0, nb_ok, nb0, maybe, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k,
+            lo_sig, max_sig, sat_dn, ramp_on[1], n_rounds[1], d_rc, kap_k, no_rho,
         )  # fmt: skip
         take = f3 & (_pooled_f(cols, laser, at, f3, glowing, f0, f3, rss0, rss3, dof3) > F_SELECT)
     v_out = v0
@@ -614,7 +629,7 @@ def _attenuation(  # type: ignore[no-untyped-def]
     # the stripe's width: the sample fitted with that attenuation
     _v, s1, f1, _r, _d, st1 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, alpha * k_pt, 0.0 * d_rc,
     )  # fmt: skip
     n_f = 0
     for t in range(n):
@@ -656,7 +671,7 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
         kap = grid[i] * k_pt
         v1, s1, f1, _r, _d, _st = fit_rounds(
             image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0,
-            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[1], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         for t in range(n):
             if not f1[t]:
@@ -664,7 +679,7 @@ def _alpha_fits(  # type: ignore[no-untyped-def]
                 s1[t] = sg0[t]
         _v, _s, f2, rss, _d, _st = fit_rounds(
             image, cols, laser, at, v1, sig, v1, s1, nb_ok, nb0, sample & f1, glowing, side, rc, hw, reach_rows, s1,
-            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap,
+            lo_sig, max_sig, sat_dn, ramp, n_rounds[0], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         n_f = 0
         for t in range(n):

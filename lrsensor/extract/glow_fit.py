@@ -182,7 +182,7 @@ def _solve(M, b, k):  # type: ignore[no-untyped-def]
 @njit
 def fit_one(  # type: ignore[no-untyped-def]
     y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, d_rc=1.0, kap_k=0.0, nb_d=1.0,
-    nb_kk=0.0,
+    nb_kk=0.0, rho=0.0,
 ):
     """The joint fit of one profile ``y`` (K,) at rows ``q`` (K,) (relative to the window's middle row) from the
     centre ``c`` and width ``sg``; ``nb_c``, ``nb_s``: another stripe's centre and sigma (NaN: none), ``nb_side``
@@ -192,7 +192,9 @@ def fit_one(  # type: ignore[no-untyped-def]
     degrees of freedom. Samples at or above ``sat_dn`` (clipped) are left out. ``d_rc``, ``kap_k``: the window's
     middle row's distance from the sheet's vanishing row (px, towards the glow) and the attenuation's growth times
     the edge's distance (:func:`sheet_edge`'s ``kap d``, px; 0: the glow a plain blurred step); ``nb_d``, ``nb_kk``:
-    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``)."""
+    the same for the other stripe's glow (its edge's distance from its sheet's vanishing row, px, and its ``kap d``);
+    ``rho``: where positive, the glow's step held at that share of the stripe's amplitude (no parameter of its own,
+    no glow test: ``g = rho A``), where negative, free and untested (the caller pools the steps); 0: free, tested."""
     kk = N_LIN + 2
     return fit_into(
         y,
@@ -219,13 +221,14 @@ def fit_one(  # type: ignore[no-untyped-def]
         kap_k,
         nb_d,
         nb_kk,
+        rho,
     )
 
 
 @callee
 def fit_into(  # type: ignore[no-untyped-def]
     y, q, side, c, sg, nb_c, nb_s, nb_side, glow_on, ramp, min_sig, max_sig, sat_dn, M, b, xr, lin, par, work, warm,
-    d_rc, kap_k, nb_d, nb_kk,
+    d_rc, kap_k, nb_d, nb_kk, rho,
 ):
     """:func:`fit_one` with its work arrays given (``M`` (N_LIN + 2, N_LIN + 2), ``b``, ``xr`` (N_LIN + 2,), ``lin``
     (N_LIN,), ``par`` (N_LIN + 2,) int64, ``work`` (N_LIN + 5, >= K): the Jacobian's columns, the residual and the two
@@ -242,13 +245,14 @@ def fit_into(  # type: ignore[no-untyped-def]
     other stripe's glow too (its edge ``nb_d`` px from its vanishing row: at 3 m its glow, outward of it, grows within
     this window as fast as this stripe's)."""
     k_rows = y.size
+    held = glow_on and rho > 0.0  # the glow's step held at rho times the stripe's amplitude: no parameter of its own
     has_nb = math.isfinite(nb_c)
     nb_glow = has_nb and nb_side != 0.0
     # the active parameters, linear first, then the centre and sigma: the normal equations in them alone (the
     # reference's identity rows for the others decouple exactly)
     n_lin = 0
     for a in range(N_LIN):
-        keep = (a != 3 or glow_on) and (a not in (4, 5) or (glow_on and ramp)) and (a != 6 or has_nb)
+        keep = (a != 3 or (glow_on and not held)) and (a not in (4, 5) or (glow_on and ramp)) and (a != 6 or has_nb)
         if not keep or (a == 7 and not nb_glow):
             continue
         par[n_lin] = a
@@ -263,6 +267,8 @@ def fit_into(  # type: ignore[no-untyped-def]
     if not warm:
         for a in range(N_LIN):
             lin[a] = 0.0
+    if held:
+        lin[3] = 0.0  # (the step is rho lin[2], carried in the stripe's column)
     jac = work[: N_LIN + 2]
     res = work[N_LIN + 2]
     g_own = work[N_LIN + 3]
@@ -309,6 +315,8 @@ def fit_into(  # type: ignore[no-untyped-def]
                     rmp = sg * (u * f + ph)
                     xr[4] = rmp
                     xr[5] = sg * sg * ((u * u + 1.0) * f + u * ph)
+                if held:
+                    xr[2] = gz + rho * xr[3]
             if has_nb:
                 gd = g_nb[i]
                 xr[6] = gd
@@ -324,15 +332,14 @@ def fit_into(  # type: ignore[no-untyped-def]
                 for j in range(N_LIN):
                     r -= xr[j] * lin[j]
                 r2 += r * r
+                g3 = rho * lin[2] if held else lin[3]
                 if kap_k > 0.0 and glow_on:  # the sheet's shape (sheet_edge) in t = side (q - c)
-                    xr[N_LIN] = lin[2] * gz * z * inv_sg - side * (lin[3] * b_t + lin[4] * f + 2.0 * lin[5] * rmp)
-                    xr[N_LIN + 1] = lin[2] * gz * z * z * inv_sg + lin[3] * b_s + lin[4] * ph + 2.0 * lin[5] * sg * f
+                    xr[N_LIN] = lin[2] * gz * z * inv_sg - side * (g3 * b_t + lin[4] * f + 2.0 * lin[5] * rmp)
+                    xr[N_LIN + 1] = lin[2] * gz * z * z * inv_sg + g3 * b_s + lin[4] * ph + 2.0 * lin[5] * sg * f
                 else:
-                    xr[N_LIN] = (lin[2] * gz * z - lin[3] * ph * side) * inv_sg - side * (
-                        lin[4] * f + 2.0 * lin[5] * rmp
-                    )
+                    xr[N_LIN] = (lin[2] * gz * z - g3 * ph * side) * inv_sg - side * (lin[4] * f + 2.0 * lin[5] * rmp)
                     xr[N_LIN + 1] = (
-                        (lin[2] * gz * z * z - lin[3] * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
+                        (lin[2] * gz * z * z - g3 * ph * side * z) * inv_sg + lin[4] * ph + 2.0 * lin[5] * sg * f
                     )
             for a in range(m_):
                 jac[a, n_s] = xr[par[a]]
@@ -362,8 +369,11 @@ def fit_into(  # type: ignore[no-untyped-def]
             break
     x2 = 2.0 * sg  # the glow two sigmas outward of the edge (where its step is complete) is a glow
     g_out = lin[3] + lin[4] * x2 + lin[5] * x2 * x2
-    ok = math.isfinite(c) and lin[2] > 0.0 and (not glow_on or g_out > GLOW_MIN_FRAC * lin[2])
-    return c, sg, lin[2], lin[3], ok, rss, float(dof)
+    # (a held step is the stripe's glow by construction: no test of its own)
+    # (rho < 0: the test left to the caller, which pools the stripe's steps)
+    ok = math.isfinite(c) and lin[2] > 0.0 and (not glow_on or rho != 0.0 or g_out > GLOW_MIN_FRAC * lin[2])
+    g_fit = rho * lin[2] if held else lin[3]
+    return c, sg, lin[2], g_fit, ok, rss, float(dof)
 
 
 @callee
@@ -411,6 +421,7 @@ def fit_rounds(  # type: ignore[no-untyped-def]
     n_rounds,
     d_rc,
     kap_k,
+    rho,
 ):
     """The joint fits of the points ``fit_me`` (:func:`.glow.glow_refit`'s arrays; ``reach`` (N,): the rows within
     which another stripe is looked for), with the glow's ramp or without: ``n_rounds`` rounds (at most
@@ -509,6 +520,7 @@ def fit_rounds(  # type: ignore[no-untyped-def]
                 kap_k[t],
                 d_rc[nb] + side[nb] * (v1[nb] - rc[nb]) if nb >= 0 else 1.0,
                 kap_k[nb] if nb >= 0 else 0.0,
+                rho[t],
             )
             if good and abs(rc[t] + c - vv[t]) <= MAX_MOVE_PX:
                 v_out[t] = rc[t] + c

@@ -39,6 +39,7 @@ from .glow import (
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
+from .held import ALONG_MIN, HELD_EVERY, HELD_MAX_STEP, HELD_MIN_FITS, HELD_STEP
 from .water import WATER_POINTS, WATER_STEP, vertex
 
 FloatArray = NDArray[np.float64]
@@ -89,6 +90,7 @@ def fit_profiles(
     kap_k: FloatArray | None = None,
     nb_d: FloatArray | None = None,
     nb_kap: FloatArray | None = None,
+    rho: FloatArray | None = None,
 ) -> tuple[
     FloatArray, FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray
 ]:
@@ -104,12 +106,17 @@ def fit_profiles(
     parameters and the log-determinant of its last normal matrix. ``d_rc``, ``kap_k`` (n,): the sheet's glow shape
     (:func:`lrsensor.extract.glow_fit.fit_one`; default none, the plain step); ``nb_d``, ``nb_kap`` (n,): the same for
     the other stripe's glow (its edge's distance from its sheet's vanishing row and its ``kap d``; default none);
-    ``min_sig == max_sig``: the width held, no parameter."""
+    ``min_sig == max_sig``: the width held, no parameter; ``rho`` (n,): where positive, the glow's step held at that
+    share of the stripe's amplitude (no parameter of its own, no glow test); where negative, the step free and the
+    glow test left to the caller (default 0: the step free and tested)."""
     n, k_rows = Y.shape
     d_rc = np.ones(n) if d_rc is None else d_rc
     kap_k = np.zeros(n) if kap_k is None else kap_k
     shaped = (kap_k > 0.0)[:, None]
     glow_on = np.ones(n, bool) if use_glow is None else use_glow
+    rho = np.zeros(n) if rho is None else rho
+    held = glow_on & (rho > 0.0)
+    rho_h = np.where(held, rho, 0.0)[:, None]
     mask = mask * (sat_dn > Y)  # clipped samples left out
     q = (np.arange(k_rows) - k_rows // 2).astype(np.float64)[None, :]
     has_nb = np.isfinite(nb_c)
@@ -125,6 +132,7 @@ def fit_profiles(
         active[np.ix_(drop, np.array(cols))] = False
     if not ramp:
         active[:, [_R, _Q]] = False
+    active[held, _G] = False  # (a held step rides on the stripe's column)
     if not min_sig < max_sig:
         active[:, N_LIN + 1] = False
     warm = np.zeros(n, bool) if warm is None else warm
@@ -155,11 +163,12 @@ def fit_profiles(
                 NB = _sheet_edge(ud * nb_s[:, None], ud, NG, np.exp(-0.5 * ud * ud) * _INV_SQRT_2PI, nb_s[:, None], nd,
                                  nb_kap[:, None] / nd)[0]  # fmt: skip
             NG = np.where((nb_kap > 0.0)[:, None], NB, NG)
-        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz, G, R, Qd, N, NG], axis=2)
+        X = np.stack([np.ones_like(z), np.broadcast_to(q, z.shape), gz + rho_h * G, G, R, Qd, N, NG], axis=2)
         if it == 0:  # the linear parameters alone at the start
             J, r = X, Y
         else:  # a Gauss-Newton step in all of them
             A, g, gr, gq = lin[:, _A : _A + 1], lin[:, _G : _G + 1], lin[:, _R : _R + 1], lin[:, _Q : _Q + 1]
+            g = np.where(held[:, None], rho_h * A, g)
             dc = (A * gz * z - g * ph * s) / sg[:, None] - gr * s * F - 2.0 * gq * s * R
             ds = (A * gz * z * z - g * ph * s * z) / sg[:, None] + gr * ph + 2.0 * gq * sg[:, None] * F
             sh = shaped & glow_on[:, None]
@@ -191,8 +200,8 @@ def fit_profiles(
     # the glow two sigmas outward of the edge (where its step is complete) is a glow: positive
     x2 = 2.0 * sg
     g_out = lin[:, _G] + lin[:, _R] * x2 + lin[:, _Q] * x2 * x2
-    good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (g_out > GLOW_MIN_FRAC * lin[:, _A]))
-    return c, sg, lin[:, _A], lin[:, _G], good, rss, dof, lin, ldet
+    good &= np.isfinite(c) & (lin[:, _A] > 0.0) & (~glow_on | (rho != 0.0) | (g_out > GLOW_MIN_FRAC * lin[:, _A]))
+    return c, sg, lin[:, _A], np.where(held, rho * lin[:, _A], lin[:, _G]), good, rss, dof, lin, ldet
 
 
 def _neighbours(
@@ -366,8 +375,10 @@ def glow_refit(
         sg0: FloatArray = sg0,
         lo_sig: float = lo_sig,
         max_sig: float = max_sig,
+        rho: FloatArray | None = None,
     ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray]:
         kap = kap_k if kap is None else kap
+        rho = np.zeros(n) if rho is None else rho
         v_out, s_out = v_init.copy(), s_init.copy()
         fitted = np.zeros(n, bool)
         steps = np.zeros((3, n))
@@ -432,6 +443,7 @@ def glow_refit(
                 kap[idx],
                 np.where(have, d_rc[nbc] + side[nbc] * (v1[nbc] - rc[nbc]), 1.0),
                 np.where(have, kap[nbc], 0.0),
+                rho[idx],
             )
             with np.errstate(invalid="ignore"):
                 keep = good & (np.abs(rc[idx] + c - vv[idx]) <= MAX_MOVE_PX)
@@ -481,10 +493,33 @@ def glow_refit(
         hw = np.where(hold, hw_t, hw)
     # the step model; then the ramp where the glow is strong enough to tell its ramp from the stripe (the pooled step
     # over the stripe's peak), with the other stripes where the step model put them
-    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0)
+    s_h_in = np.where(hold, s_w, sig)
+    # a weak glow's step held at its stripe's proportion, told at a sample of the stripes that glow all along
+    # (held.held_share)
+    rho = np.zeros(n)
+    n_cl = np.bincount(laser[cand], minlength=n_l)
+    along = (n_cl >= ALONG_MIN) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0)
+    if HELD_STEP and along.any():
+        sample = todo & glowing & along[laser] & ~retry & (cols % HELD_EVERY == 0)
+        r_s = np.where(sample, -1.0, 0.0)
+        _v, _s, f1, _r, _d, st1 = rounds(False, sample & ~hold, vv, sig, hw=hw, sg0=sg0, rho=r_s)
+        if (sample & hold).any():
+            _v, _s, f2, _r, _d, st2 = rounds(
+                False, sample & hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=r_s
+            )
+            f1, st1 = np.where(hold, f2, f1), np.where(hold, st2, st1)
+        told = sample & f1 & (st1[0] > 0.0)
+        for lh in range(n_l):
+            mine = told & (laser == lh)
+            if mine.sum() < HELD_MIN_FITS:
+                continue
+            r_l = float(np.median(st1[1, mine] / st1[0, mine]))
+            if r_l <= HELD_MAX_STEP:
+                rho[todo & glowing & (laser == lh)] = max(r_l, 1e-3)
+    v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho)
     if s_w > 0.0:
         v_h, s_h, f_h, rss_h, d_h, st_h = rounds(
-            False, hold, vv, np.where(hold, s_w, sig), HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w
+            False, hold, vv, s_h_in, HOLD_ROUNDS, hw=hw, sg0=sg0, lo_sig=s_w, max_sig=s_w, rho=rho
         )
         v0, s0, f0 = np.where(hold, v_h, v0), np.where(hold, s_h, s0), np.where(hold, f_h, f0)
         rss0, d0, st0 = np.where(hold, rss_h, rss0), np.where(hold, d_h, d0), np.where(hold, st_h, st0)

@@ -115,7 +115,7 @@ def retell(  # type: ignore[no-untyped-def]
     kap = alpha * k_pt
     vp, sp, fp, _r, _d, _st = fit_rounds(
         image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, part, glowing, side, rc, hw_o, reach_rows, sg0_p, s_w,
-        s_w, sat_dn, ramp, n_rounds[2], d_rc, kap,
+        s_w, sat_dn, ramp, n_rounds[2], d_rc, kap, 0.0 * d_rc,
     )  # fmt: skip
     v_o = vv.copy()
     s_o = sig.copy()
@@ -140,7 +140,7 @@ def retell(  # type: ignore[no-untyped-def]
         kap = fine[i] * k_pt
         v1, s1, f1, _r, _d, _st = fit_rounds(
             image, cols, laser, at, v_o, sig_h, v_o, sig_h, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows,
-            sg0_h, s_w, s_w, sat_dn, ramp, n_rounds[1], d_rc, kap,
+            sg0_h, s_w, s_w, sat_dn, ramp, n_rounds[1], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         for t in range(n):
             if not f1[t]:
@@ -148,7 +148,7 @@ def retell(  # type: ignore[no-untyped-def]
                 s1[t] = sg0_h[t]
         _v, _s, f2, rss, d2, st2 = fit_rounds(
             image, cols, laser, at, v1, sig_h, v1, sig_h, nb_ok, nb0, sample & f1, glowing, side, rc, hw_s, reach_rows,
-            s1, s_w, s_w, sat_dn, ramp, n_rounds[0], d_rc, kap,
+            s1, s_w, s_w, sat_dn, ramp, n_rounds[0], d_rc, kap, 0.0 * d_rc,
         )  # fmt: skip
         k = 0
         for t in range(n):
@@ -169,7 +169,7 @@ def retell(  # type: ignore[no-untyped-def]
         a2 = vertex(fine[c - 1], fine[c], fine[c + 1], tot[c - 1], tot[c], tot[c + 1])
     _v, s2, f2, _r, _d, st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v_o, s_o, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp, n_rounds[1], d_rc, a2 * k_pt,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, a2 * k_pt, 0.0 * d_rc,
     )  # fmt: skip
     m = 0
     for t in range(n):
