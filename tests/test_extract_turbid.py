@@ -10,7 +10,7 @@ import pytest
 
 from benchmarks.turbid_model import Turbid, TurbidFrame, render
 from lrsensor import Calibration, Sensor
-from lrsensor.extract import centre, glow, glow_fit, reference_glow, subpixel
+from lrsensor.extract import centre, glow, glow_fit, held, reference_glow, subpixel
 from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 from lrsensor.extract.settings import glow_sides
 
@@ -486,21 +486,45 @@ def test_the_water_told_on_one_frame_is_carried_to_the_next(
     assert 0.15 < told[0] < 0.6  # (the model's 0.3 /m)
     assert 3.0 < told[1] < 5.0  # (4.0 px)
     assert told[2] == 1.0
-    np.testing.assert_array_equal(points(water), first)  # the same frame and water: the same points
-    np.testing.assert_array_equal(water, [told[0], told[1], 2.0])
-    water[:] = (1.5 * told[0], told[1], 2.0)  # another water carried in: taken, not told again
+    assert np.all((told[3:5] > 0.0) & (told[3:5] < 1.0))  # each laser's glow share, told with the water
+    np.testing.assert_array_equal(told[5:], held.UNTOLD)  # (two lasers)
+    np.testing.assert_array_equal(points(water), first)  # the same frame and water (and shares): the same points
+    np.testing.assert_array_equal(water, [told[0], told[1], 2.0, *told[3:]])
+    water[:3] = (1.5 * told[0], told[1], 2.0)  # another water carried in: taken, not told again
     assert not np.array_equal(points(water), first)
-    np.testing.assert_array_equal(water, [1.5 * told[0], told[1], 3.0])
+    np.testing.assert_array_equal(water, [1.5 * told[0], told[1], 3.0, *told[3:]])
     water[2] = glow.WATER_FRAMES  # due: told again
     np.testing.assert_array_equal(points(water), first)
     np.testing.assert_array_equal(water, told)
     sensor = Sensor(frame.calibration, stream=True)
     sensor.process(frame.image)
     sensor.process(frame.image)
-    np.testing.assert_array_equal(sensor._water, [told[0], told[1], 2.0])
+    np.testing.assert_array_equal(sensor._water, [told[0], told[1], 2.0, *told[3:]])
     stills = Sensor(frame.calibration)  # images that may each come from other water: each tells its own
     stills.process(frame.image)
     assert stills._water is None
+
+
+@pytest.mark.parametrize("use_reference", [False, True], ids=["compiled", "reference"])
+def test_a_weak_glows_share_is_carried_with_the_water(use_reference: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """At 3 m with a glow of 0.1 the stripes' shares are held (<= HELD_MAX_STEP); a frame of the same water takes
+    the shares told on the first, without their sample's fits, and places the same points as telling them again."""
+    if not use_reference and not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    if not use_reference:
+        warm_up()
+    monkeypatch.setattr(subpixel, "USE_REFERENCE", use_reference)
+    frame = render(Turbid(distance_m=3.0, glow_step=0.1, blur_px=4.0, seed=1))
+    water = glow.new_water()
+    first = subpixel.extract_points(frame.image, frame.calibration, water=water)[0].uv
+    assert np.all((water[3:5] > 0.0) & (water[3:5] <= held.HELD_MAX_STEP))
+    told = water.copy()
+    again = subpixel.extract_points(frame.image, frame.calibration, water=water)[0].uv
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(water, [*told[:2], 2.0, *told[3:]])
+    water[3:5] = 0.5 * told[3:5]  # other shares carried in: taken, not told again
+    assert not np.array_equal(subpixel.extract_points(frame.image, frame.calibration, water=water)[0].uv, first)
+    np.testing.assert_array_equal(water[3:5], 0.5 * told[3:5])
 
 
 @pytest.mark.parametrize("use_reference", [False, True], ids=["compiled", "reference"])

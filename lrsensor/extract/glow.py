@@ -116,7 +116,7 @@ import numpy as np
 
 from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
-from .held import HELD_STEP, held_share
+from .held import HELD_STEP, UNTOLD, carried_share, held_share
 from .refit import rows_overlap
 from .sorting import median
 from .water import retell, sample_total, vertex
@@ -188,9 +188,16 @@ WATER_FRAMES = 30
 MIN_SIGMA_PX = 0.5
 
 
+#: Lasers whose weak glow's share (:func:`lrsensor.extract.held.held_share`) a ``water`` record carries (the
+#: others' is told on every frame).
+WATER_LASERS = 8
+
+
 def new_water() -> np.ndarray:
-    """A :func:`glow_refit` ``water`` record that has told nothing yet (the next glowing frame tells it)."""
-    return np.array([0.0, 0.0, np.inf])
+    """A :func:`glow_refit` ``water`` record that has told nothing yet (the next glowing frame tells it): (3 +
+    :data:`WATER_LASERS`,) float64, the attenuation (1/m), the stripe's width (px), the frames since they were told,
+    then each laser's glow share told with them (:data:`lrsensor.extract.held.UNTOLD`: none)."""
+    return np.array([0.0, 0.0, np.inf] + [UNTOLD] * WATER_LASERS)
 
 
 @inline
@@ -260,9 +267,10 @@ def glow_refit(  # type: ignore[no-untyped-def]
         vanish, path_k: (L, W) float64, the row of each laser sheet's vanishing line per column and ``2 s D`` (px m:
             ``D`` the sheet's range times its rows from that line, ``s`` the path's obliqueness; 0: unknown, the glow a
             plain step), :func:`lrsensor.extract.settings.glow_geometry`.
-        water: (3,) float64, read and updated: the water's attenuation (1/m) and the stripe's width (px) as last told
-            (:func:`_attenuation`) and the frames since (:data:`WATER_FRAMES`; :func:`new_water`: none told yet). A
-            camera's frames share one: the water changes slowly, and the telling is a third of a glowing frame.
+        water: (3 + WATER_LASERS,) float64, read and updated: the water's attenuation (1/m) and the stripe's width
+            (px) as last told (:func:`_attenuation`), the frames since (:data:`WATER_FRAMES`; :func:`new_water`: none
+            told yet) and each laser's weak-glow share told on the same frame (:func:`held.held_share`). A camera's
+            frames share one: the water changes slowly, and the telling is a third of a glowing frame.
         retry: (N,) bool, the points the common fit refused, here at their candidate row with the frame's width
             (:data:`lrsensor.extract.frame.RETRY_REFUSED`): fitted like the others where their stripe glows or
             pairs, but they take no part in what the stripe's points decide together (another stripe's position
@@ -436,8 +444,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
     for t in range(n):
         s_cnt += fit_me[t] and glowing[t] and not retry[t]
     alpha, s_w = 0.0, 0.0
+    carried = s_cnt >= ALPHA_SAMPLE and water[2] < WATER_FRAMES
     if s_cnt >= ALPHA_SAMPLE:  # (a sample's worth of glowing points)
-        if water[2] < WATER_FRAMES:  # told a few frames ago: the water changes slowly
+        if carried:  # told a few frames ago: the water changes slowly
             alpha, s_w = water[0], water[1]
         else:
             told = glowing & ~retry  # (the common fits' points tell the water)
@@ -469,10 +478,20 @@ def glow_refit(  # type: ignore[no-untyped-def]
     # clutter's few glowing columns keep the free step)
     rho_0 = no_rho
     if HELD_STEP:
-        rho_0 = held_share(
-            image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows,
-            sg0, lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w,
-        )  # fmt: skip
+        # the share told with the water is carried with it (its sample's fits cost more than the held fits save)
+        shares = water[3:]
+        fresh = True
+        if carried:
+            rho_0, fresh = carried_share(shares, cand, glowing, laser, fit_me, n_l)
+        if fresh:
+            told_sh = full(n_l, UNTOLD, np.float64)
+            rho_0 = held_share(
+                image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw,
+                reach_rows, sg0, lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds, d_rc, kap_k, s_w, told_sh,
+            )  # fmt: skip
+            if s_cnt >= ALPHA_SAMPLE and not carried:  # (told with the water on this frame)
+                for li in range(shares.size):
+                    shares[li] = told_sh[li] if li < n_l else UNTOLD
     v0, s0, f0, rss0, _d0, st0 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, free, glowing, side, rc, hw, reach_rows, sg0, lo_sig,
         max_sig, sat_dn, ramp_on[0], n_rounds[1], d_rc, kap_k, rho_0,

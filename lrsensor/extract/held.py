@@ -26,18 +26,21 @@ HELD_MIN_FITS = 16
 HELD_MAX_STEP = 0.2
 #: A stripe glows all along where at least this many of its candidates do (a pool: glow.POOL_COLS either side).
 ALONG_MIN = 17
+#: A laser's share not told (its stripe did not glow all along, or too few of its sample's fits held).
+UNTOLD = -2.0
 
 
 @callee
 def held_share(  # type: ignore[no-untyped-def]
     image, cols, laser, at, vv, sig, nb_ok, nb0, fit_me, glowing, retry, hold, cand, side, rc, hw, reach_rows, sg0,
-    lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w,
+    lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, kap_k, s_w, shares,
 ):
     """(N,) the share of the stripe's amplitude the glow's step is held at in each point's fit (0: a free step). On
     each laser's stripe that glows all along (:func:`glows_along`), the step model is fitted at every
     :data:`HELD_EVERY`-th column's glowing points with the step free and untested (a test would select the fits
     whose step came out large); where the median of their steps over their amplitudes is at most
-    :data:`HELD_MAX_STEP`, the stripe's glowing points take it."""
+    :data:`HELD_MAX_STEP`, the stripe's glowing points take it. ``shares`` (L,) float64, written: each laser's median
+    (also above :data:`HELD_MAX_STEP`), :data:`UNTOLD` where none was told."""
     n = cols.size
     n_l = at.shape[0]
     rho = zeros(n, np.float64)
@@ -81,12 +84,31 @@ def held_share(  # type: ignore[no-untyped-def]
                 ratio[k] = st1[1, t] / st1[0, t]
                 k += 1
         r_l = median(ratio)
+        shares[li] = r_l
         if not r_l <= HELD_MAX_STEP:
             continue
         for t in range(n):
             if laser[t] == li and fit_me[t] and glowing[t]:
                 rho[t] = max(r_l, 1e-3)
     return rho
+
+
+@callee
+def carried_share(shares, cand, glowing, laser, fit_me, n_l):  # type: ignore[no-untyped-def]
+    """``(rho, fresh)``: :func:`held_share`'s (N,) shares from ``shares`` (S,), each laser's as told on an earlier
+    frame of the same water; ``fresh`` True where a laser whose stripe glows all along now has none told (beyond
+    ``S`` or :data:`UNTOLD`): then the share must be told on this frame."""
+    n = cand.size
+    rho = zeros(n, np.float64)
+    whole = glows_along(cand, glowing, laser, n_l)
+    for li in range(n_l):
+        if whole[li] and (li >= shares.size or shares[li] == UNTOLD):
+            return rho, True
+    for t in range(n):
+        li = laser[t]
+        if whole[li] and fit_me[t] and glowing[t] and shares[li] <= HELD_MAX_STEP:
+            rho[t] = max(shares[li], 1e-3)
+    return rho, False
 
 
 @callee

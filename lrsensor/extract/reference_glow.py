@@ -39,7 +39,7 @@ from .glow import (
     WINDOW_SIGMAS,
 )
 from .glow_fit import GLOW_MIN_FRAC, ITERATIONS, MAX_MOVE_PX, MAX_STEP_PX, N_LIN, ROUND_TOL_PX, ROUNDS, STOP_PX
-from .held import ALONG_MIN, HELD_EVERY, HELD_MAX_STEP, HELD_MIN_FITS, HELD_STEP
+from .held import ALONG_MIN, HELD_EVERY, HELD_MAX_STEP, HELD_MIN_FITS, HELD_STEP, UNTOLD
 from .water import WATER_POINTS, WATER_STEP, vertex
 
 FloatArray = NDArray[np.float64]
@@ -474,15 +474,16 @@ def glow_refit(
     kap_k = np.zeros(n)
     g_fit = todo & glowing & ~retry
     alpha, s_w = 0.0, 0.0
+    carried = bool(g_fit.sum() >= ALPHA_SAMPLE and water[2] < WATER_FRAMES)
     if g_fit.sum() >= ALPHA_SAMPLE:
-        if water[2] < WATER_FRAMES:  # (glow.glow_refit's water)
+        if carried:  # (glow.glow_refit's water)
             alpha, s_w = float(water[0]), float(water[1])
         else:
             told = glowing & ~retry
             alpha, s_w = _attenuation(rounds, vv, sig, cols, laser, at, amp, todo, told, k_pt, rc, hw, sg0, h)
             if s_w < SHAPE_MIN_SIGMA:  # a sharp stripe: the step and its ramp (glow.SHAPE_MIN_SIGMA)
                 alpha, s_w = 0.0, 0.0
-            water[:] = (alpha, s_w, 0.0)
+            water[:3] = (alpha, s_w, 0.0)
         water[2] += 1.0
     kap_k = alpha * k_pt
     hold = np.zeros(n, bool)
@@ -499,7 +500,19 @@ def glow_refit(
     rho = np.zeros(n)
     n_cl = np.bincount(laser[cand], minlength=n_l)
     along = (n_cl >= ALONG_MIN) & (np.bincount(laser[cand & ~glowing], minlength=n_l) == 0)
-    if HELD_STEP and along.any():
+    shares = water[3:]  # (the share told with the water is carried with it: glow.glow_refit)
+    told_now = bool(g_fit.sum() >= ALPHA_SAMPLE and not carried)
+    if told_now:
+        shares[:] = UNTOLD
+    fresh = True
+    if HELD_STEP and along.any() and carried:
+        known = np.array([li < shares.size and shares[li] != UNTOLD for li in range(n_l)])
+        fresh = bool((along & ~known).any())
+        if not fresh:
+            r_c = np.array([shares[li] if li < shares.size else 0.0 for li in range(n_l)])
+            use = todo & glowing & along[laser] & (r_c[laser] <= HELD_MAX_STEP)
+            rho[use] = np.maximum(r_c[laser[use]], 1e-3)
+    if HELD_STEP and along.any() and fresh:
         sample = todo & glowing & along[laser] & ~retry & (cols % HELD_EVERY == 0)
         r_s = np.where(sample, -1.0, 0.0)
         _v, _s, f1, _r, _d, st1 = rounds(False, sample & ~hold, vv, sig, hw=hw, sg0=sg0, rho=r_s)
@@ -514,6 +527,8 @@ def glow_refit(
             if mine.sum() < HELD_MIN_FITS:
                 continue
             r_l = float(np.median(st1[1, mine] / st1[0, mine]))
+            if told_now and lh < shares.size:
+                shares[lh] = r_l
             if r_l <= HELD_MAX_STEP:
                 rho[todo & glowing & (laser == lh)] = max(r_l, 1e-3)
     v0, s0, f0, rss0, d0, st0 = rounds(False, todo & ~hold, vv, sig, hw=hw, sg0=sg0, rho=rho)
