@@ -65,9 +65,7 @@ class CaptureOrder:
         if not self._heap:
             return None
         t, _, came, _ = self._heap[0]
-        waiting = any(
-            newest < t and now - self._seen[robot] < self.quiet_s for robot, newest in self._newest.items()
-        )
+        waiting = any(newest < t and now - self._seen[robot] < self.quiet_s for robot, newest in self._newest.items())
         if waiting and len(self._heap) <= self.limit and now - came < self.max_wait_s:
             return None
         if waiting:
