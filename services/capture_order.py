@@ -20,12 +20,18 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import queue
+import time
 from typing import Any
 
 #: how long a cloud waits for an older cloud of another robot at most (s, wall time)
 MAX_WAIT_S = 1.0
 #: a robot silent this long (s, wall time) is not waited for
 QUIET_S = 1.0
+#: how often a map thread holding clouds looks again (s)
+POLL_S = 0.05
+#: no marker (a flush, a stop) waits behind the clouds held
+_NONE: Any = object()
 
 
 class CaptureOrder:
@@ -49,6 +55,8 @@ class CaptureOrder:
         self._seen: dict[str, float] = {}
         #: clouds released before their turn: by ``max_wait_s`` or by ``limit``
         self.forced = 0
+        #: a marker taken from the queue (anything without ``robot`` and ``t_ns``): it goes after the clouds held
+        self._marker: Any = _NONE
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -75,3 +83,29 @@ class CaptureOrder:
     def pop(self) -> Any:
         """The oldest cloud held, whatever the others (a flush: nothing more is coming)."""
         return heapq.heappop(self._heap)[3]
+
+    def next_from(self, q: queue.Queue[Any], idle_s: float) -> Any:
+        """The map thread's next item from its queue ``q``: a cloud in capture order, or a marker (a flush, a stop)
+        once every cloud taken before it is out. Raises ``queue.Empty`` after ``idle_s`` with nothing held."""
+        while True:
+            # all that has come first: a lagging robot's older clouds may be behind the others' in the queue
+            while self._marker is _NONE and len(self._heap) < self.limit:
+                try:
+                    self._take(q.get_nowait())
+                except queue.Empty:
+                    break
+            if self._marker is not _NONE:
+                if self._heap:
+                    return self.pop()
+                item, self._marker = self._marker, _NONE
+                return item
+            msg = self.pop_ready(time.monotonic())
+            if msg is not None:
+                return msg
+            self._take(q.get(timeout=POLL_S if self._heap else idle_s))
+
+    def _take(self, item: Any) -> None:
+        if hasattr(item, "robot") and hasattr(item, "t_ns"):
+            self.push(item, time.monotonic())
+        else:
+            self._marker = item

@@ -84,8 +84,6 @@ log = logging.getLogger(__name__)
 CLOSE_TIMEOUT_S = 60.0
 #: Marker in the map queue: flush the map.
 _FLUSH: Any = object()
-#: no flush or stop waiting behind the clouds held for capture order
-_NONE: Any = object()
 #: how often an idle map thread looks for silent robots whose clouds wait in their hold (s)
 SILENT_CHECK_S = 1.0
 #: Publish a robot's corrected pose at most this often (seconds of capture time).
@@ -196,10 +194,8 @@ class MapFeed:
         self._unplaced_robots: set[str] = set()
         self.queue_size = queue_size
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
-        #: the clouds taken from the queue, released to the map in capture order across robots, and a flush or
-        #: stop taken meanwhile (it waits for them)
+        #: the clouds taken from the queue, released to the map in capture order across robots
         self._order = CaptureOrder(queue_size)
-        self._sentinel: Any = _NONE
         #: capture time -> map update latencies of the clouds that reached the map
         self.map_latency = LatencyStats()
         #: per robot: clouds that reached the map; (seq, t_ns) of those waiting in the builder's window
@@ -380,7 +376,7 @@ class MapFeed:
         """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
         while True:
             try:
-                msg = self._next()
+                msg = self._order.next_from(self._queue, SILENT_CHECK_S)
             except queue.Empty:
                 try:
                     self._settle_silent()
@@ -412,33 +408,6 @@ class MapFeed:
                 if isinstance(msg, CloudMsg) and not deferred:
                     self.on_mapped(msg.robot, msg.seq)
                 self._queue.task_done()
-
-    def _next(self) -> Any:
-        """The map thread's next item: the clouds in capture-time order across robots (services.capture_order),
-        a flush or stop after every cloud taken before it; raises ``queue.Empty`` after ``SILENT_CHECK_S`` idle."""
-        order = self._order
-        while True:
-            # everything that has come first: a lagging robot's older clouds may be behind the others' in the queue
-            while self._sentinel is _NONE and len(order) < order.limit:
-                try:
-                    self._hold_item(self._queue.get_nowait())
-                except queue.Empty:
-                    break
-            if self._sentinel is not _NONE:
-                if len(order):
-                    return order.pop()
-                item, self._sentinel = self._sentinel, _NONE
-                return item
-            msg = order.pop_ready(time.monotonic())
-            if msg is not None:
-                return msg
-            self._hold_item(self._queue.get(timeout=0.05 if len(order) else SILENT_CHECK_S))
-
-    def _hold_item(self, item: Any) -> None:
-        if isinstance(item, CloudMsg):
-            self._order.push(item, time.monotonic())
-        else:
-            self._sentinel = item
 
     def _map_one(self, msg: CloudMsg) -> bool:
         """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
