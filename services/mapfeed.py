@@ -66,6 +66,7 @@ import numpy as np
 
 from lrsensor.frames import body_to_ned
 
+from .capture_order import CaptureOrder
 from .errors import MappingUnavailableError
 from .posetrack import has_fix
 from .wire import CloudMsg
@@ -193,6 +194,8 @@ class MapFeed:
         self._unplaced_robots: set[str] = set()
         self.queue_size = queue_size
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
+        #: the clouds taken from the queue, released to the map in capture order across robots
+        self._order = CaptureOrder(queue_size)
         #: capture time -> map update latencies of the clouds that reached the map
         self.map_latency = LatencyStats()
         #: per robot: clouds that reached the map; (seq, t_ns) of those waiting in the builder's window
@@ -373,7 +376,7 @@ class MapFeed:
         """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
         while True:
             try:
-                msg = self._queue.get(timeout=SILENT_CHECK_S)
+                msg = self._order.next_from(self._queue, SILENT_CHECK_S)
             except queue.Empty:
                 try:
                     self._settle_silent()
@@ -640,7 +643,7 @@ class MapFeed:
         with self._count_lock:
             pending = sum(len(v) for v in self._pending.values())
         lat = self.map_latency.percentiles_ms()
-        backlog = self._queue.qsize()
+        backlog = self._queue.qsize() + len(self._order)
         pool = self.pool.status_json() if self.pool is not None else None
         if pool is not None:
             pending = pool["in_flight"]  # sent to a worker (or waiting for one), not committed yet
