@@ -28,7 +28,7 @@ class Sensor:
         """A sensor with ``calibration``; readies the compiled extractor now rather than in the first frame.
 
         ``wait_for_kernels``: load the compiled kernels from numba's cache (about a second, once per process) or,
-        on a first use, compile them once now (about 20 s, said in the log). False (a live camera that must not
+        on a first use, compile them once now (about 30 s, said in the log). False (a live camera that must not
         stall): compile them in the background while the numpy reference processes the frames (said in the
         log, and when the compiled road takes over). See :mod:`lrsensor.extract.compile`.
 

@@ -16,7 +16,7 @@ from ..errors import LrsensorError
 
 #: name -> (module, one-line help). Order is the order ``--help`` lists them in.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "setup": ("lrsensor.cli.setup", "compile the sensor's kernels once after installing (about 20 s)"),
+    "setup": ("lrsensor.cli.setup", "compile the sensor's kernels once after installing (about 30 s)"),
     "process": (
         "lrsensor.cli.process",
         "extract and triangulate laser stripes of images into PLY point clouds",

@@ -1,6 +1,6 @@
 """``lrsensor setup``: compile the sub-pixel extractor's kernels once, after installing.
 
-    lrsensor setup            # compile (about 20 s on 2 cores) or confirm they are compiled
+    lrsensor setup            # compile (about 30 s on 2 cores) or confirm they are compiled
     lrsensor setup --check    # exit 0 if they are compiled, 1 if not; compiles nothing
 
 Without this step the first use of the extractor compiles them (with a message); every later process loads them

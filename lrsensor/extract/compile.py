@@ -91,7 +91,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: What the one-time compile takes on a 2-core machine, for the messages (docs/performance.md has the figure).
-COMPILE_TIME_HINT = "about 20 s"
+COMPILE_TIME_HINT = "about 30 s"
 #: LLVM's optimisation level of the child's compile (see the module documentation).
 CHILD_OPT_LEVEL = "1"
 #: The cyclic garbage collector's thresholds in the child and its helper (:func:`gc.set_threshold`; Python's are
