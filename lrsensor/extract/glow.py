@@ -119,7 +119,7 @@ from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .held import HELD_STEP, UNTOLD, carried_share, held_share
 from .refit import rows_overlap
 from .sorting import median
-from .water import retell, sample_total, vertex
+from .water import least, retell, sample_total
 
 #: A glow shows where the outer rows exceed the inner ones by this many times the noise of the difference...
 TRIGGER_SNR = 3.5
@@ -634,17 +634,10 @@ def _attenuation(  # type: ignore[no-untyped-def]
         grid, image, cols, laser, at, vv, sig, nb_ok, nb0, sample, n_s, glowing, side, rc, hw, reach_rows, sg0,
         lo_sig, max_sig, sat_dn, ramp, n_rounds, d_rc, k_pt,
     )  # fmt: skip
-    tot = sample_total(score_a, fit_a, use, sample)  # the summed log residuals
-    b = 0
-    for i in range(1, n_a):
-        if tot[i] < tot[b]:
-            b = i
-    if math.isinf(tot[b]):
+    # the least of the summed log residuals, finer at its parabola's vertex (retell refines it)
+    alpha = least(grid, sample_total(score_a, fit_a, use, sample), use)
+    if math.isnan(alpha):
         return 0.0, 0.0
-    alpha = grid[b]
-    if 0 < b < n_a - 1 and use[b - 1] and use[b + 1]:
-        # finer: the vertex of a parabola through the least and its neighbours (retell refines it)
-        alpha = vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1])
     # the stripe's width: the sample fitted with that attenuation
     _v, s1, f1, _r, _d, st1 = fit_rounds(
         image, cols, laser, at, vv, sig, vv, sig, nb_ok, nb0, sample, glowing, side, rc, hw, reach_rows, sg0, lo_sig,

@@ -53,6 +53,21 @@ def vertex(x0, x1, x2, y0, y1, y2):  # type: ignore[no-untyped-def]
     return min(max(-pb / (2.0 * pa), x0), x2) if pa > 0.0 else x1
 
 
+@inline
+def least(grid, tot, use):  # type: ignore[no-untyped-def]
+    """The ``grid`` (K,) value whose summed score ``tot`` (K,) is least, refined to the vertex of the parabola through
+    it and its neighbours where both were scored (``use`` (K,)); NaN where no value was scored at all."""
+    b = 0
+    for i in range(1, grid.size):
+        if tot[i] < tot[b]:
+            b = i
+    if math.isinf(tot[b]):
+        return math.nan
+    if 0 < b < grid.size - 1 and use[b - 1] and use[b + 1]:
+        return vertex(grid[b - 1], grid[b], grid[b + 1], tot[b - 1], tot[b], tot[b + 1])
+    return grid[b]
+
+
 @callee
 def retell(  # type: ignore[no-untyped-def]
     image,
@@ -157,16 +172,9 @@ def retell(  # type: ignore[no-untyped-def]
                 cr_a[i, t] = d2[t] * math.log(rss[t]) + st2[2, t]
             k += fit_a[i, t]
         use[i] = k >= share * n_s
-    tot = sample_total(cr_a, fit_a, use, sample)
-    c = 0
-    for i in range(1, n_f):
-        if tot[i] < tot[c]:
-            c = i
-    if math.isinf(tot[c]):
+    a2 = least(fine, sample_total(cr_a, fit_a, use, sample), use)
+    if math.isnan(a2):
         return alpha, s_w
-    a2 = fine[c]
-    if 0 < c < n_f - 1 and use[c - 1] and use[c + 1]:
-        a2 = vertex(fine[c - 1], fine[c], fine[c + 1], tot[c - 1], tot[c], tot[c + 1])
     _v, s2, f2, _r, _d, st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v_o, s_o, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows, sg0, lo_sig,
         max_sig, sat_dn, ramp, n_rounds[1], d_rc, a2 * k_pt, 0.0 * d_rc,
