@@ -13,6 +13,7 @@ from lrsensor import Calibration, Sensor
 from lrsensor.extract import centre, glow, glow_fit, held, reference_glow, subpixel
 from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 from lrsensor.extract.settings import glow_sides
+from lrsensor.scan import Scan
 
 #: No veil, particles or noise: the laser's layers alone.
 QUIET = {"veil_dn": 0.0, "particles_per_mpx": 0.0, "read_noise_dn": 0.0}
@@ -253,6 +254,13 @@ def test_detection_finds_the_stripe_on_the_rising_glow() -> None:
             assert fast[3] == noise
 
 
+def _columns(frame: TurbidFrame, scan: Scan, li: int) -> tuple[np.ndarray, np.ndarray]:
+    """Laser ``li``'s points' columns (N,) int and the image columns (W,) bool that have one of them."""
+    u = np.rint(scan.uv[scan.laser == li, 0]).astype(int)
+    seen = np.zeros(frame.rows.shape[1], bool)
+    seen[u] = True
+    return u, seen
+
 def test_far_glowing_walls_are_covered() -> None:
     """3 m, glow step 0.5, 1.5 px of blur (seed 1): the points cover at least 70 % of the visible columns (43 % with
     the two-sided contrast alone) and their median error stays within 0.3 % of range."""
@@ -260,9 +268,7 @@ def test_far_glowing_walls_are_covered() -> None:
     scan = Sensor(frame.calibration).process(frame.image)
     for li in (0, 1):
         m = scan.laser == li
-        u = np.rint(scan.uv[m, 0]).astype(int)
-        seen = np.zeros(frame.rows.shape[1], bool)
-        seen[u] = True
+        u, seen = _columns(frame, scan, li)
         assert seen[frame.visible[li]].mean() > 0.7
         rel = np.abs(scan.points[m, 0] - frame.range_m[li, u]) / frame.range_m[li, u]
         assert np.median(rel) < 0.003
@@ -277,9 +283,7 @@ def test_the_common_fits_refused_points_are_fitted_with_the_glow() -> None:
     scan = Sensor(frame.calibration).process(frame.image)
     for li in (0, 1):
         m = scan.laser == li
-        u = np.rint(scan.uv[m, 0]).astype(int)
-        seen = np.zeros(frame.rows.shape[1], bool)
-        seen[u] = True
+        u, seen = _columns(frame, scan, li)
         snr = frame.peak_dn[li] / frame.noise_dn[li]
         dim = frame.visible[li] & (snr >= 4.0) & (snr < 8.0)
         assert seen[dim].mean() > 0.55
@@ -316,9 +320,7 @@ def test_the_gate_takes_the_joint_fits_amplitude_and_noise() -> None:
     frame = render(Turbid(distance_m=2.0, glow_step=0.5, blur_px=1.5, seed=0))
     scan = Sensor(frame.calibration).process(frame.image)
     for li in (0, 1):
-        u = np.rint(scan.uv[scan.laser == li, 0]).astype(int)
-        seen = np.zeros(frame.rows.shape[1], bool)
-        seen[u] = True
+        _u, seen = _columns(frame, scan, li)
         assert seen[frame.visible[li]].mean() >= 0.9
     n = 5
     cols = np.arange(n)
