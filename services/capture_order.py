@@ -32,6 +32,8 @@ QUIET_S = 1.0
 POLL_S = 0.05
 #: no marker (a flush, a stop) waits behind the clouds held
 _NONE: Any = object()
+#: the whole fleet silent this long (s, wall time) ends a dive: the map is flushed as at the base's close
+QUIET_FLUSH_S = 5.0
 
 
 class CaptureOrder:
@@ -109,3 +111,33 @@ class CaptureOrder:
             self.push(item, time.monotonic())
         else:
             self._marker = item
+
+
+class QuietFlush:
+    """When a live base's dive ends: every robot heard from has been silent for ``quiet_s`` (wall time) since clouds
+    last came. The map is then flushed once as a stopping base flushes it (the robots' last windows extracted, the
+    held clouds settled, the smoothers' last run), so the map served between dives is the finished one, not the
+    one of the dive's last seconds; a cloud arriving afterwards starts a new dive.
+
+    Args:
+        quiet_s: how long the fleet must be silent (s, monotonic).
+    """
+
+    def __init__(self, quiet_s: float = QUIET_FLUSH_S) -> None:
+        self.quiet_s = quiet_s
+        #: when the last cloud came (s, monotonic); None once flushed (or before any cloud)
+        self._last: float | None = None
+        #: the flushes done so far
+        self.count = 0
+
+    def cloud(self, now: float) -> None:
+        """A cloud came at ``now`` (s)."""
+        self._last = now
+
+    def due(self, now: float) -> bool:
+        """Whether the fleet has been silent long enough at ``now`` (s) for its flush; True once per silence."""
+        if self._last is None or now - self._last < self.quiet_s:
+            return False
+        self._last = None
+        self.count += 1
+        return True

@@ -66,7 +66,7 @@ import numpy as np
 
 from lrsensor.frames import body_to_ned
 
-from .capture_order import CaptureOrder
+from .capture_order import CaptureOrder, QuietFlush
 from .errors import MappingUnavailableError
 from .posetrack import has_fix
 from .wire import CloudMsg
@@ -196,6 +196,8 @@ class MapFeed:
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
         #: the clouds taken from the queue, released to the map in capture order across robots
         self._order = CaptureOrder(queue_size)
+        #: the end of a dive seen live (the fleet silent): the map flushed as at a close
+        self.quiet = QuietFlush()
         #: capture time -> map update latencies of the clouds that reached the map
         self.map_latency = LatencyStats()
         #: per robot: clouds that reached the map; (seq, t_ns) of those waiting in the builder's window
@@ -380,6 +382,8 @@ class MapFeed:
             except queue.Empty:
                 try:
                     self._settle_silent()
+                    if self.pool is None and self.quiet.due(time.monotonic()):
+                        self._end_of_dive()
                 except Exception as err:  # the map must never stop the ingest
                     self.errors += 1
                     log.exception("settling a silent robot's held clouds failed: %s", err)
@@ -389,16 +393,9 @@ class MapFeed:
                 if msg is None:
                     return
                 if msg is _FLUSH:
-                    if self.builder is not None:
-                        self._settle()
-                    self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
-                    if self.fleet is not None:  # the end of a dive: the map as the last smoothing leaves it
-                        self._publish_changes(None, self.fleet.step("", 0, force=True))
-                        assert self.navigator is not None
-                        self._frame = self.navigator.frame()
-                    for robot in list(self._pending):
-                        self._commit(robot)
+                    self._end_of_dive()
                     continue
+                self.quiet.cloud(time.monotonic())
                 deferred = self._map_one(msg)
             except Exception as err:  # the map must never stop the ingest
                 self.errors += 1
@@ -408,6 +405,19 @@ class MapFeed:
                 if isinstance(msg, CloudMsg) and not deferred:
                     self.on_mapped(msg.robot, msg.seq)
                 self._queue.task_done()
+
+    def _end_of_dive(self) -> None:
+        """A flush (:meth:`flush`, or the fleet silent for ``QuietFlush.quiet_s``): held clouds settled, every
+        window extracted, the smoothers' last run, the pending clouds committed."""
+        if self.builder is not None:
+            self._settle()
+        self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
+        if self.fleet is not None:  # the map as the last smoothing leaves it
+            self._publish_changes(None, self.fleet.step("", 0, force=True))
+            assert self.navigator is not None
+            self._frame = self.navigator.frame()
+        for robot in list(self._pending):
+            self._commit(robot)
 
     def _map_one(self, msg: CloudMsg) -> bool:
         """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
@@ -662,6 +672,7 @@ class MapFeed:
                 "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
                 "workers": len(pool["workers"]) if pool is not None else 0,
                 "errors": self.errors,
+                "quiet_flushes": self.quiet.count,
             }
             | ({"navigation": self.navigator is not None} if self.builder is not None else {})
             | ({"smoothing": self._smoothing_json()} if self.fleet is not None else {})

@@ -10,7 +10,7 @@ import pytest
 import zenoh
 from waiting import wait_until
 
-from services.capture_order import CaptureOrder
+from services.capture_order import CaptureOrder, QuietFlush
 from services.testnet import TestNetwork
 from services.wire import CloudMsg
 
@@ -97,3 +97,44 @@ def test_a_robot_delivered_late_still_shares_the_fleet_heading() -> None:
         assert nav.fleet_heading is not None
         assert nav.fleet_heading.result is not None
         assert sorted(nav.fleet_heading.result.bias_rad) == ["rov1", "rov2", "rov3"]
+
+
+def test_quiet_flush_is_due_once_per_silence() -> None:
+    quiet = QuietFlush(quiet_s=5.0)
+    assert not quiet.due(100.0)  # no cloud yet: nothing to flush
+    quiet.cloud(0.0)
+    assert not quiet.due(4.9)
+    assert quiet.due(5.0)
+    assert not quiet.due(50.0)  # once per silence
+    quiet.cloud(60.0)  # a new dive
+    assert quiet.due(65.5)
+    assert quiet.count == 2
+
+
+def test_a_silent_fleet_gets_the_map_flushed_as_at_a_close() -> None:
+    """A live base (no flush_map, no close) whose robots stopped sending: once the fleet is silent for the quiet
+    time, the clouds still waiting in a robot's window are extracted (and the smoother's last run made), so the map
+    served after a dive is the finished one."""
+    from mapping.synth import simulate_dive, tank, three_rov_plans
+
+    frames = [f for f in simulate_dive(tank(), three_rov_plans(), duration_s=0.6, rate_hz=10.0, n_rays=400, seed=1)
+              if f.robot == "rov1"]  # fmt: skip
+    with TestNetwork("qf") as net:
+        base = net.start_base(map_mode="on", navigation=True)
+        base.feed.quiet.quiet_s = 1.5
+        pub = net.session().declare_publisher(net.keys.cloud("rov1"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for seq, f in enumerate(frames):  # fewer clouds than one extraction takes (MapConfig.extract_every_clouds)
+            pts = f.points_body.astype(np.float32)
+            n = len(pts)
+            pub.put(
+                CloudMsg("rov1", seq, f.t_ns, f.pose_est, pts, np.zeros(n, np.uint8), np.ones(n, np.float32)).to_bytes()
+            )
+        assert wait_until(lambda: base.processed >= len(frames), 30.0)
+        assert base.drain(30)
+        before = base.status()["map"]
+        assert before["pending"] == len(frames)
+        assert before["quiet_flushes"] == 0
+        assert wait_until(lambda: base.status()["map"]["quiet_flushes"] == 1, 30.0)
+        after = base.status()["map"]
+        assert after["pending"] == 0
+        assert base.status()["robots"]["rov1"]["mapped"] == len(frames)
