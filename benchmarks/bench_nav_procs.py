@@ -65,6 +65,7 @@ class Row:
     rov_wall_s: dict[str, float] = field(default_factory=dict)
     load: tuple[float, float] = (math.nan, math.nan)
     faces_off: str = ""
+    size: str = "traced"
     #: processes: recovered, duplicates, spurious of the map served as the last cloud is acknowledged
     at_end: str = "-"
 
@@ -94,6 +95,10 @@ def _score(mode: str, seed: int, way: str, planes: list[dict[str, Any]], frames:
     )
 
 
+#: the smoother's runs in the real-time in-process replay: True (on a thread of their own, as the base) or "wait"
+BACKGROUND: dict[str, bool | str] = {}
+
+
 def base_nav() -> dict[str, Any]:
     """``replay_dive``'s keywords for what ``lrsensor base --nav on`` (``--no-fix graph``) runs."""
     from mapping.smoother import SMOOTHED_NAV, SmootherConfig
@@ -109,7 +114,8 @@ def run_inprocess(mode: str, seed: int, seconds: float, frames: list[Any], way: 
 
     t0 = time.perf_counter()
     c0 = time.process_time()
-    run = replay_dive(frames, navigate=True, background=True if realtime else "wait", realtime=realtime, **base_nav())
+    background = BACKGROUND.get("rt", True) if realtime else "wait"
+    run = replay_dive(frames, navigate=True, background=background, realtime=realtime, **base_nav())
     row = _score(mode, seed, way, run.planes(), frames)
     row.wall_s = time.perf_counter() - t0
     row.cpu_s = {"this process": time.process_time() - c0}
@@ -133,7 +139,13 @@ def _reap(p: subprocess.Popen[bytes], timeout_s: float) -> tuple[int, float]:
 
 
 def run_processes(
-    mode: str, seed: int, seconds: float, folders: dict[str, Path], work: Path, base_args: tuple[str, ...] = ()
+    mode: str,
+    seed: int,
+    seconds: float,
+    folders: dict[str, Path],
+    work: Path,
+    base_args: tuple[str, ...] = (),
+    rov_args: tuple[str, ...] = (),
 ) -> tuple[Row, dict[str, Any]]:
     """``lrsensor base`` and one ``lrsensor rov`` per robot on loopback (see the module docstring); the served map
     scored, with the status. Returns the row and the served map."""
@@ -184,7 +196,7 @@ def run_processes(
                 rovs[robot] = subprocess.Popen(
                     [*lrs, "rov", "--fleet", fleet, "--robot", robot, "--connect", f"tcp/127.0.0.1:{port}",
                      "--source", str(d), "--imu", f"csv:{d / 'imu.csv'}", "--calib", str(d / "calib.json"),
-                     "--rate", "10", "--ack-timeout-s", "120", "--outbox", str(work / f"outbox-{robot}")],
+                     "--rate", "10", "--ack-timeout-s", "120", "--outbox", str(work / f"outbox-{robot}"), *rov_args],
                     stdout=logs[robot], stderr=subprocess.STDOUT, env=env,
                 )  # fmt: skip
             for robot, p in rovs.items():
@@ -244,7 +256,7 @@ def run_processes(
 def table(rows: list[Row]) -> str:
     """The markdown table of the rows."""
     lines = [
-        "| navigation | seed | road | faces seen / recovered (2 deg, 5 cm) | worst angle (deg) / offset (cm) | "
+        "| navigation, images | seed | road | faces seen / recovered (2 deg, 5 cm) | worst angle (deg) / offset (cm) | "
         "duplicates | spurious | at the last ack: recovered, dup, spurious | clouds placed per robot (of received) | "
         "faces off | status: position; heading | "
         "CPU s (base, rovs) | wall s (rovs) | load |",
@@ -256,7 +268,7 @@ def table(rows: list[Row]) -> str:
         load = "-" if not math.isfinite(r.load[0]) else f"{r.load[0]:.1f} -> {r.load[1]:.1f}"
         placed = " / ".join(str(v) for v in r.placed.values())
         lines.append(
-            f"| {r.mode} | {r.seed} | {r.way} | {r.seen} / {r.recovered} | {r.worst_angle_deg:.2f} / "
+            f"| {r.mode}, {r.size} | {r.seed} | {r.way} | {r.seen} / {r.recovered} | {r.worst_angle_deg:.2f} / "
             f"{r.worst_offset_cm:.1f} | {r.duplicates} | {r.spurious} | {r.at_end} | {placed} (of {r.clouds}) | "
             f"{r.faces_off or '-'} | {r.positions}; {r.heading} | {cpu} | {r.wall_s:.0f} ({rw}) | {load} |"
         )
@@ -271,31 +283,46 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=90.0)
     ap.add_argument("--inprocess", action="store_true", help="also the in-process replays (traced, extracted)")
     ap.add_argument("--realtime", action="store_true", help="with --inprocess: also the extracted clouds in real time")
+    ap.add_argument("--smoother", default=None, choices=("thread", "wait"), help="lrsensor base --smoother")
     ap.add_argument("--map-workers", type=int, default=None, metavar="N", help="lrsensor base --map-workers N")
     ap.add_argument("--size", default="640x360", help="rendered image size (WxH; the paper's camera is 1920x1080)")
+    ap.add_argument(
+        "--max-range-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help="lrsensor rov --max-range-m M (and the in-process extracted clouds cut at M along the optical axis)",
+    )
     ap.add_argument("--dives", type=Path, default=Path(tempfile.gettempdir()) / "lrs-nav-procs")
     ap.add_argument("--out", type=Path, default=None, help="append the table to this markdown file")
     args = ap.parse_args()
     base_args: tuple[str, ...] = () if args.map_workers is None else ("--map-workers", str(args.map_workers))
+    if args.smoother is not None:
+        base_args += ("--smoother", args.smoother)
+    rov_args: tuple[str, ...] = () if args.max_range_m is None else ("--max-range-m", str(args.max_range_m))
     rows: list[Row] = []
     for seed in (int(s) for s in args.seeds.split(",")):
         folders = write_fleet(args.dives, args.mode, seed, args.seconds, args.size)
+        cut = "" if args.max_range_m is None else f", cut at {args.max_range_m:g} m"
         if args.inprocess:
             frames = dive_frames(args.mode, seed, args.seconds)
             rows.append(run_inprocess(args.mode, seed, args.seconds, frames, "in-process, traced", False))
             print(table(rows[-1:]), flush=True)
             ext = extracted_frames(frames, folders)
-            rows.append(run_inprocess(args.mode, seed, args.seconds, ext, "in-process, extracted", False))
-            print(table(rows[-1:]), flush=True)
-            if args.realtime:
-                rows.append(run_inprocess(args.mode, seed, args.seconds, ext, "in-process, extracted, real time", True))
+            if args.max_range_m is not None:  # the default mounting: the optical axis is the body's x
+                ext = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= args.max_range_m]) for f in ext]
+            for way, rt in (("in-process, extracted", False), ("in-process, extracted, real time", True)):
+                if rt and not args.realtime:
+                    continue
+                rows.append(replace(run_inprocess(args.mode, seed, args.seconds, ext, way + cut, rt), size=args.size))
                 print(table(rows[-1:]), flush=True)
         for _ in range(args.runs):
             with tempfile.TemporaryDirectory(prefix="nav-procs-") as tmp:
-                row, _ = run_processes(args.mode, seed, args.seconds, folders, Path(tmp), base_args)
-                if args.map_workers is not None:
-                    row = replace(row, way=f"processes, --map-workers {args.map_workers}")
-                rows.append(row)
+                row, _ = run_processes(args.mode, seed, args.seconds, folders, Path(tmp), base_args, rov_args)
+            way = row.way + ("" if args.map_workers is None else f", --map-workers {args.map_workers}")
+            way += "" if args.smoother is None else f", --smoother {args.smoother}"
+            way += "" if args.max_range_m is None else f", --max-range-m {args.max_range_m:g}"
+            rows.append(replace(row, way=way, size=args.size))
             print(table(rows[-1:]), flush=True)
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     text = table(rows)

@@ -231,10 +231,12 @@ class MapFeed:
         self._last_seen: dict[str, float] = {}
         self._nav_published: dict[str, int] = {}
 
-    def set_smoothing(self, on: bool) -> None:
+    def set_smoothing(self, on: bool, wait: bool = False) -> None:
         """With navigation (before :meth:`start`): smooth each robot's past poses and re-place its clouds
         (``mapping.smoother``, the default), or correct each cloud once with the filter alone. Plane workers
-        (:meth:`use_workers`) turn it off: the re-placement needs the observations in this process."""
+        (:meth:`use_workers`) turn it off: the re-placement needs the observations in this process. ``wait``: the
+        map thread waits for each run to finish and takes it over at once (``lrsensor base --smoother wait``: the
+        map the in-process replays make, whatever the machine's speed), instead of going on while it runs."""
         if not self._nav_on:
             return
         from mapping.navigation import Navigator
@@ -245,7 +247,7 @@ class MapFeed:
             assert self.builder is not None
             # the re-filter and rebuild run on a thread of their own: the map thread is held only to start a
             # run and hand its result over (docs/navigation.md)
-            self.fleet = FleetPlacements(self.navigator, self.builder, background=True)
+            self.fleet = FleetPlacements(self.navigator, self.builder, background="wait" if wait else True)
         else:
             self.navigator = Navigator()
             self.fleet = None
