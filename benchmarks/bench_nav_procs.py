@@ -66,6 +66,8 @@ class Row:
     load: tuple[float, float] = (math.nan, math.nan)
     faces_off: str = ""
     size: str = "traced"
+    #: processes: clouds the base's capture order released before their turn (a robot more than 1 s behind)
+    forced: int = -1
     #: processes: recovered, duplicates, spurious of the map served as the last cloud is acknowledged
     at_end: str = "-"
 
@@ -250,6 +252,7 @@ def run_processes(
     row.clouds = sum(int(v.get("received", 0)) for v in robots.values())
     row.positions = ", ".join(f"{r} {v.get('nav', {}).get('position', '-')}" for r, v in sorted(robots.items()))
     row.heading = ", ".join(sorted({str(v.get("nav", {}).get("heading")) for v in robots.values()}))
+    row.forced = int(status.get("map", {}).get("order_forced", -1))
     return row, served
 
 
@@ -258,19 +261,20 @@ def table(rows: list[Row]) -> str:
     lines = [
         "| navigation, images | seed | road | faces seen / recovered (2 deg, 5 cm) | worst angle (deg) / offset (cm) | "
         "duplicates | spurious | at the last ack: recovered, dup, spurious | clouds placed per robot (of received) | "
-        "faces off | status: position; heading | "
+        "faces off | status: position; heading | out of order | "
         "CPU s (base, rovs) | wall s (rovs) | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         cpu = ", ".join(f"{v:.0f}" for v in r.cpu_s.values())
         rw = ", ".join(f"{v:.0f}" for v in r.rov_wall_s.values()) or "-"
         load = "-" if not math.isfinite(r.load[0]) else f"{r.load[0]:.1f} -> {r.load[1]:.1f}"
         placed = " / ".join(str(v) for v in r.placed.values())
+        forced = str(r.forced) if r.forced >= 0 else "-"
         lines.append(
             f"| {r.mode}, {r.size} | {r.seed} | {r.way} | {r.seen} / {r.recovered} | {r.worst_angle_deg:.2f} / "
             f"{r.worst_offset_cm:.1f} | {r.duplicates} | {r.spurious} | {r.at_end} | {placed} (of {r.clouds}) | "
-            f"{r.faces_off or '-'} | {r.positions}; {r.heading} | {cpu} | {r.wall_s:.0f} ({rw}) | {load} |"
+            f"{r.faces_off or '-'} | {r.positions}; {r.heading} | {forced} | {cpu} | {r.wall_s:.0f} ({rw}) | {load} |"
         )
     return "\n".join(lines)
 

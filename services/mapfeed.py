@@ -675,6 +675,7 @@ class MapFeed:
                 "workers": len(pool["workers"]) if pool is not None else 0,
                 "errors": self.errors,
                 "quiet_flushes": self.quiet.count,
+                "order_forced": self._order.forced,
             }
             | ({"navigation": self.navigator is not None} if self.builder is not None else {})
             | ({"smoothing": self._smoothing_json()} if self.fleet is not None else {})
