@@ -58,14 +58,15 @@ def render_scene(scene: Scene) -> Any:
 
 def _csv_row(t_ns: int, pose: Any) -> list[str]:
     fix = math.isfinite(pose.north_m) and math.isfinite(pose.east_m)
+    # float(): a numpy scalar's repr is not a number in a CSV
     return [
         str(t_ns),
-        repr(math.degrees(pose.roll_rad)),
-        repr(math.degrees(pose.pitch_rad)),
-        repr(math.degrees(pose.yaw_rad)),
-        repr(pose.north_m) if fix else "",
-        repr(pose.east_m) if fix else "",
-        repr(pose.down_m),
+        repr(math.degrees(float(pose.roll_rad))),
+        repr(math.degrees(float(pose.pitch_rad))),
+        repr(math.degrees(float(pose.yaw_rad))),
+        repr(float(pose.north_m)) if fix else "",
+        repr(float(pose.east_m)) if fix else "",
+        repr(float(pose.down_m)),
     ]
 
 
