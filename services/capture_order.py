@@ -127,7 +127,7 @@ class QuietFlush:
         self.quiet_s = quiet_s
         #: when the last cloud came (s, monotonic); None once flushed (or before any cloud)
         self._last: float | None = None
-        #: the flushes done so far
+        #: the flushes done so far (:meth:`flushed`)
         self.count = 0
 
     def cloud(self, now: float) -> None:
@@ -139,5 +139,8 @@ class QuietFlush:
         if self._last is None or now - self._last < self.quiet_s:
             return False
         self._last = None
-        self.count += 1
         return True
+
+    def flushed(self) -> None:
+        """The flush :meth:`due` asked for is done (counted in :attr:`count`)."""
+        self.count += 1

@@ -386,6 +386,7 @@ class MapFeed:
                     self._settle_silent()
                     if self.pool is None and self.quiet.due(time.monotonic()):
                         self._end_of_dive()
+                        self.quiet.flushed()
                 except Exception as err:  # the map must never stop the ingest
                     self.errors += 1
                     log.exception("settling a silent robot's held clouds failed: %s", err)

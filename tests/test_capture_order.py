@@ -105,9 +105,11 @@ def test_quiet_flush_is_due_once_per_silence() -> None:
     quiet.cloud(0.0)
     assert not quiet.due(4.9)
     assert quiet.due(5.0)
+    quiet.flushed()
     assert not quiet.due(50.0)  # once per silence
     quiet.cloud(60.0)  # a new dive
     assert quiet.due(65.5)
+    quiet.flushed()
     assert quiet.count == 2
 
 
