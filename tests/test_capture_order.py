@@ -38,6 +38,14 @@ def test_the_oldest_cloud_waits_for_a_robot_behind() -> None:
     assert order.forced == 0
 
 
+def test_clouds_of_one_capture_time_go_by_robot_name_whatever_came_first() -> None:
+    for arrival in (["b", "c", "a"], ["c", "a", "b"]):
+        order = CaptureOrder(limit=10)
+        for robot in arrival:
+            order.push(_Msg(robot, 1 * S), 0.0)
+        assert [order.pop_ready(0.0).robot for _ in range(3)] == ["a", "b", "c"]  # type: ignore[union-attr]
+
+
 def test_the_wait_is_bounded_by_time_quiet_robots_and_size() -> None:
     order = CaptureOrder(limit=3, max_wait_s=1.0, quiet_s=5.0)
     order.push(_Msg("a", 1 * S), 0.0)
