@@ -128,6 +128,9 @@ def extracted_frames(frames: list[DiveFrame], folders: dict[str, Path]) -> list[
         mine: dict[str, np.ndarray] = {}
         for f in (f for f in frames if f.robot == robot):
             img = cv2.imread(str(d / f"{f.t_ns}.png"), cv2.IMREAD_COLOR)
+            if img is None:
+                msg = f"could not read the frame {f.t_ns}.png in {d}"
+                raise OSError(msg)
             mine[str(f.t_ns)] = np.asarray(sensor.process(img).points, dtype=np.float64)
             clouds[(robot, f.t_ns)] = mine[str(f.t_ns)]
         np.savez(cache, **mine)  # type: ignore[arg-type]
