@@ -1,6 +1,6 @@
 """The acceptance check of issue 27 through processes: a whole fleet of one navigation, 90 s in real time.
 
-    python -m benchmarks.bench_nav_procs --mode depth-only --seeds 1,2 --runs 2 [--seconds 90] [--inprocess]
+    python benchmarks/bench_nav_procs.py --mode depth-only --seeds 1,2 --runs 2 [--seconds 90] [--inprocess]
         [--map-workers N] [--dives DIR] [--out benchmarks/results/nav_procs.md]
 
 ``bench_nav``'s 3-robot dive of one navigation (``good``, ``drift`` or ``depth-only`` for every robot; the same
@@ -38,8 +38,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from benchmarks.fleet_dives import dive_frames, extracted_frames, write_fleet
 from mapping.synth import hit_faces, score_map, tank
+
+try:  # python -m benchmarks.bench_nav_procs
+    from benchmarks.fleet_dives import dive_frames, extracted_frames, write_fleet
+except ImportError:  # python benchmarks/bench_nav_procs.py: this file's folder is on the path
+    from fleet_dives import dive_frames, extracted_frames, write_fleet  # type: ignore[no-redef]
 
 
 @dataclass

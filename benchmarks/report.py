@@ -137,7 +137,7 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "nav_procs.md",
         "mapping",
-        "python -m benchmarks.bench_nav_procs --mode MODE --seeds S --runs N [--size WxH] [--max-range-m M] "
+        "python benchmarks/bench_nav_procs.py --mode MODE --seeds S --runs N [--size WxH] [--max-range-m M] "
         "[--smoother thread|wait] [--inprocess]",
         note="a fleet of one navigation through lrsensor base and lrsensor rov processes vs in-process (issue 27)",
     ),
