@@ -66,11 +66,9 @@ def record(out: Path, duration_s: float, seed: int) -> int:
     res = demo.run_demo(demo.DemoConfig(duration_s=duration_s, seed=seed, progress=False, out_dir=out.parent / "demo"))
     print(demo.format_summary(res, demo.DemoConfig(duration_s=duration_s)))
     truth = []
-    for (kind, robot, t), p in zip([c for c in calls if c[0] == "add"], poses, strict=True):
-        assert kind == "add"
+    for _kind, robot, t in (c for c in calls if c[0] == "add"):
         tp = dives[robot].true_pose(t)
         truth.append((tp.north_m, tp.east_m, tp.down_m, tp.roll_rad, tp.pitch_rad, tp.yaw_rad))
-        del p
     lens = np.array([c.shape[0] for c in clouds], np.int64)
     np.savez_compressed(
         out,
@@ -146,7 +144,8 @@ def _print_planes(a: Any, b: Any, served: list[dict[str, Any]], score: dict[str,
             )
             lo, hi = p["extent"]["aabb_min"], p["extent"]["aabb_max"]
             print(
-                f"plane {p['id']}: n_obs {p['n_obs']}, {p['n_points']} pts, normal {np.round(n, 4)}, tilt {tilt:.2f} deg, "
+                f"plane {p['id']}: n_obs {p['n_obs']}, {p['n_points']} pts, normal {np.round(n, 4)}, "
+                f"tilt {tilt:.2f} deg, "
                 f"angle to face {math.degrees(math.acos(min(1.0, abs(float(n @ fn))))):.2f} deg, centroid off "
                 f"{100 * off:+.1f} cm, rms {100 * p['rms_m']:.2f} cm, down {lo[2]:.2f}-{hi[2]:.2f}, "
                 f"u {(np.array(p['extent']['corners']) @ f['u']).min():.2f}.."
@@ -183,10 +182,12 @@ def _print_planes(a: Any, b: Any, served: list[dict[str, Any]], score: dict[str,
                         100 * float(np.median(pts[on] @ fn) - float(fc @ fn)),
                     )
                 )
-            print(f"\nclouds on plane {p['id']} (robot, t s, points, droll deg, dpitch deg, pos err along face "
-                  "normal cm, down err cm, median down m, median offset of its points from the face cm):")
+            print(
+                f"\nclouds on plane {p['id']} (robot, t s, points, droll deg, dpitch deg, pos err along face "
+                "normal cm, down err cm, median down m, median offset of its points from the face cm):"
+            )
             for r in rows:
-                print(f"  {r[0]} {r[1]:6.1f} {r[2]:5d} {r[3]:+.2f} {r[4]:+.2f} {r[5]:+.1f} {r[6]:+.1f} {r[7]:.2f} {r[8]:+.1f}")
+                print("  " + " ".join(f"{x:+.2f}" if isinstance(x, float) else str(x) for x in r))
 
 
 def main() -> int:
@@ -213,8 +214,9 @@ def main() -> int:
         errs = list(s["matched"].values())
         worst = (max(e["angle_deg"] for e in errs), 100 * max(e["offset_m"] for e in errs)) if errs else (0.0, 0.0)
         print(
-            f"{path.name}: {len(res['served'])} planes, {len(s['matched'])}/{s['faces']} faces, worst {worst[0]:.2f} deg "
-            f"{worst[1]:.1f} cm, duplicates {s['duplicates'] or 'none'}, spurious {s['spurious']}"
+            f"{path.name}: {len(res['served'])} planes, {len(s['matched'])}/{s['faces']} faces, "
+            f"worst {worst[0]:.2f} deg {worst[1]:.1f} cm, duplicates {s['duplicates'] or 'none'}, "
+            f"spurious {s['spurious']}"
         )
     return 0
 

@@ -14,7 +14,7 @@ An observation (the points one robot's window gave one plane) joins a map plane 
 * and the fusion does not make the plane thick: the scatter it adds to its parts' own (:func:`added_rms_m`: their
   separation and relative tilt over their points, weighted by their shares) stays within ``merge_max_rms_m``.
   What the parts already carry does not count: a face all robots saw is as thick as their pose errors make it
-  (about 3 cm RMS in the demo, whose trusted poses disagree by 2-4 cm between robots), and a test of the fused
+  (about 3 cm RMS in the demo, whose trusted poses disagree by 3-7 cm between robots), and a test of the fused
   plane's whole RMS against the bound then refused every later view of that face, even one lying 1 cm from it,
   which became a second plane of the face (docs/mapping.md, "The demo's duplicate").
 
@@ -282,8 +282,9 @@ def added_rms_m(fa: PlaneFit, n_a: int, fb: PlaneFit, n_b: int, merged: PlaneFit
     between the two planes over their points: offset and relative tilt) it is ``s * sqrt(w_a * w_b)`` with
     ``w`` the point shares, so two thin planes of similar size 6 cm apart add 3 cm, while a view lying within a
     face's own thickness adds almost nothing, however thick the face's plane already is. The cap keeps a plane
-    from excusing its own thickness without end: with ``added <= own_max_m`` no fused plane grows thicker than
-    ``sqrt(2) * own_max_m``, and a plane that got thick (bridged wrong views) takes no more than a thin one.
+    from excusing its own thickness without end: a fusion admitted with ``added <= own_max_m`` is at most
+    ``sqrt(2) * own_max_m`` thick, and a plane that got thicker (views that bridged planes) takes no more than a
+    thin one.
     """
     n = n_a + n_b
     pooled = (n_a * min(fa.rms_m, own_max_m) ** 2 + n_b * min(fb.rms_m, own_max_m) ** 2) / n

@@ -19,7 +19,9 @@ def _view(rng: np.random.Generator, robot: str, north: float, t_s: float, n: int
     down 1-2 m: one observation as a window gives it."""
     p = np.stack([north + rng.normal(0, 0.003, n), rng.uniform(0, 3, n), rng.uniform(1, 2, n)], 1)
     t = int(t_s * S)
-    return PlaneRecord.from_points(np.rint(p / Q).astype(np.int64), np.array([-1.0, 0, 0]), robot, t - S, t, MapConfig())
+    return PlaneRecord.from_points(
+        np.rint(p / Q).astype(np.int64), np.array([-1.0, 0, 0]), robot, t - S, t, MapConfig()
+    )
 
 
 def _thick_face(rng: np.random.Generator, half_m: float, cfg: MapConfig) -> PlaneMap:
@@ -47,7 +49,6 @@ def test_a_view_lying_on_a_face_as_thick_as_the_bound_joins_it() -> None:
     (face,) = pm.planes.values()
     assert face.fit.rms_m > cfg.merge_max_rms_m
     view = _view(rng, "rov3", 3.01, 30)
-    f_view = view.fit(Q)
     merged = fit_parts(
         face.record.stats + view.stats,
         tuple(a + b for a, b in zip(face.record.within, view.within, strict=True)),
