@@ -89,10 +89,10 @@ class GraphConfig:
     heading_own_share: float = 0.99
 
 
-#: The gated graph measured for depth-only fleets (docs/navigation.md, "Depth-only"): an unbroken track, a broken one
-#: taken up again only where a scan matches one place alone, checked every 2 s, a passed check more than 3 cm from its
-#: place anchoring the pose there (within 6 cm: "The common heading from the launch fixes and shared walls"); with
-#: ``NavConfig.frame_graph_launches``. An option (``lrsensor base --no-fix graph``).
+#: The gated graph measured for depth-only fleets (docs/navigation-design.md, "Tracked anchors"): an unbroken track, a
+#: broken one taken up again only where a scan matches one place alone, checked every 2 s, a passed check more than 3 cm
+#: from its place anchoring the pose there (within 6 cm); with ``NavConfig.frame_graph_launches``. What
+#: ``lrsensor base --no-fix graph`` (the default) runs.
 TRACKED = GraphConfig(
     second_hypothesis=True,
     track_break_std_m=0.1,

@@ -80,18 +80,18 @@ class NavConfig:
     prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong
     association, not drift: it is rejected and counted (:attr:`RobotNav.gated`).
 
-    Scan odometry (``scan_odometry``, off by default: see docs/navigation.md "Limits"; :mod:`mapping.odometry`):
-    without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before) replaces the walk
-    where the two scans observe it. A cloud without a fix is placed when its scan pinned both horizontal axes to
-    the map, or, with scan odometry, while the robot's horizontal standard deviation is within
+    Scan odometry (``scan_odometry``, off by default: see docs/navigation-design.md, "Measured and left off";
+    :mod:`mapping.odometry`): without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before)
+    replaces the walk where the two scans observe it. A cloud without a fix is placed when its scan pinned both
+    horizontal axes to the map, or, with scan odometry, while the robot's horizontal standard deviation is within
     ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
 
     Pose graph (``graph_without_fix``, off by default): a robot whose fixes stop within ``launch_window_s`` of its
     first (a launch fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM)
     instead of this filter, from its last launch cloud on. Off because the graphs track such a robot for tens of
     seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
-    gains spurious planes (docs/navigation.md, "Limits"). Off, such a robot is reported ``lost`` and its clouds
-    stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
+    gains spurious planes (docs/navigation-design.md, "Tracked anchors"). Off, such a robot is reported ``lost``
+    and its clouds stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
     :data:`mapping.graph_config.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
     ``frame_graph_launches``: the launch frame
     (:meth:`Navigator.frame` with smoothing) takes a graph robot's launch as its graph places it (else its
@@ -99,7 +99,7 @@ class NavConfig:
     ``frame_fleet_compass`` (off): with pose graphs, the frame's heading is instead the fleet's mean compass: the
     mean over the graph robots of each one's mean heading correction over its window
     (:meth:`mapping.posegraph.GraphNav.mean_correction`), as if the compasses' biases averaged to zero over the
-    robots and the dive (docs/navigation.md, "One heading for the fleet": in the simulator they do not); only
+    robots and the dive (docs/navigation-design.md, "Measured and left off": in the simulator they do not); only
     while every robot is on its pose graph (a robot with fixes gives the map its heading).
     ``fleet_heading`` (on; it acts only where two robots or more are on pose graphs): the graph robots' compass
     biases estimated jointly from their scans of the first ``fleet_heading_s`` after their launches and the walls

@@ -11,7 +11,12 @@ An observation (the points one robot's window gave one plane) joins a map plane 
   and within ``merge_band_angle_deg`` of each other, points within ``merge_band_offset_m``) may be up to
   ``merge_band_gap_down_m`` apart along down instead: a robot that crossed a face at two depths leaves a gap between
   its bands as wide as its change of depth, yet a vertical face is one plane over its whole height,
-* and the fused plane is still thin (RMS <= ``merge_max_rms_m``).
+* and the fusion does not make the plane thick: the scatter it adds to its parts' own (:func:`added_rms_m`: their
+  separation and relative tilt over their points, weighted by their shares) stays within ``merge_max_rms_m``.
+  What the parts already carry does not count: a face all robots saw is as thick as their pose errors make it
+  (about 3 cm RMS in the demo, whose trusted poses disagree by 3-7 cm between robots), and a test of the fused
+  plane's whole RMS against the bound then refused every later view of that face, even one lying 1 cm from it,
+  which became a second plane of the face (docs/mapping.md, "The demo's duplicate").
 
 Two planes that fail those tests may still be one surface: seen from poses that disagree by more than
 ``merge_offset_m``, one wall gives two parallel planes a decimetre apart. When they face the same way, lie within
@@ -267,6 +272,25 @@ def rms_distance(fa: PlaneFit, fb: PlaneFit) -> float:
     return math.sqrt(off * off + max(float(fb.normal @ fa.cov @ fb.normal), 0.0))
 
 
+def added_rms_m(fa: PlaneFit, n_a: int, fb: PlaneFit, n_b: int, merged: PlaneFit, own_max_m: float) -> float:
+    """The RMS thickness (metres) that fusing two planes adds to what their points already scatter about their
+    own planes: ``sqrt(merged.rms^2 - (n_a r_a^2 + n_b r_b^2) / (n_a + n_b))`` (0 when the fused plane is no
+    thicker than its parts, pooled), where a part's own RMS ``r`` counts only up to ``own_max_m``.
+
+    ``fa``, ``fb`` are the parts' fits (``n_a``, ``n_b`` points), ``merged`` the fit of their summed statistics.
+    What is left is the between-parts scatter along the fused normal: for parts ``s`` apart (the RMS distance
+    between the two planes over their points: offset and relative tilt) it is ``s * sqrt(w_a * w_b)`` with
+    ``w`` the point shares, so two thin planes of similar size 6 cm apart add 3 cm, while a view lying within a
+    face's own thickness adds almost nothing, however thick the face's plane already is. The cap keeps a plane
+    from excusing its own thickness without end: a fusion admitted with ``added <= own_max_m`` is at most
+    ``sqrt(2) * own_max_m`` thick, and a plane that got thicker (views that bridged planes) takes no more than a
+    thin one.
+    """
+    n = n_a + n_b
+    pooled = (n_a * min(fa.rms_m, own_max_m) ** 2 + n_b * min(fb.rms_m, own_max_m) ** 2) / n
+    return math.sqrt(max(merged.rms_m**2 - pooled, 0.0))
+
+
 class _Boxes:
     """The map planes' bounding boxes (quanta) as arrays: one vectorized overlap test against every plane.
 
@@ -385,7 +409,7 @@ class PlaneMap:
             cfg.quantum_m,
             cfg.between_window_weight,
         )
-        return merged.rms_m <= cfg.merge_max_rms_m
+        return added_rms_m(fa, a.stats.n, fb, b.stats.n, merged, cfg.merge_max_rms_m) <= cfg.merge_max_rms_m
 
     def bands(
         self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None

@@ -55,16 +55,16 @@ def _sub(nav: RobotNav) -> list[int]:
     return _SUB if nav.cfg.dr_bias_sigma_m_s > 0 else _SUB_NO_BIAS
 
 
-#: The filter's tuning under the smoother: fixes weighted by 5x (not 1.5x) their RMS disagreement with the
-#: estimate. A drifting dead reckoning's fixes are the sum of the increments the filter already uses; weighted
-#: as independent measurements every 0.2 s they dragged the smoothed tracks toward the drift. A robot's own recent
-#: planes count more than under the filter alone (10 s at 0.1, not 20 s at 0.03): the smoother's re-filter needs
-#: them to hold a drifting robot between its passes (docs/navigation.md, "Measured"); but while the map has not
-#: joined a robot's part to another robot's, they move its position only, not its heading (on the short rendered
-#: dives they turned a drifting robot's heading the wrong way: docs/navigation.md, "Short dives"). The dead
-#: reckoning's velocity bias is in the model but held at zero per robot until its fixes' disagreement persists (a
-#: drift): always open, it bent good poses; never, a drifting robot's error outgrew its covariance along walls no
-#: scan pinned (docs/navigation.md, "The dead reckoning's velocity bias").
+#: The filter's tuning under the smoother: fixes weighted by 5x (not 1.5x) their RMS disagreement with the estimate. A
+#: drifting dead reckoning's fixes are the sum of the increments the filter already uses; weighted as independent
+#: measurements every 0.2 s they dragged the smoothed tracks toward the drift. A robot's own recent planes count more
+#: than under the filter alone (10 s at 0.1, not 20 s at 0.03): the smoother's re-filter needs them to hold a drifting
+#: robot between its passes; but while the map has not joined a robot's part to another robot's, they move its position
+#: only, not its heading (on the short rendered dives they turned a drifting robot's heading the wrong way;
+#: docs/navigation-design.md, "Own recent planes"). The dead reckoning's velocity bias is in the model but held at zero
+#: per robot until its fixes' disagreement persists (a drift): always open, it bent good poses; never, a drifting
+#: robot's error outgrew its covariance along walls no scan pinned (docs/navigation-design.md, "The dead reckoning's
+#: velocity bias").
 SMOOTHED_NAV = NavConfig(
     fix_quality_factor=5.0,
     own_recent_s=10.0,

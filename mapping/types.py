@@ -106,7 +106,9 @@ class MapConfig:
             and each one's centroid within ``serve_copy_offset_m`` of the other's plane, up to a joined RMS of
             ``serve_copy_max_rms_m``: copies the map kept apart only because the fused plane would pass
             ``merge_max_rms_m``.
-        merge_max_rms_m: the fused plane's RMS may not exceed this (fusion must not make a plane thick).
+        merge_max_rms_m: fusion may not make a plane thick: the RMS it adds to the parts' own scatter about their
+            planes (:func:`mapping.plane_map.added_rms_m`) may not exceed this; a plane as thick as the poses'
+            errors make it still takes views that lie within that thickness.
         same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
             planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
             each other (RMS, either way round, as ``merge_offset_m``) are one surface seen from poses that disagree

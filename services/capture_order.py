@@ -5,8 +5,8 @@ robot's clouds go through the worker its key hashes to. While the map keeps up t
 behind (a replay fed faster than real time, a fleet catching up after a link outage) one worker's robots can run
 tens of seconds of capture time ahead of another's. A depth-only robot's pose graph then checks its scans against
 a map the others have not built yet, and the fleet's heading estimate, taken over every graph robot's first
-second, is made before some robots have started: the map depends on how fast it was fed (docs/navigation.md,
-"Fed faster than real time").
+second, is made before some robots have started: the map depends on how fast it was fed
+(docs/navigation-design.md, "Capture order").
 
 :class:`CaptureOrder` restores the order: the map thread puts every cloud it takes from its queue here, and takes
 out the oldest (smallest capture time) once every robot heard from within ``quiet_s`` has sent a cloud at least as

@@ -62,7 +62,8 @@ REGISTER_EVERY_S = 0.19
 EXTRAPOLATE_S = 0.5
 #: What the base does with a robot that has no horizontal fix after its launch (``lrsensor base --no-fix``):
 #: ``lost`` (reported lost, its clouds unplaced) or ``graph`` (its gated pose graph,
-#: :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame; docs/navigation.md, "Depth-only").
+#: :data:`mapping.graph_config.TRACKED`, with the graphs' launch frame; docs/navigation-design.md,
+#: "Tracked anchors").
 NO_FIX_CHOICES = ("lost", "graph")
 #: The base's choice when none is given (:func:`resolve_no_fix`; ``lost`` where GTSAM is missing). A worker reads a
 #: job without the choice as ``lost`` (:class:`services.map_worker_wire.MapJob`): the base always sends it.

@@ -246,7 +246,7 @@ class MapFeed:
             self.navigator = Navigator(SMOOTHED_NAV, SmootherConfig())
             assert self.builder is not None
             # the re-filter and rebuild run on a thread of their own: the map thread is held only to start a
-            # run and hand its result over (docs/navigation.md)
+            # run and hand its result over (docs/navigation-design.md, "The smoother")
             self.fleet = FleetPlacements(self.navigator, self.builder, background="wait" if wait else True)
         else:
             self.navigator = Navigator()

@@ -16,7 +16,7 @@ from mapping.synth import Scene, tank, trace
 
 S = 1_000_000_000
 DRIFT_M_S = 0.02  # the current's drag on the dead reckoning, north
-#: the bias state on (an option, off by default: docs/navigation.md)
+#: the bias state on (an option, off in NavConfig(): docs/navigation-design.md)
 BIAS = NavConfig(dr_bias_sigma_m_s=0.003)
 
 

@@ -1,5 +1,5 @@
 """The navigation's modules (issue 27): mapping.navigation exports the split modules' public names, and the
-velocity-bias option stays off by default (docs/navigation.md, "The dead reckoning's velocity bias")."""
+velocity-bias option stays off by default (docs/navigation-design.md, "The dead reckoning's velocity bias")."""
 
 from __future__ import annotations
 

@@ -284,7 +284,7 @@ def test_a_run_on_its_own_thread_hands_over_without_holding_the_map_thread(
     _, frames = drift_dive
     # as the base runs it: the map thread goes on while a run is away and takes it over when it is done. Replayed
     # as fast as the map takes the clouds, a run lags by many seconds of the dive (it does not in real time: see
-    # docs/navigation.md), so only the mechanics are checked here
+    # docs/navigation-design.md, "The smoother"), so only the mechanics are checked here
     run = replay_dive(
         frames, navigate=True, nav_cfg=NavConfig(fix_quality_factor=5.0), smoother=SmootherConfig(), background=True
     )
