@@ -135,6 +135,13 @@ SOURCES: tuple[Source, ...] = (
         "(issue 27)",
     ),
     Source(
+        "nav_procs.md",
+        "mapping",
+        "python benchmarks/bench_nav_procs.py --mode MODE --seeds S --runs N [--size WxH] [--max-range-m M] "
+        "[--smoother thread|wait] [--inprocess]",
+        note="a fleet of one navigation through lrsensor base and lrsensor rov processes vs in-process (issue 27)",
+    ),
+    Source(
         "fleet_heading.md",
         "mapping",
         "python benchmarks/diag_fleet_heading.py --seeds 1,2,3,5 --seconds 0,1,2,3",

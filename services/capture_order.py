@@ -10,8 +10,10 @@ second, is made before some robots have started: the map depends on how fast it 
 
 :class:`CaptureOrder` restores the order: the map thread puts every cloud it takes from its queue here, and takes
 out the oldest (smallest capture time) once every robot heard from within ``quiet_s`` has sent a cloud at least as
-recent, so no robot's cloud is mapped before an older one of another robot that is on its way. A cloud waits at
-most ``max_wait_s`` (a robot whose clock is off, or that has gone quiet, holds the others back no longer), and
+recent, so no robot's cloud is mapped before an older one of another robot that is on its way. Clouds of the same
+capture time (robots on one frame clock) go by robot name: which arrived first would otherwise change the map. A
+cloud waits at most ``max_wait_s`` (a robot whose clock is off, or that has gone quiet, holds the others back no
+longer), and
 the buffer holds at most ``limit`` clouds (beyond, the oldest goes at once: the bounded backlog stays bounded).
 Times: capture times in ns (the robots' clocks), waits in monotonic seconds (the base's clock).
 """
@@ -32,6 +34,8 @@ QUIET_S = 1.0
 POLL_S = 0.05
 #: no marker (a flush, a stop) waits behind the clouds held
 _NONE: Any = object()
+#: the whole fleet silent this long (s, wall time) ends a dive: the map is flushed as at the base's close
+QUIET_FLUSH_S = 5.0
 
 
 class CaptureOrder:
@@ -47,8 +51,9 @@ class CaptureOrder:
         self.limit = max(1, int(limit))
         self.max_wait_s = max_wait_s
         self.quiet_s = quiet_s
-        #: (capture time ns, arrival order, arrival time s, cloud)
-        self._heap: list[tuple[int, int, float, Any]] = []
+        #: (capture time ns, robot, arrival order, arrival time s, cloud): clouds of one capture time go by robot
+        #: name, not by which came first (robots sharing a frame clock, a replay), so the map does not depend on it
+        self._heap: list[tuple[int, str, int, float, Any]] = []
         self._count = itertools.count()
         #: robot -> newest capture time received (ns) and when its last cloud came (s)
         self._newest: dict[str, int] = {}
@@ -64,7 +69,7 @@ class CaptureOrder:
     def push(self, msg: Any, now: float) -> None:
         """``msg`` (``msg.robot``, ``msg.t_ns``) came at ``now`` (s)."""
         t = int(msg.t_ns)
-        heapq.heappush(self._heap, (t, next(self._count), now, msg))
+        heapq.heappush(self._heap, (t, str(msg.robot), next(self._count), now, msg))
         self._newest[msg.robot] = max(t, self._newest.get(msg.robot, t))
         self._seen[msg.robot] = now
 
@@ -72,17 +77,17 @@ class CaptureOrder:
         """The oldest cloud held if its turn has come at ``now`` (s), else None."""
         if not self._heap:
             return None
-        t, _, came, _ = self._heap[0]
+        t, _, _, came, _ = self._heap[0]
         waiting = any(newest < t and now - self._seen[robot] < self.quiet_s for robot, newest in self._newest.items())
         if waiting and len(self._heap) <= self.limit and now - came < self.max_wait_s:
             return None
         if waiting:
             self.forced += 1
-        return heapq.heappop(self._heap)[3]
+        return heapq.heappop(self._heap)[4]
 
     def pop(self) -> Any:
         """The oldest cloud held, whatever the others (a flush: nothing more is coming)."""
-        return heapq.heappop(self._heap)[3]
+        return heapq.heappop(self._heap)[4]
 
     def next_from(self, q: queue.Queue[Any], idle_s: float) -> Any:
         """The map thread's next item from its queue ``q``: a cloud in capture order, or a marker (a flush, a stop)
@@ -109,3 +114,36 @@ class CaptureOrder:
             self.push(item, time.monotonic())
         else:
             self._marker = item
+
+
+class QuietFlush:
+    """When a live base's dive ends: every robot heard from has been silent for ``quiet_s`` (wall time) since clouds
+    last came. The map is then flushed once as a stopping base flushes it (the robots' last windows extracted, the
+    held clouds settled, the smoothers' last run), so the map served between dives is the finished one, not the
+    one of the dive's last seconds; a cloud arriving afterwards starts a new dive.
+
+    Args:
+        quiet_s: how long the fleet must be silent (s, monotonic).
+    """
+
+    def __init__(self, quiet_s: float = QUIET_FLUSH_S) -> None:
+        self.quiet_s = quiet_s
+        #: when the last cloud came (s, monotonic); None once flushed (or before any cloud)
+        self._last: float | None = None
+        #: the flushes done so far (:meth:`flushed`)
+        self.count = 0
+
+    def cloud(self, now: float) -> None:
+        """A cloud came at ``now`` (s)."""
+        self._last = now
+
+    def due(self, now: float) -> bool:
+        """Whether the fleet has been silent long enough at ``now`` (s) for its flush; True once per silence."""
+        if self._last is None or now - self._last < self.quiet_s:
+            return False
+        self._last = None
+        return True
+
+    def flushed(self) -> None:
+        """The flush :meth:`due` asked for is done (counted in :attr:`count`)."""
+        self.count += 1

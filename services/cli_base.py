@@ -44,6 +44,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "unplaced, an empty part of the map rather than a wrong one; in the map thread and in plane workers "
         "alike; docs/navigation.md, 'Choosing --no-fix'",
     )
+    parser.add_argument(
+        "--smoother",
+        choices=("thread", "wait"),
+        default="thread",
+        help="with --nav on, the smoother's runs (every 10 s): thread (default): on a thread of their own while the "
+        "map thread goes on, handed over at the first cloud after they finish; wait: the map thread waits for each "
+        "run and takes it over at once (the map the in-process benchmarks make, whatever the machine's speed; the "
+        "map lags by a run); docs/navigation.md",
+    )
     parser.add_argument("--robots", default=None, help="comma-separated fleet members; others are rejected")
     parser.add_argument("--workers", type=int, default=2, help="ingest worker threads (default 2)")
     parser.add_argument(
@@ -102,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         )
         if args.nav == "filter":
             station.feed.set_smoothing(False)
+        elif args.smoother == "wait":
+            station.feed.set_smoothing(True, wait=True)
         with station, open_views(session, keys, args, station):
             print(f"base station of fleet {keys.fleet!r} running ({mode}); Ctrl-C to stop", flush=True)
             last = time.monotonic()

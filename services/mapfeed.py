@@ -66,7 +66,7 @@ import numpy as np
 
 from lrsensor.frames import body_to_ned
 
-from .capture_order import CaptureOrder
+from .capture_order import CaptureOrder, QuietFlush
 from .errors import MappingUnavailableError
 from .posetrack import has_fix
 from .wire import CloudMsg
@@ -196,6 +196,8 @@ class MapFeed:
         self._queue: queue.Queue[CloudMsg | None] = queue.Queue(maxsize=queue_size)
         #: the clouds taken from the queue, released to the map in capture order across robots
         self._order = CaptureOrder(queue_size)
+        #: the end of a dive seen live (the fleet silent): the map flushed as at a close
+        self.quiet = QuietFlush()
         #: capture time -> map update latencies of the clouds that reached the map
         self.map_latency = LatencyStats()
         #: per robot: clouds that reached the map; (seq, t_ns) of those waiting in the builder's window
@@ -229,10 +231,12 @@ class MapFeed:
         self._last_seen: dict[str, float] = {}
         self._nav_published: dict[str, int] = {}
 
-    def set_smoothing(self, on: bool) -> None:
+    def set_smoothing(self, on: bool, wait: bool = False) -> None:
         """With navigation (before :meth:`start`): smooth each robot's past poses and re-place its clouds
         (``mapping.smoother``, the default), or correct each cloud once with the filter alone. Plane workers
-        (:meth:`use_workers`) turn it off: the re-placement needs the observations in this process."""
+        (:meth:`use_workers`) turn it off: the re-placement needs the observations in this process. ``wait``: the
+        map thread waits for each run to finish and takes it over at once (``lrsensor base --smoother wait``: the
+        map the in-process replays make, whatever the machine's speed), instead of going on while it runs."""
         if not self._nav_on:
             return
         from mapping.navigation import Navigator
@@ -243,7 +247,7 @@ class MapFeed:
             assert self.builder is not None
             # the re-filter and rebuild run on a thread of their own: the map thread is held only to start a
             # run and hand its result over (docs/navigation-design.md, "The smoother")
-            self.fleet = FleetPlacements(self.navigator, self.builder, background=True)
+            self.fleet = FleetPlacements(self.navigator, self.builder, background="wait" if wait else True)
         else:
             self.navigator = Navigator()
             self.fleet = None
@@ -380,6 +384,9 @@ class MapFeed:
             except queue.Empty:
                 try:
                     self._settle_silent()
+                    if self.pool is None and self.quiet.due(time.monotonic()):
+                        self._end_of_dive()
+                        self.quiet.flushed()
                 except Exception as err:  # the map must never stop the ingest
                     self.errors += 1
                     log.exception("settling a silent robot's held clouds failed: %s", err)
@@ -389,16 +396,9 @@ class MapFeed:
                 if msg is None:
                     return
                 if msg is _FLUSH:
-                    if self.builder is not None:
-                        self._settle()
-                    self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
-                    if self.fleet is not None:  # the end of a dive: the map as the last smoothing leaves it
-                        self._publish_changes(None, self.fleet.step("", 0, force=True))
-                        assert self.navigator is not None
-                        self._frame = self.navigator.frame()
-                    for robot in list(self._pending):
-                        self._commit(robot)
+                    self._end_of_dive()
                     continue
+                self.quiet.cloud(time.monotonic())
                 deferred = self._map_one(msg)
             except Exception as err:  # the map must never stop the ingest
                 self.errors += 1
@@ -408,6 +408,19 @@ class MapFeed:
                 if isinstance(msg, CloudMsg) and not deferred:
                     self.on_mapped(msg.robot, msg.seq)
                 self._queue.task_done()
+
+    def _end_of_dive(self) -> None:
+        """A flush (:meth:`flush`, or the fleet silent for ``QuietFlush.quiet_s``): held clouds settled, every
+        window extracted, the smoothers' last run, the pending clouds committed."""
+        if self.builder is not None:
+            self._settle()
+        self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
+        if self.fleet is not None:  # the map as the last smoothing leaves it
+            self._publish_changes(None, self.fleet.step("", 0, force=True))
+            assert self.navigator is not None
+            self._frame = self.navigator.frame()
+        for robot in list(self._pending):
+            self._commit(robot)
 
     def _map_one(self, msg: CloudMsg) -> bool:
         """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
@@ -662,6 +675,8 @@ class MapFeed:
                 "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
                 "workers": len(pool["workers"]) if pool is not None else 0,
                 "errors": self.errors,
+                "quiet_flushes": self.quiet.count,
+                "order_forced": self._order.forced,
             }
             | ({"navigation": self.navigator is not None} if self.builder is not None else {})
             | ({"smoothing": self._smoothing_json()} if self.fleet is not None else {})

@@ -94,6 +94,8 @@ def test_map_feed_without_a_map_reports_each_cloud_at_once() -> None:
         "latency_ms": {"p50": None, "p99": None},
         "workers": 0,
         "errors": 0,
+        "quiet_flushes": 0,
+        "order_forced": 0,
     }
     assert feed.map_json() == {"planes": [], "enabled": False}
     assert feed.latency.percentiles_ms(transit=True) == {"p50": 2.0, "p99": 2.0}

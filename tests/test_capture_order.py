@@ -10,7 +10,7 @@ import pytest
 import zenoh
 from waiting import wait_until
 
-from services.capture_order import CaptureOrder
+from services.capture_order import CaptureOrder, QuietFlush
 from services.testnet import TestNetwork
 from services.wire import CloudMsg
 
@@ -36,6 +36,14 @@ def test_the_oldest_cloud_waits_for_a_robot_behind() -> None:
     order.push(_Msg("b", 4 * S), 0.2)
     assert order.pop_ready(0.2).t_ns == 3 * S  # type: ignore[union-attr]
     assert order.forced == 0
+
+
+def test_clouds_of_one_capture_time_go_by_robot_name_whatever_came_first() -> None:
+    for arrival in (["b", "c", "a"], ["c", "a", "b"]):
+        order = CaptureOrder(limit=10)
+        for robot in arrival:
+            order.push(_Msg(robot, 1 * S), 0.0)
+        assert [order.pop_ready(0.0).robot for _ in range(3)] == ["a", "b", "c"]  # type: ignore[union-attr]
 
 
 def test_the_wait_is_bounded_by_time_quiet_robots_and_size() -> None:
@@ -97,3 +105,46 @@ def test_a_robot_delivered_late_still_shares_the_fleet_heading() -> None:
         assert nav.fleet_heading is not None
         assert nav.fleet_heading.result is not None
         assert sorted(nav.fleet_heading.result.bias_rad) == ["rov1", "rov2", "rov3"]
+
+
+def test_quiet_flush_is_due_once_per_silence() -> None:
+    quiet = QuietFlush(quiet_s=5.0)
+    assert not quiet.due(100.0)  # no cloud yet: nothing to flush
+    quiet.cloud(0.0)
+    assert not quiet.due(4.9)
+    assert quiet.due(5.0)
+    quiet.flushed()
+    assert not quiet.due(50.0)  # once per silence
+    quiet.cloud(60.0)  # a new dive
+    assert quiet.due(65.5)
+    quiet.flushed()
+    assert quiet.count == 2
+
+
+def test_a_silent_fleet_gets_the_map_flushed_as_at_a_close() -> None:
+    """A live base (no flush_map, no close) whose robots stopped sending: once the fleet is silent for the quiet
+    time, the clouds still waiting in a robot's window are extracted (and the smoother's last run made), so the map
+    served after a dive is the finished one."""
+    from mapping.synth import simulate_dive, tank, three_rov_plans
+
+    frames = [f for f in simulate_dive(tank(), three_rov_plans(), duration_s=0.6, rate_hz=10.0, n_rays=400, seed=1)
+              if f.robot == "rov1"]  # fmt: skip
+    with TestNetwork("qf") as net:
+        base = net.start_base(map_mode="on", navigation=True)
+        base.feed.quiet.quiet_s = 1.5
+        pub = net.session().declare_publisher(net.keys.cloud("rov1"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for seq, f in enumerate(frames):  # fewer clouds than one extraction takes (MapConfig.extract_every_clouds)
+            pts = f.points_body.astype(np.float32)
+            n = len(pts)
+            pub.put(
+                CloudMsg("rov1", seq, f.t_ns, f.pose_est, pts, np.zeros(n, np.uint8), np.ones(n, np.float32)).to_bytes()
+            )
+        assert wait_until(lambda: base.processed >= len(frames), 30.0)
+        assert base.drain(30)
+        before = base.status()["map"]
+        assert before["pending"] == len(frames)
+        assert before["quiet_flushes"] == 0
+        assert wait_until(lambda: base.status()["map"]["quiet_flushes"] == 1, 30.0)
+        after = base.status()["map"]
+        assert after["pending"] == 0
+        assert base.status()["robots"]["rov1"]["mapped"] == len(frames)
