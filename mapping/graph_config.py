@@ -40,6 +40,9 @@ class GraphConfig:
     or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
     place is tried again after ``hold_retry_s``; a held cloud whose scan pinned one wall goes in only where at least
     ``hold_one_wall_share`` of its points fit the map's planes: the rest may be a face along the free direction).
+    ``commit_at_place`` (off): at a passed check the held clouds go in moved by the check's place minus the
+    estimate there (the place, a consensus of the map's planes, not the graph's estimate, says where they are), and
+    stay there (their poses frozen: the graph's later estimates would take them back).
     ``heading_check`` (off): at the checks, at most every ``heading_every_s``, the heading is also taken from the
     direction of the walls the scan sees (:mod:`mapping.graph_heading`), against the planes the robot contributed
     at most ``heading_own_share`` of the points to (0: the others' alone); a prior on that pose's heading, its
@@ -82,6 +85,7 @@ class GraphConfig:
     hold_check_radius_m: float = 0.3
     hold_retry_s: float = 0.5
     hold_one_wall_share: float = 0.6
+    commit_at_place: bool = False
     heading_check: bool = False
     heading_every_s: float = 2.0
     heading_floor_deg: float = 0.3

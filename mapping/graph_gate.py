@@ -99,6 +99,9 @@ class TrackGate:
         self.verified_ns = -(10**18)
         #: when a check first passed (None: not yet; until then the launch fix vouches for the placed clouds)
         self.first_verified_ns: int | None = None
+        #: the last passed check's place minus the estimate there (north, east; m) with
+        #: ``GraphConfig.commit_at_place``: where its held clouds go in relative to the graph's poses (zero otherwise)
+        self.place_shift = np.zeros(2)
 
     def step(self, std_m: float, t_ns: int) -> bool:
         """The marginal's horizontal std after the scan at ``t_ns``; returns True when this scan broke the track."""
@@ -196,10 +199,13 @@ def verify(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandma
         return None
     g.track.verified_ns = t
     off = float(np.hypot(*(place - x[0:2])))
+    g.track.place_shift = np.zeros(2)
     if off <= g.gcfg.verify_tol_m:
         if off > g.gcfg.verify_anchor_m:  # passed, yet beside the map's faces: the held clouds go in on them
             g._add("fix", (key,), (float(place[0]), float(place[1]), g.gcfg.relocalize_sigma_m))
             g._solve()
+        if g.gcfg.commit_at_place:
+            g.track.place_shift = np.asarray(place - g._est[key, 0:2], dtype=np.float64)
         return None
     g._add("fix", (key,), (float(place[0]), float(place[1]), g.gcfg.relocalize_sigma_m))
     g._solve()

@@ -165,8 +165,11 @@ def hold_cloud(g: Any, key: int, t: int, raw: Pose, points_body: Any, pinned: in
 
 
 def commit_held(g: Any, t: int) -> None:
-    """A passed check at ``t``: every held cloud to the map, with the pose the graph estimates for it now."""
+    """A passed check at ``t``: every held cloud to the map, with the pose the graph estimates for it now (with
+    ``GraphConfig.commit_at_place``: moved by the check's place minus the estimate, and frozen there)."""
     hold: CloudHold = g.hold
+    dn, de = (float(v) for v in g.track.place_shift)
+    g.track.place_shift = np.zeros(2)  # this check's alone
     if not hold.clouds:
         return
     poses = g.revised_poses()
@@ -175,6 +178,12 @@ def commit_held(g: Any, t: int) -> None:
         if pose is None:  # left the graph's window: its scans are no longer re-estimated, nothing vouches for it
             hold.dropped += 1
             continue
+        if dn or de:
+            # at a passed check the place is nearer the truth than the graph's estimate, which keeps where its own
+            # earlier scans put the planes: the clouds go in where the place says, and stay (the graph's later
+            # estimates would take them back beside the faces)
+            pose = replace(pose, north_m=pose.north_m + dn, east_m=pose.east_m + de)
+            g.track.freeze({c.t_ns: np.array([pose.north_m, pose.east_m, pose.yaw_rad])})
         _release(hold, c, pose, t)
         hold.committed += 1
     hold.clouds = []

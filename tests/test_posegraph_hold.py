@@ -199,3 +199,23 @@ def test_the_map_thread_settles_a_silent_robots_held_clouds() -> None:
     assert feed.builder is not None
     assert feed.builder.uncommitted("rov3") == 0  # its window extracted: nothing waits for a later cloud
     assert feed._nav_counts["rov3"][0] == 3
+
+
+def test_held_clouds_go_in_at_the_checks_place_and_stay_there_when_asked() -> None:
+    g = FakeGraph()
+    g.gcfg = replace(TRACKED, commit_at_place=True)
+    _step(g, 1, verified=True)
+    g.hold.take()
+    for k in range(2, 5):
+        _step(g, k)
+    g.track.place_shift = np.array([-0.05, 0.01])  # the check of 0.5 s found its place 5 cm south of the estimate
+    _step(g, 5, verified=True)
+    out = g.hold.take()
+    assert [t * 10 // S for t, _, _ in out] == [2, 3, 4, 5]
+    assert out[0][1].north_m == pytest.approx(1.0 + 0.02 - 0.05)
+    assert out[0][1].east_m == pytest.approx(1.01)
+    # frozen there: the graph's later estimates do not take them back
+    assert g.track.frozen[2 * S // 10][0:2] == pytest.approx([0.97, 1.01])
+    assert g.track.place_shift.tolist() == [0.0, 0.0]  # that check's alone
+    _step(g, 6, verified=True)
+    assert g.hold.take()[0][1].north_m == pytest.approx(1.06)

@@ -194,3 +194,30 @@ def test_the_checks_leave_out_the_planes_a_robot_made_mostly_itself_when_asked()
     assert check_planes(lm, "new", GraphConfig(verify_own_share=0.5)).ids.tolist() == [1, 2, 3]
     assert check_planes(lm, "me", GraphConfig(verify_own_share=0.9)).ids.tolist() == [1, 2]
     assert check_planes(lm, "me", GraphConfig(verify_own_share=0.5)).ids.tolist() == [1]
+
+
+def test_a_passed_check_gives_its_place_for_the_held_clouds_when_asked() -> None:
+    # launched 6 cm north of where it is: the checks pass ((1, 1) lies within verify_tol_m), and with
+    # commit_at_place each says how far its place lies from the estimate (the held clouds go in moved by it)
+    lm = PlaneLandmarks.from_planes(CORNER)
+
+    def shifts(**gate: Any) -> list[tuple[float, float, float]]:
+        cfg = GraphConfig(track_break_std_m=0.1, relocalize=True, verify_every_s=0.2, **gate)
+        g = GraphNav("rov1", NavConfig(), cfg)
+        g.update(0, Pose(1.06, 1.0, 1.0, 0.0, 0.0, 0.0), _corner_scan(), lm)
+        out = []
+        for k in range(1, 11):
+            est = g.update(k * 100_000_000, NOFIX, _corner_scan(), lm)
+            assert est.pose is not None
+            if g.track.verified_ns == k * 100_000_000:
+                out.append((est.pose.north_m, *g.track.place_shift))
+        assert g.track.relocalized == 0  # every check passed
+        return out
+
+    assert all(dn == de == 0.0 for _, dn, de in shifts())  # off
+    got = shifts(commit_at_place=True)
+    assert got
+    assert got[0][1] < -0.03  # the first check: the estimate still 6 cm north
+    for north, dn, de in got:
+        assert north + dn == pytest.approx(1.0, abs=0.02)  # moved by it, a held cloud goes in at the place
+        assert abs(de) < 0.02
