@@ -145,6 +145,7 @@ def _build(part: str | None = None) -> None:
     from .frame import (
         finish_located,
         fit_points,
+        glow_starts,
         locate_candidates,
         no_points,
         place_points,
@@ -177,7 +178,9 @@ def _build(part: str | None = None) -> None:
         )  # fmt: skip
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        # (the glow stage's two kernels: SubpixelConfig's glow_fit is on)
+        # (the glow stage's two kernels: SubpixelConfig's glow_fit is on; the starts called here too, which a sharp
+        # frame does not call)
+        glow_starts(located)
         glow = refine_points(image, located, bands.glow_side, settings, g, new_water())
         finish_located(located, glow, image.shape[1], settings, g)
         # (the central view's callee: compiled in this part either way)

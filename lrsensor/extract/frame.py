@@ -504,7 +504,10 @@ def refine_points(
     if not s.glow_fit:  # (nothing fitted, nothing retried)
         n = p.cols.size
         return res.centre, res.sigma, np.zeros(n, np.bool_), res.amplitude, res.local_noise, np.zeros(n, np.bool_)
-    v_in, s_in, ok_in, retry = glow_starts(p)
+    if RETRY_REFUSED and p.sigma_px >= BLURRED_SIGMA_PX:
+        v_in, s_in, ok_in, retry = glow_starts(p)
+    else:  # (a sharp frame retries none: no call)
+        v_in, s_in, ok_in, retry = res.centre, res.sigma, res.ok, np.zeros(p.cols.size, np.bool_)
     v_g, s_g, own, a_g, n_g = glow_refit(
         image, p.cols, p.laser, glow_side, v_in, res.amplitude, s_in, res.saturated, ok_in, res.local_noise, p.noise,
         s.min_fwhm_px / FWHM_PER_SIGMA, s.max_sigma_px, s.saturation_dn, s.min_green_ratio, geo.glow_vanish,
