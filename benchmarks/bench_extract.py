@@ -370,7 +370,7 @@ def _stage_clock(totals: dict[str, float]) -> Iterator[Callable[..., object]]:
     clock: the per-thread CPU time spent in each of :data:`STAGES` adds up in ``totals`` (s)."""
     names = vars(frame_module)
     saved = {name: names[name] for stage in STAGES.values() for name in stage}
-    halves = {name: names[name] for name in ("locate_candidates", "fit_points", "refine_and_finish", "place_points")}
+    halves = {name: names[name] for name in ("locate_candidates", "fit_points", "finish_located", "place_points")}
     for stage, stage_names in STAGES.items():
         for name in stage_names:
             f = saved[name]
@@ -410,7 +410,7 @@ def stage_times(image: np.ndarray, sensor: Sensor, repeats: int) -> list[tuple[s
         whole += time.thread_time() - t0
     rows = [(stage, 1e3 * totals.get(stage, 0.0) / repeats) for stage in STAGES]
     rows.append(("sum of the stages, each timed as a separate call", sum(t for _, t in rows)))
-    rows.append(("Sensor.process (five compiled calls for all of them)", 1e3 * whole / repeats))
+    rows.append(("Sensor.process (six compiled calls for all of them)", 1e3 * whole / repeats))
     return rows
 
 
@@ -601,7 +601,7 @@ def stages_table(name: str, seeds: int, repeats: int) -> list[str]:
         "",
         "Per-thread CPU time of each compiled stage of `Sensor.process` (default method), mean over back-to-back "
         "repetitions on the same render (warm). The stages are timed one call at a time from Python (each call's "
-        "argument passing included), so they add up to more than the five compiled calls that `Sensor.process` "
+        "argument passing included), so they add up to more than the six compiled calls that `Sensor.process` "
         "makes.",
         "",
         "| stage | " + " | ".join("ms" if seeds == 1 else f"seed {k}" for k in range(seeds)) + " |",

@@ -12,15 +12,17 @@ second. This module decides when that compile happens and where:
   on Linux; at a normal exit :func:`atexit` ends the child), and the caller only ever *loads* finished kernels.
 - **Compile time.** Numba compiles each kernel into a library of its own, callees first, and optimises and
   generates machine code again for a caller's whole call tree each time it links one; the rest is numba's own
-  typing and lowering, which does not run in parallel within a process. So the frame is five compiled calls
+  typing and lowering, which does not run in parallel within a process. So the frame is six compiled calls
   (:mod:`lrsensor.extract.frame`) in two parts of about equal compile time (:data:`PARTS`), and the child
   compiles the first while a helper process of its own compiles the second, on two cores about half the time
   of one: the first part is the detection, chains, the fit and the neighbour refits (the one column-parallel fit
-  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs and the pinhole
-  triangulation, the second the glow, gates, smoothing and the placing of the points; the turbid-water fits are
-  the largest single kernel. The second part links the port's central view, the gate's pooled median and the
-  smoothing late, after the glow's whole call tree: the first part compiles those first, and the second loads
-  them from the cache (were it there first, it would compile them itself, the same kernels). The
+  of :mod:`lrsensor.extract.fit` compiles in this part only), the width limits the fit needs, the pinhole
+  triangulation and the placing of the points, the second the glow, gates and smoothing; the turbid-water fits
+  are the largest call tree, a call of its own from Python (:func:`~lrsensor.extract.glow.glow_refit`, which a
+  kernel around it would link in and optimise and compile again). The second part
+  links the port's central view, the gate's pooled median and the smoothing late, after the glow's whole call
+  tree: the first part compiles those first, and the second loads them from the cache (were it there first, it
+  would compile them itself, the same kernels). The
   triangulations are calls of their own from Python (:func:`~lrsensor.extract.geometry.triangulate_geo`, for the
   width limits and for the points), so no other kernel but the smoothing's central view (the port's) links them
   in and compiles them again; and the thin stages that mostly call kernels
@@ -105,20 +107,21 @@ class CompileError(ExtractionError):
 
 
 def entry_points() -> tuple[object, ...]:
-    """The kernels the Python side calls (each loaded from the cache on its own): the five calls of the frame
+    """The kernels the Python side calls (each loaded from the cache on its own): the six calls of the frame
     and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
-    from .frame import fit_points, locate_candidates, place_points, refine_and_finish
+    from .frame import finish_located, fit_points, glow_starts, locate_candidates, place_points
     from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
+    from .glow import glow_refit
 
     return (
-        locate_candidates, fwhm_from_points, fit_points, refine_and_finish, place_points, triangulate_points,
-        triangulate_points_port,
+        locate_candidates, fwhm_from_points, fit_points, glow_starts, glow_refit, finish_located, place_points,
+        triangulate_points, triangulate_points_port,
     )  # fmt: skip
 
 
 #: The parts of the compile that run side by side, in the child and in its helper (see the module documentation):
-#: the frame's detection, fits, width limits and the placing of the points, and its finish, of about equal
-#: compile time.
+#: the frame's detection, fits, width limits and the placing of the points, and its glow stage and finish, of about
+#: equal compile time.
 PARTS = ("locate", "finish")
 
 
@@ -139,8 +142,17 @@ def _build(part: str | None = None) -> None:
     from ..calibration import Calibration
     from .config import SubpixelConfig
     from .finish import pooled_median
-    from .frame import fit_points, locate_candidates, no_points, place_points, refine_and_finish
+    from .frame import (
+        finish_located,
+        fit_points,
+        glow_starts,
+        locate_candidates,
+        no_points,
+        place_points,
+        refine_points,
+    )
     from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
+    from .glow import new_water
     from .settings import frame_settings
     from .smooth import smooth_runs_at
 
@@ -159,19 +171,23 @@ def _build(part: str | None = None) -> None:
         picked = locate_candidates(image, bands, settings)  # (none on a blank frame: of a real frame's types)
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
+        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
         triangulate_points(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,
         )  # fmt: skip
     if part in (None, "finish"):  # (the Located record built in Python: no compile of its own)
         located = no_points.py_func(np.ones(bands.rows.shape[0]), settings.window_half_px)
-        refine_and_finish(image, located, bands.glow_side, settings, g, np.zeros(3))
+        # (the glow stage's two kernels: SubpixelConfig's glow_fit is on; the starts called here too, which a sharp
+        # frame does not call)
+        glow_starts(located)
+        glow = refine_points(image, located, bands.glow_side, settings, g, new_water())
+        finish_located(located, glow, image.shape[1], settings, g)
         # (the central view's callee: compiled in this part either way)
         triangulate_points_port(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body, g.port,
         )  # fmt: skip
-        place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
 
 
 @dataclass

@@ -1,6 +1,6 @@
-"""The compiled road: five calls that extract (and triangulate) the stripes of one frame.
+"""The compiled road: six calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in five compiled calls:
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in six compiled calls:
 
 - :func:`locate_candidates`:
 
@@ -17,9 +17,12 @@
      the sub-pixel fit of every point, one column-parallel fit for every kind of profile (:mod:`.fit`), then the
      neighbour refits where two lasers' stripes come close (:mod:`.refit`);
 
-- :func:`refine_and_finish`:
+- :func:`refine_points` (:func:`glow_starts` and :func:`.glow.glow_refit`, two calls):
 
   4. the joint stripe-and-glow fits where a profile shows the laser sheet's glow (turbid water, :mod:`.glow`);
+
+- :func:`finish_located`:
+
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
 
@@ -32,10 +35,11 @@ Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records bu
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
 body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
 
-Why five calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
+Why six calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
 stage again; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`: the
-triangulation, which the width limits and the points both need, is a call of its own, compiled once), and
+triangulation, which the width limits and the points both need, is a call of its own, compiled once, and so is
+the glow stage, the largest call tree, which a kernel around it would compile again), and
 their hand-overs
 (:class:`Picked`, :class:`Located`, the points) cost microseconds in a frame of about a millisecond, where a
 Python call per stage would cost as much again. The numpy reference
@@ -77,9 +81,9 @@ RETRY_REFUSED = True
 
 
 class Located(NamedTuple):
-    """What :func:`fit_points` hands to :func:`refine_and_finish`: the frame's ``N`` picked candidates (one
-    per laser and column, sorted by virtual column) and their fits so far. Every array is C-contiguous and
-    freshly allocated (the second call is compiled once, for exactly these types)."""
+    """What :func:`fit_points` hands to :func:`refine_points` and :func:`finish_located`: the frame's ``N`` picked
+    candidates (one per laser and column, sorted by virtual column) and their fits so far. Every array is
+    C-contiguous and freshly allocated (the calls after it are compiled once, for exactly these types)."""
 
     #: (N,) int64 virtual columns ``laser * W + column``, the laser and the image column of each point.
     col_v: NDArray[np.int64]
@@ -423,80 +427,93 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
 
 
 @njit
-def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-untyped-def]
-    """Steps 4-5 of :func:`extract_frame` (glow fits, gates, smoothing, quality).
+def glow_starts(p):  # type: ignore[no-untyped-def]
+    """The starts of step 4 of :func:`extract_frame` (:func:`lrsensor.extract.glow.glow_refit`, a call of its own) for
+    the :class:`Located` points ``p``: the points the common fit refused enter at their candidate row with the frame's
+    width (see :data:`RETRY_REFUSED`).
+
+    Returns:
+        ``(centre_row, sigma, ok, retry)``: (N,) each, the fits' own arrays where no point is retried (clear water
+        refuses few or none: no copies), and the points retried.
+    """
+    n = p.cols.size
+    res = p.fits
+    vv, sig, sat, ok = res.centre, res.sigma, res.saturated, res.ok
+    retry = zeros(n, np.bool_)
+    n_retry = 0
+    if RETRY_REFUSED and p.sigma_px >= BLURRED_SIGMA_PX:
+        for t in range(n):
+            retry[t] = not ok[t] and not sat[t]
+            n_retry += retry[t]
+    if n_retry == 0:
+        return vv, sig, ok, retry
+    v_in = vv.copy()
+    s_in = sig.copy()
+    ok_in = ok.copy()
+    for t in range(n):
+        if retry[t]:
+            v_in[t] = float(p.rows[t])
+            s_in[t] = p.sigma_px
+            ok_in[t] = True
+    return v_in, s_in, ok_in, retry
+
+
+@njit
+def finish_located(p, glow, w, s, geo):  # type: ignore[no-untyped-def]
+    """The end of step 4 of :func:`extract_frame` and step 5 (gates, smoothing, quality) of the :class:`Located`
+    points ``p`` of an image ``w`` px wide.
 
     Args:
-        image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`fit_points`;
-            glow_side: :attr:`~lrsensor.extract.settings.Bands.glow_side`; s, geo: as :func:`extract_frame`;
-            water: (3,) float64, :func:`lrsensor.extract.glow.glow_refit`'s (read and updated).
+        glow: :func:`lrsensor.extract.glow.glow_refit`'s ``(centre_row, sigma, fitted, amplitude, noise)`` (N,) each
+            and the points it retried (N,) (:func:`glow_starts`); where it did not run (``s.glow_fit`` False), the
+            fits' own centres, sigmas, amplitudes and noise, nothing fitted and nothing retried.
 
     Returns:
         ``(u, v, laser, quality)``: (M,) each, the points' pixel columns and rows, laser and quality in [0, 1].
     """
-    w = image.shape[1]
     n = p.cols.size
     if n == 0:
         return empty(0, np.float64), empty(0, np.float64), empty(0, np.int64), empty(0, np.float64)
-    cols, laser = p.cols, p.laser
     res = p.fits
-    vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
-    # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
-    own = zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
-    if s.glow_fit:
-        # the points the common fit refused enter at their candidate row with the frame's width (see RETRY_REFUSED)
-        retry = zeros(n, np.bool_)
-        n_retry = 0
-        if RETRY_REFUSED and p.sigma_px >= BLURRED_SIGMA_PX:
-            for t in range(n):
-                retry[t] = not ok[t] and not sat[t]
-                n_retry += retry[t]
-        v_in, s_in, ok_in = vv, sig, ok  # (no copies in the common case: clear water refuses few or none)
-        if n_retry > 0:
-            v_in = vv.copy()
-            s_in = sig.copy()
-            ok_in = ok.copy()
-            for t in range(n):
-                if retry[t]:
-                    v_in[t] = float(p.rows[t])
-                    s_in[t] = p.sigma_px
-                    ok_in[t] = True
-        v_g, s_g, own, a_g, n_g = glow_refit(
-            image,
-            cols,
-            laser,
-            glow_side,
-            v_in,
-            amp,
-            s_in,
-            sat,
-            ok_in,
-            res.local_noise,
-            p.noise,
-            s.min_fwhm_px / FWHM_PER_SIGMA,
-            s.max_sigma_px,
-            s.saturation_dn,
-            s.min_green_ratio,
-            geo.glow_vanish,
-            geo.glow_path,
-            water,
-            retry,
-        )
-        # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
-        # takes part of the glow's step as a slope)
-        for t in range(n):
-            vv[t] = v_g[t]
-            amp[t] = a_g[t]
-            res.local_noise[t] = n_g[t]
-        if n_retry > 0:  # a refused point only where its joint fit is taken
-            for t in range(n):
-                if retry[t] and own[t]:
-                    ok[t] = True
-                    sig[t] = s_g[t]
-                elif retry[t]:  # (the glow stage hands back its start, the candidate row)
-                    vv[t] = np.nan
+    vv, amp, sig, ok = res.centre, res.amplitude, res.sigma, res.ok
+    v_g, s_g, own, a_g, n_g, retry = glow
+    # the gate takes the joint fit's own amplitude and residual noise where it is taken (the common fit's line
+    # takes part of the glow's step as a slope)
+    for t in range(n):
+        vv[t] = v_g[t]
+        amp[t] = a_g[t]
+        res.local_noise[t] = n_g[t]
+    for t in range(n):  # a refused point only where its joint fit is taken
+        if retry[t] and own[t]:
+            ok[t] = True
+            sig[t] = s_g[t]
+        elif retry[t]:  # (the glow stage hands back its start, the candidate row)
+            vv[t] = np.nan
     # gates, runs, smoothing, quality
-    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
+    return finish_points(p.col_v, p.laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
+
+
+def refine_points(
+    image: NDArray[np.uint8], p: Located, glow_side: IntArray, s: Settings, geo: Geometry, water: FloatArray
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Step 4 of :func:`extract_frame`: the joint stripe-and-glow fits of the :class:`Located` points ``p``
+    (:func:`lrsensor.extract.glow.glow_refit`, from :func:`glow_starts`; ``water`` read and updated), for
+    :func:`finish_located`. A Python call of the kernel, not a kernel: a kernel that called it would compile its
+    whole call tree again into its own machine code (:mod:`lrsensor.extract.compile`)."""
+    res = p.fits
+    if not s.glow_fit:  # (nothing fitted, nothing retried)
+        n = p.cols.size
+        return res.centre, res.sigma, np.zeros(n, np.bool_), res.amplitude, res.local_noise, np.zeros(n, np.bool_)
+    if RETRY_REFUSED and p.sigma_px >= BLURRED_SIGMA_PX:
+        v_in, s_in, ok_in, retry = glow_starts(p)
+    else:  # (a sharp frame retries none: no call)
+        v_in, s_in, ok_in, retry = res.centre, res.sigma, res.ok, np.zeros(p.cols.size, np.bool_)
+    v_g, s_g, own, a_g, n_g = glow_refit(
+        image, p.cols, p.laser, glow_side, v_in, res.amplitude, s_in, res.saturated, ok_in, res.local_noise, p.noise,
+        s.min_fwhm_px / FWHM_PER_SIGMA, s.max_sigma_px, s.saturation_dn, s.min_green_ratio, geo.glow_vanish,
+        geo.glow_path, water, retry,
+    )  # fmt: skip
+    return v_g, s_g, own, a_g, n_g, retry
 
 
 @njit
@@ -559,7 +576,7 @@ def extract_frame(
     triangulate: bool,
     water: FloatArray | None = None,
 ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray, FloatArray]:
-    """The whole default extractor on one frame in five compiled calls (see the module documentation).
+    """The whole default extractor on one frame in six compiled calls (see the module documentation).
 
     Args:
         image: (H, W, 3) uint8 BGR, C-contiguous.
@@ -578,9 +595,8 @@ def extract_frame(
     # the width limit of every point (the refits need any of them), compiled beside the triangulation
     mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
     located = fit_points(image, picked, mfw, s)
-    u, v, laser, quality = refine_and_finish(
-        image, located, bands.glow_side, s, geo, new_water() if water is None else water
-    )
+    glow = refine_points(image, located, bands.glow_side, s, geo, new_water() if water is None else water)
+    u, v, laser, quality = finish_located(located, glow, image.shape[1], s, geo)
     # the points in a call of their own: a kernel that triangulated would compile the triangulation again
     xyz = triangulate_geo(u, v, laser, geo) if triangulate else _NO_XYZ
     uv, laser, quality, xyz = place_points(u, v, laser, quality, xyz, s, geo, triangulate)

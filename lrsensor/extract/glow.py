@@ -719,14 +719,23 @@ def _whole_stripe(glowing, cand, laser, n_l, diff, amp, noise_l, retry):  # type
     all the stripe in proportion to it; at its dim ends, and at most points of a weak glow, it does not show above the
     noise, and the common fit there read a pixel outward (docs/water.md)."""
     out = glowing.copy()
+    n = cand.size
+    d_m = empty(n, np.float64)  # the laser's candidates' steps and amplitudes, in order (loops: masks and fancy
+    a_m = empty(n, np.float64)  # indexing compile numpy's broadcasting and gathers into every kernel linking this)
     for li in range(n_l):
-        on = cand & (laser == li)
-        mine = on & ~retry
-        k = mine.sum()
-        if (glowing & mine).sum() >= 2 * POOL_COLS + 1 and median(diff[mine]) > max(
-            TRIGGER_SNR * _pool_noise(noise_l[li], k), TRIGGER_FRAC * median(amp[mine])
+        k = 0
+        n_glow = 0
+        for t in range(n):
+            if cand[t] and laser[t] == li and not retry[t]:
+                d_m[k] = diff[t]
+                a_m[k] = amp[t]
+                n_glow += glowing[t]
+                k += 1
+        if n_glow >= 2 * POOL_COLS + 1 and median(d_m[:k]) > max(
+            TRIGGER_SNR * _pool_noise(noise_l[li], k), TRIGGER_FRAC * median(a_m[:k])
         ):
-            out |= on
+            for t in range(n):
+                out[t] |= cand[t] and laser[t] == li
     return out
 
 

@@ -73,7 +73,7 @@ NEIGHBOUR_FLANK_TAIL = 5e-2
 LOG_FLANK_TAIL = math.log(NEIGHBOUR_TAIL / NEIGHBOUR_FLANK_TAIL)
 
 
-#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.refine_and_finish`).
+#: Rounds of refits of the points with another laser's stripe close by (:func:`.frame.fit_points`).
 NEIGHBOUR_REFITS = 4
 
 
