@@ -59,6 +59,7 @@ from .finish import BLURRED_SIGMA_PX, finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit, new_water
+from .pooled import extend_ends, glowing_widths
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
 from .sorting import kth, median
@@ -74,6 +75,8 @@ STATS_POINTS = 48
 #: start's three samples 0.8 sigma apart read the noise of a dim column. Clear water's few refusals (0-8 a frame on
 #: the named scenes) are left as they were, and its frames keep their cost.
 RETRY_REFUSED = True
+#: A glowing stripe's dim ends beyond its long runs are measured pooled along it (:mod:`.pooled`; docs/water.md).
+POOLED_ENDS = True
 
 
 class Located(NamedTuple):
@@ -443,6 +446,7 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
     vv, amp, sig, sat, ok = res.centre, res.amplitude, res.sigma, res.saturated, res.ok
     # 4. turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     own = zeros(n, np.bool_)  # the points whose joint fit is taken (the gate takes its amplitude and noise)
+    s_own = sig  # their widths
     if s.glow_fit:
         # the points the common fit refused enter at their candidate row with the frame's width (see RETRY_REFUSED)
         retry = zeros(n, np.bool_)
@@ -461,7 +465,7 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
                     v_in[t] = float(p.rows[t])
                     s_in[t] = p.sigma_px
                     ok_in[t] = True
-        v_g, s_g, own, a_g, n_g = glow_refit(
+        v_g, s_own, own, a_g, n_g = glow_refit(
             image,
             cols,
             laser,
@@ -492,11 +496,15 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
             for t in range(n):
                 if retry[t] and own[t]:
                     ok[t] = True
-                    sig[t] = s_g[t]
+                    sig[t] = s_own[t]
                 elif retry[t]:  # (the glow stage hands back its start, the candidate row)
                     vv[t] = np.nan
     # gates, runs, smoothing, quality
-    return finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
+    u, v, lz, q = finish_points(p.col_v, laser, res, p.chain, p.chain_len, p.noise, w, s, geo, own)
+    if POOLED_ENDS and s.glow_fit:  # a glowing stripe's dim ends, measured pooled along it
+        use, sig_l = glowing_widths(laser, own, s_own, glow_side.shape[0])
+        u, v, lz, q = extend_ends(image, u, v, lz, q, glow_side, use, sig_l)
+    return u, v, lz, q
 
 
 @njit
