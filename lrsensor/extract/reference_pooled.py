@@ -85,7 +85,7 @@ def _block_fit(
         return math.nan, math.inf, 0.0, math.inf
     noise = float(np.median(dif)) / (0.6745 * math.sqrt(2.0))
     span, coarse, fine = pooled.OFFSET_SPAN_PX, pooled.COARSE_STEP_PX, pooled.FINE_STEP_PX
-    grid = c0 - span + np.arange(round(2.0 * span / coarse) + 1) * coarse
+    grid = c0 - span + np.arange(round(2.0 * span / coarse) + 1, dtype=np.float64) * coarse
     rss, _ = _fits(y, grid, s, side, nb, nb_side)
     j = int(np.argmin(rss))
     if j in (0, grid.size - 1) or not math.isfinite(rss[j]):
@@ -124,7 +124,7 @@ def _walk(
     a = (float(cv[tail].sum()) - b * float(x.sum())) / n
     n_r = min(pooled.BLOCK_COLS, n_a)
     rc = cu[::-1][:n_r] if step > 0 else cu[:n_r]
-    rp = a + b * (rc - e)
+    rp = (a + b * (rc - e)).astype(np.float64)
     mid = int(rc[n_r // 2])
     side = float(side_l[mid])
     if side == 0.0:
@@ -138,14 +138,14 @@ def _walk(
     shift = 0.0
     c = e + step
     while 0 <= c < w and not occ[c]:
-        blk = []
+        blk: list[int] = []
         while 0 <= c < w and not occ[c] and len(blk) < pooled.BLOCK_COLS:
             blk.append(c)
             c += step
         if len(blk) < pooled.BLOCK_COLS // 2:
             break
         cols = np.array(blk, np.int64)
-        pred = a + b * (cols - e) + shift
+        pred = (a + b * (cols - e) + shift).astype(np.float64)
         if float(side_l[cols[cols.size // 2]]) != side:
             break
         d, sd, amp, noise = _block_fit(green, cols, pred, half, s_l, side, nb, nb_side, d0)
