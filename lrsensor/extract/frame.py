@@ -22,10 +22,12 @@
   4. the joint stripe-and-glow fits where a profile shows the laser sheet's glow (turbid water, :mod:`.glow`);
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
+  6. on the stripes the glow stage fitted, their dim ends beyond the long runs measured pooled along the stripe
+     (:mod:`.pooled`);
 
 - :func:`.geometry.triangulate_geo` and :func:`place_points`:
 
-  6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
+  7. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
      one) and the range-limit gate on camera depth.
 
 Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records built once per (calibration,
@@ -427,7 +429,7 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
 
 @njit
 def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-untyped-def]
-    """Steps 4-5 of :func:`extract_frame` (glow fits, gates, smoothing, quality).
+    """Steps 4-6 of :func:`extract_frame` (glow fits, gates, smoothing, quality, pooled dim ends).
 
     Args:
         image: (H, W, 3) uint8 C-contiguous; p: the :class:`Located` points of :func:`fit_points`;
@@ -509,7 +511,7 @@ def refine_and_finish(image, p, glow_side, s, geo, water):  # type: ignore[no-un
 
 @njit
 def place_points(u, v, laser, quality, xyz, s, geo, triangulate):  # type: ignore[no-untyped-def]
-    """Step 6 of :func:`extract_frame`: with ``triangulate`` the range-limit gate on the camera depth of the
+    """Step 7 of :func:`extract_frame`: with ``triangulate`` the range-limit gate on the camera depth of the
     body-frame points ``xyz`` (M, 3) (:func:`.geometry.triangulate_geo` of the pixels ``(u, v)`` (M,) of ``laser``
     (M,); NaN points dropped), else the pixels as they are (``xyz`` unused).
 

@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from ._jit import callee, empty, full, njit, zeros
+from ._jit import callee, empty, full, inline, njit, zeros
 from .finish import STRIPE_NOISE_MIN
 from .sorting import median
 
@@ -308,7 +308,7 @@ def walk(image, occ, new, new_q, l, cu, cv, lo, hi, step, side_l, nb_row, nb_sid
         shift += move
 
 
-@callee
+@inline
 def glowing_widths(laser, own, sig, n_l):  # type: ignore[no-untyped-def]
     """Which of the ``n_l`` lasers the pooled ends take, (L,) bool: those with at least
     :data:`~lrsensor.extract.finish.STRIPE_NOISE_MIN` points whose glow-stage fit is taken (``own`` (N,), their
