@@ -735,7 +735,7 @@ def test_real_frames_compile_nothing_beyond_the_cached_calls() -> None:
     stripes, glow) hand over records of exactly the same types, so they run the cached machine code and never
     compile a call again."""
     from lrsensor.extract import compile as kernels
-    from lrsensor.extract.frame import finish_located, fit_points, glow_starts, locate_candidates
+    from lrsensor.extract.frame import finish_located, fit_points, glow_starts, locate_candidates, pool_ends
     from lrsensor.extract.glow import glow_refit
     from lrsensor.sim import named_scene, scenes
 
@@ -746,7 +746,7 @@ def test_real_frames_compile_nothing_beyond_the_cached_calls() -> None:
     for setup in [named_scene(name) for name in ("paper_box", "wall_0.3", "turbid")] + [close_stripes]:
         Sensor(setup.calibration).process(setup.render(0).image)
         subpixel_extract(setup.render(1).image, setup.calibration)
-    for kernel in (locate_candidates, fit_points, glow_starts, glow_refit, finish_located):
+    for kernel in (locate_candidates, fit_points, glow_starts, glow_refit, finish_located, pool_ends):
         assert len(kernel.signatures) == 1, kernel
 
 

@@ -8,7 +8,7 @@ The default extractor (:mod:`.subpixel`) is a package of stage modules on one co
 - :mod:`.subpixel`: the entry points (``extract``, ``extract_points``); :mod:`.config`: its options;
   :mod:`.settings`: the typed records the road reads, built once per (calibration, configuration);
   :mod:`.bands`: where each laser's stripe can be;
-- the road (numba kernels): :mod:`.frame` (the six calls per frame), :mod:`.detect`, :mod:`.chains`, the fit
+- the road (numba kernels): :mod:`.frame` (the seven calls per frame), :mod:`.detect`, :mod:`.chains`, the fit
   (:mod:`.fit`: one column-parallel fit for every kind of profile, its pieces in :mod:`.columns`), :mod:`.refit`,
   :mod:`.glow` (turbid water: the stripe fitted jointly with the laser sheet's glow), :mod:`.finish`,
   :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and :mod:`.compile` (loading or compiling the

@@ -107,15 +107,15 @@ class CompileError(ExtractionError):
 
 
 def entry_points() -> tuple[object, ...]:
-    """The kernels the Python side calls (each loaded from the cache on its own): the six calls of the frame
+    """The kernels the Python side calls (each loaded from the cache on its own): the seven calls of the frame
     and the triangulation that :mod:`lrsensor.triangulation` uses for detections it gets from elsewhere."""
-    from .frame import finish_located, fit_points, glow_starts, locate_candidates, place_points
+    from .frame import finish_located, fit_points, glow_starts, locate_candidates, place_points, pool_ends
     from .geometry import fwhm_from_points, triangulate_points, triangulate_points_port
     from .glow import glow_refit
 
     return (
-        locate_candidates, fwhm_from_points, fit_points, glow_starts, glow_refit, finish_located, place_points,
-        triangulate_points, triangulate_points_port,
+        locate_candidates, fwhm_from_points, fit_points, glow_starts, glow_refit, finish_located, pool_ends,
+        place_points, triangulate_points, triangulate_points_port,
     )  # fmt: skip
 
 
@@ -149,6 +149,7 @@ def _build(part: str | None = None) -> None:
         locate_candidates,
         no_points,
         place_points,
+        pool_ends,
         refine_points,
     )
     from .geometry import central_view, fwhm_from_points, triangulate_points, triangulate_points_port
@@ -172,6 +173,8 @@ def _build(part: str | None = None) -> None:
         fit_points(image, picked, np.zeros(0), settings)
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
         place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
+        # (the pooled dim ends: called on glowing frames only; compiled in this part, the shorter one)
+        pool_ends(image, f64, f64, i64, f64, bands.glow_side, i64, np.zeros(4, np.bool_), f64)
         triangulate_points(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,

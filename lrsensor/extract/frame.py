@@ -1,6 +1,6 @@
-"""The compiled road: six calls that extract (and triangulate) the stripes of one frame.
+"""The compiled road: seven calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in six compiled calls:
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in seven compiled calls (six on a clear frame):
 
 - :func:`locate_candidates`:
 
@@ -26,16 +26,21 @@
   5. gates, runs, smoothing and quality (:mod:`.finish`; through a port the smoothing's line fits run where a
      pinhole in the water at the camera centre would see the stripe's points);
 
+- :func:`pool_ends` (where the glow stage ran):
+
+  6. on the stripes the glow stage fitted, their dim ends beyond the long runs measured pooled along the stripe
+     (:mod:`.pooled`);
+
 - :func:`.geometry.triangulate_geo` and :func:`place_points`:
 
-  6. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
+  7. with ``triangulate``: the body-frame points (:mod:`.geometry`; through the calibration's port when it has
      one) and the range-limit gate on camera depth.
 
 Inputs: the image (H, W, 3) uint8 BGR, C-contiguous, and the settings records built once per (calibration,
 configuration) in :mod:`lrsensor.extract.subpixel`. Outputs: pixel coordinates (M, 2), laser (M,), quality (M,),
 body-frame points (M, 3) in metres (empty without ``triangulate``) and the band noise (L,) in DN.
 
-Why six calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
+Why these calls and not one, nor one per stage: numba compiles a kernel's callees first and then optimises and
 generates machine code again for the caller's whole call tree, so a single frame call would compile every
 stage again; the calls compile side by side in two processes (:mod:`lrsensor.extract.compile`: the
 triangulation, which the width limits and the points both need, is a call of its own, compiled once, and so is
@@ -63,6 +68,7 @@ from .finish import BLURRED_SIGMA_PX, finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit, new_water
+from .pooled import extend_ends, glowing_widths
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
 from .sorting import kth, median
@@ -78,6 +84,8 @@ STATS_POINTS = 48
 #: start's three samples 0.8 sigma apart read the noise of a dim column. Clear water's few refusals (0-8 a frame on
 #: the named scenes) are left as they were, and its frames keep their cost.
 RETRY_REFUSED = True
+#: A glowing stripe's dim ends beyond its long runs are measured pooled along it (:mod:`.pooled`; docs/water.md).
+POOLED_ENDS = True
 
 
 class Located(NamedTuple):
@@ -517,8 +525,23 @@ def refine_points(
 
 
 @njit
+def pool_ends(image, u, v, laser, quality, glow_side, p_laser, own, sigma):  # type: ignore[no-untyped-def]
+    """Step 6 of :func:`extract_frame`: the points ``(u, v, laser, quality)`` (M,) of :func:`finish_located` with
+    the dim ends of the stripes the glow stage fitted measured pooled along them (:mod:`.pooled`); ``own`` (N,) the
+    :class:`Located` points (laser ``p_laser`` (N,)) whose joint fit was taken, ``sigma`` (N,) their widths, px.
+    A call of its own: :func:`finish_located` does not link the pooled fits' tree, and a frame where the glow stage
+    took no fit (clear water) does not call it.
+
+    Returns:
+        ``(u, v, laser, quality)`` (K,) each, as :func:`.pooled.extend_ends`.
+    """
+    use, sig_l = glowing_widths(p_laser, own, sigma, glow_side.shape[0])
+    return extend_ends(image, u, v, laser, quality, glow_side, use, sig_l)
+
+
+@njit
 def place_points(u, v, laser, quality, xyz, s, geo, triangulate):  # type: ignore[no-untyped-def]
-    """Step 6 of :func:`extract_frame`: with ``triangulate`` the range-limit gate on the camera depth of the
+    """Step 7 of :func:`extract_frame`: with ``triangulate`` the range-limit gate on the camera depth of the
     body-frame points ``xyz`` (M, 3) (:func:`.geometry.triangulate_geo` of the pixels ``(u, v)`` (M,) of ``laser``
     (M,); NaN points dropped), else the pixels as they are (``xyz`` unused).
 
@@ -597,6 +620,8 @@ def extract_frame(
     located = fit_points(image, picked, mfw, s)
     glow = refine_points(image, located, bands.glow_side, s, geo, new_water() if water is None else water)
     u, v, laser, quality = finish_located(located, glow, image.shape[1], s, geo)
+    if POOLED_ENDS and glow[2].any():  # 6. a glowing stripe's dim ends, measured pooled along it (clear water: none)
+        u, v, laser, quality = pool_ends(image, u, v, laser, quality, bands.glow_side, located.laser, glow[2], glow[1])
     # the points in a call of their own: a kernel that triangulated would compile the triangulation again
     xyz = triangulate_geo(u, v, laser, geo) if triangulate else _NO_XYZ
     uv, laser, quality, xyz = place_points(u, v, laser, quality, xyz, s, geo, triangulate)

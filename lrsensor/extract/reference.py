@@ -42,12 +42,12 @@ from numpy.typing import NDArray
 
 from ..calibration import Calibration
 from ..triangulation import triangulate as _triangulate
-from . import reference_finish, reference_glow, refit
+from . import reference_finish, reference_glow, reference_pooled, refit
 from .centre import FWHM_PER_SIGMA, WIDE_FWHM_PX, fit_profiles
 from .detect import GLOW_PASS_MIN, noise_col_step
 from .finish import BLURRED_SIGMA_PX, CENTRE_SD, RUN_MAX_SD_PX, STRIPE_NOISE_MIN
 from .fit import flank_offset
-from .frame import RETRY_REFUSED, STATS_POINTS
+from .frame import POOLED_ENDS, RETRY_REFUSED, STATS_POINTS
 from .glow import new_water
 from .reference_finish import pooled_gates, smooth, smooth_through_port
 from .settings import Bands, Geometry, Settings
@@ -202,6 +202,7 @@ def extract_frame(
             rise[:, idx] = rise_i
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     own = np.zeros(cols.size, bool)
+    pool_use, pool_sig = np.zeros(n_l, bool), np.zeros(n_l)  # the lasers whose dim ends are pooled (frame.POOLED_ENDS)
     if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
         # the points the common fit refused enter at their candidate row with the frame's width (frame.RETRY_REFUSED)
         retry = ~ok & ~_sat if RETRY_REFUSED and sig_med >= BLURRED_SIGMA_PX else np.zeros(cols.size, bool)
@@ -226,6 +227,8 @@ def extract_frame(
             new_water() if water is None else water,
             retry,
         )
+        if POOLED_ENDS:
+            pool_use, pool_sig = reference_pooled.glowing_widths(laser, own, s_g, n_l)
         take = ~retry | own  # a refused point only where its joint fit is taken
         vv, amp, lnoise = np.where(take, v_g, vv), np.where(take, a_g, amp), np.where(take, n_g, lnoise)
         ok = ok | (retry & own)
@@ -291,6 +294,8 @@ def extract_frame(
     quality = np.clip(q_snr * q_w * (0.5 + 0.5 * q_run), 0.0, 1.0)
     uv = np.stack([(col_v - laser * w).astype(np.float64), vv], axis=1)
     laser = laser.astype(np.int64)
+    # a glowing stripe's dim ends, measured pooled along it
+    uv, laser, quality = reference_pooled.extend_ends(image, uv, laser, quality, bands.glow_side, pool_use, pool_sig)
     if not triangulate:
         return uv, laser, quality, np.empty((0, 3))
     # 6. the body-frame points and the depth gate

@@ -32,7 +32,7 @@ Compressed frames (JPEG, MJPEG, H.264: colour stored at half resolution) take ``
 then reads, in place of green, the full-resolution luma on green's scale (:func:`luma_as_green`).
 
 One road: with numba installed the whole pipeline, and for :class:`lrsensor.sensor.Sensor` the triangulation
-(eq. 29 with the calibration's distortion) and the range-limit gate, runs as six compiled calls
+(eq. 29 with the calibration's distortion) and the range-limit gate, runs as seven compiled calls
 (:func:`lrsensor.extract.frame.extract_frame`; the stages are the modules of this package, see the package
 documentation). The numpy and OpenCV reference (:mod:`lrsensor.extract.reference`) runs the same algorithm where
 the compiled road cannot: without numba, while the kernels compile in the background (a ROV's first use, said in
