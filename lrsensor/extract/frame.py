@@ -1,6 +1,7 @@
 """The compiled road: seven calls that extract (and triangulate) the stripes of one frame.
 
-:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in seven compiled calls (six on a clear frame):
+:func:`extract_frame` is the default extractor of :mod:`lrsensor.extract.subpixel`, whole, in seven compiled calls
+(six on a clear frame):
 
 - :func:`locate_candidates`:
 
