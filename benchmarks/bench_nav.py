@@ -15,12 +15,13 @@ A simulated 3-robot dive in the tank (``mapping.synth``: ``three_rov_plans``, bo
 
 Each dive is replayed into ``mapping.MapBuilder`` three times, as the base station does it
 (``mapping.synth.replay_dive``): trusting the poses (``lrsensor base --nav off``: clouds without a fix are left
-out), correcting them first with the filter (``mapping.navigation``, the base's default), and with the smoother
-(``mapping.smoother``: past poses re-estimated and their clouds re-placed in the map, a last smoothing at the end of
-the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after its launch (``depth-only``,
-``mixed``), a fourth time as the third with its pose graph opted in (``graph``: ``NavConfig.graph_without_fix``, off
-by default; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with the graphs' gates
-(``tracked``: ``mapping.graph_config.TRACKED``, ``NavConfig.frame_graph_launches``; an option). The served map is
+out), correcting them first with the filter (``mapping.navigation``, ``--nav filter``), and with the smoother
+(``--nav on``, the base's default; ``mapping.smoother``: past poses re-estimated and their clouds re-placed in the
+map, a last smoothing at the end of the dive; fixes weighted by ``SMOOTHED_NAV``); where a robot has no fix after
+its launch (``depth-only``, ``mixed``), a fourth time as the third with its pose graph (``graph``:
+``NavConfig.graph_without_fix``; ``mapping.posegraph``), and with ``--graph-track`` a fifth time as the fourth with
+the graphs' gates (``tracked``: ``mapping.graph_config.TRACKED``, ``NavConfig.frame_graph_launches``: what
+``lrsensor base --no-fix graph``, the default, runs). The served map is
 scored against the tank's faces (``mapping.synth.score_map``: a face is *seen* with 3000 true hits and 30 frames
 where both lasers hit it; *recovered* with a plane within 2 deg and 5 cm). Per mode and way: faces seen / recovered,
 the worst angle and offset over the seen faces that have a plane (a seen face without one is counted in "missing"),

@@ -86,13 +86,14 @@ class NavConfig:
     horizontal axes to the map, or, with scan odometry, while the robot's horizontal standard deviation is within
     ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
 
-    Pose graph (``graph_without_fix``, off by default): a robot whose fixes stop within ``launch_window_s`` of its
-    first (a launch fix only) is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM)
-    instead of this filter, from its last launch cloud on. Off because the graphs track such a robot for tens of
-    seconds, then slide along walls the scans do not pin while their covariance still says centimetres: the map
-    gains spurious planes (docs/navigation-design.md, "Tracked anchors"). Off, such a robot is reported ``lost``
-    and its clouds stay unplaced: an empty part of the map rather than a wrong one (the graphs' gates,
-    :data:`mapping.graph_config.TRACKED`, keep wrong locks out of the map but do not meet the bar either).
+    Pose graph (``graph_without_fix``; off in this record, on with ``lrsensor base --no-fix graph``, the base's
+    default where GTSAM is installed, which also sets the graphs' gates :data:`mapping.graph_config.TRACKED` and
+    ``frame_graph_launches``): a robot whose fixes stop within ``launch_window_s`` of its first (a launch fix only)
+    is navigated by a pose graph of its own (:class:`mapping.posegraph.GraphNav`, GTSAM) instead of this filter,
+    from its last launch cloud on. Without the gates the graphs track such a robot for tens of seconds, then slide
+    along walls the scans do not pin while their covariance still says centimetres, and the map gains spurious
+    planes (docs/navigation-design.md, "Tracked anchors"). Off (``--no-fix lost``), such a robot is reported
+    ``lost`` and its clouds stay unplaced: an empty part of the map rather than a wrong one.
     ``frame_graph_launches``: the launch frame
     (:meth:`Navigator.frame` with smoothing) takes a graph robot's launch as its graph places it (else its
     smoother's, which no longer moves, and the mean heading correction turns the map).
