@@ -22,8 +22,8 @@ free: an idealisation of the extractor's rounds) and both stripes' glows, with t
 Printed per cell: the attenuation estimated, then per shape the median row error outward (px; positive: on the
 glow's side; 1 px is about 11 % of range at 3 m, 7 % at 2 m), its median absolute deviation (px) and the fitted
 stripe amplitude over the true peak (the signal-to-noise gate reads it); each with the stripe's width free and held
-at its true value (a width shared along the stripe: the blur is the water's). A reading aid for docs/water.md ("The
-glow's shape at 3 m"), not a test: it uses scipy's least squares (a benchmark-only import).
+at its true value (a width shared along the stripe: the blur is the water's). A reading aid for docs/water-design.md
+("The glow's shape"), not a test: it uses scipy's least squares (a benchmark-only import).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A glowing stripe's dim ends measured pooled along it (``lrsensor.extract.pooled``; docs/water.md)."""
+"""A glowing stripe's dim ends measured pooled along it (``lrsensor.extract.pooled``; docs/water-design.md)."""
 
 from __future__ import annotations
 

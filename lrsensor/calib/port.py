@@ -11,7 +11,7 @@ poses, ``distance_m`` and the normal's two tilt components together, minimising 
 detected corners and their exact projections through the port (:func:`lrsensor.port.project_pixels_through_port`;
 numerical Jacobian: a few dozen parameters). The standard deviation of ``distance_m`` follows from the Jacobian
 and the residuals. Why not a pinhole in water: it cannot tell the port's distance at all, and it is biased
-across the image (docs/water.md).
+across the image (docs/water.md, "What ignoring the port costs").
 
 Refusals (:class:`PortCalibrationError`): no ``port`` in the input (thickness and indices are needed), fewer
 boards than ``min_images``, an RMS reprojection error above ``max_rms_px``, a ``distance_m`` whose standard

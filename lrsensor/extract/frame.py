@@ -80,12 +80,12 @@ FWHM_PER_SIGMA = 2.3548200450309493
 STATS_POINTS = 48
 #: The points whose profile the common fit refused (no curved three-point start, a width outside the limits, the
 #: centre away from the peak: noise at a dim column of a blurred stripe) enter the glow stage at their candidate row
-#: with the frame's typical width, and are kept where their joint fit is taken (docs/water.md); on blurred frames
+#: with the frame's typical width, and are kept where their joint fit is taken (docs/water-design.md); on blurred frames
 #: only (the typical sigma at least :data:`~lrsensor.extract.finish.BLURRED_SIGMA_PX`: forward scatter), where the
 #: start's three samples 0.8 sigma apart read the noise of a dim column. Clear water's few refusals (0-8 a frame on
 #: the named scenes) are left as they were, and its frames keep their cost.
 RETRY_REFUSED = True
-#: A glowing stripe's dim ends beyond its long runs are measured pooled along it (:mod:`.pooled`; docs/water.md).
+#: A glowing stripe's dim ends beyond its long runs are measured pooled along it (:mod:`.pooled`; docs/water-design.md).
 POOLED_ENDS = True
 
 
@@ -387,7 +387,8 @@ def fit_points(image, p, mfw, s):  # type: ignore[no-untyped-def]
     col_v, laser, cols, rows, chain, chain_len, noise = p.col_v, p.laser, p.cols, p.rows, p.chain, p.chain_len, p.noise
     # frame statistics (window length), then the fit of every point; the statistics from the first detection pass's
     # points where it has STATS_POINTS of them: the second pass's lie on the glow's rising side, whose step widens
-    # their profiles' half-maximum width, and with it every fit's window and the glow stage's fits (docs/water.md)
+    # their profiles' half-maximum width, and with it every fit's window and the glow stage's fits
+    # (docs/water-design.md, "Detection on the glow")
     pool = empty(n, np.int64)
     n_pool = 0
     for t in range(n):

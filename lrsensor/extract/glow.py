@@ -62,7 +62,7 @@ glow); and most of the stripe's points within :data:`POOL_COLS` columns must pas
 the stripe, not at a few columns.
 
 Why this estimator, measured on the turbidity model (``python benchmarks/bench_turbid.py``; the results and the
-Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md`` and docs/water.md):
+Cramer-Rao bounds are in ``benchmarks/results/extract_turbid.md``; the design in docs/water-design.md):
 
 - Single columns before the along-stripe smoothing: the step model's median row shift is within 0.03 px of zero at
   0.5-2 m for 1.5 and 4 px of blur (the common fit: +0.46 to +1.03 px).
@@ -717,7 +717,7 @@ def _whole_stripe(glowing, cand, laser, n_l, diff, amp, noise_l, retry):  # type
     median amplitude (``amp``) and :data:`TRIGGER_SNR` times that median's noise (``noise_l`` (L,)), the candidates
     in ``retry`` (the common fit's refused, :func:`glow_refit`) left out of that test. The glow is the water's, along
     all the stripe in proportion to it; at its dim ends, and at most points of a weak glow, it does not show above the
-    noise, and the common fit there read a pixel outward (docs/water.md)."""
+    noise, and the common fit there read a pixel outward (docs/water-design.md, "The glow along the whole stripe")."""
     out = glowing.copy()
     n = cand.size
     d_m = empty(n, np.float64)  # the laser's candidates' steps and amplitudes, in order (loops: masks and fancy

@@ -1,5 +1,5 @@
 """Turbid water: a weak glow's step held at its stripe's share of the stripe's amplitude (:func:`held_share`), for
-the glow stage (:mod:`lrsensor.extract.glow`; docs/water.md, "A weak glow's step held at the stripe's proportion").
+the glow stage (:mod:`lrsensor.extract.glow`; docs/water-design.md, "The weak glow's held share").
 
 The glow is the water's and lies along the whole sheet in proportion to the stripe: a stripe that glows all along
 has one share of glow, not one per column. A free step per column trades with the stripe's edge where the glow is

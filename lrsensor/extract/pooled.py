@@ -3,8 +3,8 @@
 Why. At the image's sides a stripe in turbid water is dim (peaks 3-5x the noise at 3 m), and a single column's
 centre there is 0.4-0.9 px uncertain (``1.06 sqrt(sigma) / snr``, more with the glow's terms free), while 5 % of
 range is 0.46 px at 3 m: the signal-to-noise gate drops those columns (or detection never finds them), and where
-they are kept their runs are too short for the along-stripe line fits to average them (docs/water.md, "Why the bar
-still fails at 2-3 m", "A detection corridor beyond the chains' ends: not kept"). A stripe on a wall is smooth in
+they are kept their runs are too short for the along-stripe line fits to average them (docs/water-design.md,
+"The pooled dim ends", "Measured and left off"). A stripe on a wall is smooth in
 ``v(u)`` (straight on a flat one), so its row beyond the end of a long run is known to a fraction of a pixel, and
 many dim columns measured together meet the bound a single one cannot.
 
@@ -32,7 +32,7 @@ image's edge (the short pieces on the way, whose own line fits are the unsure on
 6. each column of a block taken gets one point: the prediction plus the block's offset (the prediction of the
    next block moves with it).
 
-Why not per column with a lower gate, or a corridor for detection: both were measured (docs/water.md): the
+Why not per column with a lower gate, or a corridor for detection: both were measured (docs/water-design.md): the
 points gained were single dim columns, 0.4-0.5 px uncertain, and pushed the outliers past the bar. Here no point
 rests on one column.
 
