@@ -172,6 +172,24 @@ STRIPE_NOISE_MIN = 64
 
 
 @inline
+def own_values(lz, own, x, li):  # type: ignore[no-untyped-def]
+    """The finite values of ``x`` (N,) at laser ``li``'s points with their own joint fit (``own`` (N,), their laser
+    ``lz`` (N,)), in point order, (K,); None where there are fewer than :data:`STRIPE_NOISE_MIN`."""
+    cnt = 0
+    for t in range(lz.size):
+        cnt += own[t] and lz[t] == li and math.isfinite(x[t])
+    if cnt < STRIPE_NOISE_MIN:
+        return None
+    vals = empty(cnt, np.float64)
+    k = 0
+    for t in range(lz.size):
+        if own[t] and lz[t] == li and math.isfinite(x[t]):
+            vals[k] = x[t]
+            k += 1
+    return vals
+
+
+@inline
 def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
     """The noise of each laser's band for the signal-to-noise gate, DN (L,): ``noise_l``, or where the laser has at
     least :data:`STRIPE_NOISE_MIN` points with their own joint fit (``own`` (N,), their residual noise ``lnoise``),
@@ -180,18 +198,9 @@ def stripe_noise(lz, lnoise, own, noise_l):  # type: ignore[no-untyped-def]
     turbidity model), and it is the gate's noise at the points whose glow is too faint for the glow stage."""
     out = noise_l.copy()
     for li in range(noise_l.size):
-        cnt = 0
-        for t in range(lz.size):
-            cnt += own[t] and lz[t] == li and math.isfinite(lnoise[t])
-        if cnt < STRIPE_NOISE_MIN:
-            continue
-        vals = empty(cnt, np.float64)
-        k = 0
-        for t in range(lz.size):
-            if own[t] and lz[t] == li and math.isfinite(lnoise[t]):
-                vals[k] = lnoise[t]
-                k += 1
-        out[li] = min(out[li], select(vals, cnt, (cnt - 1) // 2))
+        vals = own_values(lz, own, lnoise, li)
+        if vals is not None:
+            out[li] = min(out[li], select(vals, vals.size, (vals.size - 1) // 2))
     return out
 
 

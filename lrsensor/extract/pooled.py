@@ -46,7 +46,7 @@ import math
 import numpy as np
 
 from ._jit import callee, empty, full, inline, njit, zeros
-from .finish import STRIPE_NOISE_MIN
+from .finish import own_values
 from .sorting import median
 
 #: A piece of returned columns (gaps of at most :data:`GAP_COLS`) anchors an extension where it has this many.
@@ -316,19 +316,10 @@ def glowing_widths(laser, own, sig, n_l):  # type: ignore[no-untyped-def]
     use = zeros(n_l, np.bool_)
     sig_l = zeros(n_l, np.float64)
     for li in range(n_l):
-        cnt = 0
-        for t in range(laser.size):
-            cnt += own[t] and laser[t] == li and math.isfinite(sig[t])
-        if cnt < STRIPE_NOISE_MIN:
-            continue
-        vals = empty(cnt, np.float64)
-        k = 0
-        for t in range(laser.size):
-            if own[t] and laser[t] == li and math.isfinite(sig[t]):
-                vals[k] = sig[t]
-                k += 1
-        use[li] = True
-        sig_l[li] = median(vals)
+        vals = own_values(laser, own, sig, li)
+        if vals is not None:
+            use[li] = True
+            sig_l[li] = median(vals)
     return use, sig_l
 
 
