@@ -33,8 +33,10 @@ smoother's (all its runs, including the map's rebuilds, divided by the scans; an
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
+import subprocess
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -263,6 +265,37 @@ class Acceptance:
     status: dict[str, Any]
 
 
+def client_session(port: int) -> Any:
+    """A Zenoh client session to the base listening on 127.0.0.1:``port`` (scouting off: loopback only)."""
+    import zenoh
+
+    conf = {
+        "mode": "client",
+        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": 30000},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+    }
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+
+
+def get_json(session: Any, key: str, timeout_s: float) -> dict[str, Any] | None:
+    """The first reply to a query of ``key`` as JSON, or None where none came within ``timeout_s``."""
+    for reply in session.get(key, timeout=timeout_s):
+        if reply.ok is not None:
+            out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+            return out
+    return None
+
+
+def wait_for_base(session: Any, fleet: str, base: subprocess.Popen[bytes], log: Path, timeout_s: float) -> None:
+    """Wait until ``base`` answers on ``lrs/<fleet>/base/status``; RuntimeError with its ``log`` where it ended or
+    did not answer within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while get_json(session, f"lrs/{fleet}/base/status", 5.0) is None:
+        if time.monotonic() > deadline or base.poll() is not None:
+            raise RuntimeError("the base station did not come up: " + log.read_text(errors="replace"))
+        time.sleep(0.2)
+
+
 def run_acceptance(
     work: Path,
     seconds: float = 12.0,
@@ -279,12 +312,8 @@ def run_acceptance(
     against the tank's true faces (``services.demo.score_map``: matched within 2 deg and 5 cm, and within the
     demo's 5 deg and 15 cm). With ``record``, ``lrsensor record`` writes the fleet's clouds there (MCAP) for
     :func:`replay_acceptance`."""
-    import json
     import signal
-    import subprocess
     import sys
-
-    import zenoh
 
     from lrsensor.sim.dive import record_dive
     from services.demo import score_map as score_served
@@ -317,27 +346,13 @@ def run_acceptance(
         stdout=logs["base"], stderr=subprocess.STDOUT, env=env,
     )  # fmt: skip
     rovs: dict[str, subprocess.Popen[bytes]] = {}
-    conf = {
-        "mode": "client",
-        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": 30000},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }
     try:
-        with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))) as session:
+        with client_session(port) as session:
 
             def get(key: str) -> dict[str, Any] | None:
-                for reply in session.get(key, timeout=5.0):
-                    if reply.ok is not None:
-                        out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-                        return out
-                return None
+                return get_json(session, key, 5.0)
 
-            deadline = time.monotonic() + 60
-            while get(f"lrs/{fleet}/base/status") is None:
-                if time.monotonic() > deadline or base.poll() is not None:
-                    msg = "the base station did not come up: " + (work / "base.log").read_text(errors="replace")
-                    raise RuntimeError(msg)
-                time.sleep(0.2)
+            wait_for_base(session, fleet, base, work / "base.log", 60.0)
             if record is not None:
                 logs["record"] = (work / "record.log").open("wb")
                 rovs["record"] = subprocess.Popen(

@@ -25,7 +25,6 @@ processes, the road's (ordering, timing, the smoother's hand-over, dropped cloud
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import resource
@@ -41,8 +40,10 @@ from typing import Any
 from mapping.synth import hit_faces, score_map, tank
 
 try:  # python -m benchmarks.bench_nav_procs
+    from benchmarks.bench_nav import client_session, get_json, wait_for_base
     from benchmarks.fleet_dives import dive_frames, extracted_frames, write_fleet
 except ImportError:  # python benchmarks/bench_nav_procs.py: this file's folder is on the path
+    from bench_nav import client_session, get_json, wait_for_base  # type: ignore[no-redef]
     from fleet_dives import dive_frames, extracted_frames, write_fleet  # type: ignore[no-redef]
 
 
@@ -155,7 +156,6 @@ def run_processes(
 ) -> tuple[Row, dict[str, Any]]:
     """``lrsensor base`` and one ``lrsensor rov`` per robot on loopback (see the module docstring); the served map
     scored, with the status. Returns the row and the served map."""
-    import zenoh
 
     from services.testnet import free_port
 
@@ -173,29 +173,15 @@ def run_processes(
     rovs: dict[str, subprocess.Popen[bytes]] = {}
     cpu: dict[str, float] = {}
     rov_wall: dict[str, float] = {}
-    conf = {
-        "mode": "client",
-        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": 30000},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }
     served: dict[str, Any] = {}
     status: dict[str, Any] = {}
     try:
-        with zenoh.open(zenoh.Config.from_json5(json.dumps(conf))) as session:
+        with client_session(port) as session:
 
             def get(key: str) -> dict[str, Any] | None:
-                for reply in session.get(key, timeout=10.0):
-                    if reply.ok is not None:
-                        out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-                        return out
-                return None
+                return get_json(session, key, 10.0)
 
-            deadline = time.monotonic() + 90
-            while get(f"lrs/{fleet}/base/status") is None:
-                if time.monotonic() > deadline or base.poll() is not None:
-                    msg = "the base station did not come up: " + (work / "base.log").read_text(errors="replace")
-                    raise RuntimeError(msg)
-                time.sleep(0.2)
+            wait_for_base(session, fleet, base, work / "base.log", 90.0)
             started: dict[str, float] = {}
             for robot, d in folders.items():
                 started[robot] = time.perf_counter()
