@@ -1,0 +1,107 @@
+"""Where a map from extracted clouds loses faces (issue 27): the same clouds mapped with each kind of pose.
+
+    python -m benchmarks.diag_extracted_poses --mode good --seed 1 [--max-range-m 3] [--dives DIR]
+        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...]
+
+One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendered 640x360 frames
+(``benchmarks.fleet_dives``: found in ``DIR`` when rendered before; rendering takes about 30 ms of CPU per frame),
+cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.synth.replay_dive``) each way:
+
+- ``true``: placed at the true poses, no navigation (what the map's fitting makes of these points);
+- ``trusted``: placed at the navigation's poses as they are (``good`` only: the others lack fixes or drift);
+- ``filter``: the base's navigation without the smoother (``NavConfig`` of ``lrsensor base --nav on``);
+- ``smoothed``: the base's navigation, its smoother's runs taken over at once (``bench_nav_procs``'s in-process).
+
+Per way: faces recovered (2 deg, 5 cm) of seen, duplicates, spurious planes, the faces off the bar (deg / cm),
+and per robot the horizontal error of the served poses against the truth (mean / max, cm); with ``--trace``,
+each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` change the base's tuning (a what-if).
+Prints markdown; a diagnostic, not a figure of merit."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lrsensor.frames import body_to_ned
+from mapping.synth import DiveFrame, hit_faces, replay_dive, score_map, tank
+
+from .bench_nav_procs import base_nav
+from .fleet_dives import dive_frames, extracted_frames, write_fleet
+
+WAYS = ("true", "trusted", "filter", "smoothed")
+
+
+def _tuning(sets: list[str]) -> dict[str, Any]:
+    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` applied (VALUE a Python literal)."""
+    import ast
+
+    kw = base_nav()
+    for s in sets:
+        key, value = s.split("=", 1)
+        part, name = key.split(".", 1)
+        field = {"nav": "nav_cfg", "smoother": "smoother"}[part]
+        kw[field] = replace(kw[field], **{name: ast.literal_eval(value)})
+    return kw
+
+
+def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The served planes of ``frames`` mapped ``way`` (:data:`WAYS`) and per robot the served poses' horizontal
+    errors (m; empty without navigation)."""
+    if way in ("true", "trusted"):
+        fr = [replace(f, pose_est=f.pose_true) if way == "true" else f for f in frames]
+        fr = [replace(f, points_ned_est=body_to_ned(f.points_body, f.pose_est)) for f in fr]
+        run = replay_dive(fr, navigate=False)
+        return run.planes(), {}
+    smoother = kw["smoother"] if way == "smoothed" else None
+    run = replay_dive(frames, navigate=True, background="wait", **{**kw, "smoother": smoother})
+    return run.planes(), run.position_error_m
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--mode", default="good")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seconds", type=float, default=90.0)
+    ap.add_argument("--max-range-m", type=float, default=3.0)
+    ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
+    ap.add_argument("--ways", default=",".join(WAYS))
+    ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE or smoother.KEY=VALUE")
+    ap.add_argument("--trace", action="store_true")
+    a = ap.parse_args(argv)
+    frames = dive_frames(a.mode, a.seed, a.seconds)
+    frames = extracted_frames(frames, write_fleet(a.dives, a.mode, a.seed, a.seconds, "640x360"))
+    frames = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= a.max_range_m]) for f in frames]
+    scene = tank()
+    truth = hit_faces(scene, frames)
+    kw = _tuning(a.set)
+    print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}\n")
+    print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) | CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    traces = []
+    for way in a.ways.split(","):
+        c0 = time.process_time()
+        planes, errors = run_way(way, frames, kw)
+        score = score_map(planes, scene, truth)
+        seen = [f for f in score.faces if f.hit]
+        off = [f"{f.face.name} " + (f"{f.angle_deg:.1f}/{100 * f.offset_m:.1f}" if f.plane_ids else "none")
+               for f in seen if not (f.angle_deg <= 2.0 and f.offset_m <= 0.05)]  # fmt: skip
+        err = ", ".join(f"{r} {100 * np.mean(e):.1f} / {100 * np.max(e):.1f}" for r, e in sorted(errors.items()))
+        print(f"| {way} | {len(seen) - len(score.missing())} / {len(seen)} | {len(score.duplicates())} | "
+              f"{len(score.spurious)} | {', '.join(off) or '-'} | {err or '-'} | {time.process_time() - c0:.0f} |",
+              flush=True)  # fmt: skip
+        for r, e in sorted(errors.items()):
+            bins = [100 * float(np.max(c)) for c in np.array_split(np.asarray(e), max(1, int(a.seconds / 3)))]
+            traces.append(f"{way} {r}: " + " ".join(f"{b:.0f}" for b in bins))
+    if a.trace:
+        print("\nmax horizontal error (cm) per 3 s of the dive:\n\n" + "\n".join(f"    {t}" for t in traces))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
