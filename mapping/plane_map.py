@@ -11,8 +11,9 @@ An observation (the points one robot's window gave one plane) joins a map plane 
   and within ``merge_band_angle_deg`` of each other, points within ``merge_band_offset_m``) may be up to
   ``merge_band_gap_down_m`` apart along down instead: a robot that crossed a face at two depths leaves a gap between
   its bands as wide as its change of depth, yet a vertical face is one plane over its whole height,
-* and the fusion does not make the plane thick: the scatter it adds to its parts' own (:func:`added_rms_m`: their
-  separation and relative tilt over their points, weighted by their shares) stays within ``merge_max_rms_m``.
+* and the fusion does not make the plane thick: the fused plane's RMS stays within ``merge_max_rms_m``, or the
+  scatter it adds to its parts' own (:func:`added_rms_m`: their separation and relative tilt over their points,
+  weighted by their shares) within ``merge_added_rms_m``.
   What the parts already carry does not count: a face all robots saw is as thick as their pose errors make it
   (about 3 cm RMS in the demo, whose trusted poses disagree by 3-7 cm between robots), and a test of the fused
   plane's whole RMS against the bound then refused every later view of that face, even one lying 1 cm from it,
@@ -409,7 +410,9 @@ class PlaneMap:
             cfg.quantum_m,
             cfg.between_window_weight,
         )
-        return added_rms_m(fa, a.stats.n, fb, b.stats.n, merged, cfg.merge_max_rms_m) <= cfg.merge_max_rms_m
+        if merged.rms_m <= cfg.merge_max_rms_m:  # (thin as a whole)
+            return True
+        return added_rms_m(fa, a.stats.n, fb, b.stats.n, merged, cfg.merge_max_rms_m) <= cfg.merge_added_rms_m
 
     def bands(
         self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None

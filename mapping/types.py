@@ -106,9 +106,14 @@ class MapConfig:
             and each one's centroid within ``serve_copy_offset_m`` of the other's plane, up to a joined RMS of
             ``serve_copy_max_rms_m``: copies the map kept apart only because the fused plane would pass
             ``merge_max_rms_m``.
-        merge_max_rms_m: fusion may not make a plane thick: the RMS it adds to the parts' own scatter about their
-            planes (:func:`mapping.plane_map.added_rms_m`) may not exceed this; a plane as thick as the poses'
-            errors make it still takes views that lie within that thickness.
+        merge_max_rms_m, merge_added_rms_m: fusion may not make a plane thick: the fused plane's RMS within
+            ``merge_max_rms_m``, or the RMS the fusion adds to the parts' own scatter about their planes
+            (:func:`mapping.plane_map.added_rms_m`, each part's own counted up to ``merge_max_rms_m``) within
+            ``merge_added_rms_m``: a plane as thick as the poses' errors make it still takes views that lie within
+            that thickness. The added bound is below the whole one because a looser one (3 cm) let the smoother's
+            rebuilt maps fuse more than its re-placed poses could hold (tests/test_nav_smoother.py: the smoothed
+            poses ended further from the truth than the filter's); at 2.25 cm the demo's recorded dives give the
+            same maps as at 3 cm (``python -m benchmarks.diag_demo_map replay``).
         same_face_offset_m, same_face_angle_deg, same_face_cell_m, same_face_block_cells, same_face_share: two
             planes facing the same way (normals within ``same_face_angle_deg``), within ``same_face_offset_m`` of
             each other (RMS, either way round, as ``merge_offset_m``) are one surface seen from poses that disagree
@@ -171,6 +176,7 @@ class MapConfig:
     serve_copy_angle_deg: float = 1.0
     serve_copy_max_rms_m: float = 0.05
     merge_max_rms_m: float = 0.03
+    merge_added_rms_m: float = 0.0225
     same_face_offset_m: float = 0.0
     same_face_angle_deg: float = 3.0
     same_face_cell_m: float = 0.05
