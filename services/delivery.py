@@ -53,7 +53,6 @@ from __future__ import annotations
 import collections
 import json
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -61,36 +60,10 @@ from typing import Any
 
 from .keys import FleetKeys, check_robot_name
 from .outbox import Outbox, OutboxError
+from .wallclock import CLOCK_OFFSET_ENV, wall_clock_ns
 from .wire import ENCODING, AnyCloud
 
 log = logging.getLogger(__name__)
-
-#: Environment variable that shifts this robot's wall clock by so many seconds (a robot whose clock is minutes
-#: off the base station's, for tests: docs/reliability.md, "A robot whose clock is off").
-CLOCK_OFFSET_ENV = "LRS_CLOCK_OFFSET_S"
-
-
-def _clock_offset_ns() -> int:
-    raw = os.environ.get(CLOCK_OFFSET_ENV, "").strip()
-    if not raw:
-        return 0
-    try:
-        return int(float(raw) * 1e9)
-    except ValueError:
-        log.warning("%s=%r is not a number of seconds; the clock is not shifted", CLOCK_OFFSET_ENV, raw)
-        return 0
-
-
-_CLOCK_OFFSET_NS = _clock_offset_ns()
-
-
-def wall_clock_ns() -> int:
-    """This robot's wall clock, ns since the epoch: ``time.time_ns()`` shifted by ``$LRS_CLOCK_OFFSET_S``.
-
-    What the ROV stamps with it reaches the base station on the robot's clock: a cloud's publication time
-    (``sent_ns``) and the status message's ``t_ns``. Capture times come from the frame source.
-    """
-    return time.time_ns() + _CLOCK_OFFSET_NS
 
 #: Longest retransmission timeout while acknowledgements stall (the probes' backoff stops doubling here), s.
 MAX_BACKOFF_S = 60.0
@@ -775,4 +748,4 @@ class OutboxSink:
         self.close()
 
 
-__all__ = ["DeliveryCounters", "OutboxError", "OutboxSink", "parse_ack_reply"]
+__all__ = ["CLOCK_OFFSET_ENV", "DeliveryCounters", "OutboxError", "OutboxSink", "parse_ack_reply", "wall_clock_ns"]

@@ -40,12 +40,12 @@ from lrsensor.frames import Pose
 from lrsensor.scan import Scan
 from lrsensor.sensor import Sensor
 
-from .delivery import wall_clock_ns
 from .errors import CalibrationUnavailableError, WireError
 from .imu import ImuSource
 from .keys import FleetKeys, check_robot_name
 from .posetrack import has_fix
 from .sources import FrameSource
+from .wallclock import wall_clock_ns
 from .wire import CLOUD_SCHEMAS, ENCODING, AnyCloud, CalibMsg, CloudMsg, StatusMsg, StripeMsg, calibration_fingerprint
 
 log = logging.getLogger(__name__)
