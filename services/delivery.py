@@ -46,6 +46,19 @@ Each cloud is counted once, in the category of its first copy (or of its loss)::
 (``pending``: in the outbox; ``unstored``: published live but not written to disk, counted under ``live``).
 Nothing is lost silently: a full outbox drops its oldest messages and counts them (see
 :mod:`services.outbox`), and the base station shows them as ``missed``.
+
+Layout: this module is the sink's Zenoh side (the publisher, the ack queries and their answer's format, the
+delivery thread, the waits and the stats) and re-exports the rest, so that ``services.delivery`` stays the one
+name callers import. Its parts, each a module without Zenoh, threads or locks:
+
+* :mod:`services.delivery_link`: :class:`AckClock`, what the acknowledgements show of the link (round trip,
+  delivery rate, retransmission timeout with its backoff, pacing window);
+* :mod:`services.delivery_book`: :class:`~services.delivery_book.DeliveryBook`, what went out when and how
+  often, what was acknowledged, and :class:`DeliveryCounters`, each cloud counted once;
+* :mod:`services.delivery_pacing`: the decisions: room for a live cloud, the re-sends of a cycle, the probe;
+* :mod:`services.wallclock`: the robot's wall clock that stamps ``sent_ns`` (:func:`wall_clock_ns`).
+
+The sink holds one lock around every call into the book, the clock and the pacing.
 """
 
 from __future__ import annotations
@@ -54,9 +67,9 @@ import json
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
+from .delivery_book import DeliveryBook, DeliveryCounters
 from .delivery_link import (
     MAX_BACKOFF_S,
     MIN_RTT_MEMORY_S,
@@ -66,6 +79,7 @@ from .delivery_link import (
     WINDOW_GAIN,
     AckClock,
 )
+from .delivery_pacing import LIVE_GAIN, MIN_LIVE_WINDOW_BYTES, choose_resends, live_room
 from .keys import FleetKeys, check_robot_name
 from .outbox import Outbox, OutboxError
 from .wallclock import CLOCK_OFFSET_ENV, wall_clock_ns
@@ -79,81 +93,6 @@ SUSPECT_S = 1.5
 #: An acknowledgement poll waits at least / at most this long for the answer, s.
 MIN_POLL_TIMEOUT_S = 2.0
 MAX_POLL_TIMEOUT_S = 20.0
-#: While no backlog is queued, a new cloud goes out live while the bytes in flight stay under this many
-#: times what the link delivers per retransmission timeout (at least :data:`MIN_LIVE_WINDOW_BYTES`): a link
-#: that keeps up never holds more than one timeout's worth in flight, so the live stream is only thinned
-#: when the sensor offers more than the link carries.
-LIVE_GAIN = 2.0
-MIN_LIVE_WINDOW_BYTES = 512 * 1024
-
-
-@dataclass
-class DeliveryCounters:
-    """Counters of an :class:`OutboxSink`.
-
-    Attributes:
-        sent: clouds published the first time.
-        resent: re-publications of pending clouds.
-        acked: clouds acknowledged by the base station (removed from the outbox).
-        dropped: clouds dropped because the outbox was full.
-        ack_polls: acknowledgement queries answered.
-        base_seen: times the base station's subscriber (re)appeared.
-        unstored: clouds published live but not kept in the outbox (disk write failed).
-        sent_bytes: bytes of the clouds published the first time (the clouds' own size).
-        resent_bytes: bytes re-published.
-        resent_unheard: re-publications of clouds whose earlier copies reached no subscriber (published while
-            the base station was away, or reloaded from an earlier run): the first copy to go out on the link.
-        held: clouds not published live because the ack polls went unanswered (the link looked down): kept
-            in the outbox and forwarded from there (counted in ``resent_unheard`` then).
-        thinned: clouds not published live because the link was not keeping up (no room in the live window):
-            queued in the outbox and forwarded from there.
-
-    The link-budget counters count each cloud once, in the category of its first copy (identities:
-    ``sent + reloaded == live + forwarded + queued + dropped_budget`` and ``live + forwarded + queued ==
-    acked + pending + released + unstored``, ``pending`` being the outbox's):
-
-    Attributes:
-        live: clouds whose first copy went out live (the one published by :meth:`OutboxSink.send`); a cloud
-            whose disk write failed is counted here.
-        queued: clouds in the outbox of which no copy went out yet (held, thinned, published while no
-            subscriber matched, or reloaded from an earlier run).
-        forwarded: clouds whose first copy went out later, from the outbox (a reloaded cloud the base station
-            acknowledges before it is sent again counts here: an earlier run forwarded it).
-        reloaded: clouds pending in the outbox when this sink started (counted in ``queued`` first).
-        dropped_budget: clouds the disk budget dropped before any copy went out (lost; part of ``dropped``).
-        released: clouds the disk budget dropped after a copy went out, before their acknowledgement (they
-            arrive unless that copy is lost; part of ``dropped``).
-    """
-
-    sent: int = 0
-    resent: int = 0
-    acked: int = 0
-    dropped: int = 0
-    ack_polls: int = 0
-    base_seen: int = 0
-    unstored: int = 0
-    sent_bytes: int = 0
-    resent_bytes: int = 0
-    resent_unheard: int = 0
-    held: int = 0
-    thinned: int = 0
-    live: int = 0
-    queued: int = 0
-    forwarded: int = 0
-    reloaded: int = 0
-    dropped_budget: int = 0
-    released: int = 0
-
-    def budget(self) -> dict[str, int]:
-        """The link-budget counters, as :class:`services.wire.StatusMsg` carries them."""
-        return {
-            "live": self.live,
-            "queued": self.queued,
-            "forwarded": self.forwarded,
-            "dropped_budget": self.dropped_budget,
-            "released": self.released,
-            "reloaded": self.reloaded,
-        }
 
 
 def parse_ack_reply(payload: bytes, robot: str) -> list[list[int]]:
@@ -222,8 +161,10 @@ class OutboxSink:
         self.resend_after_s = resend_after_s
         self.max_resend_per_cycle = max_resend_per_cycle
         self.stall_s = stall_s
-        self.counters = DeliveryCounters()
         self.clock = AckClock(resend_after_s)
+        # what went out when, what was acknowledged (clouds pending from an earlier run are unheard, queued)
+        self.book = DeliveryBook(outbox.pending(), outbox.next_seq, self.clock)
+        self.counters: DeliveryCounters = self.book.counters
         self._ack_priority = zenoh.Priority.INTERACTIVE_HIGH
         self.publisher = session.declare_publisher(
             keys.cloud(self.robot),
@@ -236,30 +177,16 @@ class OutboxSink:
         #: held over an acknowledgement's removal from the outbox and its counters, and by stats()
         self._ack_lock = threading.Lock()
         self._pub_lock = threading.Lock()  # one put at a time: live sends and re-sends interleave cleanly
-        self._last_sent: dict[int, float] = {}
-        self._sends: dict[int, int] = {}  # how often each pending cloud went out (1: a round-trip sample)
-        self._sizes: dict[int, int] = {}
-        # published while no subscriber matched, or reloaded from an earlier run: sent once the base is present
-        self._unheard: set[int] = set(outbox.pending())
-        # each pending cloud's category: "live", "queued" or "forwarded" (DeliveryCounters)
-        self._fate: dict[int, str] = dict.fromkeys(self._unheard, "queued")
-        self._first_seq = outbox.next_seq  # clouds numbered below were reloaded from an earlier run
-        self.counters.reloaded = self.counters.queued = len(self._fate)
         self._stop = threading.Event()
         self._forwarding = threading.Event()
         if forward_now:
             self._forwarding.set()
         self._wake = threading.Event()
         self._base_present = False
-        self._acked_sent_t = 0.0  # the latest send time among the clouds acknowledged so far
-        # ... as of the poll before the last: a cloud sent before it and still not acknowledged one poll later
-        # is lost (the base station's workers may finish neighbouring clouds in either order)
-        self._lost_before = 0.0
         self._last_answer = time.monotonic()  # the last answer to an ack poll (or an empty outbox)
         self._holding = False
         self._poll_timeout = MIN_POLL_TIMEOUT_S  # how long an ack poll waits for the answer (adapts)
         self._query_rtt: float | None = None  # smoothed time an ack poll took to be answered, s
-        self._last_progress = time.monotonic()  # last time the acknowledgements moved on
         self._thread = threading.Thread(target=self._loop, name=f"delivery-{robot}", daemon=True)
         self._thread.start()
 
@@ -280,21 +207,7 @@ class OutboxSink:
         hold = heard and self.link_suspect()  # a link that looks down gets no live copy to lose
         with self._lock:
             thin = heard and not hold and not self.live_room(len(payload), time.monotonic())
-            self._last_sent[msg.seq] = time.monotonic()
-            self._sends[msg.seq] = 1
-            self._sizes[msg.seq] = len(payload)
-            live = heard and not hold and not thin
-            if not live:
-                self._unheard.add(msg.seq)
-            self._fate[msg.seq] = "live" if live else "queued"
-            if live:
-                self.counters.live += 1
-            else:
-                self.counters.queued += 1
-            self.counters.sent += 1
-            self.counters.sent_bytes += len(payload)
-            self.counters.held += int(hold)
-            self.counters.thinned += int(thin)
+            self.book.note_send(msg.seq, len(payload), time.monotonic(), heard=heard, hold=hold, thin=thin)
             if thin and (self.counters.thinned in (1, 10, 100) or self.counters.thinned % 1000 == 0):
                 log.info(
                     "rov %s: the link does not carry every cloud live; %d clouds queued on disk so far, forwarded "
@@ -306,55 +219,24 @@ class OutboxSink:
         # knowing this number and give it to another cloud, which the base station, holding the first one,
         # would take for a duplicate and drop. Flushed to disk after the put (the live copy never waits for it).
         try:
-            dropped = self.outbox.append(msg.seq, payload, self._expendable, sync=False)
+            dropped = self.outbox.append(msg.seq, payload, self.book.expendable, sync=False)
         except OutboxError as err:
             with self._lock:
-                self.counters.unstored += 1
-                if self._fate.pop(msg.seq, None) == "queued":
-                    self.counters.queued -= 1
-                    self.counters.live += 1
-                self._forget(msg.seq)
+                self.book.note_unstored(msg.seq)
             log.error("rov %s: cloud #%d not kept for re-sending: %s", self.robot, msg.seq, err)
             self._put(payload)  # no copy on disk: a live one is better than none
             return
         if not (hold or thin):
             self._put(payload)
             with self._lock:
-                if msg.seq in self._sends:  # not acknowledged or dropped meanwhile
-                    self._last_sent[msg.seq] = time.monotonic()  # a blocked put counts from when it went out
+                self.book.note_put(msg.seq, time.monotonic())
         try:
             self.outbox.sync(msg.seq)
         except OutboxError as err:  # the file is written: a crash of the process keeps it, a power cut may not
             log.error("rov %s: %s", self.robot, err)
         if dropped:
             with self._lock:
-                self.counters.dropped += len(dropped)
-                for d in dropped:
-                    self._uncount(d)
-                    self._forget(d)
-
-    def _expendable(self, seq: int) -> bool:
-        """True when a copy of pending ``seq`` went out (the budget drops those first); called by the outbox
-        under its lock, so it reads without taking this sink's (a dict lookup is atomic)."""
-        return self._fate.get(seq, "queued") != "queued"
-
-    def _uncount(self, seq: int) -> None:
-        """``seq`` was dropped by the budget: lost if no copy went out, else released; caller holds the lock."""
-        fate = self._fate.pop(seq, None)
-        if fate == "queued":
-            self.counters.queued -= 1
-            self.counters.dropped_budget += 1
-        elif fate is not None:
-            self.counters.released += 1
-
-    def _in_flight(self, now: float, timeout: float) -> int:
-        """Bytes sent after the newest acknowledged send and not yet timed out; caller holds the lock."""
-        acked_t = self._acked_sent_t
-        return sum(
-            self._sizes.get(s, 0)
-            for s, t in self._last_sent.items()
-            if t > acked_t and now - t < timeout and s not in self._unheard
-        )
+                self.book.note_dropped(dropped)
 
     def live_room(self, size: int, now: float) -> bool:
         """True when a new cloud of ``size`` bytes may go out live; caller holds the lock.
@@ -362,22 +244,10 @@ class OutboxSink:
         While nothing is queued: the bytes in flight stay under :data:`LIVE_GAIN` times what the link
         delivers per retransmission timeout (at least :data:`MIN_LIVE_WINDOW_BYTES`), so a link that keeps up
         is never thinned. While a backlog is queued: under half the re-send window, so that the other half
-        forwards the backlog (oldest first) and the live stream is thinned to what the link carries.
+        forwards the backlog (oldest first) and the live stream is thinned to what the link carries
+        (:func:`services.delivery_pacing.live_room`).
         """
-        timeout = self.clock.timeout()
-        if self.counters.queued:
-            limit = self.clock.window() / 2
-        else:
-            limit = max(MIN_LIVE_WINDOW_BYTES, LIVE_GAIN * self.clock.rate() * timeout)
-        in_flight = self._in_flight(now, timeout)
-        return in_flight == 0 or in_flight + size <= limit
-
-    def _forget(self, seq: int) -> None:
-        """Drop the bookkeeping of ``seq`` (acknowledged, dropped or not stored); caller holds the lock."""
-        self._last_sent.pop(seq, None)
-        self._sends.pop(seq, None)
-        self._sizes.pop(seq, None)
-        self._unheard.discard(seq)
+        return live_room(self.book, size, now)
 
     def _put(self, payload: bytes) -> None:
         try:
@@ -452,11 +322,11 @@ class OutboxSink:
                 continue
             now = time.monotonic()
             with self._lock:
-                self._lost_before = self._acked_sent_t
+                self.book.note_answer()
             pending = self.outbox.pending()
             if not pending:
                 with self._lock:
-                    self.counters.ack_polls += 1
+                    self.book.note_poll()
                 break
             lo, hi = pending[0], pending[-1]
             relevant = [r for r in ranges if r[1] >= lo and r[0] <= hi]
@@ -464,33 +334,9 @@ class OutboxSink:
             # gone from the outbox and not yet counted acknowledged
             with self._ack_lock:
                 hit = self.outbox.take_acked_ranges(relevant) if relevant else []  # exactly those removed
-                n = len(hit)
-                removed += n
+                removed += len(hit)
                 with self._lock:
-                    self.counters.ack_polls += 1
-                    self.counters.acked += n
-                    acked_bytes = 0
-                    newest_single: float | None = None  # send time of the latest cloud acknowledged after one send
-                    for s in hit:
-                        if self._fate.pop(s, None) == "queued":  # acknowledged before this process sent it
-                            self.counters.queued -= 1
-                            if s < self._first_seq:  # an earlier run forwarded it
-                                self.counters.forwarded += 1
-                            else:  # published while no subscriber matched, and yet it arrived: live
-                                self.counters.live += 1
-                        t = self._last_sent.get(s)
-                        if t is not None:
-                            self._acked_sent_t = max(self._acked_sent_t, t)
-                            if self._sends.get(s) == 1 and s not in self._unheard:
-                                newest_single = t if newest_single is None else max(newest_single, t)
-                        acked_bytes += self._sizes.get(s, 0)
-                        self._forget(s)
-                    self.clock.acked_bytes(now, acked_bytes)
-                    if newest_single is not None:
-                        self.clock.rtt_sample(now, now - newest_single)
-                    if n:
-                        self._last_progress = now
-                        self.clock.progressed()
+                    self.book.note_acked(hit, now)
         if not answered:
             self._poll_timeout = min(MAX_POLL_TIMEOUT_S, 2 * self._poll_timeout)
         return removed
@@ -519,20 +365,10 @@ class OutboxSink:
             if payload is None:  # acknowledged meanwhile
                 continue
             with self._lock:
-                unheard = seq in self._unheard or seq not in self._sends
+                unheard = self.book.is_unheard(seq)
             self._put(payload)
             with self._lock:
-                if self._fate.get(seq) == "queued":  # its first copy on the link: forwarded from the backlog
-                    self._fate[seq] = "forwarded"
-                    self.counters.queued -= 1
-                    self.counters.forwarded += 1
-                self._last_sent[seq] = time.monotonic()
-                self._sends[seq] = self._sends.get(seq, 0) + 1
-                self.counters.resent_unheard += int(unheard)
-                self._sizes[seq] = len(payload)
-                self._unheard.discard(seq)
-                self.counters.resent += 1
-                self.counters.resent_bytes += len(payload)
+                self.book.note_resend(seq, len(payload), time.monotonic(), unheard=unheard)
 
     def _choose_resends(self, now: float) -> list[int]:
         """The clouds to send again this cycle, oldest first, within the pacing window (only a probe while the
@@ -540,43 +376,23 @@ class OutboxSink:
         pending = self.outbox.pending()
         suspect = self.link_suspect()
         with self._lock:
-            timeout = self.clock.timeout()
-            window = self.clock.window()
-            lost_before = self._lost_before
-            in_flight = self._in_flight(now, timeout)
-            chosen: list[int] = []
-            for seq in [] if suspect else pending:
-                if len(chosen) >= self.max_resend_per_cycle:
-                    break
-                last = self._last_sent.get(seq)
-                # unheard (or never sent by this process) / sent before a cloud acknowledged a poll ago
-                if not (seq in self._unheard or last is None or last < lost_before):
-                    continue
-                size = self._sizes.get(seq, 0)
-                if chosen and in_flight + size > window:
-                    break
-                if not chosen and in_flight >= window:
-                    break
-                chosen.append(seq)
-                in_flight += size
-            if chosen:
-                return chosen
-            # nothing evidently lost; a probe when acknowledgements stalled for the (backed-off) timeout
-            stalled_for = now - self._last_progress
-            if pending and stalled_for >= max(self.stall_s, timeout):
-                oldest = pending[0]
-                last = self._last_sent.get(oldest, 0.0)
-                if now - last >= max(self.stall_s, timeout):
-                    self.clock.stalled()
-                    log.info(
-                        "rov %s: no acknowledgement for %.0f s; probing with #%d (next timeout %.1f s)",
-                        self.robot,
-                        stalled_for,
-                        oldest,
-                        self.clock.timeout(),
-                    )
-                    return [oldest]
-            return []
+            choice = choose_resends(
+                self.book,
+                pending,
+                now,
+                suspect=suspect,
+                max_count=self.max_resend_per_cycle,
+                stall_s=self.stall_s,
+            )
+            if choice.probe:
+                log.info(
+                    "rov %s: no acknowledgement for %.0f s; probing with #%d (next timeout %.1f s)",
+                    self.robot,
+                    now - self.book.last_progress,
+                    choice.seqs[0],
+                    self.clock.timeout(),
+                )
+            return choice.seqs
 
     def start_forwarding(self) -> None:
         """Start re-sending and forwarding from the outbox (see ``forward_now``)."""
@@ -608,7 +424,7 @@ class OutboxSink:
                 return True
             now = time.monotonic()
             with self._lock:
-                since = max(start, self._last_progress) if idle else start
+                since = max(start, self.book.last_progress) if idle else start
             if now - since >= timeout_s or (stop is not None and stop.is_set()):
                 return bool(done())
             self._wake.set()
@@ -661,11 +477,16 @@ class OutboxSink:
 
 __all__ = [
     "CLOCK_OFFSET_ENV",
+    "LIVE_GAIN",
     "MAX_BACKOFF_S",
+    "MAX_POLL_TIMEOUT_S",
+    "MIN_LIVE_WINDOW_BYTES",
+    "MIN_POLL_TIMEOUT_S",
     "MIN_RTT_MEMORY_S",
     "MIN_WINDOW_BYTES",
     "RATE_MEMORY_S",
     "RATE_WINDOW_S",
+    "SUSPECT_S",
     "WINDOW_GAIN",
     "AckClock",
     "DeliveryCounters",
