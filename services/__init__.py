@@ -16,7 +16,10 @@ Modules:
 * :mod:`services.testnet` the in-process test network; :mod:`services.demo` ``lrsensor demo``;
 * :mod:`services.signals` SIGINT/SIGTERM -> a stop event, so every session is closed;
 * issue 7 (faults, outbox, acknowledgements, secure profile): :mod:`services.outbox`,
-  :mod:`services.delivery`, :mod:`services.certs`.
+  :mod:`services.delivery` (the ROV's sink: publisher, ack polls, its thread), composed of
+  :mod:`services.delivery_link` (what the acknowledgements show of the link), :mod:`services.delivery_book`
+  (per-cloud bookkeeping and the counters) and :mod:`services.delivery_pacing` (what may go out: live room,
+  re-sends, probes); :mod:`services.wallclock` (the robot's wall clock); :mod:`services.certs`.
 
 The ROV side (``rov``, ``wire``, ``imu``, ``sources``) imports neither Open3D nor ``mapping``.
 """
