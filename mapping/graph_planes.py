@@ -12,6 +12,7 @@ Frames and units: NED (north, east, heading in radians), points (M, 3) in metres
 from __future__ import annotations
 
 import math
+import zlib
 from typing import Any
 
 import numpy as np
@@ -98,10 +99,15 @@ def plane_factors(
         const = float(n[2]) * (raw.down_m + float(c[2])) + d
         nh = n[0:2].astype(np.float64)
         off = offset(g, pid)
+        sid = stretch_of(g, pid, lm) if anchor is None else None
         if anchor is None or then is None:
             e = float(nh @ (x[0:2] + rot(float(x[2])) @ c[0:2])) + const + off
             kind, keys = "plane", (key,)  # type: tuple[str, tuple[int, ...]]
-            data = (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma)
+            data = (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma)  # type: tuple[Any, ...]
+            if sid is not None:
+                e += float(nh @ shared_offset(g, sid))
+                kind, data = "plane_shared", (*data, sid)
+                sigma_plane = g.gcfg.stretch_plane_sigma_m
         else:
             # the plane in the anchor's frame as it was placed: n_loc . q + const_loc = 0 for q in that frame
             n_loc = rot(float(then[2])).T @ nh
@@ -121,6 +127,10 @@ def plane_factors(
             g._plane_ids.add(pid)
             g._add("plane_prior", (), (pid, sigma_plane))
             g._new_offsets.add(pid)
+        if sid is not None and kind == "plane_shared" and sid not in g._stretch_ids:
+            g._stretch_ids.add(sid)
+            g._add("stretch_prior", (), (sid, g.gcfg.map_plane_sigma_m))
+            g._new_stretches.add(sid)
         g._add(kind, keys, data)
         loops += int(kind == "anchored")
     return loops
@@ -139,6 +149,29 @@ def offset(g: Any, pid: int) -> float:
     if pid not in g._plane_ids or pid in g._new_offsets:
         return 0.0
     return float(g._isam.calculateEstimateVector(_gtsam().symbol("p", pid))[0])
+
+
+def stretch_of(g: Any, pid: int, lm: PlaneLandmarks | None) -> int | None:
+    """The shared offset's id of plane ``pid`` (``GraphConfig.stretch_s``): the robot that gave it the most points
+    and the stretch of its first cloud of it; None when off or unknown."""
+    stretch_s = float(g.gcfg.stretch_s)
+    if not math.isfinite(stretch_s) or lm is None or not lm.contrib:
+        return None
+    at = np.flatnonzero(lm.ids == pid)
+    if at.size == 0:
+        return None
+    contrib = lm.contrib[int(at[0])]
+    if not contrib:
+        return None
+    robot, (_, first_ns) = max(contrib.items(), key=lambda kv: (kv[1][0], kv[0]))
+    return (zlib.crc32(robot.encode()) % 1000) * 10**9 + int(first_ns * 1e-9 // stretch_s) % 10**9
+
+
+def shared_offset(g: Any, sid: int) -> FloatArray:
+    """The current estimate of stretch ``sid``'s shared offset (north, east; zero before it has one)."""
+    if sid not in g._stretch_ids or sid in g._new_stretches:
+        return np.zeros(2)
+    return np.asarray(g._isam.calculateEstimateVector(_gtsam().symbol("s", sid)), dtype=np.float64)
 
 
 def key_at(g: Any, t_ns: int) -> int:

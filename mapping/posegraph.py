@@ -57,7 +57,7 @@ from .graph_hold import CloudHold, check_due, check_held, hold_step
 from .graph_planes import register
 from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
-from .odometry import OdometryConfig, increment
+from .odometry import OdometryConfig, increment, own_increment
 
 FloatArray = NDArray[np.float64]
 
@@ -133,6 +133,9 @@ class GraphNav:
         #: the planes with an offset variable in the graph, and those new since the last solve
         self._plane_ids: set[int] = set()
         self._new_offsets: set[int] = set()
+        #: the robot-stretches with a shared offset (GraphConfig.stretch_s), and those new since the last solve
+        self._stretch_ids: set[int] = set()
+        self._new_stretches: set[int] = set()
 
     # -- the public interface of RobotNav ------------------------------------------------------------------------
 
@@ -379,14 +382,13 @@ class GraphNav:
         z = pred.copy()
         motion = "motion-prior"
         if prev_level.shape[0] and new_rel.shape[0]:
-            d, cov, pairs = increment(prev_level, new_rel, prior_cov, self.odo_cfg)
+            icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
+            d, cov, pairs = increment(prev_level, new_rel, icp_cov, self.odo_cfg)
             if pairs:
-                p_inv = np.linalg.inv(prior_cov)
-                h = np.linalg.inv(cov) - p_inv
-                h = 0.5 * (h + h.T) * gcfg.odometry_info_scale
                 # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
                 # prediction, which the information there (none) does not hold
-                z = pred + np.linalg.solve(h + np.eye(2) * 1e-6, (p_inv + h) @ d)
+                dz, h = own_increment(d, cov, icp_cov, gcfg.odometry_info_scale, gcfg.odometry_observed_std_m)
+                z = pred + dz
                 motion = "scan-odometry"
         # the move's information: the scan's, plus a weak bound from the speed
         info2 = h + np.eye(2) / speed_var
@@ -427,7 +429,9 @@ class GraphNav:
             values.insert(k, pose2(g, x))
         for pid in self._new_offsets:
             values.insert(g.symbol("p", pid), np.zeros(1))
-        self._new_offsets = set()
+        for sid in self._new_stretches:
+            values.insert(g.symbol("s", sid), np.zeros(2))
+        self._new_offsets, self._new_stretches = set(), set()
         self._isam.update(graph, values)
         self._pending = []
         self._new_values = {}
@@ -488,10 +492,15 @@ class GraphNav:
     def _rebuild(self, first: int, marginal: tuple[FloatArray, FloatArray] | None) -> None:
         g = gtsam_module()
         specs = [s for s in self._specs if s[1] and min(s[1]) >= first]
-        planes = {int(s[2][0]) for s in specs if s[0] in ("plane", "anchored")}
-        specs = [s for s in self._specs if s[0] == "plane_prior" and int(s[2][0]) in planes] + specs
-        self._plane_ids = planes
-        self._new_offsets = set(planes)
+        planes = {int(s[2][0]) for s in specs if s[0] in ("plane", "anchored", "plane_shared")}
+        shared = {int(s[2][7]) for s in specs if s[0] == "plane_shared"}
+        specs = (
+            [s for s in self._specs if s[0] == "plane_prior" and int(s[2][0]) in planes]
+            + [s for s in self._specs if s[0] == "stretch_prior" and int(s[2][0]) in shared]
+            + specs
+        )
+        self._plane_ids, self._stretch_ids = planes, shared
+        self._new_offsets, self._new_stretches = set(planes), set(shared)
         if marginal is not None:
             specs.insert(0, ("prior", (first,), marginal))
         self._first_key = first
