@@ -14,7 +14,8 @@ cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.sy
 
 Per way: faces recovered (2 deg, 5 cm) of seen, duplicates, spurious planes, the faces off the bar (deg / cm),
 and per robot the horizontal error of the served poses against the truth (mean / max, cm); with ``--trace``,
-each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` change the base's tuning (a what-if).
+each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose
+graphs' ``GraphConfig``, depth-only robots) change the base's tuning (a what-if).
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
@@ -38,15 +39,16 @@ WAYS = ("true", "trusted", "filter", "smoothed")
 
 
 def _tuning(sets: list[str]) -> dict[str, Any]:
-    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` applied (VALUE a Python literal)."""
+    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` applied (VALUE a Python
+    literal, or ``inf``)."""
     import ast
 
     kw = base_nav()
     for s in sets:
         key, value = s.split("=", 1)
         part, name = key.split(".", 1)
-        field = {"nav": "nav_cfg", "smoother": "smoother"}[part]
-        kw[field] = replace(kw[field], **{name: ast.literal_eval(value)})
+        field = {"nav": "nav_cfg", "smoother": "smoother", "graph": "graph_cfg"}[part]
+        kw[field] = replace(kw[field], **{name: float(value) if value == "inf" else ast.literal_eval(value)})
     return kw
 
 
@@ -71,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-range-m", type=float, default=3.0)
     ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
     ap.add_argument("--ways", default=",".join(WAYS))
-    ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE or smoother.KEY=VALUE")
+    ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE, smoother.KEY=VALUE or graph.KEY=VALUE")
     ap.add_argument("--trace", action="store_true")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)

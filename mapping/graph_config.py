@@ -20,8 +20,15 @@ class GraphConfig:
     made from several poses); ``observed_std_m``: a registration's direction counts where it alone pins the pose
     within this (the heading at a 2 m lever); ``window_s`` / ``rebase_every_s``: the bounded window;
     ``place_std_m``: clouds are placed while the horizontal standard deviation is below it; ``lost_std_m``: beyond
-    it no plane is registered. ``second_hypothesis`` (off): a plane factor is left out when another plane would
-    explain the scan's points on it within the pose's marginal (:func:`mapping.graph_gate.ambiguous`).
+    it no plane is registered. ``stretch_s`` (off: ``inf``): the others' planes that one robot made (the most points)
+    within one stretch of this many seconds share one horizontal offset (a 2-D variable, prior
+    ``map_plane_sigma_m``; each plane's own offset then ``stretch_plane_sigma_m``): one robot's planes of one
+    stretch carry one drift, not independent errors. ``odometry_observed_std_m`` (off: ``inf``): a scan
+    increment's direction counts only where it pins the move within this (m; see
+    :func:`mapping.odometry.own_increment`); ``odometry_prior_m_s`` widens the prior the scan matching starts
+    from by this speed (m/s; 0: the velocity walk's alone). ``second_hypothesis`` (off): a plane factor is left
+    out when another plane would explain the scan's points on it within the pose's marginal
+    (:func:`mapping.graph_gate.ambiguous`).
     ``track_break_std_m``: past this horizontal std the track is broken and nothing more is placed
     (:class:`mapping.graph_gate.TrackGate`; ``inf``: never), and so it does where one scan moves the position
     beyond ``track_jump_chi2`` (squared Mahalanobis, its marginal before the scan). ``relocalize``: a broken
@@ -51,6 +58,8 @@ class GraphConfig:
 
     velocity_walk_m_s: float = 0.1
     odometry_info_scale: float = 0.3
+    odometry_observed_std_m: float = math.inf
+    odometry_prior_m_s: float = 0.0
     max_speed_m_s: float = 0.6
     compass_every_s: float = 5.0
     compass_bias_deg: float = 3.0
@@ -58,6 +67,8 @@ class GraphConfig:
     map_min_sigma_m: float = 0.02
     map_plane_sigma_m: float = 0.05
     map_plane_sigma_deg: float = 1.0
+    stretch_s: float = math.inf
+    stretch_plane_sigma_m: float = 0.02
     own_min_age_s: float = 15.0
     own_sigma_m: float = 0.03
     own_planes: bool = True

@@ -85,6 +85,27 @@ def plane_error(n: FloatArray, c: FloatArray, const: float) -> Any:
     return err
 
 
+def shared_plane_error(n: FloatArray, c: FloatArray, const: float) -> Any:
+    """:func:`plane_error` with a shared horizontal offset ``delta`` (2,) of the plane's stretch added:
+    ``n . (t + R(theta) c + delta) + const + offset``."""
+    skew = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+    def err(this: Any, values: Any, jac: Any) -> FloatArray:
+        k = this.keys()
+        pose = values.atPose2(k[0])
+        off = values.atVector(k[1])
+        delta = values.atVector(k[2])
+        r = pose.rotation().matrix()
+        e = float(n @ (pose.translation() + r @ c + delta)) + const + float(off[0])
+        if jac is not None:
+            jac[0] = np.array([[*(n @ r), float(n @ r @ skew @ c)]])
+            jac[1] = np.ones((1, 1))
+            jac[2] = n.reshape(1, 2).copy()
+        return np.array([e])
+
+    return err
+
+
 def anchored_error(n_loc: FloatArray, c: FloatArray, const: float) -> Any:
     """The residual (1,) of a plane fixed to an anchor pose, seen from another: ``n_loc . R_a^T (t + R c - t_a) +
     const + offset`` (``n_loc``, ``const``: the plane in the anchor's frame; ``c`` the mean of the seeing scan's
@@ -148,6 +169,18 @@ def make_factor(g: Any, kind: str, keys: tuple[int, ...], data: tuple[Any, ...])
             [keys[0], g.symbol("p", int(pid))],
             plane_error(np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)),
         )
+    if kind == "plane_shared":
+        pid, nx, ny, cx, cy, const, sigma, sid = data
+        return g.CustomFactor(
+            robust(g, float(sigma)),
+            [keys[0], g.symbol("p", int(pid)), g.symbol("s", int(sid))],
+            shared_plane_error(
+                np.array([nx, ny], dtype=np.float64), np.array([cx, cy], dtype=np.float64), float(const)
+            ),
+        )
+    if kind == "stretch_prior":
+        sid, sigma = data
+        return g.PriorFactorVector(g.symbol("s", int(sid)), np.zeros(2), g.noiseModel.Isotropic.Sigma(2, float(sigma)))
     if kind == "anchored":
         pid, nx, ny, cx, cy, const, sigma = data
         return g.CustomFactor(

@@ -7,7 +7,7 @@ compass's slowly wandering bias went into the map: long walls 1-3 deg off. A wal
 heading even where the position along it is unknown: the scan's points on a wall-like map plane, turned by the
 estimated heading, lie on a line; the angle from the map plane's horizontal direction to that line is the heading's
 error. :func:`heading_offset` takes the mean over the walls a scan saw (weighted by each line's precision), and the
-graph takes it as a prior on that pose's heading.
+graph takes it as a prior on that pose's heading (:func:`check_heading`).
 
 Frames and units: NED, metres, radians; a positive angle turns north towards east (the yaw's sense).
 """
@@ -15,6 +15,7 @@ Frames and units: NED, metres, radians; a positive angle turns north towards eas
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,3 +76,35 @@ def heading_offset(
     if not used:
         return None
     return num / den, 1.0 / math.sqrt(den), used
+
+
+def check_heading(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> None:
+    """The heading of pose ``key`` checked against the walls (:mod:`mapping.graph_heading`) the robot contributed
+    at most ``heading_own_share`` of the points to, every ``heading_every_s``: a prior on it at the heading the
+    walls say, ``heading_floor_deg`` at least. Its own walls would carry its own heading error back.
+    """
+    gcfg = g.gcfg
+    if g._last_heading_t is not None and t - g._last_heading_t < gcfg.heading_every_s * 1e9:
+        return
+    if len(lm) == 0:
+        return
+    use = np.ones(len(lm), dtype=bool)
+    for i, c in enumerate(lm.contrib or ()):
+        mine = c.get(g.robot)
+        if mine is not None and mine[0] > gcfg.heading_own_share * sum(v[0] for v in c.values()):
+            use[i] = False
+    if not use.any():
+        return
+    x = g._est[key]
+    got = heading_offset(pts, raw, x, take_planes(lm, use), g.cfg)
+    if got is None:
+        return
+    off, sd, _ = got
+    if abs(off) > math.radians(gcfg.heading_max_deg):
+        return
+    g._last_heading_t = t
+    sd = max(sd, math.radians(gcfg.heading_floor_deg))
+    mean = np.array([float(x[0]), float(x[1]), float(x[2]) - off])
+    g._add("prior", (key,), (mean, np.diag([1e-10, 1e-10, 1.0 / sd**2])))
+    g.headings += 1
+    g._solve()

@@ -110,3 +110,25 @@ def increment(
         delta = np.asarray(np.linalg.solve(p_inv + h, h @ delta - g), dtype=np.float64)
     cov = np.linalg.inv(p_inv + h)
     return delta, 0.5 * (cov + cov.T), pairs
+
+
+def own_increment(
+    d: FloatArray, cov: FloatArray, prior_cov: FloatArray, info_scale: float, observed_std_m: float
+) -> tuple[FloatArray, FloatArray]:
+    """The scan's own measurement of the move, the prior's pull taken out of :func:`increment`'s result: its offset
+    (2,) from the prior's mean and its information (2, 2), that information scaled by ``info_scale``, in the
+    directions it pins the move within ``observed_std_m`` (m, after the scaling; ``inf``: every direction).
+
+    Taking the prior out divides by the scan's information: along a direction it hardly observes (a wall's
+    length, where a few noisy stripe normals lean its way) a trace of the posterior's shift becomes centimetres,
+    claimed with an information as small. Such a direction is left to the prior (no information, no offset)."""
+    p_inv = np.linalg.inv(prior_cov)
+    h = np.linalg.inv(cov) - p_inv
+    h = 0.5 * (h + h.T) * info_scale
+    rhs = (p_inv + h) @ d
+    if not np.isfinite(observed_std_m):
+        return np.asarray(np.linalg.solve(h + np.eye(2) * 1e-6, rhs), dtype=np.float64), h
+    lam, vec = np.linalg.eigh(h)
+    keep = lam >= 1.0 / observed_std_m**2
+    vk, lk = vec[:, keep], lam[keep]
+    return np.asarray(vk @ ((vk.T @ rhs) / lk), dtype=np.float64), (vk * lk) @ vk.T

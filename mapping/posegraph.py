@@ -30,6 +30,11 @@ the graph is rebuilt from the last ``window_s`` of its factors, the first kept p
 marginal covariance (a marginalisation), so the cost per scan stays bounded. :meth:`GraphNav.snapshot` is the
 factors' plain numbers (a plane worker can send it): :meth:`GraphNav.restore` rebuilds the graph from them.
 
+Its parts: the variables, odometry, solve and window here; the map's planes (registration and plane factors)
+in :mod:`mapping.graph_planes`; the factors' GTSAM form in :mod:`mapping.graph_factors`; the track gate, checks and
+re-localization in :mod:`mapping.graph_gate`; the held clouds in :mod:`mapping.graph_hold`; the heading check in
+:mod:`mapping.graph_heading`; the fleet's compass biases in :mod:`mapping.graph_fleet`.
+
 GTSAM (``gtsam``, the ``graph`` extra of pyproject.toml) is imported on first use.
 """
 
@@ -46,12 +51,13 @@ from lrsensor.frames import Pose, R_ned_from_body
 from .errors import MapInputError
 from .graph_config import GraphConfig
 from .graph_factors import global_cov, isam2, make_factor, pose2, rot
-from .graph_gate import LEVER_M, TrackGate, ambiguous, relocalize, verify
-from .graph_heading import heading_offset
+from .graph_gate import TrackGate, relocalize, verify
+from .graph_heading import check_heading
 from .graph_hold import CloudHold, check_due, check_held, hold_step
-from .landmarks import PlaneLandmarks, associate, take_planes
+from .graph_planes import register
+from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
-from .odometry import OdometryConfig, increment
+from .odometry import OdometryConfig, increment, own_increment
 
 FloatArray = NDArray[np.float64]
 
@@ -127,6 +133,9 @@ class GraphNav:
         #: the planes with an offset variable in the graph, and those new since the last solve
         self._plane_ids: set[int] = set()
         self._new_offsets: set[int] = set()
+        #: the robot-stretches with a shared offset (GraphConfig.stretch_s), and those new since the last solve
+        self._stretch_ids: set[int] = set()
+        self._new_stretches: set[int] = set()
 
     # -- the public interface of RobotNav ------------------------------------------------------------------------
 
@@ -279,7 +288,7 @@ class GraphNav:
             motion = "lost"
         else:
             x_pred, p_pred = self._est[key, 0:2].copy(), self._cov[0:2, 0:2].copy()
-            h3, inliers, used = self._register(key, raw, pts, landmarks, t)
+            h3, inliers, used = register(self, key, raw, pts, landmarks, t)
             dx = self._est[key, 0:2] - x_pred
             if fix is None and float(dx @ np.linalg.solve(p_pred, dx)) > self.gcfg.track_jump_chi2:
                 # a correction its marginal cannot explain: the association was a surprise, the track breaks
@@ -290,7 +299,7 @@ class GraphNav:
             motion = moved = "relocalized"
         elif not self.track.broken and check_due(self, t):
             if self.gcfg.heading_check:
-                self._check_heading(key, t, raw, pts, landmarks)
+                check_heading(self, key, t, raw, pts, landmarks)
             moved = verify(self, key, t, raw, pts, landmarks)
             motion = moved or motion
         self._then[key] = self._est[key].copy()
@@ -373,14 +382,13 @@ class GraphNav:
         z = pred.copy()
         motion = "motion-prior"
         if prev_level.shape[0] and new_rel.shape[0]:
-            d, cov, pairs = increment(prev_level, new_rel, prior_cov, self.odo_cfg)
+            icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
+            d, cov, pairs = increment(prev_level, new_rel, icp_cov, self.odo_cfg)
             if pairs:
-                p_inv = np.linalg.inv(prior_cov)
-                h = np.linalg.inv(cov) - p_inv
-                h = 0.5 * (h + h.T) * gcfg.odometry_info_scale
                 # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
                 # prediction, which the information there (none) does not hold
-                z = pred + np.linalg.solve(h + np.eye(2) * 1e-6, (p_inv + h) @ d)
+                dz, h = own_increment(d, cov, icp_cov, gcfg.odometry_info_scale, gcfg.odometry_observed_std_m)
+                z = pred + dz
                 motion = "scan-odometry"
         # the move's information: the scan's, plus a weak bound from the speed
         info2 = h + np.eye(2) / speed_var
@@ -400,37 +408,6 @@ class GraphNav:
         guess[2] = x_prev[2] + dyaw
         self._new_values = {key: guess}
         return motion
-
-    def _check_heading(self, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks) -> None:
-        """The heading of pose ``key`` checked against the walls (:mod:`mapping.graph_heading`) the robot contributed
-        at most ``heading_own_share`` of the points to, every ``heading_every_s``: a prior on it at the heading the
-        walls say, ``heading_floor_deg`` at least. Its own walls would carry its own heading error back.
-        """
-        gcfg = self.gcfg
-        if self._last_heading_t is not None and t - self._last_heading_t < gcfg.heading_every_s * 1e9:
-            return
-        if len(lm) == 0:
-            return
-        use = np.ones(len(lm), dtype=bool)
-        for i, c in enumerate(lm.contrib or ()):
-            mine = c.get(self.robot)
-            if mine is not None and mine[0] > gcfg.heading_own_share * sum(v[0] for v in c.values()):
-                use[i] = False
-        if not use.any():
-            return
-        x = self._est[key]
-        got = heading_offset(pts, raw, x, take_planes(lm, use), self.cfg)
-        if got is None:
-            return
-        off, sd, _ = got
-        if abs(off) > math.radians(gcfg.heading_max_deg):
-            return
-        self._last_heading_t = t
-        sd = max(sd, math.radians(gcfg.heading_floor_deg))
-        mean = np.array([float(x[0]), float(x[1]), float(x[2]) - off])
-        self._add("prior", (key,), (mean, np.diag([1e-10, 1e-10, 1.0 / sd**2])))
-        self.headings += 1
-        self._solve()
 
     def _compass_prior(self, key: int, t: int) -> None:
         gcfg = self.gcfg
@@ -452,7 +429,9 @@ class GraphNav:
             values.insert(k, pose2(g, x))
         for pid in self._new_offsets:
             values.insert(g.symbol("p", pid), np.zeros(1))
-        self._new_offsets = set()
+        for sid in self._new_stretches:
+            values.insert(g.symbol("s", sid), np.zeros(2))
+        self._new_offsets, self._new_stretches = set(), set()
         self._isam.update(graph, values)
         self._pending = []
         self._new_values = {}
@@ -493,192 +472,6 @@ class GraphNav:
     _pending: list[tuple[str, tuple[int, ...], tuple[Any, ...]]]
     _new_values: dict[int, FloatArray]
 
-    # -- the map's planes ------------------------------------------------------------------------------------
-
-    def _register(
-        self, key: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks, t: int
-    ) -> tuple[FloatArray, int, tuple[int, ...]]:
-        """Register the scan to the map's planes: the others' as a unary factor, its own (old enough) as a loop
-        closure to the pose that made them. Returns the information the scan gave (3x3, north/east/heading,
-        global), the inliers and the planes used."""
-        cfg = self.cfg
-        if len(lm) == 0 or pts.shape[0] < cfg.min_inliers:
-            return np.zeros((3, 3)), 0, ()
-        own_anchor = np.full(len(lm), -1, dtype=np.int64)
-        use = np.ones(len(lm), dtype=bool)
-        if lm.contrib:
-            horizon = t - int(self.gcfg.own_min_age_s * 1e9)
-            for i, c in enumerate(lm.contrib):
-                mine = c.get(self.robot)
-                if mine is None or len(c) != 1:
-                    continue
-                use[i] = False
-                if self.gcfg.own_planes and mine[1] <= horizon:
-                    own_anchor[i] = self._key_at(mine[1])
-        usable = use | (own_anchor >= self._first_key)
-        if not usable.any():
-            return np.zeros((3, 3)), 0, ()
-        res = self._fit(key, raw, pts, take_planes(lm, usable), self.gcfg.map_min_sigma_m)
-        if res is None:
-            return np.zeros((3, 3)), 0, ()
-        _, info, inliers, used, per_plane = res
-        anchor_of = {int(lm.ids[i]): int(own_anchor[i]) for i in np.flatnonzero(own_anchor >= self._first_key)}
-        loops = self._plane_factors(key, raw, per_plane, anchor_of, lm)
-        self.loops += int(loops > 0)
-        # what the scan pinned (reported as the filter reports it: the planes taken as they are)
-        h_total = info
-        if self._pending:
-            self._solve()
-        return h_total, inliers, tuple(used)
-
-    def _plane_factors(
-        self,
-        key: int,
-        raw: Pose,
-        per_plane: list[tuple[int, FloatArray, float, FloatArray, int]],
-        anchor_of: dict[int, int],
-        lm: PlaneLandmarks | None = None,
-    ) -> int:
-        """One factor per plane this scan saw: the mean of its inliers on the plane, with an offset of the plane's
-        own (a variable per plane, its prior ``map_plane_sigma_m``, ``own_sigma_m`` for the robot's own): the scans
-        that see one plane share its error instead of each taking it as new evidence. A plane of the robot's own
-        (``anchor_of``: plane id -> the pose whose cloud first made it) is expressed in the frame of that pose as
-        it was when the cloud was placed, and moves with that pose: seeing it again relates the two poses (a loop
-        closure), it does not fix this one. Returns the loop closures added."""
-        cfg = self.cfg
-        x = self._est[key]
-        loops = 0
-        for pid, n, d, c, m in per_plane:
-            if abs(float(n[2])) > 0.5:
-                continue  # a floor or a ceiling: depth is measured, it says nothing horizontal
-            anchor = anchor_of.get(pid)
-            then = self._then.get(anchor) if anchor is not None else None
-            if anchor is not None and then is None:
-                continue
-            sigma_plane = self.gcfg.own_sigma_m if anchor is not None else self.gcfg.map_plane_sigma_m
-            sigma = max(cfg.point_sigma_m, self.gcfg.map_min_sigma_m) / math.sqrt(min(m, cfg.max_independent_points))
-            const = float(n[2]) * (raw.down_m + float(c[2])) + d
-            nh = n[0:2].astype(np.float64)
-            off = self._offset(pid)
-            if anchor is None or then is None:
-                e = float(nh @ (x[0:2] + rot(float(x[2])) @ c[0:2])) + const + off
-                kind, keys = "plane", (key,)  # type: tuple[str, tuple[int, ...]]
-                data = (pid, float(nh[0]), float(nh[1]), float(c[0]), float(c[1]), const, sigma)
-            else:
-                # the plane in the anchor's frame as it was placed: n_loc . q + const_loc = 0 for q in that frame
-                n_loc = rot(float(then[2])).T @ nh
-                const_loc = const + float(nh @ then[0:2])
-                xa = self._est[anchor]
-                u = x[0:2] + rot(float(x[2])) @ c[0:2] - xa[0:2]
-                e = float(n_loc @ rot(float(xa[2])).T @ u) + const_loc + off
-                kind, keys = "anchored", (anchor, key)
-                data = (pid, float(n_loc[0]), float(n_loc[1]), float(c[0]), float(c[1]), const_loc, sigma)
-            if abs(e) > self.gcfg.plane_gate_m:
-                self.gated += 1
-                continue
-            if self.gcfg.second_hypothesis and lm is not None and self._ambiguous(pid, n, d, c, x, raw, lm):
-                self.ambiguous += 1
-                continue
-            if pid not in self._plane_ids:
-                self._plane_ids.add(pid)
-                self._add("plane_prior", (), (pid, sigma_plane))
-                self._new_offsets.add(pid)
-            self._add(kind, keys, data)
-            loops += int(kind == "anchored")
-        return loops
-
-    def _ambiguous(
-        self, pid: int, n: FloatArray, d: float, c: FloatArray, x: FloatArray, raw: Pose, lm: PlaneLandmarks
-    ) -> bool:
-        """:func:`mapping.graph_gate.ambiguous` at this pose's marginal."""
-        margins = (self.cfg.extent_margin_m, self.cfg.extent_margin_down_m)
-        return ambiguous(pid, n, d, c, x, raw.down_m, self._cov, lm, margins)
-
-    def _offset(self, pid: int) -> float:
-        """The current estimate of plane ``pid``'s offset (0 before it has one)."""
-        if pid not in self._plane_ids or pid in self._new_offsets:
-            return 0.0
-        return float(self._isam.calculateEstimateVector(gtsam_module().symbol("p", pid))[0])
-
-    def _key_at(self, t_ns: int) -> int:
-        """The pose at or just after ``t_ns`` (-1 before the window)."""
-        import bisect
-
-        k = bisect.bisect_left(self._t, int(t_ns))
-        return k if self._first_key <= k < len(self._t) else -1
-
-    def _fit(
-        self, key: int, raw: Pose, pts: FloatArray, lm: PlaneLandmarks, min_sigma: float
-    ) -> tuple[FloatArray, FloatArray, int, list[int], list[tuple[int, FloatArray, float, FloatArray, int]]] | None:
-        """Gauss-Newton over north, east and heading from the point-to-plane residuals, the pose's marginal as the
-        prior; returns the scan's own solution (3,) and information (3x3, global axes), the inliers and plane ids,
-        and per plane (id, normal (3,), d, the mean of its inlier points in the level frame (3,), inliers); or None
-        (too few inliers, or a correction beyond the marginal: a wrong association)."""
-        cfg = self.cfg
-        x_pred = self._est[key].copy()
-        p = self._cov
-        p_inv = np.linalg.inv(p)
-        nh = lm.normal[:, 0:2]
-        along = np.einsum("pi,ij,pj->p", nh, p[0:2, 0:2], nh)
-        gate = np.clip(3.0 * np.sqrt(along + 2.0**2 * p[2, 2]) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
-        x = x_pred.copy()
-        h3 = np.zeros((3, 3))
-        g3 = np.zeros(3)
-        inl = 0
-        ids: list[int] = []
-        sigma = max(cfg.point_sigma_m, min_sigma)
-        x_lin = x.copy()
-        per_plane: list[tuple[int, FloatArray, float, FloatArray, int]] = []
-        for it in range(cfg.iterations):
-            x_lin = x.copy()
-            r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, float(x[2]))
-            veh = np.array([x[0], x[1], raw.down_m])
-            rel = pts @ r_nb.T
-            k, dist = associate(rel + veh, veh, lm, gate, cfg)
-            sel = k >= 0
-            inl = int(sel.sum())
-            if inl < cfg.min_inliers:
-                return None
-            n = lm.normal[k[sel]]
-            r = dist[sel]
-            relh = rel[sel]
-            j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
-            w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
-            scale = min(1.0, cfg.max_independent_points / inl) / sigma**2
-            h3 = scale * (j.T * w) @ j
-            g3 = scale * (j.T * w) @ r
-            x = np.asarray(np.linalg.solve(p_inv + h3, p_inv @ x_pred + h3 @ x - g3), dtype=np.float64)
-            if it >= 1:
-                gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
-            ids = [int(i) for i in np.unique(lm.ids[k[sel]])]
-            # per plane: the mean of its inliers in the level frame (the heading of this linearisation taken out)
-            lvl = relh @ R_ned_from_body(0.0, 0.0, -float(x_lin[2])).T
-            per_plane = []
-            for kk in np.unique(k[sel]):
-                on = k[sel] == kk
-                per_plane.append(
-                    (int(lm.ids[kk]), lm.normal[kk].copy(), float(lm.d[kk]), lvl[on].mean(axis=0), int(on.sum()))
-                )
-        dx = x - x_pred
-        if float(dx @ p_inv @ dx) > self.gcfg.map_gate_chi2:
-            # a correction the pose's marginal cannot explain: a wrong association, not drift
-            self.gated += 1
-            return None
-        # the scan's own solution at the last linearisation (the prior taken out): H (z - x_lin) = -g, in the
-        # directions the scan observes well enough (in metres, the heading at a 2 m lever): a weakly observed one
-        # would carry the linearisation far off with a little information
-        unit = np.array([1.0, 1.0, 1.0 / LEVER_M])
-        hs = h3 * unit[:, None] * unit[None, :]
-        lam, vec = np.linalg.eigh(0.5 * (hs + hs.T))
-        keep = lam >= 1.0 / self.gcfg.observed_std_m**2
-        if not keep.any():
-            return None
-        vk, lk = vec[:, keep], lam[keep]
-        gs = g3 * unit
-        z = x_lin - unit * (vk @ ((vk.T @ gs) / lk))
-        h_kept = (vk * lk) @ vk.T / unit[:, None] / unit[None, :]
-        return z, 0.5 * (h_kept + h_kept.T), inl, ids, per_plane
-
     def _forget(self, key: int) -> None:
         """Scans older than the previous one are not needed (odometry pairs consecutive scans)."""
         self._scan.pop(key - 2, None)
@@ -699,10 +492,15 @@ class GraphNav:
     def _rebuild(self, first: int, marginal: tuple[FloatArray, FloatArray] | None) -> None:
         g = gtsam_module()
         specs = [s for s in self._specs if s[1] and min(s[1]) >= first]
-        planes = {int(s[2][0]) for s in specs if s[0] in ("plane", "anchored")}
-        specs = [s for s in self._specs if s[0] == "plane_prior" and int(s[2][0]) in planes] + specs
-        self._plane_ids = planes
-        self._new_offsets = set(planes)
+        planes = {int(s[2][0]) for s in specs if s[0] in ("plane", "anchored", "plane_shared")}
+        shared = {int(s[2][7]) for s in specs if s[0] == "plane_shared"}
+        specs = (
+            [s for s in self._specs if s[0] == "plane_prior" and int(s[2][0]) in planes]
+            + [s for s in self._specs if s[0] == "stretch_prior" and int(s[2][0]) in shared]
+            + specs
+        )
+        self._plane_ids, self._stretch_ids = planes, shared
+        self._new_offsets, self._new_stretches = set(planes), set(shared)
         if marginal is not None:
             specs.insert(0, ("prior", (first,), marginal))
         self._first_key = first

@@ -20,6 +20,7 @@ pytest.importorskip("gtsam")
 
 from mapping import posegraph
 from mapping.graph_config import GraphConfig
+from mapping.graph_planes import ambiguous_at
 from mapping.posegraph import GraphNav
 
 #: the pose graph is opt-in (NavConfig.graph_without_fix, off by default)
@@ -224,8 +225,8 @@ def test_a_plane_factor_is_left_out_when_another_plane_explains_the_scan_as_well
     n, d = np.array([1.0, 0.0, 0.0]), 0.0
     lm = PlaneLandmarks.from_planes([_wall(1, 0.0), _wall(2, -0.3)])
     g._cov = np.diag([0.2**2, 0.2**2, 1e-6])
-    assert g._ambiguous(1, n, d, c, x, raw, lm)
+    assert ambiguous_at(g, 1, n, d, c, x, raw, lm)
     g._cov = np.diag([0.01**2, 0.01**2, 1e-6])
-    assert not g._ambiguous(1, n, d, c, x, raw, lm)
+    assert not ambiguous_at(g, 1, n, d, c, x, raw, lm)
     g._cov = np.diag([0.2**2, 0.2**2, 1e-6])
-    assert not g._ambiguous(1, n, d, c, x, raw, PlaneLandmarks.from_planes([_wall(1, 0.0), _wall(2, -0.02)]))
+    assert not ambiguous_at(g, 1, n, d, c, x, raw, PlaneLandmarks.from_planes([_wall(1, 0.0), _wall(2, -0.02)]))
