@@ -21,7 +21,10 @@ image's edge (the short pieces on the way, whose own line fits are the unsure on
    blurred like it, and another laser's stripe and edge where one lies in the window, at its separation from the
    anchor), the offset ``d`` of the centre from the prediction by least squares on a grid of offsets (the linear
    parameters solved exactly at each, the minimum refined by parabolas), the width held at the stripe's (the glow
-   stage's fits' median: the water's, told along the whole stripe);
+   stage's fits' median: the water's, told along the whole stripe); where the glow stage fitted the sheet's shape
+   and the laser's glow is strong (:func:`shaped_growth`), the edge is that shape, with the frame's attenuation (at
+   4 px of blur the plain edge read the anchor a pixel off and the blocks 0.15-0.25 px uncertain), and the gate is
+   the visible stripe's (:data:`SHAPE_AMP_MIN`, :data:`SHAPE_SD_MAX_PX`);
 4. the offsets are read relative to the same fit's offset on the anchor's own last block (``d0``): the model's
    bias (the glow's growth over the window, which the edge alone does not follow) is the same along the stripe, and
    the anchor's rows are the extractor's own (better modelled) estimates;
