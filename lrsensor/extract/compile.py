@@ -174,7 +174,10 @@ def _build(part: str | None = None) -> None:
         fwhm_from_points(np.zeros((4, 3)), 1.0, 1.0, g)
         place_points(f64, f64, i64, f64, np.zeros((4, 3)), settings, g, True)
         # (the pooled dim ends: called on glowing frames only; compiled in this part, the shorter one)
-        pool_ends(image, f64, f64, i64, f64, bands.glow_side, i64, np.zeros(4, np.bool_), f64)
+        pool_ends(
+            image, f64, f64, i64, f64, bands.glow_side, i64, np.zeros(4, np.bool_), f64, g.glow_vanish, g.glow_path,
+            new_water(),
+        )  # fmt: skip
         triangulate_points(
             f64, f64, i64, g.camera, g.distortion, g.R_cam_body, g.origin_body, g.normals_body,
             g.points_body,

@@ -69,7 +69,7 @@ from .finish import BLURRED_SIGMA_PX, finish_points
 from .fit import FLANK_PX, Fits, fit_columns, flank_offset
 from .geometry import max_fwhm_at, triangulate_geo
 from .glow import glow_refit, new_water
-from .pooled import extend_ends, glowing_widths
+from .pooled import extend_ends, glowing_widths, shaped_growth
 from .refit import NEIGHBOUR_REFITS, point_table, refit_columns, refit_targets, rows_overlap
 from .settings import Bands, Geometry, Settings
 from .sorting import kth, median
@@ -527,10 +527,12 @@ def refine_points(
 
 
 @njit
-def pool_ends(image, u, v, laser, quality, glow_side, p_laser, own, sigma):  # type: ignore[no-untyped-def]
+def pool_ends(image, u, v, laser, quality, glow_side, p_laser, own, sigma, vanish, path, water):  # type: ignore[no-untyped-def]
     """Step 6 of :func:`extract_frame`: the points ``(u, v, laser, quality)`` (M,) of :func:`finish_located` with
     the dim ends of the stripes the glow stage fitted measured pooled along them (:mod:`.pooled`); ``own`` (N,) the
-    :class:`Located` points (laser ``p_laser`` (N,)) whose joint fit was taken, ``sigma`` (N,) their widths, px.
+    :class:`Located` points (laser ``p_laser`` (N,)) whose joint fit was taken, ``sigma`` (N,) their widths, px;
+    ``vanish``, ``path`` (L, W) the glow's geometry and ``water`` the glow stage's record
+    (:func:`.pooled.shaped_growth`).
     A call of its own: :func:`finish_located` does not link the pooled fits' tree, and a frame where the glow stage
     took no fit (clear water) does not call it.
 
@@ -538,7 +540,7 @@ def pool_ends(image, u, v, laser, quality, glow_side, p_laser, own, sigma):  # t
         ``(u, v, laser, quality)`` (K,) each, as :func:`.pooled.extend_ends`.
     """
     use, sig_l = glowing_widths(p_laser, own, sigma, glow_side.shape[0])
-    return extend_ends(image, u, v, laser, quality, glow_side, use, sig_l)
+    return extend_ends(image, u, v, laser, quality, glow_side, use, sig_l, vanish, shaped_growth(water, path))
 
 
 @njit
@@ -620,10 +622,14 @@ def extract_frame(
     # the width limit of every point (the refits need any of them), compiled beside the triangulation
     mfw = max_fwhm_at(picked.cols, picked.rows, picked.laser, FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo)
     located = fit_points(image, picked, mfw, s)
-    glow = refine_points(image, located, bands.glow_side, s, geo, new_water() if water is None else water)
+    w_rec = new_water() if water is None else water
+    glow = refine_points(image, located, bands.glow_side, s, geo, w_rec)
     u, v, laser, quality = finish_located(located, glow, image.shape[1], s, geo)
     if POOLED_ENDS and glow[2].any():  # 6. a glowing stripe's dim ends, measured pooled along it (clear water: none)
-        u, v, laser, quality = pool_ends(image, u, v, laser, quality, bands.glow_side, located.laser, glow[2], glow[1])
+        u, v, laser, quality = pool_ends(
+            image, u, v, laser, quality, bands.glow_side, located.laser, glow[2], glow[1], geo.glow_vanish,
+            geo.glow_path, w_rec,
+        )  # fmt: skip
     # the points in a call of their own: a kernel that triangulated would compile the triangulation again
     xyz = triangulate_geo(u, v, laser, geo) if triangulate else _NO_XYZ
     uv, laser, quality, xyz = place_points(u, v, laser, quality, xyz, s, geo, triangulate)

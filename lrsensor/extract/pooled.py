@@ -21,7 +21,10 @@ image's edge (the short pieces on the way, whose own line fits are the unsure on
    blurred like it, and another laser's stripe and edge where one lies in the window, at its separation from the
    anchor), the offset ``d`` of the centre from the prediction by least squares on a grid of offsets (the linear
    parameters solved exactly at each, the minimum refined by parabolas), the width held at the stripe's (the glow
-   stage's fits' median: the water's, told along the whole stripe);
+   stage's fits' median: the water's, told along the whole stripe); where the glow stage fitted the sheet's shape
+   and the laser's glow is strong (:func:`shaped_growth`), the edge is that shape, with the frame's attenuation (at
+   4 px of blur the plain edge read the anchor a pixel off and the blocks 0.15-0.25 px uncertain), and the gate is
+   the visible stripe's (:data:`SHAPE_AMP_MIN`, :data:`SHAPE_SD_MAX_PX`);
 4. the offsets are read relative to the same fit's offset on the anchor's own last block (``d0``): the model's
    bias (the glow's growth over the window, which the edge alone does not follow) is the same along the stripe, and
    the anchor's rows are the extractor's own (better modelled) estimates;
@@ -47,6 +50,8 @@ import numpy as np
 
 from ._jit import callee, empty, full, inline, njit, zeros
 from .finish import own_values
+from .glow_fit import sheet_edge
+from .held import HELD_MAX_STEP
 from .sorting import median
 
 #: A piece of returned columns (gaps of at most :data:`GAP_COLS`) anchors an extension where it has this many.
@@ -61,6 +66,12 @@ BLOCK_COLS = 48
 SD_MAX_PX = 0.15
 AMP_MIN = 1.5
 MOVE_MAX_PX = 1.5
+#: ... where the glow's edge takes the sheet's shape (a strong glow on a blurred stripe, :func:`shaped_growth`): the
+#: offset's standard deviation at most this (px) and the mean amplitude at least the visible stripe's 3x a column's
+#: noise (the shaped fit follows the stripe past the columns where it is visible, whose points raised the far walls'
+#: medians: 3 m, glow 0.3, 4 px read 0.303 % with the plain gate, 0.271 with this one).
+SHAPE_SD_MAX_PX = 0.12
+SHAPE_AMP_MIN = 3.0
 #: The offsets searched: a grid of this span either side of the anchor's offset and this step, px, then a parabola
 #: through the residuals this far either side of the grid's (parabolic) least.
 OFFSET_SPAN_PX = 2.0
@@ -69,6 +80,8 @@ FINE_STEP_PX = 0.05
 #: The fit's window: the stripe's width times this plus 2 rows either side, at most MAX_HALF_PX.
 WINDOW_SIGMAS = 4.5
 MAX_HALF_PX = 24
+#: 1 / sqrt(2 pi).
+INV_SQRT_2PI = 0.3989422804014327
 #: The quality of a pooled point: the usual signal-to-noise term of a column, halved (no single column holds it).
 QUALITY_SCALE = 0.5
 
@@ -98,10 +111,12 @@ def stack(image, cols, pred, half, out):  # type: ignore[no-untyped-def]
 
 
 @callee
-def model_rss(y, d, s, side, nb, nb_side, beta):  # type: ignore[no-untyped-def]
+def model_rss(y, d, s, side, nb, nb_side, beta, d_e, kap):  # type: ignore[no-untyped-def]
     """Least squares of the profile ``y`` (m,) at rows ``q = -(m // 2) .. m // 2`` on a line, a Gaussian stripe at
     ``d`` of width ``s``, its glow's edge ``Phi(side (q - d) / s)`` and, where ``nb`` is finite, another stripe at
-    ``nb`` (its Gaussian, and its edge on ``nb_side`` where its centre lies in the window). Returns the residual sum
+    ``nb`` (its Gaussian, and its edge on ``nb_side`` where its centre lies in the window); with ``kap > 0`` the edge
+    is the sheet's shape (:func:`.glow_fit.sheet_edge`, the edge ``d_e`` px from its vanishing row). Returns the
+    residual sum
     of squares (inf where the normal equations are singular); ``beta`` (6,) gets the parameters (line's two, the
     stripe's amplitude, the edge's step, the other stripe's amplitude and step; 0 where not fitted)."""
     m = y.size
@@ -121,6 +136,9 @@ def model_rss(y, d, s, side, nb, nb_side, beta):  # type: ignore[no-untyped-def]
         x[1] = q / half
         x[2] = math.exp(-0.5 * z * z)
         x[3] = 0.5 * (1.0 + math.erf(side * z * r2))
+        if kap > 0.0:
+            u = side * z
+            x[3] = sheet_edge(u * s, u, x[3], math.exp(-0.5 * u * u) * INV_SQRT_2PI, s, d_e, kap)[0]
         if n_p > 4:
             zn = (q - nb) / s
             x[4] = math.exp(-0.5 * zn * zn)
@@ -162,10 +180,11 @@ def model_rss(y, d, s, side, nb, nb_side, beta):  # type: ignore[no-untyped-def]
 
 
 @callee
-def best_offset(y, s, side, nb, nb_side, c0):  # type: ignore[no-untyped-def]
+def best_offset(y, s, side, nb, nb_side, c0, d_e, kap):  # type: ignore[no-untyped-def]
     """The offset of the stripe's centre in the profile ``y`` (m,) (px from its middle row; width ``s`` held): the
-    least residual on the grid ``c0 +- OFFSET_SPAN_PX`` by ``COARSE_STEP_PX``, refined by a parabola through it and
-    its neighbours, then by one through the residuals ``FINE_STEP_PX`` either side of that. Returns ``(d,
+    least residual (:func:`model_rss`, ``d_e`` and ``kap`` its) on the grid ``c0 +- OFFSET_SPAN_PX`` by
+    ``COARSE_STEP_PX``, refined by a parabola through it and its neighbours, then by one through the residuals
+    ``FINE_STEP_PX`` either side of that. Returns ``(d,
     curvature, amplitude)``: the offset (NaN where the least lies on the grid's ends or the residual is not convex
     there), the residual's second derivative in ``d`` (per px^2) and the stripe's amplitude at ``d``."""
     n_d = round(2.0 * OFFSET_SPAN_PX / COARSE_STEP_PX) + 1
@@ -173,7 +192,7 @@ def best_offset(y, s, side, nb, nb_side, c0):  # type: ignore[no-untyped-def]
     beta = empty(6, np.float64)
     j_min = 0
     for j in range(n_d):
-        rss[j] = model_rss(y, c0 - OFFSET_SPAN_PX + j * COARSE_STEP_PX, s, side, nb, nb_side, beta)
+        rss[j] = model_rss(y, c0 - OFFSET_SPAN_PX + j * COARSE_STEP_PX, s, side, nb, nb_side, beta, d_e, kap)
         if rss[j] < rss[j_min]:
             j_min = j
     if j_min == 0 or j_min == n_d - 1 or not math.isfinite(rss[j_min]):
@@ -181,23 +200,23 @@ def best_offset(y, s, side, nb, nb_side, c0):  # type: ignore[no-untyped-def]
     r_m, r_0, r_p = rss[j_min - 1], rss[j_min], rss[j_min + 1]
     den = r_m - 2.0 * r_0 + r_p
     d1 = c0 - OFFSET_SPAN_PX + (j_min + (0.5 * (r_m - r_p) / den if den > 0.0 else 0.0)) * COARSE_STEP_PX
-    r_m = model_rss(y, d1 - FINE_STEP_PX, s, side, nb, nb_side, beta)
-    r_p = model_rss(y, d1 + FINE_STEP_PX, s, side, nb, nb_side, beta)
-    r_0 = model_rss(y, d1, s, side, nb, nb_side, beta)
+    r_m = model_rss(y, d1 - FINE_STEP_PX, s, side, nb, nb_side, beta, d_e, kap)
+    r_p = model_rss(y, d1 + FINE_STEP_PX, s, side, nb, nb_side, beta, d_e, kap)
+    r_0 = model_rss(y, d1, s, side, nb, nb_side, beta, d_e, kap)
     den = r_m - 2.0 * r_0 + r_p
     if not den > 0.0:
         return np.nan, 0.0, 0.0
     d = d1 + 0.5 * (r_m - r_p) / den * FINE_STEP_PX
-    model_rss(y, d, s, side, nb, nb_side, beta)
+    model_rss(y, d, s, side, nb, nb_side, beta, d_e, kap)
     return d, den / (FINE_STEP_PX * FINE_STEP_PX), beta[2]
 
 
 @callee
-def block_fit(image, cols, pred, half, s, side, nb, nb_side, prof, c0):  # type: ignore[no-untyped-def]
+def block_fit(image, cols, pred, half, s, side, nb, nb_side, prof, c0, d_e, kap):  # type: ignore[no-untyped-def]
     """One block: the columns ``cols`` (B,) read about ``pred`` (B,) (:func:`stack`, into ``prof`` (B, 2 half +
-    1)), averaged and fitted (:func:`best_offset` about ``c0``). Returns ``(d, sd, amplitude, noise)``: the offset
-    (px; NaN: no fit), its standard deviation (px), the stripe's mean amplitude and a column's noise (DN; from the
-    differences of neighbouring columns' profiles within 2.5 ``s`` of the centre)."""
+    1)), averaged and fitted (:func:`best_offset` about ``c0``, ``d_e`` and ``kap`` its). Returns ``(d, sd,
+    amplitude, noise)``: the offset (px; NaN: no fit), its standard deviation (px), the stripe's mean amplitude and
+    a column's noise (DN; from the differences of neighbouring columns' profiles within 2.5 ``s`` of the centre)."""
     m = 2 * half + 1
     got = stack(image, cols, pred, half, prof)
     y = zeros(m, np.float64)
@@ -222,7 +241,7 @@ def block_fit(image, cols, pred, half, s, side, nb, nb_side, prof, c0):  # type:
     if n_dif < 8:
         return np.nan, np.inf, 0.0, np.inf
     noise = median(dif[:n_dif]) / (0.6745 * math.sqrt(2.0))
-    d, curv, amp = best_offset(y, s, side, nb, nb_side, c0)
+    d, curv, amp = best_offset(y, s, side, nb, nb_side, c0, d_e, kap)
     sd = math.sqrt(2.0 * noise * noise / n / curv) if curv > 0.0 else np.inf
     return d, sd, amp, noise
 
@@ -245,12 +264,14 @@ def line_through(u, v, lo, hi, e):  # type: ignore[no-untyped-def]
 
 
 @callee
-def walk(image, occ, new, new_q, l, cu, cv, lo, hi, step, side_l, nb_row, nb_side_l, s_l):  # type: ignore[no-untyped-def]
+def walk(image, occ, new, new_q, l, cu, cv, lo, hi, step, side_l, nb_row, nb_side_l, s_l, van_l, kap_l):  # type: ignore[no-untyped-def]
     """Follow laser ``l``'s piece (columns ``cu`` (P,), rows ``cv`` (P,), its points ``[lo, hi)``) outward from its
     end on the side of ``step`` (+1: its last column, -1: its first), writing the pooled rows into ``new`` (L, W)
     (NaN: none) and their quality into ``new_q`` (L, W) where the blocks pass the gate; ``occ`` (W,) the columns
     of this laser's anchors (the walk stops there), ``nb_row`` (W,) the nearest other laser's returned rows (NaN:
-    none), ``side_l`` and ``nb_side_l`` (W,) their glow sides, ``s_l`` the stripe's width (px)."""
+    none), ``side_l`` and ``nb_side_l`` (W,) their glow sides, ``s_l`` the stripe's width (px); ``van_l``, ``kap_l``
+    (W,): the row of the sheet's vanishing line and the glow's growth per column (:func:`shaped_growth`; 0: a plain
+    edge and the plain gate)."""
     w = image.shape[1]
     n_a = min(ANCHOR_COLS, hi - lo)
     if step > 0:
@@ -276,7 +297,9 @@ def walk(image, occ, new, new_q, l, cu, cv, lo, hi, step, side_l, nb_row, nb_sid
         nb = nb_row[mid] - (a + b * (mid - e))
     nb_side = float(nb_side_l[mid])
     prof = empty((BLOCK_COLS, 2 * half + 1), np.float64)
-    d0, _sd, amp, _noise = block_fit(image, rc, rp, half, s_l, side, nb, nb_side, prof, 0.0)
+    d_e, kap = _edge_at(rc, rp, side, van_l, kap_l)
+    d0, _sd, amp, _noise = block_fit(image, rc, rp, half, s_l, side, nb, nb_side, prof, 0.0, d_e, kap)
+    sd_max, amp_min = (SHAPE_SD_MAX_PX, SHAPE_AMP_MIN) if kap > 0.0 else (SD_MAX_PX, AMP_MIN)
     if not (math.isfinite(d0) and amp > 0.0):
         return
     shift = 0.0
@@ -297,15 +320,47 @@ def walk(image, occ, new, new_q, l, cu, cv, lo, hi, step, side_l, nb_row, nb_sid
         side_b = float(side_l[cols[nb_c // 2]])
         if side_b != side:
             return
-        d, sd, amp, noise = block_fit(image, cols, pred, half, s_l, side, nb, nb_side, prof, d0)
+        d_e, kap = _edge_at(cols, pred, side, van_l, kap_l)
+        d, sd, amp, noise = block_fit(image, cols, pred, half, s_l, side, nb, nb_side, prof, d0, d_e, kap)
         move = d - d0
-        if not (sd <= SD_MAX_PX and amp >= AMP_MIN * noise and abs(move) <= MOVE_MAX_PX):  # (NaN fails)
+        if not (sd <= sd_max and amp >= amp_min * noise and abs(move) <= MOVE_MAX_PX):  # (NaN fails)
             return
         q = QUALITY_SCALE * (1.0 - math.exp(-amp / max(noise, 1e-9) / 8.0))
         for j in range(nb_c):
             new[l, cols[j]] = pred[j] + move
             new_q[l, cols[j]] = q
         shift += move
+
+
+@inline
+def _edge_at(cols, pred, side, van_l, kap_l):  # type: ignore[no-untyped-def]
+    """A block's (:func:`walk`) glow edge: its rows from the sheet's vanishing row (px, at least 1) and the growth
+    ``kap`` of :func:`.glow_fit.sheet_edge` there (0: a plain edge), at the block's middle column."""
+    mid = cols[cols.size // 2]
+    k = kap_l[mid]
+    if not k > 0.0:
+        return 1.0, 0.0
+    p = 0.0
+    for j in range(pred.size):
+        p += pred[j]
+    d_e = max(side * (p / pred.size - van_l[mid]), 1.0)
+    return d_e, k / d_e
+
+
+@inline
+def shaped_growth(water, path):  # type: ignore[no-untyped-def]
+    """(L, W): each laser's glow growth ``alpha 2 s D`` (px; :func:`.glow_fit.sheet_edge`'s ``kap d``) per column for
+    the pooled fits, from the glow stage's ``water`` record (the attenuation told, each laser's glow share) and
+    ``path`` (L, W) (:func:`lrsensor.extract.settings.glow_geometry`): where the glow stage fitted the sheet's shape
+    (an attenuation told) and the laser's glow is strong (its share above :data:`.held.HELD_MAX_STEP`, where the
+    glow stage's step is free); 0 elsewhere (the plain edge: a weak glow, a sharp stripe)."""
+    out = zeros(path.shape, np.float64)
+    alpha = water[0]
+    for li in range(path.shape[0]):
+        if alpha > 0.0 and 3 + li < water.size and water[3 + li] > HELD_MAX_STEP:
+            for c in range(path.shape[1]):
+                out[li, c] = alpha * path[li, c]
+    return out
 
 
 @inline
@@ -324,11 +379,12 @@ def glowing_widths(laser, own, sig, n_l):  # type: ignore[no-untyped-def]
 
 
 @njit
-def extend_ends(image, u, v, laser, quality, glow_side, use, sig_l):  # type: ignore[no-untyped-def]
+def extend_ends(image, u, v, laser, quality, glow_side, use, sig_l, vanish, kap):  # type: ignore[no-untyped-def]
     """The returned points ``(u, v, laser, quality)`` (M,) each (sorted by laser, then column) with each glowing
     stripe's dim ends pooled along it (see the module documentation); ``glow_side`` (L, W) the glow's side per
     laser and column, ``use`` (L,) bool the lasers whose stripe the glow stage fitted, ``sig_l`` (L,) their
-    stripe's width (px).
+    stripe's width (px); ``vanish``, ``kap`` (L, W): the sheets' vanishing rows and the glow's growth per laser and
+    column (:func:`shaped_growth`; 0: the plain edge).
 
     Returns:
         ``(u, v, laser, quality)`` (K,) each, sorted the same way: the points of the anchors and of the pieces no
@@ -390,7 +446,10 @@ def extend_ends(image, u, v, laser, quality, glow_side, use, sig_l):  # type: ig
             if a1 - a0 < ANCHOR_MIN:
                 continue
             for step in (1, -1):
-                walk(image, occ, new, new_q, li, cu, cv, a0, a1, step, glow_side[li], nb_row, nb_side, sig_l[li])
+                walk(
+                    image, occ, new, new_q, li, cu, cv, a0, a1, step, glow_side[li], nb_row, nb_side, sig_l[li],
+                    vanish[li], kap[li],
+                )  # fmt: skip
     # the output: the points whose column no pooled block took, and the pooled columns, by laser and column
     k = 0
     for t in range(m):

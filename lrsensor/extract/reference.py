@@ -203,6 +203,7 @@ def extract_frame(
     # turbid water: the stripes that show the sheet's glow, fitted jointly with its edge
     own = np.zeros(cols.size, bool)
     pool_use, pool_sig = np.zeros(n_l, bool), np.zeros(n_l)  # the lasers whose dim ends are pooled (frame.POOLED_ENDS)
+    w_rec = new_water() if water is None else water
     if s.glow_fit:  # (the gate takes the amplitude and noise of the joint fits where they are taken)
         # the points the common fit refused enter at their candidate row with the frame's width (frame.RETRY_REFUSED)
         retry = ~ok & ~_sat if RETRY_REFUSED and sig_med >= BLURRED_SIGMA_PX else np.zeros(cols.size, bool)
@@ -224,7 +225,7 @@ def extract_frame(
             s.min_green_ratio,
             geo.glow_vanish,
             geo.glow_path,
-            new_water() if water is None else water,
+            w_rec,
             retry,
         )
         if POOLED_ENDS:
@@ -295,7 +296,10 @@ def extract_frame(
     uv = np.stack([(col_v - laser * w).astype(np.float64), vv], axis=1)
     laser = laser.astype(np.int64)
     # a glowing stripe's dim ends, measured pooled along it
-    uv, laser, quality = reference_pooled.extend_ends(image, uv, laser, quality, bands.glow_side, pool_use, pool_sig)
+    uv, laser, quality = reference_pooled.extend_ends(
+        image, uv, laser, quality, bands.glow_side, pool_use, pool_sig, geo.glow_vanish,
+        reference_pooled.shaped_growth(w_rec, geo.glow_path),
+    )  # fmt: skip
     if not triangulate:
         return uv, laser, quality, np.empty((0, 3))
     # 6. the body-frame points and the depth gate

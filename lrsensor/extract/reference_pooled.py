@@ -11,11 +11,24 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from . import pooled
+from . import glow_fit, pooled
 from .finish import STRIPE_NOISE_MIN
+from .held import HELD_MAX_STEP
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+
+_sheet_edge = getattr(glow_fit.sheet_edge, "py_func", glow_fit.sheet_edge)
+
+
+def shaped_growth(water: FloatArray, path: FloatArray) -> FloatArray:
+    """:func:`lrsensor.extract.pooled.shaped_growth`: (L, W) each laser's glow growth per column for the pooled fits
+    where the glow stage fitted the sheet's shape and the laser's glow is strong, 0 elsewhere."""
+    n_l = path.shape[0]
+    share = np.array([water[3 + li] if 3 + li < water.size else -np.inf for li in range(n_l)])
+    strong = (water[0] > 0.0) & (share > HELD_MAX_STEP)
+    return np.where(strong[:, None], water[0] * path, 0.0)
 
 
 def _erf(x: FloatArray) -> FloatArray:
@@ -37,7 +50,9 @@ def glowing_widths(
     return use, sig_l
 
 
-def _fits(y: FloatArray, d: FloatArray, s: float, side: float, nb: float, nb_side: float) -> tuple[FloatArray, ...]:
+def _fits(
+    y: FloatArray, d: FloatArray, s: float, side: float, nb: float, nb_side: float, d_e: float, kap: float
+) -> tuple[FloatArray, ...]:
     """The least squares of :func:`lrsensor.extract.pooled.model_rss` at every offset ``d`` (D,): ``(rss,
     amplitude)`` (D,) each."""
     half = y.size // 2
@@ -49,6 +64,9 @@ def _fits(y: FloatArray, d: FloatArray, s: float, side: float, nb: float, nb_sid
         np.exp(-0.5 * z * z),
         0.5 * (1.0 + _erf(side * z / math.sqrt(2.0))),
     ]
+    if kap > 0.0:  # the sheet's shape
+        u = side * z
+        cols[3] = _sheet_edge(u * s, u, cols[3], np.exp(-0.5 * u * u) * pooled.INV_SQRT_2PI, s, d_e, kap)[0]
     if math.isfinite(nb) and abs(nb) <= half + 2.0 * s:
         zn = np.broadcast_to((q - nb) / s, z.shape)
         cols.append(np.exp(-0.5 * zn * zn))
@@ -64,10 +82,10 @@ def _fits(y: FloatArray, d: FloatArray, s: float, side: float, nb: float, nb_sid
 
 def _block_fit(
     green: NDArray[np.uint8], cols: IntArray, pred: FloatArray, half: int, s: float, side: float, nb: float,
-    nb_side: float, c0: float,
+    nb_side: float, c0: float, d_e: float, kap: float,
 ) -> tuple[float, float, float, float]:  # fmt: skip
-    """:func:`lrsensor.extract.pooled.block_fit` on the green channel (H, W), the offsets searched about ``c0``:
-    ``(d, sd, amplitude, noise)``."""
+    """:func:`lrsensor.extract.pooled.block_fit` on the green channel (H, W), the offsets searched about ``c0``
+    (the edge ``d_e``, ``kap`` as there): ``(d, sd, amplitude, noise)``."""
     r0 = np.floor(pred).astype(np.int64)
     f = pred - r0
     got = np.isfinite(pred) & (r0 - half >= 0) & (r0 + half + 1 < green.shape[0])
@@ -86,18 +104,18 @@ def _block_fit(
     noise = float(np.median(dif)) / (0.6745 * math.sqrt(2.0))
     span, coarse, fine = pooled.OFFSET_SPAN_PX, pooled.COARSE_STEP_PX, pooled.FINE_STEP_PX
     grid = c0 - span + np.arange(round(2.0 * span / coarse) + 1, dtype=np.float64) * coarse
-    rss, _ = _fits(y, grid, s, side, nb, nb_side)
+    rss, _ = _fits(y, grid, s, side, nb, nb_side, d_e, kap)
     j = int(np.argmin(rss))
     if j in (0, grid.size - 1) or not math.isfinite(rss[j]):
         return math.nan, math.inf, 0.0, noise
     den = float(rss[j - 1] - 2.0 * rss[j] + rss[j + 1])
     d1 = c0 - span + (j + (0.5 * float(rss[j - 1] - rss[j + 1]) / den if den > 0.0 else 0.0)) * coarse
-    r3, _ = _fits(y, np.array([d1 - fine, d1, d1 + fine]), s, side, nb, nb_side)
+    r3, _ = _fits(y, np.array([d1 - fine, d1, d1 + fine]), s, side, nb, nb_side, d_e, kap)
     den = float(r3[0] - 2.0 * r3[1] + r3[2])
     if not den > 0.0:
         return math.nan, math.inf, 0.0, noise
     d = d1 + 0.5 * float(r3[0] - r3[2]) / den * fine
-    amp = float(_fits(y, np.array([d]), s, side, nb, nb_side)[1][0])
+    amp = float(_fits(y, np.array([d]), s, side, nb, nb_side, d_e, kap)[1][0])
     curv = den / (fine * fine)
     sd = math.sqrt(2.0 * noise * noise / n / curv)
     return d, sd, amp, noise
@@ -105,10 +123,18 @@ def _block_fit(
 
 def _walk(
     green: NDArray[np.uint8], occ: NDArray[np.bool_], cu: IntArray, cv: FloatArray, step: int, side_l: IntArray,
-    nb_row: FloatArray, nb_side_l: IntArray, s_l: float,
+    nb_row: FloatArray, nb_side_l: IntArray, s_l: float, van_l: FloatArray, kap_l: FloatArray,
 ) -> tuple[IntArray, FloatArray, FloatArray]:  # fmt: skip
     """:func:`lrsensor.extract.pooled.walk` from the end of the piece ``(cu, cv)`` on the side of ``step``: the
     pooled columns, rows and qualities."""
+
+    def edge(cols: IntArray, pred: FloatArray) -> tuple[float, float]:  # pooled._edge_at
+        mid = int(cols[cols.size // 2])
+        if not kap_l[mid] > 0.0:
+            return 1.0, 0.0
+        d_e = max(side * (float(pred.sum()) / pred.size - float(van_l[mid])), 1.0)
+        return d_e, float(kap_l[mid]) / d_e
+
     out_c: list[int] = []
     out_v: list[float] = []
     out_q: list[float] = []
@@ -132,7 +158,9 @@ def _walk(
     nb = float(nb_row[mid] - (a + b * (mid - e))) if math.isfinite(nb_row[mid]) else math.nan
     nb_side = float(nb_side_l[mid])
     half = min(math.ceil(pooled.WINDOW_SIGMAS * s_l + 2.0), pooled.MAX_HALF_PX)
-    d0, _, amp, _ = _block_fit(green, rc, rp, half, s_l, side, nb, nb_side, 0.0)
+    d0, _, amp, _ = _block_fit(green, rc, rp, half, s_l, side, nb, nb_side, 0.0, *edge(rc, rp))
+    shaped = edge(rc, rp)[1] > 0.0
+    sd_max, amp_min = (pooled.SHAPE_SD_MAX_PX, pooled.SHAPE_AMP_MIN) if shaped else (pooled.SD_MAX_PX, pooled.AMP_MIN)
     if not (math.isfinite(d0) and amp > 0.0):
         return done
     shift = 0.0
@@ -148,9 +176,9 @@ def _walk(
         pred = (a + b * (cols - e) + shift).astype(np.float64)
         if float(side_l[cols[cols.size // 2]]) != side:
             break
-        d, sd, amp, noise = _block_fit(green, cols, pred, half, s_l, side, nb, nb_side, d0)
+        d, sd, amp, noise = _block_fit(green, cols, pred, half, s_l, side, nb, nb_side, d0, *edge(cols, pred))
         move = d - d0
-        if not (sd <= pooled.SD_MAX_PX and amp >= pooled.AMP_MIN * noise and abs(move) <= pooled.MOVE_MAX_PX):
+        if not (sd <= sd_max and amp >= amp_min * noise and abs(move) <= pooled.MOVE_MAX_PX):
             break
         out_c += blk
         out_v += list(pred + move)
@@ -161,10 +189,11 @@ def _walk(
 
 def extend_ends(
     image: NDArray[np.uint8], uv: FloatArray, laser: IntArray, quality: FloatArray, glow_side: IntArray,
-    use: NDArray[np.bool_], sig_l: FloatArray,
+    use: NDArray[np.bool_], sig_l: FloatArray, vanish: FloatArray, kap: FloatArray,
 ) -> tuple[FloatArray, IntArray, FloatArray]:  # fmt: skip
     """:func:`lrsensor.extract.pooled.extend_ends` on the points ``uv`` (M, 2), ``laser`` (M,), ``quality`` (M,)
-    (sorted by laser, then column): ``(uv, laser, quality)`` with each glowing stripe's dim ends pooled."""
+    (sorted by laser, then column): ``(uv, laser, quality)`` with each glowing stripe's dim ends pooled (``vanish``,
+    ``kap`` (L, W): the glow's edge, :func:`shaped_growth`)."""
     if not use.any() or laser.size == 0:
         return uv, laser, quality
     green = np.ascontiguousarray(image[:, :, 1])
@@ -197,7 +226,10 @@ def extend_ends(
             nb_side = np.where(take, glow_side[o], nb_side)
         for a0, a1 in anchors:
             for step in (1, -1):
-                c, v, q = _walk(green, occ, cu[a0:a1], cv[a0:a1], step, glow_side[li], nb_row, nb_side, sig_l[li])
+                c, v, q = _walk(
+                    green, occ, cu[a0:a1], cv[a0:a1], step, glow_side[li], nb_row, nb_side, sig_l[li], vanish[li],
+                    kap[li],
+                )  # fmt: skip
                 new[li, c] = v
                 new_q[li, c] = q
     keep = ~np.isfinite(new[laser, u])
