@@ -104,8 +104,6 @@ class SmootherConfig:
     refilter_overlap_s: float | None = None
     drift_max_m_s: float = 0.0
     drift_slack_m: float = 0.1
-    runaway_max_m_s: float = 0.0
-    runaway_slack_m: float = 0.2
 
 
 def leaves_fixes(
@@ -229,9 +227,7 @@ class SmoothJob:
             )
             if s.t_ns == self.first_ns:
                 self.start_map_ne = (float(x[0]), float(x[1]))
-        if (anchor is not None and self.check_fixes and self.scfg.drift_max_m_s > 0 and self._leaves_fixes(anchor)) or (
-            not self.check_fixes and self.scfg.runaway_max_m_s > 0 and self._runs_away()
-        ):
+        if anchor is not None and self.check_fixes and self.scfg.drift_max_m_s > 0 and self._leaves_fixes(anchor):
             # scans registered to a wrong plane moved the estimate: keep the robot as it was (the next run tries
             # again against the map as it is then)
             self.refused = True
@@ -251,26 +247,9 @@ class SmoothJob:
         ]
         return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
-    def _runs_away(self) -> bool:
-        """Whether the revised disagreement with the fixes changes anywhere in the window faster than a drift can
-        (``runaway_max_m_s`` over any span, beyond ``runaway_slack_m``)."""
-        a = self._offsets()[::5]
-        if len(a) < 2:
-            return False
-        moved = np.linalg.norm(a[:, None, 1:] - a[None, :, 1:], axis=2)
-        allowed = self.scfg.runaway_slack_m + self.scfg.runaway_max_m_s * np.abs(a[:, None, 0] - a[None, :, 0])
-        return bool(np.any(moved > allowed))
-
     def _leaves_fixes(self, anchor: tuple[float, FloatArray]) -> bool:
         """Whether the revised poses leave the raw fixes faster than a dead reckoning drifts (:func:`leaves_fixes`)."""
-        rows = [
-            (s.t_ns * 1e-9, p.north_m - s.raw.north_m, p.east_m - s.raw.east_m)
-            for s in self.scans
-            if (p := self.revised.get(s.t_ns)) is not None and np.isfinite(s.raw.north_m + s.raw.east_m)
-        ]
-        if not rows:
-            return False
-        a = np.asarray(rows)
+        a = self._offsets()
         return bool(np.any(leaves_fixes(a[:, 0], a[:, 1:], anchor[0], anchor[1], self.scfg)))
 
     def catch_up(self, newer: list[_Scan], landmarks: PlaneLandmarks) -> None:
