@@ -13,14 +13,17 @@ cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.sy
 - ``smoothed``: the base's navigation, its smoother's runs taken over at once (``bench_nav_procs``'s in-process).
 
 Per way: faces recovered (2 deg, 5 cm) of seen, duplicates, spurious planes, the faces off the bar (deg / cm),
-and per robot the horizontal error of the served poses against the truth (mean / max, cm); with ``--trace``,
-each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose
-graphs' ``GraphConfig``, depth-only robots) change the base's tuning (a what-if).
+per robot the horizontal error of the served poses against the truth (mean / max, cm: as each cloud was placed,
+and as the clouds are in the map at the end, after the smoother's last run) and the mean heading error of the
+poses the clouds are in the map with (deg, served); with ``--trace``, each robot's worst 3 s bins.
+``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose graphs' ``GraphConfig``,
+depth-only robots) change the base's tuning (a what-if).
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from dataclasses import replace
@@ -30,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from lrsensor.frames import body_to_ned
-from mapping.synth import DiveFrame, hit_faces, replay_dive, score_map, tank
+from mapping.synth import DiveFrame, DiveMap, hit_faces, replay_dive, score_map, tank
 
 from .bench_nav_procs import base_nav
 from .fleet_dives import dive_frames, extracted_frames, write_fleet
@@ -52,17 +55,28 @@ def _tuning(sets: list[str]) -> dict[str, Any]:
     return kw
 
 
-def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The served planes of ``frames`` mapped ``way`` (:data:`WAYS`) and per robot the served poses' horizontal
-    errors (m; empty without navigation)."""
+def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list[dict[str, Any]], DiveMap | None]:
+    """The served planes of ``frames`` mapped ``way`` (:data:`WAYS`), and the replay with navigation (else None)."""
     if way in ("true", "trusted"):
         fr = [replace(f, pose_est=f.pose_true) if way == "true" else f for f in frames]
         fr = [replace(f, points_ned_est=body_to_ned(f.points_body, f.pose_est)) for f in fr]
         run = replay_dive(fr, navigate=False)
-        return run.planes(), {}
+        return run.planes(), None
     smoother = kw["smoother"] if way == "smoothed" else None
     run = replay_dive(frames, navigate=True, background="wait", **{**kw, "smoother": smoother})
-    return run.planes(), run.position_error_m
+    return run.planes(), run
+
+
+def final_yaw_deg(run: DiveMap, frames: list[DiveFrame]) -> dict[str, float]:
+    """Per robot the mean heading error (deg) of the poses its clouds are in the map with at the end, served (turned
+    by the fleet frame) against the truth."""
+    truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
+    out = {}
+    for robot, poses in run.placed.items():
+        err = [math.remainder((run.frame.pose(p) if run.frame is not None else p).yaw_rad
+                              - truth[(robot, t)].yaw_rad, 2 * math.pi) for t, p in poses.items()]  # fmt: skip
+        out[robot] = math.degrees(float(np.mean(err))) if err else math.nan
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,20 +97,26 @@ def main(argv: list[str] | None = None) -> int:
     truth = hit_faces(scene, frames)
     kw = _tuning(a.set)
     print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}\n")
-    print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) | CPU s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) "
+          "| at the end (cm) | heading (deg) | CPU s |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
     traces = []
     for way in a.ways.split(","):
         c0 = time.process_time()
-        planes, errors = run_way(way, frames, kw)
+        planes, run = run_way(way, frames, kw)
+        errors = run.position_error_m if run is not None else {}
+        final = run.final_error_m if run is not None else {}
+        yaw = final_yaw_deg(run, frames) if run is not None else {}
         score = score_map(planes, scene, truth)
         seen = [f for f in score.faces if f.hit]
         off = [f"{f.face.name} " + (f"{f.angle_deg:.1f}/{100 * f.offset_m:.1f}" if f.plane_ids else "none")
                for f in seen if not (f.angle_deg <= 2.0 and f.offset_m <= 0.05)]  # fmt: skip
         err = ", ".join(f"{r} {100 * np.mean(e):.1f} / {100 * np.max(e):.1f}" for r, e in sorted(errors.items()))
+        end = ", ".join(f"{100 * np.mean(e):.1f} / {100 * np.max(e):.1f}" for _, e in sorted(final.items()) if e)
+        head = ", ".join(f"{v:+.2f}" for _, v in sorted(yaw.items()))
         print(f"| {way} | {len(seen) - len(score.missing())} / {len(seen)} | {len(score.duplicates())} | "
-              f"{len(score.spurious)} | {', '.join(off) or '-'} | {err or '-'} | {time.process_time() - c0:.0f} |",
-              flush=True)  # fmt: skip
+              f"{len(score.spurious)} | {', '.join(off) or '-'} | {err or '-'} | {end or '-'} | {head or '-'} | "
+              f"{time.process_time() - c0:.0f} |", flush=True)  # fmt: skip
         for r, e in sorted(errors.items()):
             bins = [100 * float(np.max(c)) for c in np.array_split(np.asarray(e), max(1, int(a.seconds / 3)))]
             traces.append(f"{way} {r}: " + " ".join(f"{b:.0f}" for b in bins))

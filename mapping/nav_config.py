@@ -53,7 +53,13 @@ class NavConfig:
     ``dr_bias_closed_sigma_m_s`` (no walk: the filter is then the one without the bias, fixes weighted as there)
     until its fixes' disagreement persists (persistence at least ``dr_bias_open_persist``, 0-1) with an RMS beyond
     ``fix_persist_min_m``: a drift shows, and the bias opens to ``dr_bias_sigma_m_s`` for the rest of the dive
-    (:attr:`RobotNav.bias_open`). Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
+    (:attr:`RobotNav.bias_open`). With ``dr_bias_open_rate_m_s`` > 0 the opening test is the scans' instead: the
+    running mean (over ``fix_quality_s``) of the velocity of the registrations' corrections of the position, each
+    correction clipped to what a drift of ``dr_drift_max_m_s`` does in its scan's time, reaches
+    ``dr_bias_open_rate_m_s``. A dead reckoning's drift is corrected a little every scan; scans registered to a
+    wrong plane jump the estimate once, and its fixes' disagreement then persists as a drift's would (the fixes'
+    test opened the bias on good fixes). ``fix_quality_factor_open`` (> 0) replaces ``fix_quality_factor`` once
+    the bias is open. Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
     bias), ``init_yaw_sigma_deg``.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
@@ -134,6 +140,9 @@ class NavConfig:
     yaw_walk_deg_per_sqrt_s: float = 0.1
     fix_sigma_m: float = 0.5
     fix_quality_factor: float = 1.5
+    fix_quality_factor_open: float = 0.0
+    dr_bias_open_rate_m_s: float = 0.0
+    dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2

@@ -44,6 +44,10 @@ class RobotNav:
         self.fix_err2 = 0.0
         #: running mean of the fixes' disagreement (north, east; m): a persistent one is a drift, not noise
         self.fix_mean = np.zeros(2)
+        #: running mean velocity of the registrations' position corrections (north, east; m/s), see
+        #: ``NavConfig.dr_bias_open_rate_m_s``; and the time since the previous update (s)
+        self.corr_rate = np.zeros(2)
+        self._dt = 0.0
         self.last_compass_ns: int | None = None
         #: no fix and an uncertainty past ``lost_std_m``: the scans are not trusted until the next fix
         self.lost = False
@@ -76,6 +80,7 @@ class RobotNav:
         "lost",
         "_prev_scan",
         "bias_open",
+        "corr_rate",
     )
 
     def snapshot(self) -> dict[str, Any]:
@@ -119,6 +124,7 @@ class RobotNav:
         self.start_ne = raw_ne.copy()
         self.fix_err2 = cfg.launch_sigma_m**2
         self.fix_mean = np.zeros(2)
+        self.corr_rate = np.zeros(2)
 
     def _predict(
         self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
@@ -241,7 +247,12 @@ class RobotNav:
             persist = self._persistence()
             if math.sqrt(err2) > cfg.fix_persist_min_m:
                 n_fixes = 1.0 + persist * cfg.fix_quality_s / max(cfg.fix_every_s, 1e-3)
-        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, cfg.fix_quality_factor * math.sqrt(err2)))
+        # a robot whose dead reckoning has not shown a drift keeps its fixes at the filter's weight: weighed as a
+        # drift's, good fixes let scans registered to a wrong plane carry the estimate, and the fleet's heading, off
+        factor = cfg.fix_quality_factor
+        if self.bias_open and cfg.fix_quality_factor_open > 0:
+            factor = cfg.fix_quality_factor_open
+        sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, factor * math.sqrt(err2)))
         sigma *= math.sqrt(n_fixes)
         h = np.zeros((2, 5))
         h[0, 0] = h[1, 1] = 1.0
@@ -249,6 +260,23 @@ class RobotNav:
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(5) - k @ h) @ self.P
+
+    def _track_corrections(self, dx: FloatArray) -> None:
+        """Keep the running mean velocity of the registrations' corrections of the position (north, east; m/s).
+
+        A drifting dead reckoning's prediction runs ahead of the map by its drift every scan, so the scans correct
+        it persistently, at the drift's velocity; scans that jump to a wrong plane correct once, by a lot. Each
+        correction counts up to what a drift can do in the scan's time (``dr_drift_max_m_s``), so a jump weighs as
+        one scan of the fastest drift, not as tens of seconds of one."""
+        cfg = self.cfg
+        dt = self._dt
+        if dt <= 0:
+            return
+        lim = cfg.dr_drift_max_m_s * dt
+        norm = float(np.hypot(*dx))
+        v = (dx if norm <= lim else dx * (lim / norm)) / dt
+        a = min(1.0, dt / cfg.fix_quality_s)
+        self.corr_rate = (1 - a) * self.corr_rate + a * v
 
     def _persistence(self) -> float:
         """How much the fixes' disagreement persists, 0-1: its running mean against its RMS (white fixes, a USBL's:
@@ -258,10 +286,16 @@ class RobotNav:
 
     def _open_bias(self) -> None:
         """With ``NavConfig.dr_bias_adaptive``: open the velocity bias once the fixes' disagreement persists beyond
-        ``fix_persist_min_m`` (this robot's dead reckoning drifts). Until then the bias stays held at zero: where the
-        poses are good, a free bias only lets registrations against a map's own offsets bend the track."""
+        ``fix_persist_min_m`` (this robot's dead reckoning drifts), or with ``dr_bias_open_rate_m_s`` once the
+        scans' corrections persist at that velocity (:meth:`_track_corrections`). Until then the bias stays held at
+        zero: where the poses are good, a free bias only lets registrations against a map's own offsets bend the
+        track."""
         cfg = self.cfg
-        if math.sqrt(self.fix_err2) <= cfg.fix_persist_min_m or self._persistence() < cfg.dr_bias_open_persist:
+        if cfg.dr_bias_open_rate_m_s > 0:
+            # the scans say whether the dead reckoning drifts: their corrections' persistent velocity
+            if float(np.hypot(*self.corr_rate)) < cfg.dr_bias_open_rate_m_s:
+                return
+        elif math.sqrt(self.fix_err2) <= cfg.fix_persist_min_m or self._persistence() < cfg.dr_bias_open_persist:
             return
         self.bias_open = True
         # the drift's velocity is unknown: its launch uncertainty, from now on (the cross terms stay: near zero)
@@ -354,6 +388,8 @@ class RobotNav:
             # a correction the motion model's error cannot explain: a wrong association, not drift
             self.gated += 1
             return np.zeros((3, 3)), 0, ()
+        if self.cfg.dr_bias_open_rate_m_s > 0:
+            self._track_corrections((x - x_pred)[0:2])
         self.x = x
         cov = np.linalg.inv(p_inv + hf)
         self.P = 0.5 * (cov + cov.T)
@@ -390,6 +426,7 @@ class RobotNav:
         else:
             assert self.t_ns is not None
             dt = (t - self.t_ns) * 1e-9
+            self._dt = dt
             odo = self._odometry(raw, pts, dt) if self.cfg.scan_odometry else None
             if raw_ne is not None:
                 odo = None  # dead reckoning moves the prediction; the scan is only kept for the next increment

@@ -86,6 +86,14 @@ class SmootherConfig:
     ``refilter_overlap_s`` set, a run re-filters only the scans since the previous run's newest minus that
     overlap and keeps the older scans' filter steps from earlier runs (the backward pass still covers the whole
     window): a run's cost stops growing with the window. None re-filters the whole window every run.
+
+    With ``drift_max_m_s`` > 0 (off by default: docs/navigation-design.md, "Extracted clouds with good poses"), a
+    run's result for a robot whose live filter has not opened its velocity bias (its fixes taken as good) is refused
+    (its clouds and its live filter stay as they were) where it leaves the robot's horizontal fixes faster than a
+    dead reckoning can drift (:func:`leaves_fixes`): its revised disagreement with a fix may differ from the
+    disagreement at the window's first scan by at most ``drift_slack_m`` plus ``drift_max_m_s`` times the time
+    between them. A dead reckoning's error grows slowly and smoothly (a velocity bias of a few cm/s); scans
+    registered to a wrong plane pull an estimate off in a jump.
     """
 
     window_s: float = 120.0
@@ -94,6 +102,26 @@ class SmootherConfig:
     rerun_points: int = 200
     rerun_iterations: int = 4
     refilter_overlap_s: float | None = None
+    drift_max_m_s: float = 0.0
+    drift_slack_m: float = 0.1
+
+
+def leaves_fixes(
+    t_s: FloatArray, off_ne: FloatArray, t0_s: float, off0_ne: FloatArray, scfg: SmootherConfig
+) -> NDArray[np.bool_]:
+    """Which revised poses leave their fixes faster than a dead reckoning can drift.
+
+    Args:
+        t_s: (N,) capture times of the scans with a fix, s.
+        off_ne: (N, 2) each revised position minus its fix (north, east), m.
+        t0_s, off0_ne: the same at the anchor (the window's first scan, as it was before the run), s and (2,) m.
+        scfg: ``drift_max_m_s`` (the fastest a dead reckoning's error grows, m/s) and ``drift_slack_m`` (the
+            fixes' own noise and the anchor's error, m).
+
+    Returns (N,) True where the disagreement moved by more than ``drift_slack_m + drift_max_m_s * |t - t0|``.
+    """
+    moved = np.linalg.norm(np.asarray(off_ne, dtype=np.float64) - off0_ne, axis=1)
+    return np.asarray(moved > scfg.drift_slack_m + scfg.drift_max_m_s * np.abs(t_s - t0_s))
 
 
 @dataclass
@@ -131,6 +159,15 @@ def _record(nav: RobotNav, scan: _Scan, est: NavEstimate) -> None:
     scan.post_p = nav.P[np.ix_(sub, sub)].copy()
 
 
+def _anchor(scan: _Scan) -> tuple[float, FloatArray] | None:
+    """The window's first scan as the filter had it before a run: (time s, its position minus its fix (2,) m),
+    or None without a pose or a fix."""
+    est, raw = scan.est, scan.raw
+    if est is None or est.pose is None or not np.isfinite(raw.north_m + raw.east_m):
+        return None
+    return scan.t_ns * 1e-9, np.array([est.pose.north_m - raw.north_m, est.pose.east_m - raw.east_m])
+
+
 def _refilter(nav: RobotNav, scans: list[_Scan], landmarks: PlaneLandmarks) -> None:
     """Run ``nav`` over ``scans`` in order against ``landmarks``, keeping in each scan the state before its update and
     what the update did (:func:`_record`)."""
@@ -145,9 +182,18 @@ class SmoothJob:
     state before the first re-filtered one by a filter of its own, then smoothed backward. :meth:`run` touches
     nothing but the job, so it may run on another thread (:class:`FleetPlacements` with ``background``)."""
 
-    def __init__(self, robot: str, cfg: NavConfig, scans: list[_Scan], start: int, first_ns: int | None) -> None:
+    def __init__(
+        self,
+        robot: str,
+        cfg: NavConfig,
+        scans: list[_Scan],
+        start: int,
+        first_ns: int | None,
+        scfg: SmootherConfig | None = None,
+    ) -> None:
         self.robot = robot
         self.cfg = cfg
+        self.scfg = scfg or SmootherConfig()
         self.scans = scans
         self.start = start
         self.first_ns = first_ns
@@ -158,11 +204,17 @@ class SmoothJob:
         self._nav: RobotNav | None = None
         #: the live filter's :attr:`RobotNav.joined` when the job was made
         self.joined = True
+        #: whether the run's result is checked against the robot's fixes (:func:`leaves_fixes`): while the live
+        #: filter takes them as good (its velocity bias not open), a run may not leave them faster than a drift can
+        self.check_fixes = True
+        #: after :meth:`run`: whether its result was refused (it left the robot's fixes faster than a drift can)
+        self.refused = False
 
     def run(self, landmarks: PlaneLandmarks) -> None:
         """Re-filter against ``landmarks`` and smooth (fills :attr:`revised`, :attr:`end`)."""
         nav = RobotNav(self.robot, self.cfg)
         nav.joined = self.joined
+        anchor = _anchor(self.scans[0])
         nav.restore(self.scans[self.start].before)
         _refilter(nav, self.scans[self.start :], landmarks)
         xs = RobotSmoother._rts(self.scans)
@@ -175,8 +227,30 @@ class SmoothJob:
             )
             if s.t_ns == self.first_ns:
                 self.start_map_ne = (float(x[0]), float(x[1]))
+        if anchor is not None and self.check_fixes and self.scfg.drift_max_m_s > 0 and self._leaves_fixes(anchor):
+            # scans registered to a wrong plane moved the estimate: keep the robot as it was (the next run tries
+            # again against the map as it is then)
+            self.refused = True
+            self.revised = {}
+            self.start_map_ne = None
+            log.info("%s: a smoothing run left the fixes faster than a drift can: refused", self.robot)
+            return
         self.end = nav.snapshot()
         self._nav = nav
+
+    def _offsets(self) -> FloatArray:
+        """(N, 3): per revised scan with a fix, its time (s) and its revised position minus the fix (north, east; m)."""
+        rows = [
+            (s.t_ns * 1e-9, p.north_m - s.raw.north_m, p.east_m - s.raw.east_m)
+            for s in self.scans
+            if (p := self.revised.get(s.t_ns)) is not None and np.isfinite(s.raw.north_m + s.raw.east_m)
+        ]
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+
+    def _leaves_fixes(self, anchor: tuple[float, FloatArray]) -> bool:
+        """Whether the revised poses leave the raw fixes faster than a dead reckoning drifts (:func:`leaves_fixes`)."""
+        a = self._offsets()
+        return bool(np.any(leaves_fixes(a[:, 0], a[:, 1:], anchor[0], anchor[1], self.scfg)))
 
     def catch_up(self, newer: list[_Scan], landmarks: PlaneLandmarks) -> None:
         """Carry the re-filtered state on over ``newer`` scans (copies of what the live filter took since the job
@@ -262,8 +336,9 @@ class RobotSmoother:
         self._refiltered_ns = scans[-1].t_ns
         self.refiltered += len(scans) - start
         cfg = replace(self.nav.cfg, iterations=self.scfg.rerun_iterations)
-        job = SmoothJob(self.robot, cfg, scans, start, self._first_ns)
+        job = SmoothJob(self.robot, cfg, scans, start, self._first_ns, self.scfg)
         job.joined = self.nav.joined
+        job.check_fixes = not self.nav.bias_open
         return job
 
     def apply(self, job: SmoothJob, landmarks: PlaneLandmarks) -> dict[int, Pose]:

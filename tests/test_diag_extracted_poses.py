@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.diag_extracted_poses import _tuning, run_way
+from benchmarks.diag_extracted_poses import _tuning, final_yaw_deg, run_way
 from benchmarks.fleet_dives import dive_frames
 
 
@@ -19,8 +19,14 @@ def test_tuning_sets_nav_and_smoother_fields() -> None:
 def test_true_and_trusted_ways_map_without_navigation() -> None:
     frames = dive_frames("good", 1, 4.0)
     for way in ("true", "trusted"):
-        planes, errors = run_way(way, frames, _tuning([]))
+        planes, run = run_way(way, frames, _tuning([]))
         assert planes
-        assert errors == {}
-    planes, errors = run_way("filter", frames, _tuning([]))
-    assert sorted(errors) == sorted({f.robot for f in frames})
+        assert run is None
+    planes, run = run_way("filter", frames, _tuning([]))
+    assert run is not None
+    robots = sorted({f.robot for f in frames})
+    assert sorted(run.position_error_m) == robots
+    # the good dive's compasses are unbiased: the poses the clouds are in the map with keep the heading
+    yaw = final_yaw_deg(run, frames)
+    assert sorted(yaw) == robots
+    assert all(abs(v) < 1.0 for v in yaw.values())
