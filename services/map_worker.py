@@ -466,9 +466,14 @@ class MapWorker:
         return records
 
     def _settle(self, robot: str) -> list[Any]:
-        """The robot's held clouds checked alone (silent robot, end of the dive): the observations of those that
-        go into the map."""
-        return self._place_released(robot, self.nav.settle(robot, self.landmarks))
+        """The robot's held clouds checked alone (silent robot, end of the dive) against the newest planes (with
+        the snapshot rule the newest snapshot: the mirror of the moment is then never sent, and checked against
+        no plane every held cloud would be dropped): the observations of those that go into the map."""
+        with self._snap_cond:
+            final = self.snapshots.final_ns
+            newest = self.snapshots.get(final) if final is not None else None
+        landmarks = newest.landmarks if newest is not None else self.landmarks
+        return self._place_released(robot, self.nav.settle(robot, landmarks))
 
     def _observed(self, robot: str, records: list[Any], key_ns: int) -> PlaneObservations:
         from mapping.plane_map import record_to_wire

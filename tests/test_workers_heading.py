@@ -204,3 +204,23 @@ def test_the_fleet_heading_messages_survive_the_wire() -> None:
         ctl = decode_work(MapControl(kind, "a", 2, encode_state({"bias_rad": 0.01})).to_bytes())
         assert isinstance(ctl, MapControl)
         assert (ctl.kind, ctl.robot, ctl.epoch) == (kind, "a", 2)
+
+
+def test_a_workers_held_clouds_are_settled_against_the_newest_snapshot(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the snapshot rule the mirror of the moment never comes: the end of a dive checks the held clouds
+    against the newest snapshot of the merged map (as the map thread checks them against its planes), not
+    against no plane at all."""
+    from mapping.landmarks import SnapshotRange
+    from mapping.navigation import PlaneLandmarks
+    from services.keys import FleetKeys
+    from services.map_worker import MapWorker
+
+    worker = MapWorker(None, FleetKeys("t"), "w1")
+    worker._epoch["rov1"] = 0
+    old, new = PlaneLandmarks.empty(), PlaneLandmarks.empty()
+    worker.take_snapshots("base", [SnapshotRange(0, 100, old), SnapshotRange(200, 300, new)])
+    seen: list[Any] = []
+    monkeypatch.setattr(worker.nav, "settle", lambda robot, lm: seen.append(lm) or [])
+    worker.handle(MapControl("flush", "rov1", 0))
+    assert len(seen) == 1
+    assert seen[0] is new
