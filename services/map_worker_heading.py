@@ -57,8 +57,9 @@ class HeadingRelay:
         #: per robot: the first fix's capture time; the latest fix within the launch window (ns)
         self._first_fix: dict[str, int] = {}
         self._launch: dict[str, int] = {}
-        #: the graph robots collecting views, in the order their graphs started, with their launch times (ns)
+        #: the graph robots collecting views, with their launch times and their graphs' first clouds' (ns)
         self.t0: dict[str, int] = {}
+        self._started: dict[str, int] = {}
         self._done: set[str] = set()
         #: the views the workers sent (robot -> views), guarded by ``_cond``
         self._views: dict[str, list[Any]] = {}
@@ -89,6 +90,7 @@ class HeadingRelay:
             return ""
         if robot in self._launch:  # its graph starts from its last launch cloud (Navigator._to_graph)
             self.t0[robot] = self._launch.pop(robot)
+            self._started[robot] = t_ns
         if robot not in self.t0:
             return ""
         hold = len(self.t0) >= 2  # before this cloud is counted (FleetHeadingTracker.step)
@@ -97,6 +99,11 @@ class HeadingRelay:
         if all(r in self._done for r in self.t0):
             self.due_ns = t_ns
         return "hold" if hold else "collect"
+
+    def robots(self) -> list[str]:
+        """The graph robots in the order their graphs started (one process's order of the views; robots whose
+        clouds share a capture time, which the base may take in either order, by name)."""
+        return sorted(self.t0, key=lambda r: (self._started[r], r))
 
     def due(self) -> bool:
         """Whether the estimate is due now (every graph robot past its span) and not made yet."""
@@ -126,11 +133,11 @@ class HeadingRelay:
 
         tracker = self.navigator._tracker()
         with self._cond:
-            views = [v for r in self.t0 for v in self._views.get(r, [])]
+            views = [v for r in self.robots() for v in self._views.get(r, [])]
         result = estimate(views, tracker.est_cfg)
         self.result = tracker.result = result
         prior = math.radians(tracker.est_cfg.bias_prior_deg)
-        out = {r: (result.bias_rad.get(r, 0.0), result.sd_rad.get(r, prior)) for r in self.t0}
+        out = {r: (result.bias_rad.get(r, 0.0), result.sd_rad.get(r, prior)) for r in self.robots()}
         biases = ", ".join(f"{r} {math.degrees(b):+.2f}" for r, (b, _) in sorted(out.items()))
         log.info("fleet heading from %d shared walls (plane workers): compass biases %s deg (common +-%.2f deg)",
                  result.walls, biases, math.degrees(result.common_sd_rad))  # fmt: skip
@@ -144,7 +151,7 @@ class HeadingRelay:
         from .map_worker_nav import encode_state
 
         t0 = time.monotonic()
-        for robot in self.t0:
+        for robot in self.robots():
             control(robot, "views")
         missing = self.wait_views(timeout_s)
         if missing:
@@ -157,7 +164,7 @@ class HeadingRelay:
     def status_json(self) -> dict[str, Any]:
         """The estimate as the pool's status says it: the graph robots, the shared walls, the map thread's wait."""
         r = self.result
-        return {"robots": list(self.t0), "walls": r.walls if r is not None else None, "wait_s": round(self.wait_s, 2)}
+        return {"robots": self.robots(), "walls": r.walls if r is not None else None, "wait_s": round(self.wait_s, 2)}
 
 
 def with_heading(navigator: Any, est: Any) -> Any:

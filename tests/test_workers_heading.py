@@ -148,7 +148,8 @@ def test_the_base_holds_graph_robots_clouds_once_two_collect_and_is_due_when_all
     assert relay.phase("b", 150 * ms, _pose(True)) == ""
     assert relay.phase("b", 250 * ms, _pose(False)) == "hold"  # two graph robots: their clouds wait
     assert relay.phase("a", 300 * ms, _pose(False)) == "hold"
-    assert relay.t0 == {"a": 100 * ms, "b": 150 * ms}  # in the order their graphs started, from their last fix
+    assert relay.t0 == {"a": 100 * ms, "b": 150 * ms}  # from their last fix
+    assert relay.robots() == ["a", "b"]  # in the order their graphs started
     assert relay.phase("a", 1102 * ms, _pose(False)) == "hold"  # past its span (from its launch, 100 ms)
     assert not relay.due()
     assert relay.phase("b", 1152 * ms, _pose(False)) == "hold"  # the last one past: due at this cloud
@@ -224,3 +225,17 @@ def test_a_workers_held_clouds_are_settled_against_the_newest_snapshot(monkeypat
     worker.handle(MapControl("flush", "rov1", 0))
     assert len(seen) == 1
     assert seen[0] is new
+
+
+def test_graph_robots_whose_clouds_share_a_capture_time_are_ordered_by_name() -> None:
+    """The base may take two clouds of one capture time in either order: the views' order (the estimate's RANSAC
+    seeds) must not follow it."""
+    orders = []
+    for first, second in (("a", "b"), ("b", "a")):
+        relay = HeadingRelay(_Nav())
+        for robot in (first, second):
+            relay.phase(robot, 0, _pose(True))
+        for robot in (first, second):
+            relay.phase(robot, 100_000_000, _pose(False))
+        orders.append(relay.robots())
+    assert orders == [["a", "b"], ["a", "b"]]
