@@ -167,6 +167,14 @@ class HeadingRelay:
         return {"robots": self.robots(), "walls": r.walls if r is not None else None, "wait_s": round(self.wait_s, 2)}
 
 
+def attach(pool: Any, navigator: Any, publish: Callable[[Any], None]) -> None:
+    """Give the plane workers' ``pool`` the fleet heading's base half (a :class:`HeadingRelay` on the base's
+    ``navigator``), and have each estimate a worker reports published (``publish``) with its ``heading``
+    (:func:`with_heading`)."""
+    pool.heading = HeadingRelay(navigator)
+    pool.on_nav_report = lambda robot, est: publish(with_heading(navigator, est))
+
+
 def with_heading(navigator: Any, est: Any) -> Any:
     """A worker's estimate ``est`` with what its robot's heading rests on, as the base says it for its own graph
     robots (:func:`mapping.graph_fleet.heading_source`; the worker does not know the fleet): unchanged for a robot
