@@ -148,6 +148,12 @@ SOURCES: tuple[Source, ...] = (
         note="the depth-only fleet's compass biases from the launch fixes and shared walls (issue 27)",
     ),
     Source(
+        "heading_workers.md",
+        "mapping",
+        "python benchmarks/bench_heading_workers.py --modes depth-only,mixed --seeds S",
+        note="a depth-only or mixed fleet's map with plane workers against the base's map thread (issue 27)",
+    ),
+    Source(
         "workers.md",
         "mapping",
         "python benchmarks/bench_workers.py",

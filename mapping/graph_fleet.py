@@ -133,15 +133,22 @@ class FleetHeadingTracker:
         biases); once every robot has its span the biases are estimated and given to the graphs, and the held clouds
         committed at the poses the graphs then give them (with the checks' hold, those held since a check passed
         in that second too). Returns ``est``, held (``placed`` False, ``held`` True) while the estimate waits."""
-        nav = robots[robot]
         # held only where another graph robot may share its walls (a robot alone keeps its compass: nothing to wait for)
         collecting = self.result is None and robot in self.views and len(self.views) >= 2
-        self.observe(robot, t_ns, raw, points_body, nav)
-        if collecting and est.placed and est.pose is not None and getattr(nav, "hold", None) is not None:
-            hold_cloud(nav, len(nav._t) - 1, t_ns, raw, points_body, est.pinned)
-            est = replace(est, placed=False, held=True)
+        est = self.keep(robot, t_ns, raw, points_body, robots[robot], est, collecting)
         if self.due():
             self.apply(robots, t_ns)
+        return est
+
+    def keep(
+        self, robot: str, t_ns: int, raw: Pose, points_body: Any, nav: Any, est: NavEstimate, hold: bool
+    ) -> NavEstimate:
+        """:meth:`observe` the cloud and, with ``hold`` (the fleet's biases still to come), hold it when placed: what
+        :meth:`step` does with one robot's cloud (a plane worker runs it alone: the base decides ``hold``)."""
+        self.observe(robot, t_ns, raw, points_body, nav)
+        if hold and est.placed and est.pose is not None and getattr(nav, "hold", None) is not None:
+            hold_cloud(nav, len(nav._t) - 1, t_ns, raw, points_body, est.pinned)
+            est = replace(est, placed=False, held=True)
         return est
 
     def apply(self, robots: dict[str, Any], t_ns: int) -> FleetHeading:
@@ -151,14 +158,18 @@ class FleetHeadingTracker:
         self.result = result
         prior = math.radians(self.est_cfg.bias_prior_deg)
         for robot in self.views:
-            nav = robots.get(robot)
-            # a robot that shares no wall keeps its graph as it is (its compass, its prior)
-            if nav is not None and hasattr(nav, "compass_bias") and result.sd_rad[robot] < 0.99 * prior:
-                retune(nav, result.bias_rad[robot], result.sd_rad[robot])
-            if nav is not None and getattr(nav, "hold", None) is not None and nav.hold.clouds:
-                commit_held(nav, t_ns)
+            give(robots.get(robot), result.bias_rad[robot], result.sd_rad[robot], prior, t_ns)
         self.views = {}
         return result
+
+
+def give(nav: Any, bias_rad: float, sd_rad: float, prior_rad: float, t_ns: int) -> None:
+    """Give graph ``nav`` (None: nothing) its compass's bias (:func:`retune`) unless the estimate left it near its
+    prior ``prior_rad`` (it shares no wall: its graph stays as it is), and commit its clouds held meanwhile."""
+    if nav is not None and hasattr(nav, "compass_bias") and sd_rad < 0.99 * prior_rad:
+        retune(nav, bias_rad, sd_rad)
+    if nav is not None and getattr(nav, "hold", None) is not None and nav.hold.clouds:
+        commit_held(nav, t_ns)
 
 
 def heading_source(robot: str, fleet_has_fixes: bool, result: FleetHeading | None) -> str:

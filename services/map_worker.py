@@ -58,6 +58,7 @@ from .map_worker_nav import (
 )
 from .map_worker_wire import (
     FLUSH_KEY,
+    HeadingViews,
     MapControl,
     MapJob,
     NavReport,
@@ -257,6 +258,8 @@ class MapWorker:
                 self._forget(msg.robot)
             elif msg.kind == "adopt" and self._epoch.get(msg.robot, -1) < msg.epoch:
                 self._adopt(msg)
+            elif msg.kind in ("views", "heading") and self._epoch.get(msg.robot, -1) == msg.epoch:
+                early = self._heading(msg)
         else:
             out.extend(self._take(msg))
         self._publish(out)
@@ -367,6 +370,20 @@ class MapWorker:
             except (WireError, KeyError, TypeError, ValueError) as err:
                 log.warning("map worker %s: %s's navigation restarts (state refused: %s)", self.name, msg.robot, err)
 
+    def _heading(self, msg: MapControl) -> list[PlaneObservations]:
+        """The fleet heading (:mod:`services.map_worker_heading`), after the robot's jobs that wait for their
+        snapshot (the base sent this after them): its views sent to the base, or its compass bias given to its
+        graph. Returns the observations those jobs gave (published)."""
+        early = self._retry(until_done=True) if self._waiting.get(msg.robot) else []
+        if msg.kind == "views":
+            views = encode_state(self.nav.heading_views(msg.robot))
+            if self._pub is not None:
+                self._pub.put(HeadingViews(self.name, msg.robot, msg.epoch, views).to_bytes())
+            return early
+        got = decode_state(msg.state)
+        self.nav.give_heading(msg.robot, float(got["bias_rad"]), float(got["sd_rad"]), int(got["t_ns"]))
+        return early
+
     def _landmarks_for(self, job: MapJob) -> Any:
         """The planes ``job``'s scan registers against: its snapshot, else (late past the cap, or dropped) the
         newest before it, counted not exact; without a lag, the mirror of the moment."""
@@ -386,7 +403,7 @@ class MapWorker:
 
     def _navigate(self, job: MapJob) -> NavStep:
         self.nav.set_no_fix(job.no_fix)  # the base's --no-fix choice (a bad value fails the cloud, logged)
-        step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self._landmarks_for(job))
+        step = self.nav.step(job.robot, job.t_ns, job.pose, job.points_body, self._landmarks_for(job), job.heading)
         est = step.estimate
         if est is not None and self._pub is not None:
             last = self._reported.get(job.robot)
@@ -449,9 +466,14 @@ class MapWorker:
         return records
 
     def _settle(self, robot: str) -> list[Any]:
-        """The robot's held clouds checked alone (silent robot, end of the dive): the observations of those that
-        go into the map."""
-        return self._place_released(robot, self.nav.settle(robot, self.landmarks))
+        """The robot's held clouds checked alone (silent robot, end of the dive) against the newest planes (with
+        the snapshot rule the newest snapshot: the mirror of the moment is then never sent, and checked against
+        no plane every held cloud would be dropped): the observations of those that go into the map."""
+        with self._snap_cond:
+            final = self.snapshots.final_ns
+            newest = self.snapshots.get(final) if final is not None else None
+        landmarks = newest.landmarks if newest is not None else self.landmarks
+        return self._place_released(robot, self.nav.settle(robot, landmarks))
 
     def _observed(self, robot: str, records: list[Any], key_ns: int) -> PlaneObservations:
         from mapping.plane_map import record_to_wire

@@ -163,9 +163,10 @@ def _dec(obj: Any) -> Any:
 
 
 def _classes() -> dict[str, type]:
+    from mapping.fleet_heading import View
     from mapping.navigation import NavEstimate
 
-    return {"Pose": Pose, "NavEstimate": NavEstimate}
+    return {"Pose": Pose, "NavEstimate": NavEstimate, "View": View}
 
 
 def encode_state(state: Any) -> bytes:
@@ -288,6 +289,8 @@ class WorkerNav:
         #: graph, mapping.posegraph, as in the map thread's Navigator)
         self._launch: dict[str, tuple[int, Pose, Any]] = {}
         self._first_fix: dict[str, int] = {}
+        #: the graph robots' views for the fleet heading (services.map_worker_heading: the base estimates it)
+        self.heading: Any = None
 
     def set_no_fix(self, no_fix: str) -> None:
         """Apply the base's ``--no-fix`` choice (:data:`NO_FIX_CHOICES`, :func:`no_fix_config`) to the robots
@@ -296,6 +299,7 @@ class WorkerNav:
             return
         self.cfg, self.graph_cfg = no_fix_config(self._base_cfg, no_fix)
         self.no_fix = no_fix
+        self.heading = None
 
     def _nav(self, robot: str) -> Any:
         nav = self._navs.get(robot)
@@ -319,6 +323,8 @@ class WorkerNav:
         except MapInputError as err:
             log.warning("%s: %s; it keeps the filter", robot, err)
             return nav
+        if self.heading is not None:
+            self.heading.started(robot)
         return graph
 
     def _graph_next(self, robot: str, raw: Pose) -> bool:
@@ -342,27 +348,61 @@ class WorkerNav:
             or hasattr(nav, "revised_poses")
         )
 
-    def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any) -> NavStep:
+    def step(self, robot: str, t_ns: int, raw: Pose, points_body: Any, landmarks: Any, heading: str = "") -> NavStep:
         """One cloud of ``robot``: registered (against ``landmarks``), or placed with the latest correction (a pose
-        graph takes every cloud: its odometry pairs consecutive scans)."""
+        graph takes every cloud: its odometry pairs consecutive scans). ``heading`` (``MapJob.heading``, the base's
+        word): ``collect`` keeps a graph robot's scan for the fleet heading, ``hold`` also holds its cloud until
+        the base sends the fleet's biases (:meth:`give_heading`)."""
         nav = self._to_graph(robot, self._nav(robot), raw, landmarks)
         due = self.due(robot, t_ns, raw)
         latest = nav.latest
         if due:
             est = nav.update(t_ns, raw, points_body, landmarks)
-            if nav.started and not hasattr(nav, "revised_poses") and math.isfinite(raw.north_m + raw.east_m):
-                # while its fixes are only its launch's, the latest is where a graph starts if they stop
-                first = self._first_fix.setdefault(robot, int(t_ns))
-                if t_ns - first <= self.cfg.launch_window_s * 1e9:
-                    self._launch[robot] = (int(t_ns), raw, points_body)
-                else:
-                    self._launch.pop(robot, None)
+            self._keep_launch(robot, nav, t_ns, raw, points_body)
+            if heading and hasattr(nav, "revised_poses"):
+                est = self._tracker().keep(robot, t_ns, raw, points_body, nav, est, heading == "hold")
             self._last_reg[robot] = t_ns
             self._before[robot] = latest
             self.registered += 1
             return NavStep(est.pose, bool(est.placed and est.pose is not None), est)
+        self._keep_launch(robot, nav, t_ns, raw, points_body)
         self.strided += 1
         return NavStep(corrected(latest, raw, self._before.get(robot), t_ns), bool(latest.placed))
+
+    def _keep_launch(self, robot: str, nav: Any, t_ns: int, raw: Pose, points_body: Any) -> None:
+        """A cloud with a fix of a robot on the filter: while its fixes are only its launch's, every such cloud (as
+        the map thread's ``Navigator``, registered or not) is where its graph starts if they stop."""
+        if not nav.started or hasattr(nav, "revised_poses") or not math.isfinite(raw.north_m + raw.east_m):
+            return
+        first = self._first_fix.setdefault(robot, int(t_ns))
+        if t_ns - first <= self.cfg.launch_window_s * 1e9:
+            self._launch[robot] = (int(t_ns), raw, points_body)
+            if self.cfg.graph_without_fix and self.cfg.fleet_heading:
+                self._tracker().launch(robot, int(t_ns), raw, points_body)
+        else:
+            self._launch.pop(robot, None)
+
+    def _tracker(self) -> Any:
+        if self.heading is None:
+            from mapping.graph_fleet import FleetHeadingTracker
+
+            self.heading = FleetHeadingTracker(self.cfg)
+        return self.heading
+
+    def heading_views(self, robot: str) -> list[Any]:
+        """``robot``'s views kept for the fleet heading (:class:`mapping.fleet_heading.View`; empty: none here)."""
+        got = self.heading.views.get(robot) if self.heading is not None else None
+        return list(got[1]) if got is not None else []
+
+    def give_heading(self, robot: str, bias_rad: float, sd_rad: float, t_ns: int) -> None:
+        """The base's estimate of ``robot``'s compass bias (and its standard deviation, radians) at the cloud
+        captured at ``t_ns``: its graph retuned and its held clouds committed, as in one process
+        (:func:`mapping.graph_fleet.give`); they go into the map with the robot's next cloud (:meth:`released`)."""
+        from mapping.graph_fleet import give
+
+        tracker = self._tracker()
+        tracker.views.pop(robot, None)
+        give(self._navs.get(robot), bias_rad, sd_rad, math.radians(tracker.est_cfg.bias_prior_deg), t_ns)
 
     def released(self, robot: str) -> list[tuple[int, Pose, Any]]:
         """``robot``'s held clouds its pose graph's last check released to the map (t_ns, pose, body points), in
@@ -408,6 +448,8 @@ class WorkerNav:
         self._navs.pop(robot, None)
         self._launch.pop(robot, None)
         self._first_fix.pop(robot, None)
+        if self.heading is not None:
+            self.heading.views.pop(robot, None)
         self._last_reg.pop(robot, None)
         self._before.pop(robot, None)
 

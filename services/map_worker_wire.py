@@ -70,6 +70,8 @@ class MapJob:
             worker's mirror of the moment.
         no_fix: with ``navigate``, the base's ``--no-fix`` choice (``lost`` or ``graph``,
             :data:`services.map_worker_nav.NO_FIX_CHOICES`); absent on the wire: ``lost``.
+        heading: with ``navigate``, the fleet heading's word on this cloud (:mod:`services.map_worker_heading`):
+            ``collect`` (keep the graph robot's scan), ``hold`` (keep it and hold the cloud), or empty.
     """
 
     robot: str
@@ -81,6 +83,7 @@ class MapJob:
     navigate: bool = False
     lag_ns: int = 0
     no_fix: str = "lost"
+    heading: str = ""
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -99,6 +102,7 @@ class MapJob:
                 "lag": self.lag_ns,
                 "nofix": self.no_fix,
             }
+            | ({"heading": self.heading} if self.heading else {})
         )
 
 
@@ -109,7 +113,10 @@ class MapControl:
     it moved to another worker at ``epoch``) or ``adopt`` (``robot`` moved here at ``epoch``: continue its
     navigation from ``state``, :func:`services.map_worker_nav.encode_state` of the state after its last committed
     cloud; the clouds not committed follow). An ``adopt`` carries the base's ``--no-fix`` choice (``no_fix``), so
-    a pose graph's state is restored with the graph's configuration."""
+    a pose graph's state is restored with the graph's configuration. The fleet heading
+    (:mod:`services.map_worker_heading`): ``views`` (send ``robot``'s views, :class:`HeadingViews`, once its jobs
+    before this are done) and ``heading`` (``state``: :func:`services.map_worker_nav.encode_state` of
+    ``{"bias_rad", "sd_rad", "t_ns"}``, ``robot``'s compass bias for its graph)."""
 
     kind: str
     robot: str = ""
@@ -200,6 +207,23 @@ class PlaneObservations:
 
 
 @dataclass(frozen=True)
+class HeadingViews:
+    """A graph robot's views for the fleet heading (:mod:`services.map_worker_heading`), the answer to a ``views``
+    control: ``views`` is :func:`services.map_worker_nav.encode_state` of its :class:`mapping.fleet_heading.View`
+    list (``worker``, ``robot``, ``epoch`` as in :class:`PlaneObservations`)."""
+
+    worker: str
+    robot: str
+    epoch: int
+    views: bytes
+
+    def to_bytes(self) -> bytes:
+        """Schema-1 msgpack."""
+        d = {"v": SCHEMA, "type": "views", "worker": self.worker, "robot": self.robot, "epoch": self.epoch}
+        return msgpack.packb(d | {"views": self.views})
+
+
+@dataclass(frozen=True)
 class NavReport:
     """A robot's registered estimate, from the worker that navigates it (at most every ``nav_publish_s`` of capture
     time per robot): the base serves and publishes it (turned by the fleet's frame) as it does its own.
@@ -220,14 +244,17 @@ class NavReport:
         return msgpack.packb(d | {"estimate": self.estimate})
 
 
-def decode_obs(payload: bytes) -> PlaneObservations | NavReport:
+def decode_obs(payload: bytes) -> PlaneObservations | NavReport | HeadingViews:
     """A message of ``<root>/map/obs/<worker>`` (raises :class:`~services.errors.WireError`)."""
     d = _unpack(payload, None)
-    if d.get("type") == "nav":
+    if d.get("type") in ("nav", "views"):
         try:
-            return NavReport(str(d["worker"]), str(d["robot"]), int(d["epoch"]), bytes(d["estimate"]))
+            who = (str(d["worker"]), str(d["robot"]), int(d["epoch"]))
+            if d["type"] == "nav":
+                return NavReport(*who, bytes(d["estimate"]))
+            return HeadingViews(*who, bytes(d["views"]))
         except (KeyError, TypeError, ValueError) as err:
-            msg = f"nav report: malformed: {err!r}"
+            msg = f"{d['type']} report: malformed: {err!r}"
             raise WireError(msg) from err
     return PlaneObservations.from_bytes(payload)
 
@@ -252,8 +279,9 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
                 bool(d.get("nav", False)),
                 int(d.get("lag", 0)),
                 str(d.get("nofix", "lost")),
+                str(d.get("heading", "")),
             )
-        if kind in ("flush", "drop", "adopt"):
+        if kind in ("flush", "drop", "adopt", "views", "heading"):
             return MapControl(
                 kind,
                 str(d.get("robot", "")),

@@ -37,7 +37,9 @@ first merge at or after T and publishes them on ``<root>/map/landmarks``
 so the poses, and the map, do not depend on timing. It keeps each robot's navigation state from the observations
 that commit its clouds, and hands that state to a robot's new worker (``adopt``) before re-sending its clouds.
 Counted (``status_json()["snapshots"]``): the workers' waits and scans not exact, observations merged after their
-snapshot was out (``late``) or past the hold cap (``forced``).
+snapshot was out (``late``) or past the hold cap (``forced``). The fleet heading of a depth-only fleet
+(:attr:`WorkerPool.heading`): the views in the workers, the estimate here, at the cloud it is due at
+(:mod:`services.map_worker_heading`).
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ from .keys import FleetKeys
 from .map_worker_nav import LANDMARKS_EVERY_S, SNAPSHOT_LAG_S, decode_state, encode_landmarks, encode_snapshots
 from .map_worker_wire import (
     FLUSH_KEY,
+    HeadingViews,
     MapControl,
     MapJob,
     NavReport,
@@ -78,6 +81,8 @@ from .zconfig import undeclare_all
 if TYPE_CHECKING:
     from mapping import MapBuilder, MapChange
     from mapping.landmarks import SnapshotRange
+
+    from .map_worker_heading import HeadingRelay
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +128,7 @@ class _InFlight:
     t_ns: int
     pose: Pose
     points_body: NDArray[np.float32]
+    heading: str = ""
 
 
 class WorkerPool:
@@ -195,6 +201,8 @@ class WorkerPool:
         self.on_nav_report: Callable[[str, Any], None] = lambda robot, est: None
         #: per robot: the navigation state after its last committed cloud (carried to its next worker)
         self._nav_state: dict[str, bytes] = {}
+        #: with ``navigate`` and a navigator (set by the feed): the fleet heading's base half
+        self.heading: HeadingRelay | None = None
         self._lm_pub: Any = None
         self._lm_sent: tuple[int, float] = (-1, 0.0)
         self._cond = threading.Condition()
@@ -287,7 +295,7 @@ class WorkerPool:
                 "moves": self.moves,
                 "resent": self.resent,
                 "silent_flushes": self.silent_flushes,
-            }
+            } | ({"fleet_heading": self.heading.status_json()} if self.heading is not None and self.heading.t0 else {})
             if self.navigate and self.snapshot_lag_ns > 0:
                 counts = [self._snap_counts.get(w, (0, 0, 0)) for w in sorted(self._workers)]
                 out["snapshots"] = {
@@ -315,7 +323,8 @@ class WorkerPool:
     def dispatch(self, robot: str, seq: int, t_ns: int, pose: Pose, points_body: NDArray[np.float32]) -> None:
         """Send one cloud to its robot's worker (or hold it until one is alive); blocks while ``max_in_flight``
         clouds are in flight."""
-        item = _InFlight(seq, t_ns, pose, np.ascontiguousarray(points_body, np.float32))
+        heading = self.heading.phase(robot, t_ns, pose) if self.heading is not None and self.navigate else ""
+        item = _InFlight(seq, t_ns, pose, np.ascontiguousarray(points_body, np.float32), heading)
         with self._cond:
             while self._n_in_flight >= self.max_in_flight and self._thread is not None:
                 self._cond.wait(0.5)
@@ -330,6 +339,14 @@ class WorkerPool:
                 self._owner[robot] = owner(robot, self._workers)
                 self._epoch[robot] = 0
             self._send(robot, [item])
+        if self.heading is not None and self.heading.due():  # every graph robot past its span: the biases now
+            self.heading.settle(self.control)
+
+    def control(self, robot: str, kind: str, state: bytes = b"") -> None:
+        """Send ``robot``'s owner the control ``kind`` (with ``state``) under the robot's epoch, after its jobs."""
+        with self._cond:
+            if self._owner.get(robot) is not None:
+                self._put(str(self._owner[robot]), MapControl(kind, robot, self._epoch[robot], state).to_bytes())
 
     def flush(self, timeout_s: float) -> bool:
         """Ask every worker to extract its pending windows and wait until nothing is in flight; False on
@@ -365,7 +382,8 @@ class WorkerPool:
         epoch = self._epoch[robot]
         lag = self.snapshot_lag_ns if self.navigate else 0
         for it in items:
-            job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag, self.no_fix)
+            job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag, self.no_fix,
+                         it.heading)  # fmt: skip
             self._put(w, job.to_bytes())
 
     def _flush_silent(self) -> None:
@@ -475,7 +493,7 @@ class WorkerPool:
 
         try:
             obs = decode_obs(payload)
-            if isinstance(obs, NavReport):
+            if isinstance(obs, NavReport | HeadingViews):
                 self._on_nav(obs)
                 return
             records = [record_from_wire(r) for r in obs.records]
@@ -501,10 +519,14 @@ class WorkerPool:
             ready, frontier = self._ready()
         self._merge(ready, frontier)
 
-    def _on_nav(self, report: NavReport) -> None:
+    def _on_nav(self, report: NavReport | HeadingViews) -> None:
         with self._cond:
             if self._owner.get(report.robot) != report.worker or self._epoch.get(report.robot) != report.epoch:
                 return
+        if isinstance(report, HeadingViews):
+            if self.heading is not None:
+                self.heading.take_views(report.robot, decode_state(report.views))
+            return
         self.on_nav_report(report.robot, decode_state(report.estimate))
 
     def _publish_landmarks(self) -> None:

@@ -291,10 +291,12 @@ class MapFeed:
         pool.on_commit = self._commit_done
         pool.on_changes = lambda changes: self._publish_changes(None, changes)
         if self.navigator is not None:
+            from .map_worker_heading import attach
+
             pool.navigate = True
             pool.landmark_min_points = self.navigator.cfg.min_landmark_points
             pool.on_nav_state = self._worker_nav_state
-            pool.on_nav_report = lambda robot, est: self._nav_publish(est.turned(self._frame))
+            attach(pool, self.navigator, lambda est: self._nav_publish(est.turned(self._frame)))  # + fleet heading
 
     def close(self, save: bool) -> None:
         """Stop publishing, let the map thread finish its queue, flush the map, and save it when ``save``."""

@@ -138,8 +138,9 @@ def test_the_pool_sends_its_choice_with_every_job() -> None:
     pool._put = lambda worker, payload: sent.append(payload)  # type: ignore[method-assign]
     pool._owner["rov3"] = "w1"
     pool._epoch["rov3"] = 0
-    item = type("It", (), {"seq": 0, "t_ns": 1, "pose": Pose(0, 0, 1, 0, 0, 0), "points_body": np.zeros((1, 3))})
-    pool._send("rov3", [item])  # type: ignore[list-item]
+    from services.map_workers import _InFlight
+
+    pool._send("rov3", [_InFlight(0, 1, Pose(0, 0, 1, 0, 0, 0), np.zeros((1, 3), np.float32))])
     job = decode_work(sent[0])
     assert isinstance(job, MapJob)
     assert job.no_fix == "graph"
