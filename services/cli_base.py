@@ -60,8 +60,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="plane-worker processes to start here (default: cores - 2, so 0 on 2 cores: the map runs in the base "
-        "process; see docs/scaling.md)",
+        help="plane-worker processes to start here (default: 0 under --nav on, whose smoother runs only in the "
+        "base process; cores - 2 under --nav filter or off; see docs/scaling.md)",
     )
     parser.add_argument(
         "--remote-map-workers",
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     robots = [r.strip() for r in args.robots.split(",") if r.strip()] if args.robots else None
     from .map_worker_procs import default_map_workers, local_endpoint
 
-    n_workers = args.map_workers if args.map_workers is not None else default_map_workers()
+    n_workers = args.map_workers if args.map_workers is not None else default_map_workers(nav=args.nav)
     endpoint = local_endpoint(options.listen) or (options.connect[0] if options.connect else None)
     with stop_on_signals() as stop, open_session(options, default_mode="router") as session:
         station = BaseStation(

@@ -20,17 +20,27 @@ log = logging.getLogger(__name__)
 STOP_TIMEOUT_S = 10.0
 
 
-def default_map_workers(cores: int | None = None) -> int:
-    """Local worker processes by default: the cores minus two (0 on a 2-core machine: one map thread in the
-    base process).
+def default_map_workers(cores: int | None = None, nav: str = "on") -> int:
+    """Local worker processes by default: none under ``--nav on``, else the cores minus two (0 on a 2-core
+    machine: one map thread in the base process).
 
-    Without workers the base process keeps about one core busy at a fleet's full rate on its own (Zenoh,
-    decoding, the ledger, navigation, extraction, the merge); with workers it only ingests, dispatches and merges,
-    and the workers extract and navigate. On two cores worker processes do raise throughput
+    Workers navigate with the filter or the pose graphs only: they run no smoother, so under ``--nav on`` (the
+    default) a fleet mapped by workers is not the fleet the base's map thread maps, and a drifting robot's clouds
+    stay where the filter first placed them (docs/scaling.md). The map thread keeps up with a small fleet (a few
+    robots at 30 Hz); a bigger one opts in with ``--map-workers N``. Under ``--nav filter`` or ``off`` workers map
+    as one process does. Without workers the base process keeps about one core busy at a fleet's full rate on its
+    own (Zenoh, decoding, the ledger, navigation, extraction, the merge); with workers it only ingests, dispatches
+    and merges, and the workers extract and navigate. On two cores worker processes do raise throughput
     (benchmarks/results/workers.md), but they share the cores with everything else on the machine and delay
     acknowledgements until a window is committed: an operator opts in with ``--map-workers N``. From three cores
     on, each worker has a core of extraction to itself.
+
+    Args:
+        cores: the machine's cores (default ``os.cpu_count()``).
+        nav: the base's ``--nav`` choice, ``on``, ``filter`` or ``off``.
     """
+    if nav == "on":
+        return 0
     n = cores if cores is not None else (os.cpu_count() or 1)
     return max(0, n - 2)
 
