@@ -15,7 +15,8 @@ cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.sy
 Per way: faces recovered (2 deg, 5 cm) of seen, duplicates, spurious planes, the faces off the bar (deg / cm),
 and per robot the horizontal error of the served poses against the truth (mean / max, cm); with ``--trace``,
 each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose
-graphs' ``GraphConfig``, depth-only robots) change the base's tuning (a what-if).
+graphs' ``GraphConfig``, depth-only robots) change the base's tuning, ``map.KEY=VALUE`` the map's ``MapConfig``
+(every way; a what-if).
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import numpy as np
 
 from lrsensor.frames import body_to_ned
 from mapping.synth import DiveFrame, hit_faces, replay_dive, score_map, tank
+from mapping.types import MapConfig
 
 from .bench_nav_procs import base_nav
 from .fleet_dives import dive_frames, extracted_frames, write_fleet
@@ -39,16 +41,17 @@ WAYS = ("true", "trusted", "filter", "smoothed")
 
 
 def _tuning(sets: list[str]) -> dict[str, Any]:
-    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` applied (VALUE a Python
-    literal, or ``inf``)."""
+    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` / ``map.KEY=VALUE``
+    (the map's ``MapConfig``, as ``cfg``) applied (VALUE a Python literal, or ``inf``)."""
     import ast
 
     kw = base_nav()
     for s in sets:
         key, value = s.split("=", 1)
         part, name = key.split(".", 1)
-        field = {"nav": "nav_cfg", "smoother": "smoother", "graph": "graph_cfg"}[part]
-        kw[field] = replace(kw[field], **{name: float(value) if value == "inf" else ast.literal_eval(value)})
+        field = {"nav": "nav_cfg", "smoother": "smoother", "graph": "graph_cfg", "map": "cfg"}[part]
+        base = kw.get(field) or MapConfig()
+        kw[field] = replace(base, **{name: float(value) if value == "inf" else ast.literal_eval(value)})
     return kw
 
 
@@ -58,7 +61,7 @@ def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list
     if way in ("true", "trusted"):
         fr = [replace(f, pose_est=f.pose_true) if way == "true" else f for f in frames]
         fr = [replace(f, points_ned_est=body_to_ned(f.points_body, f.pose_est)) for f in fr]
-        run = replay_dive(fr, navigate=False)
+        run = replay_dive(fr, navigate=False, cfg=kw.get("cfg"))
         return run.planes(), {}
     smoother = kw["smoother"] if way == "smoothed" else None
     run = replay_dive(frames, navigate=True, background="wait", **{**kw, "smoother": smoother})
@@ -73,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-range-m", type=float, default=3.0)
     ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
     ap.add_argument("--ways", default=",".join(WAYS))
-    ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE, smoother.KEY=VALUE or graph.KEY=VALUE")
+    ap.add_argument("--set", action="append", default=[], help="nav./smoother./graph./map.KEY=VALUE")
     ap.add_argument("--trace", action="store_true")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)
