@@ -61,7 +61,7 @@ class MapConfig:
         range_noise_per_m: the sensor's expected range error per squared metre of range, k (1/m: a point at
             range r is expected k r^2 off; about the stripe's sub-pixel error over focal length x baseline).
             When > 0, a cell's l0 loses (k r^2)^2 before the planarity test and a region's RANSAC inlier distance
-            and RMS limit grow with it (:mod:`mapping.planes`). 0 (default): off; 0.002 fits the clouds extracted
+            grows with it (:mod:`mapping.planes`). 0 (default): off; 0.002 fits the clouds extracted
             from rendered 640x360 images (docs/mapping.md, "Range noise": measured not to pay yet).
         distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
         ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
