@@ -1,7 +1,7 @@
 """Where a map from extracted clouds loses faces (issue 27): the same clouds mapped with each kind of pose.
 
     python -m benchmarks.diag_extracted_poses --mode good --seed 1 [--max-range-m 3] [--dives DIR]
-        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...]
+        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...] [--times 1,2,3,5,10]
 
 One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendered 640x360 frames
 (``benchmarks.fleet_dives``: found in ``DIR`` when rendered before; rendering takes about 30 ms of CPU per frame),
@@ -17,6 +17,7 @@ and per robot the horizontal error of the served poses against the truth (mean /
 each robot's worst 3 s bins. ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose
 graphs' ``GraphConfig``, depth-only robots) change the base's tuning, ``map.KEY=VALUE`` the map's ``MapConfig``
 (every way; a what-if).
+``--times``: first the served planes at the true poses at those seconds of the dive and at its end.
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
@@ -68,6 +69,23 @@ def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list
     return run.planes(), run.position_error_m
 
 
+def planes_over_time(frames: list[DiveFrame], cfg: MapConfig | None, marks_s: list[float]) -> list[int]:
+    """The served planes of ``frames`` mapped at their true poses (no navigation) just before the first frame at
+    each of ``marks_s`` (s of capture time from the first frame), then at the end (after ``flush``)."""
+    from mapping.builder import MapBuilder
+
+    b = MapBuilder(cfg or MapConfig())
+    t0 = frames[0].t_ns
+    out: list[int] = []
+    for f in frames:
+        while len(out) < len(marks_s) and (f.t_ns - t0) * 1e-9 >= marks_s[len(out)]:
+            out.append(len(b.map_json()["planes"]))
+        b.add_cloud(f.robot, f.t_ns, body_to_ned(f.points_body, f.pose_true), f.pose_true)
+    b.flush()
+    out += [len(b.map_json()["planes"])] * (len(marks_s) - len(out))
+    return [*out, len(b.map_json()["planes"])]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mode", default="good")
@@ -78,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ways", default=",".join(WAYS))
     ap.add_argument("--set", action="append", default=[], help="nav./smoother./graph./map.KEY=VALUE")
     ap.add_argument("--trace", action="store_true")
+    ap.add_argument("--times", default="", help="e.g. 1,2,3,5,10: served planes at the true poses then, and at the end")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)
     frames = extracted_frames(frames, write_fleet(a.dives, a.mode, a.seed, a.seconds, "640x360"))
@@ -88,6 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}\n")
     print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) | CPU s |")
     print("|---|---|---|---|---|---|---|")
+    if a.times:
+        marks = [float(x) for x in a.times.split(",")]
+        counts = planes_over_time(frames, kw.get("cfg"), marks)
+        print(f"served planes at the true poses at {a.times} s and at the end: {' / '.join(map(str, counts))}\n")
     traces = []
     for way in a.ways.split(","):
         c0 = time.process_time()
