@@ -1,7 +1,7 @@
 """Where a map from extracted clouds loses faces (issue 27): the same clouds mapped with each kind of pose.
 
     python -m benchmarks.diag_extracted_poses --mode good --seed 1 [--max-range-m 3] [--dives DIR]
-        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...]
+        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...] [--times 1,2,3,5,10]
 
 One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendered 640x360 frames
 (``benchmarks.fleet_dives``: found in ``DIR`` when rendered before; rendering takes about 30 ms of CPU per frame),
@@ -17,7 +17,8 @@ per robot the horizontal error of the served poses against the truth (mean / max
 and as the clouds are in the map at the end, after the smoother's last run) and the mean heading error of the
 poses the clouds are in the map with (deg, served); with ``--trace``, each robot's worst 3 s bins.
 ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose graphs' ``GraphConfig``,
-depth-only robots) change the base's tuning (a what-if).
+depth-only robots) change the base's tuning, ``map.KEY=VALUE`` the map's ``MapConfig`` (every way; a what-if).
+``--times``: first the served planes at the true poses at those seconds of the dive and at its end.
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 
 from lrsensor.frames import body_to_ned
 from mapping.synth import DiveFrame, DiveMap, hit_faces, replay_dive, score_map, tank
+from mapping.types import MapConfig
 
 from .bench_nav_procs import base_nav
 from .fleet_dives import dive_frames, extracted_frames, write_fleet
@@ -42,16 +44,17 @@ WAYS = ("true", "trusted", "filter", "smoothed")
 
 
 def _tuning(sets: list[str]) -> dict[str, Any]:
-    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` applied (VALUE a Python
-    literal, or ``inf``)."""
+    """``base_nav()`` with ``nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` / ``map.KEY=VALUE``
+    (the map's ``MapConfig``, as ``cfg``) applied (VALUE a Python literal, or ``inf``)."""
     import ast
 
     kw = base_nav()
     for s in sets:
         key, value = s.split("=", 1)
         part, name = key.split(".", 1)
-        field = {"nav": "nav_cfg", "smoother": "smoother", "graph": "graph_cfg"}[part]
-        kw[field] = replace(kw[field], **{name: float(value) if value == "inf" else ast.literal_eval(value)})
+        field = {"nav": "nav_cfg", "smoother": "smoother", "graph": "graph_cfg", "map": "cfg"}[part]
+        base = kw.get(field) or MapConfig()
+        kw[field] = replace(base, **{name: float(value) if value == "inf" else ast.literal_eval(value)})
     return kw
 
 
@@ -60,7 +63,7 @@ def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list
     if way in ("true", "trusted"):
         fr = [replace(f, pose_est=f.pose_true) if way == "true" else f for f in frames]
         fr = [replace(f, points_ned_est=body_to_ned(f.points_body, f.pose_est)) for f in fr]
-        run = replay_dive(fr, navigate=False)
+        run = replay_dive(fr, navigate=False, cfg=kw.get("cfg"))
         return run.planes(), None
     smoother = kw["smoother"] if way == "smoothed" else None
     run = replay_dive(frames, navigate=True, background="wait", **{**kw, "smoother": smoother})
@@ -79,6 +82,23 @@ def final_yaw_deg(run: DiveMap, frames: list[DiveFrame]) -> dict[str, float]:
     return out
 
 
+def planes_over_time(frames: list[DiveFrame], cfg: MapConfig | None, marks_s: list[float]) -> list[int]:
+    """The served planes of ``frames`` mapped at their true poses (no navigation) just before the first frame at
+    each of ``marks_s`` (s of capture time from the first frame), then at the end (after ``flush``)."""
+    from mapping.builder import MapBuilder
+
+    b = MapBuilder(cfg or MapConfig())
+    t0 = frames[0].t_ns
+    out: list[int] = []
+    for f in frames:
+        while len(out) < len(marks_s) and (f.t_ns - t0) * 1e-9 >= marks_s[len(out)]:
+            out.append(len(b.map_json()["planes"]))
+        b.add_cloud(f.robot, f.t_ns, body_to_ned(f.points_body, f.pose_true), f.pose_true)
+    b.flush()
+    out += [len(b.map_json()["planes"])] * (len(marks_s) - len(out))
+    return [*out, len(b.map_json()["planes"])]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mode", default="good")
@@ -87,8 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-range-m", type=float, default=3.0)
     ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
     ap.add_argument("--ways", default=",".join(WAYS))
-    ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE, smoother.KEY=VALUE or graph.KEY=VALUE")
+    ap.add_argument("--set", action="append", default=[], help="nav./smoother./graph./map.KEY=VALUE")
     ap.add_argument("--trace", action="store_true")
+    ap.add_argument("--times", default="", help="e.g. 1,2,3,5,10: served planes at the true poses then, and at the end")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)
     frames = extracted_frames(frames, write_fleet(a.dives, a.mode, a.seed, a.seconds, "640x360"))
@@ -97,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     truth = hit_faces(scene, frames)
     kw = _tuning(a.set)
     print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}\n")
+    if a.times:
+        marks = [float(x) for x in a.times.split(",")]
+        counts = planes_over_time(frames, kw.get("cfg"), marks)
+        print(f"served planes at the true poses at {a.times} s and at the end: {' / '.join(map(str, counts))}\n")
     print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) "
           "| at the end (cm) | heading (deg) | CPU s |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")

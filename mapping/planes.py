@@ -23,6 +23,13 @@ So extraction runs in four steps, all vectorized numpy except the Open3D call:
    less than ``max_sagitta_m`` (pipes are curved), and the plane must not pass within ``min_sensor_distance_m``
    of the observing vehicle (that would be the laser sheet).
 
+With ``range_noise_per_m`` k > 0 (off by default) the thresholds follow the sensor's range noise, which grows
+as about ``r^2 / (f b)`` (focal length f, laser baseline b) times the stripe's sub-pixel error: a point at range
+``r`` is expected ``k r^2`` off. A cell's thickness has that expected noise variance (at its block's mean squared
+range) removed before the ``cell_planarity`` test, and a region's RANSAC and refit inlier distance is at least
+``_NOISE_THRESHOLD_SIGMAS`` times ``k`` times its points' median squared range (the RMS limit stays).
+docs/mapping.md ("Range noise") has what it gives on extracted clouds.
+
 The accepted planes then claim the full-resolution points near them (within the RANSAC threshold, in the cells
 of their inliers or the cells next to them); :mod:`mapping.builder` turns those into exact statistics.
 """
@@ -54,6 +61,11 @@ _FORWARD_13 = np.array([o for o in _NEIGHBOURS_27.tolist() if tuple(o) > (0, 0, 
 
 _o3d: ModuleType | None = None
 
+#: With ``MapConfig.range_noise_per_m``: a region's RANSAC / refit inlier distance is at least this many of its
+#: points' expected range errors. The inliers' RMS limit (``max_rms_m``) stays: a looser one let near-horizontal
+#: planes through single noisy stripes in (docs/mapping.md, "Range noise").
+_NOISE_THRESHOLD_SIGMAS = 2.0
+
 
 def open3d() -> ModuleType:
     """The ``open3d`` module, imported on first use, or :class:`Open3DMissingError` with the fix."""
@@ -72,8 +84,11 @@ def open3d() -> ModuleType:
     return _o3d
 
 
-def seeded_segment_plane(pcd: Any, cfg: MapConfig, seed: int) -> tuple[Any, list[int]]:
-    """Open3D ``segment_plane`` made reproducible: re-seeded, and on one thread.
+def seeded_segment_plane(
+    pcd: Any, cfg: MapConfig, seed: int, threshold_m: float | None = None
+) -> tuple[Any, list[int]]:
+    """Open3D ``segment_plane`` made reproducible: re-seeded, and on one thread. ``threshold_m``: the inlier
+    distance (metres; ``cfg.distance_threshold_m`` by default).
 
     Seeding alone is not enough: with several OpenMP threads the RANSAC iterations consume the random stream in
     a scheduling-dependent order (measured: 2-4 different results in 30 identical calls). One thread gives the
@@ -84,7 +99,8 @@ def seeded_segment_plane(pcd: Any, cfg: MapConfig, seed: int) -> tuple[Any, list
     o3d.utility.set_max_threads(1)
     try:
         o3d.utility.random.seed(int(seed))
-        model, inliers = pcd.segment_plane(cfg.distance_threshold_m, 3, cfg.ransac_iterations)
+        thr = cfg.distance_threshold_m if threshold_m is None else threshold_m
+        model, inliers = pcd.segment_plane(thr, 3, cfg.ransac_iterations)
     finally:
         o3d.utility.set_max_threads(before)
     return model, inliers
@@ -186,8 +202,9 @@ def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> Cel
     of_point = of_point.reshape(-1).astype(np.int64)
     c = keys.shape[0]
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    cols = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
-    st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 10)
+    r2 = np.einsum("ij,ij->i", points - vehicle, points - vehicle)  # squared range, m^2
+    cols = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z, r2)
+    st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 11)
     n = st[:, 0]
     s = st[:, 1:4]
     v = np.stack([np.bincount(of_point, weights=vehicle[:, k], minlength=c) for k in range(3)], 1)
@@ -207,8 +224,13 @@ def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> Cel
     to_vehicle = v / n[:, None] - s / n[:, None]
     flip = np.einsum("ij,ij->i", normal, to_vehicle) < 0
     normal[flip] *= -1.0
+    thick = w[:, 0]
+    if cfg.range_noise_per_m > 0.0:
+        # the points' own expected error (k r^2 at the block's mean squared range) is thickness a plane has
+        sigma = cfg.range_noise_per_m * block[:, 10] / bn
+        thick = np.maximum(thick - sigma * sigma, 0.0)
     valid = (
-        (bn >= 6) & (np.sqrt(w[:, 1]) >= cfg.min_width_m) & (np.sqrt(w[:, 0]) <= cfg.cell_planarity * np.sqrt(w[:, 1]))
+        (bn >= 6) & (np.sqrt(w[:, 1]) >= cfg.min_width_m) & (np.sqrt(thick) <= cfg.cell_planarity * np.sqrt(w[:, 1]))
     )
     normal[~valid] = np.nan
     return CellNormals(keys, of_point, normal, valid)
@@ -322,12 +344,14 @@ def _check_inliers(
     return cand, None, normal, d
 
 
-def _refine(points: FloatArray, members: IntArray, inliers: IntArray, cfg: MapConfig, rounds: int = 3) -> IntArray:
+def _refine(
+    points: FloatArray, members: IntArray, inliers: IntArray, cfg: MapConfig, threshold_m: float, rounds: int = 3
+) -> IntArray:
     """RANSAC's plane comes from 3 points; refit it to its inliers and re-select the inliers, a few rounds.
 
     A laser band on a wall is a thin slab (10-30 cm tall): a plane tilted across it still collects many inliers,
     and the least-squares refit over the re-selected inliers pulls it back into the slab. Returns indices into
-    ``points`` (a subset of ``members``).
+    ``points`` (a subset of ``members``); ``threshold_m`` is the inlier distance (metres).
     """
     chosen = members[inliers]
     for _ in range(rounds):
@@ -338,7 +362,7 @@ def _refine(points: FloatArray, members: IntArray, inliers: IntArray, cfg: MapCo
         _w, axes = np.linalg.eigh((pts - c).T @ (pts - c))
         n = axes[:, 0]
         dist = np.abs((points[members] - c) @ n)
-        new = members[dist <= cfg.distance_threshold_m]
+        new = members[dist <= threshold_m]
         if np.array_equal(new, chosen):
             break
         chosen = new
@@ -395,16 +419,20 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
         if sizes[r] < cfg.min_region_points:
             continue
         members = np.nonzero(region == r)[0]
+        thr = cfg.distance_threshold_m
+        if cfg.range_noise_per_m > 0.0:  # the region's points' expected range error, k r^2 at their median r^2
+            r2 = np.einsum("ij,ij->i", vpts[members] - vveh[members], vpts[members] - vveh[members])
+            thr = max(thr, _NOISE_THRESHOLD_SIGMAS * cfg.range_noise_per_m * float(np.median(r2)))
         for _ in range(cfg.max_planes_per_region):
             if members.shape[0] < cfg.min_inliers:
                 break
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(vpts[members]))
-            _model, inl = seeded_segment_plane(pcd, cfg, (seed + call) % (2**31 - 1))
+            _model, inl = seeded_segment_plane(pcd, cfg, (seed + call) % (2**31 - 1), thr)
             call += 1
             inl_idx = np.asarray(inl, dtype=np.int64)
             if inl_idx.shape[0] < cfg.min_inliers:
                 break
-            chosen = _refine(vpts, members, inl_idx, cfg)
+            chosen = _refine(vpts, members, inl_idx, cfg, thr)
             cand, rej, _n, _d = _check_inliers(vpts[chosen], vveh[chosen], cfg)
             if cand is not None:
                 candidates.append(PlaneCandidate(cand.normal, cand.d, chosen, cand.rms_m, cand.width_m, cand.sagitta_m))

@@ -12,8 +12,9 @@ def test_tuning_sets_nav_and_smoother_fields() -> None:
     kw = _tuning(["nav.fix_quality_factor=3.0", "smoother.every_s=5.0"])
     assert kw["nav_cfg"].fix_quality_factor == 3.0
     assert kw["smoother"].every_s == 5.0
+    assert _tuning(["map.range_noise_per_m=0.002"])["cfg"].range_noise_per_m == 0.002
     with pytest.raises(KeyError):
-        _tuning(["map.max_range_m=3"])
+        _tuning(["sensor.max_range_m=3"])
 
 
 def test_true_and_trusted_ways_map_without_navigation() -> None:
