@@ -67,9 +67,10 @@ class NavConfig:
     plus d at the fix's own white noise (``dr_error_fix_sigma_m``), whatever the estimate says; d moves only as a
     dead reckoning's error can: its rate (``dr_error_bias_sigma_m_s`` at launch, a random walk of
     ``dr_error_bias_walk_m_s_per_sqrt_s``: a current, a scale or heading error times the speed) and a random walk
-    of its own (``dr_error_walk_m_per_sqrt_s``). A good robot's d stays near 0 and scans that jump to a wrong plane
-    cannot move it; a drifting robot's grows, and the scans observe it. The velocity-bias options, the fixes'
-    quality from their disagreement and their persistence are then unused.
+    of its own (``dr_error_walk_m_per_sqrt_s``). A good robot's d stays near 0 and scans that jump to a wrong
+    plane cannot move it quickly; a drifting robot's grows, and the scans observe it. The velocity-bias options,
+    the fixes' quality from their disagreement and their persistence are then unused (docs/navigation-design.md,
+    "The dead reckoning's error as a state": measured, left off).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation

@@ -221,8 +221,11 @@ class RobotNav:
         for i, j in ((0, 5), (1, 6)):
             q[i, i] = q[j, j] = walk
             q[i, j] = q[j, i] = -walk
-        q[0, 0] += (cfg.dr_velocity_sigma_m_s * dt) ** 2
-        q[1, 1] += (cfg.dr_velocity_sigma_m_s * dt) ** 2
+        # the increment's own noise (scale, white velocity) moves the position alone: position plus d is then no
+        # deterministic sum, and the smoother's backward pass does not invert a near-singular prediction
+        inc = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
+        q[0, 0] += inc
+        q[1, 1] += inc
         q[2, 2] = q[3, 3] = cfg.dr_error_bias_walk_m_s_per_sqrt_s**2 * dt
 
     def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
