@@ -62,6 +62,16 @@ class NavConfig:
     the bias is open. Initial ``launch_sigma_m``, ``init_speed_sigma_m_s`` (the velocity states without the
     bias), ``init_yaw_sigma_deg``.
 
+    The dead reckoning's error as a state (``dr_error_state``; off): two more states, the error d = raw - true
+    position (north, east; m), and the velocity states become its rate. Each raw position measures the position
+    plus d at the fix's own white noise (``dr_error_fix_sigma_m``), whatever the estimate says; d moves only as a
+    dead reckoning's error can: its rate (``dr_error_bias_sigma_m_s`` at launch, a random walk of
+    ``dr_error_bias_walk_m_s_per_sqrt_s``: a current, a scale or heading error times the speed) and a random walk
+    of its own (``dr_error_walk_m_per_sqrt_s``). A good robot's d stays near 0 and scans that jump to a wrong
+    plane cannot move it quickly; a drifting robot's grows, and the scans observe it. The velocity-bias options,
+    the fixes' quality from their disagreement and their persistence are then unused (docs/navigation-design.md,
+    "The dead reckoning's error as a state": measured, left off).
+
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
     exceeds it are not placed in the map), ``lost_std_m`` (without a fix, a robot whose predicted standard
@@ -142,6 +152,11 @@ class NavConfig:
     fix_quality_factor: float = 1.5
     fix_quality_factor_open: float = 0.0
     dr_bias_open_rate_m_s: float = 0.0
+    dr_error_state: bool = False
+    dr_error_fix_sigma_m: float = 0.02
+    dr_error_bias_sigma_m_s: float = 0.02
+    dr_error_bias_walk_m_s_per_sqrt_s: float = 0.005
+    dr_error_walk_m_per_sqrt_s: float = 0.01
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

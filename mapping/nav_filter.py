@@ -31,8 +31,12 @@ class RobotNav:
     def __init__(self, robot: str, cfg: NavConfig) -> None:
         self.robot = robot
         self.cfg = cfg
-        self.x = np.zeros(5)
-        self.P = np.eye(5)
+        #: north, east (m), two velocities (m/s: the dead reckoning's bias, or its rate of error with
+        #: ``NavConfig.dr_error_state``), the yaw correction (rad), and with ``dr_error_state`` the dead reckoning's
+        #: error (raw minus true position, north, east; m)
+        self.n = 7 if cfg.dr_error_state else 5
+        self.x = np.zeros(self.n)
+        self.P = np.eye(self.n)
         self.t_ns: int | None = None
         self.last_raw_ne: FloatArray | None = None
         self.last_fix_ns: int | None = None
@@ -104,21 +108,20 @@ class RobotNav:
 
     def _start(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
-        self.x = np.array([raw_ne[0], raw_ne[1], 0.0, 0.0, 0.0])
+        self.x = np.zeros(self.n)
+        self.x[0:2] = raw_ne
         self.bias_open = cfg.dr_bias_sigma_m_s > 0 and not cfg.dr_bias_adaptive
         if cfg.dr_bias_sigma_m_s <= 0:
             bias = cfg.init_speed_sigma_m_s
         else:
             bias = cfg.dr_bias_sigma_m_s if self.bias_open else cfg.dr_bias_closed_sigma_m_s
-        self.P = np.diag(
-            [
-                cfg.launch_sigma_m**2,
-                cfg.launch_sigma_m**2,
-                bias**2,
-                bias**2,
-                math.radians(cfg.init_yaw_sigma_deg) ** 2,
-            ]
-        )
+        if cfg.dr_error_state:
+            bias = cfg.dr_error_bias_sigma_m_s
+        diag = [cfg.launch_sigma_m**2] * 2 + [bias**2] * 2 + [math.radians(cfg.init_yaw_sigma_deg) ** 2]
+        if cfg.dr_error_state:
+            # the dead reckoning starts at the launch fix: its error is the fix's own noise
+            diag += [cfg.dr_error_fix_sigma_m**2] * 2
+        self.P = np.diag(diag)
         self.t_ns = t_ns
         self.last_fix_ns = t_ns
         self.start_ne = raw_ne.copy()
@@ -130,8 +133,9 @@ class RobotNav:
         self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
     ) -> str:
         cfg = self.cfg
-        q = np.zeros((5, 5))
-        ou = np.eye(5)
+        n = self.n
+        q = np.zeros((n, n))
+        ou = np.eye(n)
         if cfg.yaw_bias_tau_s > 0:
             # the compass bias is bounded and mean-reverting (Ornstein-Uhlenbeck): the correction decays toward 0
             # and its variance toward yaw_bias_std_deg^2
@@ -142,9 +146,12 @@ class RobotNav:
             q[4, 4] = math.radians(cfg.yaw_bias_std_deg) ** 2 * (1.0 - a * a)
         else:
             q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
-        if raw_ne is not None and self.last_raw_ne is not None:
+        if raw_ne is not None and self.last_raw_ne is not None and cfg.dr_error_state:
+            self._predict_error(dt, raw_ne - self.last_raw_ne, ou, q)
+            motion = "dead-reckoning"
+        elif raw_ne is not None and self.last_raw_ne is not None:
             step = rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
-            f = np.eye(5)
+            f = np.eye(n)
             # the increment turns with the yaw correction: d(step)/dc = ez x step
             f[0:2, 4] = [-step[1], step[0]]
             self.x[0:2] += step
@@ -168,7 +175,7 @@ class RobotNav:
             # wrong one carried the robot metres away while the scans kept its std small across the wall.)
             # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
             # relative measurement, so its covariance adds to the position's like dead reckoning's.
-            if self.cfg.dr_bias_sigma_m_s <= 0:
+            if self.cfg.dr_bias_sigma_m_s <= 0 and not cfg.dr_error_state:
                 self.x[2:4] = 0.0
             self.transition = ou
             walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
@@ -178,7 +185,7 @@ class RobotNav:
                 if pairs:
                     # like dead reckoning's, the increment was turned by the yaw correction (the scans were
                     # placed with it): its uncertainty grows the position's with the distance
-                    f = np.eye(5)
+                    f = np.eye(n)
                     f[0:2, 4] = [-delta[1], delta[0]]
                     self.transition = f
                     self.P = f @ self.P @ f.T
@@ -188,6 +195,38 @@ class RobotNav:
             q[0:2, 0:2] = walk
         self.P = self.P + q
         return motion
+
+    def _predict_error(self, dt: float, dr: FloatArray, ou: FloatArray, q: FloatArray) -> None:
+        """The prediction with the dead reckoning's error as a state (``NavConfig.dr_error_state``): the raw
+        increment ``dr`` (north, east; m) turned by the yaw correction moves the position, less what the error's
+        rate ``b`` (states 2, 3) moved the error d (states 5, 6) by; so position plus d moves exactly as the raw
+        position does. Fills ``q`` (the process noise, beside the yaw's) and ``self.transition``."""
+        cfg = self.cfg
+        dt = max(dt, 0.0)
+        step = rot2(float(self.x[4])) @ dr
+        f = np.eye(self.n)
+        # the increment turns with the yaw correction (d(step)/dc = ez x step); what the turn adds to the position
+        # the dead reckoning did not see, so it is error too
+        f[0:2, 4] = [-step[1], step[0]]
+        f[5:7, 4] = [step[1], -step[0]]
+        f[0, 2] = f[1, 3] = -dt
+        f[5, 2] = f[6, 3] = dt
+        b = self.x[2:4].copy()
+        self.x[0:2] += step - b * dt
+        self.x[5:7] += (dr - step) + b * dt
+        self.transition = f @ ou
+        self.P = f @ self.P @ f.T
+        # the error's own walk moves the position the other way (the raw increment is what it is)
+        walk = cfg.dr_error_walk_m_per_sqrt_s**2 * dt
+        for i, j in ((0, 5), (1, 6)):
+            q[i, i] = q[j, j] = walk
+            q[i, j] = q[j, i] = -walk
+        # the increment's own noise (scale, white velocity) moves the position alone: position plus d is then no
+        # deterministic sum, and the smoother's backward pass does not invert a near-singular prediction
+        inc = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
+        q[0, 0] += inc
+        q[1, 1] += inc
+        q[2, 2] = q[3, 3] = cfg.dr_error_bias_walk_m_s_per_sqrt_s**2 * dt
 
     def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
         """Scan-to-scan increment (:mod:`mapping.odometry`) from the previous scan to ``pts`` (body, (M, 3)):
@@ -213,18 +252,27 @@ class RobotNav:
         if self.last_compass_ns is not None and t_ns - self.last_compass_ns < cfg.fix_every_s * 1e9:
             return
         self.last_compass_ns = t_ns
-        h = np.zeros((1, 5))
+        h = np.zeros((1, self.n))
         h[0, 4] = 1.0
         s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
         k = (self.P @ h.T) / s
         self.x = self.x - (k * float(self.x[4])).ravel()
-        self.P = (np.eye(5) - k @ h) @ self.P
+        self.P = (np.eye(self.n) - k @ h) @ self.P
 
     def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
         if self.last_fix_ns is not None and t_ns - self.last_fix_ns < cfg.fix_every_s * 1e9:
             return
         self.last_fix_ns = t_ns
+        if cfg.dr_error_state:
+            # the raw position is the position plus the dead reckoning's error, at the fix's own white noise
+            h = np.zeros((2, self.n))
+            h[0, 0] = h[1, 1] = h[0, 5] = h[1, 6] = 1.0
+            s = h @ self.P @ h.T + np.eye(2) * cfg.dr_error_fix_sigma_m**2
+            k = self.P @ h.T @ np.linalg.inv(s)
+            self.x = self.x + k @ (raw_ne - h @ self.x)
+            self.P = (np.eye(self.n) - k @ h) @ self.P
+            return
         # how well the fixes agree with the estimate tells how good they are: a drifting dead reckoning drifts
         # away from what the scans say, a USBL or a good DVL does not
         innov = raw_ne - self.x[0:2]
@@ -254,12 +302,12 @@ class RobotNav:
             factor = cfg.fix_quality_factor_open
         sigma = min(cfg.fix_sigma_m, max(cfg.fix_min_sigma_m, factor * math.sqrt(err2)))
         sigma *= math.sqrt(n_fixes)
-        h = np.zeros((2, 5))
+        h = np.zeros((2, self.n))
         h[0, 0] = h[1, 1] = 1.0
         s = h @ self.P @ h.T + np.eye(2) * sigma**2
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (raw_ne - self.x[0:2])
-        self.P = (np.eye(5) - k @ h) @ self.P
+        self.P = (np.eye(self.n) - k @ h) @ self.P
 
     def _track_corrections(self, dx: FloatArray) -> None:
         """Keep the running mean velocity of the registrations' corrections of the position (north, east; m/s).
@@ -371,16 +419,16 @@ class RobotNav:
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
             h3 = scale * (j.T * w) @ j
             g3 = scale * (j.T * w) @ r
-            hf = np.zeros((5, 5))
+            hf = np.zeros((self.n, self.n))
             hf[np.ix_(idx, idx)] = h3
-            gf = np.zeros(5)
+            gf = np.zeros(self.n)
             gf[idx] = g3
             x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
             if it >= 1:
                 # after the first pass the gate only needs to hold the residual noise and what is left
                 gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
             used = tuple(int(i) for i in np.unique(lm.ids[k[sel]]))
-        hf = np.zeros((5, 5))
+        hf = np.zeros((self.n, self.n))
         hf[np.ix_(idx, idx)] = h3
         dx = (x - x_pred)[idx]
         p3 = self.P[np.ix_(idx, idx)]

@@ -49,9 +49,13 @@ log = logging.getLogger(__name__)
 #: states are then unused). The yaw correction is last in both.
 _SUB = [0, 1, 2, 3, 4]
 _SUB_NO_BIAS = [0, 1, 4]
+#: with the dead reckoning's error as a state (``NavConfig.dr_error_state``): all seven, the yaw correction last
+_SUB_ERROR = [0, 1, 2, 3, 5, 6, 4]
 
 
 def _sub(nav: RobotNav) -> list[int]:
+    if nav.cfg.dr_error_state:
+        return _SUB_ERROR
     return _SUB if nav.cfg.dr_bias_sigma_m_s > 0 else _SUB_NO_BIAS
 
 

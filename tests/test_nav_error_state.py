@@ -1,0 +1,63 @@
+"""The dead reckoning's error as a state of the filter (``NavConfig.dr_error_state``; issue 27, extracted clouds):
+each raw position measures the position plus that error at the fix's white noise, and the error moves only as a
+dead reckoning's can. Scans registered to a wrong plane then cannot walk a robot off good fixes (the error would
+have to jump), while a drifting dead reckoning's error grows slowly and the scans follow it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+from test_nav_bias import _dive
+from test_nav_jump import SHIFT_M, _corner, _walls
+
+from mapping.navigation import RobotNav
+from mapping.smoother import SMOOTHED_NAV
+
+S = 1_000_000_000
+#: the smoother's tuning with the error state
+ERROR_NAV = replace(SMOOTHED_NAV, dr_error_state=True)
+
+
+def _off_fixes(nav: RobotNav) -> float:
+    """How far (m) a robot holding station with good fixes goes from them at most: 10 s against the right walls,
+    then 3 s against walls 20 cm off (a wrong plane the scans register to)."""
+    right, wrong = _walls(), _walls(SHIFT_M)
+    off = 0.0
+    for k in range(130):
+        true, pts = _corner(k)
+        nav.update(k * S // 10, true, pts, right if k < 100 else wrong)
+        off = max(off, math.hypot(float(nav.x[0]) - 3.0, float(nav.x[1]) - 1.0))
+    return off
+
+
+def test_good_fixes_hold_against_scans_of_a_wrong_map() -> None:
+    # after 10 s of scans that agree with the fixes the error and its rate are known to be small: moving the
+    # estimate 20 cm within a second would take the dead reckoning's error 20 cm/s
+    assert _off_fixes(RobotNav("rov1", ERROR_NAV)) < 0.04
+
+
+def test_a_drift_pinned_by_the_scans_is_followed() -> None:
+    # the dead reckoning drifts 2 cm/s north while the corner pins both axes for 40 s, then the west wall alone
+    # leaves north free: the error's rate, learnt from the scans, carries the estimate along
+    nav = RobotNav("rov1", ERROR_NAV)
+    track = _dive(ERROR_NAV, nav=nav, corner_s=40.0)
+    assert abs(float(nav.x[2]) - 0.02) < 0.005  # the error's rate is the drift's
+    assert max(abs(e) for _, e, _ in track) < 0.03
+    assert all(abs(e) < 3 * sd for _, e, sd in track)
+
+
+def test_snapshot_restores_the_error_state() -> None:
+    nav = RobotNav("rov1", ERROR_NAV)
+    right = _walls()
+    for k in range(20):
+        true, pts = _corner(k)
+        nav.update(k * S // 10, true, pts, right)
+    snap = nav.snapshot()
+    x = nav.x.copy()
+    true, pts = _corner(20)
+    nav.update(20 * S // 10, true, pts, right)
+    nav.restore(snap)
+    assert nav.x.shape == (7,)
+    assert np.array_equal(nav.x, x)
