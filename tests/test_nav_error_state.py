@@ -78,7 +78,8 @@ def _unpinned(cfg: NavConfig, seconds: float = 30.0) -> tuple[float, float, floa
         true = Pose(3.0, 0.2 * t, 1.0, 0.0, 0.0, math.pi / 2)
         raw = Pose(true.north_m + 0.02 * t, true.east_m, 1.0, 0.0, 0.0, true.yaw_rad)
         est = nav.update(k * S // 10, raw, np.zeros((0, 3)), empty)
-    assert est is not None and est.pose is not None
+    assert est is not None
+    assert est.pose is not None
     bound = math.sqrt(cfg.dr_error_fix_sigma_m**2 + (0.02 * 0.2 * seconds) ** 2 + (0.02 * seconds) ** 2)
     return est.std["north_m"], est.pose.north_m - 3.0, bound
 
