@@ -454,7 +454,12 @@ class RobotNav:
         nh = lm.normal[:, 0:2]
         along = np.einsum("pi,ij,pj->p", nh, pos_cov, nh)
         lever2 = 2.0**2 * self.P[4, 4]  # a point 2 m away moves by 2 m * yaw error
-        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
+        gate_max = cfg.gate_max_m
+        if cfg.dr_error_state and cfg.dr_error_gate_unpinned_m > 0 and float(self.pin_time.max()) > 1.0:
+            # unpinned, the position's covariance is the dead reckoning error's: a wide gate lets the scans fit
+            # another wall
+            gate_max = min(gate_max, max(cfg.gate_min_m, cfg.dr_error_gate_unpinned_m))
+        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, gate_max)
         inliers = 0
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
