@@ -75,9 +75,7 @@ class NavConfig:
     (the fraction x the distance travelled since)^2 + (``dr_error_bound_current_m_s`` x the time since)^2 plus
     the fix's, and its rate at most (the fraction x the speed)^2 + the current's^2 (soft pseudo-measurements,
     applied only where the covariance exceeds the bound; ``dr_error_bound_pins`` False: since the launch, the
-    scans never restart it; ``dr_error_gate_unpinned_m`` > 0: the registration's gate at most that while an axis
-    has gone unpinned for over a second, so it does not open with d's covariance). ``dr_error_turn_fraction``
-    (1: all) is how much of what the heading correction turns the raw increment by moves the position and d.
+    scans never restart it).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -166,9 +164,7 @@ class NavConfig:
     dr_error_walk_m_per_sqrt_s: float = 0.01
     dr_error_bound_fraction: float = 0.0
     dr_error_bound_current_m_s: float = 0.03
-    dr_error_turn_fraction: float = 1.0
     dr_error_bound_pins: bool = True
-    dr_error_gate_unpinned_m: float = 0.0
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

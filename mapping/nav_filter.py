@@ -220,15 +220,12 @@ class RobotNav:
         position does. Fills ``q`` (the process noise, beside the yaw's) and ``self.transition``."""
         cfg = self.cfg
         dt = max(dt, 0.0)
-        turned = rot2(float(self.x[4])) @ dr
-        # the increment turns with the yaw correction (d(step)/dc = ez x step); what the turn adds to the position
-        # the dead reckoning did not see, so it is error too. Only dr_error_turn_fraction of it: a heading the
-        # registrations set wrong would otherwise carry the position, and d, off good fixes at the speed
-        a = cfg.dr_error_turn_fraction
-        step = dr + a * (turned - dr)
+        step = rot2(float(self.x[4])) @ dr
         f = np.eye(self.n)
-        f[0:2, 4] = [-a * turned[1], a * turned[0]]
-        f[5:7, 4] = [a * turned[1], -a * turned[0]]
+        # the increment turns with the yaw correction (d(step)/dc = ez x step); what the turn adds to the position
+        # the dead reckoning did not see, so it is error too
+        f[0:2, 4] = [-step[1], step[0]]
+        f[5:7, 4] = [step[1], -step[0]]
         self.pin_dist += float(np.hypot(*dr))
         self.pin_time += dt
         self._speed = float(np.hypot(*dr)) / dt if dt > 0 else 0.0
@@ -454,12 +451,7 @@ class RobotNav:
         nh = lm.normal[:, 0:2]
         along = np.einsum("pi,ij,pj->p", nh, pos_cov, nh)
         lever2 = 2.0**2 * self.P[4, 4]  # a point 2 m away moves by 2 m * yaw error
-        gate_max = cfg.gate_max_m
-        if cfg.dr_error_state and cfg.dr_error_gate_unpinned_m > 0 and float(self.pin_time.max()) > 1.0:
-            # unpinned, the position's covariance is the dead reckoning error's: a wide gate lets the scans fit
-            # another wall
-            gate_max = min(gate_max, max(cfg.gate_min_m, cfg.dr_error_gate_unpinned_m))
-        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, gate_max)
+        gate = np.clip(3.0 * np.sqrt(along + lever2) + 0.05, cfg.gate_min_m, cfg.gate_max_m)
         inliers = 0
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)

@@ -94,3 +94,18 @@ def test_an_unpinned_robot_stays_within_its_physical_bound() -> None:
     # without the bound the error's rate walks and its covariance outgrows the physics
     std_free, _, _ = _unpinned(ERROR_NAV)
     assert std_free > bound * 1.2
+
+
+def test_the_bound_restarts_where_the_scans_pin_unless_counted_from_the_launch() -> None:
+    # 3 s looking into the corner pins both axes every scan: the bound's distance and time restart there, unless
+    # the bound is counted from the launch (then a registration to a wrong wall cannot move its centre)
+    right = _walls()
+    times = []
+    for pins in (True, False):
+        nav = RobotNav("rov1", replace(ERROR_NAV, dr_error_bound_fraction=0.02, dr_error_bound_pins=pins))
+        for k in range(30):
+            true, pts = _corner(k)
+            nav.update(k * S // 10, true, pts, right)
+        times.append(float(nav.pin_time.max()))
+    assert times[0] < 0.15
+    assert times[1] > 2.8
