@@ -70,7 +70,12 @@ class NavConfig:
     of its own (``dr_error_walk_m_per_sqrt_s``). A good robot's d stays near 0 and scans that jump to a wrong
     plane cannot move it quickly; a drifting robot's grows, and the scans observe it. The velocity-bias options,
     the fixes' quality from their disagreement and their persistence are then unused (docs/navigation-design.md,
-    "The dead reckoning's error as a state": measured, left off).
+    "The dead reckoning's error as a state": measured, left off). ``dr_error_bound_fraction`` (> 0) bounds d as
+    the physics does: per axis, its change since the scans last pinned that axis has a variance of at most
+    (the fraction x the distance travelled since)^2 + (``dr_error_bound_current_m_s`` x the time since)^2 plus
+    the fix's, and its rate at most (the fraction x the speed)^2 + the current's^2 (soft pseudo-measurements,
+    applied only where the covariance exceeds the bound; ``dr_error_bound_pins`` False: since the launch, the
+    scans never restart it).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -157,6 +162,9 @@ class NavConfig:
     dr_error_bias_sigma_m_s: float = 0.02
     dr_error_bias_walk_m_s_per_sqrt_s: float = 0.005
     dr_error_walk_m_per_sqrt_s: float = 0.01
+    dr_error_bound_fraction: float = 0.0
+    dr_error_bound_current_m_s: float = 0.03
+    dr_error_bound_pins: bool = True
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

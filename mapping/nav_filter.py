@@ -70,6 +70,12 @@ class RobotNav:
         #: whether the velocity bias states are open: always with the bias in the model, with
         #: ``NavConfig.dr_bias_adaptive`` only once this robot's fixes showed a persistent disagreement (a drift)
         self.bias_open = cfg.dr_bias_sigma_m_s > 0 and not cfg.dr_bias_adaptive
+        #: with ``NavConfig.dr_error_bound_fraction``: per axis (north, east) the dead reckoning's error when the
+        #: scans last pinned the axis (m), the distance travelled (m) and the time (s) since; the last speed (m/s)
+        self.pin_d = np.zeros(2)
+        self.pin_dist = np.zeros(2)
+        self.pin_time = np.zeros(2)
+        self._speed = 0.0
 
     _STATE = (
         "t_ns",
@@ -85,11 +91,17 @@ class RobotNav:
         "_prev_scan",
         "bias_open",
         "corr_rate",
+        "pin_d",
+        "pin_dist",
+        "pin_time",
+        "_speed",
     )
 
     def snapshot(self) -> dict[str, Any]:
         """The estimator's whole state (a smoother restarts it from here to re-run later scans)."""
         out: dict[str, Any] = {k: getattr(self, k) for k in self._STATE}
+        for k in ("pin_d", "pin_dist", "pin_time"):
+            out[k] = out[k].copy()  # updated in place
         out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest)
         return out
 
@@ -97,6 +109,8 @@ class RobotNav:
         """Back to a :meth:`snapshot`."""
         for k in self._STATE:
             setattr(self, k, snap[k])
+        for k in ("pin_d", "pin_dist", "pin_time"):
+            setattr(self, k, snap[k].copy())
         self.x = snap["x"].copy()
         self.P = snap["P"].copy()
         self.latest = snap["latest"]
@@ -128,6 +142,9 @@ class RobotNav:
         self.fix_err2 = cfg.launch_sigma_m**2
         self.fix_mean = np.zeros(2)
         self.corr_rate = np.zeros(2)
+        self.pin_d = np.zeros(2)
+        self.pin_dist = np.zeros(2)
+        self.pin_time = np.zeros(2)
 
     def _predict(
         self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
@@ -209,6 +226,9 @@ class RobotNav:
         # the dead reckoning did not see, so it is error too
         f[0:2, 4] = [-step[1], step[0]]
         f[5:7, 4] = [step[1], -step[0]]
+        self.pin_dist += float(np.hypot(*dr))
+        self.pin_time += dt
+        self._speed = float(np.hypot(*dr)) / dt if dt > 0 else 0.0
         f[0, 2] = f[1, 3] = -dt
         f[5, 2] = f[6, 3] = dt
         b = self.x[2:4].copy()
@@ -227,6 +247,44 @@ class RobotNav:
         q[0, 0] += inc
         q[1, 1] += inc
         q[2, 2] = q[3, 3] = cfg.dr_error_bias_walk_m_s_per_sqrt_s**2 * dt
+
+    def _bound_error(self) -> None:
+        """Bound the dead reckoning's error as the physics does (``NavConfig.dr_error_bound_fraction``): per axis,
+        d's variance is at most the fix's plus (fraction x distance since the scans last pinned the axis)^2 plus
+        (current x time since)^2, and its rate's at most (fraction x speed)^2 + current^2. A scalar
+        pseudo-measurement (d toward its value at the pin; the rate toward 0) whose noise brings the variance
+        exactly to the bound, applied only where it is exceeded: without it the rate's walk, and d with it, ran
+        away while no scan pinned the robot, and the registration's gates widened until the scans fit other
+        walls."""
+        cfg = self.cfg
+        frac, cur = cfg.dr_error_bound_fraction, cfg.dr_error_bound_current_m_s
+        if frac <= 0:
+            return
+        fix2 = cfg.dr_error_fix_sigma_m**2
+        for axis in range(2):
+            bound_d = fix2 + (frac * self.pin_dist[axis]) ** 2 + (cur * self.pin_time[axis]) ** 2
+            bound_b = (frac * self._speed) ** 2 + cur**2
+            for i, target, bound in ((5 + axis, self.pin_d[axis], bound_d), (2 + axis, 0.0, bound_b)):
+                var = float(self.P[i, i])
+                if var <= bound * 1.0001:
+                    continue
+                r = var * bound / (var - bound)
+                k = self.P[:, i] / (var + r)
+                self.x = self.x + k * (target - float(self.x[i]))
+                self.P = self.P - np.outer(k, self.P[i, :])
+                self.P = 0.5 * (self.P + self.P.T)
+
+    def _pin(self, h3: FloatArray, inliers: int) -> None:
+        """Restart the bound's distance and time along each horizontal axis this scan's registration pinned; d's
+        value there is the bound's centre."""
+        if not (self.cfg.dr_error_state and self.cfg.dr_error_bound_pins):
+            return
+        constrained, _, _ = scan_constraint(h3, inliers, self.cfg)
+        for axis, name in enumerate(("north", "east")):
+            if constrained[name]:
+                self.pin_d[axis] = float(self.x[5 + axis])
+                self.pin_dist[axis] = 0.0
+                self.pin_time[axis] = 0.0
 
     def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
         """Scan-to-scan increment (:mod:`mapping.odometry`) from the previous scan to ``pts`` (body, (M, 3)):
@@ -486,6 +544,8 @@ class RobotNav:
             if raw_ne is not None:
                 self._fix(t, raw_ne)
                 self.lost = False
+            if cfg.dr_error_state:
+                self._bound_error()
             self._compass(t)
         if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
             # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no
@@ -497,6 +557,7 @@ class RobotNav:
             motion = "lost"
         else:
             h3, inliers, used = self._register(raw, pts, landmarks, t)
+            self._pin(h3, inliers)
         est = self._estimate(t, raw, h3, inliers, used, motion, known=True)
         self.yaw_scans += int(est.constrained["yaw"])
         self.latest = est

@@ -12,7 +12,9 @@ import numpy as np
 from test_nav_bias import _dive
 from test_nav_jump import SHIFT_M, _corner, _walls
 
-from mapping.navigation import RobotNav
+from lrsensor.frames import Pose
+from mapping.landmarks import PlaneLandmarks
+from mapping.navigation import NavConfig, RobotNav
 from mapping.smoother import SMOOTHED_NAV
 
 S = 1_000_000_000
@@ -61,3 +63,49 @@ def test_snapshot_restores_the_error_state() -> None:
     nav.restore(snap)
     assert nav.x.shape == (7,)
     assert np.array_equal(nav.x, x)
+
+
+def _unpinned(cfg: NavConfig, seconds: float = 30.0) -> tuple[float, float, float]:
+    """A robot cruising east at 0.2 m/s with no map to register to, its dead reckoning drifting 2 cm/s north, for
+    ``seconds`` at 10 Hz. Returns (its north standard deviation, its north error, the physical bound on the dead
+    reckoning's error: the fix's noise, 2 % of the distance and 2 cm/s of current over the time; all m)."""
+    nav = RobotNav("rov1", cfg)
+    empty = PlaneLandmarks.empty()
+    n = round(seconds * 10)
+    est = None
+    for k in range(n + 1):
+        t = k * 0.1
+        true = Pose(3.0, 0.2 * t, 1.0, 0.0, 0.0, math.pi / 2)
+        raw = Pose(true.north_m + 0.02 * t, true.east_m, 1.0, 0.0, 0.0, true.yaw_rad)
+        est = nav.update(k * S // 10, raw, np.zeros((0, 3)), empty)
+    assert est is not None
+    assert est.pose is not None
+    bound = math.sqrt(cfg.dr_error_fix_sigma_m**2 + (0.02 * 0.2 * seconds) ** 2 + (0.02 * seconds) ** 2)
+    return est.std["north_m"], est.pose.north_m - 3.0, bound
+
+
+def test_an_unpinned_robot_stays_within_its_physical_bound() -> None:
+    bounded = replace(ERROR_NAV, dr_error_bound_fraction=0.02, dr_error_bound_current_m_s=0.02)
+    std, err, bound = _unpinned(bounded)
+    # the position's uncertainty is the dead reckoning error's: within what 2 % of the distance and a 2 cm/s
+    # current make in 30 s (plus the increment's own noise), and it covers the drift
+    assert std <= bound * 1.05
+    assert abs(err) <= 3.0 * std
+    # without the bound the error's rate walks and its covariance outgrows the physics
+    std_free, _, _ = _unpinned(ERROR_NAV)
+    assert std_free > bound * 1.2
+
+
+def test_the_bound_restarts_where_the_scans_pin_unless_counted_from_the_launch() -> None:
+    # 3 s looking into the corner pins both axes every scan: the bound's distance and time restart there, unless
+    # the bound is counted from the launch (then a registration to a wrong wall cannot move its centre)
+    right = _walls()
+    times = []
+    for pins in (True, False):
+        nav = RobotNav("rov1", replace(ERROR_NAV, dr_error_bound_fraction=0.02, dr_error_bound_pins=pins))
+        for k in range(30):
+            true, pts = _corner(k)
+            nav.update(k * S // 10, true, pts, right)
+        times.append(float(nav.pin_time.max()))
+    assert times[0] < 0.15
+    assert times[1] > 2.8
