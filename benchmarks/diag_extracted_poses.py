@@ -1,7 +1,7 @@
 """Where a map from extracted clouds loses faces (issue 27): the same clouds mapped with each kind of pose.
 
     python -m benchmarks.diag_extracted_poses --mode good --seed 1 [--max-range-m 3] [--dives DIR]
-        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...] [--times 1,2,3,5,10]
+        [--ways true,trusted,filter,smoothed] [--set KEY=VALUE ...] [--times 1,2,3,5,10] [--trace-refilter ROBOT]
 
 One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendered 640x360 frames
 (``benchmarks.fleet_dives``: found in ``DIR`` when rendered before; rendering takes about 30 ms of CPU per frame),
@@ -18,7 +18,9 @@ and as the clouds are in the map at the end, after the smoother's last run) and 
 poses the clouds are in the map with (deg, served); with ``--trace``, each robot's worst 3 s bins.
 ``--set nav.KEY=VALUE`` / ``smoother.KEY=VALUE`` / ``graph.KEY=VALUE`` (the pose graphs' ``GraphConfig``,
 depth-only robots) change the base's tuning, ``map.KEY=VALUE`` the map's ``MapConfig`` (every way; a what-if).
-``--times``: first the served planes at the true poses at those seconds of the dive and at its end.
+``--trace-refilter ROBOT``: per smoothing run, where its re-filter of ``ROBOT`` first parts from the live filter
+(``benchmarks.trace_refilter``). ``--times``: first the served planes at the true poses at those seconds of the
+dive and at its end.
 Prints markdown; a diagnostic, not a figure of merit."""
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from mapping.types import MapConfig
 
 from .bench_nav_procs import base_nav
 from .fleet_dives import dive_frames, extracted_frames, write_fleet
+from .trace_refilter import RefilterTrace, describe
 
 WAYS = ("true", "trusted", "filter", "smoothed")
 
@@ -109,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ways", default=",".join(WAYS))
     ap.add_argument("--set", action="append", default=[], help="nav./smoother./graph./map.KEY=VALUE")
     ap.add_argument("--trace", action="store_true")
+    ap.add_argument("--trace-refilter", default="", metavar="ROBOT", help="where each run's re-filter parts")
     ap.add_argument("--times", default="", help="e.g. 1,2,3,5,10: served planes at the true poses then, and at the end")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)
@@ -125,10 +129,14 @@ def main(argv: list[str] | None = None) -> int:
     print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) "
           "| at the end (cm) | heading (deg) | CPU s |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
-    traces = []
+    traces: list[str] = []
+    parts: list[str] = []
     for way in a.ways.split(","):
         c0 = time.process_time()
-        planes, run = run_way(way, frames, kw)
+        with RefilterTrace(a.trace_refilter) as rt:
+            planes, run = run_way(way, frames, kw)
+        if a.trace_refilter and rt.runs:
+            parts += [f"{way} {a.trace_refilter} {line}" for line in describe(rt, frames[0].t_ns)]
         errors = run.position_error_m if run is not None else {}
         final = run.final_error_m if run is not None else {}
         yaw = final_yaw_deg(run, frames) if run is not None else {}
@@ -147,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
             traces.append(f"{way} {r}: " + " ".join(f"{b:.0f}" for b in bins))
     if a.trace:
         print("\nmax horizontal error (cm) per 3 s of the dive:\n\n" + "\n".join(f"    {t}" for t in traces))
+    if parts:
+        print("\nwhere each smoothing run's re-filter first parts from the live filter (10 cm):\n\n"
+              + "\n".join(f"    {t}" for t in parts))  # fmt: skip
     return 0
 
 
