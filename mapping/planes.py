@@ -202,9 +202,10 @@ def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> Cel
     of_point = of_point.reshape(-1).astype(np.int64)
     c = keys.shape[0]
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    r2 = np.einsum("ij,ij->i", points - vehicle, points - vehicle)  # squared range, m^2
-    cols = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z, r2)
-    st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 11)
+    cols: tuple[FloatArray, ...] = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
+    if cfg.range_noise_per_m > 0.0:  # the squared range (m^2), summed only where the option reads it
+        cols += (np.einsum("ij,ij->i", points - vehicle, points - vehicle),)
+    st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 10 or 11)
     n = st[:, 0]
     s = st[:, 1:4]
     v = np.stack([np.bincount(of_point, weights=vehicle[:, k], minlength=c) for k in range(3)], 1)
