@@ -30,15 +30,20 @@ clouds are in the map with at the end, served in NED: largest, and the robots' l
 whose registration constrained both horizontal axes, the navigation's wall time per scan on this machine, and the
 smoother's (all its runs, including the map's rebuilds, divided by the scans; and its longest run)."""
 
+# Layout: this module is the in-process replays (run_mode, with the knobs below that the options set and scratch
+# wrappers patch in place) and the command line; every name it had stays importable from here (__all__). Its parts:
+# benchmarks.nav_dives (the dives' navigation modes, a replay's figures, the real-time feed),
+# benchmarks.nav_acceptance (the acceptance through processes and its in-process replays) and
+# benchmarks.nav_tables (the markdown tables).
+
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
-import subprocess
+import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -47,69 +52,27 @@ import numpy as np
 from mapping.navigation import NavConfig
 from mapping.planes import open3d
 from mapping.smoother import SMOOTHED_NAV, SmootherConfig
-from mapping.synth import (
-    DiveMap,
-    hit_faces,
-    replay_dive,
-    score_map,
-    simulate_dive,
-    tank,
-    three_rov_plans,
-    wall_yaw_deg,
-)
+from mapping.synth import hit_faces, replay_dive, score_map, simulate_dive, tank, three_rov_plans, wall_yaw_deg
 from mapping.types import MapConfig
 
-MODES: dict[str, str | dict[str, str]] = {
-    "good": "good",
-    "drift": "drift",
-    "depth-only": "depth-only",
-    "mixed": {"rov1": "good", "rov2": "drift", "rov3": "depth-only"},
-}
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: python benchmarks/bench_nav.py
+    sys.path.insert(0, str(ROOT))
 
-
-@dataclass
-class Row:
-    """One replay's figures."""
-
-    mode: str
-    way: str
-    seen: int
-    recovered: int
-    missing: int
-    worst_angle_deg: float
-    worst_offset_cm: float
-    duplicates: int
-    spurious: int
-    unplaced: int
-    clouds: int
-    max_error_m: float
-    final_error_m: float
-    constrained: float
-    cost_ms_mean: float
-    cost_ms_p99: float
-    wall_s: float
-    smooth_ms: float = math.nan
-    smooth_max_s: float = math.nan
-    smooth_hold_s: float = math.nan
-
-
-def _final_error(frames: list[Any], run: DiveMap, navigate: bool) -> float:
-    """Largest over the robots of the horizontal error of the last pose known for each robot."""
-    worst = 0.0
-    last = {f.robot: f for f in frames}
-    for robot, f in last.items():
-        if navigate:
-            est = run.estimates.get(robot)
-            pose = est.pose if est is not None else None
-            if pose is not None and run.frame is not None:
-                pose = run.frame.pose(pose)
-        else:
-            pose = f.pose_est if math.isfinite(f.pose_est.north_m + f.pose_est.east_m) else None
-        if pose is None:
-            return math.inf
-        worst = max(worst, math.hypot(pose.north_m - f.pose_true.north_m, pose.east_m - f.pose_true.east_m))
-    return worst
-
+from benchmarks.nav_acceptance import (  # noqa: E402
+    ACCEPTANCE,
+    BIAS_SIGMA_M_S,
+    REPLAY_VARIANTS,
+    Acceptance,
+    client_session,
+    get_json,
+    replay_acceptance,
+    run_acceptance,
+    run_replays,
+    wait_for_base,
+)
+from benchmarks.nav_dives import MODES, Row, _final_error, _heading_rows, run_realtime, unbias_fleet  # noqa: E402
+from benchmarks.nav_tables import HEADINGS, HOLDS, acceptance_table, heading_lines, hold_lines, table  # noqa: E402
 
 #: ``NavConfig`` fields every navigated replay of :func:`run_mode` takes (``--nav-bias`` sets the velocity bias)
 NAV_OVERRIDES: dict[str, Any] = {}
@@ -121,46 +84,12 @@ TRACKED_ROWS: list[bool] = []
 TRACKED_OVERRIDES: dict[str, Any] = {}
 #: NavConfig fields the ``tracked`` replays take on top of the others' (``--fleet-compass``)
 TRACKED_NAV_OVERRIDES: dict[str, Any] = {}
-#: per tracked replay and robot, what its hold did (a markdown row; mapping.graph_hold)
-HOLDS: list[str] = []
 #: --fleet-unbiased: the compasses' mean bias over the fleet and the dive removed from every reading (a what-if)
 FLEET_UNBIASED: list[bool] = []
-
-
-def unbias_fleet(frames: list[Any]) -> list[Any]:
-    """The dive as if its compasses' biases averaged to zero over the robots and the dive: their mean (reported
-    minus true heading over every frame) taken off every frame's reported heading (``--fleet-unbiased``). Each
-    robot keeps its own bias about that mean, and its wander."""
-    from lrsensor.frames import body_to_ned
-
-    mean = float(np.mean([math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames]))
-    out = []
-    for f in frames:
-        est = replace(f.pose_est, yaw_rad=f.pose_est.yaw_rad - mean)
-        out.append(replace(f, pose_est=est, points_ned_est=body_to_ned(f.points_body, est)))
-    return out
-
-
-#: per tracked replay and robot, its heading against the truth (a markdown row; heading_lines)
-HEADINGS: list[str] = []
 #: MapConfig fields every replay's map takes (--merge-bands)
 MAP_OVERRIDES: dict[str, Any] = {}
 #: --merge-bands: how far apart along down two bands of one vertical face may be (m)
 MERGE_BANDS_GAP_M = 3.0
-
-
-def _bias_setup(feed: Any) -> None:
-    """A replay variant: ``--nav on`` with the dead reckoning's velocity bias always open (not adaptive)."""
-    from mapping.navigation import Navigator
-    from mapping.smoother import FleetPlacements
-
-    cfg = replace(SMOOTHED_NAV, dr_bias_sigma_m_s=BIAS_SIGMA_M_S, dr_bias_adaptive=False)
-    feed.navigator = Navigator(cfg, SmootherConfig())
-    feed.fleet = FleetPlacements(feed.navigator, feed.builder, background=True)
-
-
-#: the velocity bias's launch sigma (m/s) of the option measured (``NavConfig.dr_bias_sigma_m_s``)
-BIAS_SIGMA_M_S = 0.003
 
 
 def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
@@ -239,391 +168,6 @@ def run_mode(mode: str, seconds: float, seed: int) -> list[Row]:
             HOLDS.append(f"| {mode} | {way} | {robot} | {h['committed']:.0f} | {h['replaced']:.0f} | "
                          f"{h['dropped']:.0f} | {h['lag_mean_s']:.2f} | {h['lag_max_s']:.1f} |")  # fmt: skip
     return rows
-
-
-#: The acceptance run's robots and their navigation (independent dives, one of each).
-ACCEPTANCE = {"rov1": "good", "rov2": "drift", "rov3": "depth-only"}
-
-
-@dataclass
-class Acceptance:
-    """What the acceptance run through processes gives: the served map scored against the tank's faces."""
-
-    faces: int
-    matched: int
-    matched_loose: int
-    worst_angle_deg: float
-    worst_offset_cm: float
-    duplicates: int
-    spurious: int
-    clouds: int
-    placed: int
-    positions: dict[str, str]
-    wall_s: float
-    hold_ms: float
-    map_json: dict[str, Any]
-    status: dict[str, Any]
-
-
-def client_session(port: int) -> Any:
-    """A Zenoh client session to the base listening on 127.0.0.1:``port`` (scouting off: loopback only)."""
-    import zenoh
-
-    conf = {
-        "mode": "client",
-        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": 30000},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
-
-
-def get_json(session: Any, key: str, timeout_s: float) -> dict[str, Any] | None:
-    """The first reply to a query of ``key`` as JSON, or None where none came within ``timeout_s``."""
-    for reply in session.get(key, timeout=timeout_s):
-        if reply.ok is not None:
-            out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-            return out
-    return None
-
-
-def wait_for_base(session: Any, fleet: str, base: subprocess.Popen[bytes], log: Path, timeout_s: float) -> None:
-    """Wait until ``base`` answers on ``lrs/<fleet>/base/status``; RuntimeError with its ``log`` where it ended or
-    did not answer within ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while get_json(session, f"lrs/{fleet}/base/status", 5.0) is None:
-        if time.monotonic() > deadline or base.poll() is not None:
-            raise RuntimeError("the base station did not come up: " + log.read_text(errors="replace"))
-        time.sleep(0.2)
-
-
-def run_acceptance(
-    work: Path,
-    seconds: float = 12.0,
-    rate_hz: float = 5.0,
-    seed: int = 1,
-    nav: str = "on",
-    size: str = "640x360",
-    record: Path | None = None,
-) -> Acceptance:
-    """``lrsensor base --nav NAV`` (``nav`` may carry more of the base's flags: ``"on --no-fix graph"``) and one
-    ``lrsensor rov --imu csv:FILE`` per robot of :data:`ACCEPTANCE` as processes on
-    loopback, each replaying its own recorded dive (``lrsensor.sim.dive.record_dive``: rendered images, the
-    navigation's ``imu.csv``); the map served on ``lrs/<fleet>/map`` once every cloud is acknowledged, scored
-    against the tank's true faces (``services.demo.score_map``: matched within 2 deg and 5 cm, and within the
-    demo's 5 deg and 15 cm). With ``record``, ``lrsensor record`` writes the fleet's clouds there (MCAP) for
-    :func:`replay_acceptance`."""
-    import signal
-    import sys
-
-    from lrsensor.sim.dive import record_dive
-    from services.demo import score_map as score_served
-    from services.testnet import free_port
-
-    width, height = (int(x) for x in size.split("x"))
-    dives = {}
-    for i, (robot, mode) in enumerate(ACCEPTANCE.items()):
-        dives[robot] = work / "dives" / robot
-        record_dive(
-            dives[robot],
-            robot=robot,
-            robot_index=i,
-            n_robots=len(ACCEPTANCE),
-            duration_s=seconds,
-            rate_hz=rate_hz,
-            width=width,
-            height=height,
-            seed=seed * 100 + i,
-            navigation=mode,
-        )
-    fleet, port = "acc", free_port()
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    lrs = [sys.executable, "-m", "lrsensor"]
-    t0 = time.perf_counter()
-    logs = {name: (work / f"{name}.log").open("wb") for name in ("base", *ACCEPTANCE)}
-    base = subprocess.Popen(
-        [*lrs, "base", "--fleet", fleet, "--listen", f"tcp/127.0.0.1:{port}", "--state", str(work / "state"),
-         "--map", "on", "--nav", *nav.split(), "--status-every-s", "0"],
-        stdout=logs["base"], stderr=subprocess.STDOUT, env=env,
-    )  # fmt: skip
-    rovs: dict[str, subprocess.Popen[bytes]] = {}
-    try:
-        with client_session(port) as session:
-
-            def get(key: str) -> dict[str, Any] | None:
-                return get_json(session, key, 5.0)
-
-            wait_for_base(session, fleet, base, work / "base.log", 60.0)
-            if record is not None:
-                logs["record"] = (work / "record.log").open("wb")
-                rovs["record"] = subprocess.Popen(
-                    [*lrs, "record", "--fleet", fleet, "--connect", f"tcp/127.0.0.1:{port}", "--out", str(record),
-                     "--overwrite"],
-                    stdout=logs["record"], stderr=subprocess.STDOUT, env=env,
-                )  # fmt: skip
-                time.sleep(1.0)  # its subscription declared before the first cloud
-            for robot, d in dives.items():
-                rovs[robot] = subprocess.Popen(
-                    [*lrs, "rov", "--fleet", fleet, "--robot", robot, "--connect", f"tcp/127.0.0.1:{port}",
-                     "--source", str(d), "--imu", f"csv:{d / 'imu.csv'}", "--calib", str(d / "calib.json"),
-                     "--rate", str(rate_hz), "--ack-timeout-s", "60", "--outbox", str(work / f"outbox-{robot}")],
-                    stdout=logs[robot], stderr=subprocess.STDOUT, env=env,
-                )  # fmt: skip
-            for robot, p in rovs.items():
-                if robot == "record":
-                    continue
-                if p.wait(timeout=240) != 0:
-                    msg = f"{robot} failed: " + (work / f"{robot}.log").read_text(errors="replace")
-                    raise RuntimeError(msg)
-            # every cloud acknowledged: the map thread has taken them all; let its queue drain
-            time.sleep(2.0)
-            status = get(f"lrs/{fleet}/base/status") or {}
-            served = get(f"lrs/{fleet}/map") or {}
-    finally:
-        for p in (*rovs.values(), base):
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in (*rovs.values(), base):
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        for fh in logs.values():
-            fh.close()
-    wall = time.perf_counter() - t0
-    planes = served.get("planes", [])
-    strict = score_served(planes, angle_deg=2.0, dist_m=0.05)
-    loose = score_served(planes)
-    errs = list(strict["matched"].values())
-    robots = status.get("robots", {})
-    return Acceptance(
-        faces=int(strict["faces"]),
-        matched=len(strict["matched"]),
-        matched_loose=len(loose["matched"]),
-        worst_angle_deg=max((e["angle_deg"] for e in errs), default=math.nan),
-        worst_offset_cm=100 * max((e["offset_m"] for e in errs), default=math.nan),
-        duplicates=sum(n - 1 for n in strict["duplicates"].values()),
-        spurious=int(strict["spurious"]),
-        clouds=sum(int(r.get("received", 0)) for r in robots.values()),
-        placed=sum(int(r.get("nav", {}).get("placed", 0)) for r in robots.values()),
-        positions={name: str(r.get("nav", {}).get("position", "-")) for name, r in sorted(robots.items())},
-        wall_s=wall,
-        hold_ms=float((status.get("map", {}).get("smoothing") or {}).get("max_hold_ms") or math.nan),
-        map_json=served,
-        status=status,
-    )
-
-
-def replay_acceptance(recording: Path, nav: str = "filter", setup: Any = None) -> dict[str, Any]:
-    """Replay a recorded acceptance run (:func:`run_acceptance` with ``record``) in this process through
-    ``services.mapfeed.MapFeed`` as ``lrsensor base --nav NAV`` maps it (clouds in their recorded order, compact
-    ones triangulated with the recorded calibration); ``setup(feed)`` may change the feed's navigation before it
-    starts. Returns the served map's score (``services.demo.score_map``: ``matched``, ``loose``, ``spurious``,
-    ``duplicates``), the feed, and the map thread's longest hold of one cloud (``max_hold_s``)."""
-    import tempfile
-
-    from services.demo import score_map as score_served
-    from services.mapfeed import MapFeed, load_map_builder
-    from services.replay import read_recording
-    from services.wire import CloudMsg, StripeMsg, calibration_fingerprint, decode_cloud
-
-    rec = read_recording(recording)
-    with tempfile.TemporaryDirectory(prefix="nav-replay-") as tmp:
-        builder = load_map_builder(Path(tmp), "on")
-        feed = MapFeed(builder, lambda robot, seq: None, navigation=nav != "off", queue_size=1 << 16)
-        if nav == "filter":
-            feed.set_smoothing(False)
-        if setup is not None:
-            setup(feed)
-        seen: set[tuple[str, int]] = set()
-        msgs: list[CloudMsg] = []
-        for _, robot, payload in rec.clouds:
-            m = decode_cloud(payload)
-            if (m.robot, m.seq) in seen:
-                continue
-            seen.add((m.robot, m.seq))
-            if isinstance(m, StripeMsg):
-                calib = next(c for c in rec.calibrations[robot] if calibration_fingerprint(c) == m.calib_id)
-                m = m.to_cloud(calib)
-            msgs.append(m)
-        holds: list[float] = []
-        orig = feed._map_one
-
-        def timed(msg: CloudMsg) -> bool:
-            t0 = time.perf_counter()
-            try:
-                return orig(msg)
-            finally:
-                holds.append(time.perf_counter() - t0)
-
-        feed._map_one = timed  # type: ignore[method-assign]
-        feed.start(None)
-        t0 = time.perf_counter()
-        for m in msgs:
-            feed.take(m, time.time_ns())
-        feed.flush()
-        wall = time.perf_counter() - t0
-        served = feed.map_json()
-        feed.close(save=False)
-    planes = served.get("planes", [])
-    strict = score_served(planes, angle_deg=2.0, dist_m=0.05)
-    loose = score_served(planes)
-    return {
-        "matched": len(strict["matched"]),
-        "loose": len(loose["matched"]),
-        "spurious": int(strict["spurious"]),
-        "duplicates": sum(n - 1 for n in strict["duplicates"].values()),
-        "errors": strict["matched"],
-        "feed": feed,
-        "max_hold_s": max(holds, default=0.0),
-        "wall_s": wall,
-        "clouds": len(msgs),
-    }
-
-
-def run_realtime(mode: str, seconds: float, seed: int) -> str:
-    """The simulated dive of ``mode`` fed to ``--nav on``'s filter and smoother in real time (each frame at its
-    capture time), the smoother's runs truly on a thread of their own as the base station runs them: the map
-    thread's longest hold by a run (start and hand-over), its longest step per frame, and the served map's score.
-    Returns a markdown table."""
-    scene = tank()
-    frames = simulate_dive(
-        scene, three_rov_plans(), duration_s=seconds, rate_hz=10.0, n_rays=400, seed=seed, navigation=MODES[mode]
-    )
-    hits = hit_faces(scene, frames)
-    run = replay_dive(
-        frames, navigate=True, nav_cfg=SMOOTHED_NAV, smoother=SmootherConfig(), background=True, realtime=True
-    )
-    score = score_map(run.planes(), scene, hits)
-    seen = [f for f in score.faces if f.hit]
-    return "\n".join(
-        [
-            "| dive | faces seen / recovered (2 deg, 5 cm) | duplicates | spurious | smoother runs | longest "
-            "map-thread hold by a run during the dive (ms) | longest map-thread step per frame (ms) |",
-            "|---|---|---|---|---|---|---|",
-            f"| {mode}, {seconds:g} s, seed {seed} | {len(seen)} / {len(seen) - len(score.missing())} | "
-            f"{len(score.duplicates())} | {len(score.spurious)} | {len(run.smooth_cost_s)} | "
-            f"{1e3 * max(run.smooth_hold_s, default=math.nan):.0f} | {1e3 * max(run.step_s, default=math.nan):.0f} |",
-        ]
-    )
-
-
-#: The variants :func:`run_replays` replays a recorded acceptance run with (name -> (``--nav``, setup)).
-REPLAY_VARIANTS: dict[str, tuple[str, Any]] = {"`--nav off`": ("off", None), "`--nav filter`": ("filter", None)}
-REPLAY_VARIANTS["`--nav on`"] = ("on", None)
-REPLAY_VARIANTS["`--nav on`, velocity bias"] = ("on", _bias_setup)
-
-
-def run_replays(seconds: float, seed: int) -> str:
-    """One acceptance run through processes (``--nav on``) recorded with ``lrsensor record``, then replayed
-    in-process per variant of :data:`REPLAY_VARIANTS` (:func:`replay_acceptance`). Returns a markdown table."""
-    import tempfile
-
-    lines = [
-        f"| variant | {seconds:g} s seed {seed}: faces 2 deg, 5 cm / 5 deg, 15 cm, spurious | duplicates |",
-        "|---|---|---|",
-    ]
-    with tempfile.TemporaryDirectory(prefix="nav-replays-") as tmp:
-        rec = Path(tmp) / "acceptance.mcap"
-        run_acceptance(Path(tmp), seconds=seconds, seed=seed, nav="on", record=rec)
-        for name, (nav, setup) in REPLAY_VARIANTS.items():
-            r = replay_acceptance(rec, nav=nav, setup=setup)
-            lines.append(f"| {name} | {r['matched']} / {r['loose']}, {r['spurious']} | {r['duplicates']} |")
-            print(lines[-1], flush=True)
-    return "\n".join(lines)
-
-
-def acceptance_table(rows: list[tuple[str, Acceptance]]) -> str:
-    """The markdown table of acceptance runs."""
-    lines = [
-        "| base | faces matched 2 deg, 5 cm / 5 deg, 15 cm (of the tank's) | worst angle (deg) | worst offset (cm) | "
-        "duplicates | spurious (2 deg, 5 cm) | clouds received / placed | position at the end | wall (s) | "
-        "smoother's longest map-thread hold (ms) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for nav, a in rows:
-        pos = ", ".join(f"{r} {p}" for r, p in a.positions.items())
-        lines.append(
-            f"| `--nav {nav}` | {a.matched} / {a.matched_loose} (of {a.faces}) | {_f(a.worst_angle_deg, '.2f')} | "
-            f"{_f(a.worst_offset_cm, '.1f')} | {a.duplicates} | {a.spurious} | {a.clouds} / {a.placed} | {pos} | "
-            f"{a.wall_s:.0f} | {_f(a.hold_ms, '.0f')} |"
-        )
-    return "\n".join(lines)
-
-
-def _f(x: float, fmt: str) -> str:
-    return "-" if not math.isfinite(x) else format(x, fmt)
-
-
-def table(rows: list[Row]) -> str:
-    """The markdown table of the rows."""
-    lines = [
-        "| navigation | poses | faces seen / recovered (2 deg, 5 cm) | seen without a plane | worst angle (deg) | "
-        "worst offset (cm) | duplicates | spurious planes | unplaced clouds | position error max / final (m) | "
-        "scans constraining N and E | nav wall ms/scan mean / p99 | smoother ms/scan / longest run (s) | "
-        "longest map-thread hold (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r.mode} | {r.way} | {r.seen} / {r.recovered} | {r.missing} | {_f(r.worst_angle_deg, '.2f')} | "
-            f"{_f(r.worst_offset_cm, '.1f')} | {r.duplicates} | {r.spurious} | {r.unplaced} of {r.clouds} | "
-            f"{_f(r.max_error_m, '.2f')} / {_f(r.final_error_m, '.2f')} | "
-            f"{'-' if not math.isfinite(r.constrained) else f'{100 * r.constrained:.0f} %'} | "
-            f"{_f(r.cost_ms_mean, '.2f')} / {_f(r.cost_ms_p99, '.1f')} | "
-            f"{_f(r.smooth_ms, '.2f')} / {_f(r.smooth_max_s, '.2f')} | {_f(r.smooth_hold_s, '.3f')} |"
-        )
-    return "\n".join(lines)
-
-
-def _heading_rows(mode: str, seed: int, frames: list[Any], run: DiveMap, yaws: list[float]) -> list[str]:
-    """Per robot of a tracked replay: its compass bias (reported minus true heading, mean over the dive), the heading
-    error of the poses its clouds were placed with (served, mean and largest magnitude), and the map's heading
-    error (the median yaw error of its wall planes), degrees."""
-    rows = []
-    map_yaw = f"{float(np.median(yaws)):+.2f}" if yaws else "-"
-    for robot in sorted({f.robot for f in frames}):
-        bias = [
-            math.remainder(f.pose_est.yaw_rad - f.pose_true.yaw_rad, 2 * math.pi) for f in frames if f.robot == robot
-        ]
-        err = np.array(run.yaw_error_deg.get(robot, []))
-        placed = f"{err.mean():+.2f} / {np.abs(err).max():.2f}" if err.size else "-"
-        rows.append(
-            f"| {mode} (seed {seed}) | {robot} | {math.degrees(float(np.mean(bias))):+.2f} | {placed} | {map_yaw} |"
-        )
-    return rows
-
-
-def heading_lines() -> list[str]:
-    """The headings' table of the tracked rows (empty without one)."""
-    if not HEADINGS:
-        return []
-    return [
-        "Headings of the tracked rows against the truth (deg): each robot's compass bias (reported minus true "
-        "heading, mean over the dive), the heading error of the poses its clouds were placed with (served; mean, "
-        "largest magnitude), and the map's (the median yaw error of its wall planes; positive turns north towards "
-        "east).",
-        "",
-        "| mode | robot | compass bias mean | placed heading error mean / max | map heading error |",
-        "|---|---|---|---|---|",
-        *HEADINGS,
-        "",
-    ]
-
-
-def hold_lines() -> list[str]:
-    """The held clouds' table of the tracked rows (empty without one)."""
-    if not HOLDS:
-        return []
-    return [
-        "Held clouds of the tracked rows (placed only once their track's next check passed; mapping.graph_hold): "
-        "committed at a passed check, re-placed after a slide or a break (checked alone), dropped; how long a "
-        "placed cloud waited (capture time of the scan that released it minus its own).",
-        "",
-        "| mode | way | robot | committed | re-placed | dropped | wait mean (s) | wait max (s) |",
-        "|---|---|---|---|---|---|---|---|",
-        *HOLDS,
-        "",
-    ]
 
 
 def main() -> int:
@@ -848,6 +392,40 @@ def main() -> int:
         text = old
     args.out.write_text(text)
     return 0
+
+
+__all__ = [
+    "ACCEPTANCE",
+    "BIAS_SIGMA_M_S",
+    "FLEET_UNBIASED",
+    "GRAPH_OVERRIDES",
+    "HEADINGS",
+    "HOLDS",
+    "MAP_OVERRIDES",
+    "MERGE_BANDS_GAP_M",
+    "MODES",
+    "NAV_OVERRIDES",
+    "REPLAY_VARIANTS",
+    "TRACKED_NAV_OVERRIDES",
+    "TRACKED_OVERRIDES",
+    "TRACKED_ROWS",
+    "Acceptance",
+    "Row",
+    "acceptance_table",
+    "client_session",
+    "get_json",
+    "heading_lines",
+    "hold_lines",
+    "main",
+    "replay_acceptance",
+    "run_acceptance",
+    "run_mode",
+    "run_realtime",
+    "run_replays",
+    "table",
+    "unbias_fleet",
+    "wait_for_base",
+]
 
 
 if __name__ == "__main__":

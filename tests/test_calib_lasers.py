@@ -304,3 +304,15 @@ def test_laser_planes_through_a_flat_port() -> None:
     assert max(_normal_errors_deg(ignored.calibration, true)) > 0.5
     with pytest.raises(LaserCalibrationError, match="port"):
         calibrate_lasers(walls, nominal, LaserCalibrationConfig(board=BoardSpec(9, 6, 0.05)))
+
+
+def test_lasers_exports_the_same_objects_as_its_parts() -> None:
+    """``lrsensor.calib.lasers`` keeps every name it had (the CLI and users import them from there)."""
+    import lrsensor.calib.laser_records as records
+    import lrsensor.calib.lasers as lasers
+    import lrsensor.calib.walls as walls
+
+    moved = {name: getattr(part, name) for part in (records, walls) for name in vars(part) if name in lasers.__all__}
+    assert {*moved, "WIDE_RANGE_OPTIONS", "calibrate_lasers"} == set(lasers.__all__)
+    for name, obj in moved.items():
+        assert getattr(lasers, name) is obj, name

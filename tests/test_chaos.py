@@ -95,3 +95,18 @@ def test_a_number_given_twice_is_dropped_but_counted_and_said(tmp_path: Path, ca
     assert "gives numbers twice" in caplog.text
     ledger.save_state()
     assert Ledger(tmp_path / "state").robots_json()["rov1"]["reused"] == 1  # kept across a restart
+
+
+def test_bench_chaos_exports_the_same_objects_as_its_parts() -> None:
+    """``benchmarks.bench_chaos`` keeps every name it had (this test and the docs import them from there)."""
+    import benchmarks.bench_chaos as bench_chaos
+    import benchmarks.chaos_accounting as accounting
+    import benchmarks.chaos_setup as setup
+    import benchmarks.chaos_soak as soak
+
+    own = {"RESULTS", "ROOT", "main", "report", "tables"}
+    parts = (setup, soak, accounting)
+    moved = {n: getattr(p, n) for p in parts for n in vars(p) if n in bench_chaos.__all__ and n not in own}
+    assert {*moved, *own} == set(bench_chaos.__all__)
+    for name, obj in moved.items():
+        assert getattr(bench_chaos, name) is obj, name

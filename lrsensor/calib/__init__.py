@@ -12,19 +12,18 @@ from __future__ import annotations
 
 from .board import BoardPose, BoardSpec, estimate_board_pose, find_board_corners
 from .camera import CameraCalibrationError, CameraCalibrationResult, calibrate_camera
-from .lasers import (
+from .laser_records import (
     ImageReport,
     LaserCalibrationConfig,
     LaserCalibrationError,
     LaserCalibrationReport,
     LaserCalibrationResult,
     LaserFitReport,
-    WallImage,
-    calibrate_lasers,
-    wall_points,
 )
+from .lasers import calibrate_lasers
 from .planefit import Plane, fit_plane_lsq, fit_plane_through_point, ransac_plane, robust_plane_fit, wall_plane
 from .port import PortCalibrationError, PortCalibrationResult, calibrate_port
+from .walls import WallImage, wall_points
 
 __all__ = [
     "BoardPose",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .lasers import LaserCalibrationReport
+from .laser_records import LaserCalibrationReport
 
 
 def plot_laser_residuals(report: LaserCalibrationReport, path: str | os.PathLike[str]) -> Path:
