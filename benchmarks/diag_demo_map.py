@@ -8,12 +8,13 @@ navigation, so its map is a function of the clouds the base received, in the ord
 runs the demo once with the map's entry points logged (every ``add_cloud`` with its points and pose, every
 ``advance_time`` and ``flush``) and the true pose of every cloud (the simulator's trajectory); ``replay`` feeds that
 log to a fresh :class:`mapping.MapBuilder` (optionally with other :class:`mapping.MapConfig` values) and scores the
-served map as the demo does (:func:`services.demo.score_map`). Each robot's clouds get the range noise of the
+served map as the demo does (:func:`services.demo.score_map`). Each robot's clouds get the range error of the
 calibration its simulated ROV serves (:func:`demo_range_error_per_px`), as the demo's base gives its schema-2
-clouds (``--set stripe_sigma_px=0``: none). Replays of one log are deterministic, so variants of
-the map compare on the same clouds. ``--planes`` prints, for every face with more than one plane, each plane's
-robots, capture spans, tilt from vertical, offset from the true face, depth band, and for the clouds on each plane
-their trusted poses' errors (roll, pitch, position along the face's normal). A diagnostic, not a figure of merit.
+clouds (their range noise: off unless ``--set stripe_sigma_px=0.02``, :mod:`mapping.range_noise`). Replays of one
+log are deterministic, so variants of the map compare on the same clouds. ``--planes`` prints, for every face with
+more than one plane, each plane's robots, capture spans, tilt from vertical, offset from the true face, depth band,
+and for the clouds on each plane their trusted poses' errors (roll, pitch, position along the face's normal). A
+diagnostic, not a figure of merit.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from lrsensor.calibration import Calibration
+from lrsensor.frames import Pose
 from mapping.synth import tank
 
 from .fleet_dives import dive_frames, extracted_frames, write_fleet
@@ -29,7 +30,7 @@ from .fleet_dives import dive_frames, extracted_frames, write_fleet
 BANDS_M = ((0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 3.0), (2.0, 3.0), (3.0, 4.0), (4.0, 6.0))
 
 
-def true_depth_m(points_body: np.ndarray, pose: object, laser_z_m: np.ndarray) -> np.ndarray:
+def true_depth_m(points_body: np.ndarray, pose: Pose, laser_z_m: np.ndarray) -> np.ndarray:
     """Depth (m, along body x) at which the sheet line of each point's column meets the tank's faces, (N,); NaN
     where it meets none. ``laser_z_m``: (N,) the point's sheet height (body z)."""
     faces = tank().faces
@@ -40,15 +41,15 @@ def true_depth_m(points_body: np.ndarray, pose: object, laser_z_m: np.ndarray) -
     v = np.array([f.v for f in faces])
     half = np.array([(f.half_u, f.half_v) for f in faces])
     slope = points_body[:, 1] / points_body[:, 0]
-    rot = pose.R_ned_from_body  # type: ignore[attr-defined]
-    origin = np.stack([np.zeros_like(slope), np.zeros_like(slope), laser_z_m], 1) @ rot.T + pose.p_ned  # type: ignore[attr-defined]
+    rot = pose.R_ned_from_body
+    origin = np.stack([np.zeros_like(slope), np.zeros_like(slope), laser_z_m], 1) @ rot.T + pose.p_ned
     direction = np.stack([np.ones_like(slope), slope, np.zeros_like(slope)], 1) @ rot.T  # per metre of depth
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # a face parallel to the line: inf or NaN, never inside
         s = -(origin @ normal.T + offset) / (direction @ normal.T)  # (N, F)
-    rel = origin[:, None, :] + s[:, :, None] * direction[:, None, :] - centre[None]
-    inside = (np.abs(np.einsum("nfk,fk->nf", rel, u)) <= half[:, 0]) & (
-        np.abs(np.einsum("nfk,fk->nf", rel, v)) <= half[:, 1]
-    )
+        rel = origin[:, None, :] + s[:, :, None] * direction[:, None, :] - centre[None]
+        inside = (np.abs(np.einsum("nfk,fk->nf", rel, u)) <= half[:, 0]) & (
+            np.abs(np.einsum("nfk,fk->nf", rel, v)) <= half[:, 1]
+        )
     depth = np.where(inside & (s > 0.05), s, np.inf).min(axis=1)
     return np.where(np.isfinite(depth), depth, np.nan)
 

@@ -64,9 +64,9 @@ _FORWARD_13 = np.array([o for o in _NEIGHBOURS_27.tolist() if tuple(o) > (0, 0, 
 
 _o3d: ModuleType | None = None
 
-#: With ``MapConfig.range_noise_per_m``: a region's RANSAC / refit inlier distance is at least this many of its
-#: points' expected range errors. The inliers' RMS limit (``max_rms_m``) stays: a looser one let near-horizontal
-#: planes through single noisy stripes in (docs/mapping.md, "Range noise").
+#: With a range noise (:mod:`mapping.range_noise`): a region's RANSAC / refit inlier distance is at least this many
+#: of its points' expected range errors (their median). The inliers' RMS limit (``max_rms_m``) stays: a looser one
+#: let near-horizontal planes through single noisy stripes in (docs/mapping.md, "Range noise").
 _NOISE_THRESHOLD_SIGMAS = 2.0
 
 

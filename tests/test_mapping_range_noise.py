@@ -20,7 +20,7 @@ from mapping import MapBuilder, MapConfig
 from mapping import builder as builder_module
 from mapping.errors import MapInputError
 from mapping.planes import cell_normals
-from mapping.range_noise import cloud_noise_per_m, window_noise
+from mapping.range_noise import STRIPE_SIGMA_PX, cloud_noise_per_m, window_noise
 
 
 def _far_wall(range_m: float, sigma_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +68,9 @@ def _slope(cal: Calibration, row: float, laser: int, triangulate: Any) -> tuple[
 def test_k_of_a_calibration_is_sigma_over_focal_length_times_laser_offset() -> None:
     per_px = range_error_per_px(CAL)
     assert per_px == pytest.approx(1.0 / (184.76 * 0.05), rel=1e-12)
-    assert cloud_noise_per_m(MapConfig(), per_px) == pytest.approx(0.02 / (184.76 * 0.05), rel=1e-12)  # 0.00216
+    on = MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX)
+    assert cloud_noise_per_m(on, per_px) == pytest.approx(0.02 / (184.76 * 0.05), rel=1e-12)  # 0.00216
+    assert cloud_noise_per_m(MapConfig(), per_px) == 0.0  # off by default
     slope, r = _slope(CAL, CAL.camera.cy - 184.76 * 0.05 / 2.0, 0, triangulate_plane)  # a wall 2 m ahead
     assert r == pytest.approx(2.0, abs=0.01)
     assert slope == pytest.approx(per_px, rel=0.01)
@@ -90,9 +92,9 @@ def test_the_nearest_laser_and_a_flat_port_set_k() -> None:
 def test_the_override_wins_and_a_bad_factor_is_refused() -> None:
     assert cloud_noise_per_m(MapConfig(range_noise_per_m=0.003), 0.108) == 0.003
     assert cloud_noise_per_m(MapConfig(stripe_sigma_px=0.0), 0.108) == 0.0
-    assert cloud_noise_per_m(MapConfig(), 0.0) == 0.0
+    assert cloud_noise_per_m(MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX), 0.0) == 0.0  # no calibration known
     with pytest.raises(MapInputError):
-        cloud_noise_per_m(MapConfig(), float("nan"))
+        cloud_noise_per_m(MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX), float("nan"))
 
 
 def test_per_point_noise_reads_each_points_own_k() -> None:
@@ -144,7 +146,7 @@ def extractions(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
 
 
 def test_a_cloud_with_a_calibration_gets_its_k_in_the_extraction(extractions: list[Any]) -> None:
-    b = MapBuilder(MapConfig(extract_every_clouds=4, window_clouds=8))
+    b = MapBuilder(MapConfig(extract_every_clouds=4, window_clouds=8, stripe_sigma_px=STRIPE_SIGMA_PX))
     k = 0.02 * range_error_per_px(CAL)
     b.set_range_error("calibrated", range_error_per_px(CAL))
     assert b.range_noise("calibrated") == pytest.approx(k)
@@ -168,7 +170,7 @@ def test_a_cloud_with_a_calibration_gets_its_k_in_the_extraction(extractions: li
 
 
 def test_the_windows_k_survives_a_save(tmp_path: Path, extractions: list[Any]) -> None:
-    cfg = MapConfig(extract_every_clouds=5, window_clouds=5, extract_every_s=0.0)
+    cfg = MapConfig(extract_every_clouds=5, window_clouds=5, extract_every_s=0.0, stripe_sigma_px=STRIPE_SIGMA_PX)
     b = MapBuilder(cfg, tmp_path)
     b.set_range_error("rov1", range_error_per_px(CAL))
     for t, pts, pose in _wall_clouds(3):

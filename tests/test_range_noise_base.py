@@ -3,6 +3,7 @@ a cloud without one (schema 1), in its own map and through the plane workers' jo
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,8 @@ from test_wire_stripe import stripe_scan
 from lrsensor.calibration import Calibration
 from lrsensor.frames import Pose
 from lrsensor.range_theory import range_error_per_px
+from mapping import MapConfig
+from mapping.range_noise import STRIPE_SIGMA_PX
 from services.base import BaseStation
 from services.calibbook import CalibrationBook
 from services.errors import WireError
@@ -27,6 +30,7 @@ def test_the_base_gives_a_schema_2_cloud_its_calibrations_k_and_a_schema_1_cloud
     base = BaseStation(None, FleetKeys("t"), tmp_path / "state", map_mode="on", navigation=False)
     base.calibrations = CalibrationBook(base.calibration_path, lambda robot: CAL)
     assert base.map is not None
+    base.map.cfg = replace(base.map.cfg, stripe_sigma_px=STRIPE_SIGMA_PX)  # the option on (off by default)
     base.feed.start(None)
     try:
         pose = Pose(1.0, 2.0, 3.0, 0.0, 0.0, 0.5)
@@ -53,7 +57,7 @@ def test_a_job_carries_its_clouds_calibration_to_the_worker() -> None:
     plain = decode_work(MapJob("rov1", 1, 10, 0, Pose.identity(), pts).to_bytes())
     assert isinstance(plain, MapJob)
     assert plain.range_error_per_px == 0.0  # absent on the wire
-    worker = MapWorker(None, FleetKeys("t"), "w1")
+    worker = MapWorker(None, FleetKeys("t"), "w1", MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX))
     worker.handle(back)
     assert worker.builder.range_noise("rov1") == pytest.approx(0.02 * range_error_per_px(CAL))
     worker.handle(MapJob("rov1", 2, 20, 0, Pose.identity(), pts))
