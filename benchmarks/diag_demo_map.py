@@ -8,10 +8,13 @@ navigation, so its map is a function of the clouds the base received, in the ord
 runs the demo once with the map's entry points logged (every ``add_cloud`` with its points and pose, every
 ``advance_time`` and ``flush``) and the true pose of every cloud (the simulator's trajectory); ``replay`` feeds that
 log to a fresh :class:`mapping.MapBuilder` (optionally with other :class:`mapping.MapConfig` values) and scores the
-served map as the demo does (:func:`services.demo.score_map`). Replays of one log are deterministic, so variants of
-the map compare on the same clouds. ``--planes`` prints, for every face with more than one plane, each plane's
-robots, capture spans, tilt from vertical, offset from the true face, depth band, and for the clouds on each plane
-their trusted poses' errors (roll, pitch, position along the face's normal). A diagnostic, not a figure of merit.
+served map as the demo does (:func:`services.demo.score_map`). Each robot's clouds get the range error of the
+calibration its simulated ROV serves (:func:`demo_range_error_per_px`), as the demo's base gives its schema-2
+clouds (their range noise: off unless ``--set stripe_sigma_px=0.02``, :mod:`mapping.range_noise`). Replays of one
+log are deterministic, so variants of the map compare on the same clouds. ``--planes`` prints, for every face with
+more than one plane, each plane's robots, capture spans, tilt from vertical, offset from the true face, depth band,
+and for the clouds on each plane their trusted poses' errors (roll, pitch, position along the face's normal). A
+diagnostic, not a figure of merit.
 """
 
 from __future__ import annotations
@@ -84,6 +87,17 @@ def record(out: Path, duration_s: float, seed: int) -> int:
     return 0
 
 
+def demo_range_error_per_px(robot: str) -> float:
+    """The range error per pixel (1/(m px)) of the calibration ``robot`` serves in ``lrsensor demo`` (its default
+    camera), what the demo's base gives that robot's clouds (:func:`lrsensor.range_theory.range_error_per_px`)."""
+    from lrsensor.range_theory import range_error_per_px
+    from services.demo import DemoConfig
+    from services.simsource import open_sim
+
+    cfg = DemoConfig()
+    return range_error_per_px(open_sim(1, cfg.width, cfg.height, robot=robot)[2])
+
+
 def replay(path: Path, sets: dict[str, float], planes: bool) -> dict[str, Any]:
     """Replay a recording through a fresh map; the demo's score of the served map (and the builder)."""
     from dataclasses import replace
@@ -98,8 +112,12 @@ def replay(path: Path, sets: dict[str, float], planes: bool) -> dict[str, Any]:
     b = MapBuilder(cfg)
     offs = np.concatenate([[0], np.cumsum(a["lens"])])
     k = 0
+    told: set[str] = set()
     for kind, robot, t in zip(a["kind"], a["robot"], a["t_ns"], strict=True):
         if kind == "add":
+            if str(robot) not in told:
+                told.add(str(robot))
+                b.set_range_error(str(robot), demo_range_error_per_px(str(robot)))
             p = a["pose"][k]
             b.add_cloud(str(robot), int(t), a["points"][offs[k] : offs[k + 1]].astype(np.float64), Pose(*p))
             k += 1

@@ -5,7 +5,10 @@
 
 One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendered 640x360 frames
 (``benchmarks.fleet_dives``: found in ``DIR`` when rendered before; rendering takes about 30 ms of CPU per frame),
-cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.synth.replay_dive``) each way:
+cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.synth.replay_dive``) each way, each
+robot's clouds given its calibration's range error (its folder's ``calib.json`` through
+:func:`lrsensor.range_theory.range_error_per_px`, as the base station gives a schema-2 cloud's; the range noise it
+makes is off unless ``--set map.stripe_sigma_px=0.02``, :mod:`mapping.range_noise`):
 
 - ``true``: placed at the true poses, no navigation (what the map's fitting makes of these points);
 - ``trusted``: placed at the navigation's poses as they are (``good`` only: the others lack fixes or drift);
@@ -35,7 +38,10 @@ from typing import Any
 
 import numpy as np
 
+from lrsensor.calibration import Calibration
 from lrsensor.frames import body_to_ned
+from lrsensor.range_theory import range_error_per_px
+from mapping.range_noise import cloud_noise_per_m
 from mapping.synth import DiveFrame, DiveMap, hit_faces, replay_dive, score_map, tank
 from mapping.types import MapConfig
 
@@ -66,7 +72,7 @@ def run_way(way: str, frames: list[DiveFrame], kw: dict[str, Any]) -> tuple[list
     if way in ("true", "trusted"):
         fr = [replace(f, pose_est=f.pose_true) if way == "true" else f for f in frames]
         fr = [replace(f, points_ned_est=body_to_ned(f.points_body, f.pose_est)) for f in fr]
-        run = replay_dive(fr, navigate=False, cfg=kw.get("cfg"))
+        run = replay_dive(fr, navigate=False, cfg=kw.get("cfg"), range_error_per_px=kw.get("range_error_per_px"))
         return run.planes(), None
     smoother = kw["smoother"] if way == "smoothed" else None
     run = replay_dive(frames, navigate=True, background="wait", **{**kw, "smoother": smoother})
@@ -85,12 +91,17 @@ def final_yaw_deg(run: DiveMap, frames: list[DiveFrame]) -> dict[str, float]:
     return out
 
 
-def planes_over_time(frames: list[DiveFrame], cfg: MapConfig | None, marks_s: list[float]) -> list[int]:
+def planes_over_time(
+    frames: list[DiveFrame], cfg: MapConfig | None, marks_s: list[float], per_px: dict[str, float] | None = None
+) -> list[int]:
     """The served planes of ``frames`` mapped at their true poses (no navigation) just before the first frame at
-    each of ``marks_s`` (s of capture time from the first frame), then at the end (after ``flush``)."""
+    each of ``marks_s`` (s of capture time from the first frame), then at the end (after ``flush``); ``per_px``:
+    robot -> its calibration's range error per pixel."""
     from mapping.builder import MapBuilder
 
     b = MapBuilder(cfg or MapConfig())
+    for robot, g in (per_px or {}).items():
+        b.set_range_error(robot, g)
     t0 = frames[0].t_ns
     out: list[int] = []
     for f in frames:
@@ -116,15 +127,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--times", default="", help="e.g. 1,2,3,5,10: served planes at the true poses then, and at the end")
     a = ap.parse_args(argv)
     frames = dive_frames(a.mode, a.seed, a.seconds)
-    frames = extracted_frames(frames, write_fleet(a.dives, a.mode, a.seed, a.seconds, "640x360"))
+    folders = write_fleet(a.dives, a.mode, a.seed, a.seconds, "640x360")
+    frames = extracted_frames(frames, folders)
     frames = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= a.max_range_m]) for f in frames]
     scene = tank()
     truth = hit_faces(scene, frames)
     kw = _tuning(a.set)
-    print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}\n")
+    kw["range_error_per_px"] = {r: range_error_per_px(Calibration.load(d / "calib.json")) for r, d in folders.items()}
+    noise = {r: cloud_noise_per_m(kw.get("cfg") or MapConfig(), g) for r, g in kw["range_error_per_px"].items()}
+    print(f"{a.mode} seed {a.seed}, extracted 640x360 clouds cut at {a.max_range_m:g} m {' '.join(a.set)}; range "
+          f"noise k (1/m): {', '.join(f'{r} {k:.5f}' for r, k in sorted(noise.items()))}\n")  # fmt: skip
     if a.times:
         marks = [float(x) for x in a.times.split(",")]
-        counts = planes_over_time(frames, kw.get("cfg"), marks)
+        counts = planes_over_time(frames, kw.get("cfg"), marks, kw["range_error_per_px"])
         print(f"served planes at the true poses at {a.times} s and at the end: {' / '.join(map(str, counts))}\n")
     print("| way | recovered / seen | dup | spurious | faces off (deg / cm) | pose error, mean / max (cm) "
           "| at the end (cm) | heading (deg) | CPU s |")  # fmt: skip

@@ -4,14 +4,23 @@ The image offset of a stripe from the principal row is ``y_c = v * h_s / h_p`` (
 sensor) and the range along the viewing axis is ``x_b = b f / y_c`` (eq. 33). In pixels, with the focal
 length in pixels ``f_px = f h_p / h_s``: ``v = b f_px / x_b``. Following the paper, ``b`` is the baseline
 that enters eq. (33); a single laser of this sensor sits at ``c = b / 2`` from the camera axis.
+
+:func:`range_error_per_px` gives the same law for a calibrated sensor, one laser at a time: a stripe row error of
+``sigma_v`` pixels moves a point at range ``r`` by about ``sigma_v r^2 / (f_px c)``, ``c`` the laser plane's distance
+from the camera centre (what the map's plane extraction expects of each robot's points, ``mapping.range_noise``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    from .calibration import Calibration
 
 FloatArray = NDArray[np.float64]
 
@@ -90,3 +99,30 @@ def range_table(
                 }
             )
     return rows
+
+
+def range_error_per_px(calibration: Calibration) -> float:
+    """Range error per pixel of stripe row error per squared metre of range, ``1 / (f_px c)`` (1/(m px)), the
+    largest of the calibration's lasers (the map cannot tell which laser a point came from).
+
+    A laser plane at distance ``c`` from the camera centre puts the stripe of a surface at depth ``x``
+    ``v = f_px c / x`` pixels off the image's horizon line (eq. (33) with the laser's own offset), so a row error
+    ``sigma_v`` moves the point by ``x^2 sigma_v / (f_px c)``. ``f_px`` is the focal length along the stripe's
+    motion in the image (the laser normal's direction in the image: ``fy`` for horizontal sheets); behind a flat
+    port it grows by ``n_water / n_air`` (a pixel sees a narrower angle in the water). 0 when a laser plane passes
+    through the camera centre or faces it edge-on (no triangulation).
+    """
+    cam = calibration.camera
+    worst = 0.0
+    centre = calibration.camera_center_body
+    for laser in calibration.lasers:
+        n_cam = calibration.R_cam_body @ laser.normal_body
+        motion = math.hypot(float(n_cam[0]), float(n_cam[1]))  # the normal's component across the image
+        c_m = abs(float((centre - laser.point_body) @ laser.normal_body))
+        if motion < 1e-9 or c_m < 1e-9:
+            return 0.0
+        f_px = math.hypot(cam.fx * float(n_cam[0]), cam.fy * float(n_cam[1])) / motion
+        if calibration.port is not None:
+            f_px *= calibration.port.n_water / calibration.port.n_air
+        worst = max(worst, 1.0 / (f_px * c_m))
+    return worst

@@ -33,15 +33,16 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose
 
-from .errors import MapInputError, MappingError, MapStoreError
+from .errors import MapInputError, MapStoreError
 from .landmarks import SNAPSHOT_GRID_NS, LandmarkSnapshots, PlaneLandmarks, SnapshotRange, snapshot_time
 from .ned import check_cloud, quantize
 from .plane_map import MapPlane, PlaneMap, PlaneRecord
 from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
+from .range_noise import cloud_noise_per_m, window_noise
 from .replace import Placement, PlacementSnapshot, move_placement, rebuild
 from .served import served_planes
 from .stats import Contribution, VoxelSet
-from .store import JSON_FILE, load_state, save_json, save_state
+from .store import JSON_FILE, load_state, save_json, save_state, saved_config, six_ints
 from .types import MapChange, MapConfig, PlaneStats
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,7 @@ class _Cloud:
     t_ns: int
     points_q: NDArray[np.int32]
     vehicle_q: NDArray[np.int64]
+    noise_per_m: float = 0.0  # its range noise k (mapping.range_noise)
 
 
 @dataclass
@@ -87,7 +89,7 @@ class MapBuilder:
         self.state_dir = Path(state_dir) if state_dir is not None else None
         loaded = load_state(self.state_dir) if self.state_dir is not None else None
         if cfg is None:
-            cfg = _saved_config(loaded[0]) if loaded is not None else MapConfig()
+            cfg = saved_config(loaded[0]) if loaded is not None else MapConfig()
         self.cfg = cfg
         self._lock = threading.RLock()
         self._save_lock = threading.Lock()
@@ -113,6 +115,8 @@ class MapBuilder:
         self._pending: dict[int, Placement] = {}
         #: the observations no smoother moves any more, fused once (:meth:`freeze`)
         self._frozen: PlaneMap | None = None
+        #: per robot, the range error per pixel of the calibration its clouds are measured with (set_range_error)
+        self._per_px: dict[str, float] = {}
         if loaded is not None:
             self._load(*loaded)
 
@@ -169,7 +173,8 @@ class MapBuilder:
                 self._counters.skipped += 1
                 return None
             self._last_taken[robot] = t
-        cloud = _Cloud(t, self._thin(p, veh), np.rint(veh / self.cfg.quantum_m).astype(np.int64))
+        q_veh = np.rint(veh / self.cfg.quantum_m).astype(np.int64)
+        cloud = _Cloud(t, self._thin(p, veh), q_veh, self.range_noise(robot))
         with self._lock:
             win = self._windows.setdefault(robot, _Window())
             win.clouds.append(cloud)
@@ -212,6 +217,18 @@ class MapBuilder:
             self._version += 1 if records else 0
             self._counters.observations += len(records)
         return _squash(changes)
+
+    def set_range_error(self, robot: str, per_px: float) -> None:
+        """``robot``'s next clouds are measured with a calibration of ``per_px`` range error per pixel per squared
+        metre (1/(m px), :func:`lrsensor.range_theory.range_error_per_px`; 0: none known): their range noise k
+        (:func:`mapping.range_noise.cloud_noise_per_m`)."""
+        with self._lock:
+            self._per_px[robot] = float(per_px)
+
+    def range_noise(self, robot: str) -> float:
+        """The range noise k (1/m) ``robot``'s next cloud gets (:func:`mapping.range_noise.cloud_noise_per_m`)."""
+        with self._lock:
+            return cloud_noise_per_m(self.cfg, self._per_px.get(robot, 0.0))
 
     def uncommitted(self, robot: str) -> int:
         """Clouds of ``robot`` in its window that no extraction has committed yet (0 once they reached the map)."""
@@ -326,7 +343,7 @@ class MapBuilder:
         pts_m = pts_q * q - origin_m
         veh_m = veh_q * q - origin_m
         seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
-        ex = extract_planes(pts_m, veh_m, cfg, seed)
+        ex = extract_planes(pts_m, veh_m, cfg, seed, window_noise([c.noise_per_m for c in clouds], lens))
         records: list[PlaneRecord] = []
         n_curved = 0
         n_single = 0
@@ -585,7 +602,7 @@ class MapBuilder:
                 tr_r.append(rindex[robot])
                 tr_t.append(t)
                 tr_p.append((n, e, d))
-        win_r, win_t, win_len, win_veh, win_pts = [], [], [], [], []
+        win_r, win_t, win_len, win_veh, win_pts, win_k = [], [], [], [], [], []
         windows = {}
         for robot, w in sorted(self._windows.items()):
             windows[robot] = {"n_new": w.n_new, "new_points": w.new_points}
@@ -595,6 +612,7 @@ class MapBuilder:
                 win_len.append(c.points_q.shape[0])
                 win_veh.append(c.vehicle_q)
                 win_pts.append(c.points_q)
+                win_k.append(c.noise_per_m)
         header = {
             "config": self.cfg.to_dict(),
             "next_id": self._map.next_id,
@@ -620,6 +638,7 @@ class MapBuilder:
             "win_len": np.array(win_len, np.int64),
             "win_vehicle_q": np.array(win_veh, np.int64).reshape(-1, 3),
             "win_points_q": cat(win_pts, (0, 3), np.int32),
+            "win_noise_per_m": np.array(win_k, np.float64),
         }
         return header, arrays
 
@@ -644,7 +663,7 @@ class MapBuilder:
                     VoxelSet(a["vox_keys"][sel], a["vox_counts"][sel], a["vox_sums"][sel]),
                     int(p["n_obs"]),
                     None,
-                    _six_ints(p.get("within", [0] * 6)),
+                    six_ints(p.get("within", [0] * 6)),
                 )
                 pm.planes[pid] = MapPlane(pid, rec, self.cfg)
             robots: list[str] = list(header["robots"])
@@ -653,10 +672,11 @@ class MapBuilder:
                 tracks.setdefault(robots[int(ri)], []).append((int(t), float(pos[0]), float(pos[1]), float(pos[2])))
             windows: dict[str, _Window] = {}
             offsets = np.concatenate([[0], np.cumsum(a["win_len"])]).astype(np.int64)
+            win_k = a.get("win_noise_per_m", np.zeros(len(a["win_t_ns"])))  # absent: saved before per-cloud k
             for i, (ri, t) in enumerate(zip(a["win_robot"], a["win_t_ns"], strict=False)):
                 w = windows.setdefault(robots[int(ri)], _Window())
                 pts = a["win_points_q"][offsets[i] : offsets[i + 1]].astype(np.int32)
-                w.clouds.append(_Cloud(int(t), pts, a["win_vehicle_q"][i].astype(np.int64)))
+                w.clouds.append(_Cloud(int(t), pts, a["win_vehicle_q"][i].astype(np.int64), float(win_k[i])))
             for r, wmeta in header["windows"].items():
                 w = windows.setdefault(r, _Window())
                 w.n_new = int(wmeta["n_new"])
@@ -671,27 +691,6 @@ class MapBuilder:
             self._windows = windows
             self._last_taken = last_taken
         log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(robots))
-
-
-def _six_ints(values: list[int]) -> tuple[int, int, int, int, int, int]:
-    v = [int(x) for x in values]
-    if len(v) != 6:
-        msg = f"expected 6 integers, got {values!r}"
-        raise ValueError(msg)
-    return (v[0], v[1], v[2], v[3], v[4], v[5])
-
-
-def _saved_config(header: dict[str, Any]) -> MapConfig:
-    """The configuration a state was saved with (keys this version does not know are ignored)."""
-    saved = header.get("config")
-    if not isinstance(saved, dict):
-        return MapConfig()
-    known = set(MapConfig().to_dict())
-    try:
-        return MapConfig.from_dict({k: v for k, v in saved.items() if k in known})
-    except MappingError as err:
-        log.warning("saved map configuration refused (%s); using defaults", err)
-        return MapConfig()
 
 
 def _squash(changes: list[MapChange]) -> list[MapChange]:

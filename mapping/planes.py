@@ -23,12 +23,15 @@ So extraction runs in four steps, all vectorized numpy except the Open3D call:
    less than ``max_sagitta_m`` (pipes are curved), and the plane must not pass within ``min_sensor_distance_m``
    of the observing vehicle (that would be the laser sheet).
 
-With ``range_noise_per_m`` k > 0 (off by default) the thresholds follow the sensor's range noise, which grows
-as about ``r^2 / (f b)`` (focal length f, laser baseline b) times the stripe's sub-pixel error: a point at range
-``r`` is expected ``k r^2`` off. A cell's thickness has that expected noise variance (at its block's mean squared
-range) removed before the ``cell_planarity`` test, and a region's RANSAC and refit inlier distance is at least
-``_NOISE_THRESHOLD_SIGMAS`` times ``k`` times its points' median squared range (the RMS limit stays).
-docs/mapping.md ("Range noise") has what it gives on extracted clouds.
+With a range noise k > 0 the thresholds follow the sensor's range noise, which grows as about ``r^2 / (f c)``
+(focal length f, the laser's offset c) times the stripe's sub-pixel error: a point at range ``r`` is expected
+``k r^2`` off. k is one number for the window (``MapConfig.range_noise_per_m``, or the window's clouds all from
+one calibration) or one per point (clouds of several calibrations, or some without one: k 0,
+:mod:`mapping.range_noise`). A cell's thickness has its points' mean expected error, squared, removed before the
+``cell_planarity`` test, and a region's RANSAC and refit inlier distance is at least ``_NOISE_THRESHOLD_SIGMAS``
+times its points' median expected error (the RMS limit stays): a region that mixes robots reads each point's own
+k, and one of points without a calibration keeps the fixed thresholds. docs/mapping.md ("Range noise") has what
+it gives on extracted clouds.
 
 The accepted planes then claim the full-resolution points near them (within the RANSAC threshold, in the cells
 of their inliers or the cells next to them); :mod:`mapping.builder` turns those into exact statistics.
@@ -61,9 +64,9 @@ _FORWARD_13 = np.array([o for o in _NEIGHBOURS_27.tolist() if tuple(o) > (0, 0, 
 
 _o3d: ModuleType | None = None
 
-#: With ``MapConfig.range_noise_per_m``: a region's RANSAC / refit inlier distance is at least this many of its
-#: points' expected range errors. The inliers' RMS limit (``max_rms_m``) stays: a looser one let near-horizontal
-#: planes through single noisy stripes in (docs/mapping.md, "Range noise").
+#: With a range noise (:mod:`mapping.range_noise`): a region's RANSAC / refit inlier distance is at least this many
+#: of its points' expected range errors (their median). The inliers' RMS limit (``max_rms_m``) stays: a looser one
+#: let near-horizontal planes through single noisy stripes in (docs/mapping.md, "Range noise").
 _NOISE_THRESHOLD_SIGMAS = 2.0
 
 
@@ -195,16 +198,24 @@ class CellNormals:
     valid: BoolArray
 
 
-def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> CellNormals:
-    """Block normals of the cells holding ``points`` (M, 3) seen from ``vehicle`` (M, 3), same frame, metres."""
+def cell_normals(
+    points: FloatArray, vehicle: FloatArray, cfg: MapConfig, noise_per_m: float | FloatArray | None = None
+) -> CellNormals:
+    """Block normals of the cells holding ``points`` (M, 3) seen from ``vehicle`` (M, 3), same frame, metres.
+    ``noise_per_m``: the range noise k (1/m), one for all points or (M,) one per point (None:
+    ``cfg.range_noise_per_m``; 0 everywhere: the fixed planarity test)."""
+    noise = cfg.range_noise_per_m if noise_per_m is None else noise_per_m
+    per_point = np.ndim(noise) > 0
+    noisy = bool(np.any(np.asarray(noise) > 0.0))
     cells = np.floor(points / cfg.cell_m).astype(np.int64)
     keys, of_point = np.unique(pack_keys(cells), return_inverse=True)
     of_point = of_point.reshape(-1).astype(np.int64)
     c = keys.shape[0]
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     cols: tuple[FloatArray, ...] = (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
-    if cfg.range_noise_per_m > 0.0:  # the squared range (m^2), summed only where the option reads it
-        cols += (np.einsum("ij,ij->i", points - vehicle, points - vehicle),)
+    if noisy:  # the squared range (m^2), or each point's expected error (m), summed only where it is read
+        r2 = np.einsum("ij,ij->i", points - vehicle, points - vehicle)
+        cols += (noise * r2 if per_point else r2,)
     st = np.stack([np.bincount(of_point, weights=w, minlength=c) for w in cols], 1)  # (C, 10 or 11)
     n = st[:, 0]
     s = st[:, 1:4]
@@ -226,9 +237,9 @@ def cell_normals(points: FloatArray, vehicle: FloatArray, cfg: MapConfig) -> Cel
     flip = np.einsum("ij,ij->i", normal, to_vehicle) < 0
     normal[flip] *= -1.0
     thick = w[:, 0]
-    if cfg.range_noise_per_m > 0.0:
-        # the points' own expected error (k r^2 at the block's mean squared range) is thickness a plane has
-        sigma = cfg.range_noise_per_m * block[:, 10] / bn
+    if noisy:
+        # the points' own mean expected error (k r^2) is thickness a plane has
+        sigma = (1.0 if per_point else noise) * block[:, 10] / bn
         thick = np.maximum(thick - sigma * sigma, 0.0)
     valid = (
         (bn >= 6) & (np.sqrt(w[:, 1]) >= cfg.min_width_m) & (np.sqrt(thick) <= cfg.cell_planarity * np.sqrt(w[:, 1]))
@@ -387,7 +398,13 @@ class Extraction:
     cell_keys: IntArray
 
 
-def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed: int) -> Extraction:
+def extract_planes(
+    points: FloatArray,
+    vehicle: FloatArray,
+    cfg: MapConfig,
+    seed: int,
+    noise_per_m: float | FloatArray | None = None,
+) -> Extraction:
     """Find planes in one window.
 
     Args:
@@ -395,6 +412,8 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
         vehicle: (N, 3) position of the observing vehicle for every point, same frame.
         cfg: thresholds.
         seed: base seed of Open3D's RNG for this window (call i uses ``seed + i``).
+        noise_per_m: the range noise k (1/m), one for the window or (N,) one per point (None:
+            ``cfg.range_noise_per_m``); see the module docstring.
 
     Returns:
         The :class:`Extraction`; candidates are in a deterministic order (regions by size, then peel order).
@@ -405,9 +424,13 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
     veh_sum = np.stack([np.bincount(grid.inverse, weights=vehicle[:, k], minlength=m) for k in range(3)], 1)
     vpts = grid.centroids
     vveh = veh_sum / grid.counts[:, None]
+    k: float | FloatArray = cfg.range_noise_per_m if noise_per_m is None else noise_per_m
+    if np.ndim(k) > 0:  # one per voxel: the mean of its points'
+        k = np.bincount(grid.inverse, weights=np.asarray(k, dtype=np.float64), minlength=m) / grid.counts
+    noisy = bool(np.any(np.asarray(k) > 0.0))
     candidates: list[PlaneCandidate] = []
     rejections: list[Rejection] = []
-    cn = cell_normals(vpts, vveh, cfg)
+    cn = cell_normals(vpts, vveh, cfg, k)
     cell_keys = cn.keys[cn.of_point]
     if m < cfg.min_region_points:
         return Extraction(grid, candidates, rejections, cell_keys)
@@ -421,9 +444,12 @@ def extract_planes(points: FloatArray, vehicle: FloatArray, cfg: MapConfig, seed
             continue
         members = np.nonzero(region == r)[0]
         thr = cfg.distance_threshold_m
-        if cfg.range_noise_per_m > 0.0:  # the region's points' expected range error, k r^2 at their median r^2
+        if noisy:  # the region's points' median expected range error, k r^2
             r2 = np.einsum("ij,ij->i", vpts[members] - vveh[members], vpts[members] - vveh[members])
-            thr = max(thr, _NOISE_THRESHOLD_SIGMAS * cfg.range_noise_per_m * float(np.median(r2)))
+            if isinstance(k, np.ndarray):
+                thr = max(thr, _NOISE_THRESHOLD_SIGMAS * float(np.median(k[members] * r2)))
+            else:
+                thr = max(thr, _NOISE_THRESHOLD_SIGMAS * k * float(np.median(r2)))
         for _ in range(cfg.max_planes_per_region):
             if members.shape[0] < cfg.min_inliers:
                 break

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import threading
 import zipfile
@@ -23,7 +24,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import MapStoreError
+from .errors import MappingError, MapStoreError
+from .types import MapConfig
+
+log = logging.getLogger(__name__)
 
 STATE_FILE = "map_state.npz"
 JSON_FILE = "map.json"
@@ -98,3 +102,25 @@ def load_state(state_dir: Path) -> tuple[dict[str, Any], dict[str, NDArray[Any]]
 def save_json(path: Path, data: dict[str, Any]) -> None:
     """Write a JSON document atomically."""
     atomic_write_bytes(path, (json.dumps(data, indent=1) + "\n").encode())
+
+
+def six_ints(values: list[int]) -> tuple[int, int, int, int, int, int]:
+    """Six integers from a JSON list (a plane's ``within`` counters); ValueError otherwise."""
+    v = [int(x) for x in values]
+    if len(v) != 6:
+        msg = f"expected 6 integers, got {values!r}"
+        raise ValueError(msg)
+    return (v[0], v[1], v[2], v[3], v[4], v[5])
+
+
+def saved_config(header: dict[str, Any]) -> MapConfig:
+    """The configuration a state was saved with (keys this version does not know are ignored)."""
+    saved = header.get("config")
+    if not isinstance(saved, dict):
+        return MapConfig()
+    known = set(MapConfig().to_dict())
+    try:
+        return MapConfig.from_dict({k: v for k, v in saved.items() if k in known})
+    except MappingError as err:
+        log.warning("saved map configuration refused (%s); using defaults", err)
+        return MapConfig()

@@ -513,6 +513,7 @@ def replay_dive(
     background: bool | str = False,
     realtime: bool = False,
     graph_cfg: Any = None,
+    range_error_per_px: dict[str, float] | None = None,
 ) -> DiveMap:
     """Feed a simulated dive into a :class:`mapping.MapBuilder` the way the base station does.
 
@@ -525,6 +526,8 @@ def replay_dive(
     station receives a live dive: background runs then truly overlap the feed; :attr:`DiveMap.step_s` keeps each
     frame's time on the map thread (smoother step, navigation and placing). ``graph_cfg``: the pose graphs' tuning
     (:class:`mapping.graph_config.GraphConfig`) for robots without a fix, with ``NavConfig.graph_without_fix``.
+    ``range_error_per_px``: robot -> its calibration's range error per pixel (the clouds' range noise,
+    :meth:`mapping.MapBuilder.set_range_error`; absent: none, the fixed thresholds).
     """
     import time
 
@@ -534,6 +537,8 @@ def replay_dive(
     from .types import MapConfig
 
     b = MapBuilder(cfg or MapConfig())
+    for robot, per_px in (range_error_per_px or {}).items():
+        b.set_range_error(robot, per_px)
     nav = Navigator(nav_cfg, smoother) if navigate else None
     if nav is not None:
         nav.graph_cfg = graph_cfg  # the pose graphs' tuning (mapping.graph_config.GraphConfig; None: its default)

@@ -61,8 +61,15 @@ class MapConfig:
         range_noise_per_m: the sensor's expected range error per squared metre of range, k (1/m: a point at
             range r is expected k r^2 off; about the stripe's sub-pixel error over focal length x baseline).
             When > 0, a cell's l0 loses (k r^2)^2 before the planarity test and a region's RANSAC inlier distance
-            grows with it (:mod:`mapping.planes`). 0 (default): off; 0.002 fits the clouds extracted
-            from rendered 640x360 images (docs/mapping.md, "Range noise": measured not to pay yet).
+            grows with it (:mod:`mapping.planes`). When > 0 it is every cloud's k (an explicit override); 0
+            (default): each cloud's own k, from its robot's calibration and ``stripe_sigma_px``
+            (:mod:`mapping.range_noise`).
+        stripe_sigma_px: the extractor's stripe row error (pixels, standard deviation) that turns a robot's
+            calibration into its clouds' k, ``stripe_sigma_px / (f_px c)`` (:func:`lrsensor.range_theory.
+            range_error_per_px`); clouds without a calibration (schema 1, traced) keep the fixed thresholds.
+            0 (default): off; :data:`mapping.range_noise.STRIPE_SIGMA_PX` (0.02 px, the extractor's measured
+            error) gives k 0.00216 for the 640x360 camera of the simulated dives (docs/mapping.md, "Range noise":
+            measured not to help reliably yet).
         distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
         ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
         max_planes_per_region: RANSAC peels at most this many planes off one region.
@@ -150,6 +157,7 @@ class MapConfig:
     grow_angle_deg: float = 12.0
     cell_planarity: float = 0.35
     range_noise_per_m: float = 0.0
+    stripe_sigma_px: float = 0.0
     distance_threshold_m: float = 0.03
     ransac_iterations: int = 400
     seed: int = 1234
@@ -216,6 +224,7 @@ class MapConfig:
                     "serve_band_gap_down_m",
                     "serve_copy_offset_m",
                     "range_noise_per_m",
+                    "stripe_sigma_px",
                 )
                 and value <= 0
             ):

@@ -47,6 +47,7 @@ import numpy as np
 
 from lrsensor.calibration import Calibration
 from lrsensor.errors import LrsensorError
+from lrsensor.range_theory import range_error_per_px
 
 from .calibbook import CalibrationBook
 from .errors import ServiceError, WireError
@@ -435,11 +436,12 @@ class BaseStation:
             except WireError as err:
                 self.ledger.reject(robot, str(err))
                 return
+            per_px = range_error_per_px(calib)  # the map's range noise of this cloud (mapping.range_noise)
         else:
-            msg = any_msg
+            msg, per_px = any_msg, 0.0  # schema 1: which calibration measured it is not known
         if not self.ledger.accept(msg):
             return  # a duplicate, counted
-        self.feed.take(msg, recv_ns)
+        self.feed.take(msg, recv_ns, per_px)
         self._time(msg, recv_ns)
         with self._lock:
             self.processed += 1

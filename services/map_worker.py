@@ -417,6 +417,7 @@ class MapWorker:
             return []
         self.jobs += 1
         self._pending.setdefault(job.robot, []).append(job.seq)
+        self.builder.set_range_error(job.robot, job.range_error_per_px)  # its calibration's: the clouds' range noise
         pose = job.pose
         held: list[Any] = []
         try:

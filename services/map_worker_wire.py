@@ -17,6 +17,7 @@ counted next to the new owner's (see :mod:`services.map_workers`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,6 +73,9 @@ class MapJob:
             :data:`services.map_worker_nav.NO_FIX_CHOICES`); absent on the wire: ``lost``.
         heading: with ``navigate``, the fleet heading's word on this cloud (:mod:`services.map_worker_heading`):
             ``collect`` (keep the graph robot's scan), ``hold`` (keep it and hold the cloud), or empty.
+        range_error_per_px: the range error per pixel (1/(m px)) of the calibration the cloud was measured with
+            (:func:`lrsensor.range_theory.range_error_per_px`), its range noise in the extraction
+            (:mod:`mapping.range_noise`); 0 (absent on the wire): none known.
     """
 
     robot: str
@@ -84,6 +88,7 @@ class MapJob:
     lag_ns: int = 0
     no_fix: str = "lost"
     heading: str = ""
+    range_error_per_px: float = 0.0
 
     def to_bytes(self) -> bytes:
         """Schema-1 msgpack."""
@@ -103,6 +108,7 @@ class MapJob:
                 "nofix": self.no_fix,
             }
             | ({"heading": self.heading} if self.heading else {})
+            | ({"perpx": self.range_error_per_px} if self.range_error_per_px else {})
         )
 
 
@@ -280,6 +286,7 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
                 int(d.get("lag", 0)),
                 str(d.get("nofix", "lost")),
                 str(d.get("heading", "")),
+                _per_px(d.get("perpx", 0.0)),
             )
         if kind in ("flush", "drop", "adopt", "views", "heading"):
             return MapControl(
@@ -294,6 +301,15 @@ def decode_work(payload: bytes) -> MapJob | MapControl:
         raise WireError(msg) from err
     msg = f"map work: unknown type {kind!r}"
     raise WireError(msg)
+
+
+def _per_px(value: Any) -> float:
+    """A job's ``perpx``: a finite number >= 0 (ValueError otherwise, a malformed job)."""
+    per_px = float(value)
+    if not math.isfinite(per_px) or per_px < 0.0:
+        msg = f"perpx must be a finite number >= 0, got {value!r}"
+        raise ValueError(msg)
+    return per_px
 
 
 def _unpack(payload: bytes, kind: str | None) -> dict[str, Any]:

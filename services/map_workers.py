@@ -129,6 +129,7 @@ class _InFlight:
     pose: Pose
     points_body: NDArray[np.float32]
     heading: str = ""
+    range_error_per_px: float = 0.0
 
 
 class WorkerPool:
@@ -320,11 +321,20 @@ class WorkerPool:
         return True
 
     # ------------------------------------------------------------------ input (the map thread)
-    def dispatch(self, robot: str, seq: int, t_ns: int, pose: Pose, points_body: NDArray[np.float32]) -> None:
+    def dispatch(
+        self,
+        robot: str,
+        seq: int,
+        t_ns: int,
+        pose: Pose,
+        points_body: NDArray[np.float32],
+        range_error_per_px: float = 0.0,
+    ) -> None:
         """Send one cloud to its robot's worker (or hold it until one is alive); blocks while ``max_in_flight``
-        clouds are in flight."""
+        clouds are in flight. ``range_error_per_px``: its calibration's (:class:`MapJob`; 0: none known)."""
         heading = self.heading.phase(robot, t_ns, pose) if self.heading is not None and self.navigate else ""
-        item = _InFlight(seq, t_ns, pose, np.ascontiguousarray(points_body, np.float32), heading)
+        pts = np.ascontiguousarray(points_body, np.float32)
+        item = _InFlight(seq, t_ns, pose, pts, heading, range_error_per_px)
         with self._cond:
             while self._n_in_flight >= self.max_in_flight and self._thread is not None:
                 self._cond.wait(0.5)
@@ -383,7 +393,7 @@ class WorkerPool:
         lag = self.snapshot_lag_ns if self.navigate else 0
         for it in items:
             job = MapJob(robot, it.seq, it.t_ns, epoch, it.pose, it.points_body, self.navigate, lag, self.no_fix,
-                         it.heading)  # fmt: skip
+                         it.heading, it.range_error_per_px)  # fmt: skip
             self._put(w, job.to_bytes())
 
     def _flush_silent(self) -> None:

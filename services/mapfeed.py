@@ -220,6 +220,7 @@ class MapFeed:
         #: plane workers (None: the map thread extracts in this process)
         self.pool: WorkerPool | None = None
         self.nav_publish_s = nav_publish_s
+        self._per_px: dict[tuple[str, int], float] = {}  # (robot, seq) -> its calibration's range error per px
         self._publish_nav: Callable[[str, str], object] | None = None
         self._nav_lock = threading.Lock()
         #: per robot: the latest estimate (turned to NED), clouds placed / not placed, last publication
@@ -324,27 +325,26 @@ class MapFeed:
             self.builder.save()
 
     # ------------------------------------------------------------------ input
-    def take(self, msg: CloudMsg, recv_ns: int) -> None:
+    def take(self, msg: CloudMsg, recv_ns: int, range_error_per_px: float = 0.0) -> None:
         """Hand an accepted cloud, received at ``recv_ns``, to the map (blocks up to ``map_wait_s``); a cloud
-        without a horizontal fix is counted as unplaced instead (see the module docstring)."""
+        without a horizontal fix is counted as unplaced instead (see the module docstring). ``range_error_per_px``:
+        its calibration's when known (its range noise in the map, :mod:`mapping.range_noise`; 0: none)."""
         if not has_fix(msg.pose) and self.navigator is None:
             self._count_unplaced(msg, "its pose source gives attitude and depth only")
             self.on_mapped(msg.robot, msg.seq)  # done with: acknowledgeable, or the robot re-sends it forever
         elif self.builder is not None and len(msg):
+            if range_error_per_px > 0.0:
+                self._per_px[(msg.robot, msg.seq)] = range_error_per_px
             try:
                 # back-pressure while the map keeps up; a map stalled for map_wait_s loses the cloud (counted)
                 self._queue.put(msg, timeout=self.map_wait_s)
             except queue.Full:
                 self.skipped += 1
+                self._per_px.pop((msg.robot, msg.seq), None)
                 self.on_mapped(msg.robot, msg.seq)  # counted, not silent; or the robot re-sends it forever
                 if self.skipped <= 5 or self.skipped % 100 == 0:
-                    log.warning(
-                        "map is %.0f s behind: cloud %s#%d not mapped (%d so far)",
-                        self.map_wait_s,
-                        msg.robot,
-                        msg.seq,
-                        self.skipped,
-                    )
+                    text = "map is %.0f s behind: cloud %s#%d not mapped (%d so far)"
+                    log.warning(text, self.map_wait_s, msg.robot, msg.seq, self.skipped)
         else:
             self.on_mapped(msg.robot, msg.seq)
         self.latency.add(time.time_ns() - msg.t_ns, recv_ns - msg.sent_ns if msg.sent_ns else None)
@@ -356,13 +356,8 @@ class MapFeed:
             self._nav_counts.setdefault(msg.robot, [0, 0])[1] += 1
         if msg.robot not in self._unplaced_robots:
             self._unplaced_robots.add(msg.robot)
-            log.warning(
-                "cloud %s#%d has no horizontal position (%s): such clouds of %s are not mapped, counted as unplaced",
-                msg.robot,
-                msg.seq,
-                why,
-                msg.robot,
-            )
+            text = "cloud %s#%d has no horizontal position (%s): such clouds of %s are not mapped, counted as unplaced"
+            log.warning(text, msg.robot, msg.seq, why, msg.robot)
 
     def idle(self) -> bool:
         """Whether every cloud handed over has been through the map."""
@@ -427,8 +422,10 @@ class MapFeed:
     def _map_one(self, msg: CloudMsg) -> bool:
         """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
         assert self.builder is not None
+        per_px = self._per_px.pop((msg.robot, msg.seq), 0.0)
+        self.builder.set_range_error(msg.robot, per_px)  # its clouds' range noise, held ones' too
         if self.pool is not None and self.pool.navigate:  # the workers navigate (services.map_worker_nav)
-            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, msg.pose, msg.points_body)
+            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, msg.pose, msg.points_body, per_px)
             self.clouds += 1
             return True
         points_body = msg.points_body.astype(np.float64)
@@ -465,7 +462,7 @@ class MapFeed:
             with self._nav_lock:
                 self._nav_counts.setdefault(msg.robot, [0, 0])[0] += 1
         if self.pool is not None:
-            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, pose, msg.points_body)
+            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, pose, msg.points_body, per_px)
             self.clouds += 1
             return True
         points_ned = body_to_ned(points_body, pose)

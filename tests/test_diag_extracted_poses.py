@@ -31,3 +31,19 @@ def test_true_and_trusted_ways_map_without_navigation() -> None:
     yaw = final_yaw_deg(run, frames)
     assert sorted(yaw) == robots
     assert all(abs(v) < 1.0 for v in yaw.values())
+
+
+def test_the_stripe_error_diagnostics_truth_lies_on_the_tank() -> None:
+    """``benchmarks.diag_stripe_error``'s truth: the line of each point's sheet and column meets the wall ahead
+    (north wall at 8 m, seen from 6 m north facing north) at the depth the geometry gives."""
+    import numpy as np
+
+    from benchmarks.diag_stripe_error import true_depth_m
+    from lrsensor.frames import Pose
+
+    pose = Pose(6.0, 1.0, 1.5, 0.0, 0.0, 0.0)
+    pts = np.array([[1.0, 0.0, -0.05], [1.0, 0.5, 0.05], [1.0, 0.0, 0.05]])
+    depth = true_depth_m(pts, pose, pts[:, 2])
+    assert depth == pytest.approx([2.0, 2.0, 2.0])  # the wall 2 m ahead, at any column of either sheet
+    south = true_depth_m(pts[:1], Pose(6.0, 1.0, 1.5, 0.0, 0.0, np.pi), pts[:1, 2])
+    assert south == pytest.approx([6.0])  # turned round: the south wall
