@@ -60,6 +60,10 @@ class GraphConfig:
     odometry_info_scale: float = 0.3
     odometry_observed_std_m: float = math.inf
     odometry_prior_m_s: float = 0.0
+    odometry_own_prediction: bool = False
+    odometry_spread_m: float = 0.0
+    odometry_refuse_chi2: float = math.inf
+    odometry_bound_at_rest: bool = False
     max_speed_m_s: float = 0.6
     compass_every_s: float = 5.0
     compass_bias_deg: float = 3.0

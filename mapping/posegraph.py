@@ -54,10 +54,11 @@ from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import TrackGate, relocalize, verify
 from .graph_heading import check_heading
 from .graph_hold import CloudHold, check_due, check_held, hold_step
+from .graph_odometry import own_velocity, rot3, scan_move, speed_bound
 from .graph_planes import register
 from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
-from .odometry import OdometryConfig, increment, own_increment
+from .odometry import OdometryConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -364,6 +365,10 @@ class GraphNav:
         self._scan[key] = (level, raw.down_m)
         x_prev = self._est[prev]
         v = self.x[2:4]
+        if gcfg.odometry_own_prediction:
+            # the robot's own last increments: no re-localization or plane correction reads as a move
+            own = own_velocity(self._specs, self._t, self._est, self._first_key)
+            v = v if own is None else own
         # the predicted move, in the previous pose's level frame (heading x_prev[2])
         r_prev = rot(float(x_prev[2]))
         pred = r_prev.T @ (v * dt)
@@ -371,27 +376,18 @@ class GraphNav:
         walk_var = gcfg.velocity_walk_m_s**2 * dt**3 + (0.05 * dt) ** 2
         prior_cov = np.eye(2) * walk_var + self._vel_cov * dt * dt
         prev_level, prev_depth = self._scan.get(prev, (np.zeros((0, 3)), raw.down_m))
-        new_rel = (
-            level
-            @ np.array(
-                [[math.cos(dyaw), -math.sin(dyaw), 0.0], [math.sin(dyaw), math.cos(dyaw), 0.0], [0.0, 0.0, 1.0]]
-            ).T
-        )
-        new_rel = new_rel + np.array([pred[0], pred[1], raw.down_m - prev_depth])
+        new_rel = level @ rot3(dyaw).T + np.array([0.0, 0.0, raw.down_m - prev_depth])
         h = np.zeros((2, 2))
         z = pred.copy()
         motion = "motion-prior"
         if prev_level.shape[0] and new_rel.shape[0]:
             icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
-            d, cov, pairs = increment(prev_level, new_rel, icp_cov, self.odo_cfg)
-            if pairs:
-                # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
-                # prediction, which the information there (none) does not hold
-                dz, h = own_increment(d, cov, icp_cov, gcfg.odometry_info_scale, gcfg.odometry_observed_std_m)
-                z = pred + dz
-                motion = "scan-odometry"
+            # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
+            # prediction, which the information there (none) does not hold
+            z, h, pairs = scan_move(prev_level, new_rel, pred, icp_cov, gcfg, self.odo_cfg)
+            motion = "scan-odometry" if pairs else motion
         # the move's information: the scan's, plus a weak bound from the speed
-        info2 = h + np.eye(2) / speed_var
+        z, info2 = speed_bound(z, h, speed_var, gcfg.odometry_bound_at_rest)
         # the between-factor's translation error lies in the frame turned by the measured turn
         r_d = rot(dyaw)
         info = np.zeros((3, 3))
