@@ -63,7 +63,9 @@ class GraphConfig:
     odometry_own_prediction: bool = False
     odometry_spread_m: float = 0.0
     odometry_refuse_chi2: float = math.inf
-    odometry_bound_at_rest: bool = False
+    odometry_speed_bound: str = "added"
+    odometry_residual_scale: bool = False
+    odometry_guard_broken_only: bool = False
     max_speed_m_s: float = 0.6
     compass_every_s: float = 5.0
     compass_bias_deg: float = 3.0

@@ -29,6 +29,7 @@ All off by default (``GraphConfig``). Pure numpy.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -154,12 +155,45 @@ def rot3(a: float) -> FloatArray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def speed_bound(z: FloatArray, h: FloatArray, speed_var: float, at_rest: bool) -> tuple[FloatArray, FloatArray]:
-    """The between-factor's move (2,) and information (2, 2): the scan's move ``z`` with information ``h`` and the
-    bound on one scan's move, an isotropic variance ``speed_var`` (m^2). Centred at the prediction (``z`` where
-    ``h`` says nothing), the bound re-measures the graph's own velocity at every scan and its covariance shrinks
-    though nothing was observed; ``at_rest`` centres it at no move, a prior on the speed, not a measurement."""
-    info = h + np.eye(2) / speed_var
-    if not at_rest:
+def guards(gcfg: GraphConfig, ocfg: OdometryConfig, broken: bool) -> tuple[GraphConfig, OdometryConfig]:
+    """The settings one scan's odometry runs with: ``gcfg`` and ``ocfg`` as they are, or, with
+    ``GraphConfig.odometry_guard_broken_only`` on an unbroken track, without the guards of this module (the
+    registration to the map's planes holds the position there; the guards would only break the track sooner)."""
+    if broken or not gcfg.odometry_guard_broken_only:
+        return gcfg, ocfg
+    off = replace(gcfg, odometry_spread_m=0.0, odometry_refuse_chi2=math.inf, odometry_speed_bound="added")
+    return off, replace(ocfg, residual_scale=False)
+
+
+def odometry_factor(
+    prev_level: FloatArray, new_rel: FloatArray, pred: FloatArray, prior_cov: FloatArray, speed_var: float,
+    gcfg: GraphConfig, ocfg: OdometryConfig,
+) -> tuple[FloatArray, FloatArray, int]:  # fmt: skip
+    """The between-factor of one scan: its move (2,) and information (2, 2) in the previous pose's level frame,
+    the scan's (:func:`scan_move`) joined with the bound on one scan's move (``speed_var``, m^2;
+    :func:`speed_bound`), and the pairs the scan used (0: the move is the prediction's and the bound's alone)."""
+    z, h, pairs = scan_move(prev_level, new_rel, pred, prior_cov, gcfg, ocfg)
+    z, info = speed_bound(z, h, pred, speed_var, gcfg.odometry_speed_bound)
+    return z, info, pairs
+
+
+def speed_bound(
+    z: FloatArray, h: FloatArray, pred: FloatArray, speed_var: float, how: str
+) -> tuple[FloatArray, FloatArray]:
+    """The between-factor's move (2,) and information (2, 2) from the scan's move ``z`` (2,) with information ``h``
+    (2, 2) and the bound on one scan's move, an isotropic variance ``speed_var`` (m^2), by ``how``:
+
+    - ``added`` (what the graph did first): the bound's information added, the move left at ``z``. Where the scan
+      barely observes a direction, its move there (the posterior's noise divided by that little information) is
+      then claimed with the bound's information, a few centimetres, however far it went.
+    - ``prediction``: the scan's move and the bound, centred at the prediction ``pred`` (2,), combined by their
+      information: a barely observed direction stays near the prediction.
+    - ``rest``: the same with the bound centred at no move (a prior on the speed; the prediction, the graph's own
+      velocity, is not measured again at every scan).
+    """
+    bound = np.eye(2) / speed_var
+    info = h + bound
+    if how == "added":
         return z, info
-    return np.asarray(np.linalg.solve(info, h @ z), dtype=np.float64), info
+    centre = pred if how == "prediction" else np.zeros(2)
+    return np.asarray(np.linalg.solve(info, h @ z + bound @ centre), dtype=np.float64), info

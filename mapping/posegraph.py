@@ -54,7 +54,7 @@ from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import TrackGate, relocalize, verify
 from .graph_heading import check_heading
 from .graph_hold import CloudHold, check_due, check_held, hold_step
-from .graph_odometry import own_velocity, rot3, scan_move, speed_bound
+from .graph_odometry import guards, odometry_factor, own_velocity, rot3
 from .graph_planes import register
 from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
@@ -91,7 +91,7 @@ class GraphNav:
         self.robot = robot
         self.cfg = cfg or NavConfig()
         self.gcfg = graph or GraphConfig()
-        self.odo_cfg = OdometryConfig()
+        self.odo_cfg = OdometryConfig(residual_scale=self.gcfg.odometry_residual_scale)
         self.latest: NavEstimate | None = None
         self.lost = False
         self.joined = True
@@ -377,17 +377,12 @@ class GraphNav:
         prior_cov = np.eye(2) * walk_var + self._vel_cov * dt * dt
         prev_level, prev_depth = self._scan.get(prev, (np.zeros((0, 3)), raw.down_m))
         new_rel = level @ rot3(dyaw).T + np.array([0.0, 0.0, raw.down_m - prev_depth])
-        h = np.zeros((2, 2))
-        z = pred.copy()
-        motion = "motion-prior"
-        if prev_level.shape[0] and new_rel.shape[0]:
-            icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
-            # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
-            # prediction, which the information there (none) does not hold
-            z, h, pairs = scan_move(prev_level, new_rel, pred, icp_cov, gcfg, self.odo_cfg)
-            motion = "scan-odometry" if pairs else motion
-        # the move's information: the scan's, plus a weak bound from the speed
-        z, info2 = speed_bound(z, h, speed_var, gcfg.odometry_bound_at_rest)
+        icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
+        # the scan's own move (the prior's pull taken out) and a weak bound from the speed
+        z, info2, pairs = odometry_factor(
+            prev_level, new_rel, pred, icp_cov, speed_var, *guards(gcfg, self.odo_cfg, self.track.broken)
+        )
+        motion = "scan-odometry" if pairs else "motion-prior"
         # the between-factor's translation error lies in the frame turned by the measured turn
         r_d = rot(dyaw)
         info = np.zeros((3, 3))
