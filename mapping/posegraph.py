@@ -30,10 +30,11 @@ the graph is rebuilt from the last ``window_s`` of its factors, the first kept p
 marginal covariance (a marginalisation), so the cost per scan stays bounded. :meth:`GraphNav.snapshot` is the
 factors' plain numbers (a plane worker can send it): :meth:`GraphNav.restore` rebuilds the graph from them.
 
-Its parts: the variables, odometry, solve and window here; the map's planes (registration and plane factors)
-in :mod:`mapping.graph_planes`; the factors' GTSAM form in :mod:`mapping.graph_factors`; the track gate, checks and
-re-localization in :mod:`mapping.graph_gate`; the held clouds in :mod:`mapping.graph_hold`; the heading check in
-:mod:`mapping.graph_heading`; the fleet's compass biases in :mod:`mapping.graph_fleet`.
+Its parts: the variables, solve and window here; the map's planes (registration and plane factors) in
+:mod:`mapping.graph_planes`; the odometry factor and its guards in :mod:`mapping.graph_odometry`; the factors'
+GTSAM form in :mod:`mapping.graph_factors`; the track gate, checks and re-localization in :mod:`mapping.graph_gate`;
+the held clouds in :mod:`mapping.graph_hold`; the heading check in :mod:`mapping.graph_heading`; the fleet's
+compass biases in :mod:`mapping.graph_fleet`.
 
 GTSAM (``gtsam``, the ``graph`` extra of pyproject.toml) is imported on first use.
 """
