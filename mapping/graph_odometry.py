@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import MapInputError
 from .graph_config import GraphConfig
 from .odometry import OdometryConfig, increment, own_increment
 
@@ -191,6 +192,9 @@ def speed_bound(
     - ``rest``: the same with the bound centred at no move (a prior on the speed; the prediction, the graph's own
       velocity, is not measured again at every scan).
     """
+    if how not in ("added", "prediction", "rest"):
+        msg = f"odometry_speed_bound must be 'added', 'prediction' or 'rest', not {how!r}"
+        raise MapInputError(msg)
     bound = np.eye(2) / speed_var
     info = h + bound
     if how == "added":

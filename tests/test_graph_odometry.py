@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from mapping.errors import MapInputError
 from mapping.graph_config import TRACKED, GraphConfig
 from mapping.graph_odometry import (
     odometry_factor,
@@ -106,6 +107,8 @@ def test_the_speed_bound_widens_a_barely_observed_move_instead_of_claiming_it() 
     assert z_pred[0] == pytest.approx(z[0], abs=1e-4)  # the pinned direction is the scan's
     z_rest, _ = speed_bound(np.array([0.02, 0.03]), np.zeros((2, 2)), pred, SPEED_VAR, "rest")
     assert np.allclose(z_rest, 0.0)  # nothing observed: no move, not the graph's own velocity again
+    with pytest.raises(MapInputError, match="odometry_speed_bound"):
+        speed_bound(z, h, pred, SPEED_VAR, "centre")
 
 
 def test_the_spread_of_restarted_registrations_bounds_the_information() -> None:
