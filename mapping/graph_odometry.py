@@ -4,24 +4,29 @@ guards for a broken track (issue 27; docs/navigation-design.md, "Depth-only robo
 :meth:`mapping.posegraph.GraphNav._odometry` predicts the move from the graph's velocity, lets
 :func:`mapping.odometry.increment` register the new scan to the previous one about that prediction with the velocity
 walk as prior, and takes the prior back out (:func:`mapping.odometry.own_increment`). Two things make that
-increment wrong while it claims a few millimetres:
+increment wrong while it claims a few millimetres, and a third makes the graph claim it:
 
+- **The speed bound** (``GraphConfig.odometry_speed_bound``, :func:`speed_bound`). The bound on one scan's move
+  (``max_speed_m_s``) had its information added to the scan's while the move stayed the scan's: where the scan
+  barely observes a direction its move there (the posterior's noise divided by that little information) can be
+  decimetres, then claimed within the bound's few centimetres. ``prediction`` combines the two by their
+  information; ``rest`` centres the bound at no move.
+- **The weak direction** (``odometry_spread_m``, :func:`spread_bound`; ``odometry_residual_scale``). Along one
+  wall a few noisy stripe normals leaning its way give the scan an information along it, more the noisier the
+  stripes. How far the points pin a direction is measured, not modelled: the registration runs again from
+  predictions that far either side along the weakest direction. Where the points pin the move the three runs
+  agree; where they do not each stays near its start, and the spread of the results becomes the increment's
+  variance there, so a broken track's standard deviation grows as its error does. The residuals' scatter beyond
+  the sigma assumed scales the information down too (``OdometryConfig.residual_scale``).
 - **The prediction.** The scan matching's prior is the velocity walk over one scan (about 7 mm); a prediction
-  off by centimetres pulls the registration to a wrong nearest-neighbour solution it then claims. The graph's
-  velocity is the estimates' finite difference over the last poses: a re-localization or a re-anchor that moved
-  the estimate by decimetres reads as a fast move, and a lost graph's velocity is whatever its last increments
-  made it. ``GraphConfig.odometry_own_prediction`` predicts instead from the robot's own last scan increments
-  (:func:`own_velocity`), which no prior or plane moves.
-- **The weak direction.** Along one wall a few noisy stripe normals leaning its way give the scan an information
-  of a few centimetres' standard deviation; the prior taken out, the posterior's noise comes back as moves of
-  that size. How far the points really pin a direction is measured, not modelled: ``odometry_spread_m`` runs the
-  registration again from predictions that far either side along the weakest direction
-  (:func:`spread_bound`). Where the points pin the move, the three runs agree; where they do not, each stays
-  near where it started, and the spread of their results becomes the increment's variance there, so a broken
-  track's standard deviation grows as its error does.
-- **Moves beyond the prior.** ``odometry_refuse_chi2``: a direction in which the scan's own move lies farther from
-  the prediction than the prior and the scan's covariance allow (squared, that many variances) is refused: the
-  increment keeps the prediction there and no information.
+  off by centimetres pulls the registration to a wrong nearest-neighbour solution. ``odometry_own_prediction``
+  predicts from the robot's own last increments (:func:`own_velocity`), which no re-localization's jump moves;
+  ``odometry_refuse_chi2`` refuses a direction whose move lies beyond the prior (:func:`refuse_beyond_prior`).
+  Both were measured worse (the increments' errors feed the next prediction; the prior is narrower than a lost
+  graph's velocity is wrong) and are kept for the record.
+
+``odometry_guard_broken_only`` applies the guards only while the track is broken (:func:`guards`): on an unbroken
+track they break it sooner, where the map's planes held the estimate though the odometry could not say so.
 
 All off by default (``GraphConfig``). Pure numpy.
 """
