@@ -3,8 +3,8 @@ guards for a broken track (issue 27; docs/navigation-design.md, "Depth-only robo
 
 :meth:`mapping.posegraph.GraphNav._odometry` predicts the move from the graph's velocity, lets
 :func:`mapping.odometry.increment` register the new scan to the previous one about that prediction with the velocity
-walk as prior, and takes the prior back out (:func:`mapping.odometry.own_increment`). Two things make that
-increment wrong while it claims a few millimetres, and a third makes the graph claim it:
+walk as prior, and takes the prior back out (:func:`mapping.odometry.own_increment`). Three things make that
+increment wrong while it claims a few millimetres, or the graph claim it:
 
 - **The speed bound** (``GraphConfig.odometry_speed_bound``, :func:`speed_bound`). The bound on one scan's move
   (``max_speed_m_s``) had its information added to the scan's while the move stayed the scan's: where the scan

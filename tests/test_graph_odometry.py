@@ -158,3 +158,45 @@ def test_the_guards_are_off_by_default_and_in_the_tracked_setting() -> None:
         assert math.isinf(cfg.odometry_refuse_chi2)
         assert cfg.odometry_speed_bound == "added"
         assert not cfg.odometry_residual_scale
+
+
+def _along_one_wall(cfg: GraphConfig, seed: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A graph launched at a corner (a wall 1 m north and one 1.5 m east, 8 mm of range noise) moving east 3 cm per
+    0.1 s scan, after 2 s along the north wall alone for 3 s, no map: per scan the east error and east standard
+    deviation (m), and whether the last scan's cloud would be placed."""
+    from lrsensor.frames import Pose
+    from mapping.landmarks import PlaneLandmarks
+    from mapping.posegraph import GraphNav
+
+    rng = np.random.default_rng(seed)
+    g = GraphNav("rov1", graph=cfg)
+    err, sd = [], []
+    placed = False
+    for k in range(50):
+        east = 0.03 * k
+        wall = _wall_scan(rng, np.zeros(2), 0.008)
+        if k < 20:
+            north = np.sort(rng.uniform(-0.6, 0.9, 100))
+            side = np.stack([north, 1.5 - east + rng.normal(0.0, 0.008, 100), np.zeros(100)], axis=1)
+            wall = np.concatenate([wall, side])
+        fix = (0.0, 0.0) if k == 0 else (math.nan, math.nan)
+        est = g.update(k * 100_000_000, Pose(fix[0], fix[1], 1.0, 0.0, 0.0, 0.0), wall, PlaneLandmarks.empty())
+        assert est.pose is not None
+        if k:
+            err.append(abs(est.pose.east_m - east))
+            sd.append(est.std["east_m"])
+            placed = est.placed
+    return np.array(err), np.array(sd), placed
+
+
+def test_a_graph_along_one_wall_says_it_does_not_know_where_it_is_along_it() -> None:
+    pytest.importorskip("gtsam")
+    for seed in (1, 3):
+        err, sd, placed = _along_one_wall(BASE, seed)
+        assert err[-1] > 3.0 * sd[-1]  # the first graph: decimetres off, claimed within centimetres
+        assert placed
+        assert sd[-1] < BASE.place_std_m
+        err, sd, placed = _along_one_wall(HONEST, seed)
+        assert np.all(err <= 3.0 * sd)
+        assert sd[-1] > HONEST.place_std_m  # the status says so: nothing placed
+        assert not placed
