@@ -14,6 +14,7 @@ over the robots): estimated minus true. Markdown; a diagnostic."""
 from __future__ import annotations
 
 import argparse
+import ast
 import math
 from pathlib import Path
 from typing import Any
@@ -125,7 +126,8 @@ def main() -> int:
         for kv in args.set:
             key, val = kv.split("=", 1)
             where, name = key.split(".", 1)
-            (nav if where == "nav" else graph)[name] = bool(int(val)) if name == "fleet_heading" else float(val)
+            value = float(val) if val in ("inf", "-inf") else ast.literal_eval(val)  # numbers, True, 'text'
+            (nav if where == "nav" else graph)[name] = bool(int(val)) if name == "fleet_heading" else value
         rows = ["| seed | faces in the bar | duplicates | spurious | map heading (deg) | worst deg / cm | unplaced | "
                 "frame turn (deg) | placed heading error per robot (deg, mean) |",
                 "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip

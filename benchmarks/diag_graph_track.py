@@ -134,6 +134,19 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {robot} | {b} | {sum(s[4] for s in rs)} / {sum(s[5] for s in rs)} / {sum(s[6] for s in rs)} | "
                   f"{100 * np.nanmean(err):.0f} / {100 * np.nanmax(err):.0f} | {100 * np.mean(std):.0f} | "
                   f"{np.mean([s[7] for s in rs]):.0f} | {np.mean([s[8] for s in rs]):.1f} | {rs[-1][9]} |")  # fmt: skip
+    print("\nerror against the standard deviation (robot: scans whose error lay beyond 3 std, of all / of those on a "
+          "broken track; scans placed with an error over 10 cm; the largest error on a broken track and the std "
+          "then, cm):\n")  # fmt: skip
+    for robot in sorted({s[0] for s in scans}):
+        rows = [s for s in scans if s[0] == robot and math.isfinite(s[2])]
+        out = [s for s in rows if s[2] > 3 * s[3]]
+        broken = [s for s in rows if s[6]]
+        worst = max(broken, key=lambda s: s[2]) if broken else None
+        far = f"{100 * worst[2]:.0f} / {100 * worst[3]:.0f}" if worst else "-"
+        print(
+            f"- {robot}: {len(out)} of {len(rows)} / {sum(s[6] for s in out)} of {len(broken)}; "
+            f"placed over 10 cm {sum(1 for s in rows if s[4] and s[2] > 0.1)}; worst broken {far}"
+        )
     print("\nchecks and re-localizations (robot: tries, passed; why the others failed; the estimate's error when "
           "one passed, cm):\n")  # fmt: skip
     for robot in sorted({s[0] for s in scans}):

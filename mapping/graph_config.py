@@ -26,8 +26,17 @@ class GraphConfig:
     stretch carry one drift, not independent errors. ``odometry_observed_std_m`` (off: ``inf``): a scan
     increment's direction counts only where it pins the move within this (m; see
     :func:`mapping.odometry.own_increment`); ``odometry_prior_m_s`` widens the prior the scan matching starts
-    from by this speed (m/s; 0: the velocity walk's alone). ``second_hypothesis`` (off): a plane factor is left
-    out when another plane would explain the scan's points on it within the pose's marginal
+    from by this speed (m/s; 0: the velocity walk's alone). The guards of the odometry on a broken track
+    (:mod:`mapping.graph_odometry`, all off): ``odometry_speed_bound`` how the bound on one scan's move from
+    ``max_speed_m_s`` joins the scan's move (``added``: its information added, the move the scan's;
+    ``prediction`` / ``rest``: combined with the move by their information, centred at the prediction or at no
+    move); ``odometry_spread_m`` (0: off) the registration run again from starts that far either side along its
+    weakest direction, the spread of the results bounding its information; ``odometry_residual_scale`` the scan's
+    information divided by its residuals' scatter (``OdometryConfig.residual_scale``); ``odometry_guard_broken_only``
+    those three only while the track is broken; ``odometry_own_prediction`` the scan matching started from the
+    robot's own last increments, not the graph's velocity; ``odometry_refuse_chi2`` (``inf``: off) a direction
+    whose move lies beyond the prior by that many variances refused. ``second_hypothesis`` (off): a plane factor
+    is left out when another plane would explain the scan's points on it within the pose's marginal
     (:func:`mapping.graph_gate.ambiguous`).
     ``track_break_std_m``: past this horizontal std the track is broken and nothing more is placed
     (:class:`mapping.graph_gate.TrackGate`; ``inf``: never), and so it does where one scan moves the position
@@ -60,6 +69,12 @@ class GraphConfig:
     odometry_info_scale: float = 0.3
     odometry_observed_std_m: float = math.inf
     odometry_prior_m_s: float = 0.0
+    odometry_own_prediction: bool = False
+    odometry_spread_m: float = 0.0
+    odometry_refuse_chi2: float = math.inf
+    odometry_speed_bound: str = "added"
+    odometry_residual_scale: bool = False
+    odometry_guard_broken_only: bool = False
     max_speed_m_s: float = 0.6
     compass_every_s: float = 5.0
     compass_bias_deg: float = 3.0

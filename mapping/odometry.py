@@ -30,7 +30,10 @@ class OdometryConfig:
     """Tuning (metres): a previous point serves within ``max_pair_m`` of a new one; its stripe neighbours must
     lie within ``max_gap_m`` (else it sits on an edge and has no normal); ``point_sigma_m`` / ``huber_m`` of a
     residual; at most ``max_independent_points`` count as independent; ``min_pairs`` associations make an
-    increment; ``iterations`` re-associations; the new scan's points are sub-sampled to ``max_new_points``."""
+    increment; ``iterations`` re-associations; the new scan's points are sub-sampled to ``max_new_points``.
+    ``residual_scale`` (off): the scan's information is divided by the residuals' own variance over
+    ``point_sigma_m``'s where they scatter more (an a-posteriori variance factor: noisy stripes and their normals
+    claim less)."""
 
     max_pair_m: float = 0.08
     max_gap_m: float = 0.05
@@ -40,6 +43,7 @@ class OdometryConfig:
     min_pairs: int = 20
     iterations: int = 3
     max_new_points: int = 100
+    residual_scale: bool = False
 
 
 def stripe_normals(p: FloatArray, vehicle: FloatArray, max_gap_m: float) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -87,9 +91,11 @@ def increment(
     p_inv = np.linalg.inv(prior_cov)
     qq = np.einsum("ij,ij->i", q, q)
     delta = np.zeros(2)
+    delta_assoc = delta
     h = np.zeros((2, 2))
     pairs = 0
     for _ in range(cfg.iterations):
+        delta_assoc = delta.copy()
         p = new_rel.copy()
         p[:, 0:2] += delta
         # squared distances by one product (|p|^2 + |q|^2 - 2 p.q): the (K, M, 3) difference array cost most
@@ -108,6 +114,11 @@ def increment(
         g = scale * (jac.T * w) @ r
         # Gauss-Newton on the residuals with the prior (mean 0) on the move
         delta = np.asarray(np.linalg.solve(p_inv + h, h @ delta - g), dtype=np.float64)
+    if cfg.residual_scale and pairs > 2:
+        # the residuals at the solution (the last association) against the sigma the information assumed
+        r_end = r + jac @ (delta - delta_assoc)
+        factor = float(np.sum(w * r_end**2) / np.sum(w)) / cfg.point_sigma_m**2
+        h = h / max(1.0, factor)
     cov = np.linalg.inv(p_inv + h)
     return delta, 0.5 * (cov + cov.T), pairs
 

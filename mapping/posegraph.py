@@ -30,10 +30,11 @@ the graph is rebuilt from the last ``window_s`` of its factors, the first kept p
 marginal covariance (a marginalisation), so the cost per scan stays bounded. :meth:`GraphNav.snapshot` is the
 factors' plain numbers (a plane worker can send it): :meth:`GraphNav.restore` rebuilds the graph from them.
 
-Its parts: the variables, odometry, solve and window here; the map's planes (registration and plane factors)
-in :mod:`mapping.graph_planes`; the factors' GTSAM form in :mod:`mapping.graph_factors`; the track gate, checks and
-re-localization in :mod:`mapping.graph_gate`; the held clouds in :mod:`mapping.graph_hold`; the heading check in
-:mod:`mapping.graph_heading`; the fleet's compass biases in :mod:`mapping.graph_fleet`.
+Its parts: the variables, solve and window here; the map's planes (registration and plane factors) in
+:mod:`mapping.graph_planes`; the odometry factor and its guards in :mod:`mapping.graph_odometry`; the factors'
+GTSAM form in :mod:`mapping.graph_factors`; the track gate, checks and re-localization in :mod:`mapping.graph_gate`;
+the held clouds in :mod:`mapping.graph_hold`; the heading check in :mod:`mapping.graph_heading`; the fleet's
+compass biases in :mod:`mapping.graph_fleet`.
 
 GTSAM (``gtsam``, the ``graph`` extra of pyproject.toml) is imported on first use.
 """
@@ -54,10 +55,11 @@ from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import TrackGate, relocalize, verify
 from .graph_heading import check_heading
 from .graph_hold import CloudHold, check_due, check_held, hold_step
+from .graph_odometry import guards, odometry_factor, own_velocity, rot3
 from .graph_planes import register
 from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
-from .odometry import OdometryConfig, increment, own_increment
+from .odometry import OdometryConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -90,7 +92,7 @@ class GraphNav:
         self.robot = robot
         self.cfg = cfg or NavConfig()
         self.gcfg = graph or GraphConfig()
-        self.odo_cfg = OdometryConfig()
+        self.odo_cfg = OdometryConfig(residual_scale=self.gcfg.odometry_residual_scale)
         self.latest: NavEstimate | None = None
         self.lost = False
         self.joined = True
@@ -364,6 +366,10 @@ class GraphNav:
         self._scan[key] = (level, raw.down_m)
         x_prev = self._est[prev]
         v = self.x[2:4]
+        if gcfg.odometry_own_prediction:
+            # the robot's own last increments: no re-localization or plane correction reads as a move
+            own = own_velocity(self._specs, self._t, self._est, self._first_key)
+            v = v if own is None else own
         # the predicted move, in the previous pose's level frame (heading x_prev[2])
         r_prev = rot(float(x_prev[2]))
         pred = r_prev.T @ (v * dt)
@@ -371,27 +377,13 @@ class GraphNav:
         walk_var = gcfg.velocity_walk_m_s**2 * dt**3 + (0.05 * dt) ** 2
         prior_cov = np.eye(2) * walk_var + self._vel_cov * dt * dt
         prev_level, prev_depth = self._scan.get(prev, (np.zeros((0, 3)), raw.down_m))
-        new_rel = (
-            level
-            @ np.array(
-                [[math.cos(dyaw), -math.sin(dyaw), 0.0], [math.sin(dyaw), math.cos(dyaw), 0.0], [0.0, 0.0, 1.0]]
-            ).T
+        new_rel = level @ rot3(dyaw).T + np.array([0.0, 0.0, raw.down_m - prev_depth])
+        icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
+        # the scan's own move (the prior's pull taken out) and a weak bound from the speed
+        z, info2, pairs = odometry_factor(
+            prev_level, new_rel, pred, icp_cov, speed_var, *guards(gcfg, self.odo_cfg, self.track.broken)
         )
-        new_rel = new_rel + np.array([pred[0], pred[1], raw.down_m - prev_depth])
-        h = np.zeros((2, 2))
-        z = pred.copy()
-        motion = "motion-prior"
-        if prev_level.shape[0] and new_rel.shape[0]:
-            icp_cov = prior_cov + np.eye(2) * (gcfg.odometry_prior_m_s * dt) ** 2
-            d, cov, pairs = increment(prev_level, new_rel, icp_cov, self.odo_cfg)
-            if pairs:
-                # the scan's own solution (the prior's pull taken out): along an unobserved direction it is the
-                # prediction, which the information there (none) does not hold
-                dz, h = own_increment(d, cov, icp_cov, gcfg.odometry_info_scale, gcfg.odometry_observed_std_m)
-                z = pred + dz
-                motion = "scan-odometry"
-        # the move's information: the scan's, plus a weak bound from the speed
-        info2 = h + np.eye(2) / speed_var
+        motion = "scan-odometry" if pairs else "motion-prior"
         # the between-factor's translation error lies in the frame turned by the measured turn
         r_d = rot(dyaw)
         info = np.zeros((3, 3))
