@@ -15,6 +15,12 @@ state, or its removal into another plane), at most one per plane per call, in th
 in order to the previous map's planes, they give the new ones; turning them into JSON is the publisher's job.
 (:meth:`map_json` serves the planes with bands of one face joined, :mod:`mapping.served`; the changes and the
 landmarks are the planes as built.)
+
+Layout: this module holds :class:`MapBuilder` (input, merge, re-placement, output, save and reload, under its
+lock); :mod:`mapping.builder_window` a robot's window (thinning, the extraction triggers) and the extraction of
+a window into observations; :mod:`mapping.builder_state` the state as the header and arrays that
+:mod:`mapping.store` saves, and back; :mod:`mapping.replace` the re-placement helpers (``freeze``,
+``rebuild_changes``) next to ``rebuild``.
 """
 
 from __future__ import annotations
@@ -22,9 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-import zlib
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,36 +37,19 @@ from numpy.typing import NDArray
 
 from lrsensor.frames import Pose
 
+from .builder_state import decode_state, encode_state
+from .builder_window import RobotWindow, WindowCloud, extract_window, extraction_due, spans_time, thin_cloud
 from .errors import MapInputError, MapStoreError
 from .landmarks import SNAPSHOT_GRID_NS, LandmarkSnapshots, PlaneLandmarks, SnapshotRange, snapshot_time
-from .ned import check_cloud, quantize
-from .plane_map import MapPlane, PlaneMap, PlaneRecord
-from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
-from .range_noise import cloud_noise_per_m, window_noise
-from .replace import Placement, PlacementSnapshot, move_placement, rebuild
+from .ned import check_cloud
+from .plane_map import PlaneMap, PlaneRecord
+from .range_noise import cloud_noise_per_m
+from .replace import Placement, PlacementSnapshot, freeze, move_placement, rebuild, rebuild_changes
 from .served import served_planes
-from .stats import Contribution, VoxelSet
-from .store import JSON_FILE, load_state, save_json, save_state, saved_config, six_ints
-from .types import MapChange, MapConfig, PlaneStats
+from .store import JSON_FILE, load_state, save_json, save_state, saved_config
+from .types import MapChange, MapConfig
 
 log = logging.getLogger(__name__)
-
-FloatArray = NDArray[np.float64]
-
-
-@dataclass
-class _Cloud:
-    t_ns: int
-    points_q: NDArray[np.int32]
-    vehicle_q: NDArray[np.int64]
-    noise_per_m: float = 0.0  # its range noise k (mapping.range_noise)
-
-
-@dataclass
-class _Window:
-    clouds: deque[_Cloud] = field(default_factory=deque)
-    n_new: int = 0
-    new_points: int = 0
 
 
 @dataclass
@@ -94,7 +81,7 @@ class MapBuilder:
         self._lock = threading.RLock()
         self._save_lock = threading.Lock()
         self._map = PlaneMap(self.cfg)
-        self._windows: dict[str, _Window] = {}
+        self._windows: dict[str, RobotWindow] = {}
         self._tracks: dict[str, list[tuple[int, float, float, float]]] = {}
         self._counters = _Counters()
         self._last_save = time.monotonic()
@@ -174,14 +161,14 @@ class MapBuilder:
                 return None
             self._last_taken[robot] = t
         q_veh = np.rint(veh / self.cfg.quantum_m).astype(np.int64)
-        cloud = _Cloud(t, self._thin(p, veh), q_veh, self.range_noise(robot))
+        cloud = WindowCloud(t, thin_cloud(p, veh, self.cfg), q_veh, self.range_noise(robot))
         with self._lock:
-            win = self._windows.setdefault(robot, _Window())
+            win = self._windows.setdefault(robot, RobotWindow())
             win.clouds.append(cloud)
             win.n_new += 1
             win.new_points += cloud.points_q.shape[0]
             self._counters.points += cloud.points_q.shape[0]
-            due = self._due(win)
+            due = extraction_due(win, self.cfg)
         return self._observe(robot) if due else None
 
     def advance_time(self, robot: str, t_ns: int) -> list[MapChange]:
@@ -200,7 +187,7 @@ class MapBuilder:
         clouds when they are due by capture time, without merging them; None when nothing is due."""
         with self._lock:
             win = self._windows.get(robot)
-            if win is None or win.n_new == 0 or not self._spans_time(win, int(t_ns)):
+            if win is None or win.n_new == 0 or not spans_time(win, int(t_ns), self.cfg):
                 return None
         return self._observe(robot)
 
@@ -249,45 +236,11 @@ class MapBuilder:
         with self._lock:
             return self._counters.skipped
 
-    def _thin(self, p: FloatArray, veh: FloatArray) -> NDArray[np.int32]:
-        """Range-gate, quantize and thin one cloud: (K, 3) int32 quanta.
-
-        Thinning keeps a point when its ``cloud_voxel_m`` voxel differs from the previous point's: the stripes
-        arrive in column order, so this removes the near-duplicates of near ranges in O(N) without sorting.
-        """
-        cfg = self.cfg
-        if p.shape[0]:
-            d = p - veh
-            p = p[np.einsum("ij,ij->i", d, d) <= cfg.max_range_m**2]
-        pq = quantize(p, cfg.quantum_m, "cloud")
-        vq = max(1, round(cfg.cloud_voxel_m / cfg.quantum_m))
-        if pq.shape[0] > 1 and vq > 1:
-            keys = pack_keys(np.floor_divide(pq, vq).astype(np.int64))
-            keep = np.empty(keys.shape[0], dtype=bool)
-            keep[0] = True
-            np.not_equal(keys[1:], keys[:-1], out=keep[1:])
-            pq = pq[keep]
-        return pq
-
     def add_cloud_body(self, robot: str, t_ns: int, points_body: Any, pose: Pose) -> list[MapChange]:
         """Like :meth:`add_cloud` for body-frame points (transformed with ``pose`` first)."""
         from .ned import cloud_to_ned
 
         return self.add_cloud(robot, t_ns, cloud_to_ned(points_body, pose), pose)
-
-    def _due(self, win: _Window) -> bool:
-        cfg = self.cfg
-        if win.n_new >= cfg.extract_every_clouds or win.new_points >= cfg.extract_every_points:
-            return True
-        return win.n_new >= 2 and self._spans_time(win, win.clouds[-1].t_ns)
-
-    def _spans_time(self, win: _Window, t_ns: int) -> bool:
-        """Whether the window's new clouds, up to capture time ``t_ns``, span ``extract_every_s`` (the time rule
-        of an extraction; off when it is 0)."""
-        if self.cfg.extract_every_s <= 0 or win.n_new == 0:
-            return False
-        first_new = win.clouds[len(win.clouds) - win.n_new]
-        return t_ns - first_new.t_ns >= self.cfg.extract_every_s * 1e9
 
     def flush(self) -> list[MapChange]:
         """Run the pending extraction of every robot now (end of a dive, tests); returns the changes."""
@@ -317,7 +270,6 @@ class MapBuilder:
     def _observe(self, robot: str) -> list[PlaneRecord]:
         """Extract the robot's window; the observations of its new clouds (not merged)."""
         cfg = self.cfg
-        q = cfg.quantum_m
         with self._lock:
             win = self._windows[robot]
             clouds = list(win.clouds)
@@ -331,52 +283,17 @@ class MapBuilder:
             ):
                 win.clouds.popleft()
         t0 = time.perf_counter()
-        new = clouds[len(clouds) - n_new :]
-        lens = np.array([c.points_q.shape[0] for c in clouds], dtype=np.int64)
-        n_total = int(lens.sum())
-        n_eligible = int(lens[len(clouds) - n_new :].sum())
-        if n_eligible == 0:
+        obs = extract_window(robot, clouds, n_new, cfg, self.keep_placements)
+        if obs is None:
             return []
-        pts_q = np.concatenate([c.points_q for c in clouds]) if n_total else np.zeros((0, 3), np.int32)
-        veh_q = np.repeat(np.stack([c.vehicle_q for c in clouds]), lens, axis=0)
-        origin_m = np.round(new[0].vehicle_q * q / 3.0) * 3.0
-        pts_m = pts_q * q - origin_m
-        veh_m = veh_q * q - origin_m
-        seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
-        ex = extract_planes(pts_m, veh_m, cfg, seed, window_noise([c.noise_per_m for c in clouds], lens))
-        records: list[PlaneRecord] = []
-        n_curved = 0
-        n_single = 0
-        if ex.candidates:
-            eligible = np.zeros(n_total, dtype=bool)
-            eligible[n_total - n_eligible :] = True
-            claims = claim_points(pts_m, ex.grid, ex.candidates, ex.cell_keys, cfg, eligible)
-            first_ns, last_ns = new[0].t_ns, new[-1].t_ns
-            frame_of = np.repeat(np.arange(len(clouds), dtype=np.int64), lens)
-            for cand, idx in zip(ex.candidates, claims, strict=True):
-                if idx.shape[0] < cfg.min_commit_points:
-                    continue
-                support = frame_support(pts_m, ex.grid, cand, frame_of, cfg.distance_threshold_m, cfg.min_frame_points)
-                if support < cfg.min_obs_frames:
-                    n_single += 1
-                    continue
-                bulge = frame_sagitta(pts_m[idx], frame_of[idx], cand.normal)
-                if bulge > cfg.max_frame_sagitta_m:
-                    n_curved += 1
-                    continue
-                rec = PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg)
-                records.append(rec)
-                if self.keep_placements:
-                    cloud_t = np.array([c.t_ns for c in clouds], dtype=np.int64)[frame_of[idx]]
-                    pl = Placement(robot, pts_q[idx], cloud_t, np.asarray(cand.normal, float), first_ns, last_ns, rec)
-                    with self._lock:
-                        self._pending[id(rec)] = pl
         with self._lock:
+            for rec, pl in obs.placements:
+                self._pending[id(rec)] = pl
             self._counters.extractions += 1
-            self._counters.curved += n_curved
-            self._counters.single_frame += n_single
+            self._counters.curved += obs.curved
+            self._counters.single_frame += obs.single_frame
             self._counters.extract_s += time.perf_counter() - t0
-        return records
+        return obs.records
 
     def replace_poses(self, robot: str, old: dict[int, Pose], new: dict[int, Pose]) -> int:
         """Move ``robot``'s kept observations (``keep_placements``) from the cloud poses ``old`` to ``new``
@@ -392,18 +309,7 @@ class MapBuilder:
         """Fuse for good the kept observations of each robot whose clouds are all older than ``before_ns[robot]``
         (its smoothing window's start) and drop their points; returns how many were frozen."""
         with self._lock:
-            keep: list[Placement] = []
-            frozen = 0
-            for pl in self._placements:
-                cut = before_ns.get(pl.robot)
-                if cut is not None and pl.cloud_t.size and int(pl.cloud_t.max()) < cut:
-                    if self._frozen is None:
-                        self._frozen = PlaneMap(self.cfg)
-                    self._frozen.add(pl.record)
-                    frozen += 1
-                else:
-                    keep.append(pl)
-            self._placements = keep
+            self._placements, self._frozen, frozen = freeze(self._placements, before_ns, self._frozen, self.cfg)
             return frozen
 
     def rebuild(self) -> list[MapChange]:
@@ -440,16 +346,7 @@ class MapBuilder:
         old = self._map
         self._map = new
         self._version += 1
-        changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]
-        gone = sorted(set(old.planes) - set(new.planes))
-        if gone and new.planes:
-            ids = np.array(sorted(new.planes))
-            cents = np.array([new.planes[int(i)].fit.centroid for i in ids])
-            for pid in gone:
-                c = old.planes[pid].fit.centroid
-                into = int(ids[np.argmin(np.linalg.norm(cents - c, axis=1))])
-                changes.append(MapChange.removed(pid, into))
-        return changes
+        return rebuild_changes(old, new)
 
     # ----------------------------------------------------------------- output
     def map_json(self, include_tracks: bool = False, include_tentative: bool = False) -> dict[str, Any]:
@@ -574,123 +471,18 @@ class MapBuilder:
         return path
 
     def _snapshot(self) -> tuple[dict[str, Any], dict[str, NDArray[Any]]]:
-        planes = []
-        vox_plane, vox_keys, vox_counts, vox_sums = [], [], [], []
-        for pid, mp in sorted(self._map.planes.items()):
-            rec = mp.record
-            planes.append(
-                {
-                    "id": pid,
-                    "stats": rec.stats.to_list(),
-                    "orient": list(rec.orient),
-                    "aabb_min": list(rec.aabb_min),
-                    "aabb_max": list(rec.aabb_max),
-                    "n_obs": rec.n_obs,
-                    "within": list(rec.within),
-                    "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in rec.contributions.items()},
-                }
-            )
-            vox_plane.append(np.full(rec.voxels.keys.shape[0], pid, np.int64))
-            vox_keys.append(rec.voxels.keys)
-            vox_counts.append(rec.voxels.counts)
-            vox_sums.append(rec.voxels.sums)
-        robots = sorted(set(self._tracks) | set(self._windows))
-        rindex = {r: i for i, r in enumerate(robots)}
-        tr_r, tr_t, tr_p = [], [], []
-        for robot, tr in self._tracks.items():
-            for t, n, e, d in tr:
-                tr_r.append(rindex[robot])
-                tr_t.append(t)
-                tr_p.append((n, e, d))
-        win_r, win_t, win_len, win_veh, win_pts, win_k = [], [], [], [], [], []
-        windows = {}
-        for robot, w in sorted(self._windows.items()):
-            windows[robot] = {"n_new": w.n_new, "new_points": w.new_points}
-            for c in w.clouds:
-                win_r.append(rindex[robot])
-                win_t.append(c.t_ns)
-                win_len.append(c.points_q.shape[0])
-                win_veh.append(c.vehicle_q)
-                win_pts.append(c.points_q)
-                win_k.append(c.noise_per_m)
-        header = {
-            "config": self.cfg.to_dict(),
-            "next_id": self._map.next_id,
-            "planes": planes,
-            "robots": robots,
-            "windows": windows,
-            "last_taken_ns": dict(sorted(self._last_taken.items())),
-        }
-
-        def cat(parts: list[NDArray[Any]], shape: tuple[int, ...], dtype: Any) -> NDArray[Any]:
-            return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
-
-        arrays: dict[str, NDArray[Any]] = {
-            "vox_plane": cat(vox_plane, (0,), np.int64),
-            "vox_keys": cat(vox_keys, (0,), np.int64),
-            "vox_counts": cat(vox_counts, (0,), np.int64),
-            "vox_sums": cat(vox_sums, (0, 3), np.int64),
-            "track_robot": np.array(tr_r, np.int64),
-            "track_t_ns": np.array(tr_t, np.int64),
-            "track_ned": np.array(tr_p, np.float64).reshape(-1, 3),
-            "win_robot": np.array(win_r, np.int64),
-            "win_t_ns": np.array(win_t, np.int64),
-            "win_len": np.array(win_len, np.int64),
-            "win_vehicle_q": np.array(win_veh, np.int64).reshape(-1, 3),
-            "win_points_q": cat(win_pts, (0, 3), np.int32),
-            "win_noise_per_m": np.array(win_k, np.float64),
-        }
-        return header, arrays
+        return encode_state(self.cfg, self._map, self._tracks, self._windows, self._last_taken)
 
     def _load(self, header: dict[str, Any], a: dict[str, NDArray[Any]]) -> None:
         assert self.state_dir is not None
         where = self.state_dir / "map_state.npz"
-        try:
-            if header.get("config") != self.cfg.to_dict():
-                log.warning("%s: saved with a different MapConfig; continuing the map with the new one", where)
-            pm = PlaneMap(self.cfg)
-            pm.next_id = int(header["next_id"])
-            vox_plane = a["vox_plane"]
-            for p in header["planes"]:
-                pid = int(p["id"])
-                sel = vox_plane == pid
-                rec = PlaneRecord(
-                    PlaneStats.from_list(p["stats"]),
-                    (int(p["orient"][0]), int(p["orient"][1]), int(p["orient"][2])),
-                    (int(p["aabb_min"][0]), int(p["aabb_min"][1]), int(p["aabb_min"][2])),
-                    (int(p["aabb_max"][0]), int(p["aabb_max"][1]), int(p["aabb_max"][2])),
-                    {k: Contribution(int(v[0]), int(v[1]), int(v[2])) for k, v in p["contributions"].items()},
-                    VoxelSet(a["vox_keys"][sel], a["vox_counts"][sel], a["vox_sums"][sel]),
-                    int(p["n_obs"]),
-                    None,
-                    six_ints(p.get("within", [0] * 6)),
-                )
-                pm.planes[pid] = MapPlane(pid, rec, self.cfg)
-            robots: list[str] = list(header["robots"])
-            tracks: dict[str, list[tuple[int, float, float, float]]] = {}
-            for ri, t, pos in zip(a["track_robot"], a["track_t_ns"], a["track_ned"], strict=False):
-                tracks.setdefault(robots[int(ri)], []).append((int(t), float(pos[0]), float(pos[1]), float(pos[2])))
-            windows: dict[str, _Window] = {}
-            offsets = np.concatenate([[0], np.cumsum(a["win_len"])]).astype(np.int64)
-            win_k = a.get("win_noise_per_m", np.zeros(len(a["win_t_ns"])))  # absent: saved before per-cloud k
-            for i, (ri, t) in enumerate(zip(a["win_robot"], a["win_t_ns"], strict=False)):
-                w = windows.setdefault(robots[int(ri)], _Window())
-                pts = a["win_points_q"][offsets[i] : offsets[i + 1]].astype(np.int32)
-                w.clouds.append(_Cloud(int(t), pts, a["win_vehicle_q"][i].astype(np.int64), float(win_k[i])))
-            for r, wmeta in header["windows"].items():
-                w = windows.setdefault(r, _Window())
-                w.n_new = int(wmeta["n_new"])
-                w.new_points = int(wmeta["new_points"])
-            last_taken = {str(k): int(v) for k, v in header.get("last_taken_ns", {}).items()}
-        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as err:
-            msg = f"{where}: inconsistent map state: {err!r}"
-            raise MapStoreError(msg) from err
+        pm, tracks, windows, last_taken = decode_state(self.cfg, header, a, where)
         with self._lock:
             self._map = pm
             self._tracks = tracks
             self._windows = windows
             self._last_taken = last_taken
-        log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(robots))
+        log.info("map reloaded from %s: %d planes, %d robots", where, len(pm), len(header["robots"]))
 
 
 def _squash(changes: list[MapChange]) -> list[MapChange]:

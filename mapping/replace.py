@@ -28,7 +28,7 @@ from lrsensor.frames import Pose
 
 from .ned import quantize
 from .plane_map import PlaneMap, PlaneRecord
-from .types import MapConfig
+from .types import MapChange, MapConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -100,6 +100,41 @@ def rebuild(placements: list[Placement], cfg: MapConfig, frozen: PlaneMap | None
     for pl in placements:
         m.add(pl.record)
     return m
+
+
+def freeze(
+    placements: list[Placement], before_ns: dict[str, int], frozen: PlaneMap | None, cfg: MapConfig
+) -> tuple[list[Placement], PlaneMap | None, int]:
+    """Fuse for good into ``frozen`` (made when None; else added to in place) the observations of each robot whose
+    clouds are all older than ``before_ns[robot]``; returns the observations kept, the frozen map and how many
+    were frozen."""
+    keep: list[Placement] = []
+    n = 0
+    for pl in placements:
+        cut = before_ns.get(pl.robot)
+        if cut is not None and pl.cloud_t.size and int(pl.cloud_t.max()) < cut:
+            if frozen is None:
+                frozen = PlaneMap(cfg)
+            frozen.add(pl.record)
+            n += 1
+        else:
+            keep.append(pl)
+    return keep, frozen, n
+
+
+def rebuild_changes(old: PlaneMap, new: PlaneMap) -> list[MapChange]:
+    """The changes from map ``old`` to its rebuild ``new``: every plane of ``new`` as updated, and every id of
+    ``old`` that ``new`` lacks as removed into the plane of ``new`` whose centroid is nearest to it."""
+    changes = [MapChange.updated(mp) for _, mp in sorted(new.planes.items())]
+    gone = sorted(set(old.planes) - set(new.planes))
+    if gone and new.planes:
+        ids = np.array(sorted(new.planes))
+        cents = np.array([new.planes[int(i)].fit.centroid for i in ids])
+        for pid in gone:
+            c = old.planes[pid].fit.centroid
+            into = int(ids[np.argmin(np.linalg.norm(cents - c, axis=1))])
+            changes.append(MapChange.removed(pid, into))
+    return changes
 
 
 class PlacementSnapshot:

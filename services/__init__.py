@@ -11,7 +11,8 @@ Modules:
 * :mod:`services.sources`, :mod:`services.simsource` frame sources (recorded dive, video, camera, simulator);
 * :mod:`services.rov` the ROV service;
 * :mod:`services.base` the base station's Zenoh wiring, composed of :mod:`services.ledger` (robot records, the
-  state file, acknowledgements), :mod:`services.mapfeed` (the map queue, worker and publication) and
+  state file, acknowledgements), :mod:`services.mapfeed` (the map queue, worker and publication, with
+  :mod:`services.map_thread` and :mod:`services.mapfeed_views`) and
   :mod:`services.calibbook` (the robots' calibrations, for clouds sent as stripe rows);
 * :mod:`services.testnet` the in-process test network; :mod:`services.demo` ``lrsensor demo``;
 * :mod:`services.signals` SIGINT/SIGTERM -> a stop event, so every session is closed;

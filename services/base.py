@@ -3,7 +3,8 @@
 This module is the Zenoh wiring; the two parts it composes each have their own module:
 
 * :mod:`services.ledger`: the robot records, the state file and the acknowledgement protocol;
-* :mod:`services.mapfeed`: the map queue, the one map thread and the publication of map changes.
+* :mod:`services.mapfeed`: the map queue, the one map thread (:mod:`services.map_thread`) and the publication of
+  map changes (:mod:`services.mapfeed_views`).
 
 Data path: the Zenoh subscriber callback only enqueues ``(key, payload, receive time)`` into a bounded queue
 (blocking when full, which pushes back on the BLOCK publishers instead of dropping); ingest worker threads

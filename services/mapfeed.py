@@ -21,13 +21,8 @@ those clouds; ``map.latency_ms.p50``/``p99`` is capture time to that moment, ove
 waiting in a window for their extraction are ``map.pending``). With plane workers (:mod:`services.map_workers`)
 the same counters come from the workers' observations.
 
-Wire form of the updates (``<root>/map/updates``, JSON, one message per cloud that changed the map)::
-
-    {"t_ns": capture time of the cloud (or publication time for a flush), "robot", "seq",
-     "planes": [plane as in the map JSON, or {"id", "removed": true, "merged_into"}]}
-
-The builder returns typed :class:`mapping.MapChange` values; they become JSON only here, at the wire
-(:func:`change_json`), and only when the base publishes.
+The builder returns typed :class:`mapping.MapChange` values; they become JSON only at the wire, when the base
+publishes (``<root>/map/updates``: :mod:`services.mapfeed_views` gives the form).
 
 Navigation (``mapping.navigation``; on by default in the base station): before a cloud goes into the map, the map
 thread corrects its pose. The robot's estimator registers the cloud against the map's planes and fuses that with
@@ -45,29 +40,30 @@ pose source with attitude and depth only) is such a cloud. It is counted (``map.
 (acknowledgeable: it is held in the received counters, and the robot must not re-send it forever to a map that
 cannot take it).
 
-Also here: the end-to-end latency statistics (capture time to the moment a cloud is handed to the map) and
-the publication-to-base transit times (:class:`LatencyStats`), and :func:`load_map_builder`, which finds out
-whether the map can run on this install (Open3D lives behind the ``mapping`` import).
+Layout: this module holds :class:`MapFeed` (the queue, its input and back-pressure, the counting and publication
+of what reached the map, the navigation estimates served) and :func:`load_map_builder`, which finds out whether
+the map can run on this install (Open3D lives behind the ``mapping`` import); :mod:`services.map_thread` the map
+thread's work on each cloud (navigation, held clouds, settling at the end of a dive); :mod:`services.mapfeed_views`
+the wire form of map changes, the status's ``map`` part and the latency statistics (:class:`LatencyStats`). The
+names that moved there are still importable from here.
 """
 
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from lrsensor.frames import body_to_ned
-
+from . import map_thread, mapfeed_views
 from .capture_order import CaptureOrder, QuietFlush
 from .errors import MappingUnavailableError
+from .map_thread import FLUSH, SILENT_CHECK_S
+from .mapfeed_views import LatencyStats, change_json, json_default
 from .posetrack import has_fix
 from .wire import CloudMsg
 
@@ -80,40 +76,21 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+__all__ = [
+    "CLOSE_TIMEOUT_S",
+    "NAV_PUBLISH_S",
+    "SILENT_CHECK_S",
+    "LatencyStats",
+    "MapFeed",
+    "change_json",
+    "json_default",
+    "load_map_builder",
+]
+
 #: How long :meth:`MapFeed.close` waits for the map thread to finish its queue, seconds.
 CLOSE_TIMEOUT_S = 60.0
-#: Marker in the map queue: flush the map.
-_FLUSH: Any = object()
-#: how often an idle map thread looks for silent robots whose clouds wait in their hold (s)
-SILENT_CHECK_S = 1.0
 #: Publish a robot's corrected pose at most this often (seconds of capture time).
 NAV_PUBLISH_S = 0.2
-
-
-class LatencyStats:
-    """End-to-end latencies (base processing time minus capture time), ns, of the most recent clouds.
-
-    Thread-safe: any thread may :meth:`add` while another asks for percentiles.
-    """
-
-    def __init__(self, maxlen: int = 200_000) -> None:
-        self.values: collections.deque[int] = collections.deque(maxlen=maxlen)
-        self.transit: collections.deque[int] = collections.deque(maxlen=maxlen)
-        self._lock = threading.Lock()
-
-    def add(self, latency_ns: int, transit_ns: int | None) -> None:
-        """Record one cloud."""
-        with self._lock:
-            self.values.append(latency_ns)
-            if transit_ns is not None:
-                self.transit.append(transit_ns)
-
-    def percentiles_ms(self, qs: Iterable[float] = (50, 99), transit: bool = False) -> dict[str, float]:
-        """Percentiles in ms (NaN when empty) of the end-to-end latencies, or with ``transit`` of the
-        publication-to-base times (meaningful also when a recorded dive with old capture times is replayed)."""
-        with self._lock:
-            arr = np.asarray(self.transit if transit else self.values, dtype=float)
-        return {f"p{q:g}": float(np.percentile(arr, q) / 1e6) if arr.size else float("nan") for q in qs}
 
 
 def load_map_builder(map_dir: Path, mode: str) -> MapBuilder | None:
@@ -136,25 +113,6 @@ def load_map_builder(map_dir: Path, mode: str) -> MapBuilder | None:
         return None
     map_dir.mkdir(parents=True, exist_ok=True)
     return MapBuilder(MapConfig(), map_dir)
-
-
-def change_json(change: MapChange) -> dict[str, Any]:
-    """The wire form of one map change: the plane's serving dict, or ``{"id", "removed", "merged_into"}``."""
-    if change.plane is not None:
-        return change.plane.to_json()
-    return {"id": change.plane_id, "removed": True, "merged_into": change.merged_into}
-
-
-def json_default(obj: Any) -> Any:
-    """``json.dumps`` fallback for numpy values and sets in map data."""
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    msg = f"not JSON serialisable: {type(obj).__name__}"
-    raise TypeError(msg)
 
 
 class MapFeed:
@@ -367,169 +325,24 @@ class MapFeed:
         """Let the map thread finish its queue and extract what the map still holds (end of a dive)."""
         if self.builder is None:
             return
-        self._queue.put(_FLUSH)
+        self._queue.put(FLUSH)
         self._queue.join()
         if self.pool is not None:
             self.pool.flush(CLOSE_TIMEOUT_S)
 
     # ------------------------------------------------------------------ the map thread
     def _worker(self) -> None:
-        """The one thread that feeds the map (``MapBuilder.add_cloud`` is single-writer)."""
-        while True:
-            try:
-                msg = self._order.next_from(self._queue, SILENT_CHECK_S)
-            except queue.Empty:
-                try:
-                    self._settle_silent()
-                    if self.pool is None and self.quiet.due(time.monotonic()):
-                        self._end_of_dive()
-                        self.quiet.flushed()
-                except Exception as err:  # the map must never stop the ingest
-                    self.errors += 1
-                    log.exception("settling a silent robot's held clouds failed: %s", err)
-                continue
-            deferred = False
-            try:
-                if msg is None:
-                    return
-                if msg is _FLUSH:
-                    self._end_of_dive()
-                    continue
-                self.quiet.cloud(time.monotonic())
-                deferred = self._map_one(msg)
-            except Exception as err:  # the map must never stop the ingest
-                self.errors += 1
-                log.exception("map update failed: %s", err)
-            finally:
-                # taken in (or refused by the map): acknowledgeable; with workers, once committed (_commit_done)
-                if isinstance(msg, CloudMsg) and not deferred:
-                    self.on_mapped(msg.robot, msg.seq)
-                self._queue.task_done()
-
-    def _end_of_dive(self) -> None:
-        """A flush (:meth:`flush`, or the fleet silent for ``QuietFlush.quiet_s``): held clouds settled, every
-        window extracted, the smoothers' last run, the pending clouds committed."""
-        if self.builder is not None:
-            self._settle()
-        self._publish_changes(None, self.builder.flush() if self.builder is not None else [])
-        if self.fleet is not None:  # the map as the last smoothing leaves it
-            self._publish_changes(None, self.fleet.step("", 0, force=True))
-            assert self.navigator is not None
-            self._frame = self.navigator.frame()
-        for robot in list(self._pending):
-            self._commit(robot)
+        """The one thread that feeds the map (:func:`services.map_thread.run`)."""
+        map_thread.run(self)
 
     def _map_one(self, msg: CloudMsg) -> bool:
-        """Place one cloud; True when plane workers will commit (and acknowledge) it later."""
-        assert self.builder is not None
-        per_px = self._per_px.pop((msg.robot, msg.seq), 0.0)
-        self.builder.set_range_error(msg.robot, per_px)  # its clouds' range noise, held ones' too
-        if self.pool is not None and self.pool.navigate:  # the workers navigate (services.map_worker_nav)
-            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, msg.pose, msg.points_body, per_px)
-            self.clouds += 1
-            return True
-        points_body = msg.points_body.astype(np.float64)
-        pose = msg.pose
-        if self.fleet is not None:
-            # when the robot's smoother is due: past poses re-estimated, their clouds re-placed, the map rebuilt
-            self._publish_changes(None, self.fleet.step(msg.robot, msg.t_ns))
-        if self.navigator is not None:
-            lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
-            est = self.navigator.update(msg.robot, msg.t_ns, msg.pose, points_body, lm)
-            self._frame = self.navigator.frame()
-            self._nav_publish(est.turned(self._frame))
-            self._place_released(msg.robot, self.navigator.released(msg.robot))
-            self._last_seen[msg.robot] = time.monotonic()
-            if est.held:  # received; it goes into the map once its track's next check passes (mapping.graph_hold)
-                changes = self.builder.advance_time(msg.robot, msg.t_ns)  # released clouds due by time
-                if self.builder.uncommitted(msg.robot) == 0:
-                    self._commit(msg.robot)
-                self._publish_changes(msg, changes)
-                return False
-            if est.pose is None or not est.placed:
-                self._count_unplaced(
-                    msg,
-                    "navigation has no position for it yet"
-                    if est.pose is None
-                    else "navigation's position is too uncertain",
-                )
-                changes = self.builder.advance_time(msg.robot, msg.t_ns)  # its placed clouds due by time
-                if self.builder.uncommitted(msg.robot) == 0:
-                    self._commit(msg.robot)
-                self._publish_changes(msg, changes)
-                return False
-            pose = est.pose
-            with self._nav_lock:
-                self._nav_counts.setdefault(msg.robot, [0, 0])[0] += 1
-        if self.pool is not None:
-            self.pool.dispatch(msg.robot, msg.seq, msg.t_ns, pose, msg.points_body, per_px)
-            self.clouds += 1
-            return True
-        points_ned = body_to_ned(points_body, pose)
-        skipped_before = self.builder.rate_skipped
-        changes = self.builder.add_cloud(msg.robot, msg.t_ns, points_ned, pose)
-        if self.fleet is not None:
-            self.fleet.placed(msg.robot, msg.t_ns, pose)
-        self.clouds += 1
-        if self.builder.rate_skipped == skipped_before:  # not left out by an operator's cap
-            with self._count_lock:
-                self._pending.setdefault(msg.robot, []).append((msg.seq, msg.t_ns))
-            if self.builder.uncommitted(msg.robot) == 0:
-                self._commit(msg.robot)
-        self._publish_changes(msg, changes)
-        return False
-
-    def _place_released(self, robot: str, released: list[tuple[int, Any, Any]]) -> None:
-        """Put a held robot's clouds its last check vouched for into the map (they were acknowledged when they
-        came: counted as placed, timed from their capture when their window commits)."""
-        assert self.builder is not None
-        hold = self.navigator.hold_counts(robot) if self.navigator is not None else None
-        dropped = int(hold["dropped"]) if hold is not None else 0
-        gone = dropped - self._dropped.get(robot, 0)
-        if gone > 0:  # held clouds no check vouched for: never placed, counted as unplaced now
-            self._dropped[robot] = dropped
-            self.unplaced += gone
-            with self._nav_lock:
-                self._nav_counts.setdefault(robot, [0, 0])[1] += gone
-        for t_ns, pose, pts in released:
-            self.clouds += 1
-            changes = self.builder.add_cloud(robot, t_ns, body_to_ned(pts.astype(np.float64), pose), pose)
-            if self.fleet is not None:
-                self.fleet.placed(robot, t_ns, pose)
-            with self._nav_lock:
-                self._nav_counts.setdefault(robot, [0, 0])[0] += 1
-            with self._count_lock:
-                self._pending.setdefault(robot, []).append((-1, t_ns))
-            if self.builder.uncommitted(robot) == 0:
-                self._commit(robot)
-            self._publish_changes(None, changes)
+        """Place one cloud; True when plane workers will commit (and acknowledge) it later
+        (:func:`services.map_thread.map_one`)."""
+        return map_thread.map_one(self, msg)
 
     def _settle_silent(self) -> None:
-        """Without plane workers: each robot silent for ``IDLE_FLUSH_S`` whose clouds wait in its hold gets them
-        checked alone (no later check will come), and its window extracted."""
-        if self.builder is None or self.navigator is None or self.pool is not None:
-            return
-        from .map_workers import IDLE_FLUSH_S
-
-        now = time.monotonic()
-        for robot, nav in sorted(self.navigator.robots.items()):
-            hold = getattr(nav, "hold", None)
-            if hold is None or not hold.clouds or now - self._last_seen.get(robot, now) < IDLE_FLUSH_S:
-                continue
-            lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
-            self._place_released(robot, self.navigator.settle(robot, lm))
-            self._publish_changes(None, self.builder.merge(self.builder.flush_robot_observations(robot)))
-            if self.builder.uncommitted(robot) == 0:
-                self._commit(robot)
-
-    def _settle(self) -> None:
-        """The end of a dive: each robot's held clouds checked alone, those vouched for into the map."""
-        assert self.builder is not None
-        if self.navigator is None or self.pool is not None:
-            return
-        lm = self.builder.landmarks(self.navigator.cfg.min_landmark_points)
-        for robot in sorted(self.navigator.robots):
-            self._place_released(robot, self.navigator.settle(robot, lm))
+        """Settle the held clouds of robots silent for ``IDLE_FLUSH_S`` (:func:`services.map_thread.settle_silent`)."""
+        map_thread.settle_silent(self)
 
     def _commit(self, robot: str) -> None:
         """The robot's pending clouds reached the map (their window was extracted): count them, time them."""
@@ -634,69 +447,13 @@ class MapFeed:
 
     # ------------------------------------------------------------------ views
     def map_json(self) -> dict[str, Any]:
-        """The whole map as JSON-ready data (``{"planes": [], "enabled": False}`` when the map is off)."""
-        if self.builder is None:
-            return {"planes": [], "enabled": False}
-        data: dict[str, Any] = self.builder.map_json()
-        if self.navigator is not None:
-            frame = self._frame
-            data["planes"] = [frame.plane_json(p) for p in data.get("planes", [])]
-            data["nav_frame"] = frame.to_json()
-        self._planes = len(data.get("planes", []))
-        self._planes_stale = False
-        out: dict[str, Any] = json.loads(json.dumps(data, default=json_default))
-        return out
+        """The whole map as JSON-ready data (``{"planes": [], "enabled": False}`` when the map is off;
+        :func:`services.mapfeed_views.map_json`)."""
+        return mapfeed_views.map_json(self)
 
     def status_json(self) -> dict[str, Any]:
-        """The ``map`` part of the status JSON."""
-        if self.builder is not None and self._planes_stale:
-            self._planes = self.builder.n_planes  # counted under the builder's lock, no JSON built
-            self._planes_stale = False
-        with self._count_lock:
-            pending = sum(len(v) for v in self._pending.values())
-        lat = self.map_latency.percentiles_ms()
-        backlog = self._queue.qsize() + len(self._order)
-        pool = self.pool.status_json() if self.pool is not None else None
-        if pool is not None:
-            pending = pool["in_flight"]  # sent to a worker (or waiting for one), not committed yet
-        return (
-            {
-                "planes": self._planes,
-                "enabled": self.builder is not None,
-                "clouds": self.clouds,
-                "skipped": self.skipped,
-                "unplaced": self.unplaced,
-                "queued": backlog,
-                "backlog": backlog,
-                "backlog_limit": self.queue_size,
-                "pending": pending,
-                "rate_skipped": self.builder.rate_skipped if self.builder is not None else 0,
-                "latency_ms": {k: (None if v != v else round(v, 3)) for k, v in lat.items()},
-                "workers": len(pool["workers"]) if pool is not None else 0,
-                "errors": self.errors,
-                "quiet_flushes": self.quiet.count,
-                "order_forced": self._order.forced,
-            }
-            | ({"navigation": self.navigator is not None} if self.builder is not None else {})
-            | ({"smoothing": self._smoothing_json()} if self.fleet is not None else {})
-            | ({"worker_pool": pool} if pool is not None else {})
-        )
-
-    def _smoothing_json(self) -> dict[str, Any]:
-        """The smoother's runs, the longest and last run's wall time (ms), the longest the map thread was held by
-        one (``max_hold_ms``: the runs themselves go on a thread of their own), and the observations re-placed."""
-        fleet = self.fleet
-        if fleet is None:
-            return {}
-        runs = list(fleet.runs_s)
-        holds = list(fleet.holds_s)
-        return {
-            "runs": len(runs),
-            "last_ms": round(1e3 * runs[-1], 1) if runs else None,
-            "max_ms": round(1e3 * max(runs), 1) if runs else None,
-            "max_hold_ms": round(1e3 * max(holds), 1) if holds else None,
-            "replaced": fleet.replaced,
-        }
+        """The ``map`` part of the status JSON (:func:`services.mapfeed_views.status_json`)."""
+        return mapfeed_views.status_json(self)
 
     # ------------------------------------------------------------------ navigation views
     def nav_json(self, robot: str) -> dict[str, Any] | None:
@@ -711,42 +468,6 @@ class MapFeed:
             return sorted(self._nav_latest)
 
     def nav_status(self, robot: str) -> dict[str, Any] | None:
-        """What the status says of a robot's navigation: ``placed``/``unplaced`` clouds, the axes its scans
-        constrain now, ``position`` (``constrained``, ``partly`` (one horizontal direction: ``degenerate`` then
-        gives the free one's bearing, ``{"free_bearing_deg"}``, e.g. along one flat wall), ``unconstrained``,
-        ``lost`` (no fix and too uncertain to trust its scans until the next fix), ``unknown``), the horizontal
-        and heading standard deviations, how it moved (``motion``); for a robot whose clouds wait for its track's
-        checks (``GraphConfig.hold_until_verified``), ``hold``: clouds ``held`` now, ``committed``, ``replaced``,
-        ``dropped`` (never placed: no check vouched for them), the mean and largest wait ``lag_mean_s``,
-        ``lag_max_s``; ``heading``: for a robot on its pose graph, what its absolute heading rests on (``fixes``,
-        ``launch-walls``, ``compass``: :func:`mapping.graph_fleet.heading_source`), else None. None when navigation
-        is off or the robot sent nothing yet."""
-        with self._nav_lock:
-            est = self._nav_latest.get(robot)
-            counts = list(self._nav_counts.get(robot, [0, 0]))
-        if self.navigator is None or est is None:
-            return None
-        js = est.to_json()
-        # horizontal directions the scan pinned (an oblique wall pins one, though neither axis alone)
-        n_axes = max(est.pinned, sum(1 for a in ("north", "east") if est.constrained.get(a)))
-        position = "unknown" if est.pose is None else ("constrained", "partly", "unconstrained")[2 - n_axes]
-        if est.motion == "lost":
-            position = "lost"
-        hold = self.navigator.hold_counts(robot)
-        held = (
-            {} if hold is None else {"hold": {k: round(v, 2) if isinstance(v, float) else v for k, v in hold.items()}}
-        )
-        return held | {
-            "placed": counts[0],
-            "unplaced": counts[1],
-            "position": position,
-            "constrained": js["constrained"],
-            "unconstrained": js["unconstrained"],
-            "north_m_std": js.get("north_m_std"),
-            "east_m_std": js.get("east_m_std"),
-            "yaw_deg_std": js.get("yaw_deg_std"),
-            "motion": est.motion,
-            "heading": js["heading"],
-            "degenerate": js["degenerate"],
-            "t_ns": est.t_ns,
-        }
+        """What the status says of a robot's navigation (:func:`services.mapfeed_views.nav_status`), or None when
+        navigation is off or the robot sent nothing yet."""
+        return mapfeed_views.nav_status(self, robot)

@@ -17,7 +17,7 @@ from lrsensor.sim import named_scene
 from lrsensor.sim.scenes import acrylic_port
 from lrsensor.triangulation import triangulate_plane
 from mapping import MapBuilder, MapConfig
-from mapping import builder as builder_module
+from mapping import builder_window as window_module
 from mapping.errors import MapInputError
 from mapping.planes import cell_normals
 from mapping.range_noise import STRIPE_SIGMA_PX, cloud_noise_per_m, window_noise
@@ -135,13 +135,13 @@ def _wall_clouds(n: int, t0_ns: int = 0) -> list[tuple[int, np.ndarray, Pose]]:
 def extractions(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
     """The range noise each extraction of :class:`mapping.MapBuilder` is given, in order."""
     seen: list[Any] = []
-    real = builder_module.extract_planes
+    real = window_module.extract_planes
 
     def spy(points: np.ndarray, vehicle: np.ndarray, cfg: MapConfig, seed: int, noise: Any = None) -> Any:
         seen.append(noise)
         return real(points, vehicle, cfg, seed, noise)
 
-    monkeypatch.setattr(builder_module, "extract_planes", spy)
+    monkeypatch.setattr(window_module, "extract_planes", spy)
     return seen
 
 
