@@ -112,6 +112,9 @@ class FakeMap:
     def uncommitted(self, robot: str) -> int:
         return 0
 
+    def set_range_error(self, robot: str, per_px: float) -> None:
+        self.range_error = (robot, per_px)
+
     def add_cloud(self, robot: str, t_ns: int, points_ned: np.ndarray, pose: Pose) -> list[object]:
         assert np.all(np.isfinite(points_ned))
         self.added.append((robot, t_ns, pose))
