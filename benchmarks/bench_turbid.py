@@ -1,6 +1,7 @@
 """The extractor in turbid water, on an independent stripe model (``benchmarks/turbid_model.py``; issue 26).
 
     python benchmarks/bench_turbid.py [--seeds 3] [--out benchmarks/results/extract_turbid.md] [--quick]
+    python benchmarks/bench_turbid.py --cells 3:0.5:4,3:0.3:4 [--noise-free]   (a few cells, printed)
     python -m benchmarks.bench_turbid ...          (the same)
 
 Each cell renders full 1920x1080 frames of a flat wall with both lasers in turbid water (a Gaussian stripe
@@ -30,7 +31,7 @@ import argparse
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -64,9 +65,12 @@ class Cell:
     glow_step: float
     blur_px: float
     step_per_column: bool = True
+    noise_free: bool = False
 
     def turbid(self, seed: int) -> Turbid:
-        return Turbid(
+        """The cell's frame with ``seed``; with :attr:`noise_free` without read and shot noise and particles (the
+        veil and the 8-bit rounding stay): what the estimator reads without noise, to tell its bias from the noise's."""
+        t = Turbid(
             distance_m=self.distance_m,
             tilt_deg=self.tilt_deg,
             glow_step=self.glow_step,
@@ -74,6 +78,24 @@ class Cell:
             step_per_column=self.step_per_column,
             seed=seed,
         )
+        return replace(t, read_noise_dn=0.0, electrons_per_dn=1e12, particles_per_mpx=0.0) if self.noise_free else t
+
+
+def parse_cells(spec: str, noise_free: bool = False) -> list[Cell]:
+    """The cells of ``--cells``: comma-separated ``range_m:glow_step:blur_px[:tilt_deg]``, e.g. ``3:0.5:4,3:0.3:4``."""
+    cells = []
+    for item in spec.split(","):
+        parts = item.strip().split(":")
+        if len(parts) not in (3, 4):
+            msg = f"--cells: {item!r} is not range_m:glow_step:blur_px[:tilt_deg]"
+            raise ValueError(msg)
+        try:
+            d, g, b, *tilt = (float(x) for x in parts)
+        except ValueError as err:
+            msg = f"--cells: {item!r} holds a value that is not a number"
+            raise ValueError(msg) from err
+        cells.append(Cell(d, tilt[0] if tilt else 0.0, g, b, noise_free=noise_free))
+    return cells
 
 
 def grid(quick: bool = False) -> list[Cell]:
@@ -471,9 +493,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument(
         "--cost", action="store_true", help="print the CPU time per frame of a few cells (one thread); exit"
     )
+    ap.add_argument(
+        "--cells",
+        default=None,
+        help="only these cells, range_m:glow_step:blur_px[:tilt_deg] comma-separated (e.g. 3:0.5:4,3:0.3:4), the"
+        " default extractor only; prints the rows, writes only to an explicit --out",
+    )
+    ap.add_argument(
+        "--noise-free", action="store_true", help="with --cells: no read or shot noise, no particles (bias alone)"
+    )
     args = ap.parse_args(argv)
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
+    if args.noise_free and args.cells is None:
+        ap.error("--noise-free needs --cells")
+    subset: list[Cell] = []
+    if args.cells is not None:
+        try:
+            subset = parse_cells(args.cells, args.noise_free)
+        except ValueError as err:
+            ap.error(str(err))
     cv2.setNumThreads(1)
     if args.stages:
         print("\n".join([*STAGE_HEADER, *(r for c in STAGE_CELLS for r in stage_losses(c))]))
@@ -486,11 +525,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     seeds = range(1 if args.quick else args.seeds)
     command = COMMAND + ("" if args.seeds == 3 else f" --seeds {args.seeds}") + (" --quick" if args.quick else "")
-    rows = run(grid(args.quick), list(seeds))
-    bounds = [] if args.quick else [bound_row(cell) for cell in CRB_CELLS]
+    if subset:
+        command += f" --cells {args.cells}" + (" --noise-free" if args.noise_free else "")
+        rows = run(subset, list(seeds), METHODS[:1])
+    else:
+        rows = run(grid(args.quick), list(seeds))
+    bounds = [] if args.quick or subset else [bound_row(cell) for cell in CRB_CELLS]
     for b in bounds:
         print(f"   bound {b}", flush=True)
-    out = args.out if args.out is not None else (None if args.quick else DEFAULT_OUT)
+    out = args.out if args.out is not None else (None if args.quick or subset else DEFAULT_OUT)
     if out is not None:
         atomic_write(out, document(rows, list(seeds), command, bounds), fsync=False)
         print(f"wrote {out}")

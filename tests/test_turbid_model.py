@@ -149,3 +149,23 @@ def test_the_quick_bench_writes_one_table_per_method(tmp_path: Path, capsys: pyt
         assert len(rows) == len(bench_turbid.grid(quick=True))
         assert all(len(r.strip("|").split("|")) == n_cols for r in rows)
     assert capsys.readouterr().out.count("| 1.0 | 0 |") == len(bench_turbid.METHODS)
+
+
+def test_the_bench_runs_a_few_cells_noise_free(capsys: pytest.CaptureFixture[str]) -> None:
+    cells = bench_turbid.parse_cells("1:0.3:1.5, 3:0.5:4:30", noise_free=True)
+    assert cells == [
+        bench_turbid.Cell(1.0, 0.0, 0.3, 1.5, noise_free=True),
+        bench_turbid.Cell(3.0, 30.0, 0.5, 4.0, noise_free=True),
+    ]
+    t = cells[0].turbid(2)
+    assert (t.read_noise_dn, t.particles_per_mpx, t.seed) == (0.0, 0.0, 2)
+    assert bench_turbid.Cell(1.0, 0.0, 0.3, 1.5).turbid(2) == Turbid(distance_m=1.0, glow_step=0.3, blur_px=1.5, seed=2)
+    for bad in ("3:0.5", "3:x:4"):
+        with pytest.raises(ValueError, match="--cells"):
+            bench_turbid.parse_cells(bad)
+    assert bench_turbid.main(["--cells", "1:0.3:1.5", "--seeds", "1", "--noise-free"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("| 1.0 | 0 | 0.3 | 1.5 |") == 1  # the default extractor's row alone
+    assert "wrote" not in out
+    with pytest.raises(SystemExit):
+        bench_turbid.main(["--noise-free"])
