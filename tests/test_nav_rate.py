@@ -15,7 +15,7 @@ from lrsensor.frames import Pose, ned_to_body
 from mapping.landmarks import PlaneLandmarks
 from mapping.nav_error import consider_update, rate_gain, young_planes
 from mapping.navigation import NavConfig, RobotNav
-from mapping.smoother import SMOOTHED_NAV
+from mapping.smoother import SMOOTHED_NAV, RobotSmoother, SmootherConfig
 from mapping.synth import Scene, tank, trace
 
 S = 1_000_000_000
@@ -43,21 +43,33 @@ def _planes(shift_m: dict[str, float], first: dict[str, tuple[str, int]]) -> Pla
     return PlaneLandmarks.from_planes(planes)
 
 
-def _young_plane(cfg: NavConfig, west_s: float = 10.0, wrong_s: float = 1.0) -> RobotNav:
-    """A robot with good fixes holding station 3 m from the south wall and 1 m from the west wall: ``west_s`` facing
+#: the young plane's map: the south wall begun by another robot 0.7 s before the corner scans (``WEST_S``)
+WEST_S = 10.0
+
+
+def _young_map() -> PlaneLandmarks:
+    return _planes({"wall.south": OFF_M}, {"wall.south": ("rov3", round((WEST_S - 0.7) * S))})
+
+
+def _young_plane(cfg: NavConfig, smoother: RobotSmoother | None = None, wrong_s: float = 1.0) -> RobotNav:
+    """A robot with good fixes holding station 3 m from the south wall and 1 m from the west wall: ``WEST_S`` facing
     the west wall alone (north free), then ``wrong_s`` looking into the corner, where the south wall is a plane
-    another robot began 0.7 s before, ``OFF_M`` off its face (nav32's runaway, in small)."""
+    another robot began 0.7 s before, ``OFF_M`` off its face (nav32's runaway, in small). With ``smoother`` the
+    scans go through it against the right map (its filter is returned)."""
     scene = tank(pillars=False)
     west = Scene(tuple(f for f in scene.faces if f.name == "wall.west"))
-    old = _planes({}, {})
-    young = _planes({"wall.south": OFF_M}, {"wall.south": ("rov3", round((west_s - 0.7) * S))})
-    nav = RobotNav("rov1", cfg)
-    for k in range(round((west_s + wrong_s) * 10)):
+    old, young = _planes({}, {}), _young_map()
+    nav = smoother.nav if smoother is not None else RobotNav("rov1", cfg)
+    for k in range(round((WEST_S + wrong_s) * 10)):
         t = k * 0.1
-        corner = t >= west_s
+        corner = t >= WEST_S
         true = Pose(3.0, 1.0, 1.0, 0.0, 0.0, math.radians(225.0 if corner else 270.0))
         hits = trace(scene if corner else west, true, n_rays=200, fan_deg=120.0 if corner else 60.0)
-        nav.update(round(t * S), true, ned_to_body(hits.points_ned, true), young if corner else old)
+        pts = ned_to_body(hits.points_ned, true)
+        if smoother is not None:
+            smoother.update(round(t * S), true, pts, old)
+        else:
+            nav.update(round(t * S), true, pts, young if corner else old)
     return nav
 
 
@@ -72,6 +84,22 @@ def test_a_young_plane_off_its_face_moves_the_position_but_writes_no_rate() -> N
     assert math.sqrt(float(full.P[2, 2])) < 0.012
     assert abs(float(kept_out.x[2])) < 0.001
     assert math.sqrt(float(kept_out.P[2, 2])) > 0.02
+
+
+def test_the_re_filter_alone_may_keep_the_rate_out() -> None:
+    # the live filter registers to the right map; the smoother's run re-filters the window against a map where the
+    # south wall is the young plane off its face: its end, handed to the live filter, carries the rate it wrote
+    rates = []
+    for weight in (None, 0.0):
+        cfg = replace(ERROR_NAV, dr_error_rate_young_s=3.0)
+        smoother = RobotSmoother("rov1", cfg, SmootherConfig(refilter_rate_weight=weight))
+        nav = _young_plane(cfg, smoother)
+        assert abs(float(nav.x[2])) < 0.001  # the live filter's, before the run
+        smoother.smooth(_young_map())
+        assert float(nav.x[0]) - 3.0 > 0.1  # the run moved the position to the young plane either way
+        rates.append(abs(float(nav.x[2])))
+    assert rates[0] > 0.008
+    assert rates[1] < 0.001
 
 
 def test_a_drift_pinned_against_old_planes_is_still_learnt() -> None:
