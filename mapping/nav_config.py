@@ -78,7 +78,8 @@ class NavConfig:
     scans never restart it). ``dr_error_rate_weight`` (below 1): a registration's gain for the error's rate is
     scaled by it (0: a Schmidt consider update, the registration moves the position, heading and d but not the
     rate; :mod:`mapping.nav_error`), with ``dr_error_rate_young_s`` > 0 only where the registration used a plane
-    first seen less than that before the scan.
+    first seen less than that before the scan, with ``dr_error_rate_jump_m`` > 0 only where its correction of the
+    position exceeds that plus ``dr_drift_max_m_s`` times the time since the scans last pinned the axis (a jump).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -170,6 +171,7 @@ class NavConfig:
     dr_error_bound_pins: bool = True
     dr_error_rate_weight: float = 1.0
     dr_error_rate_young_s: float = 0.0
+    dr_error_rate_jump_m: float = 0.0
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

@@ -13,7 +13,10 @@ axis no scan pins, at minus the rate (docs/navigation-design.md, "Where the runa
 heading and d but not the rate, and the covariance is the one of that gain (Joseph form), so the rate's variance
 and its cross-covariances stay consistent with what the state now holds. With ``dr_error_rate_young_s`` > 0 the
 weight applies only to registrations that use a plane first seen less than that before the scan
-(:func:`young_planes`); registrations to older planes update the rate in full.
+(:func:`young_planes`); with ``dr_error_rate_jump_m`` > 0 only to corrections of the position that a drift cannot
+make: beyond that slack plus ``dr_drift_max_m_s`` times the time since the scans last pinned the axis (a jump to a
+wrong plane, not a dead reckoning's error growing). With both, either (:func:`rate_weight`); the others update the
+rate in full.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ if TYPE_CHECKING:
     from .landmarks import PlaneLandmarks
     from .nav_config import NavConfig
 
-__all__ = ["RATE", "bound_error", "consider_update", "error_prediction", "rate_gain", "young_planes"]
+__all__ = ["RATE", "bound_error", "consider_update", "error_prediction", "rate_gain", "rate_weight", "young_planes"]
 
 FloatArray = NDArray[np.float64]
 
@@ -173,3 +176,24 @@ def rate_gain(n: int, weight: float) -> FloatArray:
     g = np.ones(n)
     g[list(RATE)] = weight
     return g
+
+
+def rate_weight(cfg: NavConfig, young: bool, correction_ne: FloatArray, unpinned_s: FloatArray) -> float:
+    """The share of a registration's gain the error's rate takes (see the module docstring).
+
+    Args:
+        cfg: ``dr_error_state``, ``dr_error_rate_weight``, ``dr_error_rate_young_s``, ``dr_error_rate_jump_m``,
+            ``dr_drift_max_m_s``.
+        young: whether the registration used a young plane (:func:`young_planes`).
+        correction_ne: (2,) the registration's correction of the position (north, east), m.
+        unpinned_s: (2,) per axis the time since the scans last pinned it (``RobotNav.pin_time``), s.
+    """
+    if not cfg.dr_error_state or cfg.dr_error_rate_weight >= 1.0:
+        return 1.0
+    tests = []
+    if cfg.dr_error_rate_young_s > 0:
+        tests.append(young)
+    if cfg.dr_error_rate_jump_m > 0:
+        allowed = cfg.dr_error_rate_jump_m + cfg.dr_drift_max_m_s * np.asarray(unpinned_s)
+        tests.append(bool(np.any(np.abs(correction_ne) > allowed)))
+    return cfg.dr_error_rate_weight if not tests or any(tests) else 1.0

@@ -17,7 +17,7 @@ from lrsensor.frames import Pose, R_ned_from_body
 
 from .landmarks import PlaneLandmarks, associate
 from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
-from .nav_error import bound_error, consider_update, error_prediction, rate_gain, young_planes
+from .nav_error import bound_error, consider_update, error_prediction, rate_gain, rate_weight, young_planes
 from .nav_frame import rot2
 
 __all__ = ["RobotNav"]
@@ -450,7 +450,8 @@ class RobotNav:
         if self.cfg.dr_bias_open_rate_m_s > 0:
             self._track_corrections((x - x_pred)[0:2])
         cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
-        w_rate = self._rate_weight(hit, lm, t_ns)
+        young = cfg.dr_error_rate_young_s > 0 and bool(young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[hit].any())
+        w_rate = rate_weight(cfg, young, (x - x_pred)[0:2], self.pin_time)
         if w_rate < 1.0:
             # the correction moves the position, heading and d; the error's rate takes w_rate of its gain
             self.x, self.P = consider_update(x_pred, self.P, x, cov, hf, rate_gain(self.n, w_rate))
@@ -458,17 +459,6 @@ class RobotNav:
             self.x = x
             self.P = 0.5 * (cov + cov.T)
         return h3, inliers, used
-
-    def _rate_weight(self, planes: NDArray[np.int64], lm: PlaneLandmarks, t_ns: int) -> float:
-        """The share of a registration's gain the error's rate takes (``NavConfig.dr_error_rate_weight``, with
-        ``dr_error_rate_young_s`` only where ``planes`` (indices into ``lm`` of the points' planes) include a young
-        one; :mod:`mapping.nav_error`)."""
-        cfg = self.cfg
-        if not cfg.dr_error_state or cfg.dr_error_rate_weight >= 1.0:
-            return 1.0
-        if cfg.dr_error_rate_young_s > 0 and not young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[planes].any():
-            return 1.0
-        return cfg.dr_error_rate_weight
 
     def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
         """One cloud: predict, apply a fix, register against ``landmarks``; returns the estimate.

@@ -13,7 +13,7 @@ from test_nav_bias import _dive
 
 from lrsensor.frames import Pose, ned_to_body
 from mapping.landmarks import PlaneLandmarks
-from mapping.nav_error import consider_update, rate_gain, young_planes
+from mapping.nav_error import consider_update, rate_gain, rate_weight, young_planes
 from mapping.navigation import NavConfig, RobotNav
 from mapping.smoother import SMOOTHED_NAV, RobotSmoother, SmootherConfig
 from mapping.synth import Scene, tank, trace
@@ -155,3 +155,21 @@ def test_young_planes_by_their_first_contribution() -> None:
     assert not young_planes(lm, 10 * S, 0.0).any()
     assert [names[i] for i in np.flatnonzero(young_planes(lm, 10 * S, 6.0))] == ["wall.south", "wall.west"]
     assert not young_planes(replace(lm, contrib=()), 10 * S, 3.0).any()  # without contributions: old
+
+
+def test_the_rate_weight_applies_to_young_planes_and_jumps() -> None:
+    cfg = replace(ERROR_NAV, dr_error_rate_weight=0.2)
+    small, big = np.array([0.005, 0.0]), np.array([0.0, 0.1])
+    pinned, free = np.zeros(2), np.array([0.0, 2.0])
+    assert rate_weight(cfg, False, small, pinned) == 0.2  # no condition: every registration
+    assert rate_weight(replace(cfg, dr_error_rate_weight=1.0), True, big, pinned) == 1.0
+    assert rate_weight(replace(ERROR_NAV, dr_error_state=False, dr_error_rate_weight=0.2), True, big, pinned) == 1.0
+    young = replace(cfg, dr_error_rate_young_s=3.0)
+    assert rate_weight(young, True, small, pinned) == 0.2
+    assert rate_weight(young, False, big, pinned) == 1.0
+    # a jump: 10 cm east while east was pinned; a drift of 5 cm/s could make it after 2 s unpinned
+    jump = replace(cfg, dr_error_rate_jump_m=0.02)
+    assert rate_weight(jump, False, big, pinned) == 0.2
+    assert rate_weight(jump, False, big, free) == 1.0
+    assert rate_weight(jump, False, small, pinned) == 1.0
+    assert rate_weight(replace(jump, dr_error_rate_young_s=3.0), True, small, pinned) == 0.2  # either test
