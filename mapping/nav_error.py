@@ -186,7 +186,8 @@ def rate_weight(cfg: NavConfig, young: bool, correction_ne: FloatArray, unpinned
             ``dr_drift_max_m_s``.
         young: whether the registration used a young plane (:func:`young_planes`).
         correction_ne: (2,) the registration's correction of the position (north, east), m.
-        unpinned_s: (2,) per axis the time since the scans last pinned it (``RobotNav.pin_time``), s.
+        unpinned_s: (2,) per axis the time since the scans last pinned it (``RobotNav.pin_time``; since the launch
+            with ``dr_error_bound_pins`` False), s.
     """
     if not cfg.dr_error_state or cfg.dr_error_rate_weight >= 1.0:
         return 1.0
