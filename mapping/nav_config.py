@@ -75,7 +75,11 @@ class NavConfig:
     (the fraction x the distance travelled since)^2 + (``dr_error_bound_current_m_s`` x the time since)^2 plus
     the fix's, and its rate at most (the fraction x the speed)^2 + the current's^2 (soft pseudo-measurements,
     applied only where the covariance exceeds the bound; ``dr_error_bound_pins`` False: since the launch, the
-    scans never restart it).
+    scans never restart it). ``dr_error_rate_weight`` (below 1): a registration's gain for the error's rate is
+    scaled by it (0: a Schmidt consider update, the registration moves the position, heading and d but not the
+    rate; :mod:`mapping.nav_error`), with ``dr_error_rate_young_s`` > 0 only where the registration used a plane
+    first seen less than that before the scan, with ``dr_error_rate_jump_m`` > 0 only where its correction of the
+    position exceeds that plus ``dr_drift_max_m_s`` times the time since the scans last pinned the axis (a jump).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -165,6 +169,9 @@ class NavConfig:
     dr_error_bound_fraction: float = 0.0
     dr_error_bound_current_m_s: float = 0.03
     dr_error_bound_pins: bool = True
+    dr_error_rate_weight: float = 1.0
+    dr_error_rate_young_s: float = 0.0
+    dr_error_rate_jump_m: float = 0.0
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

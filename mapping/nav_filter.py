@@ -17,6 +17,7 @@ from lrsensor.frames import Pose, R_ned_from_body
 
 from .landmarks import PlaneLandmarks, associate
 from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
+from .nav_error import bound_error, consider_update, error_prediction, rate_gain, rate_weight, young_planes
 from .nav_frame import rot2
 
 __all__ = ["RobotNav"]
@@ -214,65 +215,16 @@ class RobotNav:
         return motion
 
     def _predict_error(self, dt: float, dr: FloatArray, ou: FloatArray, q: FloatArray) -> None:
-        """The prediction with the dead reckoning's error as a state (``NavConfig.dr_error_state``): the raw
-        increment ``dr`` (north, east; m) turned by the yaw correction moves the position, less what the error's
-        rate ``b`` (states 2, 3) moved the error d (states 5, 6) by; so position plus d moves exactly as the raw
-        position does. Fills ``q`` (the process noise, beside the yaw's) and ``self.transition``."""
-        cfg = self.cfg
-        dt = max(dt, 0.0)
-        step = rot2(float(self.x[4])) @ dr
-        f = np.eye(self.n)
-        # the increment turns with the yaw correction (d(step)/dc = ez x step); what the turn adds to the position
-        # the dead reckoning did not see, so it is error too
-        f[0:2, 4] = [-step[1], step[0]]
-        f[5:7, 4] = [step[1], -step[0]]
+        """The prediction with the dead reckoning's error as a state (:func:`mapping.nav_error.error_prediction`)
+        from the raw increment ``dr`` (north, east; m). Adds to ``q`` (the process noise, beside the yaw's), sets
+        ``self.transition`` and counts the distance and time since each axis was last pinned."""
         self.pin_dist += float(np.hypot(*dr))
-        self.pin_time += dt
+        self.pin_time += max(dt, 0.0)
         self._speed = float(np.hypot(*dr)) / dt if dt > 0 else 0.0
-        f[0, 2] = f[1, 3] = -dt
-        f[5, 2] = f[6, 3] = dt
-        b = self.x[2:4].copy()
-        self.x[0:2] += step - b * dt
-        self.x[5:7] += (dr - step) + b * dt
+        self.x, f, q_err = error_prediction(self.x, dr, dt, self.cfg)
         self.transition = f @ ou
         self.P = f @ self.P @ f.T
-        # the error's own walk moves the position the other way (the raw increment is what it is)
-        walk = cfg.dr_error_walk_m_per_sqrt_s**2 * dt
-        for i, j in ((0, 5), (1, 6)):
-            q[i, i] = q[j, j] = walk
-            q[i, j] = q[j, i] = -walk
-        # the increment's own noise (scale, white velocity) moves the position alone: position plus d is then no
-        # deterministic sum, and the smoother's backward pass does not invert a near-singular prediction
-        inc = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
-        q[0, 0] += inc
-        q[1, 1] += inc
-        q[2, 2] = q[3, 3] = cfg.dr_error_bias_walk_m_s_per_sqrt_s**2 * dt
-
-    def _bound_error(self) -> None:
-        """Bound the dead reckoning's error as the physics does (``NavConfig.dr_error_bound_fraction``): per axis,
-        d's variance is at most the fix's plus (fraction x distance since the scans last pinned the axis)^2 plus
-        (current x time since)^2, and its rate's at most (fraction x speed)^2 + current^2. A scalar
-        pseudo-measurement (d toward its value at the pin; the rate toward 0) whose noise brings the variance
-        exactly to the bound, applied only where it is exceeded: without it the rate's walk, and d with it, ran
-        away while no scan pinned the robot, and the registration's gates widened until the scans fit other
-        walls."""
-        cfg = self.cfg
-        frac, cur = cfg.dr_error_bound_fraction, cfg.dr_error_bound_current_m_s
-        if frac <= 0:
-            return
-        fix2 = cfg.dr_error_fix_sigma_m**2
-        for axis in range(2):
-            bound_d = fix2 + (frac * self.pin_dist[axis]) ** 2 + (cur * self.pin_time[axis]) ** 2
-            bound_b = (frac * self._speed) ** 2 + cur**2
-            for i, target, bound in ((5 + axis, self.pin_d[axis], bound_d), (2 + axis, 0.0, bound_b)):
-                var = float(self.P[i, i])
-                if var <= bound * 1.0001:
-                    continue
-                r = var * bound / (var - bound)
-                k = self.P[:, i] / (var + r)
-                self.x = self.x + k * (target - float(self.x[i]))
-                self.P = self.P - np.outer(k, self.P[i, :])
-                self.P = 0.5 * (self.P + self.P.T)
+        q += q_err
 
     def _pin(self, h3: FloatArray, inliers: int) -> None:
         """Restart the bound's distance and time along each horizontal axis this scan's registration pinned; d's
@@ -486,6 +438,7 @@ class RobotNav:
                 # after the first pass the gate only needs to hold the residual noise and what is left
                 gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
             used = tuple(int(i) for i in np.unique(lm.ids[k[sel]]))
+            hit = k[sel]
         hf = np.zeros((self.n, self.n))
         hf[np.ix_(idx, idx)] = h3
         dx = (x - x_pred)[idx]
@@ -496,9 +449,15 @@ class RobotNav:
             return np.zeros((3, 3)), 0, ()
         if self.cfg.dr_bias_open_rate_m_s > 0:
             self._track_corrections((x - x_pred)[0:2])
-        self.x = x
-        cov = np.linalg.inv(p_inv + hf)
-        self.P = 0.5 * (cov + cov.T)
+        cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
+        young = cfg.dr_error_rate_young_s > 0 and bool(young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[hit].any())
+        w_rate = rate_weight(cfg, young, (x - x_pred)[0:2], self.pin_time)
+        if w_rate < 1.0:
+            # the correction moves the position, heading and d; the error's rate takes w_rate of its gain
+            self.x, self.P = consider_update(x_pred, self.P, x, cov, hf, rate_gain(self.n, w_rate))
+        else:
+            self.x = x
+            self.P = 0.5 * (cov + cov.T)
         return h3, inliers, used
 
     def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
@@ -545,7 +504,8 @@ class RobotNav:
                 self._fix(t, raw_ne)
                 self.lost = False
             if cfg.dr_error_state:
-                self._bound_error()
+                pins = (self.pin_d, self.pin_dist, self.pin_time)
+                self.x, self.P = bound_error(self.x, self.P, *pins, self._speed, cfg)
             self._compass(t)
         if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
             # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no

@@ -42,9 +42,10 @@ The map (``mapping.MapBuilder``) owns the planes; the estimator only reads them 
 Everything here is numpy: the problem is three unknowns with a Kalman prior, solved in well under a millisecond
 (see docs/navigation.md for the choice against GTSAM, Open3D ICP and scipy).
 
-The code is in four modules, by what each part does: :mod:`mapping.nav_config` (:class:`NavConfig`,
+The code is in five modules, by what each part does: :mod:`mapping.nav_config` (:class:`NavConfig`,
 :class:`NavEstimate`), :mod:`mapping.nav_filter` (:class:`RobotNav`: the state, prediction, fixes, the
-registration update and the report), :mod:`mapping.navigator` (:class:`Navigator`: one estimator per robot and the
+registration update and the report), :mod:`mapping.nav_error` (the dead reckoning's error as a state: its
+prediction, bound and rate update), :mod:`mapping.navigator` (:class:`Navigator`: one estimator per robot and the
 fleet's frame) and :mod:`mapping.nav_frame` (:class:`NavFrame`); this module exports their public names.
 """
 

@@ -98,6 +98,10 @@ class SmootherConfig:
     disagreement at the window's first scan by at most ``drift_slack_m`` plus ``drift_max_m_s`` times the time
     between them. A dead reckoning's error grows slowly and smoothly (a velocity bias of a few cm/s); scans
     registered to a wrong plane pull an estimate off in a jump.
+
+    ``refilter_rate_weight`` (None: the live filter's): ``NavConfig.dr_error_rate_weight`` for the re-filter alone,
+    where a scan of the window may register to a plane begun after it first came (docs/navigation-design.md, "Where
+    the runaway starts"); the live filter continues from the run's end with its own.
     """
 
     window_s: float = 120.0
@@ -108,6 +112,7 @@ class SmootherConfig:
     refilter_overlap_s: float | None = None
     drift_max_m_s: float = 0.0
     drift_slack_m: float = 0.1
+    refilter_rate_weight: float | None = None
 
 
 def leaves_fixes(
@@ -340,6 +345,8 @@ class RobotSmoother:
         self._refiltered_ns = scans[-1].t_ns
         self.refiltered += len(scans) - start
         cfg = replace(self.nav.cfg, iterations=self.scfg.rerun_iterations)
+        if self.scfg.refilter_rate_weight is not None:
+            cfg = replace(cfg, dr_error_rate_weight=self.scfg.refilter_rate_weight)
         job = SmoothJob(self.robot, cfg, scans, start, self._first_ns, self.scfg)
         job.joined = self.nav.joined
         job.check_fixes = not self.nav.bias_open
