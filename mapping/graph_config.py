@@ -33,9 +33,7 @@ class GraphConfig:
     move); ``odometry_spread_m`` (0: off) the registration run again from starts that far either side along its
     weakest direction, the spread of the results bounding its information; ``odometry_residual_scale`` the scan's
     information divided by its residuals' scatter (``OdometryConfig.residual_scale``); ``odometry_guard_broken_only``
-    those three only while the track is broken; ``odometry_own_prediction`` the scan matching started from the
-    robot's own last increments, not the graph's velocity; ``odometry_refuse_chi2`` (``inf``: off) a direction
-    whose move lies beyond the prior by that many variances refused. ``second_hypothesis`` (off): a plane factor
+    those three only while the track is broken. ``second_hypothesis`` (off): a plane factor
     is left out when another plane would explain the scan's points on it within the pose's marginal
     (:func:`mapping.graph_gate.ambiguous`).
     ``track_break_std_m``: past this horizontal std the track is broken and nothing more is placed
@@ -51,7 +49,6 @@ class GraphConfig:
     are committed, so they go in where the map has the faces rather than a few centimetres beside them.
     ``verify_own_share`` (off: 1): the checks (and the hold's checks of each held cloud) leave out the planes the
     robot contributed more than this share of the points to (its own copies would vouch for its slide).
-    ``place_verified_s``: a cloud is placed only within that long of the launch or the last unique place found.
     ``hold_until_verified``: clouds are held until the next check passes (:mod:`mapping.graph_hold`; after a slide
     or a break each is checked alone within ``hold_check_radius_m``; while clouds wait, a check that found no unique
     place is tried again after ``hold_retry_s``; a held cloud whose scan pinned one wall goes in only where at least
@@ -69,9 +66,7 @@ class GraphConfig:
     odometry_info_scale: float = 0.3
     odometry_observed_std_m: float = math.inf
     odometry_prior_m_s: float = 0.0
-    odometry_own_prediction: bool = False
     odometry_spread_m: float = 0.0
-    odometry_refuse_chi2: float = math.inf
     odometry_speed_bound: str = "added"
     odometry_residual_scale: bool = False
     odometry_guard_broken_only: bool = False
@@ -106,7 +101,6 @@ class GraphConfig:
     verify_tol_m: float = 0.08
     verify_anchor_m: float = math.inf
     verify_own_share: float = 1.0
-    place_verified_s: float = math.inf
     hold_until_verified: bool = False
     hold_check_radius_m: float = 0.3
     hold_retry_s: float = 0.5

@@ -19,11 +19,10 @@ increment wrong while it claims a few millimetres, or the graph claim it:
   variance there, so a broken track's standard deviation grows as its error does. The residuals' scatter beyond
   the sigma assumed scales the information down too (``OdometryConfig.residual_scale``).
 - **The prediction.** The scan matching's prior is the velocity walk over one scan (about 7 mm); a prediction
-  off by centimetres pulls the registration to a wrong nearest-neighbour solution. ``odometry_own_prediction``
-  predicts from the robot's own last increments (:func:`own_velocity`), which no re-localization's jump moves;
-  ``odometry_refuse_chi2`` refuses a direction whose move lies beyond the prior (:func:`refuse_beyond_prior`).
-  Both were measured worse (the increments' errors feed the next prediction; the prior is narrower than a lost
-  graph's velocity is wrong) and are kept for the record.
+  off by centimetres pulls the registration to a wrong nearest-neighbour solution. Predicting from the robot's own
+  last increments, or refusing a direction whose move lies beyond the prior, was measured worse (the increments'
+  errors feed the next prediction; the prior is narrower than a lost graph's velocity is wrong) and left out
+  (docs/navigation-design.md, "The odometry while the track is broken").
 
 ``odometry_guard_broken_only`` applies the guards only while the track is broken (:func:`guards`): on an unbroken
 track they break it sooner, where the map's planes held the estimate though the odometry could not say so.
@@ -35,7 +34,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,39 +43,6 @@ from .graph_config import GraphConfig
 from .odometry import OdometryConfig, increment, own_increment
 
 FloatArray = NDArray[np.float64]
-
-#: scan increments whose mean velocity predicts the next move (``GraphConfig.odometry_own_prediction``)
-OWN_INCREMENTS = 3
-
-
-def rot2(a: float) -> FloatArray:
-    """The 2-D rotation (2, 2) by ``a`` (rad): level frame (heading ``a``) to north/east."""
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
-
-
-def own_velocity(
-    specs: list[tuple[str, tuple[int, ...], tuple[Any, ...]]], t_ns: list[int], est: FloatArray, first_key: int
-) -> FloatArray | None:
-    """The robot's horizontal velocity (2,) north/east, m/s, from its last :data:`OWN_INCREMENTS` odometry factors
-    alone (each ``between`` spec's move, turned to north/east by its first pose's estimated heading, over its
-    time); None before there are any. ``specs`` as :class:`GraphNav` keeps them, ``t_ns`` the poses' capture times,
-    ``est`` (N, 3) the estimates (north, east, heading)."""
-    moves = np.zeros(2)
-    dt = 0.0
-    n = 0
-    for kind, keys, data in reversed(specs):
-        if kind != "between" or keys[0] < first_key:
-            continue
-        a, b = keys
-        moves += rot2(float(est[a, 2])) @ np.asarray(data[0], dtype=np.float64)[0:2]
-        dt += (t_ns[b] - t_ns[a]) * 1e-9
-        n += 1
-        if n == OWN_INCREMENTS:
-            break
-    if n == 0 or dt <= 0.0:
-        return None
-    return moves / dt
 
 
 def _own_move(
@@ -107,20 +72,6 @@ def spread_bound(z: FloatArray, h: FloatArray, others: list[FloatArray]) -> Floa
     return np.asarray((vec / var) @ vec.T, dtype=np.float64)
 
 
-def refuse_beyond_prior(
-    z: FloatArray, h: FloatArray, pred: FloatArray, prior_cov: FloatArray, chi2: float
-) -> tuple[FloatArray, FloatArray]:
-    """``z`` (2,) and ``h`` (2, 2) with each eigen-direction of ``h`` refused where the move from ``pred`` (2,)
-    exceeds ``chi2`` squared standard deviations of ``prior_cov`` (2, 2) plus the scan's own variance: there the
-    move is the prediction and the information none."""
-    lam, vec = np.linalg.eigh(0.5 * (h + h.T))
-    dz = (z - pred) @ vec
-    var = np.einsum("ji,jk,ki->i", vec, prior_cov, vec) + 1.0 / np.maximum(lam, 1e-12)
-    keep = (lam > 0.0) & (dz**2 <= chi2 * var)
-    vk = vec[:, keep]
-    return pred + vk @ dz[keep], np.asarray((vk * lam[keep]) @ vk.T, dtype=np.float64)
-
-
 def scan_move(
     prev_level: FloatArray, new_rel: FloatArray, pred: FloatArray, prior_cov: FloatArray, gcfg: GraphConfig,
     ocfg: OdometryConfig,
@@ -133,7 +84,7 @@ def scan_move(
         new_rel: (K, 3) the new scan's points turned into the previous level frame plus the measured change of
             depth, the horizontal move left out.
         pred: (2,) the predicted move (m); ``prior_cov`` (2, 2) its covariance as the registration's prior.
-        gcfg: ``odometry_info_scale``, ``odometry_observed_std_m``, ``odometry_spread_m``, ``odometry_refuse_chi2``.
+        gcfg: ``odometry_info_scale``, ``odometry_observed_std_m``, ``odometry_spread_m``.
     """
     args = (gcfg.odometry_info_scale, gcfg.odometry_observed_std_m, ocfg)
     z, h, pairs = _own_move(prev_level, new_rel, pred, prior_cov, *args)
@@ -150,8 +101,6 @@ def scan_move(
                 return pred.copy(), np.zeros((2, 2)), 0
             others.append(zo)
         h = spread_bound(z, h, others)
-    if math.isfinite(gcfg.odometry_refuse_chi2):
-        z, h = refuse_beyond_prior(z, h, pred, prior_cov, gcfg.odometry_refuse_chi2)
     return z, h, pairs
 
 
@@ -167,7 +116,7 @@ def guards(gcfg: GraphConfig, ocfg: OdometryConfig, broken: bool) -> tuple[Graph
     registration to the map's planes holds the position there; the guards would only break the track sooner)."""
     if broken or not gcfg.odometry_guard_broken_only:
         return gcfg, ocfg
-    off = replace(gcfg, odometry_spread_m=0.0, odometry_refuse_chi2=math.inf, odometry_speed_bound="added")
+    off = replace(gcfg, odometry_spread_m=0.0, odometry_speed_bound="added")
     return off, replace(ocfg, residual_scale=False)
 
 

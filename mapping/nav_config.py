@@ -78,8 +78,7 @@ class NavConfig:
     scans never restart it). ``dr_error_rate_weight`` (below 1): a registration's gain for the error's rate is
     scaled by it (0: a Schmidt consider update, the registration moves the position, heading and d but not the
     rate; :mod:`mapping.nav_error`), with ``dr_error_rate_young_s`` > 0 only where the registration used a plane
-    first seen less than that before the scan, with ``dr_error_rate_jump_m`` > 0 only where its correction of the
-    position exceeds that plus ``dr_drift_max_m_s`` times the time since the scans last pinned the axis (a jump).
+    first seen less than that before the scan.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -89,27 +88,14 @@ class NavConfig:
     in :meth:`Navigator.frame` once that many scans constrained its heading; with smoothing, launch points
     ``frame_min_baseline_m`` apart fix the frame's heading instead.
 
-    Heading: with ``yaw_bias_tau_s`` > 0 the yaw correction is the negative of a compass bias that wanders as an
-    Ornstein-Uhlenbeck process (stationary standard deviation ``yaw_bias_std_deg``, correlation time
-    ``yaw_bias_tau_s``): bounded and mean-reverting, so no run of registrations can carry it far past what a
-    compass does (the random walk and ``compass_bias_deg`` pulls are then off). ``yaw_bias_tau_s`` 0 restores the
-    walk.
-
     Evidence: a plane only this robot contributed to, first seen by it less than ``own_recent_s`` before the scan,
     holds the robot's own recent poses and so no absolute information; its residuals count ``own_recent_weight``
     of their information. Such planes were placed with the robot's own heading and say nothing of its compass's
-    bias: with ``own_recent_turns`` False they move the position only, not the heading; with
-    ``own_recent_turns_alone`` False, only while the map has not joined the robot's part to another robot's
-    (:attr:`RobotNav.joined`). With ``own_turn_s`` > 0, no plane only this robot contributed to, first seen by it
-    less than ``own_turn_s`` before the scan, turns its heading. A registration whose correction lies beyond the
-    prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``) is a wrong
-    association, not drift: it is rejected and counted (:attr:`RobotNav.gated`).
-
-    Scan odometry (``scan_odometry``, off by default: see docs/navigation-design.md, "Measured and left off";
-    :mod:`mapping.odometry`): without a fix, the increment from the previous scan (at most ``odometry_max_dt_s`` before)
-    replaces the walk where the two scans observe it. A cloud without a fix is placed when its scan pinned both
-    horizontal axes to the map, or, with scan odometry, while the robot's horizontal standard deviation is within
-    ``bootstrap_std_m`` (from its launch fix on): the first scans of a fleet that has no map yet make the map.
+    bias: with ``own_recent_turns_alone`` False they move the position only, not the heading, while the map has not
+    joined the robot's part to another robot's (:attr:`RobotNav.joined`). A registration whose correction lies
+    beyond the prediction's error model (squared Mahalanobis distance over north, east, yaw above ``gate_chi2``) is
+    a wrong association, not drift: it is rejected and counted (:attr:`RobotNav.gated`). A cloud without a fix is
+    placed only when its scan pinned both horizontal axes to the map.
 
     Pose graph (``graph_without_fix``; off in this record, on with ``lrsensor base --no-fix graph``, the base's
     default where GTSAM is installed, which also sets the graphs' gates :data:`mapping.graph_config.TRACKED` and
@@ -171,7 +157,6 @@ class NavConfig:
     dr_error_bound_pins: bool = True
     dr_error_rate_weight: float = 1.0
     dr_error_rate_young_s: float = 0.0
-    dr_error_rate_jump_m: float = 0.0
     dr_drift_max_m_s: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
@@ -188,15 +173,8 @@ class NavConfig:
     attitude_std_deg: float = 0.2
     frame_min_scans: int = 20
     frame_min_baseline_m: float = 2.0
-    scan_odometry: bool = False
-    odometry_max_dt_s: float = 0.5
-    bootstrap_std_m: float = 0.1
-    yaw_bias_std_deg: float = 2.0
-    yaw_bias_tau_s: float = 0.0
     own_recent_s: float = 20.0
     own_recent_weight: float = 0.03
-    own_recent_turns: bool = True
-    own_turn_s: float = 0.0
     own_recent_turns_alone: bool = True
     gate_chi2: float = 0.0
     graph_without_fix: bool = False

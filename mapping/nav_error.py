@@ -13,10 +13,7 @@ axis no scan pins, at minus the rate (docs/navigation-design.md, "Where the runa
 heading and d but not the rate, and the covariance is the one of that gain (Joseph form), so the rate's variance
 and its cross-covariances stay consistent with what the state now holds. With ``dr_error_rate_young_s`` > 0 the
 weight applies only to registrations that use a plane first seen less than that before the scan
-(:func:`young_planes`); with ``dr_error_rate_jump_m`` > 0 only to corrections of the position that a drift cannot
-make: beyond that slack plus ``dr_drift_max_m_s`` times the time since the scans last pinned the axis (a jump to a
-wrong plane, not a dead reckoning's error growing). With both, either (:func:`rate_weight`); the others update the
-rate in full.
+(:func:`young_planes`, :func:`rate_weight`); the others update the rate in full.
 """
 
 from __future__ import annotations
@@ -178,23 +175,15 @@ def rate_gain(n: int, weight: float) -> FloatArray:
     return g
 
 
-def rate_weight(cfg: NavConfig, young: bool, correction_ne: FloatArray, unpinned_s: FloatArray) -> float:
+def rate_weight(cfg: NavConfig, young: bool) -> float:
     """The share of a registration's gain the error's rate takes (see the module docstring).
 
     Args:
-        cfg: ``dr_error_state``, ``dr_error_rate_weight``, ``dr_error_rate_young_s``, ``dr_error_rate_jump_m``,
-            ``dr_drift_max_m_s``.
+        cfg: ``dr_error_state``, ``dr_error_rate_weight``, ``dr_error_rate_young_s``.
         young: whether the registration used a young plane (:func:`young_planes`).
-        correction_ne: (2,) the registration's correction of the position (north, east), m.
-        unpinned_s: (2,) per axis the time since the scans last pinned it (``RobotNav.pin_time``; since the launch
-            with ``dr_error_bound_pins`` False), s.
     """
     if not cfg.dr_error_state or cfg.dr_error_rate_weight >= 1.0:
         return 1.0
-    tests = []
-    if cfg.dr_error_rate_young_s > 0:
-        tests.append(young)
-    if cfg.dr_error_rate_jump_m > 0:
-        allowed = cfg.dr_error_rate_jump_m + cfg.dr_drift_max_m_s * np.asarray(unpinned_s)
-        tests.append(bool(np.any(np.abs(correction_ne) > allowed)))
-    return cfg.dr_error_rate_weight if not tests or any(tests) else 1.0
+    if cfg.dr_error_rate_young_s > 0 and not young:
+        return 1.0
+    return cfg.dr_error_rate_weight

@@ -60,9 +60,6 @@ class RobotNav:
         #: smoother (:mod:`mapping.smoother`) needs to run backward; None after a start
         self.prior: tuple[FloatArray, FloatArray] | None = None
         self.transition: FloatArray | None = None
-        #: the previous scan for scan odometry: points relative to the vehicle (NED axes), and its depth
-        self._prev_scan: tuple[FloatArray, float] | None = None
-        self.odometry_pairs = 0
         #: registrations rejected as beyond the motion model's error (see ``NavConfig.gate_chi2``)
         self.gated = 0
         #: whether the map joins this robot's part to another robot's (set by :class:`Navigator` before each update;
@@ -89,7 +86,6 @@ class RobotNav:
         "fix_mean",
         "last_compass_ns",
         "lost",
-        "_prev_scan",
         "bias_open",
         "corr_rate",
         "pin_d",
@@ -147,25 +143,13 @@ class RobotNav:
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
 
-    def _predict(
-        self, dt: float, raw_ne: FloatArray | None, odo: tuple[FloatArray, FloatArray, int] | None = None
-    ) -> str:
+    def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
         n = self.n
         q = np.zeros((n, n))
-        ou = np.eye(n)
-        if cfg.yaw_bias_tau_s > 0:
-            # the compass bias is bounded and mean-reverting (Ornstein-Uhlenbeck): the correction decays toward 0
-            # and its variance toward yaw_bias_std_deg^2
-            a = math.exp(-max(dt, 0.0) / cfg.yaw_bias_tau_s)
-            ou[4, 4] = a
-            self.x[4] *= a
-            self.P = ou @ self.P @ ou.T
-            q[4, 4] = math.radians(cfg.yaw_bias_std_deg) ** 2 * (1.0 - a * a)
-        else:
-            q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
+        q[4, 4] = math.radians(cfg.yaw_walk_deg_per_sqrt_s) ** 2 * dt
         if raw_ne is not None and self.last_raw_ne is not None and cfg.dr_error_state:
-            self._predict_error(dt, raw_ne - self.last_raw_ne, ou, q)
+            self._predict_error(dt, raw_ne - self.last_raw_ne, q)
             motion = "dead-reckoning"
         elif raw_ne is not None and self.last_raw_ne is not None:
             step = rot2(float(self.x[4])) @ (raw_ne - self.last_raw_ne)
@@ -182,7 +166,7 @@ class RobotNav:
                     q[2, 2] = q[3, 3] = cfg.dr_bias_walk_m_s_per_sqrt_s**2 * dt
             elif dt > 0:
                 self.x[2:4] = step / dt
-            self.transition = f @ ou
+            self.transition = f
             self.P = f @ self.P @ f.T
             var = (cfg.dr_scale_sigma * float(np.hypot(*step))) ** 2 + (cfg.dr_velocity_sigma_m_s * dt) ** 2
             q[0, 0] = q[1, 1] = var
@@ -191,30 +175,15 @@ class RobotNav:
             # without dead reckoning the robot may be anywhere within its speed: a random walk. (A constant-
             # velocity prior looked better on paper; along a single wall its velocity is unobservable, and a
             # wrong one carried the robot metres away while the scans kept its std small across the wall.)
-            # Consecutive scans of the same walls narrow the walk to the increment they see (scan odometry): a
-            # relative measurement, so its covariance adds to the position's like dead reckoning's.
             if self.cfg.dr_bias_sigma_m_s <= 0 and not cfg.dr_error_state:
                 self.x[2:4] = 0.0
-            self.transition = ou
-            walk = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
+            self.transition = np.eye(n)
+            q[0:2, 0:2] = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
-            if odo is not None and cfg.scan_odometry:
-                delta, cov, pairs = odo
-                if pairs:
-                    # like dead reckoning's, the increment was turned by the yaw correction (the scans were
-                    # placed with it): its uncertainty grows the position's with the distance
-                    f = np.eye(n)
-                    f[0:2, 4] = [-delta[1], delta[0]]
-                    self.transition = f
-                    self.P = f @ self.P @ f.T
-                    self.x[0:2] += delta
-                    walk = cov
-                    motion = "scan-odometry"
-            q[0:2, 0:2] = walk
         self.P = self.P + q
         return motion
 
-    def _predict_error(self, dt: float, dr: FloatArray, ou: FloatArray, q: FloatArray) -> None:
+    def _predict_error(self, dt: float, dr: FloatArray, q: FloatArray) -> None:
         """The prediction with the dead reckoning's error as a state (:func:`mapping.nav_error.error_prediction`)
         from the raw increment ``dr`` (north, east; m). Adds to ``q`` (the process noise, beside the yaw's), sets
         ``self.transition`` and counts the distance and time since each axis was last pinned."""
@@ -222,7 +191,7 @@ class RobotNav:
         self.pin_time += max(dt, 0.0)
         self._speed = float(np.hypot(*dr)) / dt if dt > 0 else 0.0
         self.x, f, q_err = error_prediction(self.x, dr, dt, self.cfg)
-        self.transition = f @ ou
+        self.transition = f
         self.P = f @ self.P @ f.T
         q += q_err
 
@@ -238,27 +207,10 @@ class RobotNav:
                 self.pin_dist[axis] = 0.0
                 self.pin_time[axis] = 0.0
 
-    def _odometry(self, raw: Pose, pts: FloatArray, dt: float) -> tuple[FloatArray, FloatArray, int] | None:
-        """Scan-to-scan increment (:mod:`mapping.odometry`) from the previous scan to ``pts`` (body, (M, 3)):
-        (move (2,), covariance (2, 2), pairs), or None without a previous scan."""
-        from .odometry import OdometryConfig, increment
-
-        prev = self._prev_scan
-        r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(self.x[4]))
-        rel = pts @ r_nb.T
-        self._prev_scan = (rel, raw.down_m)
-        if prev is None or dt <= 0 or dt > self.cfg.odometry_max_dt_s:
-            return None
-        new_rel = rel + np.array([0.0, 0.0, raw.down_m - prev[1]])
-        prior = np.eye(2) * self.cfg.walk_speed_m_s**2 * dt
-        return increment(prev[0], new_rel, prior, OdometryConfig())
-
     def _compass(self, t_ns: int) -> None:
         """The compass's bias is bounded: a weak pull of the yaw correction toward zero, at most every
         ``fix_every_s`` (it keeps a heading the scans cannot hold from running away)."""
         cfg = self.cfg
-        if cfg.yaw_bias_tau_s > 0:
-            return  # the Ornstein-Uhlenbeck prediction bounds the correction already
         if self.last_compass_ns is not None and t_ns - self.last_compass_ns < cfg.fix_every_s * 1e9:
             return
         self.last_compass_ns = t_ns
@@ -366,24 +318,21 @@ class RobotNav:
     def _plane_weights(self, t_ns: int, lm: PlaneLandmarks) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(P,) information weight per plane: ``own_recent_weight`` for a plane only this robot made, first seen by
         it within ``own_recent_s`` (its own recent poses, no absolute information), 1 otherwise; and (P,) whether
-        the plane may turn the heading (see ``NavConfig.own_turn_s``, ``own_recent_turns``)."""
+        the plane may turn the heading (see ``NavConfig.own_recent_turns_alone``)."""
         cfg = self.cfg
         w = np.ones(len(lm))
         turns = np.ones(len(lm), dtype=bool)
         if not lm.contrib:
             return w, turns
         horizon = t_ns - int(cfg.own_recent_s * 1e9)
-        turn_horizon = t_ns - int(cfg.own_turn_s * 1e9) if cfg.own_turn_s > 0 else None
+        recent_turns = self.joined or cfg.own_recent_turns_alone
         for i, c in enumerate(lm.contrib):
             mine = c.get(self.robot)
             if mine is None or len(c) != 1:
                 continue
-            recent_turns = cfg.own_recent_turns and (self.joined or cfg.own_recent_turns_alone)
             if mine[1] >= horizon and (cfg.own_recent_weight < 1.0 or not recent_turns):
                 w[i] = min(cfg.own_recent_weight, 1.0 - 1e-9)
                 turns[i] = recent_turns
-            if turn_horizon is not None and mine[1] >= turn_horizon:
-                turns[i] = False
         return w, turns
 
     def _register(
@@ -424,7 +373,7 @@ class RobotNav:
             pw = plane_w[k[sel]]
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
             # a robot's own planes were placed with its own heading: they hold its position against the dead
-            # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_turn_s)
+            # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_recent_turns_alone)
             j[~plane_turns[k[sel]], 2] = 0.0
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
             h3 = scale * (j.T * w) @ j
@@ -451,7 +400,7 @@ class RobotNav:
             self._track_corrections((x - x_pred)[0:2])
         cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
         young = cfg.dr_error_rate_young_s > 0 and bool(young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[hit].any())
-        w_rate = rate_weight(cfg, young, (x - x_pred)[0:2], self.pin_time)
+        w_rate = rate_weight(cfg, young)
         if w_rate < 1.0:
             # the correction moves the position, heading and d; the error's rate takes w_rate of its gain
             self.x, self.P = consider_update(x_pred, self.P, x, cov, hf, rate_gain(self.n, w_rate))
@@ -483,8 +432,6 @@ class RobotNav:
                 return est
             self._start(t, raw_ne)
             self.last_raw_ne = raw_ne
-            if cfg.scan_odometry:
-                self._odometry(raw, pts, 0.0)  # keeps the scan for the next increment
             motion = "start"
         elif self.t_ns is not None and t < self.t_ns:
             return self._estimate(t, raw, np.zeros((3, 3)), 0, (), "late", known=True, keep=True)
@@ -492,11 +439,7 @@ class RobotNav:
             assert self.t_ns is not None
             dt = (t - self.t_ns) * 1e-9
             self._dt = dt
-            odo = self._odometry(raw, pts, dt) if self.cfg.scan_odometry else None
-            if raw_ne is not None:
-                odo = None  # dead reckoning moves the prediction; the scan is only kept for the next increment
-            motion = self._predict(dt, raw_ne, odo)
-            self.odometry_pairs = odo[2] if odo is not None else 0
+            motion = self._predict(dt, raw_ne)
             self.prior = (self.x.copy(), self.P.copy())
             self.t_ns = t
             self.last_raw_ne = raw_ne
@@ -561,11 +504,9 @@ class RobotNav:
         placed = max(float(sd[0]), float(sd[1])) <= cfg.place_std_m
         if not math.isfinite(raw.north_m + raw.east_m):
             # without a fix only a scan that pins both horizontal axes to the map places its cloud: a motion
-            # prior's guess must not grow the map; but while scan odometry keeps the launch fix's position
-            # within bootstrap_std_m, the robot's own scans make the map (nobody else may have one)
+            # prior's guess must not grow the map
             pinned = constrained["north"] and constrained["east"]
-            boot = motion in ("scan-odometry", "start") and max(float(sd[0]), float(sd[1])) <= cfg.bootstrap_std_m
-            placed = placed and (pinned or boot)
+            placed = placed and pinned
         return NavEstimate(
             self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
         )

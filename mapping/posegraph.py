@@ -55,7 +55,7 @@ from .graph_factors import global_cov, isam2, make_factor, pose2, rot
 from .graph_gate import TrackGate, relocalize, verify
 from .graph_heading import check_heading
 from .graph_hold import CloudHold, check_due, check_held, hold_step
-from .graph_odometry import guards, odometry_factor, own_velocity, rot3
+from .graph_odometry import guards, odometry_factor, rot3
 from .graph_planes import register
 from .landmarks import PlaneLandmarks
 from .nav_config import AXES, NavConfig, NavEstimate, registration_points, scan_constraint
@@ -366,10 +366,6 @@ class GraphNav:
         self._scan[key] = (level, raw.down_m)
         x_prev = self._est[prev]
         v = self.x[2:4]
-        if gcfg.odometry_own_prediction:
-            # the robot's own last increments: no re-localization or plane correction reads as a move
-            own = own_velocity(self._specs, self._t, self._est, self._first_key)
-            v = v if own is None else own
         # the predicted move, in the previous pose's level frame (heading x_prev[2])
         r_prev = rot(float(x_prev[2]))
         pred = r_prev.T @ (v * dt)
@@ -531,7 +527,6 @@ class GraphNav:
         pinned_both = constrained["north"] and constrained["east"]
         placed = not self.lost and not self.track.broken and worst <= self.gcfg.place_std_m
         placed = placed and (pinned_both or worst <= self.gcfg.boot_std_m)
-        placed = placed and (t - max(self._t[0], self.track.verified_ns)) * 1e-9 <= self.gcfg.place_verified_s
         corr_deg = {"yaw_deg": math.degrees(corr)}
         return NavEstimate(self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr_deg, pinned,
                            free_bearing)  # fmt: skip

@@ -86,10 +86,7 @@ class SmootherConfig:
     Re-filter and smooth the last ``window_s`` of capture time every ``every_s`` or ``every_fraction`` of the
     window's length, whichever is longer (so a growing window costs about ``1 + 1 / every_fraction``
     registrations per scan, not one per smoothing); the re-filter registers ``rerun_points`` points per scan with
-    ``rerun_iterations`` re-associations (the re-filter is most of the smoother's cost). With
-    ``refilter_overlap_s`` set, a run re-filters only the scans since the previous run's newest minus that
-    overlap and keeps the older scans' filter steps from earlier runs (the backward pass still covers the whole
-    window): a run's cost stops growing with the window. None re-filters the whole window every run.
+    ``rerun_iterations`` re-associations (the re-filter is most of the smoother's cost).
 
     With ``drift_max_m_s`` > 0 (off by default: docs/navigation-design.md, "Extracted clouds with good poses"), a
     run's result for a robot whose live filter has not opened its velocity bias (its fixes taken as good) is refused
@@ -98,10 +95,6 @@ class SmootherConfig:
     disagreement at the window's first scan by at most ``drift_slack_m`` plus ``drift_max_m_s`` times the time
     between them. A dead reckoning's error grows slowly and smoothly (a velocity bias of a few cm/s); scans
     registered to a wrong plane pull an estimate off in a jump.
-
-    ``refilter_rate_weight`` (None: the live filter's): ``NavConfig.dr_error_rate_weight`` for the re-filter alone,
-    where a scan of the window may register to a plane begun after it first came (docs/navigation-design.md, "Where
-    the runaway starts"); the live filter continues from the run's end with its own.
     """
 
     window_s: float = 120.0
@@ -109,10 +102,8 @@ class SmootherConfig:
     every_fraction: float = 0.5
     rerun_points: int = 200
     rerun_iterations: int = 4
-    refilter_overlap_s: float | None = None
     drift_max_m_s: float = 0.0
     drift_slack_m: float = 0.1
-    refilter_rate_weight: float | None = None
 
 
 def leaves_fixes(
@@ -188,7 +179,7 @@ def _refilter(nav: RobotNav, scans: list[_Scan], landmarks: PlaneLandmarks) -> N
 
 class SmoothJob:
     """One robot's smoothing run, detached from its live filter: the window's scans (copies) re-filtered from the
-    state before the first re-filtered one by a filter of its own, then smoothed backward. :meth:`run` touches
+    state before the first one by a filter of its own, then smoothed backward. :meth:`run` touches
     nothing but the job, so it may run on another thread (:class:`FleetPlacements` with ``background``)."""
 
     def __init__(
@@ -196,7 +187,6 @@ class SmoothJob:
         robot: str,
         cfg: NavConfig,
         scans: list[_Scan],
-        start: int,
         first_ns: int | None,
         scfg: SmootherConfig | None = None,
     ) -> None:
@@ -204,7 +194,6 @@ class SmoothJob:
         self.cfg = cfg
         self.scfg = scfg or SmootherConfig()
         self.scans = scans
-        self.start = start
         self.first_ns = first_ns
         #: after :meth:`run`: t_ns -> revised pose, the filter's state after the last scan, the launch's position
         self.revised: dict[int, Pose] = {}
@@ -224,8 +213,8 @@ class SmoothJob:
         nav = RobotNav(self.robot, self.cfg)
         nav.joined = self.joined
         anchor = _anchor(self.scans[0])
-        nav.restore(self.scans[self.start].before)
-        _refilter(nav, self.scans[self.start :], landmarks)
+        nav.restore(self.scans[0].before)
+        _refilter(nav, self.scans, landmarks)
         xs = RobotSmoother._rts(self.scans)
         for s, x in zip(self.scans, xs, strict=True):
             if x is None or s.est is None or s.est.pose is None:
@@ -284,10 +273,6 @@ class RobotSmoother:
         #: where the map now places the robot's launch (its first scan's smoothed position), north/east
         self.start_map_ne: tuple[float, float] | None = None
         self._first_ns: int | None = None
-        #: the newest scan the last run re-filtered (None: no run yet)
-        self._refiltered_ns: int | None = None
-        #: scans re-filtered by the runs so far (the smoother's cost is mostly these)
-        self.refiltered = 0
 
     def update(self, t_ns: int, raw: Pose, points_body: Any, landmarks: PlaneLandmarks) -> NavEstimate:
         """One cloud through the filter (:meth:`RobotNav.update`), remembered for the smoother."""
@@ -335,19 +320,8 @@ class RobotSmoother:
             return None
         self.last_smooth_ns = self.scans[-1].t_ns
         scans = [replace(s) for s in self.scans]
-        start = 0
-        overlap = self.scfg.refilter_overlap_s
-        if overlap is not None and self._refiltered_ns is not None:
-            # the older scans keep the filter steps of earlier runs: only what came since (and a short overlap,
-            # whose registrations may now see planes made after them) is re-registered against the map as it is
-            lim = self._refiltered_ns - int(overlap * 1e9)
-            start = next((i for i, s in enumerate(scans) if s.t_ns >= lim), len(scans) - 1)
-        self._refiltered_ns = scans[-1].t_ns
-        self.refiltered += len(scans) - start
         cfg = replace(self.nav.cfg, iterations=self.scfg.rerun_iterations)
-        if self.scfg.refilter_rate_weight is not None:
-            cfg = replace(cfg, dr_error_rate_weight=self.scfg.refilter_rate_weight)
-        job = SmoothJob(self.robot, cfg, scans, start, self._first_ns, self.scfg)
+        job = SmoothJob(self.robot, cfg, scans, self._first_ns, self.scfg)
         job.joined = self.nav.joined
         job.check_fixes = not self.nav.bias_open
         return job

@@ -15,7 +15,7 @@ from lrsensor.frames import Pose, ned_to_body
 from mapping.landmarks import PlaneLandmarks
 from mapping.nav_error import consider_update, rate_gain, rate_weight, young_planes
 from mapping.navigation import NavConfig, RobotNav
-from mapping.smoother import SMOOTHED_NAV, RobotSmoother, SmootherConfig
+from mapping.smoother import SMOOTHED_NAV
 from mapping.synth import Scene, tank, trace
 
 S = 1_000_000_000
@@ -51,25 +51,21 @@ def _young_map() -> PlaneLandmarks:
     return _planes({"wall.south": OFF_M}, {"wall.south": ("rov3", round((WEST_S - 0.7) * S))})
 
 
-def _young_plane(cfg: NavConfig, smoother: RobotSmoother | None = None, wrong_s: float = 1.0) -> RobotNav:
+def _young_plane(cfg: NavConfig, wrong_s: float = 1.0) -> RobotNav:
     """A robot with good fixes holding station 3 m from the south wall and 1 m from the west wall: ``WEST_S`` facing
     the west wall alone (north free), then ``wrong_s`` looking into the corner, where the south wall is a plane
-    another robot began 0.7 s before, ``OFF_M`` off its face (nav32's runaway, in small). With ``smoother`` the
-    scans go through it against the right map (its filter is returned)."""
+    another robot began 0.7 s before, ``OFF_M`` off its face (nav32's runaway, in small)."""
     scene = tank(pillars=False)
     west = Scene(tuple(f for f in scene.faces if f.name == "wall.west"))
     old, young = _planes({}, {}), _young_map()
-    nav = smoother.nav if smoother is not None else RobotNav("rov1", cfg)
+    nav = RobotNav("rov1", cfg)
     for k in range(round((WEST_S + wrong_s) * 10)):
         t = k * 0.1
         corner = t >= WEST_S
         true = Pose(3.0, 1.0, 1.0, 0.0, 0.0, math.radians(225.0 if corner else 270.0))
         hits = trace(scene if corner else west, true, n_rays=200, fan_deg=120.0 if corner else 60.0)
         pts = ned_to_body(hits.points_ned, true)
-        if smoother is not None:
-            smoother.update(round(t * S), true, pts, old)
-        else:
-            nav.update(round(t * S), true, pts, young if corner else old)
+        nav.update(round(t * S), true, pts, young if corner else old)
     return nav
 
 
@@ -84,22 +80,6 @@ def test_a_young_plane_off_its_face_moves_the_position_but_writes_no_rate() -> N
     assert math.sqrt(float(full.P[2, 2])) < 0.012
     assert abs(float(kept_out.x[2])) < 0.001
     assert math.sqrt(float(kept_out.P[2, 2])) > 0.02
-
-
-def test_the_re_filter_alone_may_keep_the_rate_out() -> None:
-    # the live filter registers to the right map; the smoother's run re-filters the window against a map where the
-    # south wall is the young plane off its face: its end, handed to the live filter, carries the rate it wrote
-    rates = []
-    for weight in (None, 0.0):
-        cfg = replace(ERROR_NAV, dr_error_rate_young_s=3.0)
-        smoother = RobotSmoother("rov1", cfg, SmootherConfig(refilter_rate_weight=weight))
-        nav = _young_plane(cfg, smoother)
-        assert abs(float(nav.x[2])) < 0.001  # the live filter's, before the run
-        smoother.smooth(_young_map())
-        assert float(nav.x[0]) - 3.0 > 0.1  # the run moved the position to the young plane either way
-        rates.append(abs(float(nav.x[2])))
-    assert rates[0] > 0.008
-    assert rates[1] < 0.001
 
 
 def test_a_drift_pinned_against_old_planes_is_still_learnt() -> None:
@@ -157,19 +137,11 @@ def test_young_planes_by_their_first_contribution() -> None:
     assert not young_planes(replace(lm, contrib=()), 10 * S, 3.0).any()  # without contributions: old
 
 
-def test_the_rate_weight_applies_to_young_planes_and_jumps() -> None:
+def test_the_rate_weight_applies_to_young_planes() -> None:
     cfg = replace(ERROR_NAV, dr_error_rate_weight=0.2)
-    small, big = np.array([0.005, 0.0]), np.array([0.0, 0.1])
-    pinned, free = np.zeros(2), np.array([0.0, 2.0])
-    assert rate_weight(cfg, False, small, pinned) == 0.2  # no condition: every registration
-    assert rate_weight(replace(cfg, dr_error_rate_weight=1.0), True, big, pinned) == 1.0
-    assert rate_weight(replace(ERROR_NAV, dr_error_state=False, dr_error_rate_weight=0.2), True, big, pinned) == 1.0
+    assert rate_weight(cfg, False) == 0.2  # no condition: every registration
+    assert rate_weight(replace(cfg, dr_error_rate_weight=1.0), True) == 1.0
+    assert rate_weight(replace(ERROR_NAV, dr_error_state=False, dr_error_rate_weight=0.2), True) == 1.0
     young = replace(cfg, dr_error_rate_young_s=3.0)
-    assert rate_weight(young, True, small, pinned) == 0.2
-    assert rate_weight(young, False, big, pinned) == 1.0
-    # a jump: 10 cm east while east was pinned; a drift of 5 cm/s could make it after 2 s unpinned
-    jump = replace(cfg, dr_error_rate_jump_m=0.02)
-    assert rate_weight(jump, False, big, pinned) == 0.2
-    assert rate_weight(jump, False, big, free) == 1.0
-    assert rate_weight(jump, False, small, pinned) == 1.0
-    assert rate_weight(replace(jump, dr_error_rate_young_s=3.0), True, small, pinned) == 0.2  # either test
+    assert rate_weight(young, True) == 0.2
+    assert rate_weight(young, False) == 1.0

@@ -173,28 +173,6 @@ def test_the_base_smooths_by_default_and_not_with_plane_workers() -> None:
     assert not off.navigation
 
 
-def test_an_incremental_refilter_registers_fewer_scans(drift_dive: tuple[Scene, list[Any]]) -> None:
-    _, frames = drift_dive
-    frames = [f for f in frames if f.robot == "rov1"][:200]
-    cfg = NavConfig(fix_quality_factor=5.0)
-    counts = {}
-    for overlap in (None, 2.0):
-        scfg = SmootherConfig(every_s=5.0, every_fraction=0.0, refilter_overlap_s=overlap)
-        sm = RobotSmoother("rov1", cfg, scfg)
-        b = MapBuilder()
-        for f in frames:
-            if sm.due(f.t_ns):
-                sm.smooth(b.landmarks(cfg.min_landmark_points))
-            est = sm.update(f.t_ns, f.pose_est, f.points_body, b.landmarks(cfg.min_landmark_points))
-            assert est.pose is not None
-            b.add_cloud(f.robot, f.t_ns, f.points_ned_est, f.pose_est)
-        counts[overlap] = sm.refiltered
-    # 20 s at 10 Hz smoothed every 5 s: the whole window each run (50 + 99 + 148 + 197 scans) vs what came since
-    # the last run plus 2 s (50 + 3 x 70)
-    assert counts[None] >= 450, counts
-    assert counts[2.0] <= 280, counts
-
-
 def test_a_background_run_gives_the_same_map_and_holds_the_map_thread_briefly(
     drift_dive: tuple[Scene, list[Any]],
 ) -> None:

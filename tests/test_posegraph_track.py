@@ -108,18 +108,6 @@ def test_a_broken_track_is_taken_up_again_only_where_the_scan_pins_one_place() -
     assert all(e.motion == "lost" for e in ests1)
 
 
-def test_a_track_no_scan_has_matched_to_one_place_for_a_while_is_not_placed() -> None:
-    # re-localized at once, then no verification (every 100 s): placed for 0.3 s after, then no more
-    g, ests = _broken_then(_corner_scan(), 10, verify_every_s=100.0, place_verified_s=0.3)
-    assert g.track.relocalized == 1
-    placed = [e.placed for e in ests]
-    assert any(placed[:4])
-    assert not any(placed[5:])
-    # verified every 0.2 s, the same track stays placed
-    _, ests2 = _broken_then(_corner_scan(), 10, verify_every_s=0.2, place_verified_s=0.3)
-    assert all(e.placed for e in ests2[2:])
-
-
 @pytest.fixture(scope="module")
 def depth_only() -> list[Any]:
     return simulate_dive(
