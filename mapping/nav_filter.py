@@ -505,8 +505,7 @@ class RobotNav:
         if not math.isfinite(raw.north_m + raw.east_m):
             # without a fix only a scan that pins both horizontal axes to the map places its cloud: a motion
             # prior's guess must not grow the map
-            pinned = constrained["north"] and constrained["east"]
-            placed = placed and pinned
+            placed = placed and constrained["north"] and constrained["east"]
         return NavEstimate(
             self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
         )

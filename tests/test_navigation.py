@@ -187,3 +187,20 @@ def test_the_demo_summary_names_duplicates_and_spurious_planes() -> None:
     assert s["duplicates"] == {f["name"]: 2}
     assert s["spurious"] == 1
     assert demo_score([plane])["duplicates"] == {}
+
+
+def test_a_cloud_without_a_fix_reports_how_many_directions_its_scan_pinned() -> None:
+    # after the launch fix, a sample with attitude and depth only: one wall pins one direction, and the estimate
+    # says 1 (the degenerate case), not a yes/no
+    scene = tank(pillars=False)
+    wall = Scene(tuple(f for f in scene.faces if f.name == "wall.south"))
+    true = Pose(1.2, 3.0, 1.0, 0.0, 0.0, math.pi)
+    points = ned_to_body(trace(wall, true, n_rays=400, fan_deg=60.0).points_ned, true)
+    nav = RobotNav("rov1", NavConfig())
+    nav.update(0, _raw(true, 0.0, 0.0, 0.0), points, scene_landmarks(wall))
+    no_fix = Pose(math.nan, math.nan, true.down_m, true.roll_rad, true.pitch_rad, true.yaw_rad)
+    est = nav.update(100_000_000, no_fix, points, scene_landmarks(wall))
+    assert est.pinned == 1
+    assert type(est.pinned) is int
+    assert not est.placed  # one direction pinned places no cloud without a fix
+    assert est.to_json()["degenerate"]["free_bearing_deg"] == pytest.approx(90.0, abs=1.0)
