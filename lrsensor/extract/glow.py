@@ -117,7 +117,6 @@ import numpy as np
 from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .held import HELD_STEP, UNTOLD, carried_share, held_share
-from .placed import placed_fits
 from .refit import rows_overlap
 from .sorting import median
 from .water import least, retell, sample_total
@@ -503,9 +502,9 @@ def glow_refit(  # type: ignore[no-untyped-def]
         for t in range(n):
             if hold[t]:
                 s_in[t] = s_w
-        v_h, s_h, f_h, rss_h, d_h, st_h = placed_fits(
-            image, cols, laser, at, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0, s_w, sat_dn,
-            ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0,
+        v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
+            image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0,
         )  # fmt: skip
         for t in range(n):
             if hold[t]:

@@ -17,7 +17,6 @@ import numpy as np
 
 from ._jit import callee, empty, full, inline, zeros
 from .glow_fit import fit_rounds
-from .placed import PLACE_WIDTH, WIDTH_POINTS, WIDTH_STEP, placed_width
 from .sorting import median
 
 #: The fine grid of :func:`retell`: WATER_POINTS attenuations WATER_STEP (1/m) apart, centred on the first telling's.
@@ -176,7 +175,7 @@ def retell(  # type: ignore[no-untyped-def]
     a2 = least(fine, sample_total(cr_a, fit_a, use, sample), use)
     if math.isnan(a2):
         return alpha, s_w
-    v_2, s2, f2, _r, _d, st2 = fit_rounds(
+    _v, s2, f2, _r, _d, st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v_o, s_o, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows, sg0, lo_sig,
         max_sig, sat_dn, ramp, n_rounds[1], d_rc, a2 * k_pt, 0.0 * d_rc,
     )  # fmt: skip
@@ -191,67 +190,4 @@ def retell(  # type: ignore[no-untyped-def]
         if f2[t] and st2[0, t] > 0.0:
             pool[m] = s2[t]
             m += 1
-    s_m = float(median(pool))
-    v_o2, s_o2 = v_o, s_o
-    for _ in range(PLACE_WIDTH):  # told again beside stripes that saw the sample's own rows
-        hw_m = min(int(math.ceil(4.5 * s_m)) + 2, 30)  # noqa: RUF046 (glow.WINDOW_SIGMAS, glow.MAX_HALF_PX)
-        s_n, v_2, s2, f2, v_o2, s_o2 = placed_width(
-            image, cols, laser, at, vv, sig, nb_ok, nb0, part, glowing, side, rc, hw_s, reach_rows, sg0, lo_sig,
-            max_sig, sat_dn, ramp, n_rounds, d_rc, a2 * k_pt, sample, v_2, s2, f2, s_m, hw_m,
-        )  # fmt: skip
-        if math.isnan(s_n):
-            break
-        s_m = s_n
-    if WIDTH_POINTS > 0:
-        s_m = width_grid(
-            image, cols, laser, at, nb_ok, nb0, glowing, side, rc, hw_s, reach_rows, sg0, sat_dn, ramp, n_rounds, d_rc,
-            a2 * k_pt, sample, n_s, v_o2, s_o2, s_m, share,
-        )  # fmt: skip
-    return a2, s_m
-
-
-@callee
-def width_grid(  # type: ignore[no-untyped-def]
-    image, cols, laser, at, nb_ok, nb0, glowing, side, rc, hw_s, reach_rows, sg0, sat_dn, ramp, n_rounds, d_rc, kap,
-    sample, n_s, v_o, s_o, s_w, share,
-):
-    """The width told on a grid: the sample fitted at :data:`WIDTH_POINTS` widths :data:`WIDTH_STEP` apart about
-    ``s_w`` held, the other stripes at ``v_o``, ``s_o`` (N,), scored by :func:`.water.retell`'s adjusted profile
-    likelihood, the least refined by a parabola; ``s_w`` where none can be scored."""
-    n = cols.size
-    n_w = WIDTH_POINTS
-    widths = empty(n_w, np.float64)
-    for i in range(n_w):
-        widths[i] = s_w + WIDTH_STEP * (i - n_w // 2)
-    cr_a = zeros((n_w, n), np.float64)
-    fit_a = zeros((n_w, n), np.bool_)
-    use = zeros(n_w, np.bool_)
-    for i in range(n_w):
-        w_i = widths[i]
-        sig_h = s_o.copy()
-        sg0_h = sg0.copy()
-        for t in range(n):
-            if sample[t]:
-                sig_h[t] = w_i
-                sg0_h[t] = w_i
-        v1, s1, f1, _r, _d, _st = fit_rounds(
-            image, cols, laser, at, v_o, sig_h, v_o, sig_h, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows,
-            sg0_h, w_i, w_i, sat_dn, ramp, n_rounds[1], d_rc, kap, 0.0 * d_rc,
-        )  # fmt: skip
-        for t in range(n):
-            if not f1[t]:
-                v1[t] = v_o[t]
-                s1[t] = sg0_h[t]
-        _v, _s, f2, rss, d2, st2 = fit_rounds(
-            image, cols, laser, at, v1, sig_h, v1, sig_h, nb_ok, nb0, sample & f1, glowing, side, rc, hw_s, reach_rows,
-            s1, w_i, w_i, sat_dn, ramp, n_rounds[0], d_rc, kap, 0.0 * d_rc,
-        )  # fmt: skip
-        k = 0
-        for t in range(n):
-            fit_a[i, t] = sample[t] and f1[t] and f2[t] and rss[t] > 0.0
-            if fit_a[i, t]:
-                cr_a[i, t] = d2[t] * math.log(rss[t]) + st2[2, t]
-            k += fit_a[i, t]
-        use[i] = k >= share * n_s
-    w2 = least(widths, sample_total(cr_a, fit_a, use, sample), use)
-    return s_w if math.isnan(w2) else w2
+    return a2, float(median(pool))
