@@ -240,8 +240,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )  # fmt: skip
     n = len(a.modes) * len(a.seeds)
     text = (f"# Settings on the extracted dives\n\n`{cmd}`\n\n{n} dives ({', '.join(a.modes)} "
-            f"x seeds {', '.join(map(str, a.seeds))}; {a.seconds:g} s, 3 robots, clouds extracted from 640x360 renders, "
-            f"cut at {a.max_range_m:g} m). Variants:\n\n{legend}\n\n{table(rows, a.variants)}")  # fmt: skip
+            f"x seeds {', '.join(map(str, a.seeds))}; {a.seconds:g} s, 3 robots, clouds extracted from 640x360 "
+            f"renders, cut at {a.max_range_m:g} m). Variants:\n\n{legend}\n\n{table(rows, a.variants)}")  # fmt: skip
     print(text)
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -15,8 +15,11 @@ def test_variants_parse_with_their_settings_and_the_default_first() -> None:
             parse_variant(bad)
     a = parse_args(["--seeds", "1,2", "--variant", "k=map.range_noise_per_m=0.002", "--order-seeds", "3"])
     assert [v.name for v in a.variants] == [DEFAULT, "k", "order 3"]
-    assert a.variants[2].order_seed == 3 and not a.variants[2].sets
-    assert a.seeds == [1, 2] and a.modes == ["good", "drift", "depth-only"] and a.ways == ["smoothed"]
+    assert a.variants[2].order_seed == 3
+    assert not a.variants[2].sets
+    assert a.seeds == [1, 2]
+    assert a.modes == ["good", "drift", "depth-only"]
+    assert a.ways == ["smoothed"]
     with pytest.raises(SystemExit):
         parse_args(["--ways", "filter"])
 
