@@ -1,6 +1,6 @@
 """Navigation and map settings judged on a dozen extracted dives, not three (issue 27).
 
-    python -m benchmarks.bench_extracted_nav [--modes good,drift,depth-only] [--seeds 1,2,3,5] [--ways smoothed]
+    python benchmarks/bench_extracted_nav.py [--modes good,drift,depth-only] [--seeds 1,2,3,5] [--ways smoothed]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...] ...] [--order-seeds 1,2] [--max-range-m 3] [--dives DIR]
         [--cache FILE] [--out benchmarks/results/extracted_nav.md]
 
@@ -33,10 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.synth import DiveFrame
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: python benchmarks/bench_extracted_nav.py
+    sys.path.insert(0, str(ROOT))
+
+from mapping.synth import DiveFrame  # noqa: E402
 
 DEFAULT = "default"
-RESULTS = Path(__file__).resolve().parent / "results" / "extracted_nav.md"
+RESULTS = ROOT / "benchmarks" / "results" / "extracted_nav.md"
 
 
 @dataclass(frozen=True)
@@ -120,9 +124,8 @@ def shuffle_ticks(frames: list[DiveFrame], seed: int) -> list[DiveFrame]:
 
 def map_dive(frames: list[DiveFrame], way: str, v: Variant, per_px: dict[str, float]) -> dict[str, float]:
     """``frames`` mapped ``way`` under ``v``: faces, seen, dup, spurious, end_error_m, cpu_s."""
+    from benchmarks.diag_extracted_poses import _tuning, run_way
     from mapping.synth import hit_faces, score_map, tank
-
-    from .diag_extracted_poses import _tuning, run_way
 
     kw = _tuning(list(v.sets))
     kw["range_error_per_px"] = per_px
@@ -145,10 +148,9 @@ def _cache_key(mode: str, seed: int, way: str, v: Variant, a: argparse.Namespace
 def load_dive(a: argparse.Namespace, mode: str, seed: int) -> tuple[list[DiveFrame], dict[str, float]]:
     """``mode``/``seed``'s extracted frames cut at ``a.max_range_m`` (rendered into ``a.dives`` unless there), and
     robot -> its calibration's range error per pixel."""
+    from benchmarks.fleet_dives import dive_frames, extracted_frames, write_fleet
     from lrsensor.calibration import Calibration
     from lrsensor.range_theory import range_error_per_px
-
-    from .fleet_dives import dive_frames, extracted_frames, write_fleet
 
     print(f"{mode} seed {seed}: the dive (rendered and extracted once, in {a.dives})", file=sys.stderr)
     folders = write_fleet(a.dives, mode, seed, a.seconds, "640x360")
@@ -235,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     legend = "\n".join(f"- {v.name}: " + (", ".join(f"`{s}`" for s in v.sets) if v.sets else
                                          f"the default, each tick's robots shuffled by seed {v.order_seed}"
                                          if v.order_seed else "the base's `--nav on`") for v in a.variants)  # fmt: skip
-    cmd = "python -m benchmarks.bench_extracted_nav " + " ".join(
+    cmd = "python benchmarks/bench_extracted_nav.py " + " ".join(
         argv if argv is not None else sys.argv[1:]
     )  # fmt: skip
     n = len(a.modes) * len(a.seeds)

@@ -144,7 +144,7 @@ SOURCES: tuple[Source, ...] = (
     Source(
         "extracted_nav.md",
         "mapping",
-        "python -m benchmarks.bench_extracted_nav [--modes M,...] [--seeds S,...] [--variant NAME=KEY=VALUE,...] "
+        "python benchmarks/bench_extracted_nav.py [--modes M,...] [--seeds S,...] [--variant NAME=KEY=VALUE,...] "
         "[--order-seeds K,...]",
         note="navigation and map settings judged on 12 extracted dives against the default (issue 27)",
     ),
