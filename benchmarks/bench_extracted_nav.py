@@ -11,9 +11,10 @@ dive rendered once (:func:`benchmarks.fleet_dives.write_fleet` caches it under `
 ``--nav on``; ``true``: the true poses, no navigation), each robot's clouds with its calibration's range error.
 
 ``--variant NAME=KEY=VALUE,...``: a named setting, its keys those of ``diag_extracted_poses --set``
-(``nav.`` / ``smoother.`` / ``graph.`` / ``map.``). ``--order-seeds``: the default again with the robots' order
-within each tick (clouds of one capture time) shuffled by that seed, which is what the map's result moves by
-from the order alone. Each (dive, way, variant) is mapped once and kept in ``--cache`` (JSON lines), so a rerun
+(``nav.`` / ``smoother.`` / ``graph.`` / ``map.``; ``order=SEED``: with each tick's robots shuffled by SEED).
+``--order-seeds``: the default again with the robots' order within each tick (clouds of one capture time)
+shuffled by that seed, which is what the map's result moves by from the order alone. Each (dive, way, variant)
+is mapped once and kept in ``--cache`` (JSON lines), so a rerun
 with another variant maps only that one.
 
 Per dive: faces within the bar (2 deg, 5 cm) / seen, duplicates, spurious planes. Per variant: the sums per mode
@@ -72,17 +73,20 @@ class Row:
 
 
 def parse_variant(text: str) -> Variant:
-    """``NAME=KEY=VALUE[,KEY=VALUE...]`` as a :class:`Variant` (a bare ``NAME=`` is the default's settings)."""
+    """``NAME=KEY=VALUE[,KEY=VALUE...]`` as a :class:`Variant` (a bare ``NAME=`` is the default's settings;
+    ``order=SEED`` among them shuffles each tick's robots by that seed)."""
     name, _, sets = text.partition("=")
     if not name or name == DEFAULT or "." in name:
         msg = f"a variant needs a name other than {DEFAULT!r} before '=': {text!r}"
         raise ValueError(msg)
     keys = tuple(s for s in sets.split(",") if s)
+    order = [s for s in keys if s.startswith("order=")]
+    keys = tuple(s for s in keys if s not in order)
     bad = [s for s in keys if "=" not in s or "." not in s.split("=", 1)[0]]
-    if bad:
-        msg = f"variant {name!r}: settings are PART.KEY=VALUE, got {', '.join(bad)}"
+    if bad or len(order) > 1:
+        msg = f"variant {name!r}: settings are PART.KEY=VALUE and at most one order=SEED, got {sets}"
         raise ValueError(msg)
-    return Variant(name, keys)
+    return Variant(name, keys, int(order[0].split("=", 1)[1]) if order else 0)
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -234,9 +238,9 @@ def table(rows: Sequence[Row], variants: Sequence[Variant]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     a = parse_args(argv)
     rows = measure(a)
-    legend = "\n".join(f"- {v.name}: " + (", ".join(f"`{s}`" for s in v.sets) if v.sets else
-                                         f"the default, each tick's robots shuffled by seed {v.order_seed}"
-                                         if v.order_seed else "the base's `--nav on`") for v in a.variants)  # fmt: skip
+    legend = "\n".join(f"- {v.name}: " + (", ".join(f"`{s}`" for s in v.sets) or "the base's `--nav on`")
+                        + (f", each tick's robots shuffled by seed {v.order_seed}" if v.order_seed else "")
+                        for v in a.variants)  # fmt: skip
     cmd = "python benchmarks/bench_extracted_nav.py " + " ".join(
         argv if argv is not None else sys.argv[1:]
     )  # fmt: skip
