@@ -15,7 +15,8 @@ dive rendered once (:func:`benchmarks.fleet_dives.write_fleet` caches it under `
 ``--order-seeds``: the default again with the robots' order within each tick (clouds of one capture time)
 shuffled by that seed, which is what the map's result moves by from the order alone. Each (dive, way, variant)
 is mapped once and kept in ``--cache`` (JSON lines), so a rerun
-with another variant maps only that one.
+with another variant maps only that one (the key holds the settings, not the code: remove the file after a
+change to the navigation or the map).
 
 Per dive: faces within the bar (2 deg, 5 cm) / seen, duplicates, spurious planes. Per variant: the sums per mode
 and overall, and its wins / losses against the default, dive by dive: more faces in the bar wins, equal faces
