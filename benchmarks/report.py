@@ -142,6 +142,13 @@ SOURCES: tuple[Source, ...] = (
         note="a fleet of one navigation through lrsensor base and lrsensor rov processes vs in-process (issue 27)",
     ),
     Source(
+        "extracted_nav.md",
+        "mapping",
+        "python benchmarks/bench_extracted_nav.py [--modes M,...] [--seeds S,...] [--variant NAME=KEY=VALUE,...] "
+        "[--order-seeds K,...]",
+        note="navigation and map settings judged on 12 extracted dives against the default (issue 27)",
+    ),
+    Source(
         "fleet_heading.md",
         "mapping",
         "python benchmarks/diag_fleet_heading.py --seeds 1,2,3,5 --seconds 0,1,2,3",
