@@ -67,9 +67,9 @@ class MapConfig:
         stripe_sigma_px: the extractor's stripe row error (pixels, standard deviation) that turns a robot's
             calibration into its clouds' k, ``stripe_sigma_px / (f_px c)`` (:func:`lrsensor.range_theory.
             range_error_per_px`); clouds without a calibration (schema 1, traced) keep the fixed thresholds.
-            0 (default): off; :data:`mapping.range_noise.STRIPE_SIGMA_PX` (0.02 px, the extractor's measured
-            error) gives k 0.00216 for the 640x360 camera of the simulated dives (docs/mapping.md, "Range noise":
-            measured not to help reliably yet).
+            Default 0.0185 px (:data:`mapping.range_noise.STRIPE_SIGMA_PX`, the extractor's row error at 2-2.5 m):
+            k 0.002 for the 640x360 camera of the simulated dives, 0.00067 for the paper's 1920x1080 one; 0: off
+            (docs/mapping.md, "Range noise").
         distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
         ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
         max_planes_per_region: RANSAC peels at most this many planes off one region.
@@ -157,7 +157,7 @@ class MapConfig:
     grow_angle_deg: float = 12.0
     cell_planarity: float = 0.35
     range_noise_per_m: float = 0.0
-    stripe_sigma_px: float = 0.0
+    stripe_sigma_px: float = 0.0185
     distance_threshold_m: float = 0.03
     ransac_iterations: int = 400
     seed: int = 1234

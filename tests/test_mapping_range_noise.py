@@ -69,8 +69,8 @@ def test_k_of_a_calibration_is_sigma_over_focal_length_times_laser_offset() -> N
     per_px = range_error_per_px(CAL)
     assert per_px == pytest.approx(1.0 / (184.76 * 0.05), rel=1e-12)
     on = MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX)
-    assert cloud_noise_per_m(on, per_px) == pytest.approx(0.02 / (184.76 * 0.05), rel=1e-12)  # 0.00216
-    assert cloud_noise_per_m(MapConfig(), per_px) == 0.0  # off by default
+    assert cloud_noise_per_m(on, per_px) == pytest.approx(0.0185 / (184.76 * 0.05), rel=1e-12)  # 0.0020
+    assert cloud_noise_per_m(MapConfig(stripe_sigma_px=0.0), per_px) == 0.0  # off
     slope, r = _slope(CAL, CAL.camera.cy - 184.76 * 0.05 / 2.0, 0, triangulate_plane)  # a wall 2 m ahead
     assert r == pytest.approx(2.0, abs=0.01)
     assert slope == pytest.approx(per_px, rel=0.01)
@@ -147,7 +147,7 @@ def extractions(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
 
 def test_a_cloud_with_a_calibration_gets_its_k_in_the_extraction(extractions: list[Any]) -> None:
     b = MapBuilder(MapConfig(extract_every_clouds=4, window_clouds=8, stripe_sigma_px=STRIPE_SIGMA_PX))
-    k = 0.02 * range_error_per_px(CAL)
+    k = STRIPE_SIGMA_PX * range_error_per_px(CAL)
     b.set_range_error("calibrated", range_error_per_px(CAL))
     assert b.range_noise("calibrated") == pytest.approx(k)
     assert b.range_noise("traced") == 0.0  # never told: the fixed thresholds
@@ -183,3 +183,9 @@ def test_the_windows_k_survives_a_save(tmp_path: Path, extractions: list[Any]) -
     assert k.ndim == 1
     assert np.count_nonzero(k[: 3 * k.size // 5]) == 3 * k.size // 5  # the 3 saved clouds (of 5 alike) kept their k
     assert np.count_nonzero(k[3 * k.size // 5 :]) == 0
+
+
+def test_a_calibrated_cloud_has_range_noise_by_default() -> None:
+    # the simulated dives' 640x360 camera: f 184.76 px, lasers 5 cm from the camera centre: k 0.002 per metre
+    assert cloud_noise_per_m(MapConfig(), 1.0 / (184.76 * 0.05)) == pytest.approx(0.002, rel=0.01)
+    assert cloud_noise_per_m(MapConfig(), 0.0) == 0.0  # a cloud without a calibration keeps the fixed thresholds

@@ -30,14 +30,14 @@ def test_the_base_gives_a_schema_2_cloud_its_calibrations_k_and_a_schema_1_cloud
     base = BaseStation(None, FleetKeys("t"), tmp_path / "state", map_mode="on", navigation=False)
     base.calibrations = CalibrationBook(base.calibration_path, lambda robot: CAL)
     assert base.map is not None
-    base.map.cfg = replace(base.map.cfg, stripe_sigma_px=STRIPE_SIGMA_PX)  # the option on (off by default)
+    base.map.cfg = replace(base.map.cfg, stripe_sigma_px=STRIPE_SIGMA_PX)  # the default, said explicitly
     base.feed.start(None)
     try:
         pose = Pose(1.0, 2.0, 3.0, 0.0, 0.0, 0.5)
         stripe = StripeMsg.from_scan("rov1", 1, 1_000_000_000, pose, stripe_scan(), calibration_fingerprint(CAL))
         base._ingest(base.keys.cloud("rov1"), stripe.to_bytes(), 0)
         base.feed.flush()
-        assert base.map.range_noise("rov1") == pytest.approx(0.02 * range_error_per_px(CAL))  # 0.00216 / m
+        assert base.map.range_noise("rov1") == pytest.approx(STRIPE_SIGMA_PX * range_error_per_px(CAL))  # 0.0020 / m
         cloud = CloudMsg.from_scan("rov1", 2, 1_100_000_000, pose, stripe_scan(1))
         base._ingest(base.keys.cloud("rov1"), cloud.to_bytes(), 0)
         base.feed.flush()
@@ -59,7 +59,7 @@ def test_a_job_carries_its_clouds_calibration_to_the_worker() -> None:
     assert plain.range_error_per_px == 0.0  # absent on the wire
     worker = MapWorker(None, FleetKeys("t"), "w1", MapConfig(stripe_sigma_px=STRIPE_SIGMA_PX))
     worker.handle(back)
-    assert worker.builder.range_noise("rov1") == pytest.approx(0.02 * range_error_per_px(CAL))
+    assert worker.builder.range_noise("rov1") == pytest.approx(STRIPE_SIGMA_PX * range_error_per_px(CAL))
     worker.handle(MapJob("rov1", 2, 20, 0, Pose.identity(), pts))
     assert worker.builder.range_noise("rov1") == 0.0
 
