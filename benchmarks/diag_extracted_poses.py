@@ -8,7 +8,7 @@ One of ``bench_nav``'s 90 s 3-robot dives, its clouds extracted from its rendere
 cut at ``--max-range-m`` along the optical axis, mapped in-process (``mapping.synth.replay_dive``) each way, each
 robot's clouds given its calibration's range error (its folder's ``calib.json`` through
 :func:`lrsensor.range_theory.range_error_per_px`, as the base station gives a schema-2 cloud's; the range noise it
-makes is off unless ``--set map.stripe_sigma_px=0.02``, :mod:`mapping.range_noise`):
+makes is on by default; ``--set map.stripe_sigma_px=0`` turns it off, :mod:`mapping.range_noise`):
 
 - ``true``: placed at the true poses, no navigation (what the map's fitting makes of these points);
 - ``trusted``: placed at the navigation's poses as they are (``good`` only: the others lack fixes or drift);
