@@ -10,11 +10,11 @@ runs the demo once with the map's entry points logged (every ``add_cloud`` with 
 log to a fresh :class:`mapping.MapBuilder` (optionally with other :class:`mapping.MapConfig` values) and scores the
 served map as the demo does (:func:`services.demo.score_map`). Each robot's clouds get the range error of the
 calibration its simulated ROV serves (:func:`demo_range_error_per_px`), as the demo's base gives its schema-2
-clouds (their range noise: on by default, off with ``--set stripe_sigma_px=0``, :mod:`mapping.range_noise`). Replays of one
-log are deterministic, so variants of the map compare on the same clouds. ``--planes`` prints, for every face with
-more than one plane, each plane's robots, capture spans, tilt from vertical, offset from the true face, depth band,
-and for the clouds on each plane their trusted poses' errors (roll, pitch, position along the face's normal). A
-diagnostic, not a figure of merit.
+clouds (their range noise: on by default, off with ``--set stripe_sigma_px=0``, :mod:`mapping.range_noise`).
+Replays of one log are deterministic, so variants of the map compare on the same clouds. ``--planes`` prints, for
+every face with more than one plane, each plane's robots, capture spans, tilt from vertical, offset from the true
+face, depth band, and for the clouds on each plane their trusted poses' errors (roll, pitch, position along the
+face's normal). A diagnostic, not a figure of merit.
 """
 
 from __future__ import annotations

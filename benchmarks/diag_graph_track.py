@@ -20,7 +20,6 @@ import argparse
 import math
 import sys
 from collections import Counter
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +31,7 @@ import mapping.relocalize as reloc
 from mapping.synth import hit_faces, replay_dive, score_map, tank
 
 from .diag_extracted_poses import _tuning
-from .fleet_dives import dive_frames, extracted_frames, write_fleet
+from .fleet_dives import depth_only_frames
 
 
 def why_not(rel: Any, down: float, center: Any, radius: float, lm: Any) -> str:
@@ -63,11 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
     ap.add_argument("--set", action="append", default=[], help="nav.KEY=VALUE, smoother.KEY=VALUE or graph.KEY=VALUE")
     a = ap.parse_args(argv)
-    frames = dive_frames("depth-only", a.seed, 90.0)
-    if not a.traced:
-        frames = extracted_frames(frames, write_fleet(a.dives, "depth-only", a.seed, 90.0, "640x360"))
-    if a.max_range_m > 0:
-        frames = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= a.max_range_m]) for f in frames]
+    frames = depth_only_frames(a.seed, traced=a.traced, max_range_m=a.max_range_m, dives=a.dives)
     truth = {(f.robot, f.t_ns): f.pose_true for f in frames}
     t0 = frames[0].t_ns
     scans: list[tuple[str, float, float, float, bool, bool, bool, int, int, int]] = []

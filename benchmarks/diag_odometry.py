@@ -28,7 +28,7 @@ from mapping.landmarks import PlaneLandmarks
 from mapping.posegraph import GraphNav
 
 from .diag_extracted_poses import _tuning
-from .fleet_dives import dive_frames, extracted_frames, write_fleet
+from .fleet_dives import depth_only_frames
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,11 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dives", type=Path, default=Path("/tmp/nav23/dives"))
     ap.add_argument("--set", action="append", default=[], help="graph.KEY=VALUE (nav. too)")
     a = ap.parse_args(argv)
-    frames = dive_frames("depth-only", a.seed, 90.0)
-    if not a.traced:
-        frames = extracted_frames(frames, write_fleet(a.dives, "depth-only", a.seed, 90.0, "640x360"))
-    if a.max_range_m > 0:
-        frames = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= a.max_range_m]) for f in frames]
+    frames = depth_only_frames(a.seed, traced=a.traced, max_range_m=a.max_range_m, dives=a.dives)
     kw = _tuning(a.set)
     empty = PlaneLandmarks.empty()
     t0 = frames[0].t_ns

@@ -139,3 +139,15 @@ def extracted_frames(frames: list[DiveFrame], folders: dict[str, Path]) -> list[
         pts = clouds[(f.robot, f.t_ns)]
         out.append(replace(f, points_body=pts, points_ned_est=body_to_ned(pts, f.pose_est)))
     return out
+
+
+def depth_only_frames(seed: int, *, traced: bool, max_range_m: float, dives: Path) -> list[DiveFrame]:
+    """The 90 s ``depth-only`` dive of ``seed`` as the graph diagnostics read it: its traced clouds, or (``traced``
+    False) the clouds extracted from its 640x360 frames rendered once into ``dives``; cut at ``max_range_m`` (m)
+    along the optical axis where > 0, as the acceptance check's ROVs are run."""
+    frames = dive_frames("depth-only", seed, 90.0)
+    if not traced:
+        frames = extracted_frames(frames, write_fleet(dives, "depth-only", seed, 90.0, "640x360"))
+    if max_range_m > 0:
+        frames = [replace(f, points_body=f.points_body[f.points_body[:, 0] <= max_range_m]) for f in frames]
+    return frames
