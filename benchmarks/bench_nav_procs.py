@@ -243,6 +243,8 @@ def run_processes(
     row.positions = ", ".join(f"{r} {v.get('nav', {}).get('position', '-')}" for r, v in sorted(robots.items()))
     row.heading = ", ".join(sorted({str(v.get("nav", {}).get("heading")) for v in robots.values()}))
     row.forced = int(status.get("map", {}).get("order_forced", -1))
+    ks = ", ".join(f"{r} {v.get('range_noise_per_m', '-')}" for r, v in sorted(robots.items()))
+    print(f"the base's range noise k (1/m) per robot: {ks}", flush=True)  # schema 2: its calibration's
     return row, served
 
 

@@ -18,7 +18,8 @@ The callbacks stay cheap: nothing in them decodes a cloud or touches the disk.
 Served (queryables, each on its own key; a failure is answered with ``reply_err``):
 
 * ``<root>/base/status``: JSON ``{"robots": {r: {"received", "rejected", "missed", "duplicates", "alive",
-  "last_seq", ...}}, "map": {"planes": n}}`` (``?robot=R`` narrows it to one robot);
+  "last_seq", "range_noise_per_m", ...}}, "map": {"planes": n}}`` (``?robot=R`` narrows it to one robot;
+  ``range_noise_per_m``: the k in 1/m of the robot's last cloud the base's own map took, :mod:`mapping.range_noise`);
 * ``<root>/base/calib/<robot>``: the fleet calibration stored in ``<state>/calib/<robot>.json`` (CalibMsg,
   or the JSON file with ``?format=json``);
 * ``<root>/base/acks/<robot>``: JSON ``{"robot", "ranges": [[lo, hi], ...]}`` of the sequence numbers held
@@ -496,6 +497,8 @@ class BaseStation:
         for name, rec in robots.items():
             if self.feed.enabled:
                 rec["mapped"] = self.feed.mapped(name)  # clouds whose planes reached the map
+            if self.map is not None and not self.use_workers:
+                rec["range_noise_per_m"] = self.map.range_noise(name)  # k of its last mapped cloud (0: none known)
             nav = self.feed.nav_status(name)
             if nav is not None:
                 rec["nav"] = nav

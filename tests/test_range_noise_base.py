@@ -38,10 +38,13 @@ def test_the_base_gives_a_schema_2_cloud_its_calibrations_k_and_a_schema_1_cloud
         base._ingest(base.keys.cloud("rov1"), stripe.to_bytes(), 0)
         base.feed.flush()
         assert base.map.range_noise("rov1") == pytest.approx(STRIPE_SIGMA_PX * range_error_per_px(CAL))  # 0.0020 / m
+        k = base.status()["robots"]["rov1"]["range_noise_per_m"]  # what the status says of it
+        assert k == pytest.approx(STRIPE_SIGMA_PX * range_error_per_px(CAL))
         cloud = CloudMsg.from_scan("rov1", 2, 1_100_000_000, pose, stripe_scan(1))
         base._ingest(base.keys.cloud("rov1"), cloud.to_bytes(), 0)
         base.feed.flush()
         assert base.map.range_noise("rov1") == 0.0  # measured with a calibration the base cannot name
+        assert base.status()["robots"]["rov1"]["range_noise_per_m"] == 0.0
         assert base.records["rov1"].rejected == 0
     finally:
         base.feed.close(save=False)
