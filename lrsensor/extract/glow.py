@@ -117,7 +117,6 @@ import numpy as np
 from ._jit import arange, callee, empty, full, inline, njit, zeros
 from .glow_fit import ROUNDS, fit_rounds, neighbour
 from .held import HELD_STEP, UNTOLD, carried_share, held_share
-from .held_bias import HELD_BIAS, MEAN_HELD, held_bias
 from .refit import rows_overlap
 from .sorting import median
 from .water import least, retell, sample_total
@@ -505,15 +504,8 @@ def glow_refit(  # type: ignore[no-untyped-def]
                 s_in[t] = s_w
         v_h, s_h, f_h, rss_h, d_h, st_h = fit_rounds(
             image, cols, laser, at, vv, sig, vv, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0,
-            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, -kap_k if MEAN_HELD else kap_k, rho_0,
+            s_w, s_w, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0,
         )  # fmt: skip
-        if HELD_BIAS:
-            corr = held_bias(
-                cols, laser, at, vv, sig, amp, s_in, nb_ok, nb0, hold, glowing, side, rc, hw, reach_rows, sg0, s_w,
-                lo_sig, max_sig, sat_dn, ramp_on[0], n_rounds[2], d_rc, kap_k, rho_0, v_h, f_h, st_h,
-            )  # fmt: skip
-            for t in range(n):
-                v_h[t] -= corr[t]
         for t in range(n):
             if hold[t]:
                 f0[t] = f_h[t]

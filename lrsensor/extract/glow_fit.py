@@ -92,27 +92,6 @@ def sheet_edge(t, u, f, ph, sg, d, kap):  # type: ignore[no-untyped-def]
 
 
 @inline
-def sheet_edge_mean(t, u, f, ph, sg, d, kap):  # type: ignore[no-untyped-def]
-    """PROTOTYPE: :func:`sheet_edge` expanded about the cut Gaussian's mean (turbid18)."""
-    tau = np.maximum(t + sg * ph / np.maximum(f, 1e-300), 0.0)
-    dt = t - tau
-    e = 1.0 / (d + tau)
-    g1 = kap * d * e * e
-    g2 = -2.0 * g1 * e
-    g3 = -3.0 * g2 * e
-    h = np.exp(kap * tau * e)
-    h1 = h * g1
-    h2 = h * (g1 * g1 + g2)
-    h3 = h * (g1 * g1 * g1 + 3.0 * g1 * g2 + g3)
-    m1 = sg * ph
-    m2 = sg * sg * (f - u * ph)
-    mm1 = m1 + dt * f
-    mm2 = m2 + dt * (2.0 * m1 + dt * f)
-    b = h * f + h1 * mm1 + 0.5 * h2 * mm2
-    return b, ph / sg + h1 * f + 0.5 * h3 * mm2, (kap / d - u / sg) * ph + sg * h2 * f
-
-
-@inline
 def _dot(x, y, n):  # type: ignore[no-untyped-def]
     """``sum(x[:n] * y[:n])`` in four sums (a single one would wait on every add)."""
     s0 = 0.0
@@ -297,11 +276,7 @@ def fit_into(  # type: ignore[no-untyped-def]
     if has_nb:  # the other stripe's Gaussian: held in the fit
         _gauss_rows(g_nb, q[0], k_rows, nb_c, 1.0 / nb_s)
     nb_de = max(nb_d, 1.0)
-    nb_mean = nb_kk < 0.0
-    nb_kk = abs(nb_kk)
     nb_kap = nb_kk / nb_de
-    mean_e = kap_k < 0.0
-    kap_k = abs(kap_k)
     rss = np.nan
     dof = -kk
     for i in range(k_rows):
@@ -335,10 +310,7 @@ def fit_into(  # type: ignore[no-untyped-def]
                 ph = gz * _INV_SQRT_2PI
                 xr[3] = f
                 if kap_k > 0.0:
-                    if mean_e:
-                        xr[3], b_t, b_s = sheet_edge_mean(u * sg, u, f, ph, sg, d_e, kap)
-                    else:
-                        xr[3], b_t, b_s = sheet_edge(u * sg, u, f, ph, sg, d_e, kap)
+                    xr[3], b_t, b_s = sheet_edge(u * sg, u, f, ph, sg, d_e, kap)
                 if ramp:
                     rmp = sg * (u * f + ph)
                     xr[4] = rmp
@@ -353,10 +325,7 @@ def fit_into(  # type: ignore[no-untyped-def]
                     td = upper_tail(abs(ud), gd)
                     fd = 1.0 - td if ud >= 0.0 else td
                     if nb_kk > 0.0:  # (the other stripe is held: its shape's derivatives are not needed)
-                        if nb_mean:
-                            fd = sheet_edge_mean(ud * nb_s, ud, fd, gd * _INV_SQRT_2PI, nb_s, nb_de, nb_kap)[0]
-                        else:
-                            fd = sheet_edge(ud * nb_s, ud, fd, gd * _INV_SQRT_2PI, nb_s, nb_de, nb_kap)[0]
+                        fd = sheet_edge(ud * nb_s, ud, fd, gd * _INV_SQRT_2PI, nb_s, nb_de, nb_kap)[0]
                     xr[7] = fd
             r = y[i]
             if full:

@@ -16,7 +16,6 @@ import math
 import numpy as np
 
 from ._jit import callee, empty, full, inline, zeros
-MEAN_WIDTH = False
 from .glow_fit import fit_rounds
 from .sorting import median
 
@@ -178,7 +177,7 @@ def retell(  # type: ignore[no-untyped-def]
         return alpha, s_w
     _v, s2, f2, _r, _d, st2 = fit_rounds(
         image, cols, laser, at, vv, sig, v_o, s_o, nb_ok, nb0, sample, glowing, side, rc, hw_s, reach_rows, sg0, lo_sig,
-        max_sig, sat_dn, ramp, n_rounds[1], d_rc, -a2 * k_pt if MEAN_WIDTH else a2 * k_pt, 0.0 * d_rc,
+        max_sig, sat_dn, ramp, n_rounds[1], d_rc, a2 * k_pt, 0.0 * d_rc,
     )  # fmt: skip
     m = 0
     for t in range(n):
