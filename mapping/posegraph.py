@@ -521,6 +521,10 @@ class GraphNav:
         x = self._est[-1]
         cov = self._cov
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        if self.track.broken:
+            # nothing pins a broken track: its marginal rests on scan odometry that walks off by decimetres while it
+            # claims centimetres, so the status says how far the robot can have gone since the break
+            sd[0:2] = np.maximum(sd[0:2], self.track.reach_m(t, self.gcfg.max_speed_m_s) / 3.0)
         att = cfg.attitude_std_deg
         std = {"north_m": float(sd[0]), "east_m": float(sd[1]), "down_m": cfg.depth_std_m}
         std.update(roll_deg=att, pitch_deg=att, yaw_deg=math.hypot(math.degrees(float(sd[2])), att))
