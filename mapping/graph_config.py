@@ -11,7 +11,10 @@ from dataclasses import dataclass
 class GraphConfig:
     """Tuning of :class:`GraphNav` (metres, seconds, degrees where named ``_deg``).
 
-    ``velocity_walk_m_s``: the velocity's random walk (m/s per sqrt(s)); ``max_speed_m_s`` bounds one scan's move
+    ``velocity_walk_m_s``: the velocity's random walk (m/s per sqrt(s)); ``relinearize_threshold`` /
+    ``relinearize_skip``: iSAM2 relinearises, every that many updates, the variables whose estimate moved more than
+    that (rad or m; a pose's heading ``relinearize_heading_rad``) from where their factors were linearised
+    (:func:`mapping.graph_factors.isam2`); ``max_speed_m_s`` bounds one scan's move
     (a weak isotropic prior on each increment); ``compass_every_s`` / ``compass_bias_deg``: a heading prior that
     often, that wide; ``map_gate_chi2``: a registration whose correction lies beyond the marginal covariance (3
     degrees of freedom) is a wrong association and left out; ``map_min_sigma_m``: floor of a plane's residual
@@ -63,6 +66,9 @@ class GraphConfig:
     """
 
     velocity_walk_m_s: float = 0.1
+    relinearize_threshold: float = 0.1
+    relinearize_skip: int = 10
+    relinearize_heading_rad: float = 0.1
     odometry_info_scale: float = 0.3
     odometry_observed_std_m: float = math.inf
     odometry_prior_m_s: float = 0.0

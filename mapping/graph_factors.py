@@ -20,10 +20,28 @@ from .errors import MapInputError
 FloatArray = NDArray[np.float64]
 
 
-def isam2(g: Any) -> Any:
-    """An iSAM2 with GTSAM's defaults (relinearising every 10 updates where a variable moved by 0.1: every step
-    at 0.01 made the depth-only dive three times slower and no better)."""
-    return g.ISAM2()
+def isam2(g: Any, threshold: float = 0.1, skip: int = 10, heading_rad: float | None = None) -> Any:
+    """An iSAM2 relinearising every ``skip`` updates the variables whose estimate moved by more than ``threshold``
+    (m, rad) from their linearisation point, a pose's heading by more than ``heading_rad`` where given (GTSAM's
+    defaults: 0.1 every 10 updates; ``GraphConfig.relinearize_threshold``, ``relinearize_skip``,
+    ``relinearize_heading_rad``). A depth-only graph's heading is held only by the compass's weak priors, and the
+    translation of every between-factor turns with it: linearised up to 0.1 rad off, the estimate can sit degrees
+    and decimetres from the optimum of its own factors (tests/test_posegraph.py)."""
+    if threshold == 0.1 and skip == 10 and heading_rad is None:
+        return g.ISAM2()
+    params = g.ISAM2Params()
+    if heading_rad is None:
+        params.setRelinearizeThreshold(float(threshold))
+    else:
+        # per variable type (the symbol's character; the poses have plain integer keys): every type must be named,
+        # a type left out is never relinearised
+        th = g.ISAM2ThresholdMap()
+        th.insert(("\x00", np.array([threshold, threshold, heading_rad], dtype=np.float64)))
+        th.insert(("p", np.array([threshold], dtype=np.float64)))
+        th.insert(("s", np.array([threshold, threshold], dtype=np.float64)))
+        params.setRelinearizeThreshold(th)
+    params.relinearizeSkip = int(skip)
+    return g.ISAM2(params)
 
 
 def pose2(g: Any, x: FloatArray) -> Any:

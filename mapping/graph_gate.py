@@ -113,6 +113,14 @@ class TrackGate:
         self.std_at_break = float(std_m)
         return True
 
+    def reach_m(self, t_ns: int, max_speed_m_s: float) -> float:
+        """How far (m) a robot whose track broke can be at ``t_ns`` from where its graph placed it at the break: 3
+        standard deviations then, the speed bound ``max_speed_m_s`` since, and 10 cm. The re-localization searches
+        within it (capped), and the status reports a third of it as the broken track's standard deviation: the
+        graph's own marginal then rests on scan odometry that walks off by decimetres while it claims centimetres
+        (docs/navigation-design.md, "The odometry while the track is broken")."""
+        return 3.0 * self.std_at_break + max_speed_m_s * max(0, int(t_ns) - self.broke_ns) * 1e-9 + 0.1
+
     def break_now(self, std_m: float, t_ns: int) -> None:
         """Break the track at ``t_ns`` whatever the std (a surprising correction)."""
         if not self.broken:
@@ -173,8 +181,7 @@ def relocalize(g: Any, key: int, t: int, raw: Pose, pts: FloatArray, lm: PlaneLa
         return False
     g.track.tried_ns = t
     x = g._est[key]
-    since = (t - g.track.broke_ns) * 1e-9
-    radius = min(gcfg.relocalize_max_m, 3.0 * g.track.std_at_break + gcfg.max_speed_m_s * since + 0.1)
+    radius = min(gcfg.relocalize_max_m, g.track.reach_m(t, gcfg.max_speed_m_s))
     rel = pts @ R_ned_from_body(raw.roll_rad, raw.pitch_rad, float(x[2])).T
     place = unique_place(rel, raw.down_m, x[0:2], radius, lm)
     if place is None:

@@ -332,7 +332,7 @@ class GraphNav:
     def _launch(self, t: int, raw: Pose, pts: FloatArray, fix: FloatArray) -> None:
         g = gtsam_module()
         self._reset()
-        self._isam = isam2(g)
+        self._isam = self._new_isam(g)
         self._pending: list[tuple[str, tuple[int, ...], tuple[Any, ...]]] = []
         self.start_ne = fix.copy()
         self._t.append(t)
@@ -347,6 +347,11 @@ class GraphNav:
         self._new_values = {0: mean}
         self._solve()
         self._then[0] = mean.copy()
+
+    def _new_isam(self, g: Any) -> Any:
+        gc = self.gcfg
+        heading = None if gc.relinearize_heading_rad == gc.relinearize_threshold else gc.relinearize_heading_rad
+        return isam2(g, gc.relinearize_threshold, gc.relinearize_skip, heading)
 
     @staticmethod
     def _level(raw: Pose, pts: FloatArray) -> FloatArray:
@@ -494,7 +499,7 @@ class GraphNav:
         self._first_key = first
         self._specs = specs
         self._then = {k: v for k, v in self._then.items() if k >= first}
-        self._isam = isam2(g)
+        self._isam = self._new_isam(g)
         self._pending = list(specs)
         self._new_values = {k: self._est[k] for k in range(first, len(self._t))}
         self._solve(all_keys=True)
@@ -516,6 +521,10 @@ class GraphNav:
         x = self._est[-1]
         cov = self._cov
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        if self.track.broken:
+            # nothing pins a broken track: its marginal rests on scan odometry that walks off by decimetres while it
+            # claims centimetres, so the status says how far the robot can have gone since the break
+            sd[0:2] = np.maximum(sd[0:2], self.track.reach_m(t, self.gcfg.max_speed_m_s) / 3.0)
         att = cfg.attitude_std_deg
         std = {"north_m": float(sd[0]), "east_m": float(sd[1]), "down_m": cfg.depth_std_m}
         std.update(roll_deg=att, pitch_deg=att, yaw_deg=math.hypot(math.degrees(float(sd[2])), att))

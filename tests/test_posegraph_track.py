@@ -108,6 +108,23 @@ def test_a_broken_track_is_taken_up_again_only_where_the_scan_pins_one_place() -
     assert all(e.motion == "lost" for e in ests1)
 
 
+def test_a_broken_track_says_how_far_the_robot_can_have_gone_since_the_break() -> None:
+    g, ests = _broken_then(_corner_scan(both=False), 15)
+    assert g.track.broken
+    grown = []
+    for k, est in enumerate(ests, start=1):
+        if est.motion != "lost":
+            continue
+        reach = 3.0 * g.track.std_at_break + 0.6 * (k * 0.1 - g.track.broke_ns * 1e-9) + 0.1
+        assert min(est.std["north_m"], est.std["east_m"]) >= reach / 3.0 - 1e-9, k
+        grown.append(est.std["north_m"])
+    assert grown == sorted(grown)
+    assert grown[-1] > 0.3
+    # the graph's own marginal claims far less: the odometry along the wall holds north while nothing places it
+    assert math.sqrt(g._cov[0, 0]) < 0.5 * grown[-1]
+    assert ests[-1].to_json()["north_m_std"] == pytest.approx(grown[-1])
+
+
 @pytest.fixture(scope="module")
 def depth_only() -> list[Any]:
     return simulate_dive(
