@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from lrsensor.extract import frame as stages
 from lrsensor.extract.fit import fit_columns
+from lrsensor.extract.geometry import max_fwhm_at
 from lrsensor.extract.glow import new_water
 from lrsensor.extract.refit import rows_overlap
 from lrsensor.extract.settings import frame_settings
@@ -136,7 +137,7 @@ def tell(frame: TurbidFrame, image: NDArray[np.uint8], window: str, oracle: str,
     blurred stripe's true width, px, which ``oracle`` ``sigma`` and ``both`` give every common fit."""
     bands, s, geo = frame_settings(frame.calibration, SubpixelConfig())
     picked = stages.locate_candidates(image, bands, s)
-    mfw = stages.max_fwhm_at(
+    mfw = max_fwhm_at(
         picked.cols, picked.rows, picked.laser, stages.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
     )
     p = stages.fit_points(image, picked, mfw, s) if window == "frame" else fit_points_at(image, picked, mfw, s, window)

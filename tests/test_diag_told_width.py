@@ -8,6 +8,7 @@ from benchmarks.bench_turbid import Cell
 from benchmarks.diag_told_width import fit_points_at, one_sided_sigma, with_noise
 from benchmarks.turbid_model import render
 from lrsensor.extract import frame as stages
+from lrsensor.extract.geometry import max_fwhm_at
 from lrsensor.extract.settings import frame_settings
 from lrsensor.extract.subpixel import SubpixelConfig
 
@@ -32,7 +33,7 @@ def test_fit_points_at_the_frame_statistic_is_the_product_s() -> None:
     frame = render(Cell(3.0, 0.0, 0.5, 4.0).turbid(1))
     bands, s, geo = frame_settings(frame.calibration, SubpixelConfig())
     picked = stages.locate_candidates(frame.image, bands, s)
-    mfw = stages.max_fwhm_at(
+    mfw = max_fwhm_at(
         picked.cols, picked.rows, picked.laser, stages.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
     )
     own = stages.fit_points(frame.image, picked, mfw, s)
@@ -54,7 +55,7 @@ def test_one_sided_sigma_reads_a_glowing_stripe_that_the_frame_statistic_cannot(
         frame = render(Cell(3.0, 0.0, glow, 4.0, noise_free=True).turbid(0))
         bands, s, geo = frame_settings(frame.calibration, SubpixelConfig())
         picked = stages.locate_candidates(frame.image, bands, s)
-        mfw = stages.max_fwhm_at(
+        mfw = max_fwhm_at(
             picked.cols, picked.rows, picked.laser, stages.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
         )
         sub = np.flatnonzero(picked.second == 0)[::40]
