@@ -13,9 +13,10 @@ The default extractor (:mod:`.subpixel`) is a package of stage modules on one co
   :mod:`.glow` (turbid water: the stripe fitted jointly with the laser sheet's glow), :mod:`.finish`,
   :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and :mod:`.compile` (loading or compiling the
   kernels);
-- the readable numpy reference of the whole frame: :mod:`.reference`, :mod:`.reference_finish`,
-  :mod:`.reference_glow` and :mod:`.centre` (the vectorized profile fit); tests compare the road with it on whole
-  frames.
+- the readable numpy reference of the whole frame: :mod:`.reference` (the frame), :mod:`.reference_detect`,
+  :mod:`.reference_chains`, :mod:`.reference_fit` with :mod:`.centre` (the vectorized profile fit),
+  :mod:`.reference_glow`, :mod:`.reference_finish` and :mod:`.reference_pooled`; tests compare the road with it on
+  whole frames.
 
 :mod:`.paper` is the paper's Algorithm 1, the baseline.
 """

@@ -136,7 +136,7 @@ class Picked(NamedTuple):
 def frame_profile_stats(image, cols, rows, half, sat_dn, max_sigma, max_fwhm):  # type: ignore[no-untyped-def]
     """The frame statistics (the reference computes them in ``reference.extract_frame``): from the green
     profiles ``rows +- half`` of a few picked columns, the median Gaussian-equivalent sigma of the unsaturated ones (see
-    ``reference._typical_sigma``; at most ``max_sigma`` or the median wide limit), the 90th percentile of their
+    ``reference_fit._typical_sigma``; at most ``max_sigma`` or the median wide limit), the 90th percentile of their
     clipped-sample counts, and the median of ``max_fwhm`` (M,) at those columns.
 
     Returns:
