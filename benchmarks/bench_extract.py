@@ -62,7 +62,7 @@ import numpy as np
 from lrsensor import Sensor
 from lrsensor.atomic import atomic_write
 from lrsensor.extract import frame as frame_module
-from lrsensor.extract import reference_finish, refit, subpixel
+from lrsensor.extract import frame_locate, reference_finish, refit, subpixel
 from lrsensor.extract.compile import HAVE_NUMBA, warm_up
 from lrsensor.extract.refit import NEIGHBOUR_FLANK_TAIL, NEIGHBOUR_TAIL
 from lrsensor.extract.settings import frame_settings
@@ -368,27 +368,38 @@ STAGES = {
 def _stage_clock(totals: dict[str, float]) -> Iterator[Callable[..., object]]:
     """A Python twin of ``extract_frame`` that calls the same compiled stage kernels, each wrapped in a
     clock: the per-thread CPU time spent in each of :data:`STAGES` adds up in ``totals`` (s)."""
-    names = vars(frame_module)
-    saved = {name: names[name] for stage in STAGES.values() for name in stage}
+    # (the stages are called from the kernels of two modules, frame and frame_locate: each looks them up in its own
+    # globals)
+    spaces = (vars(frame_module), vars(frame_locate))
+    saved = [{name: names[name] for stage in STAGES.values() for name in stage if name in names} for names in spaces]
+    missing = {name for stage in STAGES.values() for name in stage} - {name for own in saved for name in own}
+    if missing:
+        msg = f"stages not called from the frame's modules: {sorted(missing)}"
+        raise KeyError(msg)
+    names = spaces[0]
     halves = {name: names[name] for name in ("locate_candidates", "fit_points", "finish_located", "place_points")}
-    for stage, stage_names in STAGES.items():
-        for name in stage_names:
-            f = saved[name]
+    for space, own in zip(spaces, saved, strict=True):
+        for stage, stage_names in STAGES.items():
+            for name in stage_names:
+                if name not in own:
+                    continue
+                f = own[name]
 
-            def clocked(*a: object, _f: Callable[..., object] = f, _s: str = stage) -> object:
-                t0 = time.thread_time()
-                try:
-                    return _f(*a)
-                finally:
-                    totals[_s] = totals.get(_s, 0.0) + time.thread_time() - t0
+                def clocked(*a: object, _f: Callable[..., object] = f, _s: str = stage) -> object:
+                    t0 = time.thread_time()
+                    try:
+                        return _f(*a)
+                    finally:
+                        totals[_s] = totals.get(_s, 0.0) + time.thread_time() - t0
 
-            names[name] = functools.wraps(f)(clocked)
+                space[name] = functools.wraps(f)(clocked)
     for name, half in halves.items():
-        names[name] = half.py_func  # their stage calls go through the clocks (the frame module's globals)
+        names[name] = half.py_func  # their stage calls go through the clocks (their modules' globals)
     try:
         yield frame_module.extract_frame
     finally:
-        names.update(saved)
+        for space, own in zip(spaces, saved, strict=True):
+            space.update(own)
         names.update(halves)
 
 

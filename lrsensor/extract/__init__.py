@@ -8,14 +8,15 @@ The default extractor (:mod:`.subpixel`) is a package of stage modules on one co
 - :mod:`.subpixel`: the entry points (``extract``, ``extract_points``); :mod:`.config`: its options;
   :mod:`.settings`: the typed records the road reads, built once per (calibration, configuration);
   :mod:`.bands`: where each laser's stripe can be;
-- the road (numba kernels): :mod:`.frame` (the seven calls per frame), :mod:`.detect`, :mod:`.chains`, the fit
-  (:mod:`.fit`: one column-parallel fit for every kind of profile, its pieces in :mod:`.columns`), :mod:`.refit`,
-  :mod:`.glow` (turbid water: the stripe fitted jointly with the laser sheet's glow), :mod:`.finish`,
-  :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and :mod:`.compile` (loading or compiling the
-  kernels);
-- the readable numpy reference of the whole frame: :mod:`.reference`, :mod:`.reference_finish`,
-  :mod:`.reference_glow` and :mod:`.centre` (the vectorized profile fit); tests compare the road with it on whole
-  frames.
+- the road (numba kernels): :mod:`.frame` (the seven calls per frame; the first two in :mod:`.frame_locate`),
+  :mod:`.detect`, :mod:`.chains`, the fit (:mod:`.fit`: one column-parallel fit for every kind of profile, its
+  pieces in :mod:`.columns`), :mod:`.refit`, :mod:`.glow` (turbid water: the stripe fitted jointly with the laser
+  sheet's glow), :mod:`.finish`, :mod:`.smooth`, :mod:`.geometry`; :mod:`._jit` (the decorators) and
+  :mod:`.compile` (loading or compiling the kernels);
+- the readable numpy reference of the whole frame: :mod:`.reference` (the frame), :mod:`.reference_detect`,
+  :mod:`.reference_chains`, :mod:`.reference_fit` with :mod:`.centre` (the vectorized profile fit),
+  :mod:`.reference_glow`, :mod:`.reference_finish` and :mod:`.reference_pooled`; tests compare the road with it on
+  whole frames.
 
 :mod:`.paper` is the paper's Algorithm 1, the baseline.
 """

@@ -21,7 +21,7 @@ The noise (:func:`noise_dn`, :func:`noise_dn_rows`) is robust: the median of sec
 Output: per laser, candidates as (N,) detection columns (half resolution, plus the laser's offset so that all
 lasers share one column numbering), (N,) full-resolution rows, (N,) response (DN), sorted by column then row,
 and the band's pixel noise (DN). Every step is integer arithmetic rounded as OpenCV rounds it
-(``cv2.resize(INTER_AREA)``, ``cv2.blur``), so the reference (:mod:`lrsensor.extract.reference`), which calls
+(``cv2.resize(INTER_AREA)``, ``cv2.blur``), so the reference (:mod:`lrsensor.extract.reference_detect`), which calls
 those OpenCV functions, finds the same candidates bit for bit.
 """
 
@@ -79,7 +79,7 @@ def _noise_samples(flat, row_bytes, px_bytes, offset, src, cols, step):  # type:
 @inline
 def _noise_from_histograms(h4):  # type: ignore[no-untyped-def]
     """The noise (DN) from four interleaved histograms (4, 1024) of |second differences|: their median, within its
-    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.reference._noise_dn`)."""
+    integer bin, over 0.6745 sqrt(6) (see :func:`lrsensor.extract.reference_detect._noise_dn`)."""
     hist = empty(1024, np.int64)
     total = 0
     for k in range(1024):
@@ -103,8 +103,8 @@ GLOW_PASS_MIN = 8
 
 @inline
 def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  # type: ignore[no-untyped-def]
-    """The second pass of :func:`detect_band` (the compiled twin of ``reference._glow_candidates``): a stripe on the
-    rising side of the sheet's glow. First in the columns without a candidate whose glow side ``side[2 x]`` is
+    """The second pass of :func:`detect_band` (the compiled twin of ``reference_detect._glow_candidates``): a stripe on
+    the rising side of the sheet's glow. First in the columns without a candidate whose glow side ``side[2 x]`` is
     known, then, where that found at least :data:`GLOW_PASS_MIN` candidates, in the other columns too: the rows that
     are vertical local maxima of the centre-over-mean response (the centre over the mean of the rows ``hd`` either
     side, rounded half up, at least 0) above ``t8``, whose centre stands above both inner rows (``d / 2`` and ``d /
@@ -150,7 +150,7 @@ def glow_candidates(B, resp, pk, cnt16, row_pk, y0, y1, side, w, ds, hd, t8):  #
 @njit
 def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side, col_offset):  # type: ignore[no-untyped-def]
     """Candidates of one laser at detection scale 2 in one pass over its band (the compiled twin of
-    ``reference._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
+    ``reference_detect._candidates``: the same arithmetic as its OpenCV steps, bit for bit).
 
     The green channel of rows ``[r0 - d, r1 + d)`` (replicated beyond the image, evened), its robust noise
     (:func:`noise_dn`), the 2x2 area average (rounded as ``cv2.resize(INTER_AREA)``), a 3-column box
@@ -284,9 +284,10 @@ def detect_band(image, r0, r1, d, snr_thr, area_noise, thr_min, v_lo, v_hi, side
             any_pk |= py[np.uint64(x)]
         row_pk[y] = any_pk
     # the candidates, column by column; where the band shows the laser sheet's glow at them (the twin of
-    # reference._glow_shows: at a quarter of them or more the row d / 4 outward, on the glow's side, is brighter than
-    # the row d / 4 inward by more than the threshold; in clear water both are background, in turbid water the glow's
-    # edge lies between them), the second pass's too (the candidates listed once more: one call site of each part)
+    # reference_detect._glow_shows: at a quarter of them or more the row d / 4 outward, on the glow's side, is brighter
+    # than the row d / 4 inward by more than the threshold; in clear water both are background, in turbid water the
+    # glow's edge lies between them), the second pass's too (the candidates listed once more: one call site of each
+    # part)
     for pass_ in range(2):
         cnt = zeros(wo + 1, np.int64)  # running count: the first candidate of each column
         for x in range(wo):

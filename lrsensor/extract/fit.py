@@ -18,7 +18,7 @@ loops run over columns and vectorize), fits the green profile of each:
 5. acceptance (a peak, a width within the limits, the centre near the peak) and the colour rises at the peak
    over the window ends, for the colour test pooled along the stripe (:mod:`.finish`).
 
-The numpy reference is :func:`lrsensor.extract.reference._fit` with
+The numpy reference is :func:`lrsensor.extract.reference_fit._fit` with
 :func:`lrsensor.extract.centre.fit_profiles` (the same steps in float32).
 """
 

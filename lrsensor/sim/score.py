@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..extract.reference import _noise_dn
+from ..extract.reference_detect import _noise_dn
 from ..scan import Scan
 from .render import Render
 
