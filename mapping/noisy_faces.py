@@ -92,8 +92,9 @@ def prior_within(noise_q2: int, normal: FloatArray, cfg: MapConfig) -> int:
 
 
 def excess_rms_m(rms_m: float, noise_var_m2: float) -> float:
-    """A plane's RMS thickness beyond its points' mean expected variance ``noise_var_m2`` (m^2), metres."""
-    return math.sqrt(max(rms_m * rms_m - noise_var_m2, 0.0))
+    """A plane's RMS thickness beyond its points' mean expected variance ``noise_var_m2`` (m^2), metres (``rms_m``
+    itself, exactly, without a noise: the fixed gates' arithmetic)."""
+    return rms_m if noise_var_m2 <= 0.0 else math.sqrt(max(rms_m * rms_m - noise_var_m2, 0.0))
 
 
 def mean_var_m2(noise_q2: int, n_points: int, quantum_m: float) -> float:
