@@ -7,7 +7,7 @@ difference in range over their 10 cm of height, and a few centimetres of noise t
 fixed gates then refuse it (an RMS above ``max_rms_m``), so in a fleet's first seconds, when the robots see the far
 walls only, the map stays thin (docs/mapping.md, "Noisy far faces").
 
-What (``MapConfig.tilt_prior_deg`` > 0; 0 leaves every path as it was):
+What (``MapConfig.tilt_prior_deg``, 10 deg by default; 0 leaves every path as it was before it):
 
 - **The tilt as far as the points determine it.** A near-vertical plane's normal is the smallest axis of the
   points' scatter plus a prior along down, ``sum_i (sigma_i / tan(tilt_prior))^2 e_z e_z^T`` (``sigma_i`` each

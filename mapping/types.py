@@ -73,7 +73,7 @@ class MapConfig:
         tilt_prior_deg: with a range noise (either of the two above), a near-vertical plane's tilt gets a prior of
             this standard deviation about vertical, weighed against its points' expected errors, and its RMS gates
             test the thickness beyond those errors (:mod:`mapping.noisy_faces`; docs/mapping.md, "Noisy far
-            faces"); 0 (default): off.
+            faces"). Default 10 deg; 0: off. Clouds without an expected error (no calibration) are not affected.
         distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
         ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
         max_planes_per_region: RANSAC peels at most this many planes off one region.
@@ -162,7 +162,7 @@ class MapConfig:
     cell_planarity: float = 0.35
     range_noise_per_m: float = 0.0
     stripe_sigma_px: float = 0.0185
-    tilt_prior_deg: float = 0.0
+    tilt_prior_deg: float = 10.0
     distance_threshold_m: float = 0.03
     ransac_iterations: int = 400
     seed: int = 1234

@@ -3,17 +3,21 @@ points' expected errors, and RMS gates that test the thickness beyond those erro
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mapping import MapConfig
+from mapping.builder_state import decode_state, encode_state
 from mapping.noisy_faces import error_at_r2, horizontal_spread, noise_quanta2, prior_fit, prior_within
 from mapping.plane_map import PlaneMap, PlaneRecord, record_from_wire, record_to_wire
 from mapping.planes import plane_quality
 
-ON = MapConfig(tilt_prior_deg=10.0)
+ON = MapConfig()  # the default: a tilt prior of 10 deg (docs/mapping.md, "Noisy far faces")
+OFF = MapConfig(tilt_prior_deg=0.0)
 
 
 def _stripes(range_m: float, tilt_deg: float, offsets_m: tuple[float, float], n: int = 300) -> np.ndarray:
@@ -38,7 +42,7 @@ def test_a_far_stripe_pair_s_tilt_goes_toward_vertical_only_as_far_as_its_noise_
     sigma = error_at_r2(0.002, np.full(pts.shape[0], 4.5**2))
     assert float(sigma[0]) > 0.03
     _c, _w, plain, _sag = plane_quality(pts)
-    _c, w, axes, noise_m = prior_fit(pts, sigma, ON)
+    _c, _w, axes, noise_m = prior_fit(pts, sigma, ON)
     assert _tilt_deg(plain[:, 0]) > 15.0
     assert _tilt_deg(axes[:, 0]) < 3.0
     assert noise_m == pytest.approx(float(sigma[0]))
@@ -64,7 +68,8 @@ def test_floors_and_single_stripe_ribbons_are_judged_without_the_prior() -> None
     floor = np.stack([rng.uniform(2, 4, 500), rng.uniform(-1, 1, 500), 3.0 + 0.002 * rng.standard_normal(500)], 1)
     sigma = np.full(500, 0.05)
     _c, w, axes, noise_m = prior_fit(floor, sigma, ON)
-    assert _tilt_deg(axes[:, 0]) > 89.0 and noise_m == 0.0  # the fixed gates judge it
+    assert _tilt_deg(axes[:, 0]) > 89.0
+    assert noise_m == 0.0
     assert math.sqrt(w[0]) < 0.003
     assert prior_within(10**6, np.array([0.0, 0.0, 1.0]), ON) == 0
 
@@ -72,7 +77,8 @@ def test_floors_and_single_stripe_ribbons_are_judged_without_the_prior() -> None
 def test_the_expected_error_grows_faster_than_r2_beyond_the_band_it_was_measured_in() -> None:
     r2 = np.array([1.0, 2.25**2, 4.5**2])
     err = error_at_r2(0.002, r2)
-    assert err[0] == pytest.approx(0.002) and err[1] == pytest.approx(0.002 * 2.25**2)
+    assert err[0] == pytest.approx(0.002)
+    assert err[1] == pytest.approx(0.002 * 2.25**2)
     assert err[2] == pytest.approx(0.002 * 4.5**2 * 4.0)
 
 
@@ -83,7 +89,7 @@ def _record(pts_m: np.ndarray, sigma_m: float, cfg: MapConfig, robot: str = "rov
     return PlaneRecord.from_points(pq, np.array([-1.0, 0.0, 0.0]), robot, 0, 10**9, cfg, noise)
 
 
-def test_two_noisy_views_of_a_far_wall_fuse_and_stay_vertical_only_with_the_option() -> None:
+def test_two_noisy_views_of_a_far_wall_fuse_and_stay_vertical_by_default() -> None:
     rng = np.random.default_rng(2)
 
     def view(shift: float) -> np.ndarray:
@@ -92,7 +98,7 @@ def test_two_noisy_views_of_a_far_wall_fuse_and_stay_vertical_only_with_the_opti
         return pts
 
     a, b = view(0.02), view(-0.02)
-    for cfg, fused in ((ON, True), (MapConfig(), False)):
+    for cfg, fused in ((ON, True), (OFF, False)):
         m = PlaneMap(cfg)
         m.add(_record(a, 0.045, cfg))
         m.add(_record(b, 0.045, cfg, "rov2"))
@@ -111,6 +117,19 @@ def test_a_record_s_noise_survives_fusion_and_the_wire() -> None:
     assert a.noise > 0
     assert (a + b).noise == a.noise + b.noise
     back = record_from_wire(record_to_wire(a))
-    assert back == a and back.noise == a.noise
-    plain = _record(pts, 0.045, MapConfig())
-    assert plain.noise == 0 and plain.within[5] < a.within[5]  # the prior is in the within scatter
+    assert back == a
+    assert back.noise == a.noise
+    plain = _record(pts, 0.045, OFF)
+    assert plain.noise == 0
+    assert plain.within[5] < a.within[5]
+
+
+def test_a_plane_s_noise_survives_the_saved_state(tmp_path: Path) -> None:
+    m = PlaneMap(ON)
+    m.add(_record(_stripes(4.5, 0.0, (0.01, -0.01)), 0.045, ON))
+    header, arrays = encode_state(ON, m, {}, {}, {})
+    back, _tracks, _windows, _taken = decode_state(ON, json.loads(json.dumps(header)), arrays, tmp_path / "state")
+    (rec,) = (p.record for p in back.planes.values())
+    (orig,) = (p.record for p in m.planes.values())
+    assert rec.noise == orig.noise > 0
+    assert rec.within == orig.within
