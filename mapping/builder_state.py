@@ -53,6 +53,7 @@ def encode_state(
                 "aabb_max": list(rec.aabb_max),
                 "n_obs": rec.n_obs,
                 "within": list(rec.within),
+                "noise": rec.noise,
                 "contributions": {k: [c.n_points, c.first_ns, c.last_ns] for k, c in rec.contributions.items()},
             }
         )
@@ -133,6 +134,7 @@ def decode_state(
                 int(p["n_obs"]),
                 None,
                 six_ints(p.get("within", [0] * 6)),
+                int(p.get("noise", 0)),
             )
             pm.planes[pid] = MapPlane(pid, rec, cfg)
         robots: list[str] = list(header["robots"])

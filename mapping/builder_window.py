@@ -21,9 +21,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from .frame_checks import frame_sagitta, frame_support
 from .ned import quantize
+from .noisy_faces import expected_error_m, noise_quanta2, prior_active
 from .plane_map import PlaneRecord
-from .planes import claim_points, extract_planes, frame_sagitta, frame_support, pack_keys
+from .planes import claim_points, extract_planes, pack_keys
 from .range_noise import window_noise
 from .replace import Placement
 from .types import MapConfig
@@ -121,7 +123,8 @@ def extract_window(
     pts_m = pts_q * q - origin_m
     veh_m = veh_q * q - origin_m
     seed = (cfg.seed * 1_000_003 + zlib.crc32(robot.encode()) + new[0].t_ns) % (2**31 - 1)
-    ex = extract_planes(pts_m, veh_m, cfg, seed, window_noise([c.noise_per_m for c in clouds], lens))
+    k = window_noise([c.noise_per_m for c in clouds], lens)
+    ex = extract_planes(pts_m, veh_m, cfg, seed, k)
     records: list[PlaneRecord] = []
     placements: list[tuple[PlaneRecord, Placement]] = []
     n_curved = 0
@@ -143,7 +146,11 @@ def extract_window(
             if bulge > cfg.max_frame_sagitta_m:
                 n_curved += 1
                 continue
-            rec = PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg)
+            noise_q2 = 0
+            if prior_active(cfg, cand.normal):  # the points' expected variances: the tilt prior, the gates' noise
+                kk = k[idx] if isinstance(k, np.ndarray) else k
+                noise_q2 = noise_quanta2(expected_error_m(pts_m[idx], veh_m[idx], kk), q)
+            rec = PlaneRecord.from_points(pts_q[idx], cand.normal, robot, first_ns, last_ns, cfg, noise_q2)
             records.append(rec)
             if keep_placements:
                 cloud_t = np.array([c.t_ns for c in clouds], dtype=np.int64)[frame_of[idx]]

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .noisy_faces import excess_rms_m, mean_var_m2, prior_within
 from .planes import pack_keys
 from .same_face import shared_fraction
 from .stats import Contribution, VoxelSet, merge_contributions
@@ -64,7 +65,10 @@ class PlaneRecord:
         voxels: down-sampled points for export and extents.
         n_obs: number of observations fused.
         hint_normal: (3,) normal of the window fit (only for associating a fresh observation; not persisted).
-        within: the pooled scatter of the fused observations about their own centroids (see :func:`fit_parts`).
+        within: the pooled scatter of the fused observations about their own centroids (see :func:`fit_parts`),
+            with each observation's tilt prior (:func:`mapping.noisy_faces.prior_within`).
+        noise: the sum of its points' expected variances (quanta^2; 0 unless ``MapConfig.tilt_prior_deg``): the RMS
+            gates test the thickness beyond it (:mod:`mapping.noisy_faces`).
     """
 
     stats: PlaneStats
@@ -76,6 +80,7 @@ class PlaneRecord:
     n_obs: int = 1
     hint_normal: tuple[float, float, float] | None = field(default=None, compare=False)
     within: tuple[int, int, int, int, int, int] = (0, 0, 0, 0, 0, 0)
+    noise: int = 0
 
     def __add__(self, other: PlaneRecord) -> PlaneRecord:
         return PlaneRecord(
@@ -96,6 +101,7 @@ class PlaneRecord:
             self.n_obs + other.n_obs,
             None,
             tuple(a + b for a, b in zip(self.within, other.within, strict=True)),  # type: ignore[arg-type]
+            self.noise + other.noise,
         )
 
     def shifted(self, t_q: tuple[int, int, int], voxel_quanta: int) -> PlaneRecord:
@@ -127,8 +133,10 @@ class PlaneRecord:
         first_ns: int,
         last_ns: int,
         cfg: MapConfig,
+        noise_q2: int = 0,
     ) -> PlaneRecord:
-        """An observation from its quantized points (N, 3) and the oriented window normal (3,)."""
+        """An observation from its quantized points (N, 3) and the oriented window normal (3,); ``noise_q2``: the
+        sum of the points' expected variances (quanta^2), with the tilt prior it makes (:mod:`mapping.noisy_faces`)."""
         p = np.asarray(points_q, dtype=np.int64)
         n = int(p.shape[0])
         o = [round(float(x) * _ORIENT_SCALE) * n for x in normal]
@@ -136,6 +144,8 @@ class PlaneRecord:
         hi = p.max(axis=0)
         vq = max(1, round(cfg.export_voxel_m / cfg.quantum_m))
         stats = PlaneStats.from_quantized(p)
+        within = [(2 * m + n) // (2 * n) for m in stats.centred_scatter()]
+        within[5] += prior_within(noise_q2, normal, cfg)
         return cls(
             stats,
             (o[0], o[1], o[2]),
@@ -145,7 +155,8 @@ class PlaneRecord:
             VoxelSet.from_quantized(p, vq),
             1,
             (float(normal[0]), float(normal[1]), float(normal[2])),
-            tuple((2 * m + n) // (2 * n) for m in stats.centred_scatter()),  # type: ignore[arg-type]
+            (within[0], within[1], within[2], within[3], within[4], within[5]),
+            noise_q2,
         )
 
     def fit(self, quantum_m: float, between_weight: float = 1.0) -> PlaneFit:
@@ -267,13 +278,22 @@ def plane_json(plane_id: int, rec: PlaneRecord, cfg: MapConfig) -> dict[str, Any
     }
 
 
-def rms_distance(fa: PlaneFit, fb: PlaneFit) -> float:
-    """RMS distance of the points behind fit ``fa`` to the plane of fit ``fb`` (metres), from moments only."""
+def rms_distance(fa: PlaneFit, fb: PlaneFit, noise_var_m2: float = 0.0) -> float:
+    """RMS distance of the points behind fit ``fa`` to the plane of fit ``fb`` (metres), from moments only;
+    ``noise_var_m2``: the expected variance of ``fa``'s points (m^2), taken out."""
     off = float(fb.normal @ fa.centroid + fb.d)
-    return math.sqrt(off * off + max(float(fb.normal @ fa.cov @ fb.normal), 0.0))
+    return math.sqrt(off * off + max(float(fb.normal @ fa.cov @ fb.normal) - noise_var_m2, 0.0))
 
 
-def added_rms_m(fa: PlaneFit, n_a: int, fb: PlaneFit, n_b: int, merged: PlaneFit, own_max_m: float) -> float:
+def added_rms_m(
+    fa: PlaneFit,
+    n_a: int,
+    fb: PlaneFit,
+    n_b: int,
+    merged: PlaneFit,
+    own_max_m: float,
+    var: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> float:
     """The RMS thickness (metres) that fusing two planes adds to what their points already scatter about their
     own planes: ``sqrt(merged.rms^2 - (n_a r_a^2 + n_b r_b^2) / (n_a + n_b))`` (0 when the fused plane is no
     thicker than its parts, pooled), where a part's own RMS ``r`` counts only up to ``own_max_m``.
@@ -285,11 +305,13 @@ def added_rms_m(fa: PlaneFit, n_a: int, fb: PlaneFit, n_b: int, merged: PlaneFit
     face's own thickness adds almost nothing, however thick the face's plane already is. The cap keeps a plane
     from excusing its own thickness without end: a fusion admitted with ``added <= own_max_m`` is at most
     ``sqrt(2) * own_max_m`` thick, and a plane that got thicker (views that bridged planes) takes no more than a
-    thin one.
+    thin one. ``var``: the expected variances (m^2) of the points of ``fa``, ``fb`` and ``merged``, taken out of
+    each RMS first (:func:`mapping.noisy_faces.excess_rms_m`).
     """
     n = n_a + n_b
-    pooled = (n_a * min(fa.rms_m, own_max_m) ** 2 + n_b * min(fb.rms_m, own_max_m) ** 2) / n
-    return math.sqrt(max(merged.rms_m**2 - pooled, 0.0))
+    ra, rb, rm = (excess_rms_m(f.rms_m, v) for f, v in zip((fa, fb, merged), var, strict=True))
+    pooled = (n_a * min(ra, own_max_m) ** 2 + n_b * min(rb, own_max_m) ** 2) / n
+    return math.sqrt(max(rm**2 - pooled, 0.0))
 
 
 class _Boxes:
@@ -397,8 +419,9 @@ class PlaneMap:
         """
         cfg = self.cfg
         na = fa.normal if a_normal is None else a_normal
+        var = (self._var(a), self._var(b), self._var(a + b) if a.noise or b.noise else 0.0)
         if self._touch(a, b):
-            off = min(rms_distance(fa, fb), rms_distance(fb, fa))
+            off = min(rms_distance(fa, fb, var[0]), rms_distance(fb, fa, var[1]))
             if _angle_deg(na, fb.normal) > cfg.merge_angle_deg or off > cfg.merge_offset_m:
                 return False
         elif not self.bands(a, fa, b, fb, na):
@@ -410,9 +433,13 @@ class PlaneMap:
             cfg.quantum_m,
             cfg.between_window_weight,
         )
-        if merged.rms_m <= cfg.merge_max_rms_m:  # (thin as a whole)
+        if excess_rms_m(merged.rms_m, var[2]) <= cfg.merge_max_rms_m:  # (thin as a whole)
             return True
-        return added_rms_m(fa, a.stats.n, fb, b.stats.n, merged, cfg.merge_max_rms_m) <= cfg.merge_added_rms_m
+        return added_rms_m(fa, a.stats.n, fb, b.stats.n, merged, cfg.merge_max_rms_m, var) <= cfg.merge_added_rms_m
+
+    def _var(self, rec: PlaneRecord) -> float:
+        """The mean expected variance of ``rec``'s points (m^2; 0 without the tilt prior's option)."""
+        return mean_var_m2(rec.noise, rec.stats.n, self.cfg.quantum_m)
 
     def bands(
         self, a: PlaneRecord, fa: PlaneFit, b: PlaneRecord, fb: PlaneFit, a_normal: FloatArray | None = None
@@ -481,7 +508,7 @@ class PlaneMap:
 
     def can_create(self, obs: PlaneRecord, f: PlaneFit) -> bool:
         """Whether an observation is good enough to start a new plane on its own (not line-like, thin)."""
-        return f.width_m >= self.cfg.min_width_m and f.rms_m <= self.cfg.max_rms_m
+        return f.width_m >= self.cfg.min_width_m and excess_rms_m(f.rms_m, self._var(obs)) <= self.cfg.max_rms_m
 
     def _published(self, rec: PlaneRecord) -> bool:
         return rec.n_obs >= self.cfg.min_obs_publish
@@ -576,6 +603,7 @@ def record_to_wire(rec: PlaneRecord) -> dict[str, Any]:
         "n_obs": rec.n_obs,
         "hint": list(rec.hint_normal) if rec.hint_normal is not None else None,
         "within": [str(v) for v in rec.within],
+        "noise": str(rec.noise),
     }
 
 
@@ -604,4 +632,5 @@ def record_from_wire(data: dict[str, Any]) -> PlaneRecord:
         int(data["n_obs"]),
         (float(hint[0]), float(hint[1]), float(hint[2])) if hint is not None else None,
         (w[0], w[1], w[2], w[3], w[4], w[5]),
+        int(data.get("noise", 0)),
     )

@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import Open3DMissingError
+from .noisy_faces import YAW_SPREAD_SIGMAS, error_at_r2, horizontal_spread, prior_fit
 from .types import MapConfig
 
 FloatArray = NDArray[np.float64]
@@ -308,6 +309,12 @@ def plane_quality(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
     c = points.mean(axis=0)
     x = points - c
     w, axes = np.linalg.eigh(x.T @ x / points.shape[0])
+    return c, np.maximum(w, 0.0), axes, sagitta(x, axes)
+
+
+def sagitta(x: FloatArray, axes: FloatArray) -> float:
+    """The bulge (metres) of a quadratic model of the residuals of centred points ``x`` (K, 3) along ``axes[:, 0]``
+    over the in-plane axes ``axes[:, 2]``, ``axes[:, 1]`` (see :func:`plane_quality`)."""
     r = x @ axes[:, 0]
     u = x @ axes[:, 2]
     v = x @ axes[:, 1]
@@ -318,16 +325,21 @@ def plane_quality(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
     gram = design.T @ design + 1e-9 * np.eye(6)
     coef = np.linalg.solve(gram, design.T @ r)
     pred = design @ coef  # the projection is unique even when the design is rank-deficient (two lines)
-    sag = 0.5 * float(pred.max() - pred.min()) if pred.size else 0.0
-    return c, np.maximum(w, 0.0), axes, sag
+    return 0.5 * float(pred.max() - pred.min()) if pred.size else 0.0
 
 
 def _check_inliers(
-    pts: FloatArray, veh: FloatArray, cfg: MapConfig
+    pts: FloatArray, veh: FloatArray, cfg: MapConfig, sigma: FloatArray | None = None
 ) -> tuple[PlaneCandidate | None, Rejection | None, FloatArray, float]:
-    """Quality gate for one RANSAC inlier set; returns (candidate-without-index, rejection, normal, d)."""
+    """Quality gate for one RANSAC inlier set; returns (candidate-without-index, rejection, normal, d). ``sigma``
+    (K,): the inliers' expected errors, metres, for the tilt prior (:mod:`mapping.noisy_faces`)."""
     k = pts.shape[0]
-    c, w, axes, sag = plane_quality(pts)
+    noise_m = 0.0
+    if sigma is not None and cfg.tilt_prior_deg > 0:
+        c, w, axes, noise_m = prior_fit(pts, sigma, cfg)
+        sag = max(sagitta(pts - c, axes) - noise_m, 0.0)
+    else:
+        c, w, axes, sag = plane_quality(pts)
     normal = axes[:, 0].copy()
     to_vehicle = veh.mean(axis=0) - c
     if normal @ to_vehicle < 0:
@@ -340,9 +352,11 @@ def _check_inliers(
     extent = min(float(np.ptp(proj_u)), float(np.ptp(proj_v)))
     sensor_dist = float(np.median(veh @ normal + d))
     spread_down = float(np.std(pts[:, 2]))  # the lasers are horizontal: two stripes are ~baseline apart in down
+    along = horizontal_spread(pts - c, normal) if noise_m > 0 else math.inf
     checks = (
         ("too few inliers", k < cfg.min_inliers, float(k)),
         ("line-like (degenerate)", width < cfg.min_width_m, width),
+        ("short for its noise (yaw undetermined)", along < YAW_SPREAD_SIGMAS * noise_m, along),
         ("one stripe (no spread across the laser sheets)", spread_down < cfg.min_down_spread_m, spread_down),
         ("too small", extent < cfg.min_extent_m, extent),
         ("rms too large", rms > cfg.max_rms_m, rms),
@@ -460,7 +474,11 @@ def extract_planes(
             if inl_idx.shape[0] < cfg.min_inliers:
                 break
             chosen = _refine(vpts, members, inl_idx, cfg, thr)
-            cand, rej, _n, _d = _check_inliers(vpts[chosen], vveh[chosen], cfg)
+            sig = None
+            if noisy:  # each inlier's expected error, k r^2
+                d2 = np.einsum("ij,ij->i", vpts[chosen] - vveh[chosen], vpts[chosen] - vveh[chosen])
+                sig = error_at_r2(k[chosen] if isinstance(k, np.ndarray) else k, d2)
+            cand, rej, _n, _d = _check_inliers(vpts[chosen], vveh[chosen], cfg, sig)
             if cand is not None:
                 candidates.append(PlaneCandidate(cand.normal, cand.d, chosen, cand.rms_m, cand.width_m, cand.sagitta_m))
             elif rej is not None:
@@ -508,93 +526,6 @@ def claim_points(
         taken[idx] = True
         out.append(idx)
     return out
-
-
-def frame_sagitta(
-    points: FloatArray, frame: IntArray, normal: FloatArray, min_points: int = 15, min_length_m: float = 0.05
-) -> float:
-    """Median over frames of the bulge of each frame's stripes across a plane (metres; 0 when unknown).
-
-    Within one frame there is no pose noise between the points (they share the frame's pose), so the bend of a
-    stripe is the surface's own: per frame, the residuals ``r`` to the plane are fitted with
-    ``r = a + b u + c u^2 + e v`` (``u`` along the stripes, i.e. the horizontal in-plane axis, ``v`` across them),
-    and the bulge of that frame is ``|c| (L / 2)^2`` over its stripe length ``L``. A pipe's arcs bulge by
-    ``L^2 / (8 r)``; a wall's stripes do not bulge, whatever the frame-to-frame pose noise.
-
-    Args:
-        points: (K, 3) points of one plane, metres.
-        frame: (K,) frame (cloud) index of each point.
-        normal: (3,) unit normal of the plane.
-        min_points, min_length_m: frames with fewer points or shorter stripes are ignored.
-    """
-    if points.shape[0] < min_points:
-        return 0.0
-    c = points.mean(axis=0)
-    x = points - c
-    down = np.array([0.0, 0.0, 1.0])
-    u_axis = np.cross(down, normal)
-    if np.linalg.norm(u_axis) < 0.2:
-        return 0.0  # a near-horizontal plane: the stripes do not run along a fixed in-plane axis
-    u_axis /= np.linalg.norm(u_axis)
-    v_axis = np.cross(normal, u_axis)
-    u, v, r = x @ u_axis, x @ v_axis, x @ normal
-    _, g = np.unique(frame, return_inverse=True)
-    g = g.reshape(-1)
-    ng = int(g.max()) + 1
-    cols = (np.ones_like(u), u, u * u, v)
-    gram = np.empty((ng, 4, 4))
-    rhs = np.empty((ng, 4))
-    for i in range(4):
-        rhs[:, i] = np.bincount(g, weights=cols[i] * r, minlength=ng)
-        for j in range(i, 4):
-            gram[:, i, j] = gram[:, j, i] = np.bincount(g, weights=cols[i] * cols[j], minlength=ng)
-    umin = np.full(ng, np.inf)
-    umax = np.full(ng, -np.inf)
-    np.minimum.at(umin, g, u)
-    np.maximum.at(umax, g, u)
-    length = umax - umin
-    ok = (gram[:, 0, 0] >= min_points) & (length >= min_length_m)
-    if not np.any(ok):
-        return 0.0
-    reg = 1e-9 * np.eye(4)[None, :, :]
-    coef = np.linalg.solve(gram[ok] + reg, rhs[ok][:, :, None])[:, :, 0]
-    bulge = np.abs(coef[:, 2]) * (length[ok] / 2.0) ** 2
-    return float(np.median(bulge))
-
-
-def frame_support(
-    points: FloatArray,
-    grid: VoxelGrid,
-    cand: PlaneCandidate,
-    frame: IntArray,
-    distance_m: float,
-    min_points: int,
-) -> int:
-    """How many frames of the window see ``cand``: frames with at least ``min_points`` full-resolution points
-    within ``distance_m`` of its plane in the voxels of its inliers.
-
-    Every frame of a window (committed context included) counts. One frame alone is two laser stripes a few
-    centimetres apart that share one pose and one image: an error of that single image (a stripe triangulated
-    with the wrong laser, a reflection, a mis-detected stripe near a corner where the range is longest) moves
-    both stripes together and they still fit a plane perfectly, only a plane that is not there. Real surfaces
-    are seen by consecutive frames of the window; a candidate supported by a single frame is dropped.
-
-    Args:
-        points: (N, 3) full-resolution window points (same frame as the extraction), metres.
-        grid: the window's voxel grid (``grid.inverse`` maps points to voxels).
-        cand: the candidate plane.
-        frame: (N,) frame (cloud) index of every point.
-        distance_m: inlier distance to the candidate's plane.
-        min_points: points a frame needs to count.
-    """
-    in_vox = np.zeros(grid.keys.shape[0], dtype=bool)
-    in_vox[cand.voxel_index] = True
-    sel = in_vox[grid.inverse]
-    sel[sel] = np.abs(points[sel] @ cand.normal + cand.d) <= distance_m
-    if not np.any(sel):
-        return 0
-    _, counts = np.unique(frame[sel], return_counts=True)
-    return int(np.count_nonzero(counts >= min_points))
 
 
 def describe(extraction: Extraction) -> dict[str, Any]:

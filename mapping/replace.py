@@ -86,7 +86,7 @@ def move_placement(pl: Placement, old: dict[int, Pose], new: dict[int, Pose], cf
         return False
     pl.points_q = quantize(p, cfg.quantum_m, "re-placed observation")
     pl.normal = _rz(turn / weight) @ pl.normal
-    pl.record = PlaneRecord.from_points(pl.points_q, pl.normal, pl.robot, pl.first_ns, pl.last_ns, cfg)
+    pl.record = PlaneRecord.from_points(pl.points_q, pl.normal, pl.robot, pl.first_ns, pl.last_ns, cfg, pl.record.noise)
     return True
 
 

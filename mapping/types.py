@@ -70,6 +70,10 @@ class MapConfig:
             Default 0.0185 px (:data:`mapping.range_noise.STRIPE_SIGMA_PX`, the extractor's row error at 2-2.5 m):
             k 0.002 for the 640x360 camera of the simulated dives, 0.00067 for the paper's 1920x1080 one; 0: off
             (docs/mapping.md, "Range noise").
+        tilt_prior_deg: with a range noise (either of the two above), a near-vertical plane's tilt gets a prior of
+            this standard deviation about vertical, weighed against its points' expected errors, and its RMS gates
+            test the thickness beyond those errors (:mod:`mapping.noisy_faces`; docs/mapping.md, "Noisy far
+            faces"). Default 10 deg; 0: off. Clouds without an expected error (no calibration) are not affected.
         distance_threshold_m: RANSAC inlier distance (Open3D ``segment_plane``).
         ransac_iterations, seed: RANSAC iterations; base seed (Open3D's global RNG is re-seeded per call).
         max_planes_per_region: RANSAC peels at most this many planes off one region.
@@ -83,12 +87,12 @@ class MapConfig:
         max_sagitta_m: a quadratic fit of the window's residuals over the in-plane coordinates may not bend
             more than this over the plane's extent (a coarse curvature gate; frame-to-frame pose noise adds to it).
         max_frame_sagitta_m: the median bulge of the stripes of one frame across the plane may not exceed this
-            (:func:`mapping.planes.frame_sagitta`; pose noise cannot fake it: this is what rejects pipes).
+            (:func:`mapping.frame_checks.frame_sagitta`; pose noise cannot fake it: this is what rejects pipes).
         min_sensor_distance_m: a plane passing closer than this to the observing vehicle is the laser sheet
             itself (all hits of one laser are coplanar), not a surface; rejected.
         min_commit_points: full-resolution points an observation needs to enter the map.
         min_obs_frames, min_frame_points: an observation needs at least ``min_obs_frames`` frames of its window
-            with ``min_frame_points`` points each on the plane (:func:`mapping.planes.frame_support`): the two
+            with ``min_frame_points`` points each on the plane (:func:`mapping.frame_checks.frame_support`): the two
             stripes of one frame always fit a plane, also when that one image was triangulated wrongly.
         min_obs_publish: a plane is served (``map_json``, changes) once this many observations confirmed it; a
             single window's plane stays tentative (one odd window must not put a plane on the map).
@@ -158,6 +162,7 @@ class MapConfig:
     cell_planarity: float = 0.35
     range_noise_per_m: float = 0.0
     stripe_sigma_px: float = 0.0185
+    tilt_prior_deg: float = 10.0
     distance_threshold_m: float = 0.03
     ransac_iterations: int = 400
     seed: int = 1234
@@ -225,6 +230,7 @@ class MapConfig:
                     "serve_copy_offset_m",
                     "range_noise_per_m",
                     "stripe_sigma_px",
+                    "tilt_prior_deg",
                 )
                 and value <= 0
             ):
@@ -247,6 +253,9 @@ class MapConfig:
                 f"MapConfig: same_face_offset_m ({self.same_face_offset_m}) must be below min_sensor_distance_m "
                 f"({self.min_sensor_distance_m}) and same_face_share ({self.same_face_share}) at most 1"
             )
+            raise MapConfigError(msg)
+        if self.tilt_prior_deg >= 90.0:
+            msg = f"MapConfig.tilt_prior_deg must be below 90, got {self.tilt_prior_deg}"
             raise MapConfigError(msg)
         if self.quantum_m > 0.001:
             msg = f"MapConfig.quantum_m must be <= 1 mm, got {self.quantum_m}"
