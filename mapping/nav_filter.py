@@ -19,6 +19,7 @@ from .landmarks import PlaneLandmarks, associate
 from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
 from .nav_error import bound_error, consider_update, error_prediction, rate_gain, rate_weight, young_planes
 from .nav_frame import rot2
+from .nav_planes import PlaneErrors, joint_prior, marginal_information, plane_information
 
 __all__ = ["RobotNav"]
 
@@ -74,6 +75,8 @@ class RobotNav:
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
         self._speed = 0.0
+        #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
+        self.planes = PlaneErrors(self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr)
 
     _STATE = (
         "t_ns",
@@ -99,7 +102,7 @@ class RobotNav:
         out: dict[str, Any] = {k: getattr(self, k) for k in self._STATE}
         for k in ("pin_d", "pin_dist", "pin_time"):
             out[k] = out[k].copy()  # updated in place
-        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest)
+        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest, planes=self.planes.copy())
         return out
 
     def restore(self, snap: dict[str, Any]) -> None:
@@ -111,6 +114,7 @@ class RobotNav:
         self.x = snap["x"].copy()
         self.P = snap["P"].copy()
         self.latest = snap["latest"]
+        self.planes.set(snap["planes"])
 
     @property
     def started(self) -> bool:
@@ -142,6 +146,7 @@ class RobotNav:
         self.pin_d = np.zeros(2)
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
+        self.planes.set({})
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -181,6 +186,8 @@ class RobotNav:
             q[0:2, 0:2] = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
         self.P = self.P + q
+        if self.transition is not None:
+            self.planes.transform(self.transition)
         return motion
 
     def _predict_error(self, dt: float, dr: FloatArray, q: FloatArray) -> None:
@@ -219,7 +226,7 @@ class RobotNav:
         s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
         k = (self.P @ h.T) / s
         self.x = self.x - (k * float(self.x[4])).ravel()
-        self.P = (np.eye(self.n) - k @ h) @ self.P
+        self._kalman_map(np.eye(self.n) - k @ h)
 
     def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
@@ -233,7 +240,7 @@ class RobotNav:
             s = h @ self.P @ h.T + np.eye(2) * cfg.dr_error_fix_sigma_m**2
             k = self.P @ h.T @ np.linalg.inv(s)
             self.x = self.x + k @ (raw_ne - h @ self.x)
-            self.P = (np.eye(self.n) - k @ h) @ self.P
+            self._kalman_map(np.eye(self.n) - k @ h)
             return
         # how well the fixes agree with the estimate tells how good they are: a drifting dead reckoning drifts
         # away from what the scans say, a USBL or a good DVL does not
@@ -269,7 +276,13 @@ class RobotNav:
         s = h @ self.P @ h.T + np.eye(2) * sigma**2
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (raw_ne - self.x[0:2])
-        self.P = (np.eye(self.n) - k @ h) @ self.P
+        self._kalman_map(np.eye(self.n) - k @ h)
+
+    def _kalman_map(self, m: FloatArray) -> None:
+        """A Kalman update that does not measure the planes: ``P`` and the planes' cross-covariances become ``m``
+        (n, n; ``I - K H``) times themselves."""
+        self.P = m @ self.P
+        self.planes.transform(m)
 
     def _track_corrections(self, dx: FloatArray) -> None:
         """Keep the running mean velocity of the registrations' corrections of the position (north, east; m/s).
@@ -356,6 +369,7 @@ class RobotNav:
         inliers = 0
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
+        joint = _Joint(self, lm) if cfg.plane_sigma_m > 0 else None
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -371,18 +385,23 @@ class RobotNav:
             relh = rel[sel]
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
             pw = plane_w[k[sel]]
+            if joint is not None:
+                r = joint.residuals(k[sel], r)
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
             # a robot's own planes were placed with its own heading: they hold its position against the dead
             # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_recent_turns_alone)
             j[~plane_turns[k[sel]], 2] = 0.0
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
-            h3 = scale * (j.T * w) @ j
-            g3 = scale * (j.T * w) @ r
-            hf = np.zeros((self.n, self.n))
-            hf[np.ix_(idx, idx)] = h3
-            gf = np.zeros(self.n)
-            gf[idx] = g3
-            x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
+            if joint is not None:
+                x, h3 = joint.step(x_pred, x, j, scale * w, r)
+            else:
+                h3 = scale * (j.T * w) @ j
+                g3 = scale * (j.T * w) @ r
+                hf = np.zeros((self.n, self.n))
+                hf[np.ix_(idx, idx)] = h3
+                gf = np.zeros(self.n)
+                gf[idx] = g3
+                x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
             if it >= 1:
                 # after the first pass the gate only needs to hold the residual noise and what is left
                 gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
@@ -398,7 +417,13 @@ class RobotNav:
             return np.zeros((3, 3)), 0, ()
         if self.cfg.dr_bias_open_rate_m_s > 0:
             self._track_corrections((x - x_pred)[0:2])
-        cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
+        if joint is not None:
+            cov = joint.posterior(lm)
+            # the registration's information on the state, the planes' offsets marginalized (consider_update's)
+            hf = np.linalg.inv(cov) - p_inv
+            hf = 0.5 * (hf + hf.T)
+        else:
+            cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
         young = cfg.dr_error_rate_young_s > 0 and bool(young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[hit].any())
         w_rate = rate_weight(cfg, young)
         if w_rate < 1.0:
@@ -448,7 +473,11 @@ class RobotNav:
                 self.lost = False
             if cfg.dr_error_state:
                 pins = (self.pin_d, self.pin_dist, self.pin_time)
+                p_before = self.P
                 self.x, self.P = bound_error(self.x, self.P, *pins, self._speed, cfg)
+                if self.planes.c and self.P is not p_before:
+                    # the bound's pseudo-measurements are Kalman updates: P_after = (I - K H) P_before
+                    self.planes.transform(np.linalg.solve(p_before.T, self.P.T).T)
             self._compass(t)
         if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
             # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no
@@ -509,3 +538,71 @@ class RobotNav:
         return NavEstimate(
             self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
         )
+
+
+class _Joint:
+    """One registration's Gauss-Newton over the state and the used planes' offset errors (``NavConfig.plane_sigma_m``,
+    :mod:`mapping.nav_planes`): the carried planes (``plane_carry``) and the ones this scan hits, their offsets'
+    estimates within the scan (reset to 0 after it: a consider parameter)."""
+
+    def __init__(self, nav: RobotNav, lm: PlaneLandmarks) -> None:
+        self.nav = nav
+        self.sigma = nav.cfg.plane_sigma_m
+        present = {int(i) for i in lm.ids}
+        self.ids: list[int] = [i for i in nav.planes.c if i in present] if nav.cfg.plane_carry else []
+        self.delta: dict[int, float] = {}
+        self.lm_ids = lm.ids
+        self.col = np.zeros(0, dtype=np.int64)
+        self.lam = np.zeros((0, 0))
+        self.h = np.zeros((0, 0))
+
+    def residuals(self, hit: NDArray[np.int64], r: FloatArray) -> FloatArray:
+        """The residuals (N,) of the points on ``hit`` (indices into the landmarks) with their planes' current
+        offsets in; sets each point's column of the joint."""
+        pid = self.lm_ids[hit]
+        for i in np.unique(pid):
+            if int(i) not in self.ids:
+                self.ids.append(int(i))
+        pos = {i: c for c, i in enumerate(self.ids)}
+        self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
+        d = np.array([self.delta.get(i, 0.0) for i in self.ids])
+        return r + d[self.col]
+
+    def step(
+        self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """One Gauss-Newton step from ``x`` (n,) with the points' Jacobians ``j`` (N, 3), weights ``ws`` (N,) and
+        residuals ``res`` (N, from :meth:`residuals`); returns the new state and the scan's own information (3, 3)
+        on north, east, yaw with the offsets marginalized."""
+        nav = self.nav
+        n, m = nav.n, len(self.ids)
+        a, b, c, g3, gm = plane_information(j, ws, res, self.col, m)
+        cross = nav.planes.cross(self.ids) if nav.cfg.plane_carry else np.zeros((n, m))
+        self.lam = joint_prior(nav.P, cross, self.sigma)
+        idx = [0, 1, 4]
+        h = np.zeros((n + m, n + m))
+        h[np.ix_(idx, idx)] = a
+        h[idx, n:] = b
+        h[n:, idx] = b.T
+        h[n:, n:] += np.diag(c)
+        g = np.zeros(n + m)
+        g[idx] = g3
+        g[n:] = gm
+        self.h = h
+        d = np.array([self.delta.get(i, 0.0) for i in self.ids])
+        z = np.concatenate([x, d])
+        zp = np.concatenate([x_pred, np.zeros(m)])
+        z = np.asarray(np.linalg.solve(self.lam + h, self.lam @ zp + h @ z - g), dtype=np.float64)
+        self.delta = {i: float(v) for i, v in zip(self.ids, z[n:], strict=True)}
+        return z[:n].copy(), marginal_information(a, b, c, self.sigma)
+
+    def posterior(self, lm: PlaneLandmarks) -> FloatArray:
+        """The state's covariance (n, n) after the registration; with ``plane_carry`` the planes' cross-covariances
+        are kept in ``nav.planes``."""
+        nav = self.nav
+        n = nav.n
+        cov = np.asarray(np.linalg.inv(self.lam + self.h), dtype=np.float64)
+        cov = 0.5 * (cov + cov.T)
+        if nav.cfg.plane_carry:
+            nav.planes.keep(self.ids, cov[:n, n:], cov[:n, :n], {int(i) for i in lm.ids})
+        return cov[:n, :n].copy()
