@@ -83,8 +83,9 @@ class NavConfig:
     A plane's own offset error (``plane_sigma_m`` > 0; off at 0): each associated plane's residuals share an error
     of that standard deviation along its normal (the map placed the plane with poses good to a few centimetres), so
     one scan's information along a plane's normal saturates at 1 / ``plane_sigma_m``^2 however many points it has;
-    with ``plane_carry`` the error is also the same for every later scan (a Schmidt consider parameter per plane,
-    its cross-covariance with the state dropped under ``plane_carry_min_corr``): :mod:`mapping.nav_planes`.
+    with ``plane_carry`` the error is also the same for every later scan: ``"consider"``, a Schmidt consider
+    parameter per plane (its cross-covariance with the state dropped under ``plane_carry_min_corr``);
+    ``"estimate"``, a state of the robot's per plane while the plane is in the map (:mod:`mapping.nav_planes`).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -165,7 +166,7 @@ class NavConfig:
     dr_error_rate_young_s: float = 0.0
     dr_drift_max_m_s: float = 0.05
     plane_sigma_m: float = 0.0
-    plane_carry: bool = False
+    plane_carry: str = ""
     plane_carry_min_corr: float = 0.05
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0

@@ -76,7 +76,9 @@ class RobotNav:
         self.pin_time = np.zeros(2)
         self._speed = 0.0
         #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
-        self.planes = PlaneErrors(self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr)
+        self.planes = PlaneErrors(
+            self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr, estimate=cfg.plane_carry == "estimate"
+        )
 
     _STATE = (
         "t_ns",
@@ -146,7 +148,7 @@ class RobotNav:
         self.pin_d = np.zeros(2)
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
-        self.planes.set({})
+        self.planes.set(None)
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -225,8 +227,9 @@ class RobotNav:
         h[0, 4] = 1.0
         s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
         k = (self.P @ h.T) / s
+        self.planes.measured(k, h, np.array([[s]]), np.array([-float(self.x[4])]))
         self.x = self.x - (k * float(self.x[4])).ravel()
-        self._kalman_map(np.eye(self.n) - k @ h)
+        self.P = (np.eye(self.n) - k @ h) @ self.P
 
     def _fix(self, t_ns: int, raw_ne: FloatArray) -> None:
         cfg = self.cfg
@@ -239,8 +242,9 @@ class RobotNav:
             h[0, 0] = h[1, 1] = h[0, 5] = h[1, 6] = 1.0
             s = h @ self.P @ h.T + np.eye(2) * cfg.dr_error_fix_sigma_m**2
             k = self.P @ h.T @ np.linalg.inv(s)
+            self.planes.measured(k, h, s, raw_ne - h @ self.x)
             self.x = self.x + k @ (raw_ne - h @ self.x)
-            self._kalman_map(np.eye(self.n) - k @ h)
+            self.P = (np.eye(self.n) - k @ h) @ self.P
             return
         # how well the fixes agree with the estimate tells how good they are: a drifting dead reckoning drifts
         # away from what the scans say, a USBL or a good DVL does not
@@ -275,14 +279,9 @@ class RobotNav:
         h[0, 0] = h[1, 1] = 1.0
         s = h @ self.P @ h.T + np.eye(2) * sigma**2
         k = self.P @ h.T @ np.linalg.inv(s)
+        self.planes.measured(k, h, s, raw_ne - self.x[0:2])
         self.x = self.x + k @ (raw_ne - self.x[0:2])
-        self._kalman_map(np.eye(self.n) - k @ h)
-
-    def _kalman_map(self, m: FloatArray) -> None:
-        """A Kalman update that does not measure the planes: ``P`` and the planes' cross-covariances become ``m``
-        (n, n; ``I - K H``) times themselves."""
-        self.P = m @ self.P
-        self.planes.transform(m)
+        self.P = (np.eye(self.n) - k @ h) @ self.P
 
     def _track_corrections(self, dx: FloatArray) -> None:
         """Keep the running mean velocity of the registrations' corrections of the position (north, east; m/s).
@@ -475,7 +474,7 @@ class RobotNav:
                 pins = (self.pin_d, self.pin_dist, self.pin_time)
                 p_before = self.P
                 self.x, self.P = bound_error(self.x, self.P, *pins, self._speed, cfg)
-                if self.planes.c and self.P is not p_before:
+                if len(self.planes) and self.P is not p_before:
                     # the bound's pseudo-measurements are Kalman updates: P_after = (I - K H) P_before
                     self.planes.transform(np.linalg.solve(p_before.T, self.P.T).T)
             self._compass(t)
@@ -543,30 +542,34 @@ class RobotNav:
 class _Joint:
     """One registration's Gauss-Newton over the state and the used planes' offset errors (``NavConfig.plane_sigma_m``,
     :mod:`mapping.nav_planes`): the carried planes (``plane_carry``) and the ones this scan hits, their offsets'
-    estimates within the scan (reset to 0 after it: a consider parameter)."""
+    estimates within the scan."""
 
     def __init__(self, nav: RobotNav, lm: PlaneLandmarks) -> None:
         self.nav = nav
         self.sigma = nav.cfg.plane_sigma_m
         present = {int(i) for i in lm.ids}
-        self.ids: list[int] = [i for i in nav.planes.c if i in present] if nav.cfg.plane_carry else []
-        self.delta: dict[int, float] = {}
+        self.ids: list[int] = [i for i in nav.planes.ids if i in present] if nav.cfg.plane_carry else []
+        self.delta = nav.planes.prior(self.ids)[0]
         self.lm_ids = lm.ids
         self.col = np.zeros(0, dtype=np.int64)
         self.lam = np.zeros((0, 0))
         self.h = np.zeros((0, 0))
+        self.z = np.zeros(0)
+
+    def _grow(self, pid: NDArray[np.int64]) -> None:
+        new = [int(i) for i in np.unique(pid) if int(i) not in self.ids]
+        if new:
+            self.ids += new
+            self.delta = np.concatenate([self.delta, np.zeros(len(new))])
 
     def residuals(self, hit: NDArray[np.int64], r: FloatArray) -> FloatArray:
         """The residuals (N,) of the points on ``hit`` (indices into the landmarks) with their planes' current
         offsets in; sets each point's column of the joint."""
         pid = self.lm_ids[hit]
-        for i in np.unique(pid):
-            if int(i) not in self.ids:
-                self.ids.append(int(i))
+        self._grow(pid)
         pos = {i: c for c, i in enumerate(self.ids)}
         self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
-        d = np.array([self.delta.get(i, 0.0) for i in self.ids])
-        return r + d[self.col]
+        return r + self.delta[self.col]
 
     def step(
         self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
@@ -577,8 +580,11 @@ class _Joint:
         nav = self.nav
         n, m = nav.n, len(self.ids)
         a, b, c, g3, gm = plane_information(j, ws, res, self.col, m)
-        cross = nav.planes.cross(self.ids) if nav.cfg.plane_carry else np.zeros((n, m))
-        self.lam = joint_prior(nav.P, cross, self.sigma)
+        if nav.cfg.plane_carry:
+            d0, cross, dd = nav.planes.prior(self.ids)
+        else:
+            d0, cross, dd = np.zeros(m), np.zeros((n, m)), np.eye(m) * self.sigma**2
+        self.lam = joint_prior(nav.P, cross, dd)
         idx = [0, 1, 4]
         h = np.zeros((n + m, n + m))
         h[np.ix_(idx, idx)] = a
@@ -589,20 +595,19 @@ class _Joint:
         g[idx] = g3
         g[n:] = gm
         self.h = h
-        d = np.array([self.delta.get(i, 0.0) for i in self.ids])
-        z = np.concatenate([x, d])
-        zp = np.concatenate([x_pred, np.zeros(m)])
-        z = np.asarray(np.linalg.solve(self.lam + h, self.lam @ zp + h @ z - g), dtype=np.float64)
-        self.delta = {i: float(v) for i, v in zip(self.ids, z[n:], strict=True)}
-        return z[:n].copy(), marginal_information(a, b, c, self.sigma)
+        z = np.concatenate([x, self.delta])
+        zp = np.concatenate([x_pred, d0])
+        self.z = np.asarray(np.linalg.solve(self.lam + h, self.lam @ zp + h @ z - g), dtype=np.float64)
+        self.delta = self.z[n:].copy()
+        return self.z[:n].copy(), marginal_information(a, b, c, self.sigma)
 
     def posterior(self, lm: PlaneLandmarks) -> FloatArray:
-        """The state's covariance (n, n) after the registration; with ``plane_carry`` the planes' cross-covariances
-        are kept in ``nav.planes``."""
+        """The state's covariance (n, n) after the registration; with ``plane_carry`` the planes are kept in
+        ``nav.planes``."""
         nav = self.nav
         n = nav.n
         cov = np.asarray(np.linalg.inv(self.lam + self.h), dtype=np.float64)
         cov = 0.5 * (cov + cov.T)
         if nav.cfg.plane_carry:
-            nav.planes.keep(self.ids, cov[:n, n:], cov[:n, :n], {int(i) for i in lm.ids})
+            nav.planes.keep(self.ids, self.delta, cov, {int(i) for i in lm.ids})
         return cov[:n, :n].copy()

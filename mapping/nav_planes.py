@@ -38,53 +38,93 @@ FloatArray = NDArray[np.float64]
 
 
 class PlaneErrors:
-    """Per robot: the cross-covariance of the filter's state (n,) with each carried plane's offset error.
+    """Per robot: the carried planes' offset errors and their covariance with the filter's state.
 
     Args:
         n: the filter's state size.
         sigma_m: each plane's offset error, m (``NavConfig.plane_sigma_m``).
-        min_corr: a plane whose correlation with every state is below this is dropped.
+        min_corr: as a consider parameter, a plane whose correlation with every state is below this is dropped.
+        estimate: the offsets are states (``NavConfig.plane_carry`` ``"estimate"``): their estimates and covariance
+            are kept; else consider parameters (estimate 0, variance ``sigma_m``^2 after every update).
     """
 
-    def __init__(self, n: int, sigma_m: float, min_corr: float) -> None:
+    def __init__(self, n: int, sigma_m: float, min_corr: float, estimate: bool = False) -> None:
         self.n = n
         self.sigma_m = sigma_m
         self.min_corr = min_corr
-        #: plane id -> (n,) cross-covariance of the state with its offset error (m^2, m^2/s, m rad)
-        self.c: dict[int, FloatArray] = {}
+        self.estimate = estimate
+        #: the carried planes' ids (m)
+        self.ids: list[int] = []
+        #: (m,) their offsets' estimates (m); (n, m) the state's cross-covariance with them; (m, m) theirs
+        self.delta = np.zeros(0)
+        self.c = np.zeros((n, 0))
+        self.d = np.zeros((0, 0))
 
-    def copy(self) -> dict[int, FloatArray]:
-        """The carried cross-covariances (a snapshot)."""
-        return {k: v.copy() for k, v in self.c.items()}
+    def __len__(self) -> int:
+        return len(self.ids)
 
-    def set(self, c: dict[int, FloatArray]) -> None:
-        """Back to a :meth:`copy`."""
-        self.c = {k: v.copy() for k, v in c.items()}
+    def copy(self) -> tuple[list[int], FloatArray, FloatArray, FloatArray]:
+        """The carried planes (a snapshot)."""
+        return list(self.ids), self.delta.copy(), self.c.copy(), self.d.copy()
+
+    def set(self, snap: tuple[list[int], FloatArray, FloatArray, FloatArray] | None) -> None:
+        """Back to a :meth:`copy` (None: no plane)."""
+        if snap is None:
+            snap = ([], np.zeros(0), np.zeros((self.n, 0)), np.zeros((0, 0)))
+        self.ids = list(snap[0])
+        self.delta, self.c, self.d = snap[1].copy(), snap[2].copy(), snap[3].copy()
 
     def transform(self, m: FloatArray) -> None:
-        """Every carried C becomes ``m @ C``: ``m`` (n, n) the transition of a prediction, or ``I - K H`` of an
-        update that does not measure the planes (a fix, the compass)."""
-        if self.c:
-            ids = list(self.c)
-            cm = m @ np.stack([self.c[i] for i in ids], axis=1)
-            self.c = {i: cm[:, j] for j, i in enumerate(ids)}
+        """The cross-covariances become ``m @ C``: ``m`` (n, n) the transition of a prediction, or ``I - K H`` of an
+        update that does not measure the planes."""
+        if self.ids:
+            self.c = m @ self.c
 
-    def cross(self, ids: list[int]) -> FloatArray:
-        """(n, m) the cross-covariances of ``ids`` (zero for a plane not carried)."""
-        out = np.zeros((self.n, len(ids)))
-        for j, i in enumerate(ids):
-            c = self.c.get(i)
-            if c is not None:
-                out[:, j] = c
-        return out
+    def measured(self, k: FloatArray, h: FloatArray, s: FloatArray, innov: FloatArray) -> None:
+        """A Kalman update of the state that does not measure the planes (a fix, the compass), before ``P`` moves:
+        ``k`` (n, q) its gain, ``h`` (q, n), ``s`` (q, q) the innovation's covariance, ``innov`` (q,). The state's
+        correlation with the offsets moves them too where they are states."""
+        if not self.ids:
+            return
+        hc = h @ self.c
+        if self.estimate:
+            kd = np.linalg.solve(s, hc).T
+            self.delta = self.delta + kd @ innov
+            self.d = self.d - kd @ hc
+            self.d = 0.5 * (self.d + self.d.T)
+        self.c = self.c - k @ hc
 
-    def keep(self, ids: list[int], cross: FloatArray, p: FloatArray, present: set[int]) -> None:
-        """After a registration: ``cross`` (n, m) the joint posterior's cross-covariances of ``ids``; ``p`` (n, n)
-        the state's covariance. Planes no longer in the map (``present``) or no longer correlated are dropped."""
-        for j, i in enumerate(ids):
-            self.c[i] = cross[:, j].copy()
-        sd = np.sqrt(np.maximum(np.diag(p), 1e-30)) * self.sigma_m
-        self.c = {i: c for i, c in self.c.items() if i in present and float(np.max(np.abs(c) / sd)) >= self.min_corr}
+    def prior(self, ids: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """For the joint of ``ids`` (m): the offsets' estimates (m,), the state's cross-covariance (n, m) and their
+        covariance (m, m); a plane not carried at 0, uncorrelated, ``sigma_m``^2."""
+        m = len(ids)
+        delta, cross, dd = np.zeros(m), np.zeros((self.n, m)), np.eye(m) * self.sigma_m**2
+        pos = {i: j for j, i in enumerate(self.ids)}
+        have = [(j, pos[i]) for j, i in enumerate(ids) if i in pos]
+        if have:
+            a, b = (np.array(v) for v in zip(*have, strict=True))
+            cross[:, a] = self.c[:, b]
+            if self.estimate:
+                delta[a] = self.delta[b]
+                dd[np.ix_(a, a)] = self.d[np.ix_(b, b)]
+        return delta, cross, dd
+
+    def keep(self, ids: list[int], delta: FloatArray, cov: FloatArray, present: set[int]) -> None:
+        """After a registration: ``ids`` (m) the joint's planes, ``delta`` (m,) their offsets, ``cov`` (n+m, n+m) the
+        joint's posterior covariance. Planes no longer in the map (``present``), and consider parameters no longer
+        correlated with any state, are dropped; the carried planes outside the joint are marginalized out of it
+        (their cross-covariances were in the prior, unchanged by a registration that has none of them)."""
+        n = self.n
+        keep = [j for j, i in enumerate(ids) if i in present]
+        if not self.estimate:
+            sd = np.sqrt(np.maximum(np.diag(cov)[:n], 1e-30)) * self.sigma_m
+            keep = [j for j in keep if float(np.max(np.abs(cov[:n, n + j]) / sd)) >= self.min_corr]
+        self.ids = [ids[j] for j in keep]
+        self.delta = delta[keep].copy() if self.estimate else np.zeros(len(keep))
+        self.c = cov[:n, [n + j for j in keep]].copy()
+        self.d = cov[np.ix_([n + j for j in keep], [n + j for j in keep])].copy()
+        if not self.estimate:
+            self.d = np.eye(len(keep)) * self.sigma_m**2
 
 
 def plane_information(
@@ -108,15 +148,15 @@ def plane_information(
     return jw @ j, jw @ oh, ws @ oh, jw @ res, (ws * res) @ oh
 
 
-def joint_prior(p: FloatArray, cross: FloatArray, sigma_m: float) -> FloatArray:
-    """(n+m, n+m) the joint prior information of the state (covariance ``p``, (n, n)) and m plane offsets (each
-    ``sigma_m``, independent, cross-covariance ``cross`` (n, m) with the state)."""
+def joint_prior(p: FloatArray, cross: FloatArray, dd: FloatArray) -> FloatArray:
+    """(n+m, n+m) the joint prior information of the state (covariance ``p``, (n, n)) and m plane offsets
+    (covariance ``dd`` (m, m), cross-covariance ``cross`` (n, m) with the state)."""
     n, m = cross.shape
     s = np.empty((n + m, n + m))
     s[:n, :n] = p
     s[:n, n:] = cross
     s[n:, :n] = cross.T
-    s[n:, n:] = np.eye(m) * sigma_m**2
+    s[n:, n:] = dd
     try:
         np.linalg.cholesky(s)
     except np.linalg.LinAlgError:
