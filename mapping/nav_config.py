@@ -86,6 +86,10 @@ class NavConfig:
     with ``plane_carry`` the error is also the same for every later scan: ``"consider"``, a Schmidt consider
     parameter per plane (its cross-covariance with the state dropped under ``plane_carry_min_corr``);
     ``"estimate"``, a state of the robot's per plane while the plane is in the map (:mod:`mapping.nav_planes`).
+    With ``plane_good_fixes_only`` only while the robot's velocity bias is closed (its fixes not shown to drift):
+    a drifting robot's position rests on the map, and weighed at its planes' error it ran away. With
+    ``plane_gate_sigma`` > 0 a scan whose mean residual on a plane at the prediction lies beyond that many standard
+    deviations (the plane's error and the state's along its normal) counts its planes as exact, as without.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -168,6 +172,8 @@ class NavConfig:
     plane_sigma_m: float = 0.0
     plane_carry: str = ""
     plane_carry_min_corr: float = 0.05
+    plane_good_fixes_only: bool = False
+    plane_gate_sigma: float = 0.0
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2

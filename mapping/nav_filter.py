@@ -368,7 +368,11 @@ class RobotNav:
         inliers = 0
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
-        joint = _Joint(self, lm) if cfg.plane_sigma_m > 0 else None
+        joint = None
+        if cfg.plane_sigma_m > 0 and not (cfg.plane_good_fixes_only and self.bias_open):
+            joint = _Joint(self, lm)
+        elif len(self.planes):
+            self.planes.set(None)
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -385,7 +389,14 @@ class RobotNav:
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
             pw = plane_w[k[sel]]
             if joint is not None:
-                r = joint.residuals(k[sel], r)
+                r_joint = joint.residuals(k[sel], r)
+                if it == 0 and cfg.plane_gate_sigma > 0 and joint.beyond(r_joint, n, cfg.plane_gate_sigma):
+                    # the map and the prediction disagree beyond a plane's error: this robot's dead reckoning
+                    # drifts, and the map, not the fixes, must hold it (the planes count as exact, as without)
+                    joint = None
+                    self.planes.set(None)
+                else:
+                    r = r_joint
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
             # a robot's own planes were placed with its own heading: they hold its position against the dead
             # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_recent_turns_alone)
@@ -570,6 +581,18 @@ class _Joint:
         pos = {i: c for c, i in enumerate(self.ids)}
         self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
         return r + self.delta[self.col]
+
+    def beyond(self, res: FloatArray, normals: FloatArray, gate_sigma: float) -> bool:
+        """Whether a used plane's mean residual ``res`` (N,) at the prediction lies beyond ``gate_sigma`` times its
+        standard deviation: the plane's error and the state's along its normal (``normals`` (N, 3), NED)."""
+        m = len(self.ids)
+        cnt = np.bincount(self.col, minlength=m)
+        mean = np.bincount(self.col, weights=res, minlength=m)[cnt > 0] / cnt[cnt > 0]
+        nh = np.zeros((m, 2))
+        nh[self.col] = normals[:, 0:2]
+        pos = self.nav.P[0:2, 0:2]
+        var = self.sigma**2 + np.einsum("pi,ij,pj->p", nh, pos, nh)[cnt > 0]
+        return bool(np.any(mean**2 > gate_sigma**2 * var))
 
     def step(
         self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
