@@ -89,7 +89,9 @@ class NavConfig:
     With ``plane_good_fixes_only`` only while the robot's velocity bias is closed (its fixes not shown to drift):
     a drifting robot's position rests on the map, and weighed at its planes' error it ran away. With
     ``plane_gate_sigma`` > 0 a scan whose mean residual on a plane at the prediction lies beyond that many standard
-    deviations (the plane's error and the state's along its normal) counts its planes as exact, as without.
+    deviations (the plane's error and the state's along its normal) counts its planes as exact, as without; with
+    ``plane_gate_scans`` > 0 that many such registrations in a row turn the planes' error off for the rest of the
+    dive and open the adaptive bias (:attr:`RobotNav.plane_latched`: a drift showed).
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -174,6 +176,7 @@ class NavConfig:
     plane_carry_min_corr: float = 0.05
     plane_good_fixes_only: bool = False
     plane_gate_sigma: float = 0.0
+    plane_gate_scans: int = 0
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2
