@@ -91,7 +91,10 @@ class NavConfig:
     ``plane_gate_sigma`` > 0 a scan whose mean residual on a plane at the prediction lies beyond that many standard
     deviations (the plane's error and the state's along its normal) counts its planes as exact, as without; with
     ``plane_gate_scans`` > 0 that many such registrations in a row turn the planes' error off for the rest of the
-    dive and open the adaptive bias (:attr:`RobotNav.plane_latched`: a drift showed).
+    dive and open the adaptive bias (:attr:`RobotNav.plane_latched`: a drift showed). With ``plane_fix_jitter_m``
+    > 0 only while the raw positions' white noise (from the RMS of their second differences over ``fix_quality_s``)
+    exceeds it: absolute fixes (a USBL's) are white, a dead reckoning's track is smooth and its fixes are the
+    increments the filter already has, summed.
 
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
@@ -177,6 +180,7 @@ class NavConfig:
     plane_good_fixes_only: bool = False
     plane_gate_sigma: float = 0.0
     plane_gate_scans: int = 0
+    plane_fix_jitter_m: float = 0.0
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2

@@ -80,6 +80,11 @@ class RobotNav:
         #: error, and whether that latched the planes' error off for the rest of the dive (a drift showed)
         self.plane_beyond = 0
         self.plane_latched = False
+        #: with ``NavConfig.plane_fix_jitter_m``: the raw position before the last (north, east; m), and the running
+        #: mean square of the raw positions' second differences (m^2) with its weight (a bias-corrected mean)
+        self.prev_raw_ne: FloatArray | None = None
+        self.jit2 = 0.0
+        self.jit_w = 0.0
         self.planes = PlaneErrors(
             self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr, estimate=cfg.plane_carry == "estimate"
         )
@@ -103,6 +108,9 @@ class RobotNav:
         "_speed",
         "plane_beyond",
         "plane_latched",
+        "prev_raw_ne",
+        "jit2",
+        "jit_w",
     )
 
     def snapshot(self) -> dict[str, Any]:
@@ -157,6 +165,30 @@ class RobotNav:
         self.planes.set(None)
         self.plane_beyond = 0
         self.plane_latched = False
+        self.prev_raw_ne = None
+        self.jit2 = self.jit_w = 0.0
+
+    def _jitter(self, raw_ne: FloatArray | None) -> None:
+        """Keep the running mean square of the raw positions' second differences (``plane_fix_jitter_m``): an
+        absolute fix (a USBL's, the good IMU's) has white errors, so its second differences are its noise times
+        sqrt(6) per axis; a dead reckoning's track is smooth, its second differences the motion's millimetres."""
+        if raw_ne is None or self.last_raw_ne is None:
+            self.prev_raw_ne = None
+            return
+        if self.prev_raw_ne is not None:
+            dd = raw_ne - 2.0 * self.last_raw_ne + self.prev_raw_ne
+            a = min(1.0, max(self._dt, 1e-3) / self.cfg.fix_quality_s)
+            self.jit2 = (1 - a) * self.jit2 + a * float(dd @ dd) / 2
+            self.jit_w = (1 - a) * self.jit_w + a
+        self.prev_raw_ne = self.last_raw_ne
+
+    def _white_fixes(self) -> bool:
+        """Whether the raw positions' jitter says they are absolute fixes (``plane_fix_jitter_m``; always without
+        the option)."""
+        lim = self.cfg.plane_fix_jitter_m
+        if lim <= 0:
+            return True
+        return self.jit_w > 0 and self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -389,7 +421,8 @@ class RobotNav:
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
         joint = None
-        if cfg.plane_sigma_m > 0 and not (cfg.plane_good_fixes_only and self.bias_open) and not self.plane_latched:
+        on = not (cfg.plane_good_fixes_only and self.bias_open) and not self.plane_latched and self._white_fixes()
+        if cfg.plane_sigma_m > 0 and on:
             joint = _Joint(self, lm)
         elif len(self.planes):
             self.planes.set(None)
@@ -499,6 +532,8 @@ class RobotNav:
             assert self.t_ns is not None
             dt = (t - self.t_ns) * 1e-9
             self._dt = dt
+            if cfg.plane_fix_jitter_m > 0:
+                self._jitter(raw_ne)
             motion = self._predict(dt, raw_ne)
             self.prior = (self.x.copy(), self.P.copy())
             self.t_ns = t
