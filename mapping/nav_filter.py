@@ -19,12 +19,14 @@ from .landmarks import PlaneLandmarks, associate
 from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
 from .nav_error import bound_error, consider_update, error_prediction, rate_gain, rate_weight, young_planes
 from .nav_frame import rot2
-from .nav_planes import PlaneErrors, joint_prior, marginal_information, plane_information
+from .nav_planes import PlaneErrors, PlaneJoint
 
 __all__ = ["RobotNav"]
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
+#: the weight of the fixes' jitter (``plane_fix_jitter_m``) that tells: about a second of fixes at 10 Hz
+_JITTER_MIN_WEIGHT = 10 * 0.1 / 20.0
 
 
 class RobotNav:
@@ -130,7 +132,7 @@ class RobotNav:
         self.x = snap["x"].copy()
         self.P = snap["P"].copy()
         self.latest = snap["latest"]
-        self.planes.set(snap["planes"])
+        self.planes.restore(snap["planes"])
 
     @property
     def started(self) -> bool:
@@ -162,7 +164,7 @@ class RobotNav:
         self.pin_d = np.zeros(2)
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
-        self.planes.set(None)
+        self.planes.restore(None)
         self.plane_beyond = 0
         self.plane_latched = False
         self.prev_raw_ne = None
@@ -186,9 +188,11 @@ class RobotNav:
         """Whether the raw positions' jitter says they are absolute fixes (``plane_fix_jitter_m``; always without
         the option)."""
         lim = self.cfg.plane_fix_jitter_m
-        if lim <= 0:
+        if lim <= 0 or self.jit_w < _JITTER_MIN_WEIGHT:
+            # taken as absolute until a second of fixes tells: a plane's error matters most while the first
+            # scans make the map, and a dead reckoning has not drifted yet then
             return True
-        return self.jit_w > 0 and self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
+        return self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -423,9 +427,9 @@ class RobotNav:
         joint = None
         on = not (cfg.plane_good_fixes_only and self.bias_open) and not self.plane_latched and self._white_fixes()
         if cfg.plane_sigma_m > 0 and on:
-            joint = _Joint(self, lm)
+            joint = PlaneJoint(self, lm)
         elif len(self.planes):
-            self.planes.set(None)
+            self.planes.restore(None)
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -450,7 +454,7 @@ class RobotNav:
                     # the map and the prediction disagree beyond a plane's error: this robot's dead reckoning
                     # drifts, and the map, not the fixes, must hold it (the planes count as exact, as without)
                     joint = None
-                    self.planes.set(None)
+                    self.planes.restore(None)
                     if 0 < cfg.plane_gate_scans <= self.plane_beyond:
                         self._latch_planes()
                 else:
@@ -547,7 +551,7 @@ class RobotNav:
                 self.x, self.P = bound_error(self.x, self.P, *pins, self._speed, cfg)
                 if len(self.planes) and self.P is not p_before:
                     # the bound's pseudo-measurements are Kalman updates: P_after = (I - K H) P_before
-                    self.planes.transform(np.linalg.solve(p_before.T, self.P.T).T)
+                    self.planes.transform(np.asarray(np.linalg.solve(p_before.T, self.P.T).T, dtype=np.float64))
             self._compass(t)
         if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
             # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no
@@ -608,89 +612,3 @@ class RobotNav:
         return NavEstimate(
             self.robot, t, pose, std, constrained, placed, motion, inliers, used, corr, pinned, free_bearing
         )
-
-
-class _Joint:
-    """One registration's Gauss-Newton over the state and the used planes' offset errors (``NavConfig.plane_sigma_m``,
-    :mod:`mapping.nav_planes`): the carried planes (``plane_carry``) and the ones this scan hits, their offsets'
-    estimates within the scan."""
-
-    def __init__(self, nav: RobotNav, lm: PlaneLandmarks) -> None:
-        self.nav = nav
-        self.sigma = nav.cfg.plane_sigma_m
-        present = {int(i) for i in lm.ids}
-        self.ids: list[int] = [i for i in nav.planes.ids if i in present] if nav.cfg.plane_carry else []
-        self.delta = nav.planes.prior(self.ids)[0]
-        self.lm_ids = lm.ids
-        self.col = np.zeros(0, dtype=np.int64)
-        self.lam = np.zeros((0, 0))
-        self.h = np.zeros((0, 0))
-        self.z = np.zeros(0)
-
-    def _grow(self, pid: NDArray[np.int64]) -> None:
-        new = [int(i) for i in np.unique(pid) if int(i) not in self.ids]
-        if new:
-            self.ids += new
-            self.delta = np.concatenate([self.delta, np.zeros(len(new))])
-
-    def residuals(self, hit: NDArray[np.int64], r: FloatArray) -> FloatArray:
-        """The residuals (N,) of the points on ``hit`` (indices into the landmarks) with their planes' current
-        offsets in; sets each point's column of the joint."""
-        pid = self.lm_ids[hit]
-        self._grow(pid)
-        pos = {i: c for c, i in enumerate(self.ids)}
-        self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
-        return r + self.delta[self.col]
-
-    def beyond(self, res: FloatArray, normals: FloatArray, gate_sigma: float) -> bool:
-        """Whether a used plane's mean residual ``res`` (N,) at the prediction lies beyond ``gate_sigma`` times its
-        standard deviation: the plane's error and the state's along its normal (``normals`` (N, 3), NED)."""
-        m = len(self.ids)
-        cnt = np.bincount(self.col, minlength=m)
-        mean = np.bincount(self.col, weights=res, minlength=m)[cnt > 0] / cnt[cnt > 0]
-        nh = np.zeros((m, 2))
-        nh[self.col] = normals[:, 0:2]
-        pos = self.nav.P[0:2, 0:2]
-        var = self.sigma**2 + np.einsum("pi,ij,pj->p", nh, pos, nh)[cnt > 0]
-        return bool(np.any(mean**2 > gate_sigma**2 * var))
-
-    def step(
-        self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """One Gauss-Newton step from ``x`` (n,) with the points' Jacobians ``j`` (N, 3), weights ``ws`` (N,) and
-        residuals ``res`` (N, from :meth:`residuals`); returns the new state and the scan's own information (3, 3)
-        on north, east, yaw with the offsets marginalized."""
-        nav = self.nav
-        n, m = nav.n, len(self.ids)
-        a, b, c, g3, gm = plane_information(j, ws, res, self.col, m)
-        if nav.cfg.plane_carry:
-            d0, cross, dd = nav.planes.prior(self.ids)
-        else:
-            d0, cross, dd = np.zeros(m), np.zeros((n, m)), np.eye(m) * self.sigma**2
-        self.lam = joint_prior(nav.P, cross, dd)
-        idx = [0, 1, 4]
-        h = np.zeros((n + m, n + m))
-        h[np.ix_(idx, idx)] = a
-        h[idx, n:] = b
-        h[n:, idx] = b.T
-        h[n:, n:] += np.diag(c)
-        g = np.zeros(n + m)
-        g[idx] = g3
-        g[n:] = gm
-        self.h = h
-        z = np.concatenate([x, self.delta])
-        zp = np.concatenate([x_pred, d0])
-        self.z = np.asarray(np.linalg.solve(self.lam + h, self.lam @ zp + h @ z - g), dtype=np.float64)
-        self.delta = self.z[n:].copy()
-        return self.z[:n].copy(), marginal_information(a, b, c, self.sigma)
-
-    def posterior(self, lm: PlaneLandmarks) -> FloatArray:
-        """The state's covariance (n, n) after the registration; with ``plane_carry`` the planes are kept in
-        ``nav.planes``."""
-        nav = self.nav
-        n = nav.n
-        cov = np.asarray(np.linalg.inv(self.lam + self.h), dtype=np.float64)
-        cov = 0.5 * (cov + cov.T)
-        if nav.cfg.plane_carry:
-            nav.planes.keep(self.ids, self.delta, cov, {int(i) for i in lm.ids})
-        return cov[:n, :n].copy()

@@ -29,10 +29,16 @@ delta would move the robot to the map's error and disagree with the other robots
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["PlaneErrors", "joint_prior", "marginal_information", "plane_information"]
+if TYPE_CHECKING:
+    from .landmarks import PlaneLandmarks
+    from .nav_filter import RobotNav
+
+__all__ = ["PlaneErrors", "PlaneJoint", "joint_prior", "marginal_information", "plane_information"]
 
 FloatArray = NDArray[np.float64]
 
@@ -67,7 +73,7 @@ class PlaneErrors:
         """The carried planes (a snapshot)."""
         return list(self.ids), self.delta.copy(), self.c.copy(), self.d.copy()
 
-    def set(self, snap: tuple[list[int], FloatArray, FloatArray, FloatArray] | None) -> None:
+    def restore(self, snap: tuple[list[int], FloatArray, FloatArray, FloatArray] | None) -> None:
         """Back to a :meth:`copy` (None: no plane)."""
         if snap is None:
             snap = ([], np.zeros(0), np.zeros((self.n, 0)), np.zeros((0, 0)))
@@ -170,3 +176,89 @@ def marginal_information(a: FloatArray, b: FloatArray, c: FloatArray, sigma_m: f
     """(3, 3) one scan's own information on north, east, yaw with each plane's offset marginalized at its prior
     (``sigma_m``, no carried correlation): along a plane's normal at most 1 / ``sigma_m``^2."""
     return a - (b / (c + 1.0 / sigma_m**2)[None, :]) @ b.T
+
+
+class PlaneJoint:
+    """One registration's Gauss-Newton over the state and the used planes' offset errors (``NavConfig.plane_sigma_m``,
+    :mod:`mapping.nav_planes`): the carried planes (``plane_carry``) and the ones this scan hits, their offsets'
+    estimates within the scan."""
+
+    def __init__(self, nav: RobotNav, lm: PlaneLandmarks) -> None:
+        self.nav = nav
+        self.sigma = nav.cfg.plane_sigma_m
+        present = {int(i) for i in lm.ids}
+        self.ids: list[int] = [i for i in nav.planes.ids if i in present] if nav.cfg.plane_carry else []
+        self.delta = nav.planes.prior(self.ids)[0]
+        self.lm_ids = lm.ids
+        self.col = np.zeros(0, dtype=np.int64)
+        self.lam = np.zeros((0, 0))
+        self.h = np.zeros((0, 0))
+        self.z = np.zeros(0)
+
+    def _grow(self, pid: NDArray[np.int64]) -> None:
+        new = [int(i) for i in np.unique(pid) if int(i) not in self.ids]
+        if new:
+            self.ids += new
+            self.delta = np.concatenate([self.delta, np.zeros(len(new))])
+
+    def residuals(self, hit: NDArray[np.int64], r: FloatArray) -> FloatArray:
+        """The residuals (N,) of the points on ``hit`` (indices into the landmarks) with their planes' current
+        offsets in; sets each point's column of the joint."""
+        pid = self.lm_ids[hit]
+        self._grow(pid)
+        pos = {i: c for c, i in enumerate(self.ids)}
+        self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
+        return r + self.delta[self.col]
+
+    def beyond(self, res: FloatArray, normals: FloatArray, gate_sigma: float) -> bool:
+        """Whether a used plane's mean residual ``res`` (N,) at the prediction lies beyond ``gate_sigma`` times its
+        standard deviation: the plane's error and the state's along its normal (``normals`` (N, 3), NED)."""
+        m = len(self.ids)
+        cnt = np.bincount(self.col, minlength=m)
+        mean = np.bincount(self.col, weights=res, minlength=m)[cnt > 0] / cnt[cnt > 0]
+        nh = np.zeros((m, 2))
+        nh[self.col] = normals[:, 0:2]
+        pos = self.nav.P[0:2, 0:2]
+        var = self.sigma**2 + np.einsum("pi,ij,pj->p", nh, pos, nh)[cnt > 0]
+        return bool(np.any(mean**2 > gate_sigma**2 * var))
+
+    def step(
+        self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """One Gauss-Newton step from ``x`` (n,) with the points' Jacobians ``j`` (N, 3), weights ``ws`` (N,) and
+        residuals ``res`` (N, from :meth:`residuals`); returns the new state and the scan's own information (3, 3)
+        on north, east, yaw with the offsets marginalized."""
+        nav = self.nav
+        n, m = nav.n, len(self.ids)
+        a, b, c, g3, gm = plane_information(j, ws, res, self.col, m)
+        if nav.cfg.plane_carry:
+            d0, cross, dd = nav.planes.prior(self.ids)
+        else:
+            d0, cross, dd = np.zeros(m), np.zeros((n, m)), np.eye(m) * self.sigma**2
+        self.lam = joint_prior(nav.P, cross, dd)
+        idx = [0, 1, 4]
+        h = np.zeros((n + m, n + m))
+        h[np.ix_(idx, idx)] = a
+        h[idx, n:] = b
+        h[n:, idx] = b.T
+        h[n:, n:] += np.diag(c)
+        g = np.zeros(n + m)
+        g[idx] = g3
+        g[n:] = gm
+        self.h = h
+        z = np.concatenate([x, self.delta])
+        zp = np.concatenate([x_pred, d0])
+        self.z = np.asarray(np.linalg.solve(self.lam + h, self.lam @ zp + h @ z - g), dtype=np.float64)
+        self.delta = self.z[n:].copy()
+        return self.z[:n].copy(), marginal_information(a, b, c, self.sigma)
+
+    def posterior(self, lm: PlaneLandmarks) -> FloatArray:
+        """The state's covariance (n, n) after the registration; with ``plane_carry`` the planes are kept in
+        ``nav.planes``."""
+        nav = self.nav
+        n = nav.n
+        cov = np.asarray(np.linalg.inv(self.lam + self.h), dtype=np.float64)
+        cov = 0.5 * (cov + cov.T)
+        if nav.cfg.plane_carry:
+            nav.planes.keep(self.ids, self.delta, cov, {int(i) for i in lm.ids})
+        return cov[:n, :n].copy()
