@@ -25,8 +25,6 @@ __all__ = ["RobotNav"]
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
-#: the weight of the fixes' jitter (``plane_fix_jitter_m``) that tells: about a second of fixes at 10 Hz
-_JITTER_MIN_WEIGHT = 10 * 0.1 / 20.0
 
 
 class RobotNav:
@@ -188,9 +186,10 @@ class RobotNav:
         """Whether the raw positions' jitter says they are absolute fixes (``plane_fix_jitter_m``; always without
         the option)."""
         lim = self.cfg.plane_fix_jitter_m
-        if lim <= 0 or self.jit_w < _JITTER_MIN_WEIGHT:
-            # taken as absolute until a second of fixes tells: a plane's error matters most while the first
-            # scans make the map, and a dead reckoning has not drifted yet then
+        if lim <= 0 or self.jit_w < 1.0 / max(self.cfg.fix_quality_s, 1.0):
+            # taken as absolute until a second of fixes tells (the running mean's weight is the time over
+            # fix_quality_s): a plane's error matters most while the first scans make the map, and a dead
+            # reckoning has not drifted yet then
             return True
         return self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
 

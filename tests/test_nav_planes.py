@@ -117,3 +117,20 @@ def test_snapshot_restores_the_carried_planes() -> None:
     nav.restore(snap)
     assert nav.planes.ids == ids
     assert np.array_equal(nav.planes.delta, delta)
+
+
+def test_only_white_fixes_get_the_plane_error() -> None:
+    # absolute fixes (white, 2 cm) turn the planes' error on; a dead reckoning's smooth track (here 1 cm/s of
+    # drift with 2 mm of white noise) keeps the planes exact after its first second: its position rests on the map
+    cfg = replace(ESTIMATE, plane_carry="consider", plane_sigma_m=0.05, plane_fix_jitter_m=0.01)
+    assert len(_hold(cfg, seconds=5.0)[1].planes) == 2
+    true = Pose(3.0, 1.0, 1.0, 0.0, 0.0, math.radians(225.0))
+    pts = ned_to_body(trace(tank(pillars=False), true, n_rays=200, fan_deg=120.0).points_ned, true)
+    lm = _walls(OFF_M)
+    nav = RobotNav("rov1", cfg)
+    rng = np.random.default_rng(2)
+    for k in range(50):
+        e = rng.normal(0.0, 0.002, 2) + np.array([0.001 * k, 0.0])
+        nav.update(k * S // 10, Pose(3.0 + e[0], 1.0 + e[1], 1.0, 0.0, 0.0, true.yaw_rad), pts, lm)
+    assert not nav._white_fixes()
+    assert len(nav.planes) == 0
