@@ -186,11 +186,13 @@ class RobotNav:
         """Whether the raw positions' jitter says they are absolute fixes (``plane_fix_jitter_m``; always without
         the option)."""
         lim = self.cfg.plane_fix_jitter_m
-        if lim <= 0 or self.jit_w < 1.0 / max(self.cfg.fix_quality_s, 1.0):
+        if lim <= 0:
+            return True
+        if self.jit_w < 1.0 / max(self.cfg.fix_quality_s, 1.0):
             # taken as absolute until a second of fixes tells (the running mean's weight is the time over
             # fix_quality_s): a plane's error matters most while the first scans make the map, and a dead
-            # reckoning has not drifted yet then
-            return True
+            # reckoning has not drifted yet then. A robot without fixes rests on the map alone
+            return self.last_raw_ne is not None
         return self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
