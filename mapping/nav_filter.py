@@ -76,10 +76,6 @@ class RobotNav:
         self.pin_time = np.zeros(2)
         self._speed = 0.0
         #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
-        #: with ``NavConfig.plane_gate_scans``: consecutive registrations whose map disagreed beyond the planes'
-        #: error, and whether that latched the planes' error off for the rest of the dive (a drift showed)
-        self.plane_beyond = 0
-        self.plane_latched = False
         #: with ``NavConfig.plane_fix_jitter_m``: the raw position before the last (north, east; m), and the running
         #: mean square of the raw positions' second differences (m^2) with its weight (a bias-corrected mean)
         self.prev_raw_ne: FloatArray | None = None
@@ -106,8 +102,6 @@ class RobotNav:
         "pin_dist",
         "pin_time",
         "_speed",
-        "plane_beyond",
-        "plane_latched",
         "prev_raw_ne",
         "jit2",
         "jit_w",
@@ -163,8 +157,6 @@ class RobotNav:
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
         self.planes.restore(None)
-        self.plane_beyond = 0
-        self.plane_latched = False
         self.prev_raw_ne = None
         self.jit2 = self.jit_w = 0.0
 
@@ -328,18 +320,6 @@ class RobotNav:
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(self.n) - k @ h) @ self.P
 
-    def _latch_planes(self) -> None:
-        """The map disagreed with the prediction beyond the planes' error ``plane_gate_scans`` registrations in a
-        row: a drift, not a plane's error. The planes count as exact for the rest of the dive, and with the adaptive
-        bias the bias opens (the fixes' disagreement, which the planes' error kept small, would not open it)."""
-        self.plane_latched = True
-        if self.cfg.dr_bias_adaptive and self.cfg.dr_bias_sigma_m_s > 0 and not self.bias_open:
-            self.bias_open = True
-            extra = max(self.cfg.dr_bias_sigma_m_s**2 - self.cfg.dr_bias_closed_sigma_m_s**2, 0.0)
-            self.P[2, 2] += extra
-            self.P[3, 3] += extra
-        log.debug("%s: the map disagrees beyond its planes' error: planes exact from now on", self.robot)
-
     def _track_corrections(self, dx: FloatArray) -> None:
         """Keep the running mean velocity of the registrations' corrections of the position (north, east; m/s).
 
@@ -426,8 +406,7 @@ class RobotNav:
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
         joint = None
-        on = not (cfg.plane_good_fixes_only and self.bias_open) and not self.plane_latched and self._white_fixes()
-        if cfg.plane_sigma_m > 0 and on:
+        if cfg.plane_sigma_m > 0 and self._white_fixes():
             joint = PlaneJoint(self, lm)
         elif len(self.planes):
             self.planes.restore(None)
@@ -447,19 +426,7 @@ class RobotNav:
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
             pw = plane_w[k[sel]]
             if joint is not None:
-                r_joint = joint.residuals(k[sel], r)
-                far = it == 0 and cfg.plane_gate_sigma > 0 and joint.beyond(r_joint, n, cfg.plane_gate_sigma)
-                if it == 0 and cfg.plane_gate_sigma > 0:
-                    self.plane_beyond = self.plane_beyond + 1 if far else 0
-                if far:
-                    # the map and the prediction disagree beyond a plane's error: this robot's dead reckoning
-                    # drifts, and the map, not the fixes, must hold it (the planes count as exact, as without)
-                    joint = None
-                    self.planes.restore(None)
-                    if 0 < cfg.plane_gate_scans <= self.plane_beyond:
-                        self._latch_planes()
-                else:
-                    r = r_joint
+                r = joint.residuals(k[sel], r)
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
             # a robot's own planes were placed with its own heading: they hold its position against the dead
             # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_recent_turns_alone)

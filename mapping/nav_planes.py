@@ -210,18 +210,6 @@ class PlaneJoint:
         self.col = np.array([pos[int(i)] for i in pid], dtype=np.int64)
         return r + self.delta[self.col]
 
-    def beyond(self, res: FloatArray, normals: FloatArray, gate_sigma: float) -> bool:
-        """Whether a used plane's mean residual ``res`` (N,) at the prediction lies beyond ``gate_sigma`` times its
-        standard deviation: the plane's error and the state's along its normal (``normals`` (N, 3), NED)."""
-        m = len(self.ids)
-        cnt = np.bincount(self.col, minlength=m)
-        mean = np.bincount(self.col, weights=res, minlength=m)[cnt > 0] / cnt[cnt > 0]
-        nh = np.zeros((m, 2))
-        nh[self.col] = normals[:, 0:2]
-        pos = self.nav.P[0:2, 0:2]
-        var = self.sigma**2 + np.einsum("pi,ij,pj->p", nh, pos, nh)[cnt > 0]
-        return bool(np.any(mean**2 > gate_sigma**2 * var))
-
     def step(
         self, x_pred: FloatArray, x: FloatArray, j: FloatArray, ws: FloatArray, res: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
