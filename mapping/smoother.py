@@ -68,9 +68,8 @@ def _sub(nav: RobotNav) -> list[int]:
 #: docs/navigation-design.md, "Own recent planes"). The dead reckoning's velocity bias is in the model but held at zero
 #: per robot until its fixes' disagreement persists (a drift): always open, it bent good poses; never, a drifting
 #: robot's error outgrew its covariance along walls no scan pinned (docs/navigation-design.md, "The dead reckoning's
-#: velocity bias"). A robot with absolute (white) fixes counts each map plane's offset as an error of 5 cm of its own,
-#: shared by every scan that registers to it: counted as new every scan, a few centimetres of a plane's error overruled
-#: good fixes and the fleet and its map drifted together (docs/navigation-design.md, "A plane's own offset error").
+#: velocity bias"). A map plane's own offset error (``plane_sigma_m``) stays off: it holds good fixes on the extracted
+#: dives but costs the traced ones faces (docs/navigation-design.md, "A plane's own offset error").
 SMOOTHED_NAV = NavConfig(
     fix_quality_factor=5.0,
     own_recent_s=10.0,
@@ -78,9 +77,6 @@ SMOOTHED_NAV = NavConfig(
     own_recent_turns_alone=False,
     dr_bias_sigma_m_s=0.003,
     dr_bias_adaptive=True,
-    plane_sigma_m=0.05,
-    plane_carry="consider",
-    plane_fix_jitter_m=0.01,
 )
 
 
