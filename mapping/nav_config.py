@@ -80,6 +80,17 @@ class NavConfig:
     rate; :mod:`mapping.nav_error`), with ``dr_error_rate_young_s`` > 0 only where the registration used a plane
     first seen less than that before the scan.
 
+    A plane's own offset error (``plane_sigma_m`` > 0; 0 turns it off; :mod:`mapping.nav_planes`): each associated
+    plane's residuals share an error of that standard deviation along its normal (the map placed the plane with
+    poses good to a few centimetres), so one scan's information along a plane's normal saturates at
+    1 / ``plane_sigma_m``^2 however many points it has; with ``plane_carry`` the error is also the same for every
+    later scan: ``"consider"``, a Schmidt consider parameter per plane (its cross-covariance with the state dropped
+    under ``plane_carry_min_corr``); ``"estimate"``, a state of the robot's per plane while the plane is in the map.
+    With ``plane_fix_jitter_m`` > 0 only while the raw positions' white noise (from the RMS of their second
+    differences over ``fix_quality_s``) exceeds it: absolute fixes (a USBL's, a good IMU's) are white, a dead
+    reckoning's track is smooth, and a robot whose position rests on the map must count its planes as exact (with
+    the plane's error a drifting robot's fixes agreed with its estimate, its bias never opened, and it ran away).
+
     Reporting: ``constrained_std_m`` / ``constrained_std_deg`` (registration-only standard deviation under which
     an axis counts as constrained), ``place_std_m`` (clouds of a robot whose horizontal standard deviation
     exceeds it are not placed in the map), ``lost_std_m`` (without a fix, a robot whose predicted standard
@@ -158,6 +169,10 @@ class NavConfig:
     dr_error_rate_weight: float = 1.0
     dr_error_rate_young_s: float = 0.0
     dr_drift_max_m_s: float = 0.05
+    plane_sigma_m: float = 0.0
+    plane_carry: str = ""
+    plane_carry_min_corr: float = 0.05
+    plane_fix_jitter_m: float = 0.0
     fix_min_sigma_m: float = 0.02
     fix_quality_s: float = 20.0
     fix_every_s: float = 0.2

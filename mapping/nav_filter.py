@@ -19,6 +19,7 @@ from .landmarks import PlaneLandmarks, associate
 from .nav_config import NavConfig, NavEstimate, registration_points, scan_constraint
 from .nav_error import bound_error, consider_update, error_prediction, rate_gain, rate_weight, young_planes
 from .nav_frame import rot2
+from .nav_planes import PlaneErrors, PlaneJoint
 
 __all__ = ["RobotNav"]
 
@@ -74,6 +75,15 @@ class RobotNav:
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
         self._speed = 0.0
+        #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
+        #: with ``NavConfig.plane_fix_jitter_m``: the raw position before the last (north, east; m), and the running
+        #: mean square of the raw positions' second differences (m^2) with its weight (a bias-corrected mean)
+        self.prev_raw_ne: FloatArray | None = None
+        self.jit2 = 0.0
+        self.jit_w = 0.0
+        self.planes = PlaneErrors(
+            self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr, estimate=cfg.plane_carry == "estimate"
+        )
 
     _STATE = (
         "t_ns",
@@ -92,6 +102,9 @@ class RobotNav:
         "pin_dist",
         "pin_time",
         "_speed",
+        "prev_raw_ne",
+        "jit2",
+        "jit_w",
     )
 
     def snapshot(self) -> dict[str, Any]:
@@ -99,7 +112,7 @@ class RobotNav:
         out: dict[str, Any] = {k: getattr(self, k) for k in self._STATE}
         for k in ("pin_d", "pin_dist", "pin_time"):
             out[k] = out[k].copy()  # updated in place
-        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest)
+        out.update(x=self.x.copy(), P=self.P.copy(), latest=self.latest, planes=self.planes.copy())
         return out
 
     def restore(self, snap: dict[str, Any]) -> None:
@@ -111,6 +124,7 @@ class RobotNav:
         self.x = snap["x"].copy()
         self.P = snap["P"].copy()
         self.latest = snap["latest"]
+        self.planes.restore(snap["planes"])
 
     @property
     def started(self) -> bool:
@@ -142,6 +156,36 @@ class RobotNav:
         self.pin_d = np.zeros(2)
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
+        self.planes.restore(None)
+        self.prev_raw_ne = None
+        self.jit2 = self.jit_w = 0.0
+
+    def _jitter(self, raw_ne: FloatArray | None) -> None:
+        """Keep the running mean square of the raw positions' second differences (``plane_fix_jitter_m``): an
+        absolute fix (a USBL's, the good IMU's) has white errors, so its second differences are its noise times
+        sqrt(6) per axis; a dead reckoning's track is smooth, its second differences the motion's millimetres."""
+        if raw_ne is None or self.last_raw_ne is None:
+            self.prev_raw_ne = None
+            return
+        if self.prev_raw_ne is not None:
+            dd = raw_ne - 2.0 * self.last_raw_ne + self.prev_raw_ne
+            a = min(1.0, max(self._dt, 1e-3) / self.cfg.fix_quality_s)
+            self.jit2 = (1 - a) * self.jit2 + a * float(dd @ dd) / 2
+            self.jit_w = (1 - a) * self.jit_w + a
+        self.prev_raw_ne = self.last_raw_ne
+
+    def _white_fixes(self) -> bool:
+        """Whether the raw positions' jitter says they are absolute fixes (``plane_fix_jitter_m``; always without
+        the option)."""
+        lim = self.cfg.plane_fix_jitter_m
+        if lim <= 0:
+            return True
+        if self.jit_w < 1.0 / max(self.cfg.fix_quality_s, 1.0):
+            # taken as absolute until a second of fixes tells (the running mean's weight is the time over
+            # fix_quality_s): a plane's error matters most while the first scans make the map, and a dead
+            # reckoning has not drifted yet then. A robot without fixes rests on the map alone
+            return self.last_raw_ne is not None
+        return self.jit2 / self.jit_w > (lim * math.sqrt(6.0)) ** 2
 
     def _predict(self, dt: float, raw_ne: FloatArray | None) -> str:
         cfg = self.cfg
@@ -181,6 +225,8 @@ class RobotNav:
             q[0:2, 0:2] = np.eye(2) * cfg.walk_speed_m_s**2 * max(dt, 1e-3)
             motion = "motion-prior"
         self.P = self.P + q
+        if self.transition is not None:
+            self.planes.transform(self.transition)
         return motion
 
     def _predict_error(self, dt: float, dr: FloatArray, q: FloatArray) -> None:
@@ -218,6 +264,7 @@ class RobotNav:
         h[0, 4] = 1.0
         s = float(self.P[4, 4]) + math.radians(cfg.compass_bias_deg) ** 2
         k = (self.P @ h.T) / s
+        self.planes.measured(k, h, np.array([[s]]), np.array([-float(self.x[4])]))
         self.x = self.x - (k * float(self.x[4])).ravel()
         self.P = (np.eye(self.n) - k @ h) @ self.P
 
@@ -232,6 +279,7 @@ class RobotNav:
             h[0, 0] = h[1, 1] = h[0, 5] = h[1, 6] = 1.0
             s = h @ self.P @ h.T + np.eye(2) * cfg.dr_error_fix_sigma_m**2
             k = self.P @ h.T @ np.linalg.inv(s)
+            self.planes.measured(k, h, s, raw_ne - h @ self.x)
             self.x = self.x + k @ (raw_ne - h @ self.x)
             self.P = (np.eye(self.n) - k @ h) @ self.P
             return
@@ -268,6 +316,7 @@ class RobotNav:
         h[0, 0] = h[1, 1] = 1.0
         s = h @ self.P @ h.T + np.eye(2) * sigma**2
         k = self.P @ h.T @ np.linalg.inv(s)
+        self.planes.measured(k, h, s, raw_ne - self.x[0:2])
         self.x = self.x + k @ (raw_ne - self.x[0:2])
         self.P = (np.eye(self.n) - k @ h) @ self.P
 
@@ -356,6 +405,11 @@ class RobotNav:
         inliers = 0
         used: tuple[int, ...] = ()
         plane_w, plane_turns = self._plane_weights(t_ns, lm)
+        joint = None
+        if cfg.plane_sigma_m > 0 and self._white_fixes():
+            joint = PlaneJoint(self, lm)
+        elif len(self.planes):
+            self.planes.restore(None)
         for it in range(cfg.iterations):
             r_nb = R_ned_from_body(raw.roll_rad, raw.pitch_rad, raw.yaw_rad + float(x[4]))
             veh = np.array([x[0], x[1], raw.down_m])
@@ -371,18 +425,23 @@ class RobotNav:
             relh = rel[sel]
             j = np.stack([n[:, 0], n[:, 1], -n[:, 0] * relh[:, 1] + n[:, 1] * relh[:, 0]], axis=1)
             pw = plane_w[k[sel]]
+            if joint is not None:
+                r = joint.residuals(k[sel], r)
             w = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12)) * pw
             # a robot's own planes were placed with its own heading: they hold its position against the dead
             # reckoning's drift, but say nothing about the compass's bias (NavConfig.own_recent_turns_alone)
             j[~plane_turns[k[sel]], 2] = 0.0
             scale = min(1.0, cfg.max_independent_points / inliers) / cfg.point_sigma_m**2
-            h3 = scale * (j.T * w) @ j
-            g3 = scale * (j.T * w) @ r
-            hf = np.zeros((self.n, self.n))
-            hf[np.ix_(idx, idx)] = h3
-            gf = np.zeros(self.n)
-            gf[idx] = g3
-            x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
+            if joint is not None:
+                x, h3 = joint.step(x_pred, x, j, scale * w, r)
+            else:
+                h3 = scale * (j.T * w) @ j
+                g3 = scale * (j.T * w) @ r
+                hf = np.zeros((self.n, self.n))
+                hf[np.ix_(idx, idx)] = h3
+                gf = np.zeros(self.n)
+                gf[idx] = g3
+                x = np.asarray(np.linalg.solve(p_inv + hf, p_inv @ x_pred + hf @ x - gf), dtype=np.float64)
             if it >= 1:
                 # after the first pass the gate only needs to hold the residual noise and what is left
                 gate = np.full(len(lm), max(cfg.gate_min_m, 4 * cfg.huber_m))
@@ -398,7 +457,13 @@ class RobotNav:
             return np.zeros((3, 3)), 0, ()
         if self.cfg.dr_bias_open_rate_m_s > 0:
             self._track_corrections((x - x_pred)[0:2])
-        cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
+        if joint is not None:
+            cov = joint.posterior(lm)
+            # the registration's information on the state, the planes' offsets marginalized (consider_update's)
+            hf = np.linalg.inv(cov) - p_inv
+            hf = 0.5 * (hf + hf.T)
+        else:
+            cov = np.asarray(np.linalg.inv(p_inv + hf), dtype=np.float64)
         young = cfg.dr_error_rate_young_s > 0 and bool(young_planes(lm, t_ns, cfg.dr_error_rate_young_s)[hit].any())
         w_rate = rate_weight(cfg, young)
         if w_rate < 1.0:
@@ -439,6 +504,8 @@ class RobotNav:
             assert self.t_ns is not None
             dt = (t - self.t_ns) * 1e-9
             self._dt = dt
+            if cfg.plane_fix_jitter_m > 0:
+                self._jitter(raw_ne)
             motion = self._predict(dt, raw_ne)
             self.prior = (self.x.copy(), self.P.copy())
             self.t_ns = t
@@ -448,7 +515,11 @@ class RobotNav:
                 self.lost = False
             if cfg.dr_error_state:
                 pins = (self.pin_d, self.pin_dist, self.pin_time)
+                p_before = self.P
                 self.x, self.P = bound_error(self.x, self.P, *pins, self._speed, cfg)
+                if len(self.planes) and self.P is not p_before:
+                    # the bound's pseudo-measurements are Kalman updates: P_after = (I - K H) P_before
+                    self.planes.transform(np.asarray(np.linalg.solve(p_before.T, self.P.T).T, dtype=np.float64))
             self._compass(t)
         if raw_ne is None and math.sqrt(max(float(self.P[0, 0]), float(self.P[1, 1]))) > cfg.lost_std_m:
             # the scans alone could now match the wrong wall of a symmetric tank (seen: placed 5 m off); no

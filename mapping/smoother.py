@@ -68,7 +68,8 @@ def _sub(nav: RobotNav) -> list[int]:
 #: docs/navigation-design.md, "Own recent planes"). The dead reckoning's velocity bias is in the model but held at zero
 #: per robot until its fixes' disagreement persists (a drift): always open, it bent good poses; never, a drifting
 #: robot's error outgrew its covariance along walls no scan pinned (docs/navigation-design.md, "The dead reckoning's
-#: velocity bias").
+#: velocity bias"). A map plane's own offset error (``plane_sigma_m``) stays off: it holds good fixes on the extracted
+#: dives but costs the traced ones faces (docs/navigation-design.md, "A plane's own offset error").
 SMOOTHED_NAV = NavConfig(
     fix_quality_factor=5.0,
     own_recent_s=10.0,
