@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrsensor.extract import frame as stages
+from lrsensor.extract import frame_locate as locate
 from lrsensor.extract.fit import fit_columns
 from lrsensor.extract.geometry import max_fwhm_at
 from lrsensor.extract.glow import new_water
@@ -92,24 +93,24 @@ def one_sided_sigma(
     if not widths:
         return 1.0
     wide = float(np.median(max_fwhm)) if max_fwhm.size else 0.0
-    return min(max(float(np.median(widths)) / stages.FWHM_PER_SIGMA, 0.6), max(max_sigma, wide / stages.FWHM_PER_SIGMA))
+    return min(max(float(np.median(widths)) / locate.FWHM_PER_SIGMA, 0.6), max(max_sigma, wide / locate.FWHM_PER_SIGMA))
 
 
 def fit_points_at(
-    image: NDArray[np.uint8], p: stages.Picked, mfw: NDArray[np.float64], s: object, window: str
-) -> stages.Located:
+    image: NDArray[np.uint8], p: locate.Picked, mfw: NDArray[np.float64], s: object, window: str
+) -> locate.Located:
     """:func:`lrsensor.extract.frame.fit_points` with the frame statistic's sigma (which sets the common fit's window
     and start) the frame's own (``window`` ``frame``: the product's fits), :func:`one_sided_sigma`'s (``onesided``)
     or forced to ``float(window)`` px."""
     n = p.cols.size
     half0, sat_dn, max_sigma = s.window_half_px, s.saturation_dn, s.max_sigma_px  # type: ignore[attr-defined]
     pool = np.flatnonzero(p.second == 0)
-    if pool.size < stages.STATS_POINTS:
+    if pool.size < locate.STATS_POINTS:
         pool = np.arange(n)
-    m_sub = min(pool.size, stages.STATS_POINTS)
+    m_sub = min(pool.size, locate.STATS_POINTS)
     sub = pool[(np.arange(m_sub) * ((pool.size - 1) / max(m_sub - 1, 1))).astype(np.int64)]
     sub[-1] = pool[-1]
-    own, plateau, wide_lim = stages.frame_profile_stats(
+    own, plateau, wide_lim = locate.frame_profile_stats(
         image, p.cols[sub], p.rows[sub], half0, sat_dn, max_sigma, mfw[sub]
     )
     if window == "frame":
@@ -124,8 +125,8 @@ def fit_points_at(
     max_d = half + 3.0 * sigma + 2.0
     good = fits.ok & ~fits.saturated
     if rows_overlap(p.laser, fits.centre, good, p.noise.size, max_d):
-        stages.refit_neighbours(image, p.cols, p.rows, p.laser, p.noise.size, good, max_d, half, sigma, s, mfw, fits)
-    return stages.Located(
+        locate.refit_neighbours(image, p.cols, p.rows, p.laser, p.noise.size, good, max_d, half, sigma, s, mfw, fits)
+    return locate.Located(
         col_v=p.col_v, laser=p.laser, cols=p.cols, rows=p.rows, chain=p.chain, chain_len=p.chain_len, fits=fits,
         max_fwhm=mfw, half=half, sigma_px=sigma, noise=p.noise,
     )  # fmt: skip
@@ -136,11 +137,11 @@ def tell(frame: TurbidFrame, image: NDArray[np.uint8], window: str, oracle: str,
     error]`` (1/m, px; the row errors' medians over :data:`MID_COLS`, positive outward); ``true_sigma``: the
     blurred stripe's true width, px, which ``oracle`` ``sigma`` and ``both`` give every common fit."""
     bands, s, geo = frame_settings(frame.calibration, SubpixelConfig())
-    picked = stages.locate_candidates(image, bands, s)
+    picked = locate.locate_candidates(image, bands, s)
     mfw = max_fwhm_at(
-        picked.cols, picked.rows, picked.laser, stages.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
+        picked.cols, picked.rows, picked.laser, locate.FWHM_PER_SIGMA * s.max_sigma_px, s.max_sheet_mm, geo
     )
-    p = stages.fit_points(image, picked, mfw, s) if window == "frame" else fit_points_at(image, picked, mfw, s, window)
+    p = locate.fit_points(image, picked, mfw, s) if window == "frame" else fit_points_at(image, picked, mfw, s, window)
     res = p.fits
     truth = frame.rows[p.laser, p.cols]
     out_sign = np.where(p.laser == 0, -1.0, 1.0)  # the top laser's glow lies above its stripe
@@ -160,16 +161,16 @@ def tell(frame: TurbidFrame, image: NDArray[np.uint8], window: str, oracle: str,
 def bench_at(window: str, bench_args: Sequence[str]) -> int:
     """``benchmarks/bench_turbid.py`` with ``bench_args`` (``--cells ...``), every frame's common fits at ``window``
     (:func:`fit_points_at`; the product's own function replaced for the run: a diagnostic's what-if)."""
-    product = stages.fit_points
+    product = locate.fit_points
 
-    def fits_at(image: NDArray[np.uint8], p: stages.Picked, mfw: NDArray[np.float64], s: object) -> stages.Located:
+    def fits_at(image: NDArray[np.uint8], p: locate.Picked, mfw: NDArray[np.float64], s: object) -> locate.Located:
         return product(image, p, mfw, s) if p.cols.size < 2 else fit_points_at(image, p, mfw, s, window)
 
-    stages.fit_points = fits_at  # (extract_frame calls it through the module)
+    locate.fit_points = fits_at  # (extract_frame calls it through the module)
     try:
         return bench_turbid.main(bench_args)
     finally:
-        stages.fit_points = product
+        locate.fit_points = product
 
 
 def main(argv: Sequence[str] | None = None) -> int:

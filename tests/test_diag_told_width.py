@@ -7,7 +7,7 @@ import numpy as np
 from benchmarks.bench_turbid import Cell
 from benchmarks.diag_told_width import fit_points_at, one_sided_sigma, with_noise
 from benchmarks.turbid_model import render
-from lrsensor.extract import frame as stages
+from lrsensor.extract import frame_locate as stages
 from lrsensor.extract.geometry import max_fwhm_at
 from lrsensor.extract.settings import frame_settings
 from lrsensor.extract.subpixel import SubpixelConfig
