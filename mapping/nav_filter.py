@@ -75,12 +75,12 @@ class RobotNav:
         self.pin_dist = np.zeros(2)
         self.pin_time = np.zeros(2)
         self._speed = 0.0
-        #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
         #: with ``NavConfig.plane_fix_jitter_m``: the raw position before the last (north, east; m), and the running
         #: mean square of the raw positions' second differences (m^2) with its weight (a bias-corrected mean)
         self.prev_raw_ne: FloatArray | None = None
         self.jit2 = 0.0
         self.jit_w = 0.0
+        #: with ``NavConfig.plane_carry``: the state's cross-covariance with each plane's offset error
         self.planes = PlaneErrors(
             self.n, cfg.plane_sigma_m, cfg.plane_carry_min_corr, estimate=cfg.plane_carry == "estimate"
         )
