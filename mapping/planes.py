@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import Open3DMissingError
-from .noisy_faces import YAW_SPREAD_SIGMAS, error_at_r2, horizontal_spread, prior_fit
+from .noisy_faces import YAW_SPREAD_SIGMAS, expected_error_m, horizontal_spread, prior_fit
 from .types import MapConfig
 
 FloatArray = NDArray[np.float64]
@@ -476,8 +476,7 @@ def extract_planes(
             chosen = _refine(vpts, members, inl_idx, cfg, thr)
             sig = None
             if noisy:  # each inlier's expected error, k r^2
-                d2 = np.einsum("ij,ij->i", vpts[chosen] - vveh[chosen], vpts[chosen] - vveh[chosen])
-                sig = error_at_r2(k[chosen] if isinstance(k, np.ndarray) else k, d2)
+                sig = expected_error_m(vpts[chosen], vveh[chosen], k[chosen] if isinstance(k, np.ndarray) else k)
             cand, rej, _n, _d = _check_inliers(vpts[chosen], vveh[chosen], cfg, sig)
             if cand is not None:
                 candidates.append(PlaneCandidate(cand.normal, cand.d, chosen, cand.rms_m, cand.width_m, cand.sagitta_m))
